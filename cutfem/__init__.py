@@ -1,0 +1,10 @@
+"""cutfem: unfitted (cut) finite element methods on surfaces and in volumes.
+
+The data flow is a chain of plain value objects holding numpy arrays::
+
+    background mesh -> level set -> cut -> quadrature -> P1 space -> forms -> assemble -> solve -> errors
+
+(a triangulated surface skips the level set and the cut).  See README.md for a tour.
+"""
+
+__version__ = "0.1.0"

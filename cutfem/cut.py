@@ -1,0 +1,621 @@
+"""The cut: the discrete surface S_h = {phi_h = 0} of a P1 level set on a tetrahedral mesh.
+
+Marching tetrahedra
+-------------------
+phi_h is the nodal interpolant of the level set.  A tet is *cut* when its nodes do not all lie on
+the same side.  Its piece K = S_h ∩ T is planar: a triangle when one node is alone on its side, a
+quadrilateral (split into two triangles along a diagonal) when the nodes split two and two.  The
+point on an edge (i, j) with phi_i < 0 <= phi_j is ``x_i + t (x_j - x_i)``,
+``t = phi_i / (phi_i - phi_j)``.  The piece normal is ``n_h = grad phi_h / |grad phi_h|`` (outward,
+towards increasing phi) and every triangle of S_h is oriented by it.
+
+The zero rule
+-------------
+A nodal value that is exactly zero counts as *outside* (phi >= 0 is outside, phi < 0 inside).
+Equivalently S_h is the limit, as eps -> 0+, of the surfaces {phi_h + eps = 0}, each of which has no
+zero nodal values; so S_h is the boundary of the union of the inside parts {phi_h < 0} of the tets,
+closed and oriented.  In the limit some pieces collapse: a vertex of S_h that falls on a background
+node is identified by that node (not by the edge that produced it), pieces with fewer than three
+distinct vertices (segments or points) are dropped, and a tet whose piece collapsed is not active.
+A piece lying in a face shared by two tets is therefore owned by the single tet on the negative side
+(the tet on the other side has all its nodes >= 0 and is not cut).
+
+Active mesh
+-----------
+Active tets are the cut tets with a piece of at least three distinct vertices (positive area).  Their
+nodes, renumbered 0..n-1 in increasing background id, are the active nodes; ``node_ids`` maps back.
+Interior faces are the faces shared by two active tets; surface edges are the edges of the pieces
+(polygons, not the quad diagonals), each shared by the pieces of two neighbouring tets.
+
+Band search
+-----------
+On a :class:`~cutfem.mesh.StructuredBox` with a level set that declares a Lipschitz bound ``L``
+(``levelset.lipschitz``; 1 for signed distances), the cut never visits the whole box: blocks of
+cells are refined coarse to fine, and a block with centre c and half-diagonal r is dropped when
+``|phi(c)| > L r``, which proves phi has no zero there.  Only the cells that survive to the finest
+level have their corner values evaluated.  Without a bound every node is evaluated.
+
+Mesh size ``h = N**(-1/3)`` with N the number of background nodes (SPEC §2).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, field
+from functools import cached_property
+
+import numpy as np
+
+from .mesh import (
+    CUBE_CORNERS,
+    KUHN_TETS,
+    TET_FACES,
+    StructuredBox,
+    TetMesh,
+    barycentric_gradients,
+    pair_up,
+    unique_keys,
+)
+
+__all__ = ["CutMesh", "cut_mesh", "nodal_values", "inside_tetrahedra", "CutError"]
+
+
+class CutError(ValueError):
+    """The level set and the background mesh do not give a closed cut surface inside the box."""
+
+
+# For each sign pattern (bit k set when node k is inside, phi_k < 0) the polygon of the piece as a
+# cyclic list of tet edges (i, j) with i inside, j outside; quads have 4 edges, triangles 3.
+def _case_table():
+    table = {}
+    for mask in range(1, 15):
+        inside = [k for k in range(4) if mask >> k & 1]
+        outside = [k for k in range(4) if not mask >> k & 1]
+        if len(inside) == 1:
+            i = inside[0]
+            edges = [(i, o) for o in outside]
+        elif len(inside) == 3:
+            o = outside[0]
+            edges = [(i, o) for i in inside]
+        else:
+            a, b = inside
+            c, d = outside
+            edges = [(a, c), (a, d), (b, d), (b, c)]
+        table[mask] = edges
+    return table
+
+
+_CASES = _case_table()
+
+
+def _as_values_function(levelset):
+    """A callable x (..., 3) -> (...) from a LevelSet-like object or a plain callable."""
+    if hasattr(levelset, "value"):
+        return levelset.value
+    if callable(levelset):
+        return levelset
+    raise TypeError("levelset must be a LevelSet, a callable f(x) with x of shape (..., 3), or an array of nodal values")
+
+
+def _check_finite(values, where):
+    bad = ~np.isfinite(values)
+    if np.any(bad):
+        k = np.flatnonzero(bad.reshape(-1))
+        raise ValueError(
+            f"the level set gave {k.size} NaN or infinite values at {where}; "
+            "check that it is defined on the whole background box"
+        )
+
+
+def nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
+    """phi at every node of ``mesh`` (N,), with a clear error for NaN/inf values."""
+    if isinstance(levelset, np.ndarray):
+        values = np.asarray(levelset, dtype=float).reshape(-1)
+        if values.size != mesh.n_points:
+            raise ValueError(f"got {values.size} nodal values for a mesh of {mesh.n_points} nodes")
+    else:
+        values = np.asarray(_as_values_function(levelset)(mesh.points), dtype=float).reshape(-1)
+    _check_finite(values, "background nodes")
+    return values
+
+
+# ---------------------------------------------------------------------------------------------
+# candidate tets: (global tet ids, global node ids (m,4), coordinates (m,4,3), values (m,4))
+# ---------------------------------------------------------------------------------------------
+
+
+def _mixed(values):
+    inside = values < 0
+    k = inside.sum(axis=1)
+    return (k > 0) & (k < 4)
+
+
+def _candidates_full(mesh: TetMesh, values):
+    tv = values[mesh.tets]
+    cut = np.flatnonzero(_mixed(tv))
+    nodes = mesh.tets[cut]
+    return cut, nodes, mesh.points[nodes], tv[cut]
+
+
+def _band_cells(box: StructuredBox, f, lipschitz: float) -> np.ndarray:
+    """Cell ids of all cells that may contain a zero of phi, by coarse-to-fine block pruning."""
+    cells = box.cells
+    size = 1
+    while size * 4 <= cells.min():
+        size *= 2
+    nblocks = -(-cells // size)
+    blocks = np.stack(np.meshgrid(*[np.arange(n) for n in nblocks], indexing="ij"), axis=-1).reshape(-1, 3)
+    blocks = blocks * size  # lower cell index of each block
+    half_diag = 0.5 * np.linalg.norm(box.spacing)
+    while True:
+        centre = box.coordinates(blocks + 0.5 * size)
+        phi = np.asarray(f(centre), dtype=float)
+        _check_finite(phi, "block centres of the band search")
+        keep = np.abs(phi) <= lipschitz * half_diag * size * (1 + 1e-9) + 1e-14
+        blocks = blocks[keep]
+        if size == 1:
+            break
+        size //= 2
+        children = blocks[:, None, :] + size * CUBE_CORNERS[None, :, :]
+        children = children.reshape(-1, 3)
+        blocks = children[np.all(children < cells, axis=1)]
+    return blocks[:, 0] + cells[0] * (blocks[:, 1] + cells[1] * blocks[:, 2])
+
+
+def _candidates_structured(box: StructuredBox, f, lipschitz):
+    if lipschitz is None:
+        cell_ids = np.arange(box.n_cells)
+        corner_vals = None
+    else:
+        cell_ids = _band_cells(box, f, float(lipschitz))
+    if lipschitz is None:
+        values = np.asarray(f(box.points), dtype=float).reshape(-1)
+        _check_finite(values, "background nodes")
+        corner_ids = box.cell_corner_ids(cell_ids)
+        corner_vals = values[corner_ids]
+    else:
+        corner_ids = box.cell_corner_ids(cell_ids)
+        corner_vals = np.asarray(f(box.node_coordinates(corner_ids)), dtype=float)
+        _check_finite(corner_vals, "background nodes near the surface")
+    tv = corner_vals[:, KUHN_TETS].reshape(-1, 4)
+    mixed = np.flatnonzero(_mixed(tv))
+    nodes = corner_ids[:, KUHN_TETS].reshape(-1, 4)[mixed]
+    tet_ids = 6 * cell_ids[mixed // 6] + mixed % 6
+    return tet_ids, nodes, box.node_coordinates(nodes), tv[mixed]
+
+
+def _check_boundary(mesh: TetMesh, f_or_values):
+    """All boundary nodes must be outside (phi >= 0): otherwise the surface leaves the box."""
+    b = mesh.boundary_nodes
+    if isinstance(f_or_values, np.ndarray):
+        vb = f_or_values[b]
+    else:
+        pts = mesh.node_coordinates(b) if isinstance(mesh, StructuredBox) else mesh.points[b]
+        vb = np.asarray(f_or_values(pts), dtype=float)
+        _check_finite(vb, "boundary nodes")
+    if np.any(vb < 0):
+        k = int(np.sum(vb < 0))
+        lo, hi = mesh.bounds
+        raise CutError(
+            f"{k} boundary nodes of the background mesh are inside the surface (phi < 0): the surface reaches "
+            f"or leaves the box [{lo.tolist()}, {hi.tolist()}]. Enlarge the box so that it contains the surface "
+            "with at least one cell to spare, or check the sign of the level set (negative inside)."
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+# the cut mesh
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass(eq=False)
+class CutMesh:
+    """S_h and the active mesh T_h of a P1 level set on a background tetrahedral mesh.
+
+    Active mesh (n active tets, p active nodes):
+        ``node_ids`` (p,) background ids; ``points`` (p, 3); ``values`` (p,) phi_h;
+        ``tets`` (n, 4) local node indices; ``tet_ids`` (n,) background tet ids;
+        ``normals`` (n, 3) n_h per piece; ``piece_areas`` (n,).
+    Surface S_h (V vertices, T triangles):
+        ``vertices`` (V, 3); ``triangles`` (T, 3) oriented by n_h; ``triangle_tets`` (T,) active tet
+        of each triangle.
+    Mesh size ``h = N**(-1/3)`` of the background mesh; ``background`` is the background mesh.
+    """
+
+    background: TetMesh
+    node_ids: np.ndarray
+    points: np.ndarray
+    values: np.ndarray
+    tets: np.ndarray
+    tet_ids: np.ndarray
+    normals: np.ndarray
+    vertices: np.ndarray
+    triangles: np.ndarray
+    triangle_tets: np.ndarray
+    _polygon_edges: tuple = field(repr=False)  # (vertex pairs (P,2), piece (P,))
+
+    # -- sizes -----------------------------------------------------------------------------
+    @property
+    def h(self) -> float:
+        """Global mesh size N**(-1/3), N = number of background nodes."""
+        return float(self.background.n_points) ** (-1.0 / 3.0)
+
+    @property
+    def n_tets(self) -> int:
+        return len(self.tets)
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.points)
+
+    @property
+    def n_triangles(self) -> int:
+        return len(self.triangles)
+
+    # -- geometry of S_h ---------------------------------------------------------------------
+    @cached_property
+    def triangle_points(self) -> np.ndarray:
+        """(T, 3, 3) vertex coordinates of each triangle of S_h."""
+        return self.vertices[self.triangles]
+
+    @cached_property
+    def triangle_areas(self) -> np.ndarray:
+        p = self.triangle_points
+        return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+
+    @cached_property
+    def piece_areas(self) -> np.ndarray:
+        """(n,) area of the piece K in each active tet."""
+        return np.bincount(self.triangle_tets, weights=self.triangle_areas, minlength=self.n_tets)
+
+    @property
+    def area(self) -> float:
+        """Area of S_h."""
+        return float(self.triangle_areas.sum())
+
+    @cached_property
+    def enclosed_volume(self) -> float:
+        """Volume enclosed by S_h, by the divergence theorem (1/3) ∫ x·n."""
+        p = self.triangle_points
+        return float(np.einsum("ij,ij->", p[:, 0], np.cross(p[:, 1], p[:, 2])) / 6.0)
+
+    @cached_property
+    def _triangle_edge_counts(self):
+        t = self.triangles
+        V = len(self.vertices)
+        e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+        keys = np.minimum(e[:, 0], e[:, 1]) * V + np.maximum(e[:, 0], e[:, 1])
+        _, _, counts = pair_up(keys)
+        return counts
+
+    @property
+    def euler_characteristic(self) -> int:
+        """V - E + F of the triangulated S_h."""
+        return len(self.vertices) - len(self._triangle_edge_counts) + self.n_triangles
+
+    @property
+    def is_closed(self) -> bool:
+        """Every triangle edge of S_h is shared by exactly two triangles."""
+        return bool(np.all(self._triangle_edge_counts == 2))
+
+    # -- active mesh -------------------------------------------------------------------------
+    @cached_property
+    def tet_vertices(self) -> np.ndarray:
+        """(n, 4, 3) coordinates of the active tets."""
+        return self.points[self.tets]
+
+    @cached_property
+    def _grads_volumes(self):
+        return barycentric_gradients(self.tet_vertices)
+
+    @property
+    def basis_gradients(self) -> np.ndarray:
+        """(n, 4, 3) gradients of the P1 basis functions on each active tet."""
+        return self._grads_volumes[0]
+
+    @property
+    def tet_volumes(self) -> np.ndarray:
+        return np.abs(self._grads_volumes[1])
+
+    @cached_property
+    def _faces(self):
+        n, p = self.n_tets, self.n_nodes
+        keys = np.empty((n, 4), dtype=np.int64)
+        cols = [self.tets[:, j] for j in range(4)]
+        for k, (i, j, l) in enumerate(TET_FACES):
+            a, b, c = cols[i], cols[j], cols[l]
+            lo = np.minimum(np.minimum(a, b), c)
+            hi = np.maximum(np.maximum(a, b), c)
+            keys[:, k] = (lo * p + (a + b + c - lo - hi)) * p + hi
+        order, starts, counts = pair_up(keys.reshape(-1))
+        two = counts == 2
+        first = order[starts[two]]
+        second = order[starts[two] + 1]
+        face_tets = np.stack([first // 4, second // 4], axis=1)
+        local = np.stack([first % 4, second % 4], axis=1)  # local vertex opposite to the face
+        faces = self.tets[face_tets[:, 0, None], TET_FACES[local[:, 0]]]
+        return faces, face_tets, local
+
+    @property
+    def interior_faces(self) -> np.ndarray:
+        """(F, 3) local node indices of the faces shared by two active tets."""
+        return self._faces[0]
+
+    @property
+    def interior_face_tets(self) -> np.ndarray:
+        """(F, 2) the two active tets of each interior face."""
+        return self._faces[1]
+
+    @property
+    def interior_face_opposite(self) -> np.ndarray:
+        """(F, 2) local index (0..3) of the vertex opposite to the face in each of its two tets."""
+        return self._faces[2]
+
+    # -- edges of S_h shared by pieces of neighbouring tets -----------------------------------
+    @cached_property
+    def _surface_edges(self):
+        pairs, piece = self._polygon_edges
+        V = len(self.vertices)
+        keys = np.minimum(pairs[:, 0], pairs[:, 1]) * V + np.maximum(pairs[:, 0], pairs[:, 1])
+        order, starts, counts = pair_up(keys)
+        if np.any(counts != 2):
+            bad = int(np.sum(counts != 2))
+            warnings.warn(
+                f"{bad} edges of S_h are not shared by exactly two pieces (the zero set touches itself); "
+                "they are left out of the edge stabilization",
+                RuntimeWarning,
+                stacklevel=3,
+            )
+        two = counts == 2
+        a, b = order[starts[two]], order[starts[two] + 1]
+        return np.sort(pairs[a], axis=1), np.stack([piece[a], piece[b]], axis=1)
+
+    @property
+    def surface_edges(self) -> np.ndarray:
+        """(E, 2) vertex indices of the edges of S_h between the pieces of two tets."""
+        return self._surface_edges[0]
+
+    @property
+    def surface_edge_tets(self) -> np.ndarray:
+        """(E, 2) the active tets whose pieces share each surface edge."""
+        return self._surface_edges[1]
+
+    @cached_property
+    def surface_edge_conormals(self) -> np.ndarray:
+        """(E, 2, 3) t_{E,K}: unit, in the plane of piece K, orthogonal to E, pointing out of K."""
+        e = self.surface_edges
+        p0, p1 = self.vertices[e[:, 0]], self.vertices[e[:, 1]]
+        d = p1 - p0
+        out = np.empty((len(e), 2, 3))
+        # centroid of each piece from its triangles
+        cent = np.zeros((self.n_tets, 3))
+        cnt = np.bincount(self.triangle_tets, minlength=self.n_tets).astype(float)
+        tc = self.triangle_points.mean(axis=1)
+        for k in range(3):
+            cent[:, k] = np.bincount(self.triangle_tets, weights=tc[:, k], minlength=self.n_tets)
+        cent /= cnt[:, None]
+        for s in range(2):
+            t = np.cross(d, self.normals[self.surface_edge_tets[:, s]])
+            t /= np.linalg.norm(t, axis=1)[:, None]
+            sign = np.sign(np.einsum("ij,ij->i", t, 0.5 * (p0 + p1) - cent[self.surface_edge_tets[:, s]]))
+            out[:, s] = t * sign[:, None]
+        return out
+
+    @cached_property
+    def surface_edge_lengths(self) -> np.ndarray:
+        e = self.surface_edges
+        return np.linalg.norm(self.vertices[e[:, 1]] - self.vertices[e[:, 0]], axis=1)
+
+    # -- quadrature --------------------------------------------------------------------------
+    def surface_quadrature(self, degree: int = 2):
+        """Quadrature on S_h: the triangles of the pieces, parent = active tet, normal = n_h."""
+        from .quadrature import map_triangles
+
+        return map_triangles(self.triangle_points, degree, parent=self.triangle_tets, normal=self.normals[self.triangle_tets])
+
+    def to_pyvista(self):
+        """S_h as a ``pyvista.PolyData`` (cell data: parent tet)."""
+        import pyvista as pv
+
+        faces = np.hstack([np.full((self.n_triangles, 1), 3), self.triangles]).ravel()
+        poly = pv.PolyData(self.vertices, faces)
+        poly.cell_data["tet"] = self.triangle_tets
+        return poly
+
+    def active_mesh_pyvista(self):
+        """The active tets as a ``pyvista.UnstructuredGrid``."""
+        import pyvista as pv
+
+        return pv.UnstructuredGrid({pv.CellType.TETRA: self.tets}, self.points)
+
+    def __repr__(self) -> str:
+        return (
+            f"CutMesh(active_tets={self.n_tets}, active_nodes={self.n_nodes}, triangles={self.n_triangles}, "
+            f"area={self.area:.6g}, h={self.h:.4g})"
+        )
+
+
+def _marching(tet_ids, nodes, xyz, vals, n_background):
+    """Marching tetrahedra on the candidate (cut) tets; see the module docstring."""
+    m = len(tet_ids)
+    inside = vals < 0
+    mask = (inside * (1 << np.arange(4))).sum(axis=1)
+    # polygon vertices: up to 4 edges (i, j) per tet, i inside and j outside
+    edge_i = np.zeros((m, 4), dtype=np.int64)
+    edge_j = np.zeros((m, 4), dtype=np.int64)
+    nvert = np.zeros(m, dtype=np.int64)
+    for code, edges in _CASES.items():
+        sel = mask == code
+        if not np.any(sel):
+            continue
+        e = np.array(edges)
+        k = len(edges)
+        edge_i[sel, :k] = e[:, 0]
+        edge_j[sel, :k] = e[:, 1]
+        if k == 3:  # repeat the last vertex so that every polygon has 4 slots
+            edge_i[sel, 3] = e[2, 0]
+            edge_j[sel, 3] = e[2, 1]
+        nvert[sel] = k
+    rows = np.arange(m)[:, None]
+    gi, gj = nodes[rows, edge_i], nodes[rows, edge_j]
+    pi, pj = vals[rows, edge_i], vals[rows, edge_j]
+    t = pi / (pi - pj)  # in (0, 1]; t == 1 exactly when the outside node has phi == 0
+    pts = xyz[rows, edge_i] + t[..., None] * (xyz[rows, edge_j] - xyz[rows, edge_i])
+    on_node = pj == 0
+    pts[on_node] = xyz[rows, edge_j][on_node]
+    # vertex keys: background node id, or n_background + edge code
+    key = np.where(on_node, gj, n_background + np.minimum(gi, gj) * n_background + np.maximum(gi, gj))
+    # distinct vertices per polygon; drop pieces with fewer than 3
+    k4 = key
+    distinct = 1 + (k4[:, 1] != k4[:, 0]) + ((k4[:, 2] != k4[:, 0]) & (k4[:, 2] != k4[:, 1]))
+    distinct = distinct + ((k4[:, 3] != k4[:, 0]) & (k4[:, 3] != k4[:, 1]) & (k4[:, 3] != k4[:, 2]))
+    active = distinct >= 3
+    return active, pts, key, nvert
+
+
+def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> CutMesh:
+    """Cut a background tetrahedral mesh by the zero level set of the P1 interpolant of ``levelset``.
+
+    ``levelset``: a LevelSet (``value``, optional ``lipschitz``), a callable ``f(x)`` with x (..., 3),
+    or an array of nodal values (N,) (not with a structured box's band search).
+    Raises :class:`CutError` when the level set does not cut the mesh or the surface reaches the box
+    boundary, ValueError for NaN/inf values.  See the module docstring for the zero rule.
+    """
+    lipschitz = getattr(levelset, "lipschitz", None)
+    if isinstance(levelset, np.ndarray):
+        values = nodal_values(background, levelset)
+        if check_boundary:
+            _check_boundary(background, values)
+        cand = _candidates_full(background, values)
+    elif isinstance(background, StructuredBox):
+        f = _as_values_function(levelset)
+        if check_boundary:
+            _check_boundary(background, f)
+        cand = _candidates_structured(background, f, lipschitz)
+    else:
+        values = nodal_values(background, levelset)
+        if check_boundary:
+            _check_boundary(background, values)
+        cand = _candidates_full(background, values)
+    tet_ids, nodes, xyz, vals = cand
+    if len(tet_ids) == 0:
+        raise CutError(
+            "the level set does not cut the background mesh: no tetrahedron has nodal values of both signs. "
+            "Check that the surface lies inside the box and is larger than a cell (refine the mesh), and that "
+            "the level set is negative inside."
+        )
+    n_bg = background.n_points
+    active, pts, key, nvert = _marching(tet_ids, nodes, xyz, vals, n_bg)
+    if not np.any(active):
+        raise CutError("every piece of the cut collapsed to a point or segment; refine the background mesh")
+    tet_ids, nodes, xyz, vals = tet_ids[active], nodes[active], xyz[active], vals[active]
+    pts, key, nvert = pts[active], key[active], nvert[active]
+    m = len(tet_ids)
+
+    # active nodes, numbered by increasing background id
+    node_ids, inv = unique_keys(nodes.reshape(-1), return_inverse=True)
+    tets = inv.reshape(m, 4)
+    first = np.empty(len(node_ids), dtype=np.int64)
+    first[inv[::-1]] = np.arange(inv.size)[::-1]
+    points = xyz.reshape(-1, 3)[first]
+    values = vals.reshape(-1)[first]
+
+    # normals n_h = grad phi_h / |grad phi_h|
+    grads, _ = barycentric_gradients(xyz)
+    g = np.einsum("tk,tkd->td", vals, grads)
+    normals = g / np.linalg.norm(g, axis=1)[:, None]
+
+    # surface vertices by key
+    vkeys, vinv = unique_keys(key.reshape(-1), return_inverse=True)
+    vinv = vinv.reshape(m, 4)
+    vfirst = np.empty(len(vkeys), dtype=np.int64)
+    vfirst[vinv.reshape(-1)[::-1]] = np.arange(vinv.size)[::-1]
+    vertices = pts.reshape(-1, 3)[vfirst]
+
+    # triangles: (0,1,2) and, for quads, (0,2,3); drop triangles with repeated vertices
+    tri = np.concatenate([vinv[:, [0, 1, 2]], vinv[:, [0, 2, 3]]])
+    tri_tet = np.concatenate([np.arange(m), np.arange(m)])
+    is_quad = np.concatenate([np.ones(m, bool), nvert == 4])
+    ok = is_quad & (tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])
+    tri, tri_tet = tri[ok], tri_tet[ok]
+    p = vertices[tri]
+    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    flip = np.einsum("ij,ij->i", nrm, normals[tri_tet]) < 0
+    tri[flip, 1], tri[flip, 2] = tri[flip, 2], tri[flip, 1].copy()
+    order = np.argsort(tri_tet, kind="stable")
+    tri, tri_tet = tri[order], tri_tet[order]
+
+    # polygon edges (consecutive distinct vertices, cyclic), for the edge stabilization
+    nxt = np.where(nvert[:, None] == 4, vinv[:, [1, 2, 3, 0]], vinv[:, [1, 2, 0, 0]])
+    valid = np.ones((m, 4), bool)
+    valid[nvert == 3, 3] = False
+    valid &= vinv != nxt
+    pairs = np.stack([vinv[valid], nxt[valid]], axis=1)
+    piece = np.broadcast_to(np.arange(m)[:, None], (m, 4))[valid]
+
+    cm = CutMesh(
+        background=background,
+        node_ids=node_ids,
+        points=points,
+        values=values,
+        tets=tets,
+        tet_ids=tet_ids,
+        normals=normals,
+        vertices=vertices,
+        triangles=tri,
+        triangle_tets=tri_tet,
+        _polygon_edges=(pairs, piece),
+    )
+    return cm
+
+
+def inside_tetrahedra(background: TetMesh, levelset):
+    """The region {phi_h < 0} as tetrahedra, for volume integrals.
+
+    Returns ``(vertices (k, 4, 3), parent (k,))``: every background tet with all nodes inside, plus
+    the inside part of every cut tet split into sub-tets (1 inside node: one tet; 2 inside nodes: a
+    prism, 3 tets; 3 inside nodes: the tet minus a corner, a prism, 3 tets).  Sub-tets may have zero
+    volume under the zero rule; they integrate to zero.  ``parent`` holds background tet ids.
+    This visits every background tet.
+    """
+    values = nodal_values(background, levelset)
+    tv = values[background.tets]
+    inside = tv < 0
+    k = inside.sum(axis=1)
+    full = np.flatnonzero(k == 4)
+    pieces = [background.points[background.tets[full]]]
+    parents = [full]
+    X = background.points[background.tets]
+    for count in (1, 2, 3):
+        sel = np.flatnonzero(k == count)
+        if sel.size == 0:
+            continue
+        order = np.argsort(~inside[sel], axis=1, kind="stable")  # inside nodes first
+        x = np.take_along_axis(X[sel], order[..., None], axis=1)
+        v = np.take_along_axis(tv[sel], order, axis=1)
+
+        def P(i, j):
+            t = (v[:, i] / (v[:, i] - v[:, j]))[:, None]
+            return x[:, i] + t * (x[:, j] - x[:, i])
+
+        if count == 1:
+            sub = [np.stack([x[:, 0], P(0, 1), P(0, 2), P(0, 3)], axis=1)]
+        elif count == 2:
+            a, b, pac, pad, pbc, pbd = x[:, 0], x[:, 1], P(0, 2), P(0, 3), P(1, 2), P(1, 3)
+            sub = _prism(a, pac, pad, b, pbc, pbd)
+        else:
+            a, b, c = x[:, 0], x[:, 1], x[:, 2]
+            sub = _prism(a, b, c, P(0, 3), P(1, 3), P(2, 3))
+        for s in sub:
+            pieces.append(s)
+            parents.append(sel)
+    return np.concatenate(pieces), np.concatenate(parents)
+
+
+def _prism(a, b, c, a2, b2, c2):
+    """Three tets filling the prism with bottom (a, b, c), top (a2, b2, c2), lateral edges a-a2 etc."""
+    return [
+        np.stack([a, b, c, a2], axis=1),
+        np.stack([b, c, a2, b2], axis=1),
+        np.stack([c, a2, b2, c2], axis=1),
+    ]

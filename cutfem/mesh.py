@@ -1,0 +1,509 @@
+"""Background tetrahedral meshes: structured boxes, unstructured meshes through pytetwild, topology, I/O.
+
+A :class:`TetMesh` holds ``points`` (N, 3) and positively oriented ``tets`` (M, 4).  Its topology
+(unique faces with their one or two tets, edges, boundary) is computed on demand, vectorized, by
+sorting integer keys.  A :class:`StructuredBox` is a tetrahedral mesh of an axis-aligned box made
+of cubes (cuboids), each split into the six Kuhn tetrahedra that share the main diagonal; the split
+is the same in every cube, so the mesh is conforming.  A structured box never needs to store its
+whole point or tet arrays: the cut (:mod:`cutfem.cut`) asks it only for the cells near the
+surface.  ``points``/``tets`` are built lazily if a user wants the whole mesh.
+
+Mesh size: the global value ``h = N**(-1/3)`` (N = number of background nodes), as in SPEC §2.
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "TetMesh",
+    "StructuredBox",
+    "structured_box",
+    "unstructured_box",
+    "unstructured_around",
+    "read_mesh",
+    "write_mesh",
+    "barycentric_gradients",
+    "sorted_row_keys",
+    "decode_triple_keys",
+    "pair_up",
+    "unique_keys",
+]
+
+# The six Kuhn tetrahedra of the unit cube: each follows a monotone path 000 -> 111 along the
+# axes in one of the 3! orders.  Corner c of the cube has offset ((c>>0)&1, (c>>1)&1, (c>>2)&1).
+_PERMS = [(0, 1, 2), (0, 2, 1), (1, 0, 2), (1, 2, 0), (2, 0, 1), (2, 1, 0)]
+
+
+def _kuhn_local_tets() -> np.ndarray:
+    tets = []
+    corner = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], float)
+    for perm in _PERMS:
+        path = [0]
+        code = 0
+        for axis in perm:
+            code |= 1 << axis
+            path.append(code)
+        a, b, c, d = corner[path]
+        if np.linalg.det(np.array([b - a, c - a, d - a])) < 0:
+            path[2], path[3] = path[3], path[2]
+        tets.append(path)
+    return np.array(tets, dtype=np.int64)
+
+
+KUHN_TETS = _kuhn_local_tets()  # (6, 4) local cube-corner indices, positively oriented
+CUBE_CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=np.int64)
+
+# local faces of a tet (opposite to vertex k) and local edges
+TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], dtype=np.int64)
+TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
+
+
+def sorted_row_keys(rows: np.ndarray, n: int) -> np.ndarray:
+    """Encode each row of non-negative integers below ``n`` as one int64, independent of the order
+    of the entries in the row.
+
+    ``rows`` (m, k) with k = 2 or 3.  The key is the mixed-radix number ``(lo*n + mid)*n + hi`` of
+    the sorted row (``lo*n + hi`` for pairs), computed column-wise.  Raises OverflowError if n**k
+    does not fit in int64.
+    """
+    rows = np.asarray(rows, dtype=np.int64)
+    k = rows.shape[1]
+    if float(n) ** k >= 2.0**63:
+        raise OverflowError(f"cannot encode rows of {k} indices below {n} in int64")
+    cols = [np.ascontiguousarray(rows[:, j]) for j in range(k)]
+    if k == 2:
+        a, b = cols
+        return np.minimum(a, b) * n + np.maximum(a, b)
+    if k == 3:
+        a, b, c = cols
+        lo = np.minimum(np.minimum(a, b), c)
+        hi = np.maximum(np.maximum(a, b), c)
+        return (lo * n + (a + b + c - lo - hi)) * n + hi
+    raise ValueError(f"rows must have 2 or 3 columns, got {k}")
+
+
+def decode_triple_keys(keys: np.ndarray, n: int) -> np.ndarray:
+    """Inverse of :func:`sorted_row_keys` for triples: (m, 3) sorted rows."""
+    keys = np.asarray(keys, dtype=np.int64)
+    out = np.empty((keys.size, 3), dtype=np.int64)
+    rest = keys // n
+    out[:, 2] = keys - rest * n
+    out[:, 0] = rest // n
+    out[:, 1] = rest - out[:, 0] * n
+    return out
+
+
+def pair_up(keys: np.ndarray):
+    """Group equal keys by one stable sort.
+
+    Returns ``(order, starts, counts)``: ``keys[order]`` is sorted and the run of the g-th
+    distinct key is ``order[starts[g] : starts[g] + counts[g]]``.
+    """
+    keys = np.asarray(keys)
+    order = np.argsort(keys, kind="stable")
+    sk = keys[order]
+    new = np.empty(sk.size, bool)
+    if sk.size:
+        new[0] = True
+        np.not_equal(sk[1:], sk[:-1], out=new[1:])
+    starts = np.flatnonzero(new)
+    counts = np.diff(np.append(starts, sk.size))
+    return order, starts, counts
+
+
+def unique_keys(keys: np.ndarray, return_inverse: bool = False):
+    """Sorted distinct values of an integer array (and the inverse map), by one stable sort.
+
+    Same result as ``np.unique(keys, return_inverse=...)`` for 1-d integer arrays, but uses a
+    radix-friendly stable argsort, which is many times faster on tens of millions of keys.
+    """
+    keys = np.asarray(keys).reshape(-1)
+    order, starts, counts = pair_up(keys)
+    uniq = keys[order[starts]]
+    if not return_inverse:
+        return uniq
+    inverse = np.empty(keys.size, dtype=np.int64)
+    inverse[order] = np.repeat(np.arange(uniq.size), counts)
+    return uniq, inverse
+
+
+def barycentric_gradients(vertices: np.ndarray):
+    """Gradients of the barycentric coordinates of tetrahedra.
+
+    ``vertices`` (m, 4, 3).  With ``B = [x1-x0, x2-x0, x3-x0]`` (columns), lambda_k for k=1..3
+    has gradient row k-1 of ``B^{-1}`` and ``grad lambda_0 = -sum_k grad lambda_k``.
+    Returns ``(grads (m, 4, 3), volumes (m,))`` with signed volumes ``det(B)/6``.
+    """
+    v = np.asarray(vertices, dtype=float)
+    B = (v[:, 1:, :] - v[:, :1, :]).transpose(0, 2, 1)  # (m,3,3), columns are edges
+    det = np.linalg.det(B)
+    # inverse via adjugate: rows of B^{-1} are cross products of columns / det
+    e1, e2, e3 = B[:, :, 0], B[:, :, 1], B[:, :, 2]
+    inv = np.stack([np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=1) / det[:, None, None]
+    grads = np.empty((v.shape[0], 4, 3))
+    grads[:, 1:, :] = inv
+    grads[:, 0, :] = -inv.sum(axis=1)
+    return grads, det / 6.0
+
+
+class TetMesh:
+    """A conforming tetrahedral mesh.
+
+    Parameters
+    ----------
+    points : (N, 3) float
+    tets : (M, 4) int, vertex indices of each tetrahedron
+    orient : if True, tets with negative volume are reordered (two vertices swapped); if False
+        (default), negative volumes are an error.
+    check : validate finiteness, index range and non-degeneracy (volume > 1e-12 * mean |volume|).
+
+    Cached topology: ``faces`` (F, 3) sorted node triples, ``face_tets`` (F, 2) with -1 for the
+    missing neighbour of a boundary face (the first entry is always a tet), ``tet_faces`` (M, 4)
+    (face opposite to local vertex k), ``edges`` (E, 2), ``boundary_faces`` (indices into faces),
+    ``boundary_nodes``, ``interior_faces``.  Mesh size ``h = N**(-1/3)``.
+    """
+
+    def __init__(self, points, tets, *, orient: bool = False, check: bool = True):
+        points = np.ascontiguousarray(points, dtype=float)
+        tets = np.ascontiguousarray(tets, dtype=np.int64)
+        if points.ndim != 2 or points.shape[1] != 3:
+            raise ValueError(f"points must have shape (N, 3), got {points.shape}")
+        if tets.ndim != 2 or tets.shape[1] != 4:
+            raise ValueError(f"tets must have shape (M, 4), got {tets.shape}")
+        if check:
+            if not np.all(np.isfinite(points)):
+                bad = np.flatnonzero(~np.all(np.isfinite(points), axis=1))
+                raise ValueError(f"{bad.size} mesh points are NaN or infinite (first: point {bad[0]}); fix the input mesh")
+            if tets.size and (tets.min() < 0 or tets.max() >= len(points)):
+                raise ValueError(f"tet vertex indices must lie in [0, {len(points)}); got range [{tets.min()}, {tets.max()}]")
+            vol = self._signed_volumes(points, tets)
+            scale = np.mean(np.abs(vol)) if vol.size else 0.0
+            degenerate = np.abs(vol) <= 1e-12 * scale
+            if np.any(degenerate):
+                k = np.flatnonzero(degenerate)
+                raise ValueError(
+                    f"{k.size} degenerate (zero-volume) tetrahedra, first: tet {k[0]} with vertices {tets[k[0]].tolist()}; "
+                    "remove them or re-mesh"
+                )
+            inverted = vol < 0
+            if np.any(inverted):
+                if not orient:
+                    k = np.flatnonzero(inverted)
+                    raise ValueError(
+                        f"{k.size} inverted (negatively oriented) tetrahedra, first: tet {k[0]}; "
+                        "swap two vertices of each, or pass orient=True to reorder them"
+                    )
+                tets = tets.copy()
+                tets[inverted, 2], tets[inverted, 3] = tets[inverted, 3], tets[inverted, 2].copy()
+        self.points = points
+        self.tets = tets
+
+    @staticmethod
+    def _signed_volumes(points, tets):
+        v = points[tets]
+        return np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), v[:, 3] - v[:, 0]) / 6.0
+
+    # -- sizes ---------------------------------------------------------------------------
+    @property
+    def n_points(self) -> int:
+        return len(self.points)
+
+    @property
+    def n_tets(self) -> int:
+        return len(self.tets)
+
+    @property
+    def h(self) -> float:
+        """Global mesh size N**(-1/3), N = number of nodes (SPEC §2)."""
+        return float(self.n_points) ** (-1.0 / 3.0)
+
+    @cached_property
+    def volumes(self) -> np.ndarray:
+        """(M,) tet volumes (positive)."""
+        return self._signed_volumes(self.points, self.tets)
+
+    @cached_property
+    def bounds(self):
+        """(lower (3,), upper (3,)) bounding box of the points."""
+        return self.points.min(axis=0), self.points.max(axis=0)
+
+    # -- topology ------------------------------------------------------------------------
+    @cached_property
+    def _face_topology(self):
+        m, n = self.n_tets, self.n_points
+        tets = self.tets
+        if float(n) ** 3 >= 2.0**63:
+            used, inv = unique_keys(tets, return_inverse=True)
+            tets, n = inv.reshape(-1, 4), len(used)
+        else:
+            used = None
+        cols = [np.ascontiguousarray(tets[:, j]) for j in range(4)]
+        keys = np.empty((m, 4), dtype=np.int64)  # key of face k of tet t at row 4t+k
+        for k, (i, j, l) in enumerate(TET_FACES):
+            a, b, c = cols[i], cols[j], cols[l]
+            lo = np.minimum(np.minimum(a, b), c)
+            hi = np.maximum(np.maximum(a, b), c)
+            keys[:, k] = (lo * n + (a + b + c - lo - hi)) * n + hi
+        keys = keys.reshape(-1)
+        order, starts, counts = pair_up(keys)
+        if np.any(counts > 2):
+            raise ValueError(f"{int(np.sum(counts > 2))} faces are shared by more than two tets: the mesh is not conforming")
+        first = order[starts]
+        faces = decode_triple_keys(keys[first], n)
+        if used is not None:
+            faces = used[faces]
+        face_tets = np.full((len(starts), 2), -1, dtype=np.int64)
+        face_tets[:, 0] = first // 4
+        two = counts == 2
+        face_tets[two, 1] = order[starts[two] + 1] // 4
+        face_of_row = np.empty(4 * m, dtype=np.int64)
+        face_of_row[order] = np.repeat(np.arange(len(starts)), counts)
+        return faces, face_tets, face_of_row.reshape(m, 4)
+
+    @property
+    def faces(self) -> np.ndarray:
+        """(F, 3) unique faces as sorted vertex triples."""
+        return self._face_topology[0]
+
+    @property
+    def face_tets(self) -> np.ndarray:
+        """(F, 2) the tets of each face; -1 in the second column for boundary faces."""
+        return self._face_topology[1]
+
+    @property
+    def tet_faces(self) -> np.ndarray:
+        """(M, 4) face index of the face opposite to each local vertex."""
+        return self._face_topology[2]
+
+    @cached_property
+    def boundary_faces(self) -> np.ndarray:
+        """Indices (into ``faces``) of faces with a single tet."""
+        return np.flatnonzero(self.face_tets[:, 1] < 0)
+
+    @cached_property
+    def interior_faces(self) -> np.ndarray:
+        """Indices (into ``faces``) of faces shared by two tets."""
+        return np.flatnonzero(self.face_tets[:, 1] >= 0)
+
+    @cached_property
+    def boundary_nodes(self) -> np.ndarray:
+        """Sorted indices of the nodes on boundary faces."""
+        return unique_keys(self.faces[self.boundary_faces])
+
+    @cached_property
+    def edges(self) -> np.ndarray:
+        """(E, 2) unique edges as sorted vertex pairs."""
+        n = self.n_points
+        keys = np.concatenate([sorted_row_keys(self.tets[:, e], n) for e in TET_EDGES])
+        keys = unique_keys(keys)
+        return np.stack([keys // n, keys % n], axis=1)
+
+    @property
+    def euler_characteristic(self) -> int:
+        """V - E + F - T; equals 1 for a mesh of a ball (e.g. a box)."""
+        return self.n_points - len(self.edges) + len(self.faces) - self.n_tets
+
+    def to_pyvista(self):
+        """The mesh as a ``pyvista.UnstructuredGrid``."""
+        import pyvista as pv
+
+        return pv.UnstructuredGrid({pv.CellType.TETRA: self.tets}, self.points)
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}(n_points={self.n_points}, n_tets={self.n_tets})"
+
+
+class StructuredBox(TetMesh):
+    """Tetrahedral mesh of the box ``[lower, upper]`` with ``cells = (nx, ny, nz)`` cuboids, six
+    Kuhn tets per cuboid (all sharing the cuboid's main diagonal).
+
+    Node (i, j, k) has id ``i + (nx+1) * (j + (ny+1) * k)`` and coordinates
+    ``lower + (i, j, k) * spacing``; cell (i, j, k) has id ``i + nx * (j + ny * k)``; tet
+    ``6 * cell + l`` is the l-th Kuhn tet of the cell (:data:`KUHN_TETS`).  The whole ``points`` and
+    ``tets`` arrays are built only when asked for; :meth:`cell_tets` and :meth:`node_coordinates`
+    serve any subset.
+    """
+
+    def __init__(self, lower, upper, cells):
+        lower = np.asarray(lower, dtype=float).reshape(3)
+        upper = np.asarray(upper, dtype=float).reshape(3)
+        cells = np.asarray(cells, dtype=np.int64).reshape(3)
+        if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))):
+            raise ValueError("box corners must be finite")
+        if np.any(upper <= lower):
+            raise ValueError(f"box must have upper > lower in every axis, got lower={lower}, upper={upper}")
+        if np.any(cells < 1):
+            raise ValueError(f"need at least one cell per axis, got cells={cells.tolist()}")
+        self.lower, self.upper, self.cells = lower, upper, cells
+        self.spacing = (upper - lower) / cells
+        self.node_shape = cells + 1
+
+    # sizes without building anything
+    @property
+    def n_points(self) -> int:
+        return int(np.prod(self.node_shape))
+
+    @property
+    def n_cells(self) -> int:
+        return int(np.prod(self.cells))
+
+    @property
+    def n_tets(self) -> int:
+        return 6 * self.n_cells
+
+    @property
+    def bounds(self):
+        return self.lower.copy(), self.upper.copy()
+
+    # ids and coordinates of any subset
+    def node_index(self, ids) -> np.ndarray:
+        """(k, 3) integer (i, j, k) of node ids."""
+        ids = np.asarray(ids, dtype=np.int64)
+        nx1, ny1 = self.node_shape[0], self.node_shape[1]
+        return np.stack([ids % nx1, (ids // nx1) % ny1, ids // (nx1 * ny1)], axis=-1)
+
+    def node_id(self, ijk) -> np.ndarray:
+        ijk = np.asarray(ijk, dtype=np.int64)
+        return ijk[..., 0] + self.node_shape[0] * (ijk[..., 1] + self.node_shape[1] * ijk[..., 2])
+
+    def coordinates(self, ijk) -> np.ndarray:
+        """Coordinates of integer node indices ``ijk`` (..., 3): ``lower + ijk * spacing``."""
+        return self.lower + np.asarray(ijk) * self.spacing
+
+    def node_coordinates(self, ids) -> np.ndarray:
+        return self.coordinates(self.node_index(ids))
+
+    def cell_index(self, cell_ids) -> np.ndarray:
+        c = np.asarray(cell_ids, dtype=np.int64)
+        nx, ny = self.cells[0], self.cells[1]
+        return np.stack([c % nx, (c // nx) % ny, c // (nx * ny)], axis=-1)
+
+    def cell_corner_ids(self, cell_ids) -> np.ndarray:
+        """(k, 8) node ids of the cube corners (corner c has offset bits (c&1, c>>1&1, c>>2&1))."""
+        ijk = self.cell_index(cell_ids)
+        return self.node_id(ijk[:, None, :] + CUBE_CORNERS[None, :, :])
+
+    def cell_tets(self, cell_ids) -> np.ndarray:
+        """(6k, 4) node ids of the Kuhn tets of the given cells, tet ``6*c + l`` order."""
+        return self.cell_corner_ids(cell_ids)[:, KUHN_TETS].reshape(-1, 4)
+
+    @cached_property
+    def points(self) -> np.ndarray:  # type: ignore[override]
+        ijk = self.node_index(np.arange(self.n_points))
+        return self.coordinates(ijk)
+
+    @cached_property
+    def tets(self) -> np.ndarray:  # type: ignore[override]
+        return self.cell_tets(np.arange(self.n_cells))
+
+    @cached_property
+    def boundary_nodes(self) -> np.ndarray:
+        """Node ids on the box boundary, computed from the grid (no topology needed)."""
+        nx1, ny1, nz1 = self.node_shape
+        i, j, k = np.meshgrid(np.arange(nx1), np.arange(ny1), np.arange(nz1), indexing="ij")
+        on = (i == 0) | (i == nx1 - 1) | (j == 0) | (j == ny1 - 1) | (k == 0) | (k == nz1 - 1)
+        return np.sort(self.node_id(np.stack([i[on], j[on], k[on]], axis=-1)))
+
+    def __repr__(self) -> str:
+        return (
+            f"StructuredBox(lower={self.lower.tolist()}, upper={self.upper.tolist()}, cells={self.cells.tolist()}, "
+            f"n_points={self.n_points}, n_tets={self.n_tets})"
+        )
+
+
+def structured_box(lower, upper, spacing=None, cells=None) -> StructuredBox:
+    """Structured tetrahedral mesh of the box ``[lower, upper]`` (6 Kuhn tets per cuboid).
+
+    Give either ``spacing`` (a number or 3 numbers; ``(upper - lower) / spacing`` must be a whole
+    number in each axis to within 1e-9, otherwise the call fails and names the nearest counts) or
+    ``cells`` (an int or 3 ints).
+    """
+    lower = np.asarray(lower, dtype=float).reshape(3)
+    upper = np.asarray(upper, dtype=float).reshape(3)
+    if (spacing is None) == (cells is None):
+        raise ValueError("give exactly one of spacing= or cells=")
+    if spacing is not None:
+        spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (3,))
+        if np.any(~np.isfinite(spacing)) or np.any(spacing <= 0):
+            raise ValueError(f"spacing must be positive, got {spacing.tolist()}")
+        ratio = (upper - lower) / spacing
+        cells = np.rint(ratio).astype(np.int64)
+        if np.any(np.abs(ratio - cells) > 1e-9 * np.maximum(ratio, 1)) or np.any(cells < 1):
+            raise ValueError(
+                f"box extents {(upper - lower).tolist()} are not whole multiples of spacing {spacing.tolist()} "
+                f"(ratio {ratio.tolist()}); adjust the box or pass cells={np.maximum(cells, 1).tolist()}"
+            )
+    else:
+        cells = np.broadcast_to(np.asarray(cells, dtype=np.int64), (3,))
+    return StructuredBox(lower, upper, cells)
+
+
+def _box_surface(lower, upper):
+    """Closed triangulated surface of a box (8 vertices, 12 outward triangles)."""
+    lower = np.asarray(lower, float)
+    upper = np.asarray(upper, float)
+    v = lower + CUBE_CORNERS * (upper - lower)
+    quads = [[0, 2, 3, 1], [4, 5, 7, 6], [0, 1, 5, 4], [2, 6, 7, 3], [0, 4, 6, 2], [1, 3, 7, 5]]
+    tris = []
+    for a, b, c, d in quads:
+        tris += [[a, b, c], [a, c, d]]
+    return v, np.array(tris, dtype=np.int32)
+
+
+def _tetwild(vertices, faces, edge_length, optimize=True) -> TetMesh:
+    import pytetwild
+
+    if not np.isfinite(edge_length) or edge_length <= 0:
+        raise ValueError(f"edge_length must be positive, got {edge_length}")
+    pts, tets = pytetwild.tetrahedralize(
+        np.asarray(vertices, float), np.asarray(faces, np.int32), edge_length_abs=float(edge_length), optimize=optimize
+    )
+    used, inv = unique_keys(np.asarray(tets, np.int64), return_inverse=True)
+    return TetMesh(np.asarray(pts)[used], inv.reshape(-1, 4), orient=True)
+
+
+def unstructured_box(lower, upper, edge_length: float, optimize: bool = True) -> TetMesh:
+    """Unstructured tetrahedral mesh of the box ``[lower, upper]`` by pytetwild at a target edge length."""
+    v, f = _box_surface(lower, upper)
+    return _tetwild(v, f, edge_length, optimize)
+
+
+def unstructured_around(surface, edge_length: float, padding: float = 0.2, optimize: bool = True) -> TetMesh:
+    """Unstructured tetrahedral mesh (pytetwild) of the box around a closed surface.
+
+    ``surface`` has ``points`` (N, 3) (a SurfaceMesh or pyvista.PolyData); the box is its bounding
+    box grown by ``padding`` times its diagonal on every side, so the surface stays strictly inside.
+    """
+    p = np.asarray(surface.points, float)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    pad = padding * np.linalg.norm(hi - lo)
+    return unstructured_box(lo - pad, hi + pad, edge_length, optimize)
+
+
+def read_mesh(path) -> TetMesh:
+    """Read a tetrahedral mesh with meshio (any format meshio reads: .vtu, .vtk, .msh, .mesh, .xdmf, ...)."""
+    import meshio
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"mesh file not found: {path}")
+    try:
+        m = meshio.read(path)
+    except Exception as exc:  # meshio raises several types for unknown or broken files
+        raise ValueError(f"cannot read mesh file {path}: {exc}. Use a format meshio reads (.vtu, .vtk, .msh, .mesh, .xdmf)") from exc
+    blocks = [c.data for c in m.cells if c.type == "tetra"]
+    if not blocks:
+        raise ValueError(f"{path} holds no tetrahedra (cell types: {[c.type for c in m.cells]})")
+    return TetMesh(m.points[:, :3], np.concatenate(blocks), orient=True)
+
+
+def write_mesh(mesh: TetMesh, path, point_data=None, cell_data=None) -> None:
+    """Write a tetrahedral mesh (and optional point/cell data dicts of arrays) with meshio."""
+    import meshio
+
+    cd = {k: [np.asarray(v)] for k, v in (cell_data or {}).items()}
+    meshio.write(Path(path), meshio.Mesh(mesh.points, [("tetra", mesh.tets)], point_data=point_data or {}, cell_data=cd))
