@@ -20,6 +20,14 @@ distinct vertices (segments or points) are dropped, and a tet whose piece collap
 A piece lying in a face shared by two tets is therefore owned by the single tet on the negative side
 (the tet on the other side has all its nodes >= 0 and is not cut).
 
+Values that are zero up to rounding count as zero: before anything else, nodal values with
+``|phi| <= tol`` are set to exactly 0, with ``tol = 1e-12 L diam`` (L the declared Lipschitz bound,
+diam the diagonal of the background mesh's bounding box) or ``tol = 1e-12 max_nodes |phi|`` when no
+bound is declared.  Without this, a node that lies on S mathematically but gets phi = 1e-16 (the
+paper's torus on its box at spacing 0.1 has such nodes) gives cut points that coincide with the
+node in floating point under different vertex keys: zero-length edges, zero-area triangles and
+undefined conormals.  The snap moves S_h by at most tol / |grad phi|.
+
 Active mesh
 -----------
 Active tets are the cut tets with a piece of at least three distinct vertices (positive area).  Their
@@ -107,6 +115,24 @@ def _check_finite(values, where):
         )
 
 
+_SNAP = 1e-12  # relative size of the nodal values that count as zero (see "The zero rule")
+
+
+def _zero_tolerance(mesh: TetMesh, lipschitz, values=None) -> float:
+    """Snap tolerance of the zero rule: ``1e-12 * L * diam`` (L declared) or ``1e-12 * max |phi|``."""
+    if lipschitz is not None:
+        lo, hi = mesh.bounds
+        return _SNAP * float(lipschitz) * float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
+    return _SNAP * float(np.max(np.abs(values))) if values is not None and values.size else 0.0
+
+
+def _snap_zeros(values, tol: float) -> np.ndarray:
+    """A copy of ``values`` with the entries of modulus <= tol set to exactly 0."""
+    values = np.array(values, dtype=float)
+    values[np.abs(values) <= tol] = 0.0
+    return values
+
+
 def nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
     """phi at every node of ``mesh`` (N,), with a clear error for NaN/inf values."""
     if isinstance(levelset, np.ndarray):
@@ -137,7 +163,7 @@ def _candidates_full(mesh: TetMesh, values):
     return cut, nodes, mesh.points[nodes], tv[cut]
 
 
-def _band_cells(box: StructuredBox, f, lipschitz: float) -> np.ndarray:
+def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0) -> np.ndarray:
     """Cell ids of all cells that may contain a zero of phi, by coarse-to-fine block pruning."""
     cells = box.cells
     size = 1
@@ -151,7 +177,7 @@ def _band_cells(box: StructuredBox, f, lipschitz: float) -> np.ndarray:
         centre = box.coordinates(blocks + 0.5 * size)
         phi = np.asarray(f(centre), dtype=float)
         _check_finite(phi, "block centres of the band search")
-        keep = np.abs(phi) <= lipschitz * half_diag * size * (1 + 1e-9) + 1e-14
+        keep = np.abs(phi) <= lipschitz * half_diag * size * (1 + 1e-9) + 1e-14 + tol
         blocks = blocks[keep]
         if size == 1:
             break
@@ -165,18 +191,18 @@ def _band_cells(box: StructuredBox, f, lipschitz: float) -> np.ndarray:
 def _candidates_structured(box: StructuredBox, f, lipschitz):
     if lipschitz is None:
         cell_ids = np.arange(box.n_cells)
-        corner_vals = None
-    else:
-        cell_ids = _band_cells(box, f, float(lipschitz))
-    if lipschitz is None:
         values = np.asarray(f(box.points), dtype=float).reshape(-1)
         _check_finite(values, "background nodes")
+        values = _snap_zeros(values, _zero_tolerance(box, None, values))
         corner_ids = box.cell_corner_ids(cell_ids)
         corner_vals = values[corner_ids]
     else:
+        tol = _zero_tolerance(box, lipschitz)
+        cell_ids = _band_cells(box, f, float(lipschitz), tol)
         corner_ids = box.cell_corner_ids(cell_ids)
         corner_vals = np.asarray(f(box.node_coordinates(corner_ids)), dtype=float)
         _check_finite(corner_vals, "background nodes near the surface")
+        corner_vals = _snap_zeros(corner_vals, tol)
     tv = corner_vals[:, KUHN_TETS].reshape(-1, 4)
     mixed = np.flatnonzero(_mixed(tv))
     nodes = corner_ids[:, KUHN_TETS].reshape(-1, 4)[mixed]
@@ -184,8 +210,9 @@ def _candidates_structured(box: StructuredBox, f, lipschitz):
     return tet_ids, nodes, box.node_coordinates(nodes), tv[mixed]
 
 
-def _check_boundary(mesh: TetMesh, f_or_values):
-    """All boundary nodes must be outside (phi >= 0): otherwise the surface leaves the box."""
+def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0):
+    """All boundary nodes must be outside (phi >= -tol, the zero rule's snap): otherwise the surface
+    leaves the box."""
     b = mesh.boundary_nodes
     if isinstance(f_or_values, np.ndarray):
         vb = f_or_values[b]
@@ -193,8 +220,8 @@ def _check_boundary(mesh: TetMesh, f_or_values):
         pts = mesh.node_coordinates(b) if isinstance(mesh, StructuredBox) else mesh.points[b]
         vb = np.asarray(f_or_values(pts), dtype=float)
         _check_finite(vb, "boundary nodes")
-    if np.any(vb < 0):
-        k = int(np.sum(vb < 0))
+    if np.any(vb < -tol):
+        k = int(np.sum(vb < -tol))
         lo, hi = mesh.bounds
         raise CutError(
             f"{k} boundary nodes of the background mesh are inside the surface (phi < 0): the surface reaches "
@@ -484,16 +511,19 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     lipschitz = getattr(levelset, "lipschitz", None)
     if isinstance(levelset, np.ndarray):
         values = nodal_values(background, levelset)
+        values = _snap_zeros(values, _zero_tolerance(background, None, values))
         if check_boundary:
             _check_boundary(background, values)
         cand = _candidates_full(background, values)
     elif isinstance(background, StructuredBox):
         f = _as_values_function(levelset)
         if check_boundary:
-            _check_boundary(background, f)
+            tol = _zero_tolerance(background, lipschitz) if lipschitz is not None else 0.0
+            _check_boundary(background, f, tol)
         cand = _candidates_structured(background, f, lipschitz)
     else:
         values = nodal_values(background, levelset)
+        values = _snap_zeros(values, _zero_tolerance(background, lipschitz, values))
         if check_boundary:
             _check_boundary(background, values)
         cand = _candidates_full(background, values)
@@ -575,10 +605,12 @@ def inside_tetrahedra(background: TetMesh, levelset):
     Returns ``(vertices (k, 4, 3), parent (k,))``: every background tet with all nodes inside, plus
     the inside part of every cut tet split into sub-tets (1 inside node: one tet; 2 inside nodes: a
     prism, 3 tets; 3 inside nodes: the tet minus a corner, a prism, 3 tets).  Sub-tets may have zero
-    volume under the zero rule; they integrate to zero.  ``parent`` holds background tet ids.
+    volume under the zero rule (values snapped to zero as in :func:`cut_mesh`); they integrate to
+    zero.  ``parent`` holds background tet ids.
     This visits every background tet.
     """
     values = nodal_values(background, levelset)
+    values = _snap_zeros(values, _zero_tolerance(background, getattr(levelset, "lipschitz", None), values))
     tv = values[background.tets]
     inside = tv < 0
     k = inside.sum(axis=1)

@@ -1,0 +1,317 @@
+"""Forms: bilinear and linear forms written as vectorized integrands, and the stabilizations.
+
+Writing a form
+--------------
+A form is a plain function of arrays shaped (elements x quadrature points)::
+
+    from cutfem.forms import bilinear_form, dot
+
+    @bilinear_form(symmetric=True)
+    def helmholtz(u, v, w):
+        return dot(u.tgrad, v.tgrad) - w.k2 * u * v     # w carries x, n, h and any extra data
+
+    A = helmholtz.assemble(space, k2=4.0)
+
+``u`` and ``v`` are :class:`BasisField` objects: ``u.value`` (m, q), ``u.grad`` and ``u.tgrad``
+(m, 1, 3) (the full gradient and the tangential gradient ``P_h grad``; P1 gradients are constant on
+an element), and arithmetic on a BasisField acts on its value.  ``w`` is a :class:`QuadData` with
+``w.x`` (m, q, 3), ``w.n`` (m, 1, 3) (the element normal n_h), ``w.h`` and the keyword arguments given
+to ``assemble``.  The integrand returns an array broadcastable to (m, q).  Assembly loops only over
+the k x k local basis pairs (k = 3 or 4), never over elements; ``symmetric=True`` evaluates i <= j
+and mirrors, so the matrix is exactly symmetric.
+
+Built-in forms (SPEC §3-4): :func:`mass`, :func:`tangential_stiffness`, :func:`load`,
+:func:`edge_jump_penalty` (J_E), :func:`face_jump_penalty` (J_F), :func:`normal_gradient_penalty`,
+:func:`volume_mass`, :func:`volume_stiffness`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.sparse as sp
+
+from .assembly import assemble_vector, symmetrize_blocks
+
+__all__ = [
+    "BasisField",
+    "QuadData",
+    "BilinearForm",
+    "LinearForm",
+    "bilinear_form",
+    "linear_form",
+    "dot",
+    "mass",
+    "tangential_stiffness",
+    "load",
+    "edge_jump_penalty",
+    "face_jump_penalty",
+    "normal_gradient_penalty",
+    "volume_mass",
+    "volume_stiffness",
+]
+
+
+def dot(a, b):
+    """Dot product over the last axis."""
+    return np.einsum("...d,...d->...", a, b)
+
+
+class BasisField:
+    """A basis function (or its values) at quadrature points; arithmetic acts on ``value``."""
+
+    __slots__ = ("value", "grad", "tgrad")
+
+    def __init__(self, value, grad, tgrad):
+        self.value, self.grad, self.tgrad = value, grad, tgrad
+
+    def __array__(self, dtype=None, copy=None):
+        return np.asarray(self.value, dtype=dtype)
+
+    def __mul__(self, other):
+        return self.value * (other.value if isinstance(other, BasisField) else other)
+
+    __rmul__ = __mul__
+
+    def __add__(self, other):
+        return self.value + (other.value if isinstance(other, BasisField) else other)
+
+    __radd__ = __add__
+
+    def __neg__(self):
+        return -self.value
+
+
+@dataclass
+class QuadData:
+    """Quadrature data handed to an integrand: points ``x`` (m, q, 3), element normals ``n``
+    (m, 1, 3) or None, mesh size ``h``, parent element ids, and user parameters as attributes."""
+
+    x: np.ndarray
+    n: np.ndarray | None
+    h: float
+    parent: np.ndarray
+    params: dict = field(default_factory=dict)
+
+    def __getattr__(self, name):
+        params = self.__dict__.get("params", {})
+        if name in params:
+            return params[name]
+        raise AttributeError(f"quadrature data has no field {name!r}; pass it as a keyword to assemble()")
+
+
+def _element_data(space, measure, degree):
+    quad = space.quadrature(measure, degree)
+    parent = quad.parent
+    G = space.element_gradients[parent]  # (m, k, 3)
+    normals = getattr(space, "element_normals", None)
+    if normals is not None and measure != "volume":
+        n = normals[parent]
+        tG = G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
+        n = n[:, None, :]
+    else:
+        n, tG = None, G
+    return quad, G, tG, n
+
+
+def _reduce_to_elements(space, blocks, parent):
+    """Sum per-quadrature-cell blocks into per-element blocks (cells of one element contiguous or not)."""
+    n_el = len(space.element_dofs)
+    if len(parent) == n_el and np.array_equal(parent, np.arange(n_el)):
+        return blocks
+    order = np.argsort(parent, kind="stable")
+    p = parent[order]
+    starts = np.flatnonzero(np.r_[True, p[1:] != p[:-1]])
+    out = np.zeros((n_el,) + blocks.shape[1:])
+    out[p[starts]] = np.add.reduceat(blocks[order], starts, axis=0)
+    return out
+
+
+class BilinearForm:
+    """A bilinear form a(u, v) = sum over quadrature of integrand(u, v, w) * weight."""
+
+    def __init__(self, integrand, symmetric=False, measure="surface", degree=2):
+        self.integrand = integrand
+        self.symmetric = symmetric
+        self.measure = measure
+        self.degree = degree
+        self.__doc__ = integrand.__doc__
+        self.__name__ = getattr(integrand, "__name__", "form")
+
+    def blocks(self, space, measure=None, degree=None, **params):
+        """Local element blocks (n_elements, k, k)."""
+        measure = measure or self.measure
+        degree = self.degree if degree is None else degree
+        quad, G, tG, n = _element_data(space, measure, degree)
+        phi = space.basis_values(quad)
+        w = QuadData(x=quad.points, n=n, h=space.h, parent=quad.parent, params=params)
+        m, k = G.shape[0], G.shape[1]
+        fields = [BasisField(phi[..., a], G[:, None, a], tG[:, None, a]) for a in range(k)]
+        blocks = np.empty((m, k, k))
+        for i in range(k):
+            for j in range(i if self.symmetric else 0, k):
+                val = np.broadcast_to(np.asarray(self.integrand(fields[j], fields[i], w), dtype=float), quad.weights.shape)
+                blocks[:, i, j] = np.einsum("mq,mq->m", val, quad.weights)
+                if self.symmetric:
+                    blocks[:, j, i] = blocks[:, i, j]
+        return _reduce_to_elements(space, blocks, quad.parent)
+
+    def assemble(self, space, measure=None, degree=None, **params) -> sp.csr_matrix:
+        """The n_dofs x n_dofs CSR matrix of the form on ``space``."""
+        return space.pattern("elements").matrix(self.blocks(space, measure, degree, **params))
+
+    __call__ = assemble
+
+
+class LinearForm:
+    """A linear form l(v) = sum over quadrature of integrand(v, w) * weight; the integrand may return
+    (m, q) or (m, q, c) for c components at once."""
+
+    def __init__(self, integrand, measure="surface", degree=4):
+        self.integrand = integrand
+        self.measure = measure
+        self.degree = degree
+        self.__doc__ = integrand.__doc__
+
+    def assemble(self, space, measure=None, degree=None, **params) -> np.ndarray:
+        measure = measure or self.measure
+        degree = self.degree if degree is None else degree
+        quad, G, tG, n = _element_data(space, measure, degree)
+        phi = space.basis_values(quad)
+        w = QuadData(x=quad.points, n=n, h=space.h, parent=quad.parent, params=params)
+        k = G.shape[1]
+        local = []
+        for a in range(k):
+            val = np.asarray(self.integrand(BasisField(phi[..., a], G[:, None, a], tG[:, None, a]), w), dtype=float)
+            if val.ndim == 3:
+                local.append(np.einsum("mqc,mq->mc", val, quad.weights))
+            else:
+                local.append(np.einsum("mq,mq->m", np.broadcast_to(val, quad.weights.shape), quad.weights))
+        local = np.stack(local, axis=1)  # (m, k) or (m, k, c)
+        return assemble_vector(space.element_dofs[quad.parent], local, space.n_dofs)
+
+    __call__ = assemble
+
+
+def bilinear_form(integrand=None, *, symmetric=False, measure="surface", degree=2):
+    """Decorator turning ``integrand(u, v, w)`` into a :class:`BilinearForm`."""
+    if integrand is None:
+        return lambda f: BilinearForm(f, symmetric=symmetric, measure=measure, degree=degree)
+    return BilinearForm(integrand, symmetric=symmetric, measure=measure, degree=degree)
+
+
+def linear_form(integrand=None, *, measure="surface", degree=4):
+    """Decorator turning ``integrand(v, w)`` into a :class:`LinearForm`."""
+    if integrand is None:
+        return lambda f: LinearForm(f, measure=measure, degree=degree)
+    return LinearForm(integrand, measure=measure, degree=degree)
+
+
+# ---------------------------------------------------------------------------------------------
+# built-in forms
+# ---------------------------------------------------------------------------------------------
+
+
+@bilinear_form(symmetric=True, degree=2)
+def _mass(u, v, w):
+    return u * v
+
+
+@bilinear_form(symmetric=True, degree=0)
+def _tangential_stiffness(u, v, w):
+    return dot(u.tgrad, v.tgrad)
+
+
+@bilinear_form(symmetric=True, measure="active", degree=0)
+def _normal_gradient(u, v, w):
+    return dot(w.n, u.grad) * dot(w.n, v.grad)
+
+
+@bilinear_form(symmetric=True, measure="volume", degree=2)
+def _volume_mass(u, v, w):
+    return u * v
+
+
+@bilinear_form(symmetric=True, measure="volume", degree=0)
+def _volume_stiffness(u, v, w):
+    return dot(u.grad, v.grad)
+
+
+def mass(space, degree: int = 2) -> sp.csr_matrix:
+    """Surface mass matrix M_ij = (phi_j, phi_i)_{S_h}, exact for P1 with degree 2."""
+    return _mass.assemble(space, degree=degree)
+
+
+def tangential_stiffness(space) -> sp.csr_matrix:
+    """A_ij = (P_h grad phi_j, P_h grad phi_i)_{S_h}; on each piece K, |K| (P_h G_j)·(P_h G_i)."""
+    return _tangential_stiffness.assemble(space)
+
+
+def normal_gradient_penalty(space, h_power: float = 1.0) -> sp.csr_matrix:
+    """s(u, v) = h^a (n_h . grad u, n_h . grad v)_{T_h} over the active tets (multiply by tau_N).
+
+    The normal n_h is the piece normal of each active tet; ``h_power`` is a (default 1).
+    """
+    return space.h**h_power * _normal_gradient.assemble(space)
+
+
+def volume_mass(space, degree: int = 2) -> sp.csr_matrix:
+    """(u, v) over the cut volume {phi_h < 0} (a :class:`~cutfem.spaces.CutVolumeP1Space`)."""
+    return _volume_mass.assemble(space, degree=degree)
+
+
+def volume_stiffness(space) -> sp.csr_matrix:
+    """(grad u, grad v) over the cut volume {phi_h < 0}."""
+    return _volume_stiffness.assemble(space)
+
+
+def load(space, f, degree: int = 4, measure: str = "surface", closest_point=None) -> np.ndarray:
+    """Load vector b_i = (f, phi_i) over the measure, by quadrature of the given degree.
+
+    ``f(x)`` takes points (m, q, 3) and returns (m, q) or (m, q, c) (then b is (n, c)).  With
+    ``closest_point`` (a map x -> p(x)), f is evaluated as f o p (the extension f^e of SPEC §4).
+    """
+    quad = space.quadrature(measure, degree)
+    x = quad.points if closest_point is None else closest_point(quad.points)
+    fx = np.asarray(f(x), dtype=float)
+    if fx.shape[:2] != quad.weights.shape:
+        raise ValueError(f"f must return values of shape (m, q) or (m, q, c) for points (m, q, 3); got {fx.shape}")
+    phi = space.basis_values(quad) * quad.weights[..., None]  # (m, q, k)
+    local = np.einsum("mqk,mq...->mk...", phi, fx)
+    return assemble_vector(space.element_dofs[quad.parent], local, space.n_dofs)
+
+
+def _jump_blocks(space, pairs, normals_pair, scale):
+    """Blocks scale_e * c c^T for jumps c = (t1 . G_{K1}, t2 . G_{K2}) with the dofs of K1 then K2."""
+    G = space.element_gradients
+    c = np.concatenate(
+        [np.einsum("ekd,ed->ek", G[pairs[:, 0]], normals_pair[:, 0]), np.einsum("ekd,ed->ek", G[pairs[:, 1]], normals_pair[:, 1])],
+        axis=1,
+    )
+    blocks = scale[:, None, None] * c[:, :, None] * c[:, None, :]
+    dofs = np.concatenate([space.element_dofs[pairs[:, 0]], space.element_dofs[pairs[:, 1]]], axis=1)
+    return dofs, symmetrize_blocks(blocks)
+
+
+def edge_jump_penalty(space, h: float | None = None) -> sp.csr_matrix:
+    """J_E(u, v) = sum_E h ([t_E . grad u], [t_E . grad v])_E (multiply by tau_E).
+
+    [t_E . grad u] = t_{E,K1} . grad u|K1 + t_{E,K2} . grad u|K2 with the outward conormals of the
+    two surface elements; constant on E for P1, so the integral is |E| times the product of jumps.
+    ``h`` defaults to the space's global mesh size.
+    """
+    pairs, conormals, lengths = space.edges()
+    h = space.h if h is None else h
+    dofs, blocks = _jump_blocks(space, pairs, conormals, h * lengths)
+    return space.pattern("edges", dofs).matrix(blocks)
+
+
+def face_jump_penalty(space, h_power: float = 0.0) -> sp.csr_matrix:
+    """J_F(u, v) = sum_F h^a ([n_F . grad u], [n_F . grad v])_F over interior faces of the active mesh
+    (multiply by tau_F).  [n_F . grad u] = n_{F,T1}.grad u|T1 + n_{F,T2}.grad u|T2; a = ``h_power``
+    (0 in the paper)."""
+    pairs, n, areas = space.faces()
+    normals_pair = np.stack([n, -n], axis=1)
+    dofs, blocks = _jump_blocks(space, pairs, normals_pair, space.h**h_power * areas)
+    return space.pattern("faces", dofs).matrix(blocks)

@@ -1,0 +1,774 @@
+"""Closed triangle surface meshes: the meshed case of SPEC §2.
+
+A :class:`SurfaceMesh` is a closed, edge- and vertex-manifold, consistently and outward oriented
+triangulation S_h with ``points`` (N, 3) and ``triangles`` (M, 3).  Its topology (unique edges,
+the two triangles of each edge, the three edges of each triangle) and its geometry (areas, unit
+normals, enclosed volume, edge conormals t_{E,K} of SPEC §3) are computed on demand, vectorized,
+by sorting integer keys.
+
+Conventions
+-----------
+* Local edge k of triangle (v_0, v_1, v_2) is the half-edge (v_k, v_{k+1 mod 3}).
+* The normal of a triangle is (v_1 - v_0) x (v_2 - v_0) / |...|; a triangle is *outward* when its
+  normal points out of the region its connected component encloses.
+* Mesh size for tables and for the edge stabilization: the global ``h = N**(-1/2)`` (SPEC §2,
+  N = number of surface nodes).
+
+Generators: :func:`torus_mesh` (the four families of SPEC §6.1) and :func:`sphere_mesh`
+(refined icosahedron).  File I/O through meshio: :func:`read_surface`, :func:`write_surface`.
+"""
+
+from __future__ import annotations
+
+import warnings
+from functools import cached_property
+from pathlib import Path
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components
+
+__all__ = [
+    "SurfaceMesh",
+    "torus_mesh",
+    "sphere_mesh",
+    "read_surface",
+    "write_surface",
+    "TORUS_FAMILIES",
+    "DEGENERATE_TOLERANCE",
+    "MERGE_TOLERANCE",
+]
+
+#: A triangle is degenerate when |(b - a) x (c - a)| <= DEGENERATE_TOLERANCE * l_max**2, with
+#: l_max its longest edge: twice its area is below 1e-12 times that of a right isosceles triangle
+#: on its longest edge (the smallest angle is below about 1e-12 rad).
+DEGENERATE_TOLERANCE = 1e-12
+
+#: :func:`read_surface` merges points whose coordinates agree after rounding to multiples of
+#: MERGE_TOLERANCE * (diagonal of the bounding box).
+MERGE_TOLERANCE = 1e-10
+
+#: The torus families of SPEC §6.1 accepted by :func:`torus_mesh`.
+TORUS_FAMILIES = ("structured", "flipped", "perturbed", "perturbed-flipped")
+
+_READ_EXTENSIONS_HINT = ".stl, .obj, .ply, .off, .vtk, .vtu, .msh (Gmsh), .mesh (Medit)"
+
+# local vertex index of the start of local edge k, of its end, and of the vertex opposite to it
+_NEXT = np.array([1, 2, 0])
+_OPPOSITE = np.array([2, 0, 1])
+
+
+# ---------------------------------------------------------------------------------------------
+# small helpers
+# ---------------------------------------------------------------------------------------------
+
+
+def _examples(items, limit: int = 5) -> str:
+    """Format the first ``limit`` entries of a sequence for an error message."""
+    shown = ", ".join(str(x) for x in list(items[:limit]))
+    if len(items) > limit:
+        shown += f", ... ({len(items) - limit} more)"
+    return shown
+
+
+def _pairs(rows, limit: int = 5) -> str:
+    """Format the first ``limit`` rows of an integer array as tuples for an error message."""
+    rows = np.asarray(rows)
+    shown = ", ".join(str(tuple(int(v) for v in row)) for row in rows[:limit])
+    if len(rows) > limit:
+        shown += f", ... ({len(rows) - limit} more)"
+    return shown
+
+
+def _halfedge_table(triangles: np.ndarray, n_points: int):
+    """Unique undirected edges of a triangle list and the edge of every half-edge.
+
+    Half-edge ``3 t + k`` is local edge k of triangle t, from ``triangles[t, k]`` to
+    ``triangles[t, (k + 1) % 3]``.  Returns
+
+    * ``edges`` (E, 2) int64, each row sorted (i < j), rows in lexicographic order, unique;
+    * ``halfedge_edge`` (3M,) int64, the edge of each half-edge;
+    * ``counts`` (E,) int64, the number of half-edges on each edge;
+    * ``forward`` (3M,) bool, whether the half-edge runs from the smaller to the larger index.
+
+    The edge {i, j} is encoded as the integer key i * N + j (i < j), so one 1-d ``np.unique``
+    does all the work.
+    """
+    start = triangles.reshape(-1)
+    end = triangles[:, _NEXT].reshape(-1)
+    lo = np.minimum(start, end)
+    hi = np.maximum(start, end)
+    n = np.int64(max(n_points, 1))
+    keys, halfedge_edge, counts = np.unique(lo * n + hi, return_inverse=True, return_counts=True)
+    edges = np.stack([keys // n, keys % n], axis=1)
+    return edges, halfedge_edge.reshape(-1), counts, start < end
+
+
+def _pair_halfedges(halfedge_edge: np.ndarray, forward: np.ndarray) -> np.ndarray:
+    """(E, 2) half-edge ids of each edge (all edges must carry exactly two), forward one first."""
+    order = np.lexsort((~forward, halfedge_edge))
+    return order.reshape(-1, 2)
+
+
+def _next_halfedge(h: np.ndarray) -> np.ndarray:
+    """Half-edge following h in its triangle: 3 t + k -> 3 t + (k + 1) mod 3."""
+    return h - h % 3 + _NEXT[h % 3]
+
+
+# ---------------------------------------------------------------------------------------------
+# validation
+# ---------------------------------------------------------------------------------------------
+
+
+def _as_points(points) -> np.ndarray:
+    try:
+        pts = np.array(points, dtype=np.float64, order="C")
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"points must be a numeric (N, 3) array; conversion to float failed: {err}") from err
+    if pts.ndim != 2 or pts.shape[1] != 3:
+        raise ValueError(f"points must have shape (N, 3); got {pts.shape}. Pass one row of x, y, z per node.")
+    return pts
+
+
+def _as_triangles(triangles) -> np.ndarray:
+    tri = np.asarray(triangles)
+    if tri.ndim != 2 or tri.shape[1] != 3:
+        raise ValueError(
+            f"triangles must have shape (M, 3); got {tri.shape}. Pass one row of three node indices per triangle "
+            "(split quadrilaterals/polygons into triangles first)."
+        )
+    if tri.size and tri.dtype.kind not in "iu":
+        raise ValueError(
+            f"triangles must hold integer node indices; got dtype {tri.dtype}. Convert with .astype(np.int64) "
+            "after checking that the values are whole numbers."
+        )
+    return np.ascontiguousarray(tri, dtype=np.int64)
+
+
+def _check_elements(points: np.ndarray, tri: np.ndarray) -> None:
+    """Checks that need no topology: finite points, indices, repeated vertices, zero areas, unused points."""
+    n = len(points)
+    if len(tri) == 0:
+        raise ValueError("the surface has no triangles; a closed surface needs at least 4.")
+    bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
+    if bad.size:
+        raise ValueError(
+            f"{bad.size} point(s) have non-finite (NaN or inf) coordinates, first at rows {_examples(bad)}; "
+            "fix or remove them before building the surface."
+        )
+    bad = np.flatnonzero(((tri < 0) | (tri >= n)).any(axis=1))
+    if bad.size:
+        raise ValueError(
+            f"{bad.size} triangle(s) reference node indices outside [0, {n}), first triangles {_examples(bad)} "
+            f"with nodes {_pairs(tri[bad])}; indices must be 0-based rows of points."
+        )
+    bad = np.flatnonzero((tri[:, 0] == tri[:, 1]) | (tri[:, 1] == tri[:, 2]) | (tri[:, 2] == tri[:, 0]))
+    if bad.size:
+        raise ValueError(
+            f"{bad.size} degenerate triangle(s) repeat a vertex, first triangles {_examples(bad)} with nodes "
+            f"{_pairs(tri[bad])}; remove them (collapse the edge they sit on) before building the surface."
+        )
+    a, b, c = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
+    twice_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
+    longest_sq = np.max(np.stack([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)]), axis=0)
+    bad = np.flatnonzero(twice_area <= DEGENERATE_TOLERANCE * longest_sq)
+    if bad.size:
+        raise ValueError(
+            f"{bad.size} degenerate triangle(s) have zero area (collinear or coincident vertices), first triangles "
+            f"{_examples(bad)} with nodes {_pairs(tri[bad])}; remove or repair them (e.g. merge coincident points, "
+            "collapse short edges)."
+        )
+    unused = np.flatnonzero(np.bincount(tri.reshape(-1), minlength=n) == 0)
+    if unused.size:
+        raise ValueError(
+            f"{unused.size} point(s) belong to no triangle, first rows {_examples(unused)}; a P1 unknown there would "
+            "have no support (singular mass matrix) and would change h = N**(-1/2). Remove them: "
+            "keep = np.unique(triangles); points = points[keep]; triangles = np.searchsorted(keep, triangles)."
+        )
+    srt = np.sort(tri, axis=1)
+    order = np.lexsort(srt.T[::-1])
+    same = np.flatnonzero((srt[order][1:] == srt[order][:-1]).all(axis=1))
+    if same.size:
+        pairs = np.stack([order[same], order[same + 1]], axis=1)
+        raise ValueError(
+            f"{same.size} triangle(s) duplicate another triangle on the same three nodes, first pairs of triangles "
+            f"{_pairs(pairs)}; remove the duplicates."
+        )
+
+
+def _check_topology(tri: np.ndarray, n_points: int):
+    """Closed, edge-manifold, consistently oriented, vertex-manifold.  Returns the half-edge table."""
+    edges, halfedge_edge, counts, forward = _halfedge_table(tri, n_points)
+    bad = np.flatnonzero(counts == 1)
+    if bad.size:
+        raise ValueError(
+            f"the surface is open: {bad.size} boundary edge(s) belong to only one triangle, first edges "
+            f"{_pairs(edges[bad])}; close the holes (a closed surface needs every edge in exactly two triangles)."
+        )
+    bad = np.flatnonzero(counts > 2)
+    if bad.size:
+        raise ValueError(
+            f"the surface is non-manifold: {bad.size} edge(s) belong to more than two triangles, first edges "
+            f"{_pairs(edges[bad])} (in {_examples(counts[bad])} triangles); split it into separate sheets by "
+            "duplicating the shared nodes, so that every edge is in exactly two triangles."
+        )
+    pairs = _pair_halfedges(halfedge_edge, forward)
+    bad = np.flatnonzero(forward[pairs[:, 0]] == forward[pairs[:, 1]])
+    if bad.size:
+        tris = pairs[bad] // 3
+        raise ValueError(
+            f"the surface is not consistently oriented: on {bad.size} edge(s) both triangles traverse the edge in "
+            f"the same direction, first edges {_pairs(edges[bad])} in triangle pairs {_pairs(tris)}; reorder the "
+            "vertices of the offending triangles so that neighbours agree (e.g. pyvista "
+            "PolyData.compute_normals(consistent_normals=True, auto_orient_normals=True)); a non-orientable "
+            "surface is not supported."
+        )
+    # vertex manifoldness: the corners (triangle, vertex) around a node must form a single fan.
+    # Corner ids coincide with half-edge ids: corner 3t+k is vertex k of triangle t, where half-edge
+    # 3t+k starts.  Across an edge (h1: a -> b, h2: b -> a) corner of a in t1 = h1 and in t2 = next(h2).
+    h1, h2 = pairs[:, 0], pairs[:, 1]
+    rows = np.concatenate([h1, _next_halfedge(h1)])
+    cols = np.concatenate([_next_halfedge(h2), h2])
+    n_corners = 3 * len(tri)
+    graph = sp.coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(n_corners, n_corners))
+    n_fans, fan = connected_components(graph, directed=False)
+    if n_fans != n_points:
+        corner_vertex = tri.reshape(-1)
+        vertex_fan = np.unique(corner_vertex.astype(np.int64) * n_corners + fan)
+        fans_per_vertex = np.bincount(vertex_fan // n_corners, minlength=n_points)
+        bad = np.flatnonzero(fans_per_vertex > 1)
+        raise ValueError(
+            f"the surface is non-manifold at {bad.size} vertex(es), first nodes {_examples(bad)}: separate fans of "
+            "triangles touch at a single point; duplicate such a node once per fan."
+        )
+    return edges, halfedge_edge, counts, forward
+
+
+def _orient_outward(points: np.ndarray, tri: np.ndarray, halfedge_edge: np.ndarray, forward: np.ndarray):
+    """Flip the triangles of every connected component whose enclosed signed volume is negative.
+
+    Signed volume of a closed oriented component C: V = (1/6) sum_{K in C} (a - o) . ((b - o) x (c - o)),
+    independent of o; o = mean of the points.  Returns (triangles, number of flipped components).
+    """
+    pairs = _pair_halfedges(halfedge_edge, forward) // 3
+    m = len(tri)
+    graph = sp.coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
+    _, component = connected_components(graph, directed=False)
+    o = points.mean(axis=0)
+    a, b, c = points[tri[:, 0]] - o, points[tri[:, 1]] - o, points[tri[:, 2]] - o
+    vol6 = np.einsum("ij,ij->i", a, np.cross(b, c))
+    volume = np.bincount(component, weights=vol6) / 6.0
+    flip_component = volume < 0
+    if not flip_component.any():
+        return tri, 0
+    flip = flip_component[component]
+    tri = tri.copy()
+    tri[flip] = tri[flip][:, [0, 2, 1]]
+    return tri, int(flip_component.sum())
+
+
+# ---------------------------------------------------------------------------------------------
+# the mesh
+# ---------------------------------------------------------------------------------------------
+
+
+class SurfaceMesh:
+    """A closed, manifold, outward oriented triangle surface S_h (SPEC §2, meshed case).
+
+    Parameters
+    ----------
+    points : (N, 3) float array of node coordinates.
+    triangles : (M, 3) integer array of 0-based node indices.
+    check : bool, default True.
+        Validate the input and orient it outward (below).  ``check=False`` trusts the input (use it
+        only for meshes built by this package that are valid by construction); topology properties
+        still raise if an edge does not have exactly two triangles.
+
+    Validation (``check=True``), each failure a ``ValueError`` naming the count, the first
+    offenders and the fix:
+
+    * points of shape (N, 3) with finite coordinates; triangles of shape (M, 3), integer, indices in
+      [0, N);
+    * no degenerate triangle: no repeated vertex and |(b-a) x (c-a)| > DEGENERATE_TOLERANCE * l_max^2;
+    * **no unused points** (decision): every node must belong to a triangle, since an isolated node
+      would be a P1 unknown without support (singular mass matrix) and would change
+      h = N^(-1/2) and the Euler characteristic;
+    * no duplicate triangles (the same three nodes twice);
+    * closed: every edge in at least two triangles ("the surface is open", with the number of
+      boundary edges);
+    * edge-manifold: no edge in more than two triangles; vertex-manifold: the triangles around each
+      node form a single fan;
+    * consistently oriented: the two triangles of an edge traverse it in opposite directions.
+
+    Orientation (decision): after these checks, each connected component whose signed enclosed
+    volume (1/6) sum_K a.(b x c) is negative has all its triangles flipped (vertices 1 and 2
+    swapped), so that every component's normals point out of the region it encloses.  Flipping per
+    component (not globally) keeps every sphere of a set of disjoint spheres outward.  (For a
+    solid with a cavity this makes the cavity's normals point into the cavity region, i.e. into
+    the solid: the normal of the surface, not of a solid.)  ``flipped_components`` records how
+    many components were flipped.
+
+    Attributes
+    ----------
+    points : (N, 3) float64, C-contiguous, read-only copy.
+    triangles : (M, 3) int64, C-contiguous, read-only copy (possibly reoriented).
+
+    Both arrays are read-only because the cached properties depend on them; build a new mesh to
+    change the geometry.
+    """
+
+    def __init__(self, points, triangles, check: bool = True):
+        pts = _as_points(points)
+        tri = _as_triangles(triangles)
+        self.flipped_components = 0
+        if check:
+            _check_elements(pts, tri)
+            table = _check_topology(tri, len(pts))
+            tri, self.flipped_components = _orient_outward(pts, tri, table[1], table[3])
+            if self.flipped_components == 0:
+                self.__dict__["_halfedges"] = table
+        pts.flags.writeable = False
+        tri = np.ascontiguousarray(tri)
+        tri.flags.writeable = False
+        self.points = pts
+        self.triangles = tri
+
+    # -- sizes ---------------------------------------------------------------------------------
+
+    @property
+    def n_points(self) -> int:
+        """N, the number of nodes."""
+        return int(self.points.shape[0])
+
+    @property
+    def n_triangles(self) -> int:
+        """M, the number of triangles."""
+        return int(self.triangles.shape[0])
+
+    @property
+    def n_edges(self) -> int:
+        """E, the number of (undirected) edges; E = 3M/2 on a closed surface."""
+        return int(self.edges.shape[0])
+
+    @property
+    def h(self) -> float:
+        """Global mesh size h = N^(-1/2), N = number of surface nodes (SPEC §2).
+
+        This is a node-count measure, not an edge length: for the n x n/2 torus grid it is several
+        times smaller than an edge.  It is the h of the edge stabilization and of the rate tables.
+        """
+        return float(self.n_points) ** -0.5
+
+    # -- topology ------------------------------------------------------------------------------
+
+    @cached_property
+    def _halfedges(self):
+        return _halfedge_table(self.triangles, self.n_points)
+
+    @cached_property
+    def _edge_halfedges(self) -> np.ndarray:
+        """(E, 2) half-edge ids (3 t + k) of each edge; column 0 runs from edges[e,0] to edges[e,1]."""
+        _, halfedge_edge, counts, forward = self._halfedges
+        if not np.all(counts == 2):
+            raise ValueError(
+                f"{int(np.sum(counts != 2))} edge(s) do not have exactly two triangles (open or non-manifold "
+                "surface); build the SurfaceMesh with check=True for a diagnosis."
+            )
+        pairs = _pair_halfedges(halfedge_edge, forward)
+        pairs.flags.writeable = False
+        return pairs
+
+    @cached_property
+    def edges(self) -> np.ndarray:
+        """(E, 2) int64: the unique edges, each row sorted (i < j), rows in lexicographic order."""
+        edges = self._halfedges[0]
+        edges.flags.writeable = False
+        return edges
+
+    @cached_property
+    def edge_triangles(self) -> np.ndarray:
+        """(E, 2) int64: the two triangles of each edge.
+
+        ``edge_triangles[e, 0]`` traverses the edge from ``edges[e, 0]`` to ``edges[e, 1]`` (the
+        increasing direction), ``edge_triangles[e, 1]`` the other way (on a consistently oriented
+        mesh each edge has one of each).
+        """
+        out = self._edge_halfedges // 3
+        out.flags.writeable = False
+        return out
+
+    @cached_property
+    def edge_local_index(self) -> np.ndarray:
+        """(E, 2) int64: k such that edge e is local edge k = (v_k, v_{k+1 mod 3}) of edge_triangles[e, j]."""
+        out = self._edge_halfedges % 3
+        out.flags.writeable = False
+        return out
+
+    @cached_property
+    def triangle_edges(self) -> np.ndarray:
+        """(M, 3) int64: ``triangle_edges[t, k]`` is the edge index of local edge (v_k, v_{k+1 mod 3})."""
+        out = self._halfedges[1].reshape(-1, 3)
+        out.flags.writeable = False
+        return out
+
+    @cached_property
+    def euler_characteristic(self) -> int:
+        """chi = V - E + F (2 for a sphere, 0 for a torus, 2 - 2g for genus g, summed over components)."""
+        return self.n_points - self.n_edges + self.n_triangles
+
+    # -- geometry ------------------------------------------------------------------------------
+
+    @cached_property
+    def _cross(self) -> np.ndarray:
+        p = self.points
+        t = self.triangles
+        return np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+
+    @cached_property
+    def areas(self) -> np.ndarray:
+        """(M,) triangle areas |K| = |(v_1 - v_0) x (v_2 - v_0)| / 2."""
+        out = 0.5 * np.linalg.norm(self._cross, axis=1)
+        out.flags.writeable = False
+        return out
+
+    @cached_property
+    def area(self) -> float:
+        """|S_h| = sum_K |K|."""
+        return float(self.areas.sum())
+
+    @cached_property
+    def normals(self) -> np.ndarray:
+        """(M, 3) unit normals n_K = (v_1 - v_0) x (v_2 - v_0) / |...|, outward after validation."""
+        out = self._cross / np.linalg.norm(self._cross, axis=1)[:, None]
+        out.flags.writeable = False
+        return out
+
+    @cached_property
+    def centroids(self) -> np.ndarray:
+        """(M, 3) triangle centroids (v_0 + v_1 + v_2) / 3."""
+        out = self.points[self.triangles].mean(axis=1)
+        out.flags.writeable = False
+        return out
+
+    @cached_property
+    def enclosed_volume(self) -> float:
+        """Volume enclosed by S_h by the divergence theorem, V = (1/3) int_{S_h} x . n.
+
+        Per triangle (1/3) |K| (x_c . n_K) = (1/6) a . (b x c) with a, b, c measured from the
+        mean of the points o (the sum does not depend on o for a closed surface; centring reduces
+        round-off).  Positive for an outward oriented mesh.
+        """
+        p = self.points - self.points.mean(axis=0)
+        t = self.triangles
+        return float(np.einsum("ij,ij->", p[t[:, 0]], np.cross(p[t[:, 1]], p[t[:, 2]])) / 6.0)
+
+    @cached_property
+    def edge_lengths(self) -> np.ndarray:
+        """(E,) edge lengths |x_j - x_i|."""
+        p = self.points
+        out = np.linalg.norm(p[self.edges[:, 1]] - p[self.edges[:, 0]], axis=1)
+        out.flags.writeable = False
+        return out
+
+    @cached_property
+    def edge_conormals(self) -> np.ndarray:
+        """(E, 2, 3) unit conormals t_{E,K} (SPEC §3).
+
+        For edge E = [a, b] and its k-th triangle K = edge_triangles[e, k] with opposite vertex c,
+        t_{E,K} lies in the plane of K, is orthogonal to E and points out of K:
+
+            d = (b - a) / |b - a|,  w = a - c,  t = (w - (w . d) d) / |w - (w . d) d|.
+
+        (The component of a - c orthogonal to the edge; it does not depend on the orientation of
+        K.)  Two coplanar triangles on either side of an edge have t_{E,K1} = -t_{E,K2}.
+        """
+        p = self.points
+        half = self._edge_halfedges
+        opposite = self.triangles.reshape(-1)[half - half % 3 + _OPPOSITE[half % 3]]  # (E, 2)
+        a = p[self.edges[:, 0]]
+        d = p[self.edges[:, 1]] - a
+        d /= np.linalg.norm(d, axis=1)[:, None]
+        w = a[:, None, :] - p[opposite]  # (E, 2, 3)
+        w -= np.einsum("ekj,ej->ek", w, d)[:, :, None] * d[:, None, :]
+        w /= np.linalg.norm(w, axis=2)[:, :, None]
+        w.flags.writeable = False
+        return w
+
+    # -- conversion ----------------------------------------------------------------------------
+
+    def to_pyvista(self):
+        """The mesh as a ``pyvista.PolyData`` of triangles (points copied, faces (M, 3))."""
+        import pyvista as pv
+
+        return pv.PolyData.from_regular_faces(np.array(self.points), np.array(self.triangles))
+
+    def __repr__(self) -> str:
+        return (
+            f"SurfaceMesh(n_points={self.n_points}, n_triangles={self.n_triangles}, "
+            f"h={self.h:.4g}, area={self.area:.6g})"
+        )
+
+
+# ---------------------------------------------------------------------------------------------
+# generators
+# ---------------------------------------------------------------------------------------------
+
+
+def _check_int(name: str, value, minimum: int) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}.")
+    if value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}; got {value}.")
+    return int(value)
+
+
+def _check_positive(name: str, value) -> float:
+    try:
+        value = float(value)
+    except (TypeError, ValueError) as err:
+        raise ValueError(f"{name} must be a positive finite number; got {value!r}.") from err
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(f"{name} must be a positive finite number; got {value}.")
+    return value
+
+
+def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.5, seed=0) -> SurfaceMesh:
+    """Triangulated torus on an n x n/2 grid in the angles (t, p) (SPEC §6.1).
+
+    Node (i, j), i = 0..n-1, j = 0..m-1 with m = n // 2, has grid angles t_i = 2 pi i / n,
+    p_j = 2 pi j / m and sits at
+
+        x = (R + r cos p) cos t,  y = (R + r cos p) sin t,  z = r sin p,
+
+    so every node lies exactly on the torus rho = sqrt(z^2 + (sqrt(x^2 + y^2) - R)^2) - r = 0.
+    Node index i * m + j.  N = n m nodes, 2 N triangles, 3 N edges, Euler characteristic 0.
+    Cell (i, j) has corners v00 = (i, j), v10 = (i+1, j), v11 = (i+1, j+1), v01 = (i, j+1)
+    (indices periodic) and is split along the diagonal v00-v11 into (v00, v10, v11),
+    (v00, v11, v01), or along v10-v01 into (v00, v10, v01), (v10, v11, v01); both are outward
+    since x_t x x_p points out of the torus.
+
+    Families:
+
+    * ``"structured"``: every cell split along v00-v11;
+    * ``"flipped"``: each cell's diagonal chosen by a fair coin;
+    * ``"perturbed"``: each node's (t, p) moved by independent uniform offsets in
+      [-dt/4, dt/4] x [-dp/4, dp/4] (dt = 2 pi / n, dp = 2 pi / m), then placed on the torus;
+      structured diagonals (the paper's "unstructured" family);
+    * ``"perturbed-flipped"``: both.
+
+    Randomness: one ``numpy.random.default_rng(seed)`` draws, always in this order and for every
+    family, the n m diagonal coins and then the (n m, 2) node offsets; each family uses what it
+    needs.  Hence the same seed gives identical meshes, and "perturbed-flipped" has the nodes of
+    "perturbed" and the diagonals of "flipped" for the same seed.
+
+    Notes: the cells of the unperturbed grid are planar isosceles trapezoids, so "flipped" has the
+    same area (and stiffness matrix) as "structured".  Requires n even and >= 6 (so m >= 3 and the
+    grid is a simplicial complex) and 0 < r < R (an embedded ring torus).
+    """
+    n = _check_int("n", n, 6)
+    if n % 2:
+        raise ValueError(f"n must be even (the grid is n x n/2); got n = {n}. Use n = {n + 1}.")
+    if family not in TORUS_FAMILIES:
+        raise ValueError(f"unknown torus family {family!r}; allowed: {', '.join(TORUS_FAMILIES)}.")
+    R = _check_positive("R", R)
+    r = _check_positive("r", r)
+    if not r < R:
+        raise ValueError(f"the torus needs 0 < r < R (a ring torus without self-contact); got R = {R}, r = {r}.")
+    m = n // 2
+    rng = np.random.default_rng(seed)
+    coins = rng.random(n * m) < 0.5
+    offsets = rng.uniform(-0.25, 0.25, size=(n * m, 2))
+
+    i, j = np.meshgrid(np.arange(n), np.arange(m), indexing="ij")
+    i, j = i.reshape(-1), j.reshape(-1)  # node (and cell) index i * m + j
+    gi, gj = i.astype(float), j.astype(float)
+    if family in ("perturbed", "perturbed-flipped"):
+        gi = gi + offsets[:, 0]
+        gj = gj + offsets[:, 1]
+    t = 2.0 * np.pi * gi / n
+    p = 2.0 * np.pi * gj / m
+    ring = R + r * np.cos(p)
+    points = np.stack([ring * np.cos(t), ring * np.sin(t), r * np.sin(p)], axis=1)
+
+    ip, jp = (i + 1) % n, (j + 1) % m
+    v00, v10, v11, v01 = i * m + j, ip * m + j, ip * m + jp, i * m + jp
+    main = np.stack([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)], axis=1)
+    anti = np.stack([np.stack([v00, v10, v01], 1), np.stack([v10, v11, v01], 1)], axis=1)
+    flip = coins if family in ("flipped", "perturbed-flipped") else np.zeros(n * m, dtype=bool)
+    triangles = np.where(flip[:, None, None], anti, main).reshape(-1, 3)
+    return SurfaceMesh(points, triangles)
+
+
+def _refine_midpoints(points: np.ndarray, triangles: np.ndarray):
+    """Split every triangle into four through its edge midpoints (orientation preserved).
+
+    New node N + e at the midpoint of edge e; (v0, v1, v2) with midpoints m0 = (v0 v1),
+    m1 = (v1 v2), m2 = (v2 v0) becomes (v0, m0, m2), (m0, v1, m1), (m2, m1, v2), (m0, m1, m2).
+    """
+    edges, halfedge_edge, _, _ = _halfedge_table(triangles, len(points))
+    mid = len(points) + halfedge_edge.reshape(-1, 3)
+    new_points = np.concatenate([points, 0.5 * (points[edges[:, 0]] + points[edges[:, 1]])])
+    v0, v1, v2 = triangles.T
+    m0, m1, m2 = mid.T
+    children = np.stack(
+        [
+            np.stack([v0, m0, m2], 1),
+            np.stack([m0, v1, m1], 1),
+            np.stack([m2, m1, v2], 1),
+            np.stack([m0, m1, m2], 1),
+        ],
+        axis=1,
+    )
+    return new_points, children.reshape(-1, 3)
+
+
+def sphere_mesh(level: int = 3, radius: float = 1.0, center=(0.0, 0.0, 0.0)) -> SurfaceMesh:
+    """Icosahedral sphere: the regular icosahedron refined ``level`` times, nodes on the sphere.
+
+    The 12 icosahedron vertices are the cyclic permutations of (0, +-1, +-phi), phi = (1 + sqrt 5)/2,
+    scaled to the unit sphere; its 20 faces are the convex hull, oriented outward.  Each refinement
+    splits every triangle into four through its edge midpoints and pushes the new nodes radially
+    onto the unit sphere; finally x = center + radius * u.  Hence every node satisfies
+    |x - center| = radius up to round-off, and
+
+        N = 10 * 4^level + 2,  E = 30 * 4^level,  M = 20 * 4^level,  Euler characteristic 2.
+
+    The area tends to 4 pi radius^2 and the volume to 4/3 pi radius^3 at O(h^2).
+    """
+    from scipy.spatial import ConvexHull
+
+    level = _check_int("level", level, 0)
+    radius = _check_positive("radius", radius)
+    center = np.asarray(center, dtype=float)
+    if center.shape != (3,) or not np.isfinite(center).all():
+        raise ValueError(f"center must be 3 finite coordinates; got {center!r}.")
+    if level > 10:
+        raise ValueError(f"level {level} would give {20 * 4**level} triangles; use level <= 10.")
+    phi = 0.5 * (1.0 + np.sqrt(5.0))
+    base = np.array([[0.0, s1, s2 * phi] for s1 in (-1.0, 1.0) for s2 in (-1.0, 1.0)])
+    verts = np.concatenate([np.roll(base, shift, axis=1) for shift in range(3)])
+    verts /= np.linalg.norm(verts, axis=1)[:, None]
+    tri = ConvexHull(verts).simplices.astype(np.int64)
+    normal = np.cross(verts[tri[:, 1]] - verts[tri[:, 0]], verts[tri[:, 2]] - verts[tri[:, 0]])
+    inward = np.einsum("ij,ij->i", normal, verts[tri].sum(axis=1)) < 0
+    tri[inward] = tri[inward][:, [0, 2, 1]]
+    for _ in range(level):
+        verts, tri = _refine_midpoints(verts, tri)
+        verts /= np.linalg.norm(verts, axis=1)[:, None]
+    return SurfaceMesh(center + radius * verts, tri)
+
+
+# ---------------------------------------------------------------------------------------------
+# file I/O
+# ---------------------------------------------------------------------------------------------
+
+
+def _merge_points(points: np.ndarray, triangles: np.ndarray):
+    """Drop points used by no triangle and merge coincident points.
+
+    Two points are merged when their coordinates, measured from the bounding-box corner and
+    rounded to multiples of q = MERGE_TOLERANCE * (bounding-box diagonal), agree; exact
+    duplicates (as in STL, which stores every vertex once per facet) always merge.  A merged
+    node keeps the coordinates and the order of its first occurrence.  Returns (points, triangles).
+    """
+    used = np.unique(triangles)
+    points = points[used]
+    triangles = np.searchsorted(used, triangles)
+    lower = points.min(axis=0)
+    diagonal = float(np.linalg.norm(points.max(axis=0) - lower))
+    if diagonal == 0.0:
+        return points, triangles
+    keys = np.round((points - lower) / (MERGE_TOLERANCE * diagonal)).astype(np.int64)
+    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    order = np.argsort(first)  # unique groups in order of first occurrence
+    rank = np.empty_like(order)
+    rank[order] = np.arange(order.size)
+    return points[first[order]], rank[inverse][triangles]
+
+
+def read_surface(path) -> SurfaceMesh:
+    """Read a closed triangle surface with meshio (STL, OBJ, PLY, OFF, VTK, VTU, Gmsh, ...).
+
+    Only "triangle" cells are used (points, lines and volume cells are ignored); a file holding
+    quadrilaterals or polygons is rejected (triangulate it first), and so is one without triangles.
+    Points used by no triangle are dropped and coincident points are merged (see
+    :func:`_merge_points`, tolerance MERGE_TOLERANCE relative to the bounding-box diagonal), so
+    that STL facet soups become a connected mesh.  The result is validated and oriented outward
+    as in :class:`SurfaceMesh`.
+
+    Raises FileNotFoundError when ``path`` does not exist, ValueError (naming ``path``) when the
+    file cannot be read or its format is unknown, and ValueError when the surface is invalid.
+    """
+    import meshio
+
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"surface mesh file not found: '{path}'")
+    if path.is_dir():
+        raise ValueError(f"'{path}' is a directory; pass the path of a surface mesh file.")
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            data = meshio.read(path)
+    except (Exception, SystemExit) as err:  # meshio calls sys.exit(1) when its reader rejects a file
+        detail = "meshio could not parse it" if isinstance(err, SystemExit) else f"{type(err).__name__}: {err}"
+        raise ValueError(
+            f"cannot read surface mesh '{path}' ({detail}); check the file and its "
+            f"extension; supported formats include {_READ_EXTENSIONS_HINT} (meshio)."
+        ) from err
+    other_2d = {
+        block.type: len(block.data)
+        for block in data.cells
+        if block.type in ("quad", "polygon", "triangle6", "triangle7", "quad8", "quad9") and len(block.data)
+    }
+    if other_2d:
+        raise ValueError(
+            f"'{path}' contains non-triangle surface cells ({other_2d}); only 3-node triangles are supported: "
+            "triangulate the surface first (e.g. pyvista PolyData.triangulate())."
+        )
+    blocks = [np.asarray(block.data) for block in data.cells if block.type == "triangle"]
+    if not blocks or sum(len(b) for b in blocks) == 0:
+        found = sorted({block.type for block in data.cells}) or ["none"]
+        raise ValueError(f"'{path}' has no triangle cells (cell types found: {', '.join(found)}).")
+    triangles = np.concatenate(blocks).astype(np.int64)
+    points = np.asarray(data.points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"'{path}' has points of shape {points.shape}; a surface in R^3 needs (N, 3).")
+    try:
+        if triangles.min() < 0 or triangles.max() >= len(points):
+            raise ValueError(f"triangle node indices outside [0, {len(points)})")
+        if np.isfinite(points).all():
+            points, triangles = _merge_points(points, triangles)
+        return SurfaceMesh(points, triangles)
+    except ValueError as err:
+        raise ValueError(f"'{path}': {err}") from err
+
+
+def write_surface(mesh: SurfaceMesh, path, file_format: str | None = None, **kwargs) -> None:
+    """Write ``mesh`` (points and triangle cells) with meshio; the format follows the extension.
+
+    ``file_format`` and ``kwargs`` are passed to ``meshio.write`` (e.g. ``binary=True`` for STL).
+    Node indices are written as int32 when they fit (portable PLY/VTK).  Binary STL stores
+    float32 coordinates; the other common formats (.obj, .ply, .off, .vtk, .vtu, ASCII .stl)
+    round-trip float64 exactly.  Raises ValueError naming ``path`` for an unknown format and
+    FileNotFoundError when the parent directory does not exist.
+    """
+    import meshio
+
+    if not isinstance(mesh, SurfaceMesh):
+        raise TypeError(f"write_surface expects a SurfaceMesh; got {type(mesh).__name__}.")
+    path = Path(path)
+    if not path.parent.exists():
+        raise FileNotFoundError(f"cannot write '{path}': directory '{path.parent}' does not exist.")
+    triangles = np.array(mesh.triangles)
+    if mesh.n_points < 2**31:
+        triangles = triangles.astype(np.int32)
+    data = meshio.Mesh(np.array(mesh.points), [("triangle", triangles)])
+    try:
+        meshio.write(path, data, file_format=file_format, **kwargs)
+    except (meshio.ReadError, meshio.WriteError, KeyError) as err:
+        raise ValueError(
+            f"cannot write surface mesh '{path}' ({err}); use a known extension such as {_READ_EXTENSIONS_HINT} "
+            "or pass file_format."
+        ) from err
