@@ -173,6 +173,15 @@ class CutP1Space(_P1Space):
                 raise ValueError(f"unknown measure {measure!r} for a cut space; use 'surface' or 'active'")
         return cache[key]
 
+    def surface_vertex_values(self, coeffs) -> np.ndarray:
+        """Trace of a discrete function at the vertices of S_h: (V,) or (V, c) (for plots and VTK)."""
+        c = self.cut
+        tet_of = np.empty(len(c.vertices), dtype=np.int64)
+        tet_of[c.triangles.reshape(-1)] = np.repeat(c.triangle_tets, 3)
+        lam = barycentric_at(c.vertices[:, None, :], self.element_origin[tet_of], self.element_gradients[tet_of])[:, 0]
+        local = np.asarray(coeffs)[self.element_dofs[tet_of]]
+        return np.einsum("vk,vk...->v...", lam, local)
+
     def edges(self):
         """Edges of S_h between pieces: (element pairs (E, 2), conormals (E, 2, 3), lengths (E,))."""
         c = self.cut

@@ -1,0 +1,153 @@
+"""The ``cutfem`` command.
+
+    cutfem list
+    cutfem run PROBLEM [--param value ...] [--levels L1 L2 ...] [--json PATH|-] [--vtk DIR] [--plot PATH]
+    cutfem reproduce [--out DIR] [--full]
+
+Errors in the input (an unknown problem or parameter, a bad value, an open surface file, a level
+set that misses the box, ...) print one line and exit with status 2; ``--debug`` shows the traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+__all__ = ["main"]
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message):  # argparse's default exits with a usage dump; keep it short and useful
+        raise SystemExit(_fail(f"{self.prog}: {message}"))
+
+
+def _fail(message: str) -> int:
+    print(f"error: {message}", file=sys.stderr)
+    return 2
+
+
+def _cmd_list(args) -> int:
+    from .registry import available_problems
+
+    for name, problem in available_problems().items():
+        print(problem.describe() if args.verbose else f"{name:28s} {problem.summary}")
+        if args.verbose:
+            print()
+    if not args.verbose:
+        print("\n'cutfem list -v' shows the parameters; 'cutfem run PROBLEM --help' those of one problem.")
+    return 0
+
+
+def _problem_parser(problem) -> argparse.ArgumentParser:
+    p = _Parser(prog=f"cutfem run {problem.name}", description=problem.summary, allow_abbrev=False)
+    p.add_argument("--levels", nargs="+", default=None, help=f"the {problem.level_name} of each level (default {problem.default_levels})")
+    if problem.level_name not in {q.name for q in problem.params}:
+        p.add_argument("--" + problem.level_name.replace("_", "-"), dest="levels", nargs="+", default=None, help="same as --levels")
+    for q in problem.params:
+        extra = f" (one of {', '.join(map(str, q.choices))})" if q.choices else ""
+        p.add_argument(q.flag, dest=q.name, default=None, nargs=q.nargs, metavar=q.type.__name__.upper(), help=f"{q.help}{extra} [default {q.default}]")
+    p.add_argument("--json", default=None, metavar="PATH", help="write the results as JSON ('-' for standard output)")
+    p.add_argument("--vtk", default=None, metavar="DIR", help="write the fields of every level as VTK files for ParaView")
+    p.add_argument("--plot", default=None, metavar="PATH", help="write a convergence plot (PNG or PDF)")
+    p.add_argument("--quiet", action="store_true", help="no progress lines")
+    p.add_argument("--debug", action="store_true", help="show tracebacks")
+    return p
+
+
+def _join_negative_values(argv, problem):
+    """'--box -1,-1,-1,1,1,1' -> '--box=-1,-1,-1,1,1,1' (argparse would read the value as an option)."""
+    single = {q.flag for q in problem.params if q.nargs is None}
+    out, i = [], 0
+    while i < len(argv):
+        tok = argv[i]
+        if tok in single and i + 1 < len(argv) and argv[i + 1][:1] == "-" and argv[i + 1][1:2].isdigit():
+            out.append(f"{tok}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(tok)
+        i += 1
+    return out
+
+
+def _cmd_run(argv) -> int:
+    from .registry import ProblemError, get_problem, run
+
+    if not argv or argv[0].startswith("-"):
+        raise ProblemError("usage: cutfem run PROBLEM [--param value ...]; 'cutfem list' shows the problems")
+    problem = get_problem(argv[0])
+    parser = _problem_parser(problem)
+    allowed = ", ".join(["--levels"] + [q.flag for q in problem.params] + ["--json", "--vtk", "--plot", "--quiet", "--debug"])
+    known, unknown = parser.parse_known_args(_join_negative_values(argv[1:], problem))
+    if unknown:
+        raise ProblemError(f"unknown argument(s) {' '.join(unknown)} for {problem.name}; allowed: {allowed}")
+    params = {q.name: getattr(known, q.name) for q in problem.params if getattr(known, q.name) is not None}
+    to_stdout = known.json == "-"
+    result = run(problem.name, levels=known.levels, progress=not (known.quiet or to_stdout), **params)
+    if to_stdout:
+        print(result.dumps())
+    else:
+        print(result.table())
+    if known.json and not to_stdout:
+        Path(known.json).parent.mkdir(parents=True, exist_ok=True)
+        Path(known.json).write_text(result.dumps())
+        print(f"wrote {known.json}", file=sys.stderr)
+    if known.vtk:
+        out = Path(known.vtk)
+        out.mkdir(parents=True, exist_ok=True)
+        for level, rec in zip(result.levels, result.records):
+            for kind, ds in rec.get("fields", {}).items():
+                ext = ".vtp" if ds.__class__.__name__ == "PolyData" else ".vtu"
+                path = out / f"{problem.name}_{problem.level_name}{level}_{kind}{ext}"
+                ds.save(path)
+        print(f"wrote VTK files to {out}", file=sys.stderr)
+    if known.plot:
+        from .convergence import convergence_plot
+
+        convergence_plot(result, known.plot)
+        print(f"wrote {known.plot}", file=sys.stderr)
+    return 0
+
+
+def _cmd_reproduce(argv) -> int:
+    from studies.reproduce import main as reproduce_main
+
+    return reproduce_main(argv)
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    debug = "--debug" in argv
+    parser = _Parser(prog="cutfem", description="unfitted finite element methods on surfaces: problems, runs, studies")
+    parser.add_argument("command", choices=["list", "run", "reproduce"], help="list the problems, run one, or reproduce the paper")
+    if not argv or argv[0] in ("-h", "--help"):
+        parser.print_help()
+        print("\ncommands:\n  list [-v]                 the registered problems\n  run PROBLEM [options]     solve at several levels, print rates"
+              "\n  reproduce [--out DIR] [--full]   every figure and table of the paper")
+        return 0
+    command, rest = argv[0], argv[1:]
+    try:
+        if command == "list":
+            lp = _Parser(prog="cutfem list")
+            lp.add_argument("-v", "--verbose", action="store_true")
+            return _cmd_list(lp.parse_args(rest))
+        if command == "run":
+            if len(rest) >= 2 and rest[1] in ("-h", "--help"):
+                from .registry import get_problem
+
+                _problem_parser(get_problem(rest[0])).print_help()
+                return 0
+            return _cmd_run(rest)
+        if command == "reproduce":
+            return _cmd_reproduce(rest)
+        return _fail(f"unknown command {command!r}; use list, run or reproduce")
+    except SystemExit as exc:
+        return int(exc.code or 0)
+    except (ValueError, FileNotFoundError, RuntimeError, OSError) as exc:
+        if debug:
+            raise
+        return _fail(str(exc))
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

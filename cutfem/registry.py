@@ -1,0 +1,333 @@
+"""Problems by name: a registry, the parameters of each problem, and convergence runs.
+
+A problem solves one *level* (a mesh resolution) at a time and returns a record (a dict of
+numbers); :func:`run` solves a sequence of levels, times them, and adds the rates between levels.
+Problems come from three places: the modules of the ``problems`` package (registered on import),
+any module or script that uses :func:`register`, and installed packages that declare an entry point
+in the group ``cutfem.problems`` (the entry point names a module or a problem object to load).
+
+A problem is either a :class:`Problem` subclass or a plain function decorated with
+:func:`register`::
+
+    from cutfem import register, Param
+
+    @register("my-problem", levels=[0.2, 0.1, 0.05], level_name="spacing",
+              params=[Param("tau_f", float, 0.1, "face stabilization", minimum=0)])
+    def my_problem(level, tau_f):
+        ...
+        return {"h": h, "dofs": n, "l2_error": e}
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import json
+import math
+import platform
+import sys
+import time
+from dataclasses import dataclass, field
+from typing import Any, Callable
+
+import numpy as np
+
+__all__ = ["Param", "Problem", "register", "get_problem", "available_problems", "run", "RunResult", "ProblemError"]
+
+
+class ProblemError(ValueError):
+    """Bad problem name or parameter value; the message lists what is allowed."""
+
+
+@dataclass
+class Param:
+    """A named problem parameter: type (float, int, str, bool), default, help, optional choices and
+    bounds.  ``nargs="+"`` makes it a list."""
+
+    name: str
+    type: type = float
+    default: Any = None
+    help: str = ""
+    choices: tuple | None = None
+    minimum: float | None = None
+    nargs: str | None = None
+
+    @property
+    def flag(self) -> str:
+        return "--" + self.name.replace("_", "-")
+
+    def convert(self, value):
+        """Convert (from a string or a Python value) and validate; raises ProblemError."""
+        if self.nargs == "+":
+            values = value if isinstance(value, (list, tuple)) else [value]
+            return [self._one(v) for v in values]
+        return self._one(value)
+
+    def _one(self, value):
+        if value is None:
+            return None
+        try:
+            if self.type is bool and isinstance(value, str):
+                if value.lower() not in ("true", "false", "1", "0", "yes", "no"):
+                    raise ValueError(value)
+                v = value.lower() in ("true", "1", "yes")
+            elif self.type is str or not isinstance(value, str) and not isinstance(value, (int, float, np.number)):
+                v = value  # objects (level sets, meshes) pass through from Python
+            else:
+                v = self.type(value)
+        except (TypeError, ValueError):
+            raise ProblemError(f"{self.flag}: cannot read {value!r} as {self.type.__name__}") from None
+        if self.choices is not None and isinstance(v, str) and v not in self.choices and not _looks_like_path(v):
+            raise ProblemError(f"{self.flag}: {v!r} is not one of {', '.join(map(str, self.choices))}")
+        if self.minimum is not None and isinstance(v, (int, float)) and (not math.isfinite(v) or v < self.minimum):
+            raise ProblemError(f"{self.flag}: {v} must be a finite number >= {self.minimum}")
+        return v
+
+
+def _looks_like_path(v: str) -> bool:
+    return "." in v.rsplit("/", 1)[-1] or "/" in v
+
+
+class Problem:
+    """Base class of a registered problem.
+
+    Subclasses set ``name``, ``summary``, ``params`` (list of :class:`Param`), ``level_name`` and
+    ``default_levels``, and implement :meth:`solve_level`, which returns a record dict with at least
+    ``h``; error entries end in ``_error``; timings go in ``record["time"]`` (stage -> seconds).
+    A record may carry ``"fields"``: a dict of pyvista datasets for VTK output (not saved to JSON).
+    """
+
+    name: str = ""
+    summary: str = ""
+    params: list = []
+    level_name: str = "level"
+    level_type: type = float
+    default_levels: list = []
+
+    def solve_level(self, level, **params) -> dict:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    # parameters
+    def param_map(self) -> dict:
+        return {p.name: p for p in self.params}
+
+    def resolve(self, given: dict) -> dict:
+        """Defaults filled in, values converted and validated; unknown names raise ProblemError."""
+        allowed = self.param_map()
+        unknown = [k for k in given if k not in allowed]
+        if unknown:
+            raise ProblemError(
+                f"unknown parameter(s) {', '.join(unknown)} for problem {self.name!r}; allowed: "
+                + ", ".join(p.name for p in self.params)
+            )
+        out = {p.name: p.default for p in self.params}
+        for k, v in given.items():
+            out[k] = allowed[k].convert(v)
+        return out
+
+    def describe(self) -> str:
+        lines = [f"{self.name}: {self.summary}", f"  levels ({self.level_name}): default {self.default_levels}"]
+        for p in self.params:
+            extra = f" (one of {', '.join(map(str, p.choices))})" if p.choices else ""
+            lines.append(f"  {p.flag} {p.type.__name__.upper()}{' ...' if p.nargs else ''}  {p.help}{extra} [default {p.default}]")
+        return "\n".join(lines)
+
+
+_REGISTRY: dict[str, Problem] = {}
+_LOADED = False
+
+
+def register(name=None, *, summary: str = "", params=None, levels=None, level_name: str = "level", level_type=float):
+    """Register a problem class (a :class:`Problem` subclass) or a level function under ``name``.
+
+    Used bare on a class (``@register``) it takes the class's ``name``.  On a function
+    ``f(level, **params) -> record`` give ``name``, ``params``, ``levels``, ``level_name``.
+    """
+
+    def wrap(obj):
+        if inspect.isclass(obj) and issubclass(obj, Problem):
+            problem = obj()
+            if isinstance(name, str):
+                problem.name = name
+        elif callable(obj):
+            fn = obj
+
+            class _FunctionProblem(Problem):
+                def solve_level(self, level, **p):
+                    return fn(level, **p)
+
+            problem = _FunctionProblem()
+            problem.name = name if isinstance(name, str) else fn.__name__.replace("_", "-")
+            problem.summary = summary or (inspect.getdoc(fn) or "").split("\n")[0]
+            problem.params = list(params or [])
+            problem.default_levels = list(levels or [])
+            problem.level_name = level_name
+            problem.level_type = level_type
+        else:
+            raise TypeError("register() decorates a Problem subclass or a function f(level, **params)")
+        if not problem.name:
+            raise ValueError("a problem needs a name")
+        _REGISTRY[problem.name] = problem
+        return obj
+
+    if inspect.isclass(name) or (callable(name) and not isinstance(name, str)):
+        obj, name = name, None
+        return wrap(obj)
+    return wrap
+
+
+def _load_builtin_and_plugins():
+    global _LOADED
+    if _LOADED:
+        return
+    _LOADED = True
+    importlib.import_module("problems")
+    try:
+        from importlib.metadata import entry_points
+
+        for ep in entry_points(group="cutfem.problems"):
+            try:
+                ep.load()
+            except Exception as exc:  # a broken plug-in must not break the built-in problems
+                print(f"warning: could not load cutfem problem plug-in {ep.name!r}: {exc}", file=sys.stderr)
+    except Exception:  # pragma: no cover - metadata unavailable
+        pass
+
+
+def available_problems() -> dict:
+    """All registered problems by name (built-in, registered, and entry-point plug-ins)."""
+    _load_builtin_and_plugins()
+    return dict(sorted(_REGISTRY.items()))
+
+
+def get_problem(name: str) -> Problem:
+    problems = available_problems()
+    if name not in problems:
+        raise ProblemError(f"unknown problem {name!r}; available: {', '.join(problems)}")
+    return problems[name]
+
+
+@dataclass
+class RunResult:
+    """Records of a convergence run, with rates between levels for every ``*_error`` entry."""
+
+    problem: str
+    parameters: dict
+    levels: list
+    records: list
+    rates: dict = field(default_factory=dict)
+
+    def to_json(self) -> dict:
+        import scipy
+
+        from . import __version__
+
+        return _jsonable(
+            {
+                "problem": self.problem,
+                "parameters": self.parameters,
+                "levels": self.levels,
+                "records": [{k: v for k, v in r.items() if k != "fields"} for r in self.records],
+                "rates": self.rates,
+                "versions": {
+                    "cutfem": __version__,
+                    "numpy": np.__version__,
+                    "scipy": scipy.__version__,
+                    "python": platform.python_version(),
+                },
+            }
+        )
+
+    def dumps(self) -> str:
+        return json.dumps(self.to_json(), indent=2)
+
+    def error_keys(self) -> list:
+        keys = []
+        for r in self.records:
+            for k, v in r.items():
+                if k.endswith("_error") and k not in keys and v is not None:
+                    keys.append(k)
+        return keys
+
+    def table(self) -> str:
+        """A readable table: level, h, dofs, errors with rates, area, time."""
+        keys = self.error_keys()
+        head = ["level", "h", "dofs"] + [c for k in keys for c in (k, "rate")] + ["area", "time[s]"]
+        rows = []
+        for i, r in enumerate(self.records):
+            row = [f"{self.levels[i]:g}" if isinstance(self.levels[i], (int, float)) else str(self.levels[i]), f"{r['h']:.4g}", str(r.get("dofs", ""))]
+            for k in keys:
+                e = r.get(k)
+                row.append("" if e is None else f"{e:.4e}")
+                rr = self.rates.get(k)
+                row.append("" if i == 0 or rr is None or rr[i - 1] is None else f"{rr[i - 1]:.2f}")
+            row.append(f"{r['area']:.6f}" if "area" in r else "")
+            row.append(f"{sum(r.get('time', {}).values()):.2f}")
+            rows.append(row)
+        widths = [max(len(h), *(len(r[j]) for r in rows)) for j, h in enumerate(head)]
+        fmt = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, widths))  # noqa: E731
+        return "\n".join([fmt(head), fmt(["-" * w for w in widths])] + [fmt(r) for r in rows])
+
+
+def _jsonable(obj):
+    if isinstance(obj, dict):
+        return {str(k): _jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _jsonable(obj.tolist())
+    if isinstance(obj, (np.integer,)):
+        return int(obj)
+    if isinstance(obj, (np.floating, float)):
+        v = float(obj)
+        return v if math.isfinite(v) else None
+    if isinstance(obj, (int, str, bool)) or obj is None:
+        return obj
+    return repr(obj)
+
+
+def run(name: str, levels=None, progress: bool | Callable = False, **params) -> RunResult:
+    """Solve problem ``name`` at each level (default: the problem's levels) and compute rates.
+
+    ``progress``: True prints one line per level to standard error; a callable gets
+    (index, count, level, record-or-None).
+    """
+    problem = get_problem(name)
+    p = problem.resolve(params)
+    levels = list(problem.default_levels if levels is None else levels)
+    if not levels:
+        raise ProblemError(f"no levels given for problem {name!r}")
+    levels = [problem.level_type(v) if isinstance(v, str) else v for v in levels]
+    records = []
+    for i, level in enumerate(levels):
+        if progress is True:
+            print(f"[{i + 1}/{len(levels)}] {problem.name} {problem.level_name}={level} ...", file=sys.stderr, end="", flush=True)
+        elif callable(progress):
+            progress(i, len(levels), level, None)
+        t0 = time.perf_counter()
+        try:
+            rec = problem.solve_level(level, **p)
+        except BaseException:
+            if progress is True:
+                print(" failed", file=sys.stderr, flush=True)
+            raise
+        rec.setdefault("time", {})
+        rec["wall_time"] = time.perf_counter() - t0
+        rec[problem.level_name] = level
+        records.append(rec)
+        if progress is True:
+            print(f" done in {rec['wall_time']:.2f} s", file=sys.stderr, flush=True)
+        elif callable(progress):
+            progress(i, len(levels), level, rec)
+    result = RunResult(problem.name, p, levels, records)
+    h = [r["h"] for r in records]
+    for k in result.error_keys():
+        e = [r.get(k) for r in records]
+        rs = []
+        for i in range(len(e) - 1):
+            if e[i] is None or e[i + 1] is None or e[i] <= 0 or e[i + 1] <= 0 or h[i] == h[i + 1]:
+                rs.append(None)
+            else:
+                rs.append(math.log(e[i] / e[i + 1]) / math.log(h[i] / h[i + 1]))
+        result.rates[k] = rs
+    return result

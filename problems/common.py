@@ -1,0 +1,139 @@
+"""Shared set-up of the problems: surfaces by name, background boxes, timing."""
+
+from __future__ import annotations
+
+import math
+import time
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+
+from cutfem.levelset import Ellipsoid, LevelSet, SignedDistance, Sphere, Torus
+from cutfem.mesh import structured_box, unstructured_box
+from cutfem.registry import Param, ProblemError
+from cutfem.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
+
+SURFACES = ("torus", "sphere", "ellipsoid")
+
+#: the shape parameters shared by every problem
+SHAPE_PARAMS = [
+    Param("R", float, 1.0, "torus: radius of the big circle", minimum=0),
+    Param("r", float, 0.5, "torus: radius of the tube", minimum=0),
+    Param("radius", float, 1.0, "sphere radius", minimum=0),
+    Param("axes", str, "1.0,0.8,0.6", "ellipsoid semi-axes a,b,c"),
+]
+
+
+class Timer(dict):
+    """Stage -> seconds; ``with timer("assembly"): ...`` adds to a stage."""
+
+    @contextmanager
+    def __call__(self, stage):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self[stage] = self.get(stage, 0.0) + time.perf_counter() - t0
+
+
+def parse_numbers(text, count, flag):
+    if isinstance(text, (list, tuple, np.ndarray)):
+        values = [float(v) for v in text]
+    else:
+        try:
+            values = [float(v) for v in str(text).replace(" ", "").split(",") if v]
+        except ValueError:
+            raise ProblemError(f"{flag}: expected {count} comma-separated numbers, got {text!r}") from None
+    if len(values) != count:
+        raise ProblemError(f"{flag}: expected {count} comma-separated numbers, got {text!r}")
+    return values
+
+
+def is_file(surface) -> bool:
+    return isinstance(surface, (str, Path)) and str(surface) not in SURFACES
+
+
+def levelset_for(surface, R=1.0, r=0.5, radius=1.0, axes="1.0,0.8,0.6") -> LevelSet:
+    """The level set of a named surface, a closed mesh file (signed distance), or a LevelSet/callable."""
+    if isinstance(surface, LevelSet):
+        return surface
+    if callable(surface):
+        from cutfem.levelset import FunctionLevelSet
+
+        return FunctionLevelSet(surface)
+    if surface == "torus":
+        if not 0 < r < R:
+            raise ProblemError(f"torus needs 0 < r < R, got R={R}, r={r}")
+        return Torus(R=R, r=r)
+    if surface == "sphere":
+        return Sphere(radius=radius)
+    if surface == "ellipsoid":
+        return Ellipsoid(*parse_numbers(axes, 3, "--axes"))
+    path = Path(surface)
+    if not path.exists():
+        raise ProblemError(f"--surface: {surface!r} is neither one of {', '.join(SURFACES)} nor an existing mesh file")
+    return SignedDistance(read_surface(path))
+
+
+def has_exact(levelset) -> bool:
+    """Whether the level set provides exact closest points and curvature."""
+    return not isinstance(levelset, SignedDistance) and type(levelset).closest_point is not LevelSet.closest_point
+
+
+def surface_mesh_for(surface, n, family="structured", seed=0, R=1.0, r=0.5, radius=1.0):
+    """(SurfaceMesh, level set or None) of a meshed surface at resolution ``n``.
+
+    torus: the n x n/2 grid of SPEC §6.1 in the given family; sphere: an icosahedron refined
+    L = round(log2(n / 5)) times (about n edges around a great circle); a file: read as is.
+    """
+    if surface == "torus":
+        if family not in TORUS_FAMILIES:
+            raise ProblemError(f"--family: {family!r} is not one of {', '.join(TORUS_FAMILIES)}")
+        return torus_mesh(int(n), family=family, R=R, r=r, seed=seed), Torus(R=R, r=r)
+    if surface == "sphere":
+        level = max(0, int(round(math.log2(max(n, 1) / 5.0))))
+        return sphere_mesh(level, radius=radius), Sphere(radius=radius)
+    if surface in SURFACES:
+        raise ProblemError(f"--surface {surface} has no surface mesh generator; use torus, sphere or a mesh file")
+    path = Path(surface)
+    if not path.exists():
+        raise ProblemError(f"--surface: {surface!r} is neither torus, sphere nor an existing mesh file")
+    return read_surface(path), None
+
+
+def box_for(levelset, spacing, box=None):
+    """The background box: given as 'x0,y0,z0,x1,y1,z1', or the surface's bounding box grown by
+    0.1 (the paper's margin for the torus) and rounded outward to multiples of the spacing, so that
+    the grid contains the origin and the paper's box [-1.6,1.6]^2 x [-0.6,0.6] comes out for the torus."""
+    if box is not None:
+        v = parse_numbers(box, 6, "--box")
+        return np.array(v[:3]), np.array(v[3:])
+    b = levelset.bounds() if hasattr(levelset, "bounds") else None
+    if b is None:
+        raise ProblemError("the surface has no known bounding box: give --box x0,y0,z0,x1,y1,z1")
+    lo, hi = np.asarray(b[0], float) - 0.1, np.asarray(b[1], float) + 0.1
+    lo = np.floor(lo / spacing + 1e-9) * spacing
+    hi = np.ceil(hi / spacing - 1e-9) * spacing
+    return lo, hi
+
+
+def background_for(levelset, spacing, kind="structured", box=None):
+    """Structured (Kuhn) or unstructured (pytetwild, target edge length = spacing) background mesh."""
+    lo, hi = box_for(levelset, spacing, box)
+    if kind == "structured":
+        return structured_box(lo, hi, cells=np.rint((hi - lo) / spacing).astype(int))
+    if kind == "tetwild":
+        return unstructured_box(lo, hi, edge_length=spacing)
+    raise ProblemError(f"--background: {kind!r} is not one of structured, tetwild")
+
+
+def cut_record(cut) -> dict:
+    """Sizes of a cut for the per-level records."""
+    return {
+        "background_nodes": int(cut.background.n_points),
+        "active_tets": int(cut.n_tets),
+        "pieces": int(cut.n_tets),
+        "surface_triangles": int(cut.n_triangles),
+        "interior_faces": int(len(cut.interior_faces)),
+    }

@@ -1,0 +1,193 @@
+"""Laplace-Beltrami: -Lap_S u + u = f on a closed surface (SPEC §4), meshed and cut.
+
+Discrete: (grad_{S_h} u, grad_{S_h} v) + (u, v) + J_h(u, v) = (f^e, v), f^e = f o p.
+Cut stabilizations: ``face`` (tau_F h^a J_F), ``normal`` (tau_N h^a (n_h.grad u, n_h.grad v) over the
+active tets), or ``none``.  Errors: L2(S_h) and the H1(S_h) seminorm against u^e = u o p.
+
+Manufactured solutions (exact data derived by hand, checked in the tests against finite differences):
+
+* sphere of radius R: u = x y + z, the sum of spherical harmonics of degree 2 and 1, so
+  -Lap_S u = (6/R^2) x y + (2/R^2) z and f = (6/R^2 + 1) x y + (2/R^2 + 1) z on S;
+  grad_S u = P grad u with P = I - n n^T.
+* torus (R, r), angles t (big circle) and p (tube): u = cos(3t) sin(p).  With s = R + r cos p,
+  Lap_S u = (1/(r^2 s)) d_p(s d_p u) + (1/s^2) d_tt u = -cos(3t) sin(p) [(R + 2 r cos p)/(r^2 s) + 9/s^2],
+  f = cos(3t) sin(p) [(R + 2 r cos p)/(r^2 s) + 9/s^2 + 1], and
+  grad_S u = (d_t u / s) e_t + (d_p u / r) e_p, e_t = (-sin t, cos t, 0), e_p = (-sin p cos t, -sin p sin t, cos p).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cutfem.cut import cut_mesh
+from cutfem.errors import h1_error, l2_error
+from cutfem.forms import edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
+from cutfem.levelset import Sphere, Torus
+from cutfem.registry import Param, Problem, ProblemError, register
+from cutfem.solve import solve
+from cutfem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.surface import TORUS_FAMILIES
+
+from .common import SHAPE_PARAMS, Timer, background_for, cut_record, levelset_for, surface_mesh_for
+
+
+class SphereSolution:
+    """u = x y + z on the sphere |x| = R (centred at 0); functions of points ON the sphere."""
+
+    def __init__(self, R):
+        self.R = R
+
+    def u(self, x):
+        return x[..., 0] * x[..., 1] + x[..., 2]
+
+    def f(self, x):
+        R2 = self.R**2
+        return (6 / R2 + 1) * x[..., 0] * x[..., 1] + (2 / R2 + 1) * x[..., 2]
+
+    def grad(self, x):
+        g = np.stack([x[..., 1], x[..., 0], np.ones_like(x[..., 0])], axis=-1)
+        n = x / np.linalg.norm(x, axis=-1, keepdims=True)
+        return g - np.einsum("...d,...d->...", g, n)[..., None] * n
+
+
+class TorusSolution:
+    """u = cos(3t) sin(p) on the torus (R, r) about the z axis; functions of points ON the torus."""
+
+    def __init__(self, R, r):
+        self.R, self.r = R, r
+
+    def _angles(self, x):
+        t = np.arctan2(x[..., 1], x[..., 0])
+        p = np.arctan2(x[..., 2], np.hypot(x[..., 0], x[..., 1]) - self.R)
+        return t, p
+
+    def u(self, x):
+        t, p = self._angles(x)
+        return np.cos(3 * t) * np.sin(p)
+
+    def f(self, x):
+        R, r = self.R, self.r
+        t, p = self._angles(x)
+        s = R + r * np.cos(p)
+        return np.cos(3 * t) * np.sin(p) * ((R + 2 * r * np.cos(p)) / (r**2 * s) + 9 / s**2 + 1)
+
+    def grad(self, x):
+        R, r = self.R, self.r
+        t, p = self._angles(x)
+        s = R + r * np.cos(p)
+        et = np.stack([-np.sin(t), np.cos(t), np.zeros_like(t)], axis=-1)
+        ep = np.stack([-np.sin(p) * np.cos(t), -np.sin(p) * np.sin(t), np.cos(p)], axis=-1)
+        dt = -3 * np.sin(3 * t) * np.sin(p)
+        dp = np.cos(3 * t) * np.cos(p)
+        return (dt / s)[..., None] * et + (dp / r)[..., None] * ep
+
+
+def manufactured(levelset):
+    if isinstance(levelset, Sphere):
+        if np.any(levelset.center != 0):
+            raise ProblemError("the manufactured solution on the sphere needs centre 0")
+        return SphereSolution(levelset.radius)
+    if isinstance(levelset, Torus):
+        return TorusSolution(levelset.R, levelset.r)
+    raise ProblemError("Laplace-Beltrami has manufactured solutions on the sphere and the torus only")
+
+
+def _solve_and_measure(space, K, closest_point, sol, t, solver):
+    with t("assembly"):
+        b = load(space, sol.f, degree=4, closest_point=closest_point)
+    with t("solve"):
+        u, info = solve(K, b, method=solver)
+    with t("errors"):
+        rec = {
+            "h": space.h,
+            "dofs": int(space.n_dofs),
+            "l2_error": l2_error(space, u, lambda x: sol.u(closest_point(x))),
+            "h1_error": h1_error(space, u, lambda x: sol.grad(closest_point(x))),
+            "solver": info.method,
+            "solver_iterations": info.iterations,
+        }
+    return u, rec
+
+
+@register
+class LaplaceBeltramiMeshed(Problem):
+    name = "laplace-beltrami-meshed"
+    summary = "-Lap_S u + u = f with a manufactured solution on a triangulated sphere or torus (SPEC §4)"
+    level_name = "n"
+    level_type = int
+    default_levels = [16, 32, 64, 128]
+    params = [
+        Param("surface", str, "sphere", "sphere or torus", choices=("torus", "sphere")),
+        Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES),
+        Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
+        Param("seed", int, 0, "random seed of the flipped/perturbed families"),
+        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-amg", "cg-jacobi")),
+        *SHAPE_PARAMS,
+    ]
+
+    def solve_level(self, level, surface, family, tau_e, seed, solver, R, r, radius, axes):
+        t = Timer()
+        with t("geometry"):
+            mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
+            if exact is None:
+                raise ProblemError("Laplace-Beltrami needs the sphere or the torus (manufactured solution)")
+            sol = manufactured(exact)
+            space = SurfaceP1Space(mesh)
+        with t("assembly"):
+            M = mass(space)
+            K = tangential_stiffness(space) + M
+            if tau_e > 0:
+                K = K + tau_e * edge_jump_penalty(space)
+        u, rec = _solve_and_measure(space, K.tocsr(), exact.closest_point, sol, t, solver)
+        rec["area"] = float(M.sum())
+        rec["time"] = dict(t)
+        poly = mesh.to_pyvista()
+        poly.point_data["u_h"] = u
+        poly.point_data["u_exact"] = sol.u(exact.closest_point(space.dof_points))
+        rec["fields"] = {"surface": poly}
+        return rec
+
+
+@register
+class LaplaceBeltramiCut(Problem):
+    name = "laplace-beltrami-cut"
+    summary = "-Lap_S u + u = f with a manufactured solution on a cut sphere or torus, face or normal-gradient stabilization (SPEC §4)"
+    level_name = "spacing"
+    level_type = float
+    default_levels = [0.2, 0.1, 0.05, 0.025]
+    params = [
+        Param("surface", str, "sphere", "sphere or torus", choices=("torus", "sphere")),
+        Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),
+        Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)"),
+        Param("stabilization", str, "face", "cut stabilization", choices=("face", "normal", "none")),
+        Param("tau_f", float, 0.1, "face stabilization tau_F", minimum=0),
+        Param("face_h_power", float, 0.0, "power a of h in the face term", minimum=None),
+        Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N", minimum=0),
+        Param("normal_h_power", float, 1.0, "power a of h in the normal-gradient term"),
+        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-amg", "cg-jacobi")),
+        *SHAPE_PARAMS,
+    ]
+
+    def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, solver, R, r, radius, axes):
+        t = Timer()
+        with t("geometry"):
+            phi = levelset_for(surface, R, r, radius, axes)
+            sol = manufactured(phi)
+            cut = cut_mesh(background_for(phi, level, background, box), phi)
+            space = CutP1Space(cut)
+        with t("assembly"):
+            M = mass(space)
+            K = tangential_stiffness(space) + M
+            if stabilization == "face" and tau_f > 0:
+                K = K + tau_f * face_jump_penalty(space, h_power=face_h_power)
+            elif stabilization == "normal" and tau_n > 0:
+                K = K + tau_n * normal_gradient_penalty(space, h_power=normal_h_power)
+        u, rec = _solve_and_measure(space, K.tocsr(), phi.closest_point, sol, t, solver)
+        rec.update(cut_record(cut))
+        rec["area"] = float(M.sum())
+        rec["time"] = dict(t)
+        poly = cut.to_pyvista()
+        poly.point_data["u_h"] = space.surface_vertex_values(u)
+        poly.point_data["u_exact"] = sol.u(phi.closest_point(cut.vertices))
+        rec["fields"] = {"surface": poly}
+        return rec

@@ -1,0 +1,153 @@
+"""The stabilized mean curvature vector (SPEC §3), on triangulated and on cut surfaces.
+
+Find H_h in [V_h]^3 with, for all v in [V_h]^3,
+
+    (H_h, v)_{S_h} + J_h(H_h, v) = (grad_{S_h} x, grad_{S_h} v)_{S_h}.
+
+Component k: (M + J) H_k = A x_k with M the surface mass matrix, A the tangential stiffness and x_k
+the nodal values of the coordinate k; one matrix, one factorization, three right-hand sides.
+Stabilization: meshed J = tau_E J_E (edge conormal-gradient jumps, weighted by the global
+h = N^(-1/2)); cut J = tau_E J_E + tau_F J_F (face normal-gradient jumps of the active mesh, times
+h^a, a = ``face_h_power``, 0 in the paper).  Exact field for errors: H^e = H o p.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from cutfem.cut import cut_mesh
+from cutfem.errors import discrete_error, l2_error, surface_integral
+from cutfem.forms import edge_jump_penalty, face_jump_penalty, mass, tangential_stiffness
+from cutfem.registry import Param, Problem, register
+from cutfem.solve import solve
+from cutfem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.surface import TORUS_FAMILIES
+
+from .common import SHAPE_PARAMS, SURFACES, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
+
+SOLVERS = ("auto", "direct", "cg-amg", "cg-jacobi")
+
+
+def mean_curvature_system(space, tau_e=0.0, tau_f=0.0, face_h_power=0.0):
+    """(M, K = M + tau_E J_E + tau_F J_F, A, B = A X): the matrices of the mean curvature problem."""
+    M = mass(space)
+    A = tangential_stiffness(space)
+    K = M
+    if tau_e > 0:
+        K = K + tau_e * edge_jump_penalty(space)
+    if tau_f > 0:
+        K = K + tau_f * face_jump_penalty(space, h_power=face_h_power)
+    return M, K.tocsr(), A, A @ space.dof_points
+
+
+def _common_record(space, M, H, timer, levelset, solve_info):
+    rec = {
+        "h": space.h,
+        "dofs": int(space.n_dofs),
+        "area": float(M.sum()),
+        "integral_H": surface_integral(space, H).tolist(),
+        "solver": solve_info.method,
+        "solver_iterations": solve_info.iterations,
+        "solver_residual": solve_info.residual,
+    }
+    if levelset is not None and levelset.area is not None:
+        rec["area_error"] = abs(rec["area"] - levelset.area)
+    return rec
+
+
+@register
+class MeanCurvatureMeshed(Problem):
+    name = "mean-curvature-meshed"
+    summary = "stabilized mean curvature vector on a triangulated closed surface (SPEC §3, meshed)"
+    level_name = "n"
+    level_type = int
+    default_levels = [16, 32, 64, 128]
+    params = [
+        Param("surface", str, "torus", "torus, sphere, or a closed mesh file (STL, OBJ, PLY, VTK, ...)", choices=("torus", "sphere")),
+        Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES),
+        Param("tau_e", float, 0.1, "edge stabilization tau_E", minimum=0),
+        Param("seed", int, 0, "random seed of the flipped/perturbed families"),
+        Param("solver", str, "auto", "linear solver", choices=SOLVERS),
+        *SHAPE_PARAMS,
+    ]
+
+    def solve_level(self, level, surface, family, tau_e, seed, solver, R, r, radius, axes):
+        t = Timer()
+        with t("geometry"):
+            mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
+            space = SurfaceP1Space(mesh)
+        with t("assembly"):
+            M, K, A, B = mean_curvature_system(space, tau_e=tau_e)
+        with t("solve"):
+            H, info = solve(K, B, method=solver)
+        with t("errors"):
+            rec = _common_record(space, M, H, t, exact, info)
+            rec.update(triangles=int(mesh.n_triangles), edges=int(mesh.n_edges))
+            if exact is not None:
+                He = exact.exact_mean_curvature_vector
+                rec["l2_error"] = l2_error(space, H, He)
+                rec["discrete_error"] = discrete_error(M, He(space.dof_points) - H)
+        rec["time"] = dict(t)
+        rec["fields"] = {"surface": _surface_fields(mesh.to_pyvista(), H, None if exact is None else exact.exact_mean_curvature_vector(space.dof_points))}
+        return rec
+
+
+@register
+class MeanCurvatureCut(Problem):
+    name = "mean-curvature-cut"
+    summary = "stabilized mean curvature vector on the zero level set of a P1 level set on tetrahedra (SPEC §3, cut)"
+    level_name = "spacing"
+    level_type = float
+    default_levels = [0.2, 0.1, 0.05, 0.025]
+    params = [
+        Param("surface", str, "torus", "torus, sphere, ellipsoid, or a closed mesh file (signed distance)", choices=SURFACES),
+        Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),
+        Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)"),
+        Param("tau_f", float, 0.1, "face stabilization tau_F", minimum=0),
+        Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
+        Param("face_h_power", float, 0.0, "power a of h in the face term h^a J_F"),
+        Param("solver", str, "auto", "linear solver", choices=SOLVERS),
+        *SHAPE_PARAMS,
+    ]
+
+    def solve_level(self, level, surface, background, box, tau_f, tau_e, face_h_power, solver, R, r, radius, axes):
+        t = Timer()
+        with t("geometry"):
+            phi = levelset_for(surface, R, r, radius, axes)
+            bg = background_for(phi, level, background, box)
+            cut = cut_mesh(bg, phi)
+            space = CutP1Space(cut)
+        with t("assembly"):
+            M, K, A, B = mean_curvature_system(space, tau_e=tau_e, tau_f=tau_f, face_h_power=face_h_power)
+        with t("solve"):
+            H, info = solve(K, B, method=solver)
+        exact = phi if has_exact(phi) else None
+        with t("errors"):
+            rec = _common_record(space, M, H, t, exact, info)
+            rec.update(cut_record(cut))
+            if exact is not None:
+                rec["l2_error"] = l2_error(space, H, exact.exact_mean_curvature_vector)
+        rec["time"] = dict(t)
+        He = None if exact is None else exact.exact_mean_curvature_vector(cut.vertices)
+        rec["fields"] = {
+            "surface": _surface_fields(cut.to_pyvista(), space.surface_vertex_values(H), He),
+            "active_mesh": _point_fields(cut.active_mesh_pyvista(), {"H_h": H}),
+        }
+        return rec
+
+
+def _point_fields(ds, arrays):
+    for k, v in arrays.items():
+        ds.point_data[k] = np.asarray(v)
+    return ds
+
+
+def _surface_fields(poly, H, He):
+    """Point data on S_h: H_h, |H_h|, the signed mean curvature H_h . n (area-weighted vertex
+    normals), and with an exact field H^e and the pointwise error."""
+    normals = poly.compute_normals(point_normals=True, cell_normals=False, auto_orient_normals=False, consistent_normals=False, split_vertices=False)
+    arrays = {"H_h": H, "|H_h|": np.linalg.norm(H, axis=1), "mean_curvature": np.einsum("ij,ij->i", H, normals.point_data["Normals"])}
+    if He is not None:
+        arrays["H_exact"] = He
+        arrays["error"] = np.linalg.norm(He - H, axis=1)
+    return _point_fields(poly, arrays)
