@@ -128,6 +128,24 @@ def background_for(levelset, spacing, kind="structured", box=None):
     raise ProblemError(f"--background: {kind!r} is not one of structured, tetwild")
 
 
+def check_resolution(cut, levelset, spacing) -> None:
+    """Refuse a cut that does not resolve the surface: S_h must have the Euler characteristic of
+    the exact surface (2 for spheres and ellipsoids, 0 for tori) and, where the exact area is known,
+    an area within 25 % of it.  Raises ProblemError naming the spacing and the fix."""
+    expected = {Sphere: 2, Ellipsoid: 2, Torus: 0}.get(type(levelset))
+    chi = cut.euler_characteristic
+    problems = []
+    if expected is not None and chi != expected:
+        problems.append(f"S_h has Euler characteristic {chi}, the surface {expected}")
+    area = getattr(levelset, "area", None)
+    if area and abs(cut.area - area) > 0.25 * area:
+        problems.append(f"the area of S_h is {cut.area:.4g}, the surface's {area:.4g}")
+    if problems:
+        raise ProblemError(
+            f"spacing {spacing:g} is too coarse to resolve the surface ({'; '.join(problems)}); use a smaller spacing"
+        )
+
+
 def cut_record(cut) -> dict:
     """Sizes of a cut for the per-level records."""
     return {

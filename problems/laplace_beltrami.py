@@ -28,7 +28,7 @@ from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, Timer, background_for, cut_record, levelset_for, surface_mesh_for
+from .common import SHAPE_PARAMS, check_resolution, Timer, background_for, cut_record, levelset_for, surface_mesh_for
 
 
 class SphereSolution:
@@ -174,6 +174,7 @@ class LaplaceBeltramiCut(Problem):
             phi = levelset_for(surface, R, r, radius, axes)
             sol = manufactured(phi)
             cut = cut_mesh(background_for(phi, level, background, box), phi)
+            check_resolution(cut, phi, level)
             space = CutP1Space(cut)
         with t("assembly"):
             M = mass(space)

@@ -23,7 +23,7 @@ from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, SURFACES, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
+from .common import SHAPE_PARAMS, check_resolution, SURFACES, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
 
 SOLVERS = ("auto", "direct", "cg-amg", "cg-jacobi")
 
@@ -116,6 +116,7 @@ class MeanCurvatureCut(Problem):
             phi = levelset_for(surface, R, r, radius, axes)
             bg = background_for(phi, level, background, box)
             cut = cut_mesh(bg, phi)
+            check_resolution(cut, phi, level)
             space = CutP1Space(cut)
         with t("assembly"):
             M, K, A, B = mean_curvature_system(space, tau_e=tau_e, tau_f=tau_f, face_h_power=face_h_power)

@@ -1,0 +1,131 @@
+"""What every study shares: sizes, output folders, progress, JSON/CSV/LaTeX tables, figures.
+
+A study is a module with a function ``run(out: Path, size: str, progress) -> dict`` that writes its
+numbers (JSON, and CSV or LaTeX tables) and figures (PNG and PDF) into ``out`` and returns a summary
+dict, plus ``main = study_main(run, "name")`` so that it runs as
+``python -m studies.NAME [--out DIR] [--tiny | --quick | --full]``.
+
+Sizes: ``tiny`` (seconds, for the tests), ``quick`` (the default: all studies together in a few
+minutes on 2 cores), ``full`` (the paper's finest levels).
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+SIZES = ("tiny", "quick", "full")
+
+
+def pick(size: str, tiny, quick, full):
+    """The value for a size."""
+    return {"tiny": tiny, "quick": quick, "full": full}[size]
+
+
+class Progress:
+    """One line per step on standard error: ``[study] step (i/n) ... 1.23 s``."""
+
+    def __init__(self, study: str, enabled: bool = True):
+        self.study, self.enabled, self.t0 = study, enabled, time.perf_counter()
+
+    def __call__(self, message: str):
+        if self.enabled:
+            print(f"[{self.study} {time.perf_counter() - self.t0:7.1f}s] {message}", file=sys.stderr, flush=True)
+
+
+def _plain(obj):
+    if isinstance(obj, dict):
+        return {str(k): _plain(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_plain(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return _plain(obj.tolist())
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if np.isfinite(obj) else None
+    return obj
+
+
+def save_json(out: Path, name: str, data) -> Path:
+    path = Path(out) / f"{name}.json"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    path.write_text(json.dumps(_plain(data), indent=2))
+    return path
+
+
+def save_csv(out: Path, name: str, rows: list[dict]) -> Path:
+    path = Path(out) / f"{name}.csv"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    keys = list(dict.fromkeys(k for r in rows for k in r))
+    with path.open("w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=keys)
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: _plain(v) for k, v in r.items()})
+    return path
+
+
+def save_latex_table(out: Path, name: str, header: list[str], rows: list[list], caption: str = "", label: str | None = None) -> Path:
+    """A booktabs-free LaTeX tabular (only \\hline), numbers formatted by the caller."""
+    path = Path(out) / f"{name}.tex"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    cols = "l" + "r" * (len(header) - 1)
+    lines = [f"\\begin{{tabular}}{{{cols}}}", "\\hline", " & ".join(header) + " \\\\", "\\hline"]
+    lines += [" & ".join(str(c) for c in row) + " \\\\" for row in rows]
+    lines += ["\\hline", "\\end{tabular}"]
+    path.write_text("\n".join(lines) + "\n")
+    return path
+
+
+def figure():
+    """A matplotlib (fig, ax) on the Agg backend."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt
+
+
+def save_figure(fig, out: Path, name: str) -> list[Path]:
+    """Save a matplotlib figure as PNG (150 dpi) and PDF; close it."""
+    import matplotlib.pyplot as plt
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    paths = [out / f"{name}.png", out / f"{name}.pdf"]
+    fig.savefig(paths[0], dpi=150, bbox_inches="tight")
+    fig.savefig(paths[1], bbox_inches="tight")
+    plt.close(fig)
+    return paths
+
+
+def fmt_rate(r) -> str:
+    return "--" if r is None or not np.isfinite(r) else f"{r:.2f}"
+
+
+def study_main(run, name: str):
+    """A ``main(argv)`` for ``python -m studies.NAME``."""
+
+    def main(argv=None) -> int:
+        p = argparse.ArgumentParser(prog=f"python -m studies.{name}")
+        p.add_argument("--out", default=f"out/{name}", help="output folder")
+        g = p.add_mutually_exclusive_group()
+        g.add_argument("--tiny", dest="size", action="store_const", const="tiny")
+        g.add_argument("--quick", dest="size", action="store_const", const="quick")
+        g.add_argument("--full", dest="size", action="store_const", const="full")
+        p.add_argument("--quiet", action="store_true")
+        a = p.parse_args(argv)
+        t0 = time.perf_counter()
+        run(Path(a.out), a.size or "quick", Progress(name, not a.quiet))
+        print(f"{name}: done in {time.perf_counter() - t0:.1f} s, results in {a.out}", file=sys.stderr)
+        return 0
+
+    return main
