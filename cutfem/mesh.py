@@ -493,7 +493,7 @@ def read_mesh(path) -> TetMesh:
         raise FileNotFoundError(f"mesh file not found: {path}")
     try:
         m = meshio.read(path)
-    except Exception as exc:  # meshio raises several types for unknown or broken files
+    except (Exception, SystemExit) as exc:  # meshio raises several types (even SystemExit) for broken files
         raise ValueError(f"cannot read mesh file {path}: {exc}. Use a format meshio reads (.vtu, .vtk, .msh, .mesh, .xdmf)") from exc
     blocks = [c.data for c in m.cells if c.type == "tetra"]
     if not blocks:

@@ -1,0 +1,411 @@
+"""Tests for cutfem.cut: the discrete surface S_h = {phi_h = 0}, the active mesh and their topology.
+
+Expected values come from exact formulas: sphere area 4 pi R^2 and volume 4/3 pi R^3, torus area
+4 pi^2 R r and volume 2 pi^2 R r^2, the area of a plane section of a box, the Euler characteristic
+of the surface (2 for a sphere, 0 for a torus, 1 for a disc) and the divergence theorem
+(integral of x.n over a closed surface = 3 * enclosed volume).  Convergence rates are fitted by
+least squares in log-log scale over at least four spacings.
+"""
+
+import numpy as np
+import pytest
+
+from cutfem.cut import CutError, CutMesh, cut_mesh, inside_tetrahedra
+from cutfem.levelset import Sphere, Torus
+from cutfem.mesh import TET_FACES, TetMesh, structured_box
+from cutfem.quadrature import map_tetrahedra
+
+# background boxes with binary-exact nodes (spacing 0.25) and the paper's torus box (spacing 0.1)
+SPHERE_BOX = structured_box([-2.0] * 3, [2.0] * 3, spacing=0.25)
+TORUS_BOX = structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1)
+
+
+def fitted_rate(h, err):
+    """Least-squares slope of log(err) against log(h)."""
+    return np.polyfit(np.log(h), np.log(err), 1)[0]
+
+
+class PlainFunction:
+    """A level set given only by values, no Lipschitz bound (the cut then evaluates every node)."""
+
+    def __init__(self, f):
+        self.f = f
+
+    def value(self, x):
+        return self.f(np.asarray(x, float))
+
+
+# ----------------------------------------------------------------------------------------------
+# checks shared by many tests
+# ----------------------------------------------------------------------------------------------
+
+
+def piece_centroids(cut):
+    """(n, 3) mean of the distinct vertices of each piece (a point inside the convex piece)."""
+    V = len(cut.vertices)
+    keys = np.unique(cut.triangle_tets[:, None] * V + cut.triangles)
+    tet, vert = keys // V, keys % V
+    count = np.bincount(tet, minlength=cut.n_tets)
+    cent = np.stack([np.bincount(tet, weights=cut.vertices[vert, k], minlength=cut.n_tets) for k in range(3)], axis=1)
+    return cent / count[:, None]
+
+
+def check_closed_surface(cut: CutMesh, chi: int, levelset=None):
+    """S_h is closed with Euler characteristic chi, every piece has one owner, normals point out."""
+    assert cut.is_closed
+    assert cut.euler_characteristic == chi
+    # polygonal pieces as faces of a polyhedral surface: V - E + F = chi as well
+    assert len(cut.vertices) - len(cut.surface_edges) + cut.n_tets == chi
+    # ownership: each triangle has one owner in range, each active tet owns a piece of positive area
+    tt = cut.triangle_tets
+    assert tt.shape == (cut.n_triangles,) and tt.min() >= 0 and tt.max() < cut.n_tets
+    assert np.all(np.bincount(tt, minlength=cut.n_tets) > 0)
+    assert len(np.unique(cut.tet_ids)) == cut.n_tets
+    assert np.all(cut.triangle_areas > 0)
+    assert np.all(cut.piece_areas > 0)
+    assert cut.piece_areas.sum() == pytest.approx(cut.area, rel=1e-13)
+    # no triangle counted twice (a piece in a face shared by two tets belongs to one of them)
+    V = len(cut.vertices)
+    tri_keys = np.sort(cut.triangles, axis=1) @ np.array([V * V, V, 1])
+    assert len(np.unique(tri_keys)) == cut.n_triangles
+    # each triangle lies in its owner tet (barycentric coordinates in [0, 1])
+    grads = cut.basis_gradients[tt]  # (T, 4, 3)
+    x0 = cut.tet_vertices[tt, 0]  # lambda_k(x) = delta_k0 + grad lambda_k . (x - x0)
+    lam = np.einsum("tkd,tvd->tvk", grads, cut.triangle_points - x0[:, None, :])
+    lam[:, :, 0] += 1.0
+    assert lam.min() > -1e-9 and lam.max() < 1 + 1e-9
+    # unit piece normals; triangles oriented by them; outward: int x.n dA = 3 vol > 0
+    np.testing.assert_allclose(np.linalg.norm(cut.normals, axis=1), 1.0, rtol=1e-13)
+    p = cut.triangle_points
+    cross = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    assert np.all(np.einsum("ij,ij->i", cross, cut.normals[tt]) > 0)
+    flux = np.einsum("t,tj,tj->", cut.triangle_areas, p.mean(axis=1), cut.normals[tt])
+    assert cut.enclosed_volume > 0
+    assert flux == pytest.approx(3 * cut.enclosed_volume, rel=1e-11)
+    # conormals are well defined (no zero-length edges)
+    assert np.all(cut.surface_edge_lengths > 0)
+    assert np.all(np.isfinite(cut.surface_edge_conormals))
+    if levelset is not None:
+        # vertices lie on edges where phi_h = 0: |phi| <= l^2/8 max|phi''| with l <= sqrt(3) h
+        h = np.max(cut.background.spacing)
+        assert np.max(np.abs(levelset.value(cut.vertices))) <= 1.5 * h**2
+
+
+# ----------------------------------------------------------------------------------------------
+# convergence of area and volume (rate 2)
+# ----------------------------------------------------------------------------------------------
+
+CONVERGENCE_CASES = {
+    "sphere": (
+        Sphere(1.0, center=(0.013, -0.021, 0.007)),
+        ([-1.5] * 3, [1.5] * 3),
+        [12, 17, 24, 34],
+    ),
+    "torus": (
+        Torus(1.0, 0.5, center=(0.013, -0.021, 0.007)),
+        ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6]),
+        [(16, 16, 6), (24, 24, 9), (32, 32, 12), (48, 48, 18)],
+    ),
+}
+EXACT = {
+    "sphere": (4 * np.pi, 4 / 3 * np.pi),
+    "torus": (4 * np.pi**2 * 1.0 * 0.5, 2 * np.pi**2 * 1.0 * 0.5**2),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(CONVERGENCE_CASES))
+def convergence(request):
+    levelset, (lower, upper), cells = CONVERGENCE_CASES[request.param]
+    rows = []
+    for n in cells:
+        box = structured_box(lower, upper, cells=n)
+        cut = cut_mesh(box, levelset)
+        sub, parent = inside_tetrahedra(box, levelset)
+        inside_volume = map_tetrahedra(sub, 1, parent=parent).weights.sum()
+        rows.append((box.spacing.max(), cut.area, cut.enclosed_volume, inside_volume))
+    return request.param, np.array(rows)
+
+
+def test_area_converges_at_rate_two(convergence):
+    name, rows = convergence
+    area, _ = EXACT[name]
+    h, err = rows[:, 0], np.abs(rows[:, 1] - area)
+    assert 1.8 <= fitted_rate(h, err) <= 2.3
+    assert err[-1] / area < 5e-3
+
+
+def test_volume_converges_at_rate_two(convergence):
+    name, rows = convergence
+    _, volume = EXACT[name]
+    h = rows[:, 0]
+    for column in (2, 3):  # CutMesh.enclosed_volume, inside_tetrahedra + quadrature
+        err = np.abs(rows[:, column] - volume)
+        assert 1.8 <= fitted_rate(h, err) <= 2.3
+        assert err[-1] / volume < 5e-3
+    # both compute the volume of the same polyhedron {phi_h < 0}
+    np.testing.assert_allclose(rows[:, 2], rows[:, 3], rtol=1e-11)
+
+
+# ----------------------------------------------------------------------------------------------
+# closed surface, Euler characteristic, zero nodal values
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_sphere_closed_over_random_shifts():
+    rng = np.random.default_rng(20240611)
+    h = 0.25
+    for _ in range(50):
+        centre = rng.uniform(-h / 2, h / 2, 3)
+        radius = rng.uniform(0.8, 1.5)
+        sphere = Sphere(radius, center=centre)
+        check_closed_surface(cut_mesh(SPHERE_BOX, sphere), 2, sphere)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+@pytest.mark.parametrize("spacing", [0.2, pytest.param(0.1, marks=pytest.mark.slow)])
+def test_torus_closed_over_random_shifts(spacing):
+    """The paper's box; shifts of up to half a cell in x and y, a quarter cell in z."""
+    box = structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=spacing)
+    rng = np.random.default_rng(7)
+    for _ in range(50):
+        shift = rng.uniform(-0.5, 0.5, 3) * spacing * np.array([1.0, 1.0, 0.5])
+        torus = Torus(1.0, 0.5, center=shift)
+        check_closed_surface(cut_mesh(box, torus), 0, torus)
+
+
+ZERO_PLACEMENTS = [
+    pytest.param(SPHERE_BOX, Sphere(radius, center=centre), 2, id=f"sphere-R{radius}-c{i}")
+    for radius in (1.0, 1.25, 1.5)
+    for i, centre in enumerate([(0.0, 0.0, 0.0), (0.25, -0.5, 0.25)])
+] + [
+    pytest.param(TORUS_BOX, Torus(1.0, 0.5, center=centre), 0, id=f"torus-c{i}")
+    for i, centre in enumerate([(0.0, 0.0, 0.0), (0.1, -0.1, 0.0)])
+]
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+@pytest.mark.parametrize("box, levelset, chi", ZERO_PLACEMENTS)
+def test_closed_with_exact_zero_nodal_values(box, levelset, chi):
+    values = levelset.value(box.points)
+    zeros = np.flatnonzero(values == 0)
+    assert zeros.size > 0  # the placement really puts background nodes on S
+    cut = cut_mesh(box, levelset)
+    check_closed_surface(cut, chi, levelset)
+    # zero rule: a zero node next to an inside node is itself a vertex of S_h
+    dist = np.linalg.norm(box.points[zeros][:, None, :] - cut.vertices[None, :, :], axis=2).min(axis=1)
+    assert np.sum(dist == 0) > 0
+
+
+def test_paper_torus_box_has_nodes_that_are_zero_up_to_rounding():
+    """Nodes on the torus mathematically with phi = +-1e-16 in floating point must not produce
+    zero-length edges or zero-area triangles (they count as zero)."""
+    torus = Torus(1.0, 0.5)
+    values = torus.value(TORUS_BOX.points)
+    assert np.any((values != 0) & (np.abs(values) < 1e-14))
+    cut = cut_mesh(TORUS_BOX, torus)
+    assert cut.triangle_areas.min() > 1e-14
+    assert cut.surface_edge_lengths.min() > 1e-10
+
+
+# ----------------------------------------------------------------------------------------------
+# band search on a structured box and the plain TetMesh path give the same cut
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "box, levelset",
+    [
+        (SPHERE_BOX, Sphere(1.1, center=(0.07, -0.03, 0.11))),
+        (SPHERE_BOX, Sphere(1.25)),  # exact zero nodal values
+        (TORUS_BOX, Torus(1.0, 0.5)),  # exact and rounding-size zero values
+    ],
+    ids=["sphere", "sphere-zeros", "torus-zeros"],
+)
+def test_band_search_and_plain_mesh_agree(box, levelset):
+    band = cut_mesh(box, levelset)
+    plain = cut_mesh(TetMesh(box.points, box.tets), levelset)
+    everything = cut_mesh(box, PlainFunction(levelset.value))  # structured, no Lipschitz bound
+    nodal = cut_mesh(box, levelset.value(box.points))  # an array of nodal values
+    for other in (plain, everything, nodal):
+        assert np.array_equal(np.sort(band.tet_ids), np.sort(other.tet_ids))
+        assert other.n_triangles == band.n_triangles
+        assert other.area == pytest.approx(band.area, rel=1e-13)
+        assert other.enclosed_volume == pytest.approx(band.enclosed_volume, rel=1e-13)
+        ob, oo = np.argsort(band.tet_ids), np.argsort(other.tet_ids)
+        np.testing.assert_allclose(band.piece_areas[ob], other.piece_areas[oo], rtol=1e-12, atol=1e-15)
+        np.testing.assert_array_equal(band.normals[ob], other.normals[oo])
+
+
+# ----------------------------------------------------------------------------------------------
+# active mesh: interior faces; surface edges and conormals
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module", params=["sphere", "torus-zeros"])
+def a_cut(request):
+    if request.param == "sphere":
+        return cut_mesh(SPHERE_BOX, Sphere(1.2, center=(0.03, 0.09, -0.05)))
+    return cut_mesh(TORUS_BOX, Torus(1.0, 0.5))
+
+
+def test_interior_faces(a_cut):
+    cut = a_cut
+    faces, ft, opp = cut.interior_faces, cut.interior_face_tets, cut.interior_face_opposite
+    assert faces.shape[1] == 3 and ft.shape == (len(faces), 2) and opp.shape == (len(faces), 2)
+    assert np.all(ft[:, 0] != ft[:, 1])
+    for s in range(2):
+        tets = cut.tets[ft[:, s]]  # (F, 4)
+        # the face's nodes are nodes of the tet, the opposite vertex is not on the face
+        assert np.all((faces[:, :, None] == tets[:, None, :]).any(axis=2))
+        opposite = tets[np.arange(len(faces)), opp[:, s]]
+        assert not np.any(opposite[:, None] == faces)
+    # independent count: the faces (sorted node triples) that occur in exactly two active tets
+    p = cut.n_nodes
+    all_faces = np.sort(cut.tets[:, TET_FACES].reshape(-1, 3), axis=1) @ np.array([p * p, p, 1])
+    keys, counts = np.unique(all_faces, return_counts=True)
+    assert counts.max() <= 2
+    expected = keys[counts == 2]
+    got = np.sort(np.sort(faces, axis=1) @ np.array([p * p, p, 1]))
+    assert np.array_equal(got, expected)
+
+
+@pytest.mark.filterwarnings("error::RuntimeWarning")
+def test_surface_edges_and_conormals(a_cut):
+    cut = a_cut
+    e, et = cut.surface_edges, cut.surface_edge_tets
+    assert np.all(et[:, 0] != et[:, 1])
+    # both endpoints are vertices of the pieces of both tets
+    V = len(cut.vertices)
+    owned = np.unique(cut.triangle_tets[:, None] * V + cut.triangles)
+    for s in range(2):
+        for k in range(2):
+            assert np.all(np.isin(et[:, s] * V + e[:, k], owned))
+    # every edge of every piece's triangles that is not a quad diagonal is a surface edge: on a
+    # closed surface the number of piece edges is sum over pieces of (3 or 4) / 2
+    n_vertices_per_piece = np.bincount(owned // V, minlength=cut.n_tets)
+    assert set(np.unique(n_vertices_per_piece)) <= {3, 4}
+    assert 2 * len(e) == n_vertices_per_piece.sum()
+    # conormals: unit, orthogonal to the edge and to the piece normal, pointing out of the piece
+    t = cut.surface_edge_conormals
+    d = cut.vertices[e[:, 1]] - cut.vertices[e[:, 0]]
+    d /= np.linalg.norm(d, axis=1)[:, None]
+    mid = 0.5 * (cut.vertices[e[:, 0]] + cut.vertices[e[:, 1]])
+    cent = piece_centroids(cut)
+    np.testing.assert_allclose(np.linalg.norm(t, axis=2), 1.0, rtol=1e-12)
+    for s in range(2):
+        assert np.max(np.abs(np.einsum("ij,ij->i", t[:, s], d))) < 1e-8
+        assert np.max(np.abs(np.einsum("ij,ij->i", t[:, s], cut.normals[et[:, s]]))) < 1e-8
+        assert np.all(np.einsum("ij,ij->i", t[:, s], mid - cent[et[:, s]]) > 0)
+    np.testing.assert_allclose(cut.surface_edge_lengths, np.linalg.norm(cut.vertices[e[:, 1]] - cut.vertices[e[:, 0]], axis=1))
+
+
+def test_flat_surface_has_opposite_conormals():
+    """phi = z - (0.2 x + 0.1 y + 0.05) on [-1, 1]^3: a planar S_h, the graph of the plane over the
+    square, of area 4 sqrt(1 + 0.2^2 + 0.1^2); coplanar neighbours have t_{E,K2} = -t_{E,K1}."""
+    box = structured_box([-1.0] * 3, [1.0] * 3, cells=6)
+    plane = PlainFunction(lambda x: x[..., 2] - (0.2 * x[..., 0] + 0.1 * x[..., 1] + 0.05))
+    with pytest.raises(CutError, match="boundary"):
+        cut_mesh(box, plane)
+    cut = cut_mesh(box, plane, check_boundary=False)
+    assert cut.area == pytest.approx(4 * np.sqrt(1 + 0.2**2 + 0.1**2), rel=1e-13)
+    normal = np.array([-0.2, -0.1, 1.0]) / np.sqrt(1 + 0.2**2 + 0.1**2)
+    np.testing.assert_allclose(cut.normals, np.broadcast_to(normal, cut.normals.shape), atol=1e-13)
+    assert not cut.is_closed
+    assert cut.euler_characteristic == 1  # a disc
+    with pytest.warns(RuntimeWarning, match="not shared by exactly two pieces"):
+        t = cut.surface_edge_conormals  # the edges on the box boundary have one piece only
+    assert len(t) > 0
+    np.testing.assert_allclose(t[:, 0] + t[:, 1], 0.0, atol=1e-12)
+
+
+# ----------------------------------------------------------------------------------------------
+# quadrature on S_h
+# ----------------------------------------------------------------------------------------------
+
+
+def test_surface_quadrature():
+    sphere = Sphere(1.3, center=(0.05, -0.02, 0.1))
+    cut = cut_mesh(SPHERE_BOX, sphere)
+    q = cut.surface_quadrature(2)
+    assert q.integrate(np.ones(q.weights.shape)) == pytest.approx(cut.area, rel=1e-13)
+    assert np.array_equal(q.parent, cut.triangle_tets)
+    np.testing.assert_allclose(q.normal, cut.normals[cut.triangle_tets], rtol=1e-14)
+    flux = q.integrate(np.einsum("mqd,md->mq", q.points, q.normal))
+    assert flux == pytest.approx(3 * cut.enclosed_volume, rel=1e-12)
+    # and S_h is close to S: area and volume within O(h^2) of 4 pi R^2 and 4/3 pi R^3
+    assert cut.area == pytest.approx(4 * np.pi * 1.3**2, rel=0.03)
+    assert cut.enclosed_volume == pytest.approx(4 / 3 * np.pi * 1.3**3, rel=0.05)
+
+    def quadratic(x):
+        return x[..., 0] ** 2 - 2 * x[..., 1] * x[..., 2] + 3 * x[..., 2] + 0.5
+
+    q8 = cut.surface_quadrature(8)
+    assert q.integrate(quadratic(q.points)) == pytest.approx(q8.integrate(quadratic(q8.points)), rel=1e-12)
+    # per piece as well
+    per2 = np.bincount(q.parent, weights=q.integrate_per_element(quadratic(q.points)), minlength=cut.n_tets)
+    per8 = np.bincount(q8.parent, weights=q8.integrate_per_element(quadratic(q8.points)), minlength=cut.n_tets)
+    np.testing.assert_allclose(per2, per8, rtol=1e-11, atol=1e-15)
+
+
+# ----------------------------------------------------------------------------------------------
+# bad input
+# ----------------------------------------------------------------------------------------------
+
+
+def test_cut_error_is_a_value_error():
+    assert issubclass(CutError, ValueError)
+
+
+@pytest.mark.parametrize(
+    "levelset",
+    [Sphere(0.5, center=(10.0, 0.0, 0.0)), Sphere(0.05, center=(0.125, 0.125, 0.125))],
+    ids=["far-outside", "tiny-between-nodes"],
+)
+def test_level_set_that_does_not_cut(levelset):
+    with pytest.raises(CutError, match="does not cut"):
+        cut_mesh(SPHERE_BOX, levelset)
+    with pytest.raises(CutError, match="does not cut"):
+        cut_mesh(TetMesh(SPHERE_BOX.points, SPHERE_BOX.tets), levelset)
+
+
+@pytest.mark.parametrize(
+    "levelset", [Sphere(2.5), Sphere(1.0, center=(1.5, 0.0, 0.0))], ids=["bigger-than-box", "crossing-a-side"]
+)
+def test_surface_reaching_the_box_boundary(levelset):
+    with pytest.raises(CutError, match="boundary nodes.*Enlarge the box"):
+        cut_mesh(SPHERE_BOX, levelset)
+    with pytest.raises(CutError, match="boundary nodes"):
+        cut_mesh(TetMesh(SPHERE_BOX.points, SPHERE_BOX.tets), levelset)
+
+
+def test_nan_values():
+    def f(x):
+        x = np.asarray(x, float)
+        r = np.linalg.norm(x, axis=-1) - 1.0
+        return np.where(x[..., 0] > 0.9, np.nan, r)  # NaN on part of the surface
+
+    class BandNaN:
+        lipschitz = 1.0
+
+        def value(self, x):
+            return f(x)
+
+    for box in (SPHERE_BOX, TetMesh(SPHERE_BOX.points, SPHERE_BOX.tets)):
+        for levelset in (f, BandNaN()):
+            with pytest.raises(ValueError, match="NaN"):
+                cut_mesh(box, levelset)
+    with pytest.raises(ValueError, match="NaN"):
+        inside_tetrahedra(SPHERE_BOX, f)
+    values = Sphere(1.0).value(SPHERE_BOX.points)
+    values[17] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        cut_mesh(SPHERE_BOX, values)
+
+
+def test_nodal_values_of_the_wrong_length():
+    values = Sphere(1.0).value(SPHERE_BOX.points)
+    with pytest.raises(ValueError, match=f"got {values.size - 1} nodal values for a mesh of {values.size} nodes"):
+        cut_mesh(SPHERE_BOX, values[:-1])
+    with pytest.raises(ValueError, match="nodal values"):
+        inside_tetrahedra(SPHERE_BOX, np.append(values, 1.0))

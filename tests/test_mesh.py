@@ -1,0 +1,321 @@
+"""Tests for cutfem.mesh: structured and unstructured background meshes, topology, I/O, bad input.
+
+Expected counts come from closed formulas for the Kuhn split of an nx x ny x nz grid of cuboids
+(6 tets per cuboid, one diagonal per cuboid face, one main diagonal per cuboid), expected volumes
+and areas from the box dimensions; none is produced by the code under test.
+"""
+
+import numpy as np
+import pytest
+
+from cutfem.mesh import TetMesh, read_mesh, structured_box, unstructured_box, write_mesh
+
+
+def kuhn_counts(nx, ny, nz):
+    """(V, E, F, T, boundary faces) of the Kuhn triangulation of an nx x ny x nz grid.
+
+    Edges: the grid lines, one diagonal in every cuboid face (of the whole grid), one main
+    diagonal per cuboid.  Faces: 4T = 2 F_interior + F_boundary with two triangles on each of the
+    2 (nx ny + ny nz + nx nz) boundary squares.
+    """
+    V = (nx + 1) * (ny + 1) * (nz + 1)
+    lines = nx * (ny + 1) * (nz + 1) + ny * (nx + 1) * (nz + 1) + nz * (nx + 1) * (ny + 1)
+    face_diagonals = nx * ny * (nz + 1) + ny * nz * (nx + 1) + nx * nz * (ny + 1)
+    T = 6 * nx * ny * nz
+    E = lines + face_diagonals + nx * ny * nz
+    Fb = 2 * (2 * nx * ny + 2 * ny * nz + 2 * nx * nz)
+    F = (4 * T + Fb) // 2
+    return V, E, F, T, Fb
+
+
+def face_areas(points, faces):
+    p = points[faces]
+    return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+
+
+def check_box_topology(mesh, lower, upper, envelope=0.0):
+    """Checks shared by structured and unstructured meshes of the box [lower, upper].
+
+    ``envelope``: how far (absolute length) the mesh boundary may lie from the box planes; zero
+    for a structured box (then everything is checked to rounding), tetwild's envelope for an
+    unstructured mesh.  Volume and area may then differ by at most area * envelope and a relative
+    1e-3.
+    """
+    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
+    extent = upper - lower
+    box_volume = np.prod(extent)
+    box_area = 2 * (extent[0] * extent[1] + extent[1] * extent[2] + extent[0] * extent[2])
+    tol = envelope + 1e-12 * np.max(np.abs(extent))
+    # positive volumes that fill the box
+    assert np.all(mesh.volumes > 0)
+    assert np.all(mesh.points >= lower - tol) and np.all(mesh.points <= upper + tol)
+    assert abs(mesh.volumes.sum() - box_volume) <= box_area * envelope + 1e-12 * box_volume
+    # Euler characteristic of a ball
+    assert mesh.n_points - len(mesh.edges) + len(mesh.faces) - mesh.n_tets == 1
+    assert mesh.euler_characteristic == 1
+    # interior faces: two distinct tets, both holding the face's three nodes
+    fi = mesh.interior_faces
+    ft = mesh.face_tets[fi]
+    assert np.all(ft[:, 0] != ft[:, 1]) and np.all(ft >= 0)
+    faces = mesh.faces[fi]
+    for side in range(2):
+        tets = mesh.tets[ft[:, side]]
+        assert np.all((faces[:, :, None] == tets[:, None, :]).any(axis=2))
+    # boundary faces: one tet each, lying in one of the six box planes, covering the box surface
+    fb = mesh.boundary_faces
+    assert np.all(mesh.face_tets[fb, 1] == -1)
+    assert len(fi) + len(fb) == len(mesh.faces)
+    assert 4 * mesh.n_tets == 2 * len(fi) + len(fb)
+    pb = mesh.points[mesh.faces[fb]]  # (Fb, 3, 3)
+    on_plane = np.zeros(len(fb), bool)
+    for axis in range(3):
+        for value in (lower[axis], upper[axis]):
+            on_plane |= np.all(np.abs(pb[:, :, axis] - value) <= tol, axis=1)
+    assert np.all(on_plane)
+    rel = 1e-3 if envelope > 0 else 1e-12
+    assert face_areas(mesh.points, mesh.faces[fb]).sum() == pytest.approx(box_area, rel=rel)
+    # faces are sorted triples and tet_faces points back to the right face
+    assert np.all(np.diff(mesh.faces, axis=1) > 0)
+    local = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+    rebuilt = np.sort(mesh.tets[:, local], axis=2)  # (M, 4, 3)
+    assert np.array_equal(mesh.faces[mesh.tet_faces], rebuilt)
+
+
+# ----------------------------------------------------------------------------------------------
+# structured boxes
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "lower, upper, kwargs, cells",
+    [
+        ([0.0, 0.0, 0.0], [1.0, 2.0, 3.0], {"spacing": 0.5}, (2, 4, 6)),
+        ([-1.0, 0.0, 2.0], [1.0, 1.0, 3.5], {"cells": (3, 2, 4)}, (3, 2, 4)),
+        ([-2.0, -2.0, -2.0], [2.0, 2.0, 2.0], {"spacing": (1.0, 0.5, 2.0)}, (4, 8, 2)),
+        ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], {"spacing": 0.4}, (8, 8, 3)),
+    ],
+)
+def test_structured_box_counts_and_topology(lower, upper, kwargs, cells):
+    box = structured_box(lower, upper, **kwargs)
+    nx, ny, nz = cells
+    V, E, F, T, Fb = kuhn_counts(nx, ny, nz)
+    assert tuple(box.cells) == cells
+    assert box.n_points == V and box.points.shape == (V, 3)
+    assert box.n_tets == T and box.tets.shape == (T, 4)
+    assert box.n_cells == nx * ny * nz
+    assert len(box.edges) == E
+    assert len(box.faces) == F
+    assert len(box.boundary_faces) == Fb == 2 * (2 * nx * ny + 2 * ny * nz + 2 * nx * nz)
+    assert len(box.interior_faces) == F - Fb
+    assert box.h == pytest.approx(V ** (-1.0 / 3.0), rel=1e-14)
+    np.testing.assert_allclose(box.spacing, (np.array(upper) - np.array(lower)) / np.array(cells), rtol=1e-14)
+    # every tet has the volume of a cuboid / 6
+    np.testing.assert_allclose(box.volumes, np.prod(box.spacing) / 6, rtol=1e-12)
+    check_box_topology(box, lower, upper)
+
+
+def test_structured_box_grid_boundary_nodes_match_topology():
+    box = structured_box([0, 0, 0], [3, 2, 4], cells=(3, 2, 4))
+    nx1, ny1, nz1 = 4, 3, 5
+    assert len(box.boundary_nodes) == nx1 * ny1 * nz1 - 2 * 1 * 3
+    plain = TetMesh(box.points, box.tets)
+    assert np.array_equal(box.boundary_nodes, plain.boundary_nodes)
+    x = box.points[box.boundary_nodes]
+    on = np.any((x == 0) | (x == [3, 2, 4]), axis=1)
+    assert np.all(on)
+
+
+def test_structured_box_subsets_agree_with_full_arrays():
+    box = structured_box([-1.0, 0.5, 0.0], [2.0, 2.5, 1.0], cells=(6, 4, 3))
+    rng = np.random.default_rng(3)
+    cells = rng.choice(box.n_cells, size=20, replace=False)
+    expected = box.tets[(6 * cells[:, None] + np.arange(6)).reshape(-1)]
+    assert np.array_equal(box.cell_tets(cells), expected)
+    nodes = rng.choice(box.n_points, size=30, replace=False)
+    np.testing.assert_array_equal(box.node_coordinates(nodes), box.points[nodes])
+    # node (i, j, k) sits at lower + (i, j, k) * spacing, with id i + (nx+1) (j + (ny+1) k)
+    ijk = np.array([[0, 0, 0], [6, 4, 3], [2, 1, 3], [5, 0, 1]])
+    ids = ijk[:, 0] + 7 * (ijk[:, 1] + 5 * ijk[:, 2])
+    np.testing.assert_array_equal(box.node_id(ijk), ids)
+    np.testing.assert_array_equal(box.node_index(ids), ijk)
+    spacing = np.array([3 / 6, 2 / 4, 1 / 3])
+    np.testing.assert_allclose(box.node_coordinates(ids), np.array([-1.0, 0.5, 0.0]) + ijk * spacing, rtol=0, atol=1e-15)
+    # the 8 corners of a cell are the 8 nodes of its 6 tets
+    corners = box.cell_corner_ids(cells)
+    tets6 = box.cell_tets(cells).reshape(-1, 24)
+    assert np.all((tets6[:, :, None] == corners[:, None, :]).any(axis=2))
+    assert np.all((corners[:, :, None] == tets6[:, None, :]).any(axis=2))
+    # the six tets of one cube share its main diagonal
+    t6 = box.cell_tets(cells[:1])
+    diag = [corners[0, 0], corners[0, 7]]
+    assert all(set(diag) <= set(t.tolist()) for t in t6)
+
+
+def test_structured_box_plain_tetmesh_has_same_topology():
+    box = structured_box([0, 0, 0], [1, 1, 1], cells=3)
+    plain = TetMesh(box.points, box.tets)
+    assert np.array_equal(plain.faces, box.faces)
+    assert np.array_equal(plain.edges, box.edges)
+    assert np.array_equal(plain.face_tets, box.face_tets)
+
+
+# ----------------------------------------------------------------------------------------------
+# unstructured (pytetwild)
+# ----------------------------------------------------------------------------------------------
+
+LOWER, UPPER = np.array([0.0, 0.0, 0.0]), np.array([1.0, 2.0, 1.5])
+# pytetwild keeps the boundary within an envelope of 1e-3 times the bounding-box diagonal (its
+# default epsilon); its multi-threaded output varies from run to run, so the box checks allow that.
+ENVELOPE = 1e-3 * np.linalg.norm(UPPER - LOWER)
+
+
+@pytest.fixture(scope="module")
+def tetwild_mesh():
+    return unstructured_box(LOWER, UPPER, edge_length=0.4, optimize=False)  # no optimization: fast
+
+
+def test_unstructured_box_fills_the_box(tetwild_mesh):
+    m = tetwild_mesh
+    assert m.n_tets > 100
+    check_box_topology(m, LOWER, UPPER, envelope=ENVELOPE)
+    # the mesh is genuinely unstructured: tet volumes vary
+    assert m.volumes.max() > 2 * m.volumes.min()
+    # a plain copy gives the same topology
+    copy = TetMesh(m.points.copy(), m.tets.copy())
+    assert len(copy.faces) == len(m.faces) and copy.euler_characteristic == 1
+
+
+def test_unstructured_box_rejects_bad_edge_length():
+    with pytest.raises(ValueError, match="edge_length"):
+        unstructured_box(LOWER, UPPER, edge_length=-1.0)
+
+
+# ----------------------------------------------------------------------------------------------
+# I/O
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("suffix", [".vtu", ".msh"])
+def test_read_write_round_trip(tmp_path, suffix):
+    box = structured_box([-1, -1, 0], [1, 1, 0.5], cells=(4, 4, 1))
+    mesh = TetMesh(box.points, box.tets)
+    path = tmp_path / f"box{suffix}"
+    write_mesh(mesh, path)
+    back = read_mesh(path)
+    assert back.points.shape == mesh.points.shape
+    np.testing.assert_allclose(back.points, mesh.points, rtol=0, atol=1e-14)
+    assert np.array_equal(back.tets, mesh.tets)
+    assert back.volumes.sum() == pytest.approx(2 * 2 * 0.5, rel=1e-12)
+
+
+def test_write_with_data_round_trip(tmp_path):
+    import meshio
+
+    box = structured_box([0, 0, 0], [1, 1, 1], cells=2)
+    path = tmp_path / "data.vtu"
+    write_mesh(box, path, point_data={"x": box.points[:, 0]}, cell_data={"id": np.arange(box.n_tets)})
+    m = meshio.read(path)
+    np.testing.assert_array_equal(m.point_data["x"], box.points[:, 0])
+    np.testing.assert_array_equal(m.cell_data["id"][0], np.arange(48))
+
+
+def test_read_mesh_reorients_inverted_tets(tmp_path):
+    import meshio
+
+    box = structured_box([0, 0, 0], [1, 1, 1], cells=1)
+    tets = box.tets.copy()
+    tets[:, [2, 3]] = tets[:, [3, 2]]  # all inverted
+    path = tmp_path / "inverted.vtu"
+    meshio.write(path, meshio.Mesh(box.points, [("tetra", tets)]))
+    back = read_mesh(path)
+    np.testing.assert_allclose(back.volumes, 1 / 6, rtol=1e-12)
+
+
+def test_read_missing_file(tmp_path):
+    with pytest.raises(FileNotFoundError, match="not found"):
+        read_mesh(tmp_path / "nothing.vtu")
+
+
+def test_read_unreadable_file(tmp_path):
+    path = tmp_path / "junk.vtu"
+    path.write_text("this is not a mesh\n")
+    with pytest.raises(ValueError, match="cannot read"):
+        read_mesh(path)
+
+
+def test_read_file_without_tets(tmp_path):
+    import meshio
+
+    path = tmp_path / "tri.vtu"
+    meshio.write(path, meshio.Mesh(np.eye(3), [("triangle", np.array([[0, 1, 2]]))]))
+    with pytest.raises(ValueError, match="no tetrahedra"):
+        read_mesh(path)
+
+
+# ----------------------------------------------------------------------------------------------
+# bad input
+# ----------------------------------------------------------------------------------------------
+
+UNIT_TET_POINTS = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+
+
+def test_single_tet_volume_and_counts():
+    m = TetMesh(UNIT_TET_POINTS, [[0, 1, 2, 3]])
+    assert m.volumes[0] == pytest.approx(1 / 6, rel=1e-15)
+    assert (len(m.edges), len(m.faces), len(m.boundary_faces)) == (6, 4, 4)
+    assert m.euler_characteristic == 1
+
+
+def test_nan_point():
+    pts = UNIT_TET_POINTS.copy()
+    pts[2, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        TetMesh(pts, [[0, 1, 2, 3]])
+
+
+def test_index_out_of_range():
+    with pytest.raises(ValueError, match=r"indices must lie in \[0, 4\)"):
+        TetMesh(UNIT_TET_POINTS, [[0, 1, 2, 4]])
+    with pytest.raises(ValueError, match="indices"):
+        TetMesh(UNIT_TET_POINTS, [[0, 1, 2, -1]])
+
+
+def test_degenerate_tet():
+    pts = np.vstack([UNIT_TET_POINTS, [[1.0, 1.0, 0.0]]])  # point 4 in the plane z = 0
+    with pytest.raises(ValueError, match="degenerate"):
+        TetMesh(pts, [[0, 1, 2, 3], [0, 1, 2, 4]])
+    with pytest.raises(ValueError, match="degenerate"):
+        TetMesh(UNIT_TET_POINTS, [[0, 1, 2, 2]])
+
+
+def test_inverted_tet_error_and_orient():
+    with pytest.raises(ValueError, match="inverted.*orient=True"):
+        TetMesh(UNIT_TET_POINTS, [[0, 2, 1, 3]])
+    m = TetMesh(UNIT_TET_POINTS, [[0, 2, 1, 3]], orient=True)
+    assert m.volumes[0] == pytest.approx(1 / 6, rel=1e-15)
+    assert sorted(m.tets[0].tolist()) == [0, 1, 2, 3]
+
+
+def test_bad_shapes():
+    with pytest.raises(ValueError, match=r"points must have shape \(N, 3\)"):
+        TetMesh(np.zeros((4, 2)), [[0, 1, 2, 3]])
+    with pytest.raises(ValueError, match=r"tets must have shape \(M, 4\)"):
+        TetMesh(UNIT_TET_POINTS, [[0, 1, 2]])
+
+
+def test_spacing_not_dividing_the_box():
+    with pytest.raises(ValueError, match="not whole multiples.*cells="):
+        structured_box([0, 0, 0], [1, 1, 1], spacing=0.3)
+
+
+def test_structured_box_bad_arguments():
+    with pytest.raises(ValueError, match="exactly one of spacing= or cells="):
+        structured_box([0, 0, 0], [1, 1, 1])
+    with pytest.raises(ValueError, match="exactly one of spacing= or cells="):
+        structured_box([0, 0, 0], [1, 1, 1], spacing=0.5, cells=2)
+    with pytest.raises(ValueError, match="spacing must be positive"):
+        structured_box([0, 0, 0], [1, 1, 1], spacing=-0.5)
+    with pytest.raises(ValueError, match="upper > lower"):
+        structured_box([0, 0, 0], [1, 0, 1], cells=2)
+    with pytest.raises(ValueError, match="at least one cell"):
+        structured_box([0, 0, 0], [1, 1, 1], cells=(2, 0, 2))

@@ -1,0 +1,117 @@
+"""Tests for cutfem.plotting: PNG pictures rendered off screen (no display needed).
+
+Each picture is read back with matplotlib and must have the requested size and real content: not
+a single colour, with a share of non-background (non-white) pixels that a drawn object gives.
+"""
+
+import sys
+from types import SimpleNamespace
+
+import matplotlib.image as mpimg
+import numpy as np
+import pytest
+
+from cutfem.cut import cut_mesh
+from cutfem.levelset import Sphere
+from cutfem.mesh import structured_box
+from cutfem.plotting import offscreen_backend, plot_cut, plot_surface_field, plot_surface_mesh
+
+SIZE = (320, 240)  # width, height in pixels
+
+
+@pytest.fixture(scope="module")
+def small_cut():
+    return cut_mesh(structured_box([-2.0] * 3, [2.0] * 3, spacing=0.5), Sphere(1.2, center=(0.05, -0.1, 0.02)))
+
+
+def check_picture(path):
+    assert path.exists() and path.suffix == ".png"
+    image = mpimg.imread(path)
+    assert image.shape[:2] == (SIZE[1], SIZE[0])
+    rgb = image[..., :3]
+    assert np.ptp(rgb) > 0.3  # not one colour
+    background = np.all(rgb > 0.98, axis=-1)  # white background
+    assert 0.02 < 1 - background.mean() < 0.95
+    assert len(np.unique(rgb.reshape(-1, 3), axis=0)) > 20  # shading / colour map
+    return rgb
+
+
+def test_offscreen_backend_is_available():
+    assert isinstance(offscreen_backend(), str)
+
+
+def test_plot_cut_writes_png(small_cut, tmp_path):
+    path = plot_cut(small_cut, tmp_path / "pictures" / "cut.png", clip="y", title="S_h", window_size=SIZE)
+    rgb = check_picture(path)
+    # the surface colour (gold: high red and green, low blue) is on the picture
+    gold = (rgb[..., 0] > 0.6) & (rgb[..., 1] > 0.5) & (rgb[..., 2] < 0.35)
+    assert gold.mean() > 0.01
+
+
+def test_plot_surface_field_vector_and_scalar(small_cut, tmp_path):
+    cut = small_cut
+    # a vector field per vertex, shown by its magnitude |x| (between about 1 and 1.4 here)
+    path = plot_surface_field(cut.vertices, cut.triangles, cut.vertices, tmp_path / "field.png", title="|x|", window_size=SIZE)
+    check_picture(path)
+    # a scalar field per triangle (the z component of the normal), a fixed colour range
+    values = cut.normals[cut.triangle_tets, 2]
+    path = plot_surface_field(
+        cut.vertices, cut.triangles, values, tmp_path / "nz.png", clim=(-1, 1), cmap="coolwarm", show_edges=True,
+        window_size=SIZE,
+    )
+    check_picture(path)
+
+
+def test_plot_surface_mesh(tmp_path):
+    # the boundary of the unit tetrahedron, as any object with .points and .triangles
+    mesh = SimpleNamespace(
+        points=np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]),
+        triangles=np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]),
+    )
+    path = plot_surface_mesh(mesh, tmp_path / "tet.png", title="mesh", window_size=SIZE)
+    rgb = check_picture(path)
+    assert np.mean(np.all(rgb < 0.2, axis=-1)) > 0.001  # black edges are drawn
+
+
+def test_bad_input(small_cut, tmp_path):
+    cut = small_cut
+    V, T = len(cut.vertices), len(cut.triangles)
+    with pytest.raises(ValueError, match=f"{V} vertices and {T} triangles"):
+        plot_surface_field(cut.vertices, cut.triangles, np.ones(V + 1), tmp_path / "a.png")
+    with pytest.raises(ValueError, match="only for vector fields"):
+        plot_surface_field(cut.vertices, cut.triangles, np.ones(V), tmp_path / "a.png", component=0)
+    with pytest.raises(ValueError, match="component must be"):
+        plot_surface_field(cut.vertices, cut.triangles, np.ones((V, 3)), tmp_path / "a.png", component=3)
+    with pytest.raises(ValueError, match="NaN"):
+        plot_surface_field(cut.vertices, cut.triangles, np.full(T, np.nan), tmp_path / "a.png")
+    tet_points = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]])
+    tet_triangles = np.array([[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]])  # 4 vertices, 4 triangles
+    with pytest.raises(ValueError, match="location='point' or location='cell'"):
+        plot_surface_field(tet_points, tet_triangles, np.ones(4), tmp_path / "a.png")
+    with pytest.raises(ValueError, match="location="):
+        plot_surface_field(tet_points, tet_triangles, np.ones(4), tmp_path / "a.png", location="edge")
+    with pytest.raises(ValueError, match="clim"):
+        plot_surface_field(cut.vertices, cut.triangles, np.ones(V), tmp_path / "a.png", clim=(1, 0))
+    with pytest.raises(ValueError, match="indices"):
+        plot_surface_field(np.eye(3), [[0, 1, 3]], [1.0, 2.0, 3.0], tmp_path / "a.png")
+    with pytest.raises(ValueError, match="clip must be"):
+        plot_cut(cut, tmp_path / "a.png", clip="w")
+    with pytest.raises(ValueError, match="removes all of S_h"):
+        plot_cut(cut, tmp_path / "a.png", clip=((1, 0, 0), (-5, 0, 0)))
+    with pytest.raises(ValueError, match="active must be"):
+        plot_cut(cut, tmp_path / "a.png", active="solid")
+    with pytest.raises(ValueError, match="ending in .png"):
+        plot_cut(cut, tmp_path / "a.jpg")
+    with pytest.raises(ValueError, match="needs a CutMesh"):
+        plot_cut(object(), tmp_path / "a.png")
+    with pytest.raises(ValueError, match="triangles"):
+        plot_surface_mesh(object(), tmp_path / "a.png")
+    assert not any(tmp_path.iterdir())  # nothing was written
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="display detection through DISPLAY is Linux only")
+def test_interactive_without_display_asks_for_a_path(small_cut, monkeypatch):
+    monkeypatch.delenv("DISPLAY", raising=False)
+    monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
+    with pytest.raises(RuntimeError, match="path="):
+        plot_cut(small_cut)
