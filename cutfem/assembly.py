@@ -4,8 +4,9 @@ A :class:`Pattern` is computed once per connectivity (an (m, k) array of global 
 e.g. the active tets, or the union of the two tets of every interior face): one stable sort of the
 int64 keys ``row * n + col`` gives the CSR structure and the permutation that sums the m*k*k local
 entries into it (``np.add.reduceat``).  Assembling another matrix on the same connectivity costs one
-gather and one reduction.  Entries that land on the same (i, j) are summed in element order, so a
-form whose local blocks are exactly symmetric gives an exactly symmetric matrix.
+gather and one reduction.  Entries that land on (i, j) and on (j, i) are summed in the same fixed
+order (element by element, also when a block repeats a dof), so a form whose local blocks are
+exactly symmetric gives an exactly symmetric matrix.
 """
 
 from __future__ import annotations
@@ -30,11 +31,19 @@ class Pattern:
             raise ValueError(f"dofs must be (m, k), got shape {dofs.shape}")
         m, k = dofs.shape
         self.n, self.k, self.m = int(n), k, m
-        rows = np.repeat(dofs, k, axis=1).reshape(-1)
-        cols = np.tile(dofs, (1, k)).reshape(-1)
-        key = rows * self.n + cols
+        # Within each element the local positions (a, b) are listed in the order of the unordered
+        # pair (min(a, b), max(a, b)), then a.  The stable sort then sums the contributions to (I, J)
+        # and to (J, I) in the same sequence (element by element, pair by pair) even when a block
+        # repeats a dof (the two elements of a face or an edge share nodes), so exactly symmetric
+        # blocks give an exactly symmetric matrix.
+        kk = k * k
+        a, b = np.divmod(np.arange(kk), k)
+        perm = np.lexsort((a, np.maximum(a, b), np.minimum(a, b)))
+        key = np.take(dofs, a[perm], axis=1).reshape(-1) * self.n + np.take(dofs, b[perm], axis=1).reshape(-1)
         order, starts, counts = pair_up(key)
         ukey = key[order[starts]]
+        elem, slot = np.divmod(order, kk)
+        order = elem * kk + perm[slot]  # index into blocks.reshape(-1)
         r = ukey // self.n
         self.indices = (ukey - r * self.n).astype(np.int32 if self.n < 2**31 else np.int64)
         self.indptr = np.zeros(self.n + 1, dtype=self.indices.dtype)

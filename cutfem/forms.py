@@ -79,6 +79,21 @@ class BasisField:
 
     __radd__ = __add__
 
+    def __sub__(self, other):
+        return self.value - (other.value if isinstance(other, BasisField) else other)
+
+    def __rsub__(self, other):
+        return other - self.value
+
+    def __truediv__(self, other):
+        return self.value / (other.value if isinstance(other, BasisField) else other)
+
+    def __rtruediv__(self, other):
+        return other / self.value
+
+    def __pow__(self, power):
+        return self.value**power
+
     def __neg__(self):
         return -self.value
 

@@ -1,0 +1,414 @@
+"""Tests for cutfem.assembly and for every built-in matrix against a plain reference assembly.
+
+The references below are written from first principles and share no code with cutfem.forms /
+cutfem.spaces: P1 basis functions from inverting the 4 x 4 (tet) or the 3 x 2 least-squares
+(triangle) system, the exact P1 product formulas
+
+    int_K phi_a phi_b = |K| (1 + delta_ab) / 12   (triangle),   |S| (1 + delta_ab) / 20   (tet),
+
+normals and conormals from cross products, element loops in Python.  They run on small meshes: a
+meshed sphere and torus, cut surfaces on a structured and on a randomly perturbed background,
+and a cut volume (inside parts of tets split by scipy's Delaunay, independently of
+cutfem.cut.inside_tetrahedra).
+"""
+
+from collections import Counter, defaultdict
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+from scipy.spatial import Delaunay
+
+from cutfem.assembly import Pattern, assemble_matrix, assemble_vector, symmetrize_blocks
+from cutfem.cut import cut_mesh
+from cutfem.forms import (
+    edge_jump_penalty,
+    face_jump_penalty,
+    mass,
+    normal_gradient_penalty,
+    tangential_stiffness,
+    volume_mass,
+    volume_stiffness,
+)
+from cutfem.levelset import Sphere, Torus
+from cutfem.mesh import TetMesh, structured_box
+from cutfem.spaces import CutP1Space, CutVolumeP1Space, SurfaceP1Space
+from cutfem.surface import sphere_mesh, torus_mesh
+
+# ----------------------------------------------------------------------------------------------
+# Pattern / assemble_* on synthetic blocks
+# ----------------------------------------------------------------------------------------------
+
+
+def dense_reference(dofs, blocks, n):
+    """sum_e P_e^T B_e P_e with np.add.at, entry by entry."""
+    A = np.zeros((n, n))
+    m, k = dofs.shape
+    for e in range(m):
+        for a in range(k):
+            for b in range(k):
+                A[dofs[e, a], dofs[e, b]] += blocks[e, a, b]
+    return A
+
+
+def test_pattern_matches_dense_reference_nonsymmetric():
+    rng = np.random.default_rng(0)
+    n, m, k = 30, 50, 4
+    dofs = np.array([rng.choice(n, k, replace=False) for _ in range(m)])
+    blocks = rng.normal(size=(m, k, k))
+    A = Pattern(dofs, n).matrix(blocks)
+    assert isinstance(A, sp.csr_matrix) and A.shape == (n, n)
+    np.testing.assert_allclose(A.toarray(), dense_reference(dofs, blocks, n), rtol=0, atol=1e-13)
+    # orientation: block[e, a, b] lands in row dofs[e, a], column dofs[e, b]
+    one = np.zeros((1, 2, 2))
+    one[0, 0, 1] = 7.0
+    B = Pattern(np.array([[3, 5]]), 6).matrix(one).toarray()
+    assert B[3, 5] == 7.0 and B[5, 3] == 0.0 and np.count_nonzero(B) == 1
+
+
+def test_pattern_sums_repeated_dofs_and_is_exactly_symmetric():
+    """Blocks that repeat a dof (as the two tets of a face do) must sum correctly and, when
+    symmetric, give a bitwise symmetric matrix."""
+    rng = np.random.default_rng(1)
+    n, m, k = 25, 400, 8
+    dofs = rng.integers(0, n, size=(m, k))  # many repeats inside rows
+    raw = rng.normal(size=(m, k, k)) * 10.0 ** rng.uniform(-8, 8, size=(m, 1, 1))
+    blocks = symmetrize_blocks(raw)
+    assert np.array_equal(blocks, blocks.transpose(0, 2, 1))
+    A = Pattern(dofs, n).matrix(blocks)
+    assert (A - A.T).nnz == 0
+    ref = dense_reference(dofs, blocks, n)
+    np.testing.assert_allclose(A.toarray(), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
+    # nnz: the distinct (row, col) pairs of the blocks
+    pairs = {(r, c) for row in dofs for r in row for c in row}
+    assert Pattern(dofs, n).nnz == len(pairs) == A.nnz
+
+
+def test_pattern_reuse_and_bad_input():
+    dofs = np.array([[0, 1, 2], [1, 2, 3]])
+    p = Pattern(dofs, 4)
+    B1 = np.ones((2, 3, 3))
+    assert p.matrix(B1).toarray().sum() == 18.0
+    assert p.matrix(2 * B1).toarray()[1, 2] == 4.0  # shared entry, two elements, 2 each
+    assert assemble_matrix(dofs, B1, 4).toarray()[0, 3] == 0.0
+    with pytest.raises(ValueError, match="blocks must have shape"):
+        p.matrix(np.ones((2, 2, 2)))
+    with pytest.raises(ValueError, match=r"dofs must be \(m, k\)"):
+        Pattern(np.arange(3), 4)
+    empty = Pattern(np.zeros((0, 3), dtype=int), 5).matrix(np.zeros((0, 3, 3)))
+    assert empty.shape == (5, 5) and empty.nnz == 0
+
+
+def test_assemble_vector_scalar_and_components():
+    dofs = np.array([[0, 1, 2], [2, 3, 0]])
+    local = np.array([[1.0, 2.0, 3.0], [10.0, 20.0, 30.0]])
+    np.testing.assert_array_equal(assemble_vector(dofs, local, 5), [31.0, 2.0, 13.0, 20.0, 0.0])
+    local3 = np.stack([local, -local, 2 * local], axis=2)  # (m, k, 3)
+    out = assemble_vector(dofs, local3, 5)
+    assert out.shape == (5, 3)
+    np.testing.assert_array_equal(out[:, 1], -np.array([31.0, 2.0, 13.0, 20.0, 0.0]))
+    np.testing.assert_array_equal(out[:, 2], 2 * np.array([31.0, 2.0, 13.0, 20.0, 0.0]))
+
+
+# ----------------------------------------------------------------------------------------------
+# first-principles P1 reference assembly
+# ----------------------------------------------------------------------------------------------
+
+MASS3 = (np.ones((3, 3)) + np.eye(3)) / 12.0  # int_K phi_a phi_b / |K| on a triangle
+MASS4 = (np.ones((4, 4)) + np.eye(4)) / 20.0  # on a tetrahedron
+
+
+def tet_basis(X):
+    """Affine barycentric functions of the tet with vertex rows X (4, 3): lambda_i(x) = c[i] + g[i] . x.
+
+    The 4 x 4 matrix T with columns (1, x_j) satisfies T^{-1} T = I, i.e. row i of T^{-1} evaluates
+    lambda_i at the vertices to delta_ij.
+    """
+    T = np.vstack([np.ones(4), np.asarray(X, float).T])
+    Ti = np.linalg.inv(T)
+    return Ti[:, 0], Ti[:, 1:]
+
+
+def triangle_basis_gradients(P):
+    """Surface gradients (3, 3) of the P1 basis on the triangle with vertex rows P, from
+    G = E (E^T E)^{-1}, E = [x1 - x0, x2 - x0]: g_a . e_b = delta_ab and g_a in span(E)."""
+    E = np.column_stack([P[1] - P[0], P[2] - P[0]])
+    G = E @ np.linalg.inv(E.T @ E)
+    return np.array([-G[:, 0] - G[:, 1], G[:, 0], G[:, 1]])
+
+
+def unit(v):
+    return v / np.linalg.norm(v)
+
+
+def triangle_area_normal(P):
+    c = np.cross(P[1] - P[0], P[2] - P[0])
+    return 0.5 * np.linalg.norm(c), unit(c)
+
+
+def reference_meshed(points, triangles, h):
+    """Mass, tangential stiffness and J_E (with mesh size h) of a triangulated closed surface."""
+    n = len(points)
+    M, A, JE = np.zeros((n, n)), np.zeros((n, n)), np.zeros((n, n))
+    grads, normals = [], []
+    for tri in triangles:
+        P = points[tri]
+        area, nrm = triangle_area_normal(P)
+        G = triangle_basis_gradients(P)
+        grads.append(G)
+        normals.append(nrm)
+        idx = np.ix_(tri, tri)
+        M[idx] += area * MASS3
+        A[idx] += area * G @ G.T
+    edges = defaultdict(list)  # sorted node pair -> [(triangle, opposite node)]
+    for k, tri in enumerate(triangles):
+        for a in range(3):
+            i, j, o = tri[a], tri[(a + 1) % 3], tri[(a + 2) % 3]
+            edges[(min(i, j), max(i, j))].append((k, o))
+    for (i, j), owners in edges.items():
+        assert len(owners) == 2
+        d = points[j] - points[i]
+        length = np.linalg.norm(d)
+        c = np.zeros(n)
+        for k, o in owners:
+            t = unit(np.cross(d, normals[k]))  # in the plane of K, orthogonal to E
+            if t @ (points[o] - points[i]) > 0:  # must point away from K's third vertex
+                t = -t
+            np.add.at(c, triangles[k], grads[k] @ t)
+        nz = np.flatnonzero(c)
+        JE[np.ix_(nz, nz)] += h * length * np.outer(c[nz], c[nz])
+    return M, A, JE
+
+
+def reference_cut(cut, h, face_h_power=0.0, normal_h_power=1.0):
+    """Mass, tangential stiffness, J_E, J_F and the normal-gradient penalty of a cut P1 space,
+    in the numbering of the active nodes (cut.points, cut.tets); pieces from cut.triangles."""
+    pts, tets = cut.points, cut.tets
+    n = len(pts)
+    basis = [tet_basis(pts[T]) for T in tets]
+    M, A, JE, JF, S = (np.zeros((n, n)) for _ in range(5))
+
+    piece_normal = {}
+    piece_vertices = defaultdict(set)
+    piece_edges = defaultdict(Counter)
+    for tri, k in zip(cut.triangles, cut.triangle_tets):
+        V = cut.vertices[tri]
+        area, nrm = triangle_area_normal(V)
+        piece_normal.setdefault(k, nrm)  # all triangles of a piece are coplanar
+        c0, g = basis[k]
+        vals = c0[:, None] + g @ V.T  # (4, 3): lambda_i at the triangle's vertices
+        Pg = g - np.outer(g @ nrm, nrm)
+        idx = np.ix_(tets[k], tets[k])
+        M[idx] += area * vals @ MASS3 @ vals.T
+        A[idx] += area * Pg @ Pg.T
+        piece_vertices[k].update(tri.tolist())
+        for a in range(3):
+            e = (min(tri[a], tri[(a + 1) % 3]), max(tri[a], tri[(a + 1) % 3]))
+            piece_edges[k][e] += 1
+
+    # J_E: polygon edges (appearing once in their piece; a quad's diagonal appears twice)
+    owners = defaultdict(list)
+    for k, counts in piece_edges.items():
+        for e, times in counts.items():
+            if times == 1:
+                owners[e].append(k)
+    for (i, j), ks in owners.items():
+        assert len(ks) == 2, "every edge of a closed S_h separates two pieces"
+        p0, p1 = cut.vertices[i], cut.vertices[j]
+        d = p1 - p0
+        c = np.zeros(n)
+        for k in ks:
+            t = unit(np.cross(d, piece_normal[k]))
+            centroid = cut.vertices[sorted(piece_vertices[k])].mean(axis=0)
+            if t @ (0.5 * (p0 + p1) - centroid) < 0:  # out of the (convex) piece
+                t = -t
+            np.add.at(c, tets[k], basis[k][1] @ t)
+        nz = np.flatnonzero(c)
+        JE[np.ix_(nz, nz)] += h * np.linalg.norm(d) * np.outer(c[nz], c[nz])
+
+    # J_F: faces shared by two active tets; the jump merged over the five distinct nodes
+    faces = defaultdict(list)
+    for k, T in enumerate(tets):
+        for a in range(4):
+            faces[tuple(sorted(np.delete(T, a).tolist()))].append((k, T[a]))
+    for face, sides in faces.items():
+        if len(sides) != 2:
+            continue
+        X = pts[list(face)]
+        area, nF = triangle_area_normal(X)
+        (k1, o1), (k2, _) = sides
+        if nF @ (pts[o1] - X[0]) > 0:  # outward from the first tet
+            nF = -nF
+        c = np.zeros(n)
+        np.add.at(c, tets[k1], basis[k1][1] @ nF)
+        np.add.at(c, tets[k2], -(basis[k2][1] @ nF))
+        nz = np.flatnonzero(c)
+        JF[np.ix_(nz, nz)] += h**face_h_power * area * np.outer(c[nz], c[nz])
+
+    # normal-gradient volume penalty over the whole active tets, n = piece normal
+    for k, T in enumerate(tets):
+        X = pts[T]
+        vol = abs(np.linalg.det(X[1:] - X[0])) / 6.0
+        gn = basis[k][1] @ piece_normal[k]
+        S[np.ix_(T, T)] += h**normal_h_power * vol * np.outer(gn, gn)
+    return M, A, JE, JF, S
+
+
+def reference_volume(background, phi):
+    """Mass and stiffness over {phi_h < 0} in background node numbering: the inside part of a
+    cut tet is the convex hull of its inside nodes and the zeros of phi_h on its edges, split by
+    Delaunay; the exact P1 product formula on every sub-tet."""
+    pts, tets = background.points, background.tets
+    N = len(pts)
+    M, K = np.zeros((N, N)), np.zeros((N, N))
+    for T in tets:
+        v = phi[T]
+        inside = v < 0
+        if not inside.any():
+            continue
+        X = pts[T]
+        c0, g = tet_basis(X)
+        if inside.all():
+            subs = [X]
+        else:
+            corners = [X[a] for a in range(4) if inside[a]]
+            for a in np.flatnonzero(inside):
+                for b in np.flatnonzero(~inside):
+                    t = v[a] / (v[a] - v[b])
+                    corners.append(X[a] + t * (X[b] - X[a]))
+            corners = np.array(corners)
+            subs = [corners[s] for s in Delaunay(corners).simplices]
+        idx = np.ix_(T, T)
+        for Y in subs:
+            vol = abs(np.linalg.det(Y[1:] - Y[0])) / 6.0
+            vals = c0[:, None] + g @ Y.T
+            M[idx] += vol * vals @ MASS4 @ vals.T
+            K[idx] += vol * g @ g.T
+    return M, K
+
+
+def assert_matrix_equal(actual, expected, rel=1e-12):
+    actual = actual.toarray() if sp.issparse(actual) else np.asarray(actual)
+    scale = np.abs(expected).max()
+    assert scale > 0
+    np.testing.assert_allclose(actual, expected, rtol=0, atol=rel * scale)
+
+
+# ----------------------------------------------------------------------------------------------
+# meshed surfaces
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "make",
+    [lambda: sphere_mesh(1, radius=0.9), lambda: torus_mesh(8, "perturbed-flipped", seed=3)],
+    ids=["sphere", "torus"],
+)
+def test_meshed_matrices_match_reference(make):
+    mesh = make()
+    V = SurfaceP1Space(mesh)
+    pts, tris = np.asarray(mesh.points), np.asarray(mesh.triangles)
+    M, A, JE = reference_meshed(pts, tris, V.h)
+    assert_matrix_equal(mass(V), M)
+    assert_matrix_equal(tangential_stiffness(V), A)
+    assert_matrix_equal(edge_jump_penalty(V), JE)
+    assert_matrix_equal(edge_jump_penalty(V, h=0.37), JE * 0.37 / V.h)
+
+
+# ----------------------------------------------------------------------------------------------
+# cut surfaces
+# ----------------------------------------------------------------------------------------------
+
+
+def perturbed_box(lower, upper, cells, amount, seed):
+    """A structured box whose interior nodes are moved at random by up to ``amount`` cell sizes:
+    generic tetrahedra, same connectivity."""
+    box = structured_box(lower, upper, cells=cells)
+    pts = np.array(box.points)
+    interior = np.ones(len(pts), bool)
+    interior[box.boundary_nodes] = False
+    rng = np.random.default_rng(seed)
+    pts[interior] += amount * box.spacing * rng.uniform(-1, 1, size=(interior.sum(), 3))
+    return TetMesh(pts, np.array(box.tets))
+
+
+CUT_CASES = {
+    "sphere-structured": lambda: cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.63, [0.03, -0.02, 0.05])),
+    "sphere-perturbed": lambda: cut_mesh(perturbed_box([-1, -1, -1], [1, 1, 1], 7, 0.25, seed=4), Sphere(0.6, [0.02, 0.04, -0.03])),
+    "torus-structured": lambda: cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], cells=(10, 10, 4)), Torus(1.0, 0.45)),
+}
+
+
+@pytest.fixture(scope="module", params=sorted(CUT_CASES))
+def cut_case(request):
+    cut = CUT_CASES[request.param]()
+    V = CutP1Space(cut)
+    return V, reference_cut(cut, V.h, face_h_power=0.0, normal_h_power=1.0)
+
+
+def test_cut_mass_and_stiffness_match_reference(cut_case):
+    V, (M, A, _, _, _) = cut_case
+    assert_matrix_equal(mass(V), M)
+    assert_matrix_equal(tangential_stiffness(V), A)
+
+
+def test_cut_edge_jump_matches_reference(cut_case):
+    V, (_, _, JE, _, _) = cut_case
+    assert_matrix_equal(edge_jump_penalty(V), JE)
+
+
+def test_cut_face_jump_matches_reference(cut_case):
+    V, (_, _, _, JF, _) = cut_case
+    assert_matrix_equal(face_jump_penalty(V), JF)
+    assert_matrix_equal(face_jump_penalty(V, h_power=2.0), JF * V.h**2)
+
+
+def test_cut_normal_gradient_penalty_matches_reference(cut_case):
+    V, (_, _, _, _, S) = cut_case
+    assert_matrix_equal(normal_gradient_penalty(V), S)
+    assert_matrix_equal(normal_gradient_penalty(V, h_power=0.0), S / V.h)
+
+
+# ----------------------------------------------------------------------------------------------
+# cut volume
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("perturbed", [False, True], ids=["structured", "perturbed"])
+def test_volume_mass_and_stiffness_match_reference(perturbed):
+    if perturbed:
+        bg = perturbed_box([-1, -1, -1], [1, 1, 1], 5, 0.25, seed=7)
+    else:
+        bg = structured_box([-1, -1, -1], [1, 1, 1], cells=5)
+        bg = TetMesh(np.array(bg.points), np.array(bg.tets))
+    ls = Sphere(0.71, [0.05, -0.03, 0.02])
+    V = CutVolumeP1Space(bg, ls)
+    M, K = reference_volume(bg, ls.value(bg.points))
+    ids = V.node_ids
+    # the space's dofs are exactly the nodes touched by the reference
+    touched = np.flatnonzero(np.abs(M).sum(axis=1) > 0)
+    np.testing.assert_array_equal(np.sort(ids), touched)
+    assert_matrix_equal(volume_mass(V), M[np.ix_(ids, ids)])
+    assert_matrix_equal(volume_stiffness(V), K[np.ix_(ids, ids)])
+
+
+# ----------------------------------------------------------------------------------------------
+# the assembly benchmark study, at a tiny size
+# ----------------------------------------------------------------------------------------------
+
+
+def test_assembly_benchmark_runs_and_records(tmp_path):
+    import json
+
+    from studies import assembly_benchmark
+
+    data = assembly_benchmark.run(tmp_path, spacings=[0.4], repeat=1, cold_repeat=1)
+    for suffix in (".json", ".csv", ".png"):
+        assert (tmp_path / f"assembly_benchmark{suffix}").stat().st_size > 0
+    (row,) = json.loads((tmp_path / "assembly_benchmark.json").read_text())["rows"]
+    assert row == pytest.approx(data["rows"][0])
+    assert row["background_nodes"] == 9 * 9 * 4  # 8 x 8 x 3 cubes of side 0.4
+    assert row["h"] == pytest.approx(324 ** (-1 / 3))
+    assert row["mass_nnz"] == row["stiffness_nnz"] < row["face_jump_nnz"]  # J_F couples face neighbours
+    assert all(row[k] > 0 for k in row if k.endswith(("_cold", "_warm", "_seconds")))
+    assert row["together_cold_per_million_tets"] == pytest.approx(row["together_cold"] / row["active_tets"] * 1e6)

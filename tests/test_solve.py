@@ -1,0 +1,279 @@
+"""Tests for cutfem.solve (direct and iterative solvers, singularity reports, condition numbers)
+and for cutfem.errors (error functionals and rates).
+
+References: scipy's spsolve and dense numpy eigenvalues computed in the test, exact areas summed
+from the triangles, exact rates of synthetic data, the known O(h^2) interpolation error.
+"""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+
+from cutfem.cut import cut_mesh
+from cutfem.errors import discrete_error, fitted_rate, h1_error, l2_error, rates, surface_integral
+from cutfem.forms import face_jump_penalty, mass, tangential_stiffness
+from cutfem.levelset import Sphere, Torus
+from cutfem.mesh import structured_box
+from cutfem.solve import DirectSolver, SingularSystemError, cg_solve, condition_number, solve
+from cutfem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.surface import sphere_mesh
+
+
+@pytest.fixture(scope="module")
+def cut_torus():
+    return CutP1Space(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1), Torus()))
+
+
+@pytest.fixture(scope="module")
+def systems(cut_torus):
+    """SPD systems: meshed Laplace-Beltrami A + M, stabilized cut mass and cut Laplace-Beltrami."""
+    S = SurfaceP1Space(sphere_mesh(4))
+    V = cut_torus
+    M, A, J = mass(V), tangential_stiffness(V), face_jump_penalty(V)
+    return {
+        "meshed-lb": tangential_stiffness(S) + mass(S),
+        "cut-mass": M + 0.1 * J,
+        "cut-lb": A + M + 0.1 * J,
+    }
+
+
+@pytest.fixture(scope="module")
+def small_cut_sphere():
+    return CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02])))
+
+
+# ----------------------------------------------------------------------------------------------
+# direct solver
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["meshed-lb", "cut-mass", "cut-lb"])
+def test_direct_solver_reuse_matches_spsolve(systems, name):
+    A = systems[name]
+    rng = np.random.default_rng(0)
+    B = rng.normal(size=(A.shape[0], 3))
+    solver = DirectSolver(A)
+    X = solver.solve(B)
+    assert X.shape == B.shape
+    for c in range(3):
+        ref = spla.spsolve(sp.csc_matrix(A), B[:, c])
+        np.testing.assert_allclose(X[:, c], ref, rtol=0, atol=1e-9 * np.abs(ref).max())
+        np.testing.assert_allclose(solver.solve(B[:, c]), ref, rtol=0, atol=1e-9 * np.abs(ref).max())
+    assert 0 < solver.smallest_pivot <= 1.0 + 1e-12  # pivots of the unit-diagonal scaled matrix
+    X2, info = solve(A, B, method="direct")
+    assert info.method == "direct" and info.residual < 1e-12
+    np.testing.assert_allclose(X2, X, rtol=0, atol=1e-12 * np.abs(X).max())
+
+
+def test_zero_diagonal_is_reported_singular(small_cut_sphere):
+    """An unknown without support on S_h has a zero row: SingularSystemError with smallest 0."""
+    V = small_cut_sphere
+    S = (mass(V) + 0.1 * face_jump_penalty(V)).tolil()
+    S[5, :] = 0.0
+    S[:, 5] = 0.0
+    S = S.tocsr()
+    with pytest.raises(SingularSystemError, match="zero") as err:
+        DirectSolver(S)
+    assert err.value.smallest == 0.0
+    with pytest.raises(SingularSystemError):
+        solve(S, np.ones(V.n_dofs), method="direct")
+    assert condition_number(S) == np.inf
+
+
+def test_unstabilized_cut_mass_is_reported_singular(small_cut_sphere):
+    V = small_cut_sphere
+    M = mass(V)
+    with pytest.raises(SingularSystemError, match="numerically singular") as err:
+        DirectSolver(M)
+    assert 0.0 <= err.value.smallest < 1e-12  # relative to a largest pivot of order one
+    DirectSolver(M + 0.1 * face_jump_penalty(V))  # stabilized: no error
+
+
+def test_plane_on_a_node_layer_is_reported_singular():
+    """phi = z cut along a layer of nodes (the zero rule puts S_h in tet faces): the nodes below
+    the layer carry basis functions that vanish on S_h, the unstabilized system is singular."""
+    box = structured_box([-1, -1, -1], [1, 1, 1], cells=8)
+    V = CutP1Space(cut_mesh(box, lambda x: x[..., 2], check_boundary=False))
+    below = V.dof_points[:, 2] < 0
+    assert below.any()
+    M = mass(V)
+    assert np.abs(M.diagonal()[below]).max() < 1e-25 * M.diagonal().max()
+    with pytest.raises(SingularSystemError) as err:
+        DirectSolver(M)
+    assert err.value.smallest < 1e-12
+
+
+# ----------------------------------------------------------------------------------------------
+# iterative solvers
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("preconditioner", ["jacobi", "amg"])
+@pytest.mark.parametrize("name", ["meshed-lb", "cut-mass", "cut-lb"])
+def test_cg_agrees_with_direct(systems, name, preconditioner):
+    A = systems[name]
+    rng = np.random.default_rng(1)
+    B = rng.normal(size=(A.shape[0], 2))
+    X_direct = DirectSolver(A).solve(B)
+    X, info = cg_solve(A, B, preconditioner=preconditioner, tol=1e-10)
+    assert info.method == f"cg+{preconditioner}" and info.iterations > 0
+    # CG stops on its recursive residual; the true one agrees up to round-off
+    assert info.residual <= 1.5e-10
+    for c in range(2):
+        assert np.linalg.norm(A @ X[:, c] - B[:, c]) <= 1.5e-10 * np.linalg.norm(B[:, c])
+    # error <= cond * residual; the scaled condition numbers here are below 1e4
+    assert np.linalg.norm(X - X_direct) <= 1e-6 * np.linalg.norm(X_direct)
+
+
+def test_cg_failure_and_bad_arguments(systems):
+    A = systems["cut-mass"]
+    b = np.ones(A.shape[0])
+    with pytest.raises(RuntimeError, match="did not converge"):
+        cg_solve(A, b, preconditioner="none", maxiter=2)
+    with pytest.raises(ValueError, match="unknown preconditioner"):
+        cg_solve(A, b, preconditioner="ilu")
+    with pytest.raises(ValueError, match="unknown method"):
+        solve(A, b, method="gmres")
+    x, info = solve(A, b)  # auto: direct for a small system
+    assert info.method == "direct"
+    np.testing.assert_allclose(A @ x, b, rtol=0, atol=1e-10)
+
+
+# ----------------------------------------------------------------------------------------------
+# condition numbers
+# ----------------------------------------------------------------------------------------------
+
+
+def scaled_condition(A):
+    d = A.diagonal()
+    S = A.toarray() / np.sqrt(np.outer(d, d))
+    ev = np.linalg.eigvalsh(S)
+    return ev[-1] / ev[0]
+
+
+def test_condition_number_matches_dense_reference(small_cut_sphere):
+    V = small_cut_sphere  # fewer than 400 unknowns: dense path
+    assert V.n_dofs <= 400
+    A = mass(V) + 0.1 * face_jump_penalty(V)
+    assert condition_number(A) == pytest.approx(scaled_condition(A), rel=1e-8)
+    box = structured_box([-1, -1, -1], [1, 1, 1], cells=11)
+    coarse = CutP1Space(cut_mesh(box, Sphere(0.7, [0.03, -0.01, 0.02])))
+    assert coarse.n_dofs > 400  # Lanczos path
+    B = mass(coarse) + 0.1 * face_jump_penalty(coarse)
+    assert condition_number(B) == pytest.approx(scaled_condition(B), rel=1e-5)
+
+
+@pytest.mark.xfail(
+    strict=True,
+    reason="solve.condition_number, Lanczos path (n > 400): the near-null eigenvalue of the singular "
+    "scaled matrix comes out slightly negative, so eigsh(S^-1, which='LA') returns 1/lambda_min over "
+    "the positive eigenvalues only (a finite ~1e4 here); which='LM' with a sign check would report it",
+)
+def test_condition_number_of_singular_matrix_lanczos_path(cut_torus):
+    M = mass(cut_torus)  # singular: M phi_h = 0
+    assert cut_torus.n_dofs > 400
+    assert condition_number(M) > 1e12
+
+
+def test_conditioning_over_random_shifts():
+    """30 seeded spheres (radius 0.6..0.8, centre shifted within a cell) on a coarse grid.
+
+    Unstabilized: the scaled mass matrix is singular for every cut (its kernel holds the nodal
+    vector of phi_h), so its condition number is at round-off level (> 1e12) or reported inf,
+    whatever the sizes of the pieces.  Stabilized with tau_F = 0.1: bounded by 2000 for every
+    shift, including those with pieces 1e-6 times smaller than the largest (measured: 430..550).
+    """
+    rng = np.random.default_rng(2024)
+    box = structured_box([-1, -1, -1], [1, 1, 1], spacing=0.25)
+    unstabilized, stabilized, smallest_piece = [], [], []
+    for _ in range(30):
+        cut = cut_mesh(box, Sphere(rng.uniform(0.6, 0.8), rng.uniform(-0.125, 0.125, size=3)))
+        V = CutP1Space(cut)
+        M = mass(V)
+        unstabilized.append(condition_number(M))
+        stabilized.append(condition_number(M + 0.1 * face_jump_penalty(V)))
+        smallest_piece.append(cut.piece_areas.min() / cut.piece_areas.max())
+    assert min(smallest_piece) < 1e-4  # the sample does contain tiny pieces
+    assert min(unstabilized) > 1e12  # every one blows up (inf counts)
+    assert max(unstabilized) > 1e6
+    assert max(stabilized) < 2000.0
+    assert min(stabilized) > 1.0
+
+
+# ----------------------------------------------------------------------------------------------
+# errors and rates
+# ----------------------------------------------------------------------------------------------
+
+
+def smooth(x):
+    return np.sin(2 * x[..., 0]) * x[..., 1] + np.exp(x[..., 2])
+
+
+def smooth_gradient(x):
+    g = np.zeros(x.shape)
+    g[..., 0] = 2 * np.cos(2 * x[..., 0]) * x[..., 1]
+    g[..., 1] = np.sin(2 * x[..., 0])
+    g[..., 2] = np.exp(x[..., 2])
+    return g
+
+
+def test_interpolation_error_rates_meshed_sphere():
+    h, e0, e1 = [], [], []
+    for level in (2, 3, 4):
+        V = SurfaceP1Space(sphere_mesh(level))
+        u = V.interpolate(smooth)
+        h.append(V.h)
+        e0.append(l2_error(V, u, smooth))
+        e1.append(h1_error(V, u, smooth_gradient))
+    assert V.h == pytest.approx((10 * 4**4 + 2) ** -0.5)
+    assert np.all((rates(h, e0) > 1.85) & (rates(h, e0) < 2.15))
+    assert np.all((rates(h, e1) > 0.9) & (rates(h, e1) < 1.15))
+    assert fitted_rate(h, e0) == pytest.approx(2.0, abs=0.1)
+
+
+def test_interpolation_error_rate_cut_sphere():
+    h, e = [], []
+    for cells in (8, 16, 32):
+        V = CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=cells), Sphere(0.7, [0.03, -0.01, 0.02])))
+        h.append(V.h)
+        e.append(l2_error(V, V.interpolate(smooth), smooth))
+    assert h[0] == pytest.approx(9**-1.0)
+    assert np.all((rates(h, e) > 1.8) & (rates(h, e) < 2.3))
+
+
+def test_linear_functions_have_zero_error(small_cut_sphere):
+    V = small_cut_sphere
+    g = np.array([0.5, -1.0, 2.0])
+    u = V.interpolate(lambda x: x @ g + 1.0)
+    assert l2_error(V, u, lambda x: x @ g + 1.0) < 1e-13
+    assert h1_error(V, u, lambda x: np.broadcast_to(g, x.shape)) < 1e-12
+    X = V.interpolate(lambda x: x)
+    assert l2_error(V, X, lambda x: x) < 1e-13  # vector valued
+    assert l2_error(V, u, lambda x: x @ g) == pytest.approx(np.sqrt(V.cut.area), rel=1e-12)  # off by 1
+    with pytest.raises(ValueError, match="degree >= 4"):
+        l2_error(V, u, lambda x: x @ g, degree=2)
+
+
+def test_discrete_error_and_surface_integral():
+    V = SurfaceP1Space(sphere_mesh(2))
+    P = np.asarray(V.dof_points)[V.element_dofs]
+    area = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1).sum()
+    M = mass(V)
+    assert discrete_error(M, np.full(V.n_dofs, 3.0)) == pytest.approx(3.0 * np.sqrt(area), rel=1e-12)
+    E = np.column_stack([np.ones(V.n_dofs), 2 * np.ones(V.n_dofs), np.zeros(V.n_dofs)])
+    assert discrete_error(M, E) == pytest.approx(np.sqrt(5 * area), rel=1e-12)  # components summed
+    e = np.random.default_rng(3).normal(size=V.n_dofs)
+    assert discrete_error(M, e) == pytest.approx(np.sqrt(e @ (M @ e)), rel=1e-13)
+    assert surface_integral(V, np.full(V.n_dofs, 2.0)) == pytest.approx(2 * area, rel=1e-12)
+    np.testing.assert_allclose(surface_integral(V, E), [area, 2 * area, 0.0], rtol=1e-12, atol=1e-14)
+
+
+def test_rates_on_synthetic_data():
+    h = np.array([0.4, 0.2, 0.1, 0.025])
+    np.testing.assert_allclose(rates(h, 3.0 * h**2), [2.0, 2.0, 2.0], rtol=1e-12)
+    np.testing.assert_allclose(rates(h, 0.5 * h**1.3), [1.3, 1.3, 1.3], rtol=1e-12)
+    e = np.array([1.0, 0.5, 0.125, 0.1])
+    np.testing.assert_allclose(rates(h, e), [1.0, 2.0, np.log(1.25) / np.log(4.0)], rtol=1e-12)
+    assert fitted_rate(h, 7.0 * h**1.5) == pytest.approx(1.5, rel=1e-12)
+    assert len(rates([1.0], [1.0])) == 0
