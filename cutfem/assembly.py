@@ -16,7 +16,7 @@ import scipy.sparse as sp
 
 from .mesh import pair_up
 
-__all__ = ["Pattern", "assemble_matrix", "assemble_vector", "symmetrize_blocks"]
+__all__ = ["Pattern", "assemble_matrix", "assemble_vector", "symmetrize_blocks", "gram", "row_operator"]
 
 
 class Pattern:
@@ -86,3 +86,26 @@ def assemble_vector(dofs: np.ndarray, local: np.ndarray, n: int) -> np.ndarray:
 def symmetrize_blocks(blocks: np.ndarray) -> np.ndarray:
     """0.5 (B + B^T) per block: exactly symmetric in floating point."""
     return 0.5 * (blocks + blocks.transpose(0, 2, 1))
+
+
+def row_operator(dofs: np.ndarray, values: np.ndarray, n: int) -> sp.csr_matrix:
+    """The sparse (r x n) matrix E whose row i has ``values[i]`` at columns ``dofs[i]`` (r, k);
+    repeated columns in a row are summed."""
+    dofs = np.asarray(dofs, dtype=np.int64)
+    r, k = dofs.shape
+    E = sp.csr_matrix((np.asarray(values, dtype=float).reshape(-1), dofs.reshape(-1), k * np.arange(r + 1, dtype=np.int64)), shape=(r, n))
+    E.sum_duplicates()
+    return E
+
+
+def gram(dofs: np.ndarray, values: np.ndarray, n: int) -> sp.csr_matrix:
+    """E^T E for the row operator E of (dofs, values): the matrix of the form sum_i (e_i.u)(e_i.v).
+
+    Every symmetric positive semidefinite form of cutfem is a sum of squares of this kind (a
+    quadrature of products, a jump times a jump), so it is assembled by one sparse product instead
+    of a scatter of k x k blocks.  The product accumulates the contributions to (i, j) and to (j, i)
+    over the same rows in the same order, and each product commutes, so the result is exactly
+    symmetric.
+    """
+    E = row_operator(dofs, values, n)
+    return (E.T.tocsr() @ E).tocsr()

@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.sparse as sp
 
-from .assembly import assemble_vector, symmetrize_blocks
+from .assembly import assemble_vector, gram
 
 __all__ = [
     "BasisField",
@@ -225,42 +225,49 @@ def linear_form(integrand=None, *, measure="surface", degree=4):
 
 # ---------------------------------------------------------------------------------------------
 # built-in forms
+#
+# The built-in symmetric forms are sums of squares, so each is assembled as a Gram matrix E^T E
+# (cutfem.assembly.gram) with exact P1 formulas per piece, which is several times faster than the
+# general block route on a million elements and exactly symmetric.  The general route gives the
+# same matrices to round-off (tested).
 # ---------------------------------------------------------------------------------------------
 
 
-@bilinear_form(symmetric=True, degree=2)
-def _mass(u, v, w):
-    return u * v
+def _sqrt_reference_mass(k: int) -> np.ndarray:
+    """R (k, k) with R^T R = (I + 1 1^T) / ((k)(k+1)): the P1 mass matrix of a simplex of unit
+    measure with k vertices (triangle: 1/12 (1 + delta_ij), tetrahedron: 1/20 (1 + delta_ij))."""
+    ref = (np.eye(k) + np.ones((k, k))) / (k * (k + 1))
+    w, Q = np.linalg.eigh(ref)
+    return np.sqrt(w)[:, None] * Q.T
 
 
-@bilinear_form(symmetric=True, degree=0)
-def _tangential_stiffness(u, v, w):
-    return dot(u.tgrad, v.tgrad)
+def _simplex_mass(space, vertices, parent, measure):
+    """Gram rows of the exact mass matrix over simplices (triangles or tets) lying in elements."""
+    lam = space.basis_at(vertices, parent)  # (m, k_vertices, k_dofs)
+    R = _sqrt_reference_mass(vertices.shape[1])
+    rows = np.einsum("ra,mak->mrk", R, lam) * np.sqrt(measure)[:, None, None]
+    dofs = np.broadcast_to(space.element_dofs[parent][:, None, :], rows.shape)
+    return gram(dofs.reshape(-1, rows.shape[2]), rows.reshape(-1, rows.shape[2]), space.n_dofs)
 
 
-@bilinear_form(symmetric=True, measure="active", degree=0)
-def _normal_gradient(u, v, w):
-    return dot(w.n, u.grad) * dot(w.n, v.grad)
+def _gradient_rows(space, grads, measure):
+    """Gram rows sqrt(measure) * grads[:, :, d] for d = 0, 1, 2 (grads (n_el, k, 3))."""
+    rows = (grads * np.sqrt(measure)[:, None, None]).transpose(0, 2, 1)  # (n_el, 3, k)
+    dofs = np.broadcast_to(space.element_dofs[:, None, :], rows.shape)
+    return gram(dofs.reshape(-1, rows.shape[2]), rows.reshape(-1, rows.shape[2]), space.n_dofs)
 
 
-@bilinear_form(symmetric=True, measure="volume", degree=2)
-def _volume_mass(u, v, w):
-    return u * v
-
-
-@bilinear_form(symmetric=True, measure="volume", degree=0)
-def _volume_stiffness(u, v, w):
-    return dot(u.grad, v.grad)
-
-
-def mass(space, degree: int = 2) -> sp.csr_matrix:
-    """Surface mass matrix M_ij = (phi_j, phi_i)_{S_h}, exact for P1 with degree 2."""
-    return _mass.assemble(space, degree=degree)
+def mass(space) -> sp.csr_matrix:
+    """Surface mass matrix M_ij = (phi_j, phi_i)_{S_h}, exact: on each triangle T of S_h with the
+    basis values Lambda (3 x k) at its vertices, M_T = Lambda^T |T|/12 (I + 1 1^T) Lambda."""
+    vertices, parent, areas = space.surface_triangles()
+    return _simplex_mass(space, vertices, parent, areas)
 
 
 def tangential_stiffness(space) -> sp.csr_matrix:
-    """A_ij = (P_h grad phi_j, P_h grad phi_i)_{S_h}; on each piece K, |K| (P_h G_j)·(P_h G_i)."""
-    return _tangential_stiffness.assemble(space)
+    """A_ij = (P_h grad phi_j, P_h grad phi_i)_{S_h}; on each element |K| (P_h G_j)·(P_h G_i),
+    |K| the area of the surface part of the element."""
+    return _gradient_rows(space, space.tangential_gradients, space.element_surface_areas)
 
 
 def normal_gradient_penalty(space, h_power: float = 1.0) -> sp.csr_matrix:
@@ -268,17 +275,23 @@ def normal_gradient_penalty(space, h_power: float = 1.0) -> sp.csr_matrix:
 
     The normal n_h is the piece normal of each active tet; ``h_power`` is a (default 1).
     """
-    return space.h**h_power * _normal_gradient.assemble(space)
+    c = np.einsum("mkd,md->mk", space.element_gradients, space.element_normals)
+    rows = c * np.sqrt(space.h**h_power * space.element_volumes)[:, None]
+    return gram(space.element_dofs, rows, space.n_dofs)
 
 
-def volume_mass(space, degree: int = 2) -> sp.csr_matrix:
-    """(u, v) over the cut volume {phi_h < 0} (a :class:`~cutfem.spaces.CutVolumeP1Space`)."""
-    return _volume_mass.assemble(space, degree=degree)
+def volume_mass(space) -> sp.csr_matrix:
+    """(u, v) over the cut volume {phi_h < 0} (a :class:`~cutfem.spaces.CutVolumeP1Space`), exact:
+    on each sub-tetrahedron |T|/20 (I + 1 1^T) in its vertex values."""
+    vertices, parent, volumes = space.volume_tetrahedra()
+    return _simplex_mass(space, vertices, parent, volumes)
 
 
 def volume_stiffness(space) -> sp.csr_matrix:
-    """(grad u, grad v) over the cut volume {phi_h < 0}."""
-    return _volume_stiffness.assemble(space)
+    """(grad u, grad v) over the cut volume {phi_h < 0}: the inside volume of each element times G G^T."""
+    vertices, parent, volumes = space.volume_tetrahedra()
+    inside = np.bincount(parent, weights=volumes, minlength=len(space.element_dofs))
+    return _gradient_rows(space, space.element_gradients, inside)
 
 
 def load(space, f, degree: int = 4, measure: str = "surface", closest_point=None) -> np.ndarray:
@@ -297,16 +310,16 @@ def load(space, f, degree: int = 4, measure: str = "surface", closest_point=None
     return assemble_vector(space.element_dofs[quad.parent], local, space.n_dofs)
 
 
-def _jump_blocks(space, pairs, normals_pair, scale):
-    """Blocks scale_e * c c^T for jumps c = (t1 . G_{K1}, t2 . G_{K2}) with the dofs of K1 then K2."""
+def _jump_gram(space, pairs, normals_pair, scale):
+    """Gram matrix of the jumps c = (t1 . G_{K1}, t2 . G_{K2}) weighted by ``scale`` (>= 0): one row
+    per facet on the dofs of K1 and K2 (shared dofs summed)."""
     G = space.element_gradients
     c = np.concatenate(
         [np.einsum("ekd,ed->ek", G[pairs[:, 0]], normals_pair[:, 0]), np.einsum("ekd,ed->ek", G[pairs[:, 1]], normals_pair[:, 1])],
         axis=1,
     )
-    blocks = scale[:, None, None] * c[:, :, None] * c[:, None, :]
     dofs = np.concatenate([space.element_dofs[pairs[:, 0]], space.element_dofs[pairs[:, 1]]], axis=1)
-    return dofs, symmetrize_blocks(blocks)
+    return gram(dofs, c * np.sqrt(scale)[:, None], space.n_dofs)
 
 
 def edge_jump_penalty(space, h: float | None = None) -> sp.csr_matrix:
@@ -318,8 +331,7 @@ def edge_jump_penalty(space, h: float | None = None) -> sp.csr_matrix:
     """
     pairs, conormals, lengths = space.edges()
     h = space.h if h is None else h
-    dofs, blocks = _jump_blocks(space, pairs, conormals, h * lengths)
-    return space.pattern("edges", dofs).matrix(blocks)
+    return _jump_gram(space, pairs, conormals, h * lengths)
 
 
 def face_jump_penalty(space, h_power: float = 0.0) -> sp.csr_matrix:
@@ -328,5 +340,4 @@ def face_jump_penalty(space, h_power: float = 0.0) -> sp.csr_matrix:
     (0 in the paper)."""
     pairs, n, areas = space.faces()
     normals_pair = np.stack([n, -n], axis=1)
-    dofs, blocks = _jump_blocks(space, pairs, normals_pair, space.h**h_power * areas)
-    return space.pattern("faces", dofs).matrix(blocks)
+    return _jump_gram(space, pairs, normals_pair, space.h**h_power * areas)

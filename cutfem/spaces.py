@@ -76,8 +76,17 @@ class _P1Space:
 
     def basis_values(self, quad: Quadrature) -> np.ndarray:
         """(m, q, k) P1 basis values at the quadrature points, per parent element."""
-        parent = quad.parent
-        return barycentric_at(quad.points, self.element_origin[parent], self.element_gradients[parent])
+        return self.basis_at(quad.points, quad.parent)
+
+    def basis_at(self, points: np.ndarray, parent: np.ndarray) -> np.ndarray:
+        """(m, j, k) P1 basis values of element ``parent[i]`` at ``points[i]`` (m, j, 3)."""
+        return barycentric_at(points, self.element_origin[parent], self.element_gradients[parent])
+
+    @cached_property
+    def tangential_gradients(self) -> np.ndarray:
+        """(n_el, k, 3) P_h grad of the basis functions, P_h = I - n_h n_h^T per element."""
+        G, n = self.element_gradients, self.element_normals
+        return G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
 
     @cached_property
     def element_origin(self) -> np.ndarray:
@@ -124,6 +133,14 @@ class SurfaceP1Space(_P1Space):
     @property
     def n_elements(self) -> int:
         return len(self.element_dofs)
+
+    @property
+    def element_surface_areas(self) -> np.ndarray:
+        return self.element_areas
+
+    def surface_triangles(self):
+        """(vertices (m, 3, 3), parent element (m,), areas (m,)) of the triangles of S_h."""
+        return self.dof_points[self.element_dofs], np.arange(self.n_elements), self.element_areas
 
     def quadrature(self, measure: str = "surface", degree: int = 2) -> Quadrature:
         if measure != "surface":
@@ -172,6 +189,16 @@ class CutP1Space(_P1Space):
             else:
                 raise ValueError(f"unknown measure {measure!r} for a cut space; use 'surface' or 'active'")
         return cache[key]
+
+    @property
+    def element_surface_areas(self) -> np.ndarray:
+        """(n_el,) area of the piece of S_h in each active tet."""
+        return self.cut.piece_areas
+
+    def surface_triangles(self):
+        """(vertices (m, 3, 3), parent active tet (m,), areas (m,)) of the triangles of S_h."""
+        c = self.cut
+        return c.triangle_points, c.triangle_tets, c.triangle_areas
 
     def surface_vertex_values(self, coeffs) -> np.ndarray:
         """Trace of a discrete function at the vertices of S_h: (V,) or (V, c) (for plots and VTK)."""
@@ -227,6 +254,12 @@ class CutVolumeP1Space(_P1Space):
         self.element_volumes = np.abs(vol)
         self._sub, self._sub_parent = sub, parent
         self.h = background.h
+
+    def volume_tetrahedra(self):
+        """(vertices (s, 4, 3), parent element (s,), volumes (s,)) of the sub-tetrahedra of {phi_h < 0}."""
+        v = self._sub
+        vol = np.abs(np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), v[:, 3] - v[:, 0])) / 6.0
+        return v, self._sub_parent, vol
 
     def quadrature(self, measure: str = "volume", degree: int = 2) -> Quadrature:
         key = (measure, degree)

@@ -72,13 +72,23 @@ def save_csv(out: Path, name: str, rows: list[dict]) -> Path:
     return path
 
 
+def latex_cell(cell) -> str:
+    """A table cell as LaTeX: text outside $...$ gets _ % & # escaped; math is left alone."""
+    text = str(cell)
+    parts = text.split("$")
+    for i in range(0, len(parts), 2):  # even parts are outside math
+        for ch in "_%&#":
+            parts[i] = parts[i].replace("\\" + ch, ch).replace(ch, "\\" + ch)
+    return "$".join(parts)
+
+
 def save_latex_table(out: Path, name: str, header: list[str], rows: list[list], caption: str = "", label: str | None = None) -> Path:
     """A booktabs-free LaTeX tabular (only \\hline), numbers formatted by the caller."""
     path = Path(out) / f"{name}.tex"
     path.parent.mkdir(parents=True, exist_ok=True)
     cols = "l" + "r" * (len(header) - 1)
-    lines = [f"\\begin{{tabular}}{{{cols}}}", "\\hline", " & ".join(header) + " \\\\", "\\hline"]
-    lines += [" & ".join(str(c) for c in row) + " \\\\" for row in rows]
+    lines = [f"\\begin{{tabular}}{{{cols}}}", "\\hline", " & ".join(latex_cell(h) for h in header) + " \\\\", "\\hline"]
+    lines += [" & ".join(latex_cell(c) for c in row) + " \\\\" for row in rows]
     lines += ["\\hline", "\\end{tabular}"]
     path.write_text("\n".join(lines) + "\n")
     return path
