@@ -96,6 +96,21 @@ def _case_table():
 _CASES = _case_table()
 
 
+def _case_arrays():
+    """Lookup tables indexed by the sign code: edge endpoints (16, 4) and polygon size (16,).
+    Triangles repeat their last edge in the fourth slot."""
+    ei = np.zeros((16, 4), dtype=np.int64)
+    ej = np.zeros((16, 4), dtype=np.int64)
+    nv = np.zeros(16, dtype=np.int64)
+    for code, edges in _CASES.items():
+        e = np.array(edges + edges[-1:] * (4 - len(edges)))
+        ei[code], ej[code], nv[code] = e[:, 0], e[:, 1], len(edges)
+    return ei, ej, nv
+
+
+_EDGE_I, _EDGE_J, _NVERT = _case_arrays()
+
+
 def _as_values_function(levelset):
     """A callable x (..., 3) -> (...) from a LevelSet-like object or a plain callable."""
     if hasattr(levelset, "value"):
@@ -466,30 +481,17 @@ def _marching(tet_ids, nodes, xyz, vals, n_background):
     """Marching tetrahedra on the candidate (cut) tets; see the module docstring."""
     m = len(tet_ids)
     inside = vals < 0
-    mask = (inside * (1 << np.arange(4))).sum(axis=1)
-    # polygon vertices: up to 4 edges (i, j) per tet, i inside and j outside
-    edge_i = np.zeros((m, 4), dtype=np.int64)
-    edge_j = np.zeros((m, 4), dtype=np.int64)
-    nvert = np.zeros(m, dtype=np.int64)
-    for code, edges in _CASES.items():
-        sel = mask == code
-        if not np.any(sel):
-            continue
-        e = np.array(edges)
-        k = len(edges)
-        edge_i[sel, :k] = e[:, 0]
-        edge_j[sel, :k] = e[:, 1]
-        if k == 3:  # repeat the last vertex so that every polygon has 4 slots
-            edge_i[sel, 3] = e[2, 0]
-            edge_j[sel, 3] = e[2, 1]
-        nvert[sel] = k
+    mask = inside[:, 0] + 2 * inside[:, 1] + 4 * inside[:, 2] + 8 * inside[:, 3]
+    # polygon vertices: up to 4 edges (i, j) per tet, i inside and j outside (table lookup)
+    edge_i, edge_j, nvert = _EDGE_I[mask], _EDGE_J[mask], _NVERT[mask]
     rows = np.arange(m)[:, None]
     gi, gj = nodes[rows, edge_i], nodes[rows, edge_j]
     pi, pj = vals[rows, edge_i], vals[rows, edge_j]
     t = pi / (pi - pj)  # in (0, 1]; t == 1 exactly when the outside node has phi == 0
-    pts = xyz[rows, edge_i] + t[..., None] * (xyz[rows, edge_j] - xyz[rows, edge_i])
+    xi, xj = xyz[rows, edge_i], xyz[rows, edge_j]
+    pts = xi + t[..., None] * (xj - xi)
     on_node = pj == 0
-    pts[on_node] = xyz[rows, edge_j][on_node]
+    pts[on_node] = xj[on_node]
     # vertex keys: background node id, or n_background + edge code
     key = np.where(on_node, gj, n_background + np.minimum(gi, gj) * n_background + np.maximum(gi, gj))
     # distinct vertices per polygon; drop pieces with fewer than 3

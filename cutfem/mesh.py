@@ -402,11 +402,16 @@ class StructuredBox(TetMesh):
 
     @cached_property
     def boundary_nodes(self) -> np.ndarray:
-        """Node ids on the box boundary, computed from the grid (no topology needed)."""
-        nx1, ny1, nz1 = self.node_shape
-        i, j, k = np.meshgrid(np.arange(nx1), np.arange(ny1), np.arange(nz1), indexing="ij")
-        on = (i == 0) | (i == nx1 - 1) | (j == 0) | (j == ny1 - 1) | (k == 0) | (k == nz1 - 1)
-        return np.sort(self.node_id(np.stack([i[on], j[on], k[on]], axis=-1)))
+        """Node ids on the box boundary, from the six faces of the grid (no visit of the interior)."""
+        ids = []
+        for axis in range(3):
+            a, b = [d for d in range(3) if d != axis]
+            ga, gb = np.meshgrid(np.arange(self.node_shape[a]), np.arange(self.node_shape[b]), indexing="ij")
+            for side in (0, self.node_shape[axis] - 1):
+                ijk = np.empty(ga.shape + (3,), dtype=np.int64)
+                ijk[..., axis], ijk[..., a], ijk[..., b] = side, ga, gb
+                ids.append(self.node_id(ijk).reshape(-1))
+        return unique_keys(np.concatenate(ids))
 
     def __repr__(self) -> str:
         return (
