@@ -27,12 +27,35 @@ import math
 import platform
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["Param", "Problem", "register", "get_problem", "available_problems", "run", "RunResult", "ProblemError"]
+__all__ = ["Param", "Problem", "register", "get_problem", "available_problems", "run", "RunResult", "ProblemError", "LazyFields"]
+
+
+class LazyFields(Mapping):
+    """The fields of a level (name -> pyvista dataset), built on first access only: a run that
+    writes no VTK and draws no picture does not pay for them."""
+
+    def __init__(self, build: Callable[[], dict]):
+        self._build, self._data = build, None
+
+    def _fields(self) -> dict:
+        if self._data is None:
+            self._data = dict(self._build())
+        return self._data
+
+    def __getitem__(self, key):
+        return self._fields()[key]
+
+    def __iter__(self):
+        return iter(self._fields())
+
+    def __len__(self):
+        return len(self._fields())
 
 
 class ProblemError(ValueError):

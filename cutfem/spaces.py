@@ -142,6 +142,10 @@ class SurfaceP1Space(_P1Space):
         """(vertices (m, 3, 3), parent element (m,), areas (m,)) of the triangles of S_h."""
         return self.dof_points[self.element_dofs], np.arange(self.n_elements), self.element_areas
 
+    def surface_vertex_data(self, coeffs):
+        """(points (V, 3), triangles (T, 3), values at the points) of a discrete function on S_h."""
+        return self.dof_points, self.element_dofs, np.asarray(coeffs)
+
     def quadrature(self, measure: str = "surface", degree: int = 2) -> Quadrature:
         if measure != "surface":
             raise ValueError(f"a surface mesh space has only the 'surface' measure, got {measure!r}")
@@ -199,6 +203,10 @@ class CutP1Space(_P1Space):
         """(vertices (m, 3, 3), parent active tet (m,), areas (m,)) of the triangles of S_h."""
         c = self.cut
         return c.triangle_points, c.triangle_tets, c.triangle_areas
+
+    def surface_vertex_data(self, coeffs):
+        """(points (V, 3), triangles (T, 3), values at the points) of a discrete function on S_h."""
+        return self.cut.vertices, self.cut.triangles, self.surface_vertex_values(coeffs)
 
     def surface_vertex_values(self, coeffs) -> np.ndarray:
         """Trace of a discrete function at the vertices of S_h: (V,) or (V, c) (for plots and VTK)."""

@@ -23,7 +23,7 @@ from cutfem.cut import cut_mesh
 from cutfem.errors import h1_error, l2_error
 from cutfem.forms import edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.levelset import Sphere, Torus
-from cutfem.registry import Param, Problem, ProblemError, register
+from cutfem.registry import LazyFields, Param, Problem, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import TORUS_FAMILIES
@@ -82,6 +82,12 @@ class TorusSolution:
         return (dt / s)[..., None] * et + (dp / r)[..., None] * ep
 
 
+def _with_point_data(ds, **arrays):
+    for k, v in arrays.items():
+        ds.point_data[k] = np.asarray(v)
+    return ds
+
+
 def manufactured(levelset):
     if isinstance(levelset, Sphere):
         if np.any(levelset.center != 0):
@@ -96,7 +102,7 @@ def _solve_and_measure(space, K, closest_point, sol, t, solver):
     with t("assembly"):
         b = load(space, sol.f, degree=4, closest_point=closest_point)
     with t("solve"):
-        u, info = solve(K, b, method=solver)
+        u, info = solve(K, b, method=solver, space=space)
     with t("errors"):
         rec = {
             "h": space.h,
@@ -121,7 +127,7 @@ class LaplaceBeltramiMeshed(Problem):
         Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
         Param("seed", int, 0, "random seed of the flipped/perturbed families"),
-        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-amg", "cg-jacobi")),
+        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
         *SHAPE_PARAMS,
     ]
 
@@ -141,10 +147,7 @@ class LaplaceBeltramiMeshed(Problem):
         u, rec = _solve_and_measure(space, K.tocsr(), exact.closest_point, sol, t, solver)
         rec["area"] = float(M.sum())
         rec["time"] = dict(t)
-        poly = mesh.to_pyvista()
-        poly.point_data["u_h"] = u
-        poly.point_data["u_exact"] = sol.u(exact.closest_point(space.dof_points))
-        rec["fields"] = {"surface": poly}
+        rec["fields"] = LazyFields(lambda: {"surface": _with_point_data(mesh.to_pyvista(), u_h=u, u_exact=sol.u(exact.closest_point(space.dof_points)))})
         return rec
 
 
@@ -164,7 +167,7 @@ class LaplaceBeltramiCut(Problem):
         Param("face_h_power", float, 0.0, "power a of h in the face term", minimum=None),
         Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N", minimum=0),
         Param("normal_h_power", float, 1.0, "power a of h in the normal-gradient term"),
-        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-amg", "cg-jacobi")),
+        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
         *SHAPE_PARAMS,
     ]
 
@@ -187,8 +190,7 @@ class LaplaceBeltramiCut(Problem):
         rec.update(cut_record(cut))
         rec["area"] = float(M.sum())
         rec["time"] = dict(t)
-        poly = cut.to_pyvista()
-        poly.point_data["u_h"] = space.surface_vertex_values(u)
-        poly.point_data["u_exact"] = sol.u(phi.closest_point(cut.vertices))
-        rec["fields"] = {"surface": poly}
+        rec["fields"] = LazyFields(
+            lambda: {"surface": _with_point_data(cut.to_pyvista(), u_h=space.surface_vertex_values(u), u_exact=sol.u(phi.closest_point(cut.vertices)))}
+        )
         return rec

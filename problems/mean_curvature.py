@@ -18,14 +18,14 @@ import numpy as np
 from cutfem.cut import cut_mesh
 from cutfem.errors import discrete_error, l2_error, surface_integral
 from cutfem.forms import edge_jump_penalty, face_jump_penalty, mass, tangential_stiffness
-from cutfem.registry import Param, Problem, register
+from cutfem.registry import LazyFields, Param, Problem, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import TORUS_FAMILIES
 
 from .common import SHAPE_PARAMS, check_resolution, SURFACES, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
 
-SOLVERS = ("auto", "direct", "cg-amg", "cg-jacobi")
+SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
 
 def mean_curvature_system(space, tau_e=0.0, tau_f=0.0, face_h_power=0.0):
@@ -79,7 +79,7 @@ class MeanCurvatureMeshed(Problem):
         with t("assembly"):
             M, K, A, B = mean_curvature_system(space, tau_e=tau_e)
         with t("solve"):
-            H, info = solve(K, B, method=solver)
+            H, info = solve(K, B, method=solver, space=space)
         with t("errors"):
             rec = _common_record(space, M, H, t, exact, info)
             rec.update(triangles=int(mesh.n_triangles), edges=int(mesh.n_edges))
@@ -88,7 +88,9 @@ class MeanCurvatureMeshed(Problem):
                 rec["l2_error"] = l2_error(space, H, He)
                 rec["discrete_error"] = discrete_error(M, He(space.dof_points) - H)
         rec["time"] = dict(t)
-        rec["fields"] = {"surface": _surface_fields(mesh.to_pyvista(), H, None if exact is None else exact.exact_mean_curvature_vector(space.dof_points))}
+        rec["fields"] = LazyFields(
+            lambda: {"surface": _surface_fields(mesh.to_pyvista(), H, None if exact is None else exact.exact_mean_curvature_vector(space.dof_points))}
+        )
         return rec
 
 
@@ -121,7 +123,7 @@ class MeanCurvatureCut(Problem):
         with t("assembly"):
             M, K, A, B = mean_curvature_system(space, tau_e=tau_e, tau_f=tau_f, face_h_power=face_h_power)
         with t("solve"):
-            H, info = solve(K, B, method=solver)
+            H, info = solve(K, B, method=solver, space=space)
         exact = phi if has_exact(phi) else None
         with t("errors"):
             rec = _common_record(space, M, H, t, exact, info)
@@ -129,11 +131,14 @@ class MeanCurvatureCut(Problem):
             if exact is not None:
                 rec["l2_error"] = l2_error(space, H, exact.exact_mean_curvature_vector)
         rec["time"] = dict(t)
-        He = None if exact is None else exact.exact_mean_curvature_vector(cut.vertices)
-        rec["fields"] = {
-            "surface": _surface_fields(cut.to_pyvista(), space.surface_vertex_values(H), He),
-            "active_mesh": _point_fields(cut.active_mesh_pyvista(), {"H_h": H}),
-        }
+        rec["fields"] = LazyFields(
+            lambda: {
+                "surface": _surface_fields(
+                    cut.to_pyvista(), space.surface_vertex_values(H), None if exact is None else exact.exact_mean_curvature_vector(cut.vertices)
+                ),
+                "active_mesh": _point_fields(cut.active_mesh_pyvista(), {"H_h": H}),
+            }
+        )
         return rec
 
 

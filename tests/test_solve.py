@@ -164,12 +164,6 @@ def test_condition_number_matches_dense_reference(small_cut_sphere):
     assert condition_number(B) == pytest.approx(scaled_condition(B), rel=1e-5)
 
 
-@pytest.mark.xfail(
-    strict=True,
-    reason="solve.condition_number, Lanczos path (n > 400): the near-null eigenvalue of the singular "
-    "scaled matrix comes out slightly negative, so eigsh(S^-1, which='LA') returns 1/lambda_min over "
-    "the positive eigenvalues only (a finite ~1e4 here); which='LM' with a sign check would report it",
-)
 def test_condition_number_of_singular_matrix_lanczos_path(cut_torus):
     M = mass(cut_torus)  # singular: M phi_h = 0
     assert cut_torus.n_dofs > 400

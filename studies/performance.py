@@ -1,0 +1,240 @@
+"""Performance benchmark: stage times, peak memory and sizes of the mean curvature problems.
+
+Cut torus of SPEC §6 (box [-1.6,1.6]^2 x [-0.6,0.6], structured Kuhn background, tau_F = 0.1) at
+spacings 0.1 ... 0.0125 (0.00625 with ``--full``), and the meshed torus (flipped and perturbed
+families, tau_E = 0.1) at n = 64 ... 768.  Every level runs in a fresh Python process, so that its
+peak resident memory (``ru_maxrss``) is its own; the stages are timed with ``perf_counter``:
+
+* cut: background mesh (a :class:`~cutfem.mesh.StructuredBox`, nothing stored), cut (band search,
+  level-set values near the surface, marching tets), topology (interior faces of the active mesh);
+* assembly: mass, tangential stiffness, face (or edge) penalty, the right-hand sides A x_k;
+* solve: :func:`cutfem.solve.solve` with the automatic choice (setup and iterations together,
+  with the method and iteration count recorded);
+* errors: the L2 error on S_h (degree-4 quadrature).
+
+The figure shows time and memory against the number of active tets (cut) or surface nodes
+(meshed) on log-log axes with the exponents fitted over the finest levels.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from studies.common import Progress, figure, pick, save_figure, save_json, study_main
+
+OUTPUTS = ["performance", "performance_scaling"]
+
+BOX = ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6])
+
+
+def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
+    """One cut-torus level, timed stage by stage (runs in the calling process)."""
+    from cutfem.cut import cut_mesh
+    from cutfem.errors import l2_error
+    from cutfem.forms import face_jump_penalty, mass, tangential_stiffness
+    from cutfem.levelset import Torus
+    from cutfem.mesh import structured_box
+    from cutfem.solve import solve
+    from cutfem.spaces import CutP1Space
+
+    t = {}
+    clock = time.perf_counter
+    t0 = clock()
+    torus = Torus(1.0, 0.5)
+    box = structured_box(*BOX, spacing=spacing)
+    t["background"] = clock() - t0
+    t0 = clock()
+    cut = cut_mesh(box, torus)
+    t["cut"] = clock() - t0
+    t0 = clock()
+    space = CutP1Space(cut)
+    faces = space.faces()
+    t["topology"] = clock() - t0
+    t0 = clock()
+    M = mass(space)
+    t["mass"] = clock() - t0
+    t0 = clock()
+    A = tangential_stiffness(space)
+    t["stiffness"] = clock() - t0
+    t0 = clock()
+    J = face_jump_penalty(space)
+    t["face_penalty"] = clock() - t0
+    t0 = clock()
+    K = (M + tau_f * J).tocsr()
+    B = A @ space.dof_points
+    t["system"] = clock() - t0
+    t0 = clock()
+    H, info = solve(K, B, space=space)
+    t["solve"] = clock() - t0
+    t0 = clock()
+    err = l2_error(space, H, torus.exact_mean_curvature_vector)
+    t["errors"] = clock() - t0
+    return {
+        "kind": "cut",
+        "level": spacing,
+        "background_nodes": int(box.n_points),
+        "active_tets": int(cut.n_tets),
+        "pieces": int(cut.n_tets),
+        "surface_triangles": int(cut.n_triangles),
+        "interior_faces": int(len(faces[0])),
+        "dofs": int(space.n_dofs),
+        "l2_error": err,
+        "solver": info.method,
+        "iterations": info.iterations,
+        "time": t,
+        "total": sum(t.values()),
+    }
+
+
+def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
+    """One meshed-torus level, timed stage by stage."""
+    from cutfem.errors import l2_error
+    from cutfem.forms import edge_jump_penalty, mass, tangential_stiffness
+    from cutfem.levelset import Torus
+    from cutfem.solve import solve
+    from cutfem.spaces import SurfaceP1Space
+    from cutfem.surface import torus_mesh
+
+    t = {}
+    clock = time.perf_counter
+    t0 = clock()
+    mesh = torus_mesh(n, family, seed=1)
+    space = SurfaceP1Space(mesh)
+    t["mesh"] = clock() - t0
+    t0 = clock()
+    M = mass(space)
+    t["mass"] = clock() - t0
+    t0 = clock()
+    A = tangential_stiffness(space)
+    t["stiffness"] = clock() - t0
+    t0 = clock()
+    J = edge_jump_penalty(space)
+    t["edge_penalty"] = clock() - t0
+    t0 = clock()
+    K = (M + tau_e * J).tocsr()
+    B = A @ space.dof_points
+    t["system"] = clock() - t0
+    t0 = clock()
+    H, info = solve(K, B, space=space)
+    t["solve"] = clock() - t0
+    t0 = clock()
+    err = l2_error(space, H, Torus().exact_mean_curvature_vector)
+    t["errors"] = clock() - t0
+    return {
+        "kind": f"meshed-{family}",
+        "level": n,
+        "dofs": int(space.n_dofs),
+        "triangles": int(mesh.n_triangles),
+        "l2_error": err,
+        "solver": info.method,
+        "iterations": info.iterations,
+        "time": t,
+        "total": sum(t.values()),
+    }
+
+
+def _in_subprocess(kind: str, level) -> dict:
+    """Run one level in a fresh interpreter and return its record with the peak memory (GiB)."""
+    code = (
+        "import json, resource, sys\n"
+        "from studies.performance import cut_level, meshed_level\n"
+        f"kind, level = {kind!r}, {level!r}\n"
+        "rec = cut_level(level) if kind == 'cut' else meshed_level(level, kind.split('-', 1)[1])\n"
+        "rec['peak_memory_gib'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20\n"
+        "print('RESULT ' + json.dumps(rec))\n"
+    )
+    env = dict(os.environ)
+    root = str(Path(__file__).resolve().parents[1])
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    if proc.returncode != 0:
+        raise RuntimeError(f"level {kind} {level} failed:\n{proc.stderr[-3000:]}")
+    line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
+    return json.loads(line[len("RESULT "):])
+
+
+def fitted_exponent(x, y) -> float:
+    """Least-squares slope of log y against log x."""
+    x, y = np.asarray(x, float), np.asarray(y, float)
+    return float(np.polyfit(np.log(x), np.log(y), 1)[0]) if len(x) >= 2 else float("nan")
+
+
+def run(out: Path, size: str = "quick", progress=None) -> dict:
+    progress = progress or Progress("performance")
+    spacings = pick(size, [0.2, 0.1], [0.1, 0.05, 0.025, 0.0125], [0.1, 0.05, 0.025, 0.0125, 0.00625])
+    ns = pick(size, [32, 64], [64, 128, 256, 512, 768], [64, 128, 256, 512, 768])
+    records = []
+    for s in spacings:
+        progress(f"cut torus, spacing {s}")
+        try:
+            records.append(_in_subprocess("cut", s))
+        except RuntimeError as exc:  # e.g. out of memory at 0.00625: recorded, not hidden
+            progress(f"  failed: {str(exc).splitlines()[-1]}")
+            records.append({"kind": "cut", "level": s, "failed": str(exc)[-500:]})
+            continue
+        r = records[-1]
+        progress(f"  {r['active_tets']} active tets, {r['dofs']} dofs: {r['total']:.2f} s, {r['peak_memory_gib']:.2f} GiB, "
+                 f"{r['solver']} ({r['iterations']} its), L2 error {r['l2_error']:.4e}")
+    for family in ("flipped", "perturbed"):
+        for n in ns:
+            progress(f"meshed torus {family}, n = {n}")
+            records.append(_in_subprocess(f"meshed-{family}", n))
+            r = records[-1]
+            progress(f"  {r['dofs']} dofs: {r['total']:.2f} s, {r['peak_memory_gib']:.2f} GiB, {r['solver']}")
+    ok = [r for r in records if "failed" not in r]
+    summary = {"levels": records}
+    cut = [r for r in ok if r["kind"] == "cut"]
+    fine = [r for r in cut if r["level"] <= 0.05]
+    if len(fine) >= 2:
+        x = [r["active_tets"] for r in fine]
+        summary["cut_time_exponent"] = fitted_exponent(x, [r["total"] for r in fine])
+        summary["cut_memory_exponent"] = fitted_exponent(x, [r["peak_memory_gib"] for r in fine])
+    save_json(out, "performance", summary)
+    _plot(out, ok, summary)
+    _print_table(ok)
+    return summary
+
+
+def _print_table(records):
+    print(f"{'kind':18s} {'level':>8s} {'dofs':>8s} {'tets':>8s} {'total s':>8s} {'GiB':>6s}  stages")
+    for r in records:
+        stages = " ".join(f"{k}={v:.2f}" for k, v in r["time"].items())
+        print(f"{r['kind']:18s} {r['level']:>8g} {r['dofs']:>8d} {r.get('active_tets', 0):>8d} {r['total']:>8.2f} {r['peak_memory_gib']:>6.2f}  {stages}")
+
+
+def _plot(out, records, summary):
+    plt = figure()
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    for kind, marker in (("cut", "o"), ("meshed-flipped", "s"), ("meshed-perturbed", "^")):
+        rs = [r for r in records if r["kind"] == kind]
+        if not rs:
+            continue
+        x = [r["active_tets"] if kind == "cut" else r["dofs"] for r in rs]
+        label = "cut torus (active tets)" if kind == "cut" else f"{kind} (nodes)"
+        for ax, key in zip(axes, ("total", "peak_memory_gib")):
+            y = [r[key] for r in rs]
+            p = fitted_exponent(x[-3:], y[-3:])
+            ax.loglog(x, y, marker=marker, label=f"{label}, exponent {p:.2f}")
+    for ax, title in zip(axes, ("end-to-end time [s]", "peak memory [GiB]")):
+        ax.set_xlabel("active tets / surface nodes")
+        ax.set_ylabel(title)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    axes[0].set_title("time, fitted over the three finest levels")
+    axes[1].set_title("peak resident memory of the process")
+    fig.tight_layout()
+    save_figure(fig, out, "performance_scaling")
+
+
+main = study_main(run, "performance")
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,142 @@
+"""The geometric multigrid path of cutfem.solve against the direct solver and exact linear functions.
+
+References: the direct solver (SuperLU) computed in the test, exact linear functions.
+"""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+import cutfem.solve as solve_module
+from cutfem.cut import cut_mesh
+from cutfem.forms import face_jump_penalty, mass, tangential_stiffness
+from cutfem.levelset import Sphere, Torus
+from cutfem.mesh import structured_box
+from cutfem.solve import (
+    DirectSolver,
+    GeometricMultigrid,
+    SingularSystemError,
+    kuhn_prolongation,
+    lattice_indices,
+    mg_solve,
+    solve,
+)
+from cutfem.spaces import CutP1Space
+
+
+@pytest.fixture(scope="module")
+def torus_space():
+    return CutP1Space(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.05), Torus()))
+
+
+def test_kuhn_prolongation_reproduces_linear_functions(torus_space):
+    V = torus_space
+    ijk = lattice_indices(V)
+    assert ijk.shape == (V.n_dofs, 3)
+    np.testing.assert_array_equal(V.cut.background.node_coordinates(V.node_ids), V.dof_points)
+    P, cijk = kuhn_prolongation(ijk)
+    assert P.shape == (V.n_dofs, len(cijk)) and len(cijk) < V.n_dofs / 3
+    g = np.array([0.3, -1.2, 2.0])
+    np.testing.assert_allclose(P @ (2 * cijk @ g + 1.5), ijk @ g + 1.5, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(P.sum(axis=1)).ravel(), 1.0)  # partition of unity
+
+
+def test_coarse_space_is_nested(torus_space):
+    """A coarse Kuhn P1 function is P1 on every fine tet: its prolongation has zero face jumps
+    wherever all its coarse values are linear... checked by the stronger statement that the
+    prolongated coarse basis functions are piecewise linear on the fine Kuhn tets."""
+    V = torus_space
+    P, cijk = kuhn_prolongation(lattice_indices(V))
+    rng = np.random.default_rng(0)
+    uc = rng.normal(size=P.shape[1])
+    u = P @ uc
+    # on every fine tet, the prolongated function equals the coarse P1 interpolant evaluated at
+    # the fine nodes: check at the barycentre against the mean of the four nodal values
+    ijk = lattice_indices(V)
+    centre = ijk[V.element_dofs].mean(axis=1)  # fine lattice units
+    # coarse Kuhn tet containing the centre: sort the fractional parts (Freudenthal)
+    y = centre / 2.0
+    base = np.floor(y).astype(np.int64)
+    frac = y - base
+    order = np.argsort(-frac, axis=1)
+    verts = [base.copy()]
+    cur = base.copy()
+    for k in range(3):
+        cur = cur.copy()
+        cur[np.arange(len(cur)), order[:, k]] += 1
+        verts.append(cur)
+    lookup = {tuple(c): i for i, c in enumerate(cijk)}
+    fs = np.sort(frac, axis=1)[:, ::-1]
+    weights = np.stack([1 - fs[:, 0], fs[:, 0] - fs[:, 1], fs[:, 1] - fs[:, 2], fs[:, 2]], axis=1)
+    vals = np.array([[uc[lookup[tuple(v[e])]] if tuple(v[e]) in lookup else np.nan for v in verts] for e in range(len(y))])
+    interp = np.einsum("ek,ek->e", weights, np.nan_to_num(vals))
+    ok = ~np.isnan(vals).any(axis=1) | (weights * np.isnan(vals) == 0).all(axis=1)
+    np.testing.assert_allclose(interp[ok], u[V.element_dofs].mean(axis=1)[ok], rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("system", ["mean-curvature", "laplace-beltrami"])
+def test_mg_solve_agrees_with_direct(torus_space, system):
+    V = torus_space
+    M, A, J = mass(V), tangential_stiffness(V), face_jump_penalty(V)
+    K = M + 0.1 * J if system == "mean-curvature" else A + M + 0.1 * J
+    B = A @ V.dof_points
+    X_direct = DirectSolver(K).solve(B)
+    X, info = mg_solve(K, B, lattice_indices(V), tol=1e-10)
+    assert info.method == "cg-mg" and 0 < info.iterations < 60
+    assert info.residual <= 1e-10
+    for c in range(3):
+        assert np.linalg.norm(K @ X[:, c] - B[:, c]) <= 1.5e-10 * np.linalg.norm(B[:, c])
+    assert np.linalg.norm(X - X_direct) <= 1e-8 * np.linalg.norm(X_direct)
+
+
+def test_auto_picks_multigrid_above_the_limit(torus_space, monkeypatch):
+    V = torus_space
+    K = mass(V) + 0.1 * face_jump_penalty(V)
+    b = np.ones(V.n_dofs)
+    monkeypatch.setattr(solve_module, "DIRECT_LIMIT", 1000)
+    x, info = solve(K, b, space=V)
+    assert info.method == "cg-mg" and info.residual <= solve_module.DEFAULT_TOL
+    x2, info2 = solve(K, b)  # no space: no lattice, direct below DIRECT_LIMIT_NO_MG
+    assert info2.method == "direct"
+    np.testing.assert_allclose(x, x2, rtol=0, atol=1e-5 * np.abs(x2).max())
+
+
+def test_multigrid_hierarchy_shape(torus_space):
+    V = torus_space
+    K = mass(V) + 0.1 * face_jump_penalty(V)
+    mg = GeometricMultigrid(K, lattice_indices(V), coarse_size=500)
+    assert mg.sizes[0] == V.n_dofs and all(a > 3 * b for a, b in zip(mg.sizes, mg.sizes[1:]))
+    assert mg.operator_complexity < 1.5
+    R = np.random.default_rng(1).normal(size=(2, V.n_dofs))
+    Z = mg.apply(R)
+    # symmetric positive definite preconditioner
+    assert R[0] @ Z[1] == pytest.approx(R[1] @ Z[0], rel=1e-10)
+    assert R[0] @ Z[0] > 0
+
+
+def test_multigrid_reports_zero_diagonal_and_bad_lattice(torus_space):
+    V = torus_space
+    K = (mass(V) + 0.1 * face_jump_penalty(V)).tolil()
+    K[7, :] = 0.0
+    K[:, 7] = 0.0
+    with pytest.raises(SingularSystemError, match="zero"):
+        mg_solve(K.tocsr(), np.ones(V.n_dofs), lattice_indices(V))
+    with pytest.raises(ValueError, match="lattice"):
+        GeometricMultigrid(K.tocsr(), np.zeros((3, 3), dtype=int))
+    with pytest.raises(ValueError, match="needs a space"):
+        solve(sp.identity(V.n_dofs, format="csr"), np.ones(V.n_dofs), method="cg-mg")
+
+
+def test_unstabilized_system_is_not_hidden(monkeypatch):
+    """tau_F = 0: the nodal vector of phi_h is a null vector of the surface forms; solve() with the
+    space reports it on the iterative path too (a consistent right-hand side would hide it)."""
+    V = CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=24), Sphere(0.7, [0.03, -0.01, 0.02])))
+    M, A, J = mass(V), tangential_stiffness(V), face_jump_penalty(V)
+    B = A @ V.dof_points
+    monkeypatch.setattr(solve_module, "DIRECT_LIMIT", 100)
+    for K in (M, A + M):
+        with pytest.raises(SingularSystemError, match="phi_h") as err:
+            solve(K, B, space=V)
+        assert err.value.smallest < 1e-10
+    H, info = solve(M + 0.1 * J, B, space=V)  # stabilized: fine
+    assert info.method == "cg-mg"
