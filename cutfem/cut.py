@@ -62,6 +62,7 @@ from .mesh import (
     TetMesh,
     barycentric_gradients,
     pair_up,
+    tet_face_keys,
     unique_keys,
 )
 
@@ -361,15 +362,8 @@ class CutMesh:
 
     @cached_property
     def _faces(self):
-        n, p = self.n_tets, self.n_nodes
-        keys = np.empty((n, 4), dtype=np.int64)
-        cols = [self.tets[:, j] for j in range(4)]
-        for k, (i, j, l) in enumerate(TET_FACES):
-            a, b, c = cols[i], cols[j], cols[l]
-            lo = np.minimum(np.minimum(a, b), c)
-            hi = np.maximum(np.maximum(a, b), c)
-            keys[:, k] = (lo * p + (a + b + c - lo - hi)) * p + hi
-        order, starts, counts = pair_up(keys.reshape(-1))
+        keys = tet_face_keys(self.tets, self.n_nodes)
+        order, starts, counts = pair_up(keys)
         two = counts == 2
         first = order[starts[two]]
         second = order[starts[two] + 1]

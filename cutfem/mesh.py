@@ -29,6 +29,7 @@ __all__ = [
     "barycentric_gradients",
     "sorted_row_keys",
     "decode_triple_keys",
+    "tet_face_keys",
     "pair_up",
     "unique_keys",
 ]
@@ -84,6 +85,16 @@ def sorted_row_keys(rows: np.ndarray, n: int) -> np.ndarray:
         hi = np.maximum(np.maximum(a, b), c)
         return (lo * n + (a + b + c - lo - hi)) * n + hi
     raise ValueError(f"rows must have 2 or 3 columns, got {k}")
+
+
+def tet_face_keys(tets: np.ndarray, n: int) -> np.ndarray:
+    """(4m,) int64 keys of the faces of tets (m, 4) with node ids below n: the key of the face
+    opposite to local vertex k of tet t is at 4t + k; equal faces get equal keys."""
+    tets = np.asarray(tets, dtype=np.int64)
+    keys = np.empty((len(tets), 4), dtype=np.int64)
+    for k, face in enumerate(TET_FACES):  # the four local faces, each over all tets at once
+        keys[:, k] = sorted_row_keys(tets[:, face], n)
+    return keys.reshape(-1)
 
 
 def decode_triple_keys(keys: np.ndarray, n: int) -> np.ndarray:
@@ -241,14 +252,7 @@ class TetMesh:
             tets, n = inv.reshape(-1, 4), len(used)
         else:
             used = None
-        cols = [np.ascontiguousarray(tets[:, j]) for j in range(4)]
-        keys = np.empty((m, 4), dtype=np.int64)  # key of face k of tet t at row 4t+k
-        for k, (i, j, l) in enumerate(TET_FACES):
-            a, b, c = cols[i], cols[j], cols[l]
-            lo = np.minimum(np.minimum(a, b), c)
-            hi = np.maximum(np.maximum(a, b), c)
-            keys[:, k] = (lo * n + (a + b + c - lo - hi)) * n + hi
-        keys = keys.reshape(-1)
+        keys = tet_face_keys(tets, n)
         order, starts, counts = pair_up(keys)
         if np.any(counts > 2):
             raise ValueError(f"{int(np.sum(counts > 2))} faces are shared by more than two tets: the mesh is not conforming")

@@ -28,12 +28,26 @@ import platform
 import sys
 import time
 from collections.abc import Mapping
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["Param", "Problem", "register", "get_problem", "available_problems", "run", "RunResult", "ProblemError", "LazyFields"]
+__all__ = ["Param", "Problem", "register", "get_problem", "available_problems", "run", "RunResult", "ProblemError", "LazyFields", "Timer"]
+
+
+class Timer(dict):
+    """Stage -> seconds; ``with timer("assembly"): ...`` adds to a stage."""
+
+    @contextmanager
+    def __call__(self, stage):
+        t0 = time.perf_counter()
+        try:
+            yield
+        finally:
+            self[stage] = self.get(stage, 0.0) + time.perf_counter() - t0
+
 
 
 class LazyFields(Mapping):
@@ -245,7 +259,7 @@ class RunResult:
 
         from . import __version__
 
-        return _jsonable(
+        return jsonable(
             {
                 "problem": self.problem,
                 "parameters": self.parameters,
@@ -292,13 +306,14 @@ class RunResult:
         return "\n".join([fmt(head), fmt(["-" * w for w in widths])] + [fmt(r) for r in rows])
 
 
-def _jsonable(obj):
+def jsonable(obj):
+    """Plain Python (dict, list, float, int, str, None) for JSON; non-finite floats become None."""
     if isinstance(obj, dict):
-        return {str(k): _jsonable(v) for k, v in obj.items()}
+        return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
-        return [_jsonable(v) for v in obj]
+        return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
-        return _jsonable(obj.tolist())
+        return jsonable(obj.tolist())
     if isinstance(obj, (np.integer,)):
         return int(obj)
     if isinstance(obj, (np.floating, float)):

@@ -3,15 +3,13 @@
 from __future__ import annotations
 
 import math
-import time
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 
 from cutfem.levelset import Ellipsoid, LevelSet, SignedDistance, Sphere, Torus
 from cutfem.mesh import structured_box, unstructured_box
-from cutfem.registry import Param, ProblemError
+from cutfem.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
 from cutfem.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
 
 SURFACES = ("torus", "sphere", "ellipsoid")
@@ -23,18 +21,6 @@ SHAPE_PARAMS = [
     Param("radius", float, 1.0, "sphere radius", minimum=0),
     Param("axes", str, "1.0,0.8,0.6", "ellipsoid semi-axes a,b,c"),
 ]
-
-
-class Timer(dict):
-    """Stage -> seconds; ``with timer("assembly"): ...`` adds to a stage."""
-
-    @contextmanager
-    def __call__(self, stage):
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            self[stage] = self.get(stage, 0.0) + time.perf_counter() - t0
 
 
 def parse_numbers(text, count, flag):

@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cutfem.registry import jsonable
+
 SIZES = ("tiny", "quick", "full")
 
 
@@ -39,24 +41,10 @@ class Progress:
             print(f"[{self.study} {time.perf_counter() - self.t0:7.1f}s] {message}", file=sys.stderr, flush=True)
 
 
-def _plain(obj):
-    if isinstance(obj, dict):
-        return {str(k): _plain(v) for k, v in obj.items()}
-    if isinstance(obj, (list, tuple)):
-        return [_plain(v) for v in obj]
-    if isinstance(obj, np.ndarray):
-        return _plain(obj.tolist())
-    if isinstance(obj, np.integer):
-        return int(obj)
-    if isinstance(obj, (float, np.floating)):
-        return float(obj) if np.isfinite(obj) else None
-    return obj
-
-
 def save_json(out: Path, name: str, data) -> Path:
     path = Path(out) / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(_plain(data), indent=2))
+    path.write_text(json.dumps(jsonable(data), indent=2))
     return path
 
 
@@ -68,7 +56,7 @@ def save_csv(out: Path, name: str, rows: list[dict]) -> Path:
         w = csv.DictWriter(fh, fieldnames=keys)
         w.writeheader()
         for r in rows:
-            w.writerow({k: _plain(v) for k, v in r.items()})
+            w.writerow({k: jsonable(v) for k, v in r.items()})
     return path
 
 

@@ -23,11 +23,11 @@ import os
 import resource
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
+from cutfem.registry import Timer
 from studies.common import Progress, figure, pick, save_figure, save_json, study_main
 
 OUTPUTS = ["performance", "performance_scaling"]
@@ -45,38 +45,28 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     from cutfem.solve import solve
     from cutfem.spaces import CutP1Space
 
-    t = {}
-    clock = time.perf_counter
-    t0 = clock()
-    torus = Torus(1.0, 0.5)
-    box = structured_box(*BOX, spacing=spacing)
-    t["background"] = clock() - t0
-    t0 = clock()
-    cut = cut_mesh(box, torus)
-    t["cut"] = clock() - t0
-    t0 = clock()
-    space = CutP1Space(cut)
-    faces = space.faces()
-    t["topology"] = clock() - t0
-    t0 = clock()
-    M = mass(space)
-    t["mass"] = clock() - t0
-    t0 = clock()
-    A = tangential_stiffness(space)
-    t["stiffness"] = clock() - t0
-    t0 = clock()
-    J = face_jump_penalty(space)
-    t["face_penalty"] = clock() - t0
-    t0 = clock()
-    K = (M + tau_f * J).tocsr()
-    B = A @ space.dof_points
-    t["system"] = clock() - t0
-    t0 = clock()
-    H, info = solve(K, B, space=space)
-    t["solve"] = clock() - t0
-    t0 = clock()
-    err = l2_error(space, H, torus.exact_mean_curvature_vector)
-    t["errors"] = clock() - t0
+    t = Timer()
+    with t("background"):
+        torus = Torus(1.0, 0.5)
+        box = structured_box(*BOX, spacing=spacing)
+    with t("cut"):
+        cut = cut_mesh(box, torus)
+    with t("topology"):
+        space = CutP1Space(cut)
+        faces = space.faces()
+    with t("mass"):
+        M = mass(space)
+    with t("stiffness"):
+        A = tangential_stiffness(space)
+    with t("face_penalty"):
+        J = face_jump_penalty(space)
+    with t("system"):
+        K = (M + tau_f * J).tocsr()
+        B = A @ space.dof_points
+    with t("solve"):
+        H, info = solve(K, B, space=space)
+    with t("errors"):
+        err = l2_error(space, H, torus.exact_mean_curvature_vector)
     return {
         "kind": "cut",
         "level": spacing,
@@ -89,7 +79,7 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
         "l2_error": err,
         "solver": info.method,
         "iterations": info.iterations,
-        "time": t,
+        "time": dict(t),
         "total": sum(t.values()),
     }
 
@@ -103,31 +93,23 @@ def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     from cutfem.spaces import SurfaceP1Space
     from cutfem.surface import torus_mesh
 
-    t = {}
-    clock = time.perf_counter
-    t0 = clock()
-    mesh = torus_mesh(n, family, seed=1)
-    space = SurfaceP1Space(mesh)
-    t["mesh"] = clock() - t0
-    t0 = clock()
-    M = mass(space)
-    t["mass"] = clock() - t0
-    t0 = clock()
-    A = tangential_stiffness(space)
-    t["stiffness"] = clock() - t0
-    t0 = clock()
-    J = edge_jump_penalty(space)
-    t["edge_penalty"] = clock() - t0
-    t0 = clock()
-    K = (M + tau_e * J).tocsr()
-    B = A @ space.dof_points
-    t["system"] = clock() - t0
-    t0 = clock()
-    H, info = solve(K, B, space=space)
-    t["solve"] = clock() - t0
-    t0 = clock()
-    err = l2_error(space, H, Torus().exact_mean_curvature_vector)
-    t["errors"] = clock() - t0
+    t = Timer()
+    with t("mesh"):
+        mesh = torus_mesh(n, family, seed=1)
+        space = SurfaceP1Space(mesh)
+    with t("mass"):
+        M = mass(space)
+    with t("stiffness"):
+        A = tangential_stiffness(space)
+    with t("edge_penalty"):
+        J = edge_jump_penalty(space)
+    with t("system"):
+        K = (M + tau_e * J).tocsr()
+        B = A @ space.dof_points
+    with t("solve"):
+        H, info = solve(K, B, space=space)
+    with t("errors"):
+        err = l2_error(space, H, Torus().exact_mean_curvature_vector)
     return {
         "kind": f"meshed-{family}",
         "level": n,
@@ -136,7 +118,7 @@ def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
         "l2_error": err,
         "solver": info.method,
         "iterations": info.iterations,
-        "time": t,
+        "time": dict(t),
         "total": sum(t.values()),
     }
 
