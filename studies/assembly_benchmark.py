@@ -52,7 +52,7 @@ from cutfem.levelset import Torus
 from cutfem.mesh import structured_box
 from cutfem.spaces import CutP1Space
 
-from .common import Progress, figure, pick, save_csv, save_json
+from .common import Progress, add_size_arguments, figure, pick, save_csv, save_json
 
 NAME = "assembly_benchmark"
 OUTPUTS = [NAME]
@@ -229,11 +229,7 @@ def main(argv=None) -> int:
     p.add_argument("--spacings", type=float, nargs="+", help="background cube spacings (default 0.05 0.025 0.0125)")
     p.add_argument("--repeat", type=int, default=3, help="repetitions for the warm timings (best of)")
     p.add_argument("--cold-repeat", type=int, default=2, help="repetitions for the cold timings, each on a fresh cut (best of)")
-    g = p.add_mutually_exclusive_group()
-    g.add_argument("--tiny", dest="size", action="store_const", const="tiny")
-    g.add_argument("--quick", dest="size", action="store_const", const="quick")
-    g.add_argument("--full", dest="size", action="store_const", const="full")
-    p.add_argument("--quiet", action="store_true")
+    add_size_arguments(p)
     a = p.parse_args(argv)
     if a.repeat < 1 or a.cold_repeat < 1:
         p.error("--repeat and --cold-repeat must be at least 1")

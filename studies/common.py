@@ -109,17 +109,21 @@ def fmt_rate(r) -> str:
     return "--" if r is None or not np.isfinite(r) else f"{r:.2f}"
 
 
+def add_size_arguments(parser) -> None:
+    """The mutually exclusive --tiny / --quick / --full flags (stored as ``size``) and --quiet."""
+    g = parser.add_mutually_exclusive_group()
+    for size in SIZES:
+        g.add_argument(f"--{size}", dest="size", action="store_const", const=size)
+    parser.add_argument("--quiet", action="store_true")
+
+
 def study_main(run, name: str):
     """A ``main(argv)`` for ``python -m studies.NAME``."""
 
     def main(argv=None) -> int:
         p = argparse.ArgumentParser(prog=f"python -m studies.{name}")
         p.add_argument("--out", default=f"out/{name}", help="output folder")
-        g = p.add_mutually_exclusive_group()
-        g.add_argument("--tiny", dest="size", action="store_const", const="tiny")
-        g.add_argument("--quick", dest="size", action="store_const", const="quick")
-        g.add_argument("--full", dest="size", action="store_const", const="full")
-        p.add_argument("--quiet", action="store_true")
+        add_size_arguments(p)
         a = p.parse_args(argv)
         t0 = time.perf_counter()
         run(Path(a.out), a.size or "quick", Progress(name, not a.quiet))
