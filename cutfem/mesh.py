@@ -13,6 +13,8 @@ Mesh size: the global value ``h = N**(-1/3)`` (N = number of background nodes), 
 
 from __future__ import annotations
 
+import os
+import tempfile
 from functools import cached_property
 from pathlib import Path
 
@@ -468,9 +470,17 @@ def _tetwild(vertices, faces, edge_length, optimize=True) -> TetMesh:
 
     if not np.isfinite(edge_length) or edge_length <= 0:
         raise ValueError(f"edge_length must be positive, got {edge_length}")
-    pts, tets = pytetwild.tetrahedralize(
-        np.asarray(vertices, float), np.asarray(faces, np.int32), edge_length_abs=float(edge_length), optimize=optimize
-    )
+    # fTetWild writes a debug file (__tracked_surface.stl) into the working directory: run it in a
+    # scratch directory so that meshing never litters the user's folder
+    cwd = os.getcwd()
+    with tempfile.TemporaryDirectory(prefix="cutfem-tetwild-") as scratch:
+        os.chdir(scratch)
+        try:
+            pts, tets = pytetwild.tetrahedralize(
+                np.asarray(vertices, float), np.asarray(faces, np.int32), edge_length_abs=float(edge_length), optimize=optimize
+            )
+        finally:
+            os.chdir(cwd)
     used, inv = unique_keys(np.asarray(tets, np.int64), return_inverse=True)
     return TetMesh(np.asarray(pts)[used], inv.reshape(-1, 4), orient=True)
 
