@@ -312,10 +312,16 @@ class SurfaceMesh:
     ----------
     points : (N, 3) float64, C-contiguous, read-only copy.
     triangles : (M, 3) int64, C-contiguous, read-only copy (possibly reoriented).
+    grid : (n, m) or None.  Set by generators of logically structured, doubly periodic meshes
+        (:func:`torus_mesh`): node (i, j) is node i m + j, its grid neighbours are (i +- 1, j) and
+        (i, j +- 1) modulo (n, m).  The multigrid solver coarsens along it
+        (:func:`cutfem.solve.grid_hierarchy`); None for any other mesh.
 
     Both arrays are read-only because the cached properties depend on them; build a new mesh to
     change the geometry.
     """
+
+    grid = None
 
     def __init__(self, points, triangles, check: bool = True):
         pts = _as_points(points)
@@ -596,7 +602,9 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
     anti = np.stack([np.stack([v00, v10, v01], 1), np.stack([v10, v11, v01], 1)], axis=1)
     flip = coins if family in ("flipped", "perturbed-flipped") else np.zeros(n * m, dtype=bool)
     triangles = np.where(flip[:, None, None], anti, main).reshape(-1, 3)
-    return SurfaceMesh(points, triangles)
+    mesh = SurfaceMesh(points, triangles)
+    mesh.grid = (n, m)
+    return mesh
 
 
 def _refine_midpoints(points: np.ndarray, triangles: np.ndarray):

@@ -16,12 +16,16 @@ from cutfem.solve import (
     DirectSolver,
     GeometricMultigrid,
     SingularSystemError,
+    grid_prolongation,
     kuhn_prolongation,
     lattice_indices,
     mg_solve,
+    multigrid_hierarchy,
     solve,
+    surface_lattice_prolongation,
 )
-from cutfem.spaces import CutP1Space
+from cutfem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.surface import SurfaceMesh, sphere_mesh, torus_mesh
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +127,7 @@ def test_multigrid_reports_zero_diagonal_and_bad_lattice(torus_space):
         mg_solve(K.tocsr(), np.ones(V.n_dofs), lattice_indices(V))
     with pytest.raises(ValueError, match="lattice"):
         GeometricMultigrid(K.tocsr(), np.zeros((3, 3), dtype=int))
-    with pytest.raises(ValueError, match="needs a space"):
+    with pytest.raises(ValueError, match="geometric hierarchy"):
         solve(sp.identity(V.n_dofs, format="csr"), np.ones(V.n_dofs), method="cg-mg")
 
 
@@ -140,3 +144,77 @@ def test_unstabilized_system_is_not_hidden(monkeypatch):
         assert err.value.smallest < 1e-10
     H, info = solve(M + 0.1 * J, B, space=V)  # stabilized: fine
     assert info.method == "cg-mg"
+
+
+# ---------------------------------------------------------------------------------------------
+# meshed surfaces: the periodic grid hierarchy and the surface-to-lattice hierarchy
+# ---------------------------------------------------------------------------------------------
+
+
+def _edge_system(mesh):
+    from cutfem.forms import edge_jump_penalty
+
+    V = SurfaceP1Space(mesh)
+    return V, (mass(V) + 0.1 * edge_jump_penalty(V)).tocsr(), tangential_stiffness(V) @ V.dof_points
+
+
+def test_grid_prolongation_is_exact_for_linear_functions_on_a_planar_grid():
+    """On a perturbed planar grid the minimum-norm weights reproduce every linear function exactly
+    (also across the periodic seam, where the corners are far away but still in the plane)."""
+    n, m = 12, 8
+    rng = np.random.default_rng(3)
+    i, j = np.divmod(np.arange(n * m), m)
+    X = np.column_stack([i + rng.uniform(-0.25, 0.25, n * m), 0.5 * j + rng.uniform(-0.1, 0.1, n * m), np.zeros(n * m)])
+    P, Xc, shape = grid_prolongation(X, (n, m))
+    assert P.shape == (n * m, n * m // 4) and shape == (n // 2, m // 2)
+    np.testing.assert_array_equal(Xc, X.reshape(n, m, 3)[::2, ::2].reshape(-1, 3))
+    g = np.array([0.7, -1.3, 5.0])
+    np.testing.assert_allclose(P @ (Xc @ g + 2.0), X @ g + 2.0, rtol=0, atol=1e-10)  # seam cells: round-off
+    coarse = (i % 2 == 0) & (j % 2 == 0)
+    np.testing.assert_array_equal(P[np.flatnonzero(coarse)].toarray(), np.eye(n * m // 4))
+    with pytest.raises(ValueError, match="even"):
+        grid_prolongation(X[: 11 * m], (11, m))
+
+
+def test_grid_prolongation_on_the_torus_is_second_order():
+    """On the curved torus constants are exact and linear functions are reproduced up to the
+    normal offsets of the coarse corners, O(H^2): the error falls by about 4 per refinement."""
+    g = np.array([0.3, -1.1, 0.8])
+    errs = []
+    for n in (48, 96, 192):
+        mesh = torus_mesh(n, "perturbed-flipped", seed=2)
+        assert mesh.grid == (n, n // 2)
+        P, Xc, _ = grid_prolongation(mesh.points, mesh.grid)
+        np.testing.assert_allclose(np.asarray(P.sum(axis=1)).ravel(), 1.0, rtol=0, atol=1e-13)
+        errs.append(np.abs(P @ (Xc @ g) - mesh.points @ g).max())
+    assert errs[0] < 0.05 and 3.5 < errs[0] / errs[1] < 4.5 and 3.5 < errs[1] / errs[2] < 4.5
+
+
+def test_surface_lattice_prolongation_is_exact_for_linear_functions():
+    mesh = sphere_mesh(4)
+    P, ijk = surface_lattice_prolongation(mesh.points, 0.2)
+    assert P.shape == (mesh.n_points, len(ijk)) and P.data.min() > 0
+    np.testing.assert_allclose(np.asarray(P.sum(axis=1)).ravel(), 1.0, rtol=0, atol=1e-13)
+    g = np.array([0.3, -1.1, 0.8])
+    # lattice coordinates of the coarse nodes: anchored half a spacing below the smallest point
+    Xc = ijk * 0.2 + (mesh.points.min(axis=0) - 0.1)
+    np.testing.assert_allclose(P @ (Xc @ g + 1.0), mesh.points @ g + 1.0, rtol=0, atol=1e-12)
+
+
+@pytest.mark.parametrize("grid", [True, False])
+def test_meshed_auto_solve_uses_multigrid_and_agrees_with_direct(grid):
+    """Above DIRECT_LIMIT a meshed system is solved by CG with multigrid: along the torus grid, or
+    (a mesh without a grid) through the Kuhn lattice; the result agrees with SuperLU to the
+    tolerance and the iteration counts stay small."""
+    mesh = torus_mesh(160, "perturbed", seed=1)
+    if not grid:
+        mesh = SurfaceMesh(mesh.points, mesh.triangles)
+        assert mesh.grid is None
+    V, K, B = _edge_system(mesh)
+    assert V.n_dofs > solve_module.DIRECT_LIMIT
+    X, info = solve(K, B, space=V, tol=1e-8)
+    assert info.method == "cg-mg" and info.residual <= 1e-8
+    assert info.iterations <= (30 if grid else 80)
+    X_direct = DirectSolver(K).solve(B)
+    assert np.linalg.norm(X - X_direct) <= 1e-6 * np.linalg.norm(X_direct)
+    assert multigrid_hierarchy(SurfaceP1Space(sphere_mesh(2))) is not None
