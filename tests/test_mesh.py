@@ -319,3 +319,27 @@ def test_structured_box_bad_arguments():
         structured_box([0, 0, 0], [1, 0, 1], cells=2)
     with pytest.raises(ValueError, match="at least one cell"):
         structured_box([0, 0, 0], [1, 1, 1], cells=(2, 0, 2))
+
+
+# ----------------------------------------------------------------------------------------------
+# sorting helpers and the Kuhn gradient table
+# ----------------------------------------------------------------------------------------------
+
+
+def test_stable_argsort_is_the_stable_argsort():
+    """The packed-sort argsort equals np.argsort(kind="stable") for narrow and wide keys (one and
+    several radix passes), negative keys, many ties, and other integer dtypes."""
+    from cutfem.mesh import stable_argsort
+
+    rng = np.random.default_rng(7)
+    for trial in range(120):
+        n = int(rng.integers(0, 5000))
+        bits = int(rng.integers(1, 63))
+        keys = rng.integers(0, 2**bits, n, dtype=np.int64)
+        if trial % 3 == 0:
+            keys %= max(1, n // 4)  # ties
+        if trial % 5 == 0:
+            keys -= 2 ** (bits - 1)  # negative keys
+        for dtype in (np.int64, np.int32, np.uint16):
+            k = keys.astype(dtype) if dtype is np.int64 or bits < 15 else keys
+            np.testing.assert_array_equal(stable_argsort(k), np.argsort(k, kind="stable"))
