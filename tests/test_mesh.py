@@ -343,3 +343,33 @@ def test_stable_argsort_is_the_stable_argsort():
         for dtype in (np.int64, np.int32, np.uint16):
             k = keys.astype(dtype) if dtype is np.int64 or bits < 15 else keys
             np.testing.assert_array_equal(stable_argsort(k), np.argsort(k, kind="stable"))
+
+
+def test_dense_unique_is_unique():
+    from cutfem.mesh import dense_unique
+
+    rng = np.random.default_rng(3)
+    ids = rng.integers(0, 1000, (300, 4))
+    u, inv = dense_unique(ids, 1000)
+    eu, einv = np.unique(ids, return_inverse=True)
+    np.testing.assert_array_equal(u, eu)
+    np.testing.assert_array_equal(inv, einv.reshape(ids.shape))
+
+
+@pytest.mark.parametrize("lower, upper, cells", [([0, 0, 0], [1, 1, 1], 3), ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], (16, 16, 6)), ([0.3, -2, 5], [0.9, 1, 5.5], (5, 7, 4))])
+def test_kuhn_gradient_table_equals_the_barycentric_gradients(lower, upper, cells):
+    """On a structured box the gradients from the reference table divided by the spacing, and the
+    constant volume, are the barycentric gradients and volumes computed from the coordinates."""
+    from cutfem.mesh import barycentric_gradients
+
+    box = structured_box(lower, upper, cells=cells)
+    ids = np.arange(box.n_tets)
+    grads, vol = barycentric_gradients(box.points[box.tets])
+    table = box.tet_gradients(ids)
+    scale = 1.0 / box.spacing.min()
+    np.testing.assert_allclose(table, grads, rtol=0, atol=1e-14 * scale)
+    np.testing.assert_allclose(vol, box.tet_volume, rtol=1e-12)
+    # and every gradient of the table is (-1, 0, 1) / spacing, componentwise
+    ref = np.rint(table * box.spacing)
+    assert set(np.unique(ref)) <= {-1.0, 0.0, 1.0}
+    np.testing.assert_array_equal(table, ref / box.spacing)
