@@ -245,7 +245,7 @@ def _simplex_mass(space, vertices, parent, measure):
     """Gram rows of the exact mass matrix over simplices (triangles or tets) lying in elements."""
     lam = space.basis_at(vertices, parent)  # (m, k_vertices, k_dofs)
     R = _sqrt_reference_mass(vertices.shape[1])
-    rows = np.einsum("ra,mak->mrk", R, lam) * np.sqrt(measure)[:, None, None]
+    rows = (R @ lam) * np.sqrt(measure)[:, None, None]
     dofs = np.broadcast_to(space.element_dofs[parent][:, None, :], rows.shape)
     return gram(dofs.reshape(-1, rows.shape[2]), rows.reshape(-1, rows.shape[2]), space.n_dofs)
 
@@ -314,10 +314,7 @@ def _jump_gram(space, pairs, normals_pair, scale):
     """Gram matrix of the jumps c = (t1 . G_{K1}, t2 . G_{K2}) weighted by ``scale`` (>= 0): one row
     per facet on the dofs of K1 and K2 (shared dofs summed)."""
     G = space.element_gradients
-    c = np.concatenate(
-        [np.einsum("ekd,ed->ek", G[pairs[:, 0]], normals_pair[:, 0]), np.einsum("ekd,ed->ek", G[pairs[:, 1]], normals_pair[:, 1])],
-        axis=1,
-    )
+    c = np.concatenate([G[pairs[:, 0]] @ normals_pair[:, 0, :, None], G[pairs[:, 1]] @ normals_pair[:, 1, :, None]], axis=1)[..., 0]
     dofs = np.concatenate([space.element_dofs[pairs[:, 0]], space.element_dofs[pairs[:, 1]]], axis=1)
     return gram(dofs, c * np.sqrt(scale)[:, None], space.n_dofs)
 
