@@ -95,8 +95,12 @@ def row_operator(dofs: np.ndarray, values: np.ndarray, n: int) -> sp.csr_matrix:
     r, k = dofs.shape
     # int32 indices whenever they fit (scipy then stays in int32: less memory traffic in the products)
     index = np.int32 if max(n, r * k) < 2**31 else np.int64
-    data = np.array(values, dtype=float).reshape(-1)  # a copy: sorting the rows below works in place
-    E = sp.csr_matrix((data, dofs.reshape(-1).astype(index), k * np.arange(r + 1, dtype=index)), shape=(r, n))
+    # sorting the rows below works in place: never on the caller's arrays
+    data = np.array(values, dtype=float).reshape(-1)
+    cols = dofs.reshape(-1)
+    if cols.dtype != index or np.may_share_memory(cols, dofs):
+        cols = cols.astype(index)
+    E = sp.csr_matrix((data, cols, k * np.arange(r + 1, dtype=index)), shape=(r, n))
     E.sum_duplicates()
     return E
 
