@@ -91,9 +91,16 @@ def symmetrize_blocks(blocks: np.ndarray) -> np.ndarray:
 def row_operator(dofs: np.ndarray, values: np.ndarray, n: int) -> sp.csr_matrix:
     """The sparse (r x n) matrix E whose row i has ``values[i]`` at columns ``dofs[i]`` (r, k);
     repeated columns in a row are summed."""
-    dofs = np.asarray(dofs, dtype=np.int64)
+    dofs = np.asarray(dofs)
     r, k = dofs.shape
-    E = sp.csr_matrix((np.asarray(values, dtype=float).reshape(-1), dofs.reshape(-1), k * np.arange(r + 1, dtype=np.int64)), shape=(r, n))
+    # int32 indices whenever they fit (scipy then stays in int32: less memory traffic in the products)
+    index = np.int32 if max(n, r * k) < 2**31 else np.int64
+    # sorting the rows below works in place: never on the caller's arrays
+    data = np.array(values, dtype=float).reshape(-1)
+    cols = dofs.reshape(-1)
+    if cols.dtype != index or np.may_share_memory(cols, dofs):
+        cols = cols.astype(index)
+    E = sp.csr_matrix((data, cols, k * np.arange(r + 1, dtype=index)), shape=(r, n))
     E.sum_duplicates()
     return E
 
@@ -108,4 +115,6 @@ def gram(dofs: np.ndarray, values: np.ndarray, n: int) -> sp.csr_matrix:
     symmetric.
     """
     E = row_operator(dofs, values, n)
-    return (E.T.tocsr() @ E).tocsr()
+    C = E.tocsc()  # the CSC arrays of E are the CSR arrays of E^T
+    Et = sp.csr_matrix((C.data, C.indices, C.indptr), shape=(n, E.shape[0]))
+    return (Et @ E).tocsr()

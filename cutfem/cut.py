@@ -61,6 +61,8 @@ from .mesh import (
     StructuredBox,
     TetMesh,
     barycentric_gradients,
+    cross,
+    dense_unique,
     pair_up,
     tet_face_keys,
     unique_keys,
@@ -110,6 +112,27 @@ def _case_arrays():
 
 
 _EDGE_I, _EDGE_J, _NVERT = _case_arrays()
+
+
+def _flip_table():
+    """(16,) bool: whether the triangles (0, 1, 2) and (0, 2, 3) of the piece, in the polygon order
+    of the case table, turn clockwise about grad phi_h in a positively oriented tet.
+
+    The orientation of the piece's polygon relative to grad phi_h cannot change while the nodal
+    values keep their signs (the polygon never degenerates), so it is fixed by the sign code; it is
+    read off once on the reference tet with values -1 (inside) and +1 (outside).  In a negatively
+    oriented tet it is the opposite."""
+    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
+    flip = np.zeros(16, dtype=bool)
+    for code, edges in _CASES.items():
+        phi = np.where([code >> k & 1 for k in range(4)], -1.0, 1.0)
+        p = np.array([x[i] + phi[i] / (phi[i] - phi[j]) * (x[j] - x[i]) for i, j in edges])
+        grad = np.linalg.solve(np.c_[x, np.ones(4)], phi)[:3]
+        flip[code] = np.dot(np.cross(p[1] - p[0], p[2] - p[0]), grad) < 0
+    return flip
+
+
+_FLIP = _flip_table()
 
 
 def _as_values_function(levelset):
@@ -172,11 +195,15 @@ def _mixed(values):
     return (k > 0) & (k < 4)
 
 
+# A candidate set is (tet ids (m,), node labels (m, 4), nodal values (m, 4), label -> background
+# node id (L,) or None when labels are background ids, value of each label (L,)).  Labels are
+# increasing with the background ids, so numbering by label is numbering by background id.
+
+
 def _candidates_full(mesh: TetMesh, values):
     tv = values[mesh.tets]
     cut = np.flatnonzero(_mixed(tv))
-    nodes = mesh.tets[cut]
-    return cut, nodes, mesh.points[nodes], tv[cut]
+    return cut, mesh.tets[cut], tv[cut], None, values
 
 
 def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0) -> np.ndarray:
@@ -205,25 +232,27 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0) -> np
 
 
 def _candidates_structured(box: StructuredBox, f, lipschitz):
+    """Candidates of a structured box.  With a Lipschitz bound only the corners of the band cells
+    are evaluated, each distinct node once (labels = their rank among those nodes)."""
     if lipschitz is None:
         cell_ids = np.arange(box.n_cells)
         values = np.asarray(f(box.points), dtype=float).reshape(-1)
         _check_finite(values, "background nodes")
-        values = _snap_zeros(values, _zero_tolerance(box, None, values))
-        corner_ids = box.cell_corner_ids(cell_ids)
-        corner_vals = values[corner_ids]
+        label_values = _snap_zeros(values, _zero_tolerance(box, None, values))
+        corner = box.cell_corner_ids(cell_ids)
+        label_ids = None
     else:
         tol = _zero_tolerance(box, lipschitz)
         cell_ids = _band_cells(box, f, float(lipschitz), tol)
-        corner_ids = box.cell_corner_ids(cell_ids)
-        corner_vals = np.asarray(f(box.node_coordinates(corner_ids)), dtype=float)
-        _check_finite(corner_vals, "background nodes near the surface")
-        corner_vals = _snap_zeros(corner_vals, tol)
-    tv = corner_vals[:, KUHN_TETS].reshape(-1, 4)
+        label_ids, corner = dense_unique(box.cell_corner_ids(cell_ids), box.n_points)
+        values = np.asarray(f(box.node_coordinates(label_ids)), dtype=float)
+        _check_finite(values, "background nodes near the surface")
+        label_values = _snap_zeros(values, tol)
+    tv = label_values[corner][:, KUHN_TETS].reshape(-1, 4)
     mixed = np.flatnonzero(_mixed(tv))
-    nodes = corner_ids[:, KUHN_TETS].reshape(-1, 4)[mixed]
+    nodes = corner[:, KUHN_TETS].reshape(-1, 4)[mixed]
     tet_ids = 6 * cell_ids[mixed // 6] + mixed % 6
-    return tet_ids, nodes, box.node_coordinates(nodes), tv[mixed]
+    return tet_ids, nodes, tv[mixed], label_ids, label_values
 
 
 def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0):
@@ -275,7 +304,8 @@ class CutMesh:
     vertices: np.ndarray
     triangles: np.ndarray
     triangle_tets: np.ndarray
-    _polygon_edges: tuple = field(repr=False)  # (vertex pairs (P,2), piece (P,))
+    _polygons: tuple = field(repr=False)  # (vertex of each polygon slot (n, 4), polygon sizes (n,))
+    _gradients: tuple | None = field(default=None, repr=False)  # (basis gradients, volumes) if known
 
     # -- sizes -----------------------------------------------------------------------------
     @property
@@ -304,7 +334,7 @@ class CutMesh:
     @cached_property
     def triangle_areas(self) -> np.ndarray:
         p = self.triangle_points
-        return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+        return 0.5 * np.linalg.norm(cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
 
     @cached_property
     def piece_areas(self) -> np.ndarray:
@@ -349,7 +379,10 @@ class CutMesh:
 
     @cached_property
     def _grads_volumes(self):
-        return barycentric_gradients(self.tet_vertices)
+        if self._gradients is not None:
+            return self._gradients
+        grads, vol = barycentric_gradients(self.tet_vertices)
+        return grads, np.abs(vol)
 
     @property
     def basis_gradients(self) -> np.ndarray:
@@ -358,7 +391,8 @@ class CutMesh:
 
     @property
     def tet_volumes(self) -> np.ndarray:
-        return np.abs(self._grads_volumes[1])
+        """(n,) volumes of the active tets."""
+        return self._grads_volumes[1]
 
     @cached_property
     def _faces(self):
@@ -388,9 +422,22 @@ class CutMesh:
         return self._faces[2]
 
     # -- edges of S_h shared by pieces of neighbouring tets -----------------------------------
+    def _polygon_edges(self):
+        """(vertex pairs (P, 2), piece (P,)): the edges of the polygons, consecutive distinct
+        vertices in cyclic order."""
+        vinv, nvert = self._polygons
+        m = len(vinv)
+        nxt = np.where(nvert[:, None] == 4, vinv[:, [1, 2, 3, 0]], vinv[:, [1, 2, 0, 0]])
+        valid = np.ones((m, 4), bool)
+        valid[nvert == 3, 3] = False
+        valid &= vinv != nxt
+        pairs = np.stack([vinv[valid], nxt[valid]], axis=1)
+        piece = np.broadcast_to(np.arange(m)[:, None], (m, 4))[valid]
+        return pairs, piece
+
     @cached_property
     def _surface_edges(self):
-        pairs, piece = self._polygon_edges
+        pairs, piece = self._polygon_edges()
         V = len(self.vertices)
         keys = np.minimum(pairs[:, 0], pairs[:, 1]) * V + np.maximum(pairs[:, 0], pairs[:, 1])
         order, starts, counts = pair_up(keys)
@@ -471,29 +518,24 @@ class CutMesh:
         )
 
 
-def _marching(tet_ids, nodes, xyz, vals, n_background):
-    """Marching tetrahedra on the candidate (cut) tets; see the module docstring."""
-    m = len(tet_ids)
+def _marching(vals):
+    """Marching tetrahedra on the candidate (cut) tets, tet by tet; see the module docstring.
+
+    Returns ``(code, active, slots)``: the sign code of each tet (bit k: node k inside), whether its
+    piece has at least three distinct vertices, and for the polygon slots (m, 4) the local edge
+    ends ``(i, j)`` (i inside, j outside) and the values there ``(phi_i, phi_j)``.  A slot is the
+    point ``x_i + t (x_j - x_i)``, ``t = phi_i / (phi_i - phi_j)``, or the node j itself when
+    phi_j == 0.  Two slots of a tet are the same vertex when they are the same node or the same
+    edge, so the distinct vertices are counted on small per-tet keys (node j, or 4 + edge (i, j))."""
     inside = vals < 0
-    mask = inside[:, 0] + 2 * inside[:, 1] + 4 * inside[:, 2] + 8 * inside[:, 3]
+    code = inside[:, 0] + 2 * inside[:, 1] + 4 * inside[:, 2] + 8 * inside[:, 3]
     # polygon vertices: up to 4 edges (i, j) per tet, i inside and j outside (table lookup)
-    edge_i, edge_j, nvert = _EDGE_I[mask], _EDGE_J[mask], _NVERT[mask]
-    rows = np.arange(m)[:, None]
-    gi, gj = nodes[rows, edge_i], nodes[rows, edge_j]
-    pi, pj = vals[rows, edge_i], vals[rows, edge_j]
-    t = pi / (pi - pj)  # in (0, 1]; t == 1 exactly when the outside node has phi == 0
-    xi, xj = xyz[rows, edge_i], xyz[rows, edge_j]
-    pts = xi + t[..., None] * (xj - xi)
-    on_node = pj == 0
-    pts[on_node] = xj[on_node]
-    # vertex keys: background node id, or n_background + edge code
-    key = np.where(on_node, gj, n_background + np.minimum(gi, gj) * n_background + np.maximum(gi, gj))
-    # distinct vertices per polygon; drop pieces with fewer than 3
-    k4 = key
+    edge_i, edge_j = _EDGE_I[code], _EDGE_J[code]
+    pi, pj = np.take_along_axis(vals, edge_i, axis=1), np.take_along_axis(vals, edge_j, axis=1)
+    k4 = np.where(pj == 0, edge_j, 4 + 4 * edge_i + edge_j)
     distinct = 1 + (k4[:, 1] != k4[:, 0]) + ((k4[:, 2] != k4[:, 0]) & (k4[:, 2] != k4[:, 1]))
     distinct = distinct + ((k4[:, 3] != k4[:, 0]) & (k4[:, 3] != k4[:, 1]) & (k4[:, 3] != k4[:, 2]))
-    active = distinct >= 3
-    return active, pts, key, nvert
+    return code, distinct >= 3, (edge_i, edge_j, pi, pj)
 
 
 def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> CutMesh:
@@ -505,13 +547,14 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     boundary, ValueError for NaN/inf values.  See the module docstring for the zero rule.
     """
     lipschitz = getattr(levelset, "lipschitz", None)
+    structured = isinstance(background, StructuredBox)
     if isinstance(levelset, np.ndarray):
         values = nodal_values(background, levelset)
         values = _snap_zeros(values, _zero_tolerance(background, None, values))
         if check_boundary:
             _check_boundary(background, values)
         cand = _candidates_full(background, values)
-    elif isinstance(background, StructuredBox):
+    elif structured:
         f = _as_values_function(levelset)
         if check_boundary:
             tol = _zero_tolerance(background, lipschitz) if lipschitz is not None else 0.0
@@ -523,61 +566,68 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
         if check_boundary:
             _check_boundary(background, values)
         cand = _candidates_full(background, values)
-    tet_ids, nodes, xyz, vals = cand
+    tet_ids, labels, vals, label_ids, label_values = cand
     if len(tet_ids) == 0:
         raise CutError(
             "the level set does not cut the background mesh: no tetrahedron has nodal values of both signs. "
             "Check that the surface lies inside the box and is larger than a cell (refine the mesh), and that "
             "the level set is negative inside."
         )
-    n_bg = background.n_points
-    active, pts, key, nvert = _marching(tet_ids, nodes, xyz, vals, n_bg)
+    code, active, slots = _marching(vals)
     if not np.any(active):
         raise CutError("every piece of the cut collapsed to a point or segment; refine the background mesh")
-    tet_ids, nodes, xyz, vals = tet_ids[active], nodes[active], xyz[active], vals[active]
-    pts, key, nvert = pts[active], key[active], nvert[active]
+    tet_ids, labels, vals, code = tet_ids[active], labels[active], vals[active], code[active]
+    edge_i, edge_j, pi, pj = (a[active] for a in slots)
     m = len(tet_ids)
 
-    # active nodes, numbered by increasing background id
-    node_ids, inv = unique_keys(nodes.reshape(-1), return_inverse=True)
-    tets = inv.reshape(m, 4)
-    first = np.empty(len(node_ids), dtype=np.int64)
-    first[inv[::-1]] = np.arange(inv.size)[::-1]
-    points = xyz.reshape(-1, 3)[first]
-    values = vals.reshape(-1)[first]
+    # active nodes, numbered by increasing background id (labels increase with it)
+    uniq, tets = dense_unique(labels, len(label_values))
+    tets = tets.astype(np.int64)
+    node_ids = uniq if label_ids is None else label_ids[uniq]
+    points = background.node_coordinates(node_ids) if structured else background.points[node_ids]
+    values = label_values[uniq]
+    p = len(node_ids)
 
+    # basis gradients: the Kuhn table on a structured box, else from the vertices
+    if structured:
+        grads = background.tet_gradients(tet_ids)
+        volumes = np.full(m, background.tet_volume)
+        negative = None
+    else:
+        grads, volumes = barycentric_gradients(points[tets])
+        negative = volumes < 0
+        volumes = np.abs(volumes)
     # normals n_h = grad phi_h / |grad phi_h|
-    grads, _ = barycentric_gradients(xyz)
     g = np.einsum("tk,tkd->td", vals, grads)
     normals = g / np.linalg.norm(g, axis=1)[:, None]
 
-    # surface vertices by key
+    # surface vertices: key = active node (on-node vertex) or p + edge (min, max), numbered by key
+    li, lj = np.take_along_axis(tets, edge_i, axis=1), np.take_along_axis(tets, edge_j, axis=1)
+    on_node = pj == 0
+    key = np.where(on_node, lj, p + np.minimum(li, lj) * p + np.maximum(li, lj))
     vkeys, vinv = unique_keys(key.reshape(-1), return_inverse=True)
     vinv = vinv.reshape(m, 4)
     vfirst = np.empty(len(vkeys), dtype=np.int64)
     vfirst[vinv.reshape(-1)[::-1]] = np.arange(vinv.size)[::-1]
-    vertices = pts.reshape(-1, 3)[vfirst]
+    # each vertex computed once, from its first slot (every slot of it gives the same point)
+    a, b = li.reshape(-1)[vfirst], lj.reshape(-1)[vfirst]
+    pa, pb = pi.reshape(-1)[vfirst], pj.reshape(-1)[vfirst]
+    xa, xb = points[a], points[b]
+    t = pa / (pa - pb)
+    vertices = xa + t[:, None] * (xb - xa)
+    at_node = pb == 0
+    vertices[at_node] = xb[at_node]
 
-    # triangles: (0,1,2) and, for quads, (0,2,3); drop triangles with repeated vertices
-    tri = np.concatenate([vinv[:, [0, 1, 2]], vinv[:, [0, 2, 3]]])
-    tri_tet = np.concatenate([np.arange(m), np.arange(m)])
-    is_quad = np.concatenate([np.ones(m, bool), nvert == 4])
-    ok = is_quad & (tri[:, 0] != tri[:, 1]) & (tri[:, 1] != tri[:, 2]) & (tri[:, 0] != tri[:, 2])
-    tri, tri_tet = tri[ok], tri_tet[ok]
-    p = vertices[tri]
-    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    flip = np.einsum("ij,ij->i", nrm, normals[tri_tet]) < 0
-    tri[flip, 1], tri[flip, 2] = tri[flip, 2], tri[flip, 1].copy()
-    order = np.argsort(tri_tet, kind="stable")
-    tri, tri_tet = tri[order], tri_tet[order]
-
-    # polygon edges (consecutive distinct vertices, cyclic), for the edge stabilization
-    nxt = np.where(nvert[:, None] == 4, vinv[:, [1, 2, 3, 0]], vinv[:, [1, 2, 0, 0]])
-    valid = np.ones((m, 4), bool)
-    valid[nvert == 3, 3] = False
-    valid &= vinv != nxt
-    pairs = np.stack([vinv[valid], nxt[valid]], axis=1)
-    piece = np.broadcast_to(np.arange(m)[:, None], (m, 4))[valid]
+    # triangles (0,1,2) and, for quads, (0,2,3), tet by tet; drop triangles with repeated vertices.
+    # Orientation by n_h from the sign code (see _flip_table).
+    nvert = _NVERT[code]
+    tri = np.stack([vinv[:, [0, 1, 2]], vinv[:, [0, 2, 3]]], axis=1)  # (m, 2, 3)
+    ok = (tri[..., 0] != tri[..., 1]) & (tri[..., 1] != tri[..., 2]) & (tri[..., 0] != tri[..., 2])
+    ok[:, 1] &= nvert == 4
+    flip = _FLIP[code] if negative is None else _FLIP[code] ^ negative
+    tri[flip, :, 1], tri[flip, :, 2] = tri[flip, :, 2], tri[flip, :, 1].copy()
+    tri = tri[ok]
+    tri_tet = np.broadcast_to(np.arange(m)[:, None], (m, 2))[ok]
 
     cm = CutMesh(
         background=background,
@@ -590,7 +640,8 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
         vertices=vertices,
         triangles=tri,
         triangle_tets=tri_tet,
-        _polygon_edges=(pairs, piece),
+        _polygons=(vinv, nvert),
+        _gradients=(grads, volumes),
     )
     return cm
 

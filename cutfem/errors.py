@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .mesh import cross
 from .quadrature import triangle_rule
 
 __all__ = ["l2_error", "h1_error", "discrete_error", "rates", "fitted_rate", "surface_integral"]
@@ -37,11 +38,11 @@ def l2_error(space, coeffs, exact, degree: int = 4, measure: str = "surface", ch
         for start in range(0, len(triangles), chunk):  # blocks of triangles, not single elements
             t = triangles[start : start + chunk]
             v = points[t]
-            area = 0.5 * np.linalg.norm(np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
-            x = np.einsum("qv,mvd->mqd", bary, v)
+            area = 0.5 * np.linalg.norm(cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), axis=1)
+            x = bary @ v  # (m, q, 3); matmul, not einsum: several times faster on small axes
             ue = np.asarray(exact(x), dtype=float).reshape(x.shape[0], x.shape[1], -1)
-            d = ue - np.einsum("qv,mvc->mqc", bary, values[t])
-            total += float(np.einsum("mqc,mqc,q,m->", d, d, w, area, optimize=True))
+            d = ue - bary @ values[t]
+            total += float(np.dot(np.einsum("mqc,mqc->mq", d, d) @ w, area))
         return float(np.sqrt(total))
     quad = space.quadrature(measure, degree)
     uh = space.evaluate(coeffs, quad)

@@ -245,15 +245,22 @@ def _simplex_mass(space, vertices, parent, measure):
     """Gram rows of the exact mass matrix over simplices (triangles or tets) lying in elements."""
     lam = space.basis_at(vertices, parent)  # (m, k_vertices, k_dofs)
     R = _sqrt_reference_mass(vertices.shape[1])
-    rows = np.einsum("ra,mak->mrk", R, lam) * np.sqrt(measure)[:, None, None]
-    dofs = np.broadcast_to(space.element_dofs[parent][:, None, :], rows.shape)
+    rows = R @ lam
+    del lam
+    rows *= np.sqrt(measure)[:, None, None]
+    dofs = np.broadcast_to(_compact(space.element_dofs[parent], space.n_dofs)[:, None, :], rows.shape)
     return gram(dofs.reshape(-1, rows.shape[2]), rows.reshape(-1, rows.shape[2]), space.n_dofs)
+
+
+def _compact(dofs, n):
+    """dofs as int32 when the numbers fit: the Gram rows repeat them, int32 halves that copy."""
+    return dofs.astype(np.int32) if n < 2**31 else dofs
 
 
 def _gradient_rows(space, grads, measure):
     """Gram rows sqrt(measure) * grads[:, :, d] for d = 0, 1, 2 (grads (n_el, k, 3))."""
     rows = (grads * np.sqrt(measure)[:, None, None]).transpose(0, 2, 1)  # (n_el, 3, k)
-    dofs = np.broadcast_to(space.element_dofs[:, None, :], rows.shape)
+    dofs = np.broadcast_to(_compact(space.element_dofs, space.n_dofs)[:, None, :], rows.shape)
     return gram(dofs.reshape(-1, rows.shape[2]), rows.reshape(-1, rows.shape[2]), space.n_dofs)
 
 
@@ -314,10 +321,7 @@ def _jump_gram(space, pairs, normals_pair, scale):
     """Gram matrix of the jumps c = (t1 . G_{K1}, t2 . G_{K2}) weighted by ``scale`` (>= 0): one row
     per facet on the dofs of K1 and K2 (shared dofs summed)."""
     G = space.element_gradients
-    c = np.concatenate(
-        [np.einsum("ekd,ed->ek", G[pairs[:, 0]], normals_pair[:, 0]), np.einsum("ekd,ed->ek", G[pairs[:, 1]], normals_pair[:, 1])],
-        axis=1,
-    )
+    c = np.concatenate([G[pairs[:, 0]] @ normals_pair[:, 0, :, None], G[pairs[:, 1]] @ normals_pair[:, 1, :, None]], axis=1)[..., 0]
     dofs = np.concatenate([space.element_dofs[pairs[:, 0]], space.element_dofs[pairs[:, 1]]], axis=1)
     return gram(dofs, c * np.sqrt(scale)[:, None], space.n_dofs)
 

@@ -360,11 +360,26 @@ class Torus(LevelSet):
         return (self.R + 2.0 * self.r * cos_p) / (self.r * (self.R + self.r * cos_p))
 
     def exact_mean_curvature_vector(self, x):
-        """(k1 + k2)(p(x)) m, shape (..., 3)."""
-        _, _, _, e_s, _, m = self._frame(x)
-        cos_p = np.einsum("...i,...i->...", m, e_s)
-        kappa = (self.R + 2.0 * self.r * cos_p) / (self.r * (self.R + self.r * cos_p))
-        return kappa[..., None] * m
+        """(k1 + k2)(p(x)) m, shape (..., 3).
+
+        In closed form, without the frame: w = y - R e_s = ((1 - R/s) y1, (1 - R/s) y2, y3),
+        d = |w| = sqrt((s - R)^2 + y3^2), m = w/d and cos p = (s - R)/d; so H^e = (k1 + k2)/d * w."""
+        x = _as_points(x)
+        c0, c1, c2 = self.center
+        y0, y1, y2 = x[..., 0] - c0, x[..., 1] - c1, x[..., 2] - c2  # contiguous coordinates
+        s = np.sqrt(y0 * y0 + y1 * y1)
+        _raise_if_singular(s == 0.0, x, "the torus distance's derivatives", "on the torus axis")
+        sR = s - self.R
+        d = np.sqrt(sR * sR + y2 * y2)
+        _raise_if_singular(d == 0.0, x, "the torus distance's derivatives", "on the core circle")
+        cos_p = sR / d
+        kappa_d = (self.R + 2.0 * self.r * cos_p) / (self.r * (self.R + self.r * cos_p) * d)
+        q = kappa_d * (sR / s)
+        out = np.empty(x.shape)
+        out[..., 0] = q * y0
+        out[..., 1] = q * y1
+        out[..., 2] = kappa_d * y2
+        return out
 
 
 # ----------------------------------------------------------------------------------------------

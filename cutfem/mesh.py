@@ -29,6 +29,9 @@ __all__ = [
     "read_mesh",
     "write_mesh",
     "barycentric_gradients",
+    "cross",
+    "dense_unique",
+    "stable_argsort",
     "sorted_row_keys",
     "decode_triple_keys",
     "tet_face_keys",
@@ -59,6 +62,24 @@ def _kuhn_local_tets() -> np.ndarray:
 
 KUHN_TETS = _kuhn_local_tets()  # (6, 4) local cube-corner indices, positively oriented
 CUBE_CORNERS = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)], dtype=np.int64)
+
+
+def _kuhn_reference_gradients() -> np.ndarray:
+    """(6, 4, 3) gradients of the barycentric coordinates of the six Kuhn tets of the unit cube.
+
+    Kuhn tet l has the vertices CUBE_CORNERS[KUHN_TETS[l]]; its edge matrix has entries 0 and 1
+    and determinant 1 (it is positively oriented), so the gradients (rows of its inverse, and minus
+    their sum) have entries -1, 0, 1 and are exact in floating point."""
+    grads = np.empty((6, 4, 3))
+    for l, tet in enumerate(KUHN_TETS):
+        x = CUBE_CORNERS[tet].astype(float)
+        inv = np.rint(np.linalg.inv((x[1:] - x[0]).T))
+        grads[l, 1:] = inv
+        grads[l, 0] = -inv.sum(axis=0)
+    return grads
+
+
+KUHN_GRADIENTS = _kuhn_reference_gradients()
 
 # local faces of a tet (opposite to vertex k) and local edges
 TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], dtype=np.int64)
@@ -110,14 +131,50 @@ def decode_triple_keys(keys: np.ndarray, n: int) -> np.ndarray:
     return out
 
 
+def stable_argsort(keys: np.ndarray) -> np.ndarray:
+    """``np.argsort(keys, kind="stable")`` for 1-d integer keys, by plain (SIMD) sorts of packed keys.
+
+    The stable order is the order of the pairs (key, position).  With b bits for the positions,
+    a key of at most 63 - b bits is packed into one int64 ``key << b | position`` and sorted by
+    ``np.sort``, which is many times faster than an argsort on this numpy; the low b bits of the
+    result are the order.  Wider keys are sorted digit by digit from the least significant one (LSD
+    radix sort), each pass stable because the position breaks the ties.  Same result as the stable
+    argsort for every input; other dtypes fall back to it.
+    """
+    keys = np.asarray(keys).reshape(-1)
+    n = keys.size
+    if n < 2 or keys.dtype.kind not in "iu" or keys.dtype == np.uint64:
+        return np.argsort(keys, kind="stable")
+    lo, hi = int(keys.min()), int(keys.max())
+    shift = (keys.astype(np.int64) - lo) if (lo < 0 or keys.dtype != np.int64) else keys
+    pos_bits = (n - 1).bit_length()
+    digit = 63 - pos_bits
+    key_bits = max(hi - min(lo, 0), 1).bit_length()
+    if digit < 8:  # absurdly many keys: no room for a digit
+        return np.argsort(keys, kind="stable")
+    positions = np.arange(n, dtype=np.int64)
+    low_mask = (1 << pos_bits) - 1
+    order = None
+    for start in range(0, key_bits, digit):
+        d = shift if order is None else shift[order]
+        if start:
+            d = d >> start
+        if start + digit < key_bits:
+            d = d & ((1 << digit) - 1)
+        packed = np.sort((d << pos_bits) | positions)
+        step = packed & low_mask
+        order = step if order is None else order[step]
+    return order
+
+
 def pair_up(keys: np.ndarray):
-    """Group equal keys by one stable sort.
+    """Group equal keys by one stable sort (:func:`stable_argsort`).
 
     Returns ``(order, starts, counts)``: ``keys[order]`` is sorted and the run of the g-th
     distinct key is ``order[starts[g] : starts[g] + counts[g]]``.
     """
     keys = np.asarray(keys)
-    order = np.argsort(keys, kind="stable")
+    order = stable_argsort(keys)
     sk = keys[order]
     new = np.empty(sk.size, bool)
     if sk.size:
@@ -131,8 +188,8 @@ def pair_up(keys: np.ndarray):
 def unique_keys(keys: np.ndarray, return_inverse: bool = False):
     """Sorted distinct values of an integer array (and the inverse map), by one stable sort.
 
-    Same result as ``np.unique(keys, return_inverse=...)`` for 1-d integer arrays, but uses a
-    radix-friendly stable argsort, which is many times faster on tens of millions of keys.
+    Same result as ``np.unique(keys, return_inverse=...)`` for 1-d integer arrays, but uses
+    :func:`stable_argsort`, which is many times faster on tens of millions of keys.
     """
     keys = np.asarray(keys).reshape(-1)
     order, starts, counts = pair_up(keys)
@@ -144,22 +201,50 @@ def unique_keys(keys: np.ndarray, return_inverse: bool = False):
     return uniq, inverse
 
 
+def dense_unique(ids: np.ndarray, n: int):
+    """Sorted distinct values of integer ids in [0, n) and the inverse map, by a marker array of
+    length n (no sort): ``(unique (u,), inverse)`` with ``unique[inverse] == ids`` (same shape as
+    ids).  Costs O(n + ids.size); meant for ids that are a sizeable part of a known range (node ids
+    of a mesh)."""
+    ids = np.asarray(ids)
+    mark = np.zeros(n, dtype=bool)
+    mark[ids] = True
+    unique = np.flatnonzero(mark)
+    del mark
+    lookup = np.empty(n, dtype=np.int32 if unique.size < 2**31 else np.int64)
+    lookup[unique] = np.arange(unique.size, dtype=lookup.dtype)
+    return unique, lookup[ids]
+
+
+def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cross product of (..., 3) arrays, written out (``np.cross`` costs several times more)."""
+    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
+    b0, b1, b2 = b[..., 0], b[..., 1], b[..., 2]
+    out = np.empty(np.broadcast_shapes(a.shape, b.shape), dtype=np.result_type(a, b))
+    out[..., 0] = a1 * b2 - a2 * b1
+    out[..., 1] = a2 * b0 - a0 * b2
+    out[..., 2] = a0 * b1 - a1 * b0
+    return out
+
+
 def barycentric_gradients(vertices: np.ndarray):
     """Gradients of the barycentric coordinates of tetrahedra.
 
-    ``vertices`` (m, 4, 3).  With ``B = [x1-x0, x2-x0, x3-x0]`` (columns), lambda_k for k=1..3
-    has gradient row k-1 of ``B^{-1}`` and ``grad lambda_0 = -sum_k grad lambda_k``.
-    Returns ``(grads (m, 4, 3), volumes (m,))`` with signed volumes ``det(B)/6``.
+    ``vertices`` (m, 4, 3).  With the edges e_k = x_k - x_0 (k = 1, 2, 3) and
+    ``det = e_1 . (e_2 x e_3)``, lambda_k has gradient ``(e_{k+1} x e_{k+2}) / det`` (indices
+    1..3 cyclic: the rows of the inverse of the edge matrix by the adjugate) and
+    ``grad lambda_0 = -sum_k grad lambda_k``.
+    Returns ``(grads (m, 4, 3), volumes (m,))`` with signed volumes ``det/6``.
     """
     v = np.asarray(vertices, dtype=float)
-    B = (v[:, 1:, :] - v[:, :1, :]).transpose(0, 2, 1)  # (m,3,3), columns are edges
-    det = np.linalg.det(B)
-    # inverse via adjugate: rows of B^{-1} are cross products of columns / det
-    e1, e2, e3 = B[:, :, 0], B[:, :, 1], B[:, :, 2]
-    inv = np.stack([np.cross(e2, e3), np.cross(e3, e1), np.cross(e1, e2)], axis=1) / det[:, None, None]
+    e1, e2, e3 = v[:, 1] - v[:, 0], v[:, 2] - v[:, 0], v[:, 3] - v[:, 0]
     grads = np.empty((v.shape[0], 4, 3))
-    grads[:, 1:, :] = inv
-    grads[:, 0, :] = -inv.sum(axis=1)
+    grads[:, 1] = cross(e2, e3)
+    grads[:, 2] = cross(e3, e1)
+    grads[:, 3] = cross(e1, e2)
+    det = np.einsum("ij,ij->i", e1, grads[:, 1])
+    grads[:, 1:] /= det[:, None, None]
+    grads[:, 0] = -(grads[:, 1] + grads[:, 2] + grads[:, 3])
     return grads, det / 6.0
 
 
@@ -390,8 +475,20 @@ class StructuredBox(TetMesh):
 
     def cell_corner_ids(self, cell_ids) -> np.ndarray:
         """(k, 8) node ids of the cube corners (corner c has offset bits (c&1, c>>1&1, c>>2&1))."""
-        ijk = self.cell_index(cell_ids)
-        return self.node_id(ijk[:, None, :] + CUBE_CORNERS[None, :, :])
+        return self.node_id(self.cell_index(cell_ids))[:, None] + self.node_id(CUBE_CORNERS)[None, :]
+
+    def tet_gradients(self, tet_ids) -> np.ndarray:
+        """(k, 4, 3) gradients of the barycentric coordinates of tets ``tet_ids``.
+
+        A point of a cell is ``x = corner + xi * spacing`` (componentwise), so the gradients are
+        those of the reference Kuhn tet ``tet_id % 6`` (:data:`KUHN_GRADIENTS`, entries -1, 0, 1)
+        divided by the spacing, axis by axis; no vertex coordinates are needed."""
+        return KUHN_GRADIENTS[np.asarray(tet_ids) % 6] / self.spacing
+
+    @property
+    def tet_volume(self) -> float:
+        """Volume of every tet: the cell volume / 6."""
+        return float(np.prod(self.spacing)) / 6.0
 
     def cell_tets(self, cell_ids) -> np.ndarray:
         """(6k, 4) node ids of the Kuhn tets of the given cells, tet ``6*c + l`` order."""

@@ -412,3 +412,23 @@ def test_assembly_benchmark_runs_and_records(tmp_path):
     assert row["mass_nnz"] == row["stiffness_nnz"] < row["face_jump_nnz"]  # J_F couples face neighbours
     assert all(row[k] > 0 for k in row if k.endswith(("_cold", "_warm", "_seconds")))
     assert row["together_cold_per_million_tets"] == pytest.approx(row["together_cold"] / row["active_tets"] * 1e6)
+
+
+def test_gram_leaves_the_callers_arrays_alone():
+    """The rows of E are sorted in place; that must not reorder the dofs or values handed in
+    (int32 and int64 dofs, which may be used without a copy)."""
+    from cutfem.assembly import gram, row_operator
+
+    rng = np.random.default_rng(5)
+    for dtype in (np.int32, np.int64):
+        dofs = rng.integers(0, 30, (25, 4)).astype(dtype)
+        values = rng.standard_normal((25, 4))
+        d0, v0 = dofs.copy(), values.copy()
+        E = row_operator(dofs, values, 30)
+        G = gram(dofs, values, 30)
+        np.testing.assert_array_equal(dofs, d0)
+        np.testing.assert_array_equal(values, v0)
+        D = np.zeros((25, 30))
+        np.add.at(D, (np.repeat(np.arange(25), 4), d0.reshape(-1)), v0.reshape(-1))
+        np.testing.assert_allclose(E.toarray(), D, atol=1e-15)
+        np.testing.assert_allclose(G.toarray(), D.T @ D, atol=1e-13)

@@ -319,3 +319,57 @@ def test_structured_box_bad_arguments():
         structured_box([0, 0, 0], [1, 0, 1], cells=2)
     with pytest.raises(ValueError, match="at least one cell"):
         structured_box([0, 0, 0], [1, 1, 1], cells=(2, 0, 2))
+
+
+# ----------------------------------------------------------------------------------------------
+# sorting helpers and the Kuhn gradient table
+# ----------------------------------------------------------------------------------------------
+
+
+def test_stable_argsort_is_the_stable_argsort():
+    """The packed-sort argsort equals np.argsort(kind="stable") for narrow and wide keys (one and
+    several radix passes), negative keys, many ties, and other integer dtypes."""
+    from cutfem.mesh import stable_argsort
+
+    rng = np.random.default_rng(7)
+    for trial in range(120):
+        n = int(rng.integers(0, 5000))
+        bits = int(rng.integers(1, 63))
+        keys = rng.integers(0, 2**bits, n, dtype=np.int64)
+        if trial % 3 == 0:
+            keys %= max(1, n // 4)  # ties
+        if trial % 5 == 0:
+            keys -= 2 ** (bits - 1)  # negative keys
+        for dtype in (np.int64, np.int32, np.uint16):
+            k = keys.astype(dtype) if dtype is np.int64 or bits < 15 else keys
+            np.testing.assert_array_equal(stable_argsort(k), np.argsort(k, kind="stable"))
+
+
+def test_dense_unique_is_unique():
+    from cutfem.mesh import dense_unique
+
+    rng = np.random.default_rng(3)
+    ids = rng.integers(0, 1000, (300, 4))
+    u, inv = dense_unique(ids, 1000)
+    eu, einv = np.unique(ids, return_inverse=True)
+    np.testing.assert_array_equal(u, eu)
+    np.testing.assert_array_equal(inv, einv.reshape(ids.shape))
+
+
+@pytest.mark.parametrize("lower, upper, cells", [([0, 0, 0], [1, 1, 1], 3), ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], (16, 16, 6)), ([0.3, -2, 5], [0.9, 1, 5.5], (5, 7, 4))])
+def test_kuhn_gradient_table_equals_the_barycentric_gradients(lower, upper, cells):
+    """On a structured box the gradients from the reference table divided by the spacing, and the
+    constant volume, are the barycentric gradients and volumes computed from the coordinates."""
+    from cutfem.mesh import barycentric_gradients
+
+    box = structured_box(lower, upper, cells=cells)
+    ids = np.arange(box.n_tets)
+    grads, vol = barycentric_gradients(box.points[box.tets])
+    table = box.tet_gradients(ids)
+    scale = 1.0 / box.spacing.min()
+    np.testing.assert_allclose(table, grads, rtol=0, atol=1e-14 * scale)
+    np.testing.assert_allclose(vol, box.tet_volume, rtol=1e-12)
+    # and every gradient of the table is (-1, 0, 1) / spacing, componentwise
+    ref = np.rint(table * box.spacing)
+    assert set(np.unique(ref)) <= {-1.0, 0.0, 1.0}
+    np.testing.assert_array_equal(table, ref / box.spacing)
