@@ -92,6 +92,11 @@ under load.  Break-even with SuperLU (grid): about 4 600 unknowns; through the l
 torus: about 30 000.  The L2 errors of H_h agree with the direct ones to 6 digits
 (0.00321778 perturbed, 0.00220570 flipped).
 
+Small systems: a banded Cholesky (LAPACK, after reverse Cuthill-McKee) beats SuperLU on the thick
+cut bands when BLAS runs on one thread (cut torus at spacing 0.2: 4 against 7 ms), but OpenBLAS'
+threaded level-3 kernels made it take 530 ms whenever the other core was busy; SuperLU after the
+same ordering fills twice as much as with minimum degree.  So SuperLU stays.
+
 BLAS threads: the iteration loops use no BLAS calls (column dot products by ``einsum``): on this
 machine's 2 virtual cores, OpenBLAS' threaded level-1 calls on vectors of 10^5 entries are up to
 20 times slower than serial ones, which made scipy's ``cg`` erratic (0.2 s to 3.7 s for the same
