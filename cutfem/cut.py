@@ -68,7 +68,7 @@ from .mesh import (
     unique_keys,
 )
 
-__all__ = ["CutMesh", "cut_mesh", "nodal_values", "inside_tetrahedra", "CutError"]
+__all__ = ["CutMesh", "cut_mesh", "nodal_values", "snapped_nodal_values", "inside_tetrahedra", "CutError"]
 
 
 class CutError(ValueError):
@@ -646,6 +646,15 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     return cm
 
 
+def snapped_nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
+    """phi_h at every node of ``mesh`` as the cut sees it: :func:`nodal_values` with the values of
+    modulus at most 1e-12 L diam (L the level set's declared Lipschitz bound), or 1e-12 max |phi|
+    without one, set to exactly 0 (the zero rule).  Visits every node; for handing the same
+    discrete level set to other codes and for volume integrals."""
+    values = nodal_values(mesh, levelset)
+    return _snap_zeros(values, _zero_tolerance(mesh, getattr(levelset, "lipschitz", None), values))
+
+
 def inside_tetrahedra(background: TetMesh, levelset):
     """The region {phi_h < 0} as tetrahedra, for volume integrals.
 
@@ -656,8 +665,7 @@ def inside_tetrahedra(background: TetMesh, levelset):
     zero.  ``parent`` holds background tet ids.
     This visits every background tet.
     """
-    values = nodal_values(background, levelset)
-    values = _snap_zeros(values, _zero_tolerance(background, getattr(levelset, "lipschitz", None), values))
+    values = snapped_nodal_values(background, levelset)
     tv = values[background.tets]
     inside = tv < 0
     k = inside.sum(axis=1)

@@ -224,10 +224,9 @@ def torus_exact_cf(torus):
 
 def cutfem_nodal_values(box, levelset) -> np.ndarray:
     """phi at every node of ``box``, with cutfem's snap of near-zero values to exactly zero."""
-    from cutfem.cut import _snap_zeros, _zero_tolerance, nodal_values
+    from cutfem.cut import snapped_nodal_values
 
-    values = nodal_values(box, levelset)
-    return _snap_zeros(values, _zero_tolerance(box, getattr(levelset, "lipschitz", None), values))
+    return snapped_nodal_values(box, levelset)
 
 
 def tets_at_nodes(box, node_ids) -> np.ndarray:

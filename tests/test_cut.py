@@ -10,7 +10,7 @@ least squares in log-log scale over at least four spacings.
 import numpy as np
 import pytest
 
-from cutfem.cut import CutError, CutMesh, cut_mesh, inside_tetrahedra
+from cutfem.cut import CutError, CutMesh, cut_mesh, inside_tetrahedra, snapped_nodal_values
 from cutfem.levelset import Sphere, Torus
 from cutfem.mesh import TET_FACES, TetMesh, structured_box
 from cutfem.quadrature import map_tetrahedra
@@ -206,6 +206,12 @@ def test_paper_torus_box_has_nodes_that_are_zero_up_to_rounding():
     cut = cut_mesh(TORUS_BOX, torus)
     assert cut.triangle_areas.min() > 1e-14
     assert cut.surface_edge_lengths.min() > 1e-10
+    # the public snapped values: exactly those rounding-size values become 0, nothing else moves
+    snapped = snapped_nodal_values(TORUS_BOX, torus)
+    tiny = np.abs(values) <= 1e-12 * torus.lipschitz * np.linalg.norm(np.subtract(*TORUS_BOX.bounds))
+    assert tiny.sum() > np.sum(values == 0)
+    np.testing.assert_array_equal(snapped[tiny], 0.0)
+    np.testing.assert_array_equal(snapped[~tiny], values[~tiny])
 
 
 # ----------------------------------------------------------------------------------------------
