@@ -17,7 +17,7 @@ from .quadrature import triangle_rule
 __all__ = ["l2_error", "h1_error", "discrete_error", "rates", "fitted_rate", "surface_integral"]
 
 
-def l2_error(space, coeffs, exact, degree: int = 4, measure: str = "surface", chunk: int = 1 << 12) -> float:
+def l2_error(space, coeffs, exact, degree: int = 4, measure: str = "surface", chunk: int = 1 << 10) -> float:
     """L2(S_h) error of the discrete function ``coeffs`` (n,) or (n, c) against ``exact(x)``.
 
     ``exact`` maps points (m, q, 3) to (m, q) or (m, q, c), and is evaluated at the quadrature
@@ -30,7 +30,9 @@ def l2_error(space, coeffs, exact, degree: int = 4, measure: str = "surface", ch
 
     (b, w) the reference rule of the given degree, |T| = |(x_1 - x_0) x (x_2 - x_0)| / 2.  Both
     interpolations are one matrix product of the (m, 3 c) vertex data with kron(b^T, I_c).  The
-    triangles are processed in blocks of ``chunk`` so that the temporaries stay in cache.
+    triangles are processed in blocks of ``chunk``: small enough that the temporaries stay in
+    cache and that BLAS runs these thin products on one thread (threads cost more than they save
+    here, several times more on a loaded machine).
     """
     if degree < 4:
         raise ValueError("SPEC §5 asks for quadrature of degree >= 4 in error norms")
