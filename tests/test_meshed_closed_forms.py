@@ -46,3 +46,71 @@ def test_l2_error_blocks_match_quadrature(chunk):
     f = lambda x: x[..., 0] * x[..., 1]  # noqa: E731
     expected = _l2_by_quadrature(space, u, f, degree=6)
     assert l2_error(space, u, f, degree=6, chunk=chunk) == pytest.approx(expected, rel=1e-13)
+
+
+# ----------------------------------------------------------------------------------------------
+# topology by one sort, validation messages
+# ----------------------------------------------------------------------------------------------
+
+from cutfem.surface import SurfaceMesh, _halfedge_table, _pair_halfedges  # noqa: E402
+
+MESHES = {
+    "sphere": lambda: sphere_mesh(2),
+    "torus-flipped": lambda: torus_mesh(12, "flipped", seed=4),
+    "torus-perturbed-flipped": lambda: torus_mesh(14, "perturbed-flipped", seed=2),
+}
+
+
+@pytest.mark.parametrize("name", sorted(MESHES))
+def test_one_sort_topology_matches_general_table(name):
+    checked = MESHES[name]()
+    plain = SurfaceMesh(checked.points, checked.triangles, check=False)  # lazily, by the general table
+    edges, halfedge_edge, counts, forward = _halfedge_table(np.array(checked.triangles), checked.n_points)
+    assert np.all(counts == 2)
+    for mesh in (checked, plain):
+        assert np.array_equal(mesh.edges, edges)
+        assert np.array_equal(mesh.triangle_edges.reshape(-1), halfedge_edge)
+        assert np.array_equal(mesh.edge_halfedges, _pair_halfedges(halfedge_edge, forward))
+        # the vertex opposite each edge, in each of its two triangles
+        tri = mesh.triangles[mesh.edge_triangles]  # (E, 2, 3)
+        opp = mesh.edge_opposite_vertices
+        assert np.all((tri == opp[:, :, None]).sum(axis=2) == 1)
+        assert np.all(opp[:, :, None] != mesh.edges[:, None, :])
+
+
+def test_flipped_components_keep_cross_products_consistent():
+    sphere = sphere_mesh(1)
+    mesh = SurfaceMesh(sphere.points, sphere.triangles[:, [0, 2, 1]])
+    assert mesh.flipped_components == 1
+    np.testing.assert_array_equal(mesh.normals, sphere.normals)
+    np.testing.assert_array_equal(mesh.areas, sphere.areas)
+
+
+def test_duplicate_of_opposite_orientation_rejected():
+    # a two-triangle "pillow": every edge in exactly two triangles, consistently oriented
+    points = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0.0]])
+    with pytest.raises(ValueError, match=r"1 triangle\(s\) duplicate another.*\(0, 1\)"):
+        SurfaceMesh(points, [[0, 1, 2], [0, 2, 1]])
+    # the same pillow beside a valid tetrahedron
+    tet = np.array([[1, 2, 3], [0, 3, 2], [0, 1, 3], [0, 2, 1]]) + 3
+    points = np.concatenate([points, [[5, 0, 0], [6, 0, 0], [5, 1, 0], [5, 0, 1.0]]])
+    with pytest.raises(ValueError, match=r"duplicate another"):
+        SurfaceMesh(points, np.concatenate([tet, [[0, 1, 2], [0, 2, 1]]]))
+
+
+def test_non_manifold_vertex_of_high_degree_rejected():
+    # two icosahedral spheres glued at one node: a vertex with two fans of 5 triangles each
+    a = sphere_mesh(0)
+    touch = int(np.argmin(a.points[:, 0]))  # leftmost node of the copy b ...
+    glue = int(np.argmax(a.points[:, 0]))  # ... moved onto the rightmost node of a
+    b_points = a.points + (a.points[glue] - a.points[touch])
+    keep = np.ones(len(a.points), bool)
+    keep[touch] = False
+    # b's nodes numbered after a's, its glued node replaced by a's
+    new_index = np.full(len(a.points), -1)
+    new_index[keep] = len(a.points) + np.arange(keep.sum())
+    new_index[touch] = glue
+    points = np.concatenate([a.points, b_points[keep]])
+    triangles = np.concatenate([a.triangles, new_index[a.triangles]])
+    with pytest.raises(ValueError, match=rf"non-manifold at 1 vertex.*nodes {glue}"):
+        SurfaceMesh(points, triangles)
