@@ -33,6 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .assembly import assemble_vector, gram
+from .spaces import SurfaceP1Space
 
 __all__ = [
     "BasisField",
@@ -259,14 +260,20 @@ def _gradient_rows(space, grads, measure):
 
 def mass(space) -> sp.csr_matrix:
     """Surface mass matrix M_ij = (phi_j, phi_i)_{S_h}, exact: on each triangle T of S_h with the
-    basis values Lambda (3 x k) at its vertices, M_T = Lambda^T |T|/12 (I + 1 1^T) Lambda."""
+    basis values Lambda (3 x k) at its vertices, M_T = Lambda^T |T|/12 (I + 1 1^T) Lambda.
+    On a triangulated surface (Lambda = I) in closed form, :func:`_meshed_mass`."""
+    if isinstance(space, SurfaceP1Space):
+        return _meshed_mass(space)
     vertices, parent, areas = space.surface_triangles()
     return _simplex_mass(space, vertices, parent, areas)
 
 
 def tangential_stiffness(space) -> sp.csr_matrix:
     """A_ij = (P_h grad phi_j, P_h grad phi_i)_{S_h}; on each element |K| (P_h G_j)·(P_h G_i),
-    |K| the area of the surface part of the element."""
+    |K| the area of the surface part of the element.  On a triangulated surface in closed form,
+    :func:`_meshed_stiffness`."""
+    if isinstance(space, SurfaceP1Space):
+        return _meshed_stiffness(space)
     return _gradient_rows(space, space.tangential_gradients, space.element_surface_areas)
 
 
@@ -329,8 +336,10 @@ def edge_jump_penalty(space, h: float | None = None) -> sp.csr_matrix:
     two surface elements; constant on E for P1, so the integral is |E| times the product of jumps.
     ``h`` defaults to the space's global mesh size.
     """
-    pairs, conormals, lengths = space.edges()
     h = space.h if h is None else h
+    if isinstance(space, SurfaceP1Space):
+        return _meshed_edge_penalty(space, h)
+    pairs, conormals, lengths = space.edges()
     return _jump_gram(space, pairs, conormals, h * lengths)
 
 
@@ -341,3 +350,99 @@ def face_jump_penalty(space, h_power: float = 0.0) -> sp.csr_matrix:
     pairs, n, areas = space.faces()
     normals_pair = np.stack([n, -n], axis=1)
     return _jump_gram(space, pairs, normals_pair, space.h**h_power * areas)
+
+
+# ---------------------------------------------------------------------------------------------
+# Closed forms on a triangulated surface (SurfaceP1Space).  On a flat triangle T with edge vectors
+# e_k = x_{k+1} - x_k (indices mod 3) every P1 integral is a rational function of |T| and the dot
+# products S_k = e_k . e_k, Q_k = e_k . e_{k+1} (SurfaceP1Space.halfedge_dots, indexed by the
+# half-edge 3 t + k).  Each matrix is a diagonal plus one value per pair of nodes, written
+# straight into the cached CSR structure of the node graph (cutfem.assembly.SymmetricPattern):
+# no quadrature, no sort, exactly symmetric.  The general routes above give the same matrices to
+# round-off (tested).
+# ---------------------------------------------------------------------------------------------
+
+
+def _meshed_mass(space) -> sp.csr_matrix:
+    """Exact P1 mass matrix of S_h: M_T = |T|/12 (I + 1 1^T), i.e.
+
+        M_ii = sum_{T at i} |T| / 6,   M_ij = sum_{T at edge ij} |T| / 12.
+    """
+    areas = space.element_areas
+    diagonal = np.bincount(space.element_dofs.reshape(-1), weights=np.repeat(areas / 6.0, 3), minlength=space.n_dofs)
+    et = space.mesh.edge_triangles
+    return space.node_pattern().matrix(diagonal, (areas[et[:, 0]] + areas[et[:, 1]]) / 12.0)
+
+
+def _meshed_stiffness(space) -> sp.csr_matrix:
+    """P1 stiffness matrix of S_h (the cotangent formula in edge vectors):
+
+        |T| grad lambda_i . grad lambda_j = e_{i+1} . e_{j+1} / (4 |T|),
+
+    so vertex k of T adds S_{k+1} / (4|T|) to the diagonal and its local edge k, from vertex k to
+    k + 1, adds Q_{k+1} / (4|T|) to that edge's entry.
+    """
+    S, Q = space.halfedge_dots
+    quarter = np.repeat(0.25 / space.element_areas, 3)
+    nxt = _next_halfedge_ids(S.size)
+    diagonal = np.bincount(space.element_dofs.reshape(-1), weights=S[nxt] * quarter, minlength=space.n_dofs)
+    per_halfedge = Q[nxt] * quarter
+    h = space.mesh.edge_halfedges
+    return space.node_pattern().matrix(diagonal, per_halfedge[h[:, 0]] + per_halfedge[h[:, 1]])
+
+
+def _meshed_edge_penalty(space, h: float) -> sp.csr_matrix:
+    """J_E of SPEC §3 on S_h in closed form: sum_E h |E| a a^T with a the jump coefficients.
+
+    Edge E = [i, j] (i < j) is local edge k of K1 (half-edge h1: i -> j, opposite vertex k_1) and
+    local edge k' of K2 (h2: j -> i, opposite vertex l).  The outward conormal of K at its edge k
+    is t = e_k / |e_k| x n_K, and t . grad lambda_m = -e_k . e_{m+1} / (2 |K| |E|), so the jump
+    [t_E . grad u] = sum_x a_x u_x over the four nodes has
+
+        a_i = -(Q(h1) / |K1| + Q(prev h2) / |K2|) / (2|E|),
+        a_j = -(Q(prev h1) / |K1| + Q(h2) / |K2|) / (2|E|),
+        a_k = -|E| / (2 |K1|),   a_l = -|E| / (2 |K2|),
+
+    (prev h = the half-edge before h in its triangle: e_{k-1} . e_k = e_k . e_{k+2}; the four sum
+    to zero).  With b = sqrt(h |E|) a, edge E adds b_x^2 to the diagonal at x = i, j, k, l, and
+    b_x b_y to the pair {x, y}: {i, j} is E, {j, k}, {k, i} the other edges of K1, {i, l}, {l, j}
+    those of K2, {k, l} the pair opposite E (:meth:`SurfaceP1Space.edge_stencil_pattern`).
+    """
+    mesh = space.mesh
+    S, Q = space.halfedge_dots
+    h1, h2 = mesh.edge_halfedges.T
+    p1, p2 = _prev_halfedge(h1), _prev_halfedge(h2)
+    inv1, inv2 = 1.0 / space.element_areas[h1 // 3], 1.0 / space.element_areas[h2 // 3]
+    length = np.sqrt(S[h1])
+    half = 0.5 * np.sqrt(h * length)  # sqrt(h |E|) / 2
+    scale = half / length
+    b_i = -scale * (Q[h1] * inv1 + Q[p2] * inv2)
+    b_j = -scale * (Q[p1] * inv1 + Q[h2] * inv2)
+    b_k = -(half * length) * inv1
+    b_l = -(half * length) * inv2
+    edges = mesh.edges
+    k, l = mesh.edge_opposite_vertices.T
+    nodes = np.concatenate([edges[:, 0], edges[:, 1], k, l])
+    diagonal = np.bincount(nodes, weights=np.concatenate([b_i * b_i, b_j * b_j, b_k * b_k, b_l * b_l]), minlength=space.n_dofs)
+    te = mesh.triangle_edges.reshape(-1)  # edge of each half-edge
+    on_edges = np.bincount(
+        np.concatenate([np.arange(len(edges)), te[_next_halfedge(h1)], te[p1], te[_next_halfedge(h2)], te[p2]]),
+        weights=np.concatenate([b_i * b_j, b_j * b_k, b_k * b_i, b_i * b_l, b_l * b_j]),
+        minlength=len(edges),
+    )
+    return space.edge_stencil_pattern().matrix(diagonal, np.concatenate([on_edges, b_k * b_l]))
+
+
+def _next_halfedge(h: np.ndarray) -> np.ndarray:
+    """3 t + k -> 3 t + (k + 1) mod 3."""
+    return h + np.where(h % 3 == 2, -2, 1)
+
+
+def _prev_halfedge(h: np.ndarray) -> np.ndarray:
+    """3 t + k -> 3 t + (k + 2) mod 3."""
+    return h + np.where(h % 3 == 0, 2, -1)
+
+
+def _next_halfedge_ids(n: int) -> np.ndarray:
+    """_next_halfedge(arange(n)) for n = 3M."""
+    return (np.arange(n).reshape(-1, 3)[:, [1, 2, 0]]).reshape(-1)

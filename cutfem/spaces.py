@@ -21,7 +21,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .assembly import Pattern
+from .assembly import Pattern, SymmetricPattern
 from .quadrature import Quadrature, map_tetrahedra, map_triangles
 
 __all__ = ["SurfaceP1Space", "CutP1Space", "CutVolumeP1Space", "triangle_gradients", "barycentric_at"]
@@ -117,6 +117,10 @@ class SurfaceP1Space(_P1Space):
     """Continuous P1 on a closed triangle surface mesh (meshed case); dofs are the mesh nodes.
 
     ``h`` defaults to the global ``N**(-1/2)`` of SPEC §2 (N = number of nodes).
+
+    The geometry is computed on demand: the mass, stiffness and edge penalty of
+    :mod:`cutfem.forms` use closed forms in the areas and :attr:`halfedge_dots` on the node graph
+    (:meth:`node_pattern`, :meth:`edge_stencil_pattern`), and need no basis gradients.
     """
 
     def __init__(self, mesh, h: float | None = None):
@@ -124,11 +128,64 @@ class SurfaceP1Space(_P1Space):
         self.n_dofs = int(len(mesh.points))
         self.element_dofs = np.asarray(mesh.triangles, dtype=np.int64)
         self.dof_points = np.asarray(mesh.points, dtype=float)
-        grads, normals, areas = triangle_gradients(self.dof_points[self.element_dofs])
-        self.element_gradients = grads
-        self.element_normals = normals
-        self.element_areas = areas
         self.h = float(h) if h is not None else self.n_dofs ** -0.5
+
+    @cached_property
+    def element_gradients(self) -> np.ndarray:
+        """(M, 3, 3) surface gradients of the barycentric coordinates (:func:`triangle_gradients`)."""
+        return triangle_gradients(self.dof_points[self.element_dofs])[0]
+
+    @cached_property
+    def element_normals(self) -> np.ndarray:
+        """(M, 3) unit normals n_h of the triangles (those of the mesh)."""
+        return self.mesh.normals
+
+    @cached_property
+    def element_areas(self) -> np.ndarray:
+        """(M,) triangle areas (those of the mesh)."""
+        return self.mesh.areas
+
+    @cached_property
+    def tangential_gradients(self) -> np.ndarray:
+        """The basis gradients themselves: on a flat triangle they are already tangent,
+        grad lambda_i = n x (x_{i+2} - x_{i+1}) / (2|T|)."""
+        return self.element_gradients
+
+    @cached_property
+    def halfedge_dots(self):
+        """Edge-vector dot products per half-edge: ``(S, Q)``, each (3M,), indexed by 3 t + k.
+
+        With e_k = x_{k+1} - x_k the k-th edge vector of triangle t (indices mod 3),
+        S[3t + k] = e_k . e_k and Q[3t + k] = e_k . e_{k+1}.  Every P1 quantity of a flat triangle
+        follows from these and |T|: grad lambda_i = n x e_{i+1} / (2|T|), so
+        |T| grad lambda_i . grad lambda_j = e_{i+1} . e_{j+1} / (4|T|); and the outward conormal of
+        edge k is t_k = e_k / |e_k| x n, so t_k . grad lambda_m = -e_k . e_{m+1} / (2|T| |e_k|).
+        """
+        p, t = self.dof_points, self.element_dofs
+        cols = [np.take(np.ascontiguousarray(p[:, d]), t) for d in range(3)]  # (M, 3) per axis
+        e = [np.roll(c, -1, axis=1) - c for c in cols]  # e[d][t, k] = x_{k+1} - x_k, axis d
+        S = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
+        e_next = [np.roll(x, -1, axis=1) for x in e]
+        Q = e[0] * e_next[0] + e[1] * e_next[1] + e[2] * e_next[2]
+        return S.reshape(-1), Q.reshape(-1)
+
+    def node_pattern(self):
+        """:class:`~cutfem.assembly.SymmetricPattern` of the nodes and the mesh edges (cached):
+        the sparsity of the mass and stiffness matrices."""
+        cache = self._patterns()
+        if "node graph" not in cache:
+            cache["node graph"] = SymmetricPattern(self.mesh.edges, self.n_dofs, presorted=True)
+        return cache["node graph"]
+
+    def edge_stencil_pattern(self):
+        """:class:`~cutfem.assembly.SymmetricPattern` of the edge penalty (cached): the mesh edges
+        (first E pairs) and, per edge, the pair of the two vertices opposite to it (next E pairs),
+        i.e. all pairs of nodes of the two triangles of an edge."""
+        cache = self._patterns()
+        if "edge stencil" not in cache:
+            pairs = np.concatenate([self.mesh.edges, self.mesh.edge_opposite_vertices])
+            cache["edge stencil"] = SymmetricPattern(pairs, self.n_dofs)
+        return cache["edge stencil"]
 
     @property
     def n_elements(self) -> int:

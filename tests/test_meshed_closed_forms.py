@@ -114,3 +114,84 @@ def test_non_manifold_vertex_of_high_degree_rejected():
     triangles = np.concatenate([a.triangles, new_index[a.triangles]])
     with pytest.raises(ValueError, match=rf"non-manifold at 1 vertex.*nodes {glue}"):
         SurfaceMesh(points, triangles)
+
+
+# ----------------------------------------------------------------------------------------------
+# closed-form matrices on a triangulated surface against the general routes
+# ----------------------------------------------------------------------------------------------
+
+import scipy.sparse as sp  # noqa: E402
+
+from cutfem.assembly import SymmetricPattern  # noqa: E402
+from cutfem.forms import (  # noqa: E402
+    _gradient_rows,
+    _jump_gram,
+    _simplex_mass,
+    bilinear_form,
+    edge_jump_penalty,
+    mass,
+    tangential_stiffness,
+)
+
+SPACES = {
+    "sphere": lambda: SurfaceP1Space(sphere_mesh(2, 1.3, (0.1, 0.2, 0.3))),
+    "torus-flipped": lambda: SurfaceP1Space(torus_mesh(16, "flipped", seed=5)),
+    "torus-perturbed-flipped": lambda: SurfaceP1Space(torus_mesh(18, "perturbed-flipped", seed=6), h=0.05),
+}
+
+
+def _close(A, B, rel=1e-13):
+    scale = abs(B).max()
+    assert abs(A - B).max() <= rel * scale
+    assert abs(A - A.T).max() == 0.0  # exactly symmetric
+    assert A.has_canonical_format
+
+
+@pytest.mark.parametrize("name", sorted(SPACES))
+def test_closed_form_mass_is_the_quadrature_mass(name):
+    space = SPACES[name]()
+    M = mass(space)
+    vertices, parent, areas = space.surface_triangles()
+    _close(M, _simplex_mass(space, vertices, parent, areas))
+    quadrature_mass = bilinear_form(lambda u, v, w: u * v, symmetric=True, degree=2).assemble(space)
+    _close(M, quadrature_mass)
+    assert M.sum() == pytest.approx(space.mesh.area, rel=1e-14)
+
+
+@pytest.mark.parametrize("name", sorted(SPACES))
+def test_closed_form_stiffness_is_the_gradient_form(name):
+    space = SPACES[name]()
+    A = tangential_stiffness(space)
+    _close(A, _gradient_rows(space, space.tangential_gradients, space.element_areas))
+    stiffness = bilinear_form(lambda u, v, w: (u.tgrad * v.tgrad).sum(-1), symmetric=True, degree=0).assemble(space)
+    _close(A, stiffness)
+    assert np.abs(A @ np.ones(space.n_dofs)).max() < 1e-12 * abs(A).max()  # constants in the kernel
+
+
+@pytest.mark.parametrize("name", sorted(SPACES))
+def test_closed_form_edge_penalty_is_the_conormal_jump(name):
+    space = SPACES[name]()
+    J = edge_jump_penalty(space)
+    pairs, conormals, lengths = space.edges()
+    _close(J, _jump_gram(space, pairs, conormals, space.h * lengths))
+    _close(edge_jump_penalty(space, h=0.3), _jump_gram(space, pairs, conormals, 0.3 * lengths))
+    assert np.abs(J @ np.ones(space.n_dofs)).max() < 1e-12 * abs(J).max()
+
+
+def test_symmetric_pattern_sums_repeated_pairs():
+    rng = np.random.default_rng(11)
+    n = 40
+    pairs = rng.integers(0, n, size=(400, 2))
+    pairs = pairs[pairs[:, 0] != pairs[:, 1]]
+    diagonal, values = rng.random(n), rng.random(len(pairs))
+    A = SymmetricPattern(pairs, n).matrix(diagonal, values)
+    rows = np.concatenate([np.arange(n), pairs[:, 0], pairs[:, 1]])
+    cols = np.concatenate([np.arange(n), pairs[:, 1], pairs[:, 0]])
+    expected = sp.coo_matrix((np.concatenate([diagonal, values, values]), (rows, cols)), shape=(n, n)).toarray()
+    np.testing.assert_allclose(A.toarray(), expected, rtol=1e-15, atol=0)
+    B = A.copy()
+    B.has_canonical_format = False
+    B.sum_duplicates()
+    assert np.array_equal(B.indices, A.indices) and np.array_equal(B.indptr, A.indptr)
+    with pytest.raises(ValueError, match="two different"):
+        SymmetricPattern([[1, 1]], 3)
