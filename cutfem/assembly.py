@@ -75,10 +75,11 @@ class SymmetricPattern:
     a sort nor a sum of duplicates per assembly.  Repeated pairs are allowed (their values are
     summed); ``presorted=True`` promises that the pairs are already unique with i < j in
     lexicographic order (e.g. the edges of a :class:`~cutfem.surface.SurfaceMesh`), which skips
-    the one sort.
+    the one sort of the pair keys i N + j.
 
-    Row i holds, in increasing column order, the pairs (j, i) with j < i, the diagonal, then the
-    pairs (i, j) with j > i.
+    The structure is merged by scipy from the upper triangle (the sorted pairs, a valid CSR
+    matrix as they are), its transpose (a counting sort) and the diagonal, each carrying the ids
+    of its entries as values: the merged values then say where each entry went.
     """
 
     def __init__(self, pairs: np.ndarray, n: int, presorted: bool = False):
@@ -87,33 +88,25 @@ class SymmetricPattern:
         lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
         if np.any(lo == hi):
             raise ValueError("pairs must join two different dofs (the diagonal is always in the pattern)")
-        if presorted:
-            self.inverse = None
-        else:
+        self._order = self._starts = None
+        if not presorted:
             key = lo * n + hi
-            order, starts, counts = pair_up(key)
-            ukey = key[order[starts]]
-            self.inverse = np.empty(key.size, dtype=np.int64)
-            self.inverse[order] = np.repeat(np.arange(ukey.size), counts)
+            self._order, self._starts, _ = pair_up(key)
+            ukey = key[self._order[self._starts]]
             lo, hi = ukey // n, ukey % n
-        self.n, self.n_pairs = n, len(lo)
-        n_upper = np.bincount(lo, minlength=n)
-        n_lower = np.bincount(hi, minlength=n)
-        nnz = n + 2 * len(lo)
-        index_type = np.int32 if max(n, nnz) < 2**31 else np.int64
-        self.indptr = np.zeros(n + 1, dtype=index_type)
-        np.cumsum(n_lower + 1 + n_upper, out=self.indptr[1:])
-        self.diagonal_position = self.indptr[:-1] + n_lower
-        rank = np.arange(len(lo))
-        self.upper_position = self.diagonal_position[lo] + 1 + rank - (np.cumsum(n_upper) - n_upper)[lo]
-        by_row = np.argsort(hi, kind="stable")  # the pairs in (hi, lo) order
-        row = hi[by_row]
-        self.lower_position = np.empty(len(lo), dtype=np.int64)
-        self.lower_position[by_row] = self.indptr[row] + rank - (np.cumsum(n_lower) - n_lower)[row]
-        self.indices = np.empty(nnz, dtype=index_type)
-        self.indices[self.diagonal_position] = np.arange(n)
-        self.indices[self.upper_position] = hi
-        self.indices[self.lower_position] = lo
+        self.n, self.n_pairs = n, p = n, len(lo)
+        ids = np.arange(1, 2 * p + n + 1, dtype=float)  # upper, lower, diagonal entries; exact in float64
+        indptr = np.zeros(n + 1, dtype=np.int64)
+        np.cumsum(np.bincount(lo, minlength=n), out=indptr[1:])
+        upper = sp.csr_matrix((ids[:p], hi, indptr), shape=(n, n))
+        lower = sp.csr_matrix((ids[p : 2 * p], hi, indptr), shape=(n, n)).T.tocsr()
+        diagonal = sp.csr_matrix((ids[2 * p :], np.arange(n), np.arange(n + 1)), shape=(n, n))
+        full = upper + lower + diagonal  # disjoint entries, none zero: nothing is summed or dropped
+        position = np.empty(len(ids), dtype=np.int64)
+        position[full.data.astype(np.int64) - 1] = np.arange(full.nnz)
+        self.upper_position, self.lower_position = position[:p], position[p : 2 * p]
+        self.diagonal_position = position[2 * p :]
+        self.indices, self.indptr = full.indices, full.indptr
 
     @property
     def nnz(self) -> int:
@@ -123,8 +116,8 @@ class SymmetricPattern:
         """The CSR matrix with ``diagonal`` (n,) and ``values`` (one per pair given to the
         constructor, repeated pairs summed) at (i, j) and (j, i)."""
         values = np.asarray(values, dtype=float)
-        if self.inverse is not None:
-            values = np.bincount(self.inverse, weights=values, minlength=self.n_pairs)
+        if self._order is not None:
+            values = np.add.reduceat(values[self._order], self._starts) if values.size else values
         data = np.empty(self.nnz)
         data[self.diagonal_position] = diagonal
         data[self.upper_position] = values
