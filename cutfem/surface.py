@@ -356,7 +356,7 @@ def _orient_outward(points: np.ndarray, tri: np.ndarray, pairs: np.ndarray, cros
     graph = sp.csr_matrix((np.ones(3 * m, dtype=np.int8), twin // 3, 3 * np.arange(m + 1)), shape=(m, m))
     _, component = connected_components(graph, directed=True, connection="strong")
     o = points.mean(axis=0)
-    vol6 = np.einsum("ij,ij->i", points[tri[:, 0]] - o, cross)
+    vol6 = np.einsum("ij,ij->i", np.take(points, tri[:, 0], axis=0) - o, cross)
     volume = np.bincount(component, weights=vol6) / 6.0
     flip_component = volume < 0
     if not flip_component.any():
@@ -427,16 +427,35 @@ class SurfaceMesh:
             cross, degree = _check_elements(pts, tri)
             table, pairs = _check_topology(tri, len(pts), degree)
             tri, cross, self.flipped_components = _orient_outward(pts, tri, pairs, cross)
-            self.__dict__["_cross"] = cross
-            if self.flipped_components == 0:
-                self.__dict__["_halfedges"] = table
-                pairs.flags.writeable = False
-                self.__dict__["_edge_halfedges"] = pairs
+            self._keep(cross, (table, pairs) if self.flipped_components == 0 else None)
         pts.flags.writeable = False
         tri = np.ascontiguousarray(tri)
         tri.flags.writeable = False
         self.points = pts
         self.triangles = tri
+
+    def _keep(self, cross: np.ndarray, topology=None) -> None:
+        """Keep what the validation computed: the cross products and (table, pairs) of the
+        half-edges (not after a flip, which changes them)."""
+        self.__dict__["_cross"] = cross
+        if topology is not None:
+            table, pairs = topology
+            pairs.flags.writeable = False
+            self.__dict__["_halfedges"] = table
+            self.__dict__["_edge_halfedges"] = pairs
+
+    def _check_generated(self) -> None:
+        """Validation for generators whose triangulation is closed, edge- and vertex-manifold
+        and consistently outward oriented by construction (:func:`torus_mesh`): the element
+        checks run, because moved nodes could still make a triangle degenerate, and the one-sort
+        half-edge table that the mesh needs anyway confirms closedness and orientation (with the
+        usual message otherwise); the vertex fans and the orientation by components are skipped.
+        """
+        cross, _ = _check_elements(self.points, self.triangles)
+        fast = _closed_halfedge_table(self.triangles, self.n_points)
+        if fast is None:
+            _diagnose_topology(self.triangles, self.n_points)
+        self._keep(cross, fast)
 
     # -- sizes ---------------------------------------------------------------------------------
 
@@ -681,6 +700,11 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
     Notes: the cells of the unperturbed grid are planar isosceles trapezoids, so "flipped" has the
     same area (and stiffness matrix) as "structured".  Requires n even and >= 6 (so m >= 3 and the
     grid is a simplicial complex) and 0 < r < R (an embedded ring torus).
+
+    Validation: the grid is closed, manifold (six triangles in one fan at every node) and
+    outward by construction, for every family (the offsets move nodes by less than half a cell,
+    which keeps the signed volume positive), so only what the node positions could break is
+    checked: finite, non-degenerate triangles (:meth:`SurfaceMesh._check_generated`).
     """
     n = _check_int("n", n, 6)
     if n % 2:
@@ -713,7 +737,9 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
     anti = np.stack([np.stack([v00, v10, v01], 1), np.stack([v10, v11, v01], 1)], axis=1)
     flip = coins if family in ("flipped", "perturbed-flipped") else np.zeros(n * m, dtype=bool)
     triangles = np.where(flip[:, None, None], anti, main).reshape(-1, 3)
-    return SurfaceMesh(points, triangles)
+    mesh = SurfaceMesh(points, triangles, check=False)
+    mesh._check_generated()  # the grid is a closed, outward torus; only the geometry is checked
+    return mesh
 
 
 def _refine_midpoints(points: np.ndarray, triangles: np.ndarray):

@@ -195,3 +195,15 @@ def test_symmetric_pattern_sums_repeated_pairs():
     assert np.array_equal(B.indices, A.indices) and np.array_equal(B.indptr, A.indptr)
     with pytest.raises(ValueError, match="two different"):
         SymmetricPattern([[1, 1]], 3)
+
+
+@pytest.mark.parametrize("family", ["structured", "flipped", "perturbed", "perturbed-flipped"])
+def test_generated_torus_passes_the_full_validation(family):
+    # torus_mesh checks only the geometry; the full validation must agree that nothing else is wrong
+    generated = torus_mesh(10, family, seed=8)
+    checked = SurfaceMesh(generated.points, generated.triangles)
+    assert checked.flipped_components == 0
+    assert np.array_equal(checked.triangles, generated.triangles)
+    for name in ("edges", "edge_halfedges", "triangle_edges"):
+        assert np.array_equal(getattr(checked, name), getattr(generated, name))
+    np.testing.assert_array_equal(checked.normals, generated.normals)
