@@ -161,12 +161,7 @@ class SurfaceP1Space(_P1Space):
         |T| grad lambda_i . grad lambda_j = e_{i+1} . e_{j+1} / (4|T|); and the outward conormal of
         edge k is t_k = e_k / |e_k| x n, so t_k . grad lambda_m = -e_k . e_{m+1} / (2|T| |e_k|).
         """
-        p, t = self.dof_points, self.element_dofs
-        cols = [np.take(np.ascontiguousarray(p[:, d]), t) for d in range(3)]  # (M, 3) per axis
-        e = [np.roll(c, -1, axis=1) - c for c in cols]  # e[d][t, k] = x_{k+1} - x_k, axis d
-        S = e[0] * e[0] + e[1] * e[1] + e[2] * e[2]
-        e_next = [np.roll(x, -1, axis=1) for x in e]
-        Q = e[0] * e_next[0] + e[1] * e_next[1] + e[2] * e_next[2]
+        S, Q = self.mesh.triangle_edge_dots
         return S.reshape(-1), Q.reshape(-1)
 
     def node_pattern(self):

@@ -181,30 +181,40 @@ def _as_triangles(triangles) -> np.ndarray:
     return np.ascontiguousarray(tri, dtype=np.int64)
 
 
-def _triangle_cross(points: np.ndarray, tri: np.ndarray):
-    """(M, 3) cross products (b - a) x (c - a) and (M,) squared longest edges of the triangles.
+def _triangle_geometry(points: np.ndarray, tri: np.ndarray):
+    """Cross products and edge-vector dot products of the triangles.
+
+    With e_k = x_{k+1} - x_k (indices mod 3) the edge vectors of triangle (x_0, x_1, x_2), returns
+
+    * ``cross`` (M, 3): e_0 x (x_2 - x_0) = (x_1 - x_0) x (x_2 - x_0);
+    * ``dots`` (2, M, 3): S[t, k] = e_k . e_k and Q[t, k] = e_k . e_{k+1}.
 
     Computed on coordinate columns (one 1-d gather per vertex and axis), which is several times
     faster than gathering (M, 3, 3) blocks and calling ``np.cross``.
     """
     cols = [np.ascontiguousarray(points[:, d]) for d in range(3)]
-    a, b, c = ([np.take(col, tri[:, k]) for col in cols] for k in range(3))
-    u = [bd - ad for ad, bd in zip(a, b)]  # b - a
-    v = [cd - ad for ad, cd in zip(a, c)]  # c - a
-    w = [cd - bd for bd, cd in zip(b, c)]  # c - b
+    x = [[np.take(col, tri[:, k]) for col in cols] for k in range(3)]  # x[k][d]
+    e = [[x[(k + 1) % 3][d] - x[k][d] for d in range(3)] for k in range(3)]  # e[k][d]
+    v = [x[2][d] - x[0][d] for d in range(3)]  # x_2 - x_0 = -e_2
+    u = e[0]
     cross = np.empty((len(tri), 3))
     cross[:, 0] = u[1] * v[2] - u[2] * v[1]
     cross[:, 1] = u[2] * v[0] - u[0] * v[2]
     cross[:, 2] = u[0] * v[1] - u[1] * v[0]
-    longest_sq = np.maximum(np.maximum(sum(x * x for x in u), sum(x * x for x in v)), sum(x * x for x in w))
-    return cross, longest_sq
+    dots = np.empty((2, len(tri), 3))
+    for k in range(3):  # the three edges, not the elements
+        a, b = e[k], e[(k + 1) % 3]
+        dots[0, :, k] = a[0] * a[0] + a[1] * a[1] + a[2] * a[2]
+        dots[1, :, k] = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+    return cross, dots
 
 
 def _check_elements(points: np.ndarray, tri: np.ndarray):
     """Checks that need no topology: finite points, indices, repeated vertices, zero areas, unused points.
 
-    Returns the cross products (b - a) x (c - a) (M, 3) (twice the area times the normal, kept by
-    the mesh) and the number of triangles at each node (N,).  Duplicate triangles are found with
+    Returns the cross products (b - a) x (c - a) (M, 3) (twice the area times the normal) and
+    the edge-vector dot products (2, M, 3) of :func:`_triangle_geometry`, which the mesh keeps,
+    and the number of triangles at each node (N,).  Duplicate triangles are found with
     the topology (:func:`_check_topology`), whose messages come after this function's.
     """
     n = len(points)
@@ -228,8 +238,9 @@ def _check_elements(points: np.ndarray, tri: np.ndarray):
             f"{bad.size} degenerate triangle(s) repeat a vertex, first triangles {_examples(bad)} with nodes "
             f"{_pairs(tri[bad])}; remove them (collapse the edge they sit on) before building the surface."
         )
-    cross, longest_sq = _triangle_cross(points, tri)
+    cross, dots = _triangle_geometry(points, tri)
     twice_area = np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    longest_sq = dots[0].max(axis=1)
     bad = np.flatnonzero(twice_area <= DEGENERATE_TOLERANCE * longest_sq)
     if bad.size:
         raise ValueError(
@@ -245,7 +256,7 @@ def _check_elements(points: np.ndarray, tri: np.ndarray):
             "have no support (singular mass matrix) and would change h = N**(-1/2). Remove them: "
             "keep = np.unique(triangles); points = points[keep]; triangles = np.searchsorted(keep, triangles)."
         )
-    return cross, degree
+    return cross, dots, degree
 
 
 def _check_duplicates(tri: np.ndarray) -> None:
@@ -424,25 +435,26 @@ class SurfaceMesh:
         tri = _as_triangles(triangles)
         self.flipped_components = 0
         if check:
-            cross, degree = _check_elements(pts, tri)
+            cross, dots, degree = _check_elements(pts, tri)
             table, pairs = _check_topology(tri, len(pts), degree)
             tri, cross, self.flipped_components = _orient_outward(pts, tri, pairs, cross)
-            self._keep(cross, (table, pairs) if self.flipped_components == 0 else None)
+            if self.flipped_components == 0:
+                self._keep(cross, dots, (table, pairs))
+            else:  # a flip changes the half-edges and the local edge order, not |cross|
+                self.__dict__["_cross"] = cross
         pts.flags.writeable = False
         tri = np.ascontiguousarray(tri)
         tri.flags.writeable = False
         self.points = pts
         self.triangles = tri
 
-    def _keep(self, cross: np.ndarray, topology=None) -> None:
-        """Keep what the validation computed: the cross products and (table, pairs) of the
-        half-edges (not after a flip, which changes them)."""
-        self.__dict__["_cross"] = cross
-        if topology is not None:
-            table, pairs = topology
-            pairs.flags.writeable = False
-            self.__dict__["_halfedges"] = table
-            self.__dict__["_edge_halfedges"] = pairs
+    def _keep(self, cross: np.ndarray, dots: np.ndarray, topology) -> None:
+        """Keep what the validation computed: the cross products, the edge-vector dot products
+        and (table, pairs) of the half-edges."""
+        dots.flags.writeable = False
+        table, pairs = topology
+        pairs.flags.writeable = False
+        self.__dict__.update(_cross=cross, triangle_edge_dots=dots, _halfedges=table, _edge_halfedges=pairs)
 
     def _check_generated(self) -> None:
         """Validation for generators whose triangulation is closed, edge- and vertex-manifold
@@ -451,11 +463,11 @@ class SurfaceMesh:
         half-edge table that the mesh needs anyway confirms closedness and orientation (with the
         usual message otherwise); the vertex fans and the orientation by components are skipped.
         """
-        cross, _ = _check_elements(self.points, self.triangles)
+        cross, dots, _ = _check_elements(self.points, self.triangles)
         fast = _closed_halfedge_table(self.triangles, self.n_points)
         if fast is None:
             _diagnose_topology(self.triangles, self.n_points)
-        self._keep(cross, fast)
+        self._keep(cross, dots, fast)
 
     # -- sizes ---------------------------------------------------------------------------------
 
@@ -559,7 +571,17 @@ class SurfaceMesh:
     @cached_property
     def _cross(self) -> np.ndarray:
         """(M, 3) (v_1 - v_0) x (v_2 - v_0) (kept from the validation when check=True)."""
-        return _triangle_cross(self.points, self.triangles)[0]
+        return _triangle_geometry(self.points, self.triangles)[0]
+
+    @cached_property
+    def triangle_edge_dots(self) -> np.ndarray:
+        """(2, M, 3) edge-vector dot products: with e_k = v_{k+1} - v_k (indices mod 3),
+        ``[0, t, k]`` is S = e_k . e_k (squared edge lengths) and ``[1, t, k]`` is
+        Q = e_k . e_{k+1}.  Every P1 integral on a flat triangle is a function of these and the
+        area (see :attr:`cutfem.spaces.SurfaceP1Space.halfedge_dots`)."""
+        out = _triangle_geometry(self.points, self.triangles)[1]
+        out.flags.writeable = False
+        return out
 
     @cached_property
     def areas(self) -> np.ndarray:

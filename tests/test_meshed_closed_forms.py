@@ -207,3 +207,15 @@ def test_generated_torus_passes_the_full_validation(family):
     for name in ("edges", "edge_halfedges", "triangle_edges"):
         assert np.array_equal(getattr(checked, name), getattr(generated, name))
     np.testing.assert_array_equal(checked.normals, generated.normals)
+
+
+def test_flipped_mesh_gives_the_same_matrices():
+    # the edge dot products depend on the local vertex order: after the outward flip they are
+    # recomputed, and the matrices are those of the mesh given outward
+    sphere = sphere_mesh(2)
+    flipped = SurfaceMesh(sphere.points, sphere.triangles[:, [0, 2, 1]])
+    assert flipped.flipped_components == 1
+    np.testing.assert_array_equal(flipped.triangle_edge_dots, sphere.triangle_edge_dots)
+    a, b = SurfaceP1Space(sphere), SurfaceP1Space(flipped)
+    for form in (mass, tangential_stiffness, edge_jump_penalty):
+        assert abs(form(a) - form(b)).max() == 0.0
