@@ -355,12 +355,17 @@ def face_jump_penalty(space, h_power: float = 0.0) -> sp.csr_matrix:
 # ---------------------------------------------------------------------------------------------
 # Closed forms on a triangulated surface (SurfaceP1Space).  On a flat triangle T with edge vectors
 # e_k = x_{k+1} - x_k (indices mod 3) every P1 integral is a rational function of |T| and the dot
-# products S_k = e_k . e_k, Q_k = e_k . e_{k+1} (SurfaceP1Space.halfedge_dots, indexed by the
-# half-edge 3 t + k).  Each matrix is a diagonal plus one value per pair of nodes, written
-# straight into the cached CSR structure of the node graph (cutfem.assembly.SymmetricPattern):
-# no quadrature, no sort, exactly symmetric.  The general routes above give the same matrices to
-# round-off (tested).
+# products S_k = e_k . e_k, Q_k = e_k . e_{k+1} (SurfaceMesh.triangle_edge_dots).  Arrays of shape
+# (M, 3) are indexed by the half-edge 3 t + k (local edge k of triangle t, from vertex k to k + 1,
+# which is also the corner of vertex k); the half-edges after and before it in the triangle are
+# the columns rotated by one, X[:, _NEXT] and X[:, _PREV].  Each matrix is a diagonal plus one
+# value per pair of nodes, written straight into the cached CSR structure of the node graph
+# (cutfem.assembly.SymmetricPattern): no quadrature, no sort, exactly symmetric.  The general
+# routes above give the same matrices to round-off (tested).
 # ---------------------------------------------------------------------------------------------
+
+_NEXT = [1, 2, 0]
+_PREV = [2, 0, 1]
 
 
 def _meshed_mass(space) -> sp.csr_matrix:
@@ -382,11 +387,10 @@ def _meshed_stiffness(space) -> sp.csr_matrix:
     so vertex k of T adds S_{k+1} / (4|T|) to the diagonal and its local edge k, from vertex k to
     k + 1, adds Q_{k+1} / (4|T|) to that edge's entry.
     """
-    S, Q = space.halfedge_dots
-    quarter = np.repeat(0.25 / space.element_areas, 3)
-    nxt = _next_halfedge_ids(S.size)
-    diagonal = np.bincount(space.element_dofs.reshape(-1), weights=S[nxt] * quarter, minlength=space.n_dofs)
-    per_halfedge = Q[nxt] * quarter
+    S, Q = space.mesh.triangle_edge_dots
+    quarter = 0.25 / space.element_areas[:, None]
+    diagonal = np.bincount(space.element_dofs.reshape(-1), weights=(S[:, _NEXT] * quarter).reshape(-1), minlength=space.n_dofs)
+    per_halfedge = (Q[:, _NEXT] * quarter).reshape(-1)
     h = space.mesh.edge_halfedges
     return space.node_pattern().matrix(diagonal, per_halfedge[h[:, 0]] + per_halfedge[h[:, 1]])
 
@@ -394,55 +398,42 @@ def _meshed_stiffness(space) -> sp.csr_matrix:
 def _meshed_edge_penalty(space, h: float) -> sp.csr_matrix:
     """J_E of SPEC §3 on S_h in closed form: sum_E h |E| a a^T with a the jump coefficients.
 
-    Edge E = [i, j] (i < j) is local edge k of K1 (half-edge h1: i -> j, opposite vertex k_1) and
-    local edge k' of K2 (h2: j -> i, opposite vertex l).  The outward conormal of K at its edge k
-    is t = e_k / |e_k| x n_K, and t . grad lambda_m = -e_k . e_{m+1} / (2 |K| |E|), so the jump
-    [t_E . grad u] = sum_x a_x u_x over the four nodes has
+    The outward conormal of triangle K at its edge k is t = e_k / |e_k| x n_K, and
+    t . grad lambda_m = -e_k . e_{m+1} / (2 |K| |E|): at the start, the end and the opposite vertex
+    of half-edge k,
 
-        a_i = -(Q(h1) / |K1| + Q(prev h2) / |K2|) / (2|E|),
-        a_j = -(Q(prev h1) / |K1| + Q(h2) / |K2|) / (2|E|),
-        a_k = -|E| / (2 |K1|),   a_l = -|E| / (2 |K2|),
+        c_start = -Q_k / (2|K||E|),  c_end = -Q_{k-1} / (2|K||E|),  c_opp = -|E| / (2|K|)
 
-    (prev h = the half-edge before h in its triangle: e_{k-1} . e_k = e_k . e_{k+2}; the four sum
-    to zero).  With b = sqrt(h |E|) a, edge E adds b_x^2 to the diagonal at x = i, j, k, l, and
-    b_x b_y to the pair {x, y}: {i, j} is E, {j, k}, {k, i} the other edges of K1, {i, l}, {l, j}
-    those of K2, {k, l} the pair opposite E (:meth:`SurfaceP1Space.edge_stencil_pattern`).
+    (e_{k-1} . e_k = e_k . e_{k+2}; the three sum to zero).  Edge E = [i, j] has the half-edges
+    h1: i -> j in K1 (opposite vertex k) and its twin h2: j -> i in K2 (opposite l), so the jump
+    [t_E . grad u] = a_i u_i + a_j u_j + a_k u_k + a_l u_l has a_i = c_start(h1) + c_end(h2),
+    a_j = c_end(h1) + c_start(h2), a_k = c_opp(h1), a_l = c_opp(h2).  With b = sqrt(h |E|) a
+    written per half-edge (b_start, b_end, b_opp), edge E adds b_x b_y to every pair {x, y} of its
+    four nodes:
+
+    * {i, j}: b_start(h1) b_end(h1); {k, l}: b_opp(h1) b_opp(h2)
+      (:meth:`SurfaceP1Space.edge_stencil_pattern`);
+    * the other two edges of each triangle: half-edge g gets b_end b_opp from the half-edge
+      before it and b_opp b_start from the one after it;
+    * the diagonal: corner g (vertex k of K, where half-edge g starts) gets b_start(g)^2 from the
+      edge leaving it and b_opp^2 from the edge opposite to it, the half-edge after g.
     """
     mesh = space.mesh
-    S, Q = space.halfedge_dots
+    S, Q = mesh.triangle_edge_dots
+    length = np.sqrt(S)  # |E| per half-edge
+    c = -0.5 / (space.element_areas[:, None] * length)
+    scale = np.sqrt(h * length).reshape(-1)
+    start, end = (Q * c).reshape(-1), (Q[:, _PREV] * c).reshape(-1)
     h1, h2 = mesh.edge_halfedges.T
-    p1, p2 = _prev_halfedge(h1), _prev_halfedge(h2)
-    inv1, inv2 = 1.0 / space.element_areas[h1 // 3], 1.0 / space.element_areas[h2 // 3]
-    length = np.sqrt(S[h1])
-    half = 0.5 * np.sqrt(h * length)  # sqrt(h |E|) / 2
-    scale = half / length
-    b_i = -scale * (Q[h1] * inv1 + Q[p2] * inv2)
-    b_j = -scale * (Q[p1] * inv1 + Q[h2] * inv2)
-    b_k = -(half * length) * inv1
-    b_l = -(half * length) * inv2
-    edges = mesh.edges
-    k, l = mesh.edge_opposite_vertices.T
-    nodes = np.concatenate([edges[:, 0], edges[:, 1], k, l])
-    diagonal = np.bincount(nodes, weights=np.concatenate([b_i * b_i, b_j * b_j, b_k * b_k, b_l * b_l]), minlength=space.n_dofs)
-    te = mesh.triangle_edges.reshape(-1)  # edge of each half-edge
-    on_edges = np.bincount(
-        np.concatenate([np.arange(len(edges)), te[_next_halfedge(h1)], te[p1], te[_next_halfedge(h2)], te[p2]]),
-        weights=np.concatenate([b_i * b_j, b_j * b_k, b_k * b_i, b_i * b_l, b_l * b_j]),
-        minlength=len(edges),
-    )
-    return space.edge_stencil_pattern().matrix(diagonal, np.concatenate([on_edges, b_k * b_l]))
-
-
-def _next_halfedge(h: np.ndarray) -> np.ndarray:
-    """3 t + k -> 3 t + (k + 1) mod 3."""
-    return h + np.where(h % 3 == 2, -2, 1)
-
-
-def _prev_halfedge(h: np.ndarray) -> np.ndarray:
-    """3 t + k -> 3 t + (k + 2) mod 3."""
-    return h + np.where(h % 3 == 0, 2, -1)
-
-
-def _next_halfedge_ids(n: int) -> np.ndarray:
-    """_next_halfedge(arange(n)) for n = 3M."""
-    return (np.arange(n).reshape(-1, 3)[:, [1, 2, 0]]).reshape(-1)
+    twin = np.empty(S.size, dtype=np.int64)
+    twin[h1], twin[h2] = h2, h1
+    b_start = scale * (start + end[twin])
+    b_end = scale * (end + start[twin])
+    b_opp = scale * (S * c).reshape(-1)
+    to_next = (b_end * b_opp).reshape(-1, 3)
+    to_prev = (b_opp * b_start).reshape(-1, 3)
+    received = (to_next[:, _PREV] + to_prev[:, _NEXT]).reshape(-1)
+    on_edges = b_start[h1] * b_end[h1] + received[h1] + received[h2]
+    corner = b_start * b_start + (b_opp.reshape(-1, 3)[:, _NEXT] ** 2).reshape(-1)
+    diagonal = np.bincount(space.element_dofs.reshape(-1), weights=corner, minlength=space.n_dofs)
+    return space.edge_stencil_pattern().matrix(diagonal, np.concatenate([on_edges, b_opp[h1] * b_opp[h2]]))
