@@ -19,6 +19,10 @@ def test_torus_mean_curvature_vector_closed_form_matches_frame():
     x = tor.center + rng.uniform(-1.8, 1.8, size=(4, 50, 3)) * [1, 1, 0.5]
     expected = tor.exact_mean_curvature(x)[..., None] * tor.exact_normal(x)
     np.testing.assert_allclose(tor.exact_mean_curvature_vector(x), expected, rtol=1e-13, atol=1e-13)
+    np.testing.assert_allclose(tor.exact_mean_curvature_vector(x), tor._careful_mean_curvature_vector(x), rtol=1e-14)
+    far = np.array([[1e200, 2e200, 0.5]])  # squares overflow: the careful evaluation takes over
+    np.testing.assert_array_equal(tor.exact_mean_curvature_vector(far), tor._careful_mean_curvature_vector(far))
+    assert np.isfinite(tor.exact_mean_curvature_vector(far)).all()
     with pytest.raises(ValueError, match="axis"):
         tor.exact_mean_curvature_vector(tor.center + np.array([[0.0, 0.0, 0.2]]))
     with pytest.raises(ValueError, match="core circle"):
