@@ -77,9 +77,9 @@ class SymmetricPattern:
     lexicographic order (e.g. the edges of a :class:`~cutfem.surface.SurfaceMesh`), which skips
     the one sort of the pair keys i N + j.
 
-    The structure is merged by scipy from the upper triangle (the sorted pairs, a valid CSR
-    matrix as they are), its transpose (a counting sort) and the diagonal, each carrying the ids
-    of its entries as values: the merged values then say where each entry went.
+    Row i holds, in increasing column order, the mirrors (i, j) of the pairs (j, i) with j < i,
+    the diagonal, then the pairs (i, j) with j > i; the order of the mirrors is that of the
+    transposed upper triangle, which scipy finds by a counting sort.
     """
 
     def __init__(self, pairs: np.ndarray, n: int, presorted: bool = False):
@@ -95,18 +95,25 @@ class SymmetricPattern:
             ukey = key[self._order[self._starts]]
             lo, hi = ukey // n, ukey % n
         self.n, self.n_pairs = n, p = n, len(lo)
-        ids = np.arange(1, 2 * p + n + 1, dtype=float)  # upper, lower, diagonal entries; exact in float64
-        indptr = np.zeros(n + 1, dtype=np.int64)
-        np.cumsum(np.bincount(lo, minlength=n), out=indptr[1:])
-        upper = sp.csr_matrix((ids[:p], hi, indptr), shape=(n, n))
-        lower = sp.csr_matrix((ids[p : 2 * p], hi, indptr), shape=(n, n)).T.tocsr()
-        diagonal = sp.csr_matrix((ids[2 * p :], np.arange(n), np.arange(n + 1)), shape=(n, n))
-        full = upper + lower + diagonal  # disjoint entries, none zero: nothing is summed or dropped
-        position = np.empty(len(ids), dtype=np.int64)
-        position[full.data.astype(np.int64) - 1] = np.arange(full.nnz)
-        self.upper_position, self.lower_position = position[:p], position[p : 2 * p]
-        self.diagonal_position = position[2 * p :]
-        self.indices, self.indptr = full.indices, full.indptr
+        n_upper = np.bincount(lo, minlength=n)
+        n_lower = np.bincount(hi, minlength=n)
+        index_type = np.int32 if n + 2 * p < 2**31 else np.int64
+        self.indptr = np.zeros(n + 1, dtype=index_type)
+        np.cumsum(n_lower + 1 + n_upper, out=self.indptr[1:])
+        self.diagonal_position = self.indptr[:-1] + n_lower
+        # pair u is the (u - #pairs in earlier rows)-th entry of row lo_u after the diagonal
+        pairs_before = np.cumsum(n_upper) - n_upper
+        self.upper_position = np.arange(p) + np.repeat(self.diagonal_position + 1 - pairs_before, n_upper)
+        # its mirror (hi_u, lo_u): the pairs in (hi, lo) order, by scipy's transpose (a counting sort)
+        upper = sp.csr_matrix((np.arange(p), hi, np.append(0, np.cumsum(n_upper))), shape=(n, n))
+        by_row = upper.tocsc().data
+        mirrors_before = np.cumsum(n_lower) - n_lower
+        self.lower_position = np.empty(p, dtype=np.int64)
+        self.lower_position[by_row] = np.arange(p) + np.repeat(self.indptr[:-1] - mirrors_before, n_lower)
+        self.indices = np.empty(n + 2 * p, dtype=index_type)
+        self.indices[self.diagonal_position] = np.arange(n)
+        self.indices[self.upper_position] = hi
+        self.indices[self.lower_position] = lo
 
     @property
     def nnz(self) -> int:
