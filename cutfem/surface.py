@@ -187,7 +187,8 @@ def _triangle_geometry(points: np.ndarray, tri: np.ndarray):
     With e_k = x_{k+1} - x_k (indices mod 3) the edge vectors of triangle (x_0, x_1, x_2), returns
 
     * ``cross`` (M, 3): e_0 x (x_2 - x_0) = (x_1 - x_0) x (x_2 - x_0);
-    * ``dots`` (2, M, 3): S[t, k] = e_k . e_k and Q[t, k] = e_k . e_{k+1}.
+    * ``dots`` (2, M, 3): S[t, k] = e_k . e_k and Q[t, k] = e_k . e_{k+1};
+    * ``longest`` (M,): max_k S[t, k], the squared longest edge.
 
     Computed on coordinate columns (one 1-d gather per vertex and axis), which is several times
     faster than gathering (M, 3, 3) blocks and calling ``np.cross``.
@@ -202,11 +203,12 @@ def _triangle_geometry(points: np.ndarray, tri: np.ndarray):
     cross[:, 1] = u[2] * v[0] - u[0] * v[2]
     cross[:, 2] = u[0] * v[1] - u[1] * v[0]
     dots = np.empty((2, len(tri), 3))
+    squares = [a[0] * a[0] + a[1] * a[1] + a[2] * a[2] for a in e]
     for k in range(3):  # the three edges, not the elements
         a, b = e[k], e[(k + 1) % 3]
-        dots[0, :, k] = a[0] * a[0] + a[1] * a[1] + a[2] * a[2]
+        dots[0, :, k] = squares[k]
         dots[1, :, k] = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-    return cross, dots
+    return cross, dots, np.maximum(np.maximum(squares[0], squares[1]), squares[2])
 
 
 def _check_elements(points: np.ndarray, tri: np.ndarray):
@@ -238,9 +240,8 @@ def _check_elements(points: np.ndarray, tri: np.ndarray):
             f"{bad.size} degenerate triangle(s) repeat a vertex, first triangles {_examples(bad)} with nodes "
             f"{_pairs(tri[bad])}; remove them (collapse the edge they sit on) before building the surface."
         )
-    cross, dots = _triangle_geometry(points, tri)
+    cross, dots, longest_sq = _triangle_geometry(points, tri)
     twice_area = np.sqrt(np.einsum("ij,ij->i", cross, cross))
-    longest_sq = dots[0].max(axis=1)
     bad = np.flatnonzero(twice_area <= DEGENERATE_TOLERANCE * longest_sq)
     if bad.size:
         raise ValueError(
@@ -742,23 +743,32 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
     coins = rng.random(n * m) < 0.5
     offsets = rng.uniform(-0.25, 0.25, size=(n * m, 2))
 
-    i, j = np.meshgrid(np.arange(n), np.arange(m), indexing="ij")
-    i, j = i.reshape(-1), j.reshape(-1)  # node (and cell) index i * m + j
-    gi, gj = i.astype(float), j.astype(float)
+    # node (and cell) index i * m + j; the angles of the unperturbed grid need only n + m values
+    gi, gj = np.arange(n, dtype=float)[:, None], np.arange(m, dtype=float)[None, :]
     if family in ("perturbed", "perturbed-flipped"):
-        gi = gi + offsets[:, 0]
-        gj = gj + offsets[:, 1]
+        gi = gi + offsets[:, 0].reshape(n, m)
+        gj = gj + offsets[:, 1].reshape(n, m)
     t = 2.0 * np.pi * gi / n
     p = 2.0 * np.pi * gj / m
     ring = R + r * np.cos(p)
-    points = np.stack([ring * np.cos(t), ring * np.sin(t), r * np.sin(p)], axis=1)
+    points = np.empty((n, m, 3))
+    points[..., 0] = ring * np.cos(t)
+    points[..., 1] = ring * np.sin(t)
+    points[..., 2] = r * np.sin(p)
 
-    ip, jp = (i + 1) % n, (j + 1) % m
-    v00, v10, v11, v01 = i * m + j, ip * m + j, ip * m + jp, i * m + jp
-    main = np.stack([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)], axis=1)
-    anti = np.stack([np.stack([v00, v10, v01], 1), np.stack([v10, v11, v01], 1)], axis=1)
-    flip = coins if family in ("flipped", "perturbed-flipped") else np.zeros(n * m, dtype=bool)
-    triangles = np.where(flip[:, None, None], anti, main).reshape(-1, 3)
+    v00 = np.arange(n * m).reshape(n, m)
+    v10, v01 = np.roll(v00, -1, axis=0), np.roll(v00, -1, axis=1)
+    v11 = np.roll(v10, -1, axis=1)
+    triangles = np.empty((n, m, 2, 3), dtype=np.int64)
+    for k, v in enumerate((v00, v10, v11)):  # main diagonal: (v00, v10, v11), (v00, v11, v01)
+        triangles[:, :, 0, k] = v
+    for k, v in enumerate((v00, v11, v01)):
+        triangles[:, :, 1, k] = v
+    if family in ("flipped", "perturbed-flipped"):  # the other diagonal: (v00, v10, v01), (v10, v11, v01)
+        flip = coins.reshape(n, m)
+        triangles[flip, 0, 2] = v01[flip]
+        triangles[flip, 1] = np.stack([v10[flip], v11[flip], v01[flip]], axis=1)
+    points, triangles = points.reshape(-1, 3), triangles.reshape(-1, 3)
     mesh = SurfaceMesh(points, triangles, check=False)
     mesh._check_generated()  # the grid is a closed, outward torus; only the geometry is checked
     return mesh
