@@ -230,7 +230,8 @@ def linear_form(integrand=None, *, measure="surface", degree=4):
 # The built-in symmetric forms are sums of squares, so each is assembled as a Gram matrix E^T E
 # (cutfem.assembly.gram) with exact P1 formulas per piece, which is several times faster than the
 # general block route on a million elements and exactly symmetric.  The general route gives the
-# same matrices to round-off (tested).
+# same matrices to round-off (tested).  On a triangulated surface (SurfaceP1Space) the mass,
+# stiffness and edge penalty use closed forms on the node graph instead (end of this module).
 # ---------------------------------------------------------------------------------------------
 
 
