@@ -423,18 +423,17 @@ def _meshed_edge_penalty(space, h: float) -> sp.csr_matrix:
     S, Q = mesh.triangle_edge_dots
     length = np.sqrt(S)  # |E| per half-edge
     c = -0.5 / (space.element_areas[:, None] * length)
-    scale = np.sqrt(h * length).reshape(-1)
-    start, end = (Q * c).reshape(-1), (Q[:, _PREV] * c).reshape(-1)
+    scale = np.sqrt(h * length)
     h1, h2 = mesh.edge_halfedges.T
     twin = np.empty(S.size, dtype=np.int64)
     twin[h1], twin[h2] = h2, h1
-    b_start = scale * (start + end[twin])
-    b_end = scale * (end + start[twin])
-    b_opp = scale * (S * c).reshape(-1)
+    b_start = ((Q[:, _PREV] * c).reshape(-1)[twin] + (Q * c).reshape(-1)) * scale.reshape(-1)
+    b_end = b_start[twin]  # b at the end of h is b at the start of its twin
+    b_opp = (S * c * scale).reshape(-1)
     to_next = (b_end * b_opp).reshape(-1, 3)
     to_prev = (b_opp * b_start).reshape(-1, 3)
     received = (to_next[:, _PREV] + to_prev[:, _NEXT]).reshape(-1)
-    on_edges = b_start[h1] * b_end[h1] + received[h1] + received[h2]
+    on_edges = b_start[h1] * b_start[h2] + received[h1] + received[h2]
     corner = b_start * b_start + (b_opp.reshape(-1, 3)[:, _NEXT] ** 2).reshape(-1)
     diagonal = np.bincount(space.element_dofs.reshape(-1), weights=corner, minlength=space.n_dofs)
     return space.edge_stencil_pattern().matrix(diagonal, np.concatenate([on_edges, b_opp[h1] * b_opp[h2]]))
