@@ -119,7 +119,8 @@ class SurfaceP1Space(_P1Space):
     ``h`` defaults to the global ``N**(-1/2)`` of SPEC §2 (N = number of nodes).
 
     The geometry is computed on demand: the mass, stiffness and edge penalty of
-    :mod:`cutfem.forms` use closed forms in the areas and :attr:`halfedge_dots` on the node graph
+    :mod:`cutfem.forms` use closed forms in the areas and the edge-vector dot products of the
+    mesh (:attr:`~cutfem.surface.SurfaceMesh.triangle_edge_dots`) on the node graph
     (:meth:`node_pattern`, :meth:`edge_stencil_pattern`), and need no basis gradients.
     """
 
@@ -150,19 +151,6 @@ class SurfaceP1Space(_P1Space):
         """The basis gradients themselves: on a flat triangle they are already tangent,
         grad lambda_i = n x (x_{i+2} - x_{i+1}) / (2|T|)."""
         return self.element_gradients
-
-    @cached_property
-    def halfedge_dots(self):
-        """Edge-vector dot products per half-edge: ``(S, Q)``, each (3M,), indexed by 3 t + k.
-
-        With e_k = x_{k+1} - x_k the k-th edge vector of triangle t (indices mod 3),
-        S[3t + k] = e_k . e_k and Q[3t + k] = e_k . e_{k+1}.  Every P1 quantity of a flat triangle
-        follows from these and |T|: grad lambda_i = n x e_{i+1} / (2|T|), so
-        |T| grad lambda_i . grad lambda_j = e_{i+1} . e_{j+1} / (4|T|); and the outward conormal of
-        edge k is t_k = e_k / |e_k| x n, so t_k . grad lambda_m = -e_k . e_{m+1} / (2|T| |e_k|).
-        """
-        S, Q = self.mesh.triangle_edge_dots
-        return S.reshape(-1), Q.reshape(-1)
 
     def node_pattern(self):
         """:class:`~cutfem.assembly.SymmetricPattern` of the nodes and the mesh edges (cached):

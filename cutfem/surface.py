@@ -579,7 +579,10 @@ class SurfaceMesh:
         """(2, M, 3) edge-vector dot products: with e_k = v_{k+1} - v_k (indices mod 3),
         ``[0, t, k]`` is S = e_k . e_k (squared edge lengths) and ``[1, t, k]`` is
         Q = e_k . e_{k+1}.  Every P1 integral on a flat triangle is a function of these and the
-        area (see :attr:`cutfem.spaces.SurfaceP1Space.halfedge_dots`)."""
+        area: grad lambda_i = n x e_{i+1} / (2|T|), so |T| grad lambda_i . grad lambda_j =
+        e_{i+1} . e_{j+1} / (4|T|); the outward conormal of edge k is t_k = e_k / |e_k| x n, so
+        t_k . grad lambda_m = -e_k . e_{m+1} / (2|T| |e_k|) (the closed forms of
+        :mod:`cutfem.forms`)."""
         out = _triangle_geometry(self.points, self.triangles)[1]
         out.flags.writeable = False
         return out
