@@ -146,6 +146,14 @@ def _next_halfedge(h: np.ndarray) -> np.ndarray:
     return h + np.where(h % 3 == 2, -2, 1)
 
 
+def _twin_halfedges(pairs: np.ndarray) -> np.ndarray:
+    """(3M,) the other half-edge of the same edge, from the (E, 2) pairs of a closed mesh."""
+    twin = np.empty(pairs.size, dtype=np.int64)
+    twin[pairs[:, 0]] = pairs[:, 1]
+    twin[pairs[:, 1]] = pairs[:, 0]
+    return twin
+
+
 def _opposite_vertex(triangles: np.ndarray, h: np.ndarray) -> np.ndarray:
     """Node opposite to half-edge h = 3 t + k in its triangle: vertex (k + 2) mod 3 of t."""
     return triangles.reshape(-1)[h + np.where(h % 3 == 0, 2, -1)]
@@ -331,10 +339,7 @@ def _check_topology(tri: np.ndarray, n_points: int, degree: np.ndarray):
     opposite = _opposite_vertex(tri, pairs)
     if np.any(opposite[:, 0] == opposite[:, 1]):
         _check_duplicates(tri)
-    twin = np.empty(3 * len(tri), dtype=np.int64)
-    twin[pairs[:, 0]] = pairs[:, 1]
-    twin[pairs[:, 1]] = pairs[:, 0]
-    sigma = _next_halfedge(twin)
+    sigma = _next_halfedge(_twin_halfedges(pairs))
     label = np.arange(sigma.size)
     for _ in range(int(degree.max() - 1).bit_length()):
         np.minimum(label, label[sigma], out=label)
@@ -362,10 +367,8 @@ def _orient_outward(points: np.ndarray, tri: np.ndarray, pairs: np.ndarray, cros
     the cross product negated (exactly).
     """
     m = len(tri)
-    twin = np.empty(3 * m, dtype=np.int64)
-    twin[pairs[:, 0]] = pairs[:, 1]
-    twin[pairs[:, 1]] = pairs[:, 0]
-    graph = sp.csr_matrix((np.ones(3 * m, dtype=np.int8), twin // 3, 3 * np.arange(m + 1)), shape=(m, m))
+    neighbour = _twin_halfedges(pairs) // 3  # the triangle across each half-edge
+    graph = sp.csr_matrix((np.ones(3 * m, dtype=np.int8), neighbour, 3 * np.arange(m + 1)), shape=(m, m))
     _, component = connected_components(graph, directed=True, connection="strong")
     o = points.mean(axis=0)
     vol6 = np.einsum("ij,ij->i", np.take(points, tri[:, 0], axis=0) - o, cross)
