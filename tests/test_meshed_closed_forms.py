@@ -223,3 +223,11 @@ def test_flipped_mesh_gives_the_same_matrices():
     a, b = SurfaceP1Space(sphere), SurfaceP1Space(flipped)
     for form in (mass, tangential_stiffness, edge_jump_penalty):
         assert abs(form(a) - form(b)).max() == 0.0
+
+
+def test_l2_error_of_fortran_ordered_coefficients():
+    # solvers may return (n, 3) solutions in Fortran order; same error as in C order
+    space = SurfaceP1Space(torus_mesh(12, "perturbed", seed=1))
+    H = np.cos(space.dof_points)
+    f = Torus().exact_mean_curvature_vector
+    assert l2_error(space, np.asfortranarray(H), f) == l2_error(space, H, f)
