@@ -16,7 +16,7 @@ import scipy.sparse as sp
 
 from .mesh import pair_up
 
-__all__ = ["Pattern", "assemble_matrix", "assemble_vector", "symmetrize_blocks", "gram", "row_operator"]
+__all__ = ["Pattern", "SymmetricPattern", "assemble_matrix", "assemble_vector", "symmetrize_blocks", "gram", "row_operator"]
 
 
 class Pattern:
@@ -64,6 +64,75 @@ class Pattern:
             return sp.csr_matrix((self.n, self.n))
         data = np.add.reduceat(blocks.reshape(-1)[self.order], self.starts)
         return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+
+
+class SymmetricPattern:
+    """CSR structure of a symmetric n x n matrix: the full diagonal and the undirected ``pairs``.
+
+    For forms written as a diagonal plus one value per pair {i, j} (i != j), which is what the
+    closed-form P1 matrices of a triangulated surface are: :meth:`matrix` writes the diagonal and
+    each pair's value at (i, j) and (j, i), so the matrix is exactly symmetric and needs neither
+    a sort nor a sum of duplicates per assembly.  Repeated pairs are allowed (their values are
+    summed); ``presorted=True`` promises that the pairs are already unique with i < j in
+    lexicographic order (e.g. the edges of a :class:`~cutfem.surface.SurfaceMesh`), which skips
+    the one sort of the pair keys i N + j.
+
+    Row i holds, in increasing column order, the mirrors (i, j) of the pairs (j, i) with j < i,
+    the diagonal, then the pairs (i, j) with j > i; the order of the mirrors is that of the
+    transposed upper triangle, which scipy finds by a counting sort.
+    """
+
+    def __init__(self, pairs: np.ndarray, n: int, presorted: bool = False):
+        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        n = int(n)
+        lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+        if np.any(lo == hi):
+            raise ValueError("pairs must join two different dofs (the diagonal is always in the pattern)")
+        self._order = self._starts = None
+        if not presorted:
+            key = lo * n + hi
+            self._order, self._starts, _ = pair_up(key)
+            ukey = key[self._order[self._starts]]
+            lo, hi = ukey // n, ukey % n
+        self.n, self.n_pairs = n, p = n, len(lo)
+        n_upper = np.bincount(lo, minlength=n)
+        n_lower = np.bincount(hi, minlength=n)
+        index_type = np.int32 if n + 2 * p < 2**31 else np.int64
+        self.indptr = np.zeros(n + 1, dtype=index_type)
+        np.cumsum(n_lower + 1 + n_upper, out=self.indptr[1:])
+        self.diagonal_position = self.indptr[:-1] + n_lower
+        # pair u is the (u - #pairs in earlier rows)-th entry of row lo_u after the diagonal
+        pairs_before = np.cumsum(n_upper) - n_upper
+        self.upper_position = np.arange(p) + np.repeat(self.diagonal_position + 1 - pairs_before, n_upper)
+        # its mirror (hi_u, lo_u): the pairs in (hi, lo) order, by scipy's transpose (a counting sort)
+        upper = sp.csr_matrix((np.arange(p), hi, np.append(0, np.cumsum(n_upper))), shape=(n, n))
+        by_row = upper.tocsc().data
+        mirrors_before = np.cumsum(n_lower) - n_lower
+        self.lower_position = np.empty(p, dtype=np.int64)
+        self.lower_position[by_row] = np.arange(p) + np.repeat(self.indptr[:-1] - mirrors_before, n_lower)
+        self.indices = np.empty(n + 2 * p, dtype=index_type)
+        self.indices[self.diagonal_position] = np.arange(n)
+        self.indices[self.upper_position] = hi
+        self.indices[self.lower_position] = lo
+
+    @property
+    def nnz(self) -> int:
+        return len(self.indices)
+
+    def matrix(self, diagonal: np.ndarray, values: np.ndarray) -> sp.csr_matrix:
+        """The CSR matrix with ``diagonal`` (n,) and ``values`` (one per pair given to the
+        constructor, repeated pairs summed) at (i, j) and (j, i)."""
+        values = np.asarray(values, dtype=float)
+        if self._order is not None:
+            values = np.add.reduceat(values[self._order], self._starts) if values.size else values
+        data = np.empty(self.nnz)
+        data[self.diagonal_position] = diagonal
+        data[self.upper_position] = values
+        data[self.lower_position] = values
+        out = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+        out.has_sorted_indices = True
+        out.has_canonical_format = True
+        return out
 
 
 def assemble_matrix(dofs: np.ndarray, blocks: np.ndarray, n: int, pattern: Pattern | None = None) -> sp.csr_matrix:

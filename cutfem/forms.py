@@ -33,6 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .assembly import assemble_vector, gram
+from .spaces import SurfaceP1Space
 
 __all__ = [
     "BasisField",
@@ -229,7 +230,8 @@ def linear_form(integrand=None, *, measure="surface", degree=4):
 # The built-in symmetric forms are sums of squares, so each is assembled as a Gram matrix E^T E
 # (cutfem.assembly.gram) with exact P1 formulas per piece, which is several times faster than the
 # general block route on a million elements and exactly symmetric.  The general route gives the
-# same matrices to round-off (tested).
+# same matrices to round-off (tested).  On a triangulated surface (SurfaceP1Space) the mass,
+# stiffness and edge penalty use closed forms on the node graph instead (end of this module).
 # ---------------------------------------------------------------------------------------------
 
 
@@ -266,14 +268,20 @@ def _gradient_rows(space, grads, measure):
 
 def mass(space) -> sp.csr_matrix:
     """Surface mass matrix M_ij = (phi_j, phi_i)_{S_h}, exact: on each triangle T of S_h with the
-    basis values Lambda (3 x k) at its vertices, M_T = Lambda^T |T|/12 (I + 1 1^T) Lambda."""
+    basis values Lambda (3 x k) at its vertices, M_T = Lambda^T |T|/12 (I + 1 1^T) Lambda.
+    On a triangulated surface (Lambda = I) in closed form, :func:`_meshed_mass`."""
+    if isinstance(space, SurfaceP1Space):
+        return _meshed_mass(space)
     vertices, parent, areas = space.surface_triangles()
     return _simplex_mass(space, vertices, parent, areas)
 
 
 def tangential_stiffness(space) -> sp.csr_matrix:
     """A_ij = (P_h grad phi_j, P_h grad phi_i)_{S_h}; on each element |K| (P_h G_j)·(P_h G_i),
-    |K| the area of the surface part of the element."""
+    |K| the area of the surface part of the element.  On a triangulated surface in closed form,
+    :func:`_meshed_stiffness`."""
+    if isinstance(space, SurfaceP1Space):
+        return _meshed_stiffness(space)
     return _gradient_rows(space, space.tangential_gradients, space.element_surface_areas)
 
 
@@ -333,8 +341,10 @@ def edge_jump_penalty(space, h: float | None = None) -> sp.csr_matrix:
     two surface elements; constant on E for P1, so the integral is |E| times the product of jumps.
     ``h`` defaults to the space's global mesh size.
     """
-    pairs, conormals, lengths = space.edges()
     h = space.h if h is None else h
+    if isinstance(space, SurfaceP1Space):
+        return _meshed_edge_penalty(space, h)
+    pairs, conormals, lengths = space.edges()
     return _jump_gram(space, pairs, conormals, h * lengths)
 
 
@@ -345,3 +355,97 @@ def face_jump_penalty(space, h_power: float = 0.0) -> sp.csr_matrix:
     pairs, n, areas = space.faces()
     normals_pair = np.stack([n, -n], axis=1)
     return _jump_gram(space, pairs, normals_pair, space.h**h_power * areas)
+
+
+# ---------------------------------------------------------------------------------------------
+# Closed forms on a triangulated surface (SurfaceP1Space).  On a flat triangle T with edge vectors
+# e_k = x_{k+1} - x_k (indices mod 3) every P1 integral is a rational function of |T| and the dot
+# products S_k = e_k . e_k, Q_k = e_k . e_{k+1} (SurfaceMesh.triangle_edge_dots).  Arrays of shape
+# (M, 3) are indexed by the half-edge 3 t + k (local edge k of triangle t, from vertex k to k + 1,
+# which is also the corner of vertex k); the half-edges after and before it in the triangle are
+# the columns rotated by one, X[:, _NEXT] and X[:, _PREV].  Each matrix is a diagonal plus one
+# value per pair of nodes, written straight into the cached CSR structure of the node graph
+# (cutfem.assembly.SymmetricPattern): no quadrature, no sort, exactly symmetric.  The general
+# routes above give the same matrices to round-off (tested).
+# ---------------------------------------------------------------------------------------------
+
+_NEXT = [1, 2, 0]
+_PREV = [2, 0, 1]
+
+
+def _meshed_mass(space) -> sp.csr_matrix:
+    """Exact P1 mass matrix of S_h: M_T = |T|/12 (I + 1 1^T), i.e.
+
+        M_ii = sum_{T at i} |T| / 6,   M_ij = sum_{T at edge ij} |T| / 12.
+    """
+    areas = space.element_areas
+    diagonal = np.bincount(space.element_dofs.reshape(-1), weights=np.repeat(areas / 6.0, 3), minlength=space.n_dofs)
+    et = space.mesh.edge_triangles
+    return space.node_pattern().matrix(diagonal, (areas[et[:, 0]] + areas[et[:, 1]]) / 12.0)
+
+
+def _meshed_stiffness(space) -> sp.csr_matrix:
+    """P1 stiffness matrix of S_h (the cotangent formula in edge vectors):
+
+        |T| grad lambda_i . grad lambda_j = e_{i+1} . e_{j+1} / (4 |T|),
+
+    so vertex k of T adds S_{k+1} / (4|T|) to the diagonal and its local edge k, from vertex k to
+    k + 1, adds Q_{k+1} / (4|T|) to that edge's entry.
+    """
+    S, Q = space.mesh.triangle_edge_dots
+    quarter = 0.25 / space.element_areas[:, None]
+    diagonal = np.bincount(space.element_dofs.reshape(-1), weights=(S[:, _NEXT] * quarter).reshape(-1), minlength=space.n_dofs)
+    per_halfedge = (Q[:, _NEXT] * quarter).reshape(-1)
+    h = space.mesh.edge_halfedges
+    return space.node_pattern().matrix(diagonal, per_halfedge[h[:, 0]] + per_halfedge[h[:, 1]])
+
+
+def _meshed_edge_penalty(space, h: float) -> sp.csr_matrix:
+    """J_E of SPEC §3 on S_h in closed form: sum_E h |E| a a^T with a the jump coefficients.
+
+    The outward conormal of triangle K at its edge k is t = e_k / |e_k| x n_K, and
+    t . grad lambda_m = -e_k . e_{m+1} / (2 |K| |E|): at the start, the end and the opposite vertex
+    of half-edge k,
+
+        c_start = -Q_k / (2|K||E|),  c_end = -Q_{k-1} / (2|K||E|),  c_opp = -|E| / (2|K|)
+
+    (e_{k-1} . e_k = e_k . e_{k+2}; the three sum to zero).  Edge E = [i, j] has the half-edges
+    h1: i -> j in K1 (opposite vertex k) and its twin h2: j -> i in K2 (opposite l), so the jump
+    [t_E . grad u] = a_i u_i + a_j u_j + a_k u_k + a_l u_l has a_i = c_start(h1) + c_end(h2),
+    a_j = c_end(h1) + c_start(h2), a_k = c_opp(h1), a_l = c_opp(h2).  With b = sqrt(h |E|) a
+    written per half-edge (b_start, b_end, b_opp), edge E adds b_x b_y to every pair {x, y} of its
+    four nodes:
+
+    * {i, j}: b_start(h1) b_end(h1); {k, l}: b_opp(h1) b_opp(h2)
+      (:meth:`SurfaceP1Space.edge_stencil_pattern`);
+    * the other two edges of each triangle: half-edge g gets b_end b_opp from the half-edge
+      before it and b_opp b_start from the one after it;
+    * the diagonal: corner g (vertex k of K, where half-edge g starts) gets b_start(g)^2 from the
+      edge leaving it and b_opp^2 from the edge opposite to it, the half-edge after g.
+    """
+    mesh = space.mesh
+    S, Q = mesh.triangle_edge_dots
+    h1, h2 = mesh.edge_halfedges.T
+    twin = np.empty(S.size, dtype=np.int64)
+    twin[h1], twin[h2] = h2, h1
+    # (M, 3) arrays, updated in place: at n = 768 each is 14 MB of fresh memory otherwise
+    length = np.sqrt(S)  # |E| per half-edge
+    cs = np.sqrt(length * h)  # sqrt(h |E|) ...
+    cs /= length * space.element_areas[:, None]
+    cs *= -0.5  # ... times -1 / (2 |K| |E|)
+    buffer = Q[:, _PREV] * cs  # sqrt(h|E|) c_end
+    b_start = buffer.reshape(-1)[twin]  # sqrt(h|E|) c_end of the twin ...
+    b_start += np.multiply(Q, cs, out=buffer).reshape(-1)  # ... plus sqrt(h|E|) c_start
+    b_end = b_start[twin]  # b at the end of h is b at the start of its twin
+    b_opp = np.multiply(S, cs, out=buffer).reshape(-1)
+    b_end *= b_opp  # what h gives to the half-edge after it
+    to_prev = b_opp * b_start  # what h gives to the half-edge before it
+    received = b_end.reshape(-1, 3)[:, _PREV]
+    received += to_prev.reshape(-1, 3)[:, _NEXT]
+    received = received.reshape(-1)
+    on_edges = b_start[h1] * b_start[h2] + received[h1] + received[h2]
+    opposite = b_opp.reshape(-1, 3)[:, _NEXT].reshape(-1)  # b_opp of the edge opposite each corner
+    opposite *= opposite
+    opposite += np.square(b_start, out=b_start)
+    diagonal = np.bincount(space.element_dofs.reshape(-1), weights=opposite, minlength=space.n_dofs)
+    return space.edge_stencil_pattern().matrix(diagonal, np.concatenate([on_edges, b_opp[h1] * b_opp[h2]]))

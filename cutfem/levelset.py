@@ -362,23 +362,54 @@ class Torus(LevelSet):
     def exact_mean_curvature_vector(self, x):
         """(k1 + k2)(p(x)) m, shape (..., 3).
 
-        In closed form, without the frame: w = y - R e_s = ((1 - R/s) y1, (1 - R/s) y2, y3),
-        d = |w| = sqrt((s - R)^2 + y3^2), m = w/d and cos p = (s - R)/d; so H^e = (k1 + k2)/d * w."""
+        In closed form, without the frame vectors: with y = x - c, s = |(y1, y2)| and
+        d = |(s - R, y3)|, m = ((1 - R/s) y1, (1 - R/s) y2, y3) / d and cos p = (s - R)/d, so
+
+            H^e(x) = kappa / d * ((1 - R/s) y1, (1 - R/s) y2, y3),
+            kappa = (R + 2 r cos p) / (r (R + r cos p)).
+
+        This is evaluated at every quadrature point of the error norms, hence the lean form: plain
+        square roots and one test that the result is finite.  Where it is not (NaN or infinite
+        input, a point on the axis or on the core circle, overflow), the careful evaluation
+        (``hypot``, the checks of :meth:`_frame`) gives the value or the error.
+        """
+        y = np.asarray(x, dtype=float)
+        if y.ndim == 0 or y.shape[-1] != 3:
+            return self._careful_mean_curvature_vector(x)
+        if self.center.any():
+            y = y - self.center
+        y0, y1, y2 = y[..., 0], y[..., 1], y[..., 2]
+        with np.errstate(all="ignore"):
+            s = np.sqrt(y0 * y0 + y1 * y1)
+            s_minus_R = s - self.R
+            d = np.sqrt(s_minus_R * s_minus_R + y2 * y2)
+            cos_p = s_minus_R / d
+            scale = (self.R + 2.0 * self.r * cos_p) / (self.r * d * (self.R + self.r * cos_p))
+            out = np.empty_like(y)
+            np.multiply(scale, y2, out=out[..., 2])
+            scale *= s_minus_R / s
+            np.multiply(scale, y0, out=out[..., 0])
+            np.multiply(scale, y1, out=out[..., 1])
+        if not np.isfinite(out).all():
+            return self._careful_mean_curvature_vector(x)
+        return out
+
+    def _careful_mean_curvature_vector(self, x):
+        """:meth:`exact_mean_curvature_vector` with ``hypot`` and the input and singularity checks."""
         x = _as_points(x)
-        c0, c1, c2 = self.center
-        y0, y1, y2 = x[..., 0] - c0, x[..., 1] - c1, x[..., 2] - c2  # contiguous coordinates
-        s = np.sqrt(y0 * y0 + y1 * y1)
+        y = x - self.center
+        s = np.hypot(y[..., 0], y[..., 1])
         _raise_if_singular(s == 0.0, x, "the torus distance's derivatives", "on the torus axis")
-        sR = s - self.R
-        d = np.sqrt(sR * sR + y2 * y2)
+        s_minus_R = s - self.R
+        d = np.hypot(s_minus_R, y[..., 2])
         _raise_if_singular(d == 0.0, x, "the torus distance's derivatives", "on the core circle")
-        cos_p = sR / d
-        kappa_d = (self.R + 2.0 * self.r * cos_p) / (self.r * (self.R + self.r * cos_p) * d)
-        q = kappa_d * (sR / s)
-        out = np.empty(x.shape)
-        out[..., 0] = q * y0
-        out[..., 1] = q * y1
-        out[..., 2] = kappa_d * y2
+        cos_p = s_minus_R / d
+        scale = (self.R + 2.0 * self.r * cos_p) / (self.r * d * (self.R + self.r * cos_p))
+        out = np.empty_like(y)
+        out[..., 2] = scale * y[..., 2]
+        scale *= s_minus_R / s
+        out[..., 0] = scale * y[..., 0]
+        out[..., 1] = scale * y[..., 1]
         return out
 
 

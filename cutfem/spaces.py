@@ -21,7 +21,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .assembly import Pattern
+from .assembly import Pattern, SymmetricPattern
 from .quadrature import Quadrature, map_tetrahedra, map_triangles
 
 __all__ = ["SurfaceP1Space", "CutP1Space", "CutVolumeP1Space", "triangle_gradients", "barycentric_at"]
@@ -117,6 +117,11 @@ class SurfaceP1Space(_P1Space):
     """Continuous P1 on a closed triangle surface mesh (meshed case); dofs are the mesh nodes.
 
     ``h`` defaults to the global ``N**(-1/2)`` of SPEC §2 (N = number of nodes).
+
+    The geometry is computed on demand: the mass, stiffness and edge penalty of
+    :mod:`cutfem.forms` use closed forms in the areas and the edge-vector dot products of the
+    mesh (:attr:`~cutfem.surface.SurfaceMesh.triangle_edge_dots`) on the node graph
+    (:meth:`node_pattern`, :meth:`edge_stencil_pattern`), and need no basis gradients.
     """
 
     def __init__(self, mesh, h: float | None = None):
@@ -124,11 +129,46 @@ class SurfaceP1Space(_P1Space):
         self.n_dofs = int(len(mesh.points))
         self.element_dofs = np.asarray(mesh.triangles, dtype=np.int64)
         self.dof_points = np.asarray(mesh.points, dtype=float)
-        grads, normals, areas = triangle_gradients(self.dof_points[self.element_dofs])
-        self.element_gradients = grads
-        self.element_normals = normals
-        self.element_areas = areas
         self.h = float(h) if h is not None else self.n_dofs ** -0.5
+
+    @cached_property
+    def element_gradients(self) -> np.ndarray:
+        """(M, 3, 3) surface gradients of the barycentric coordinates (:func:`triangle_gradients`)."""
+        return triangle_gradients(self.dof_points[self.element_dofs])[0]
+
+    @cached_property
+    def element_normals(self) -> np.ndarray:
+        """(M, 3) unit normals n_h of the triangles (those of the mesh)."""
+        return self.mesh.normals
+
+    @cached_property
+    def element_areas(self) -> np.ndarray:
+        """(M,) triangle areas (those of the mesh)."""
+        return self.mesh.areas
+
+    @cached_property
+    def tangential_gradients(self) -> np.ndarray:
+        """The basis gradients themselves: on a flat triangle they are already tangent,
+        grad lambda_i = n x (x_{i+2} - x_{i+1}) / (2|T|)."""
+        return self.element_gradients
+
+    def node_pattern(self):
+        """:class:`~cutfem.assembly.SymmetricPattern` of the nodes and the mesh edges (cached):
+        the sparsity of the mass and stiffness matrices."""
+        cache = self._patterns()
+        if "node graph" not in cache:
+            cache["node graph"] = SymmetricPattern(self.mesh.edges, self.n_dofs, presorted=True)
+        return cache["node graph"]
+
+    def edge_stencil_pattern(self):
+        """:class:`~cutfem.assembly.SymmetricPattern` of the edge penalty (cached): the mesh edges
+        (first E pairs) and, per edge, the pair of the two vertices opposite to it (next E pairs),
+        i.e. all pairs of nodes of the two triangles of an edge."""
+        cache = self._patterns()
+        if "edge stencil" not in cache:
+            pairs = np.concatenate([self.mesh.edges, self.mesh.edge_opposite_vertices])
+            cache["edge stencil"] = SymmetricPattern(pairs, self.n_dofs)
+        return cache["edge stencil"]
 
     @property
     def n_elements(self) -> int:

@@ -28,6 +28,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
+from .mesh import pair_up
+
 __all__ = [
     "SurfaceMesh",
     "torus_mesh",
@@ -53,9 +55,8 @@ TORUS_FAMILIES = ("structured", "flipped", "perturbed", "perturbed-flipped")
 
 _READ_EXTENSIONS_HINT = ".stl, .obj, .ply, .off, .vtk, .vtu, .msh (Gmsh), .mesh (Medit)"
 
-# local vertex index of the start of local edge k, of its end, and of the vertex opposite to it
+# local vertex index of the end of local edge k (which starts at vertex k)
 _NEXT = np.array([1, 2, 0])
-_OPPOSITE = np.array([2, 0, 1])
 
 
 # ---------------------------------------------------------------------------------------------
@@ -91,17 +92,47 @@ def _halfedge_table(triangles: np.ndarray, n_points: int):
     * ``counts`` (E,) int64, the number of half-edges on each edge;
     * ``forward`` (3M,) bool, whether the half-edge runs from the smaller to the larger index.
 
-    The edge {i, j} is encoded as the integer key i * N + j (i < j), so one 1-d ``np.unique``
-    does all the work.
+    The edge {i, j} is encoded as the integer key i * N + j (i < j), so one stable sort of 1-d
+    integer keys does all the work (:func:`cutfem.mesh.pair_up`).
     """
     start = triangles.reshape(-1)
     end = triangles[:, _NEXT].reshape(-1)
     lo = np.minimum(start, end)
     hi = np.maximum(start, end)
     n = np.int64(max(n_points, 1))
-    keys, halfedge_edge, counts = np.unique(lo * n + hi, return_inverse=True, return_counts=True)
+    order, starts, counts = pair_up(lo * n + hi)
+    keys = (lo * n + hi)[order[starts]]
+    halfedge_edge = np.empty(start.size, dtype=np.int64)
+    halfedge_edge[order] = np.repeat(np.arange(keys.size), counts)
     edges = np.stack([keys // n, keys % n], axis=1)
-    return edges, halfedge_edge.reshape(-1), counts, start < end
+    return edges, halfedge_edge, counts, start < end
+
+
+def _closed_halfedge_table(triangles: np.ndarray, n_points: int):
+    """The half-edge table and the pairs of a closed, edge-manifold, consistently oriented mesh by
+    one sort, or None if the mesh is not one.
+
+    Each half-edge a -> b gets the key 2 (min(a, b) N + max(a, b)) + [a > b].  The mesh is closed,
+    edge-manifold and consistently oriented exactly when the sorted keys come in pairs
+    (2 k, 2 k + 1): every edge k carries one forward and one backward half-edge and nothing else.
+    Then the sort order, read in pairs, is :func:`_pair_halfedges` (forward half-edge first), the
+    edges come out in lexicographic order, and ``(table, pairs)`` are returned with ``table`` as
+    :func:`_halfedge_table` gives it.
+    """
+    start = triangles.reshape(-1)
+    end = triangles[:, _NEXT].reshape(-1)
+    n = np.int64(max(n_points, 1))
+    key = (np.minimum(start, end) * n + np.maximum(start, end)) * 2 + (start > end)
+    order = np.argsort(key, kind="stable")
+    sk = key[order]
+    if sk.size % 2 or (sk[0::2] & 1).any() or not np.array_equal(sk[1::2], sk[0::2] + 1):
+        return None
+    edge_keys = sk[0::2] >> 1
+    edges = np.stack([edge_keys // n, edge_keys % n], axis=1)
+    halfedge_edge = np.empty(start.size, dtype=np.int64)
+    halfedge_edge[order] = np.arange(start.size) >> 1
+    counts = np.full(len(edges), 2, dtype=np.int64)
+    return (edges, halfedge_edge, counts, start < end), order.reshape(-1, 2)
 
 
 def _pair_halfedges(halfedge_edge: np.ndarray, forward: np.ndarray) -> np.ndarray:
@@ -112,7 +143,20 @@ def _pair_halfedges(halfedge_edge: np.ndarray, forward: np.ndarray) -> np.ndarra
 
 def _next_halfedge(h: np.ndarray) -> np.ndarray:
     """Half-edge following h in its triangle: 3 t + k -> 3 t + (k + 1) mod 3."""
-    return h - h % 3 + _NEXT[h % 3]
+    return h + np.where(h % 3 == 2, -2, 1)
+
+
+def _twin_halfedges(pairs: np.ndarray) -> np.ndarray:
+    """(3M,) the other half-edge of the same edge, from the (E, 2) pairs of a closed mesh."""
+    twin = np.empty(pairs.size, dtype=np.int64)
+    twin[pairs[:, 0]] = pairs[:, 1]
+    twin[pairs[:, 1]] = pairs[:, 0]
+    return twin
+
+
+def _opposite_vertex(triangles: np.ndarray, h: np.ndarray) -> np.ndarray:
+    """Node opposite to half-edge h = 3 t + k in its triangle: vertex (k + 2) mod 3 of t."""
+    return triangles.reshape(-1)[h + np.where(h % 3 == 0, 2, -1)]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -145,19 +189,59 @@ def _as_triangles(triangles) -> np.ndarray:
     return np.ascontiguousarray(tri, dtype=np.int64)
 
 
-def _check_elements(points: np.ndarray, tri: np.ndarray) -> None:
-    """Checks that need no topology: finite points, indices, repeated vertices, zero areas, unused points."""
+def _triangle_geometry(points: np.ndarray, tri: np.ndarray, block: int = 1 << 15):
+    """Cross products and edge-vector dot products of the triangles.
+
+    With e_k = x_{k+1} - x_k (indices mod 3) the edge vectors of triangle (x_0, x_1, x_2), returns
+
+    * ``cross`` (M, 3): e_0 x (x_2 - x_0) = (x_1 - x_0) x (x_2 - x_0);
+    * ``dots`` (2, M, 3): S[t, k] = e_k . e_k and Q[t, k] = e_k . e_{k+1};
+    * ``longest`` (M,): max_k S[t, k], the squared longest edge.
+
+    Computed on coordinate columns (one 1-d gather per vertex and axis), which is several times
+    faster than gathering (M, 3, 3) blocks and calling ``np.cross``, and in blocks of ``block``
+    triangles, whose two dozen temporaries stay in cache and reuse the same memory.
+    """
+    cols = [np.ascontiguousarray(points[:, d]) for d in range(3)]
+    m = len(tri)
+    cross, dots, longest = np.empty((m, 3)), np.empty((2, m, 3)), np.empty(m)
+    for start in range(0, m, block):  # blocks of triangles, not single elements
+        part = slice(start, start + block)
+        x = [[np.take(col, tri[part, k]) for col in cols] for k in range(3)]  # x[k][d]
+        e = [[x[(k + 1) % 3][d] - x[k][d] for d in range(3)] for k in range(3)]  # e[k][d]
+        v = [x[2][d] - x[0][d] for d in range(3)]  # x_2 - x_0 = -e_2
+        u = e[0]
+        cross[part, 0] = u[1] * v[2] - u[2] * v[1]
+        cross[part, 1] = u[2] * v[0] - u[0] * v[2]
+        cross[part, 2] = u[0] * v[1] - u[1] * v[0]
+        squares = [a[0] * a[0] + a[1] * a[1] + a[2] * a[2] for a in e]
+        for k in range(3):  # the three edges
+            a, b = e[k], e[(k + 1) % 3]
+            dots[0, part, k] = squares[k]
+            dots[1, part, k] = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+        np.maximum(np.maximum(squares[0], squares[1]), squares[2], out=longest[part])
+    return cross, dots, longest
+
+
+def _check_elements(points: np.ndarray, tri: np.ndarray):
+    """Checks that need no topology: finite points, indices, repeated vertices, zero areas, unused points.
+
+    Returns the cross products (b - a) x (c - a) (M, 3) (twice the area times the normal) and
+    the edge-vector dot products (2, M, 3) of :func:`_triangle_geometry`, which the mesh keeps,
+    and the number of triangles at each node (N,).  Duplicate triangles are found with
+    the topology (:func:`_check_topology`), whose messages come after this function's.
+    """
     n = len(points)
     if len(tri) == 0:
         raise ValueError("the surface has no triangles; a closed surface needs at least 4.")
-    bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
-    if bad.size:
+    if not np.isfinite(points).all():
+        bad = np.flatnonzero(~np.isfinite(points).all(axis=1))
         raise ValueError(
             f"{bad.size} point(s) have non-finite (NaN or inf) coordinates, first at rows {_examples(bad)}; "
             "fix or remove them before building the surface."
         )
-    bad = np.flatnonzero(((tri < 0) | (tri >= n)).any(axis=1))
-    if bad.size:
+    if tri.min() < 0 or tri.max() >= n:
+        bad = np.flatnonzero(((tri < 0) | (tri >= n)).any(axis=1))
         raise ValueError(
             f"{bad.size} triangle(s) reference node indices outside [0, {n}), first triangles {_examples(bad)} "
             f"with nodes {_pairs(tri[bad])}; indices must be 0-based rows of points."
@@ -168,9 +252,8 @@ def _check_elements(points: np.ndarray, tri: np.ndarray) -> None:
             f"{bad.size} degenerate triangle(s) repeat a vertex, first triangles {_examples(bad)} with nodes "
             f"{_pairs(tri[bad])}; remove them (collapse the edge they sit on) before building the surface."
         )
-    a, b, c = points[tri[:, 0]], points[tri[:, 1]], points[tri[:, 2]]
-    twice_area = np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    longest_sq = np.max(np.stack([((b - a) ** 2).sum(1), ((c - b) ** 2).sum(1), ((a - c) ** 2).sum(1)]), axis=0)
+    cross, dots, longest_sq = _triangle_geometry(points, tri)
+    twice_area = np.sqrt(np.einsum("ij,ij->i", cross, cross))
     bad = np.flatnonzero(twice_area <= DEGENERATE_TOLERANCE * longest_sq)
     if bad.size:
         raise ValueError(
@@ -178,13 +261,19 @@ def _check_elements(points: np.ndarray, tri: np.ndarray) -> None:
             f"{_examples(bad)} with nodes {_pairs(tri[bad])}; remove or repair them (e.g. merge coincident points, "
             "collapse short edges)."
         )
-    unused = np.flatnonzero(np.bincount(tri.reshape(-1), minlength=n) == 0)
+    degree = np.bincount(tri.reshape(-1), minlength=n)
+    unused = np.flatnonzero(degree == 0)
     if unused.size:
         raise ValueError(
             f"{unused.size} point(s) belong to no triangle, first rows {_examples(unused)}; a P1 unknown there would "
             "have no support (singular mass matrix) and would change h = N**(-1/2). Remove them: "
             "keep = np.unique(triangles); points = points[keep]; triangles = np.searchsorted(keep, triangles)."
         )
+    return cross, dots, degree
+
+
+def _check_duplicates(tri: np.ndarray) -> None:
+    """Raise if two triangles have the same three nodes."""
     srt = np.sort(tri, axis=1)
     order = np.lexsort(srt.T[::-1])
     same = np.flatnonzero((srt[order][1:] == srt[order][:-1]).all(axis=1))
@@ -196,8 +285,8 @@ def _check_elements(points: np.ndarray, tri: np.ndarray) -> None:
         )
 
 
-def _check_topology(tri: np.ndarray, n_points: int):
-    """Closed, edge-manifold, consistently oriented, vertex-manifold.  Returns the half-edge table."""
+def _diagnose_topology(tri: np.ndarray, n_points: int) -> None:
+    """Raise the message for an open, edge-non-manifold or inconsistently oriented mesh."""
     edges, halfedge_edge, counts, forward = _halfedge_table(tri, n_points)
     bad = np.flatnonzero(counts == 1)
     if bad.size:
@@ -223,48 +312,80 @@ def _check_topology(tri: np.ndarray, n_points: int):
             "PolyData.compute_normals(consistent_normals=True, auto_orient_normals=True)); a non-orientable "
             "surface is not supported."
         )
-    # vertex manifoldness: the corners (triangle, vertex) around a node must form a single fan.
-    # Corner ids coincide with half-edge ids: corner 3t+k is vertex k of triangle t, where half-edge
-    # 3t+k starts.  Across an edge (h1: a -> b, h2: b -> a) corner of a in t1 = h1 and in t2 = next(h2).
-    h1, h2 = pairs[:, 0], pairs[:, 1]
-    rows = np.concatenate([h1, _next_halfedge(h1)])
-    cols = np.concatenate([_next_halfedge(h2), h2])
-    n_corners = 3 * len(tri)
-    graph = sp.coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(n_corners, n_corners))
-    n_fans, fan = connected_components(graph, directed=False)
-    if n_fans != n_points:
-        corner_vertex = tri.reshape(-1)
-        vertex_fan = np.unique(corner_vertex.astype(np.int64) * n_corners + fan)
-        fans_per_vertex = np.bincount(vertex_fan // n_corners, minlength=n_points)
+    raise AssertionError("unreachable: the one-sort test and the diagnosis of the topology disagree")
+
+
+def _check_topology(tri: np.ndarray, n_points: int, degree: np.ndarray):
+    """No duplicate triangles; closed, edge-manifold, consistently oriented, vertex-manifold.
+
+    ``degree`` (N,) is the number of triangles at each node.  Returns ``(table, pairs)``, the
+    half-edge table of :func:`_halfedge_table` and the (E, 2) half-edge pairs of
+    :func:`_pair_halfedges`.  The valid case costs one sort (:func:`_closed_halfedge_table`); the
+    slower diagnosis runs only to word the error.
+
+    Duplicate triangles: on a mesh that passes the one-sort test, two triangles on the same three
+    nodes are the two triangles of each of their edges, so they show as an edge whose two opposite
+    vertices coincide.  (A duplicate that breaks the edge counts is reported before them, too.)
+
+    Vertex manifoldness: the corners (triangle, vertex) around a node must form a single fan.
+    Corner ids coincide with half-edge ids (corner 3t+k is vertex k of triangle t, where half-edge
+    3t+k starts).  The corner of a across the outgoing half-edge h: a -> b is next(twin(h)), so
+    sigma(c) = next(twin(c)) is a permutation of the corners of each node whose cycles are the
+    fans.  The cycles are labelled by their smallest corner by pointer doubling (after j steps a
+    label is the minimum over 2^j successive corners; a cycle is no longer than the degree of
+    its node), and the mesh is vertex-manifold when there are exactly N cycles.
+    """
+    fast = _closed_halfedge_table(tri, n_points)
+    if fast is None:
+        _check_duplicates(tri)
+        _diagnose_topology(tri, n_points)
+    table, pairs = fast
+    opposite = _opposite_vertex(tri, pairs)
+    if np.any(opposite[:, 0] == opposite[:, 1]):
+        _check_duplicates(tri)
+    sigma = _next_halfedge(_twin_halfedges(pairs))
+    label = np.arange(sigma.size)
+    for _ in range(int(degree.max() - 1).bit_length()):
+        np.minimum(label, label[sigma], out=label)
+        sigma = sigma[sigma]
+    first = label == np.arange(label.size)
+    if np.count_nonzero(first) != n_points:
+        fans_per_vertex = np.bincount(tri.reshape(-1)[first], minlength=n_points)
         bad = np.flatnonzero(fans_per_vertex > 1)
         raise ValueError(
             f"the surface is non-manifold at {bad.size} vertex(es), first nodes {_examples(bad)}: separate fans of "
             "triangles touch at a single point; duplicate such a node once per fan."
         )
-    return edges, halfedge_edge, counts, forward
+    return table, pairs
 
 
-def _orient_outward(points: np.ndarray, tri: np.ndarray, halfedge_edge: np.ndarray, forward: np.ndarray):
+def _orient_outward(points: np.ndarray, tri: np.ndarray, pairs: np.ndarray, cross: np.ndarray):
     """Flip the triangles of every connected component whose enclosed signed volume is negative.
 
     Signed volume of a closed oriented component C: V = (1/6) sum_{K in C} (a - o) . ((b - o) x (c - o)),
-    independent of o; o = mean of the points.  Returns (triangles, number of flipped components).
+    independent of o; o = mean of the points.  Per triangle (a - o) . ((b - o) x (c - o)) =
+    (a - o) . ((b - a) x (c - a)), so the cross products ``cross`` (M, 3) of the validation are
+    reused.  The components are those of the graph of triangles sharing an edge (``pairs``, the
+    half-edge pairs), symmetric, so its strong components are its components.  Returns
+    (triangles, cross products, number of flipped components); a flipped triangle (a, c, b) has
+    the cross product negated (exactly).
     """
-    pairs = _pair_halfedges(halfedge_edge, forward) // 3
     m = len(tri)
-    graph = sp.coo_matrix((np.ones(len(pairs), dtype=np.int8), (pairs[:, 0], pairs[:, 1])), shape=(m, m))
-    _, component = connected_components(graph, directed=False)
+    neighbour = _twin_halfedges(pairs) // 3  # the triangle across each half-edge
+    graph = sp.csr_matrix((np.ones(3 * m, dtype=np.int8), neighbour, 3 * np.arange(m + 1)), shape=(m, m))
+    _, component = connected_components(graph, directed=True, connection="strong")
     o = points.mean(axis=0)
-    a, b, c = points[tri[:, 0]] - o, points[tri[:, 1]] - o, points[tri[:, 2]] - o
-    vol6 = np.einsum("ij,ij->i", a, np.cross(b, c))
+    vol6 = np.einsum("ij,ij->i", np.take(points, tri[:, 0], axis=0) - o, cross)
     volume = np.bincount(component, weights=vol6) / 6.0
     flip_component = volume < 0
     if not flip_component.any():
-        return tri, 0
+        return tri, cross, 0
     flip = flip_component[component]
     tri = tri.copy()
     tri[flip] = tri[flip][:, [0, 2, 1]]
-    return tri, int(flip_component.sum())
+    cross = cross.copy()
+    cross[flip] *= -1.0
+    return tri, cross, int(flip_component.sum())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -328,16 +449,39 @@ class SurfaceMesh:
         tri = _as_triangles(triangles)
         self.flipped_components = 0
         if check:
-            _check_elements(pts, tri)
-            table = _check_topology(tri, len(pts))
-            tri, self.flipped_components = _orient_outward(pts, tri, table[1], table[3])
+            cross, dots, degree = _check_elements(pts, tri)
+            table, pairs = _check_topology(tri, len(pts), degree)
+            tri, cross, self.flipped_components = _orient_outward(pts, tri, pairs, cross)
             if self.flipped_components == 0:
-                self.__dict__["_halfedges"] = table
+                self._keep(cross, dots, (table, pairs))
+            else:  # a flip changes the half-edges and the local edge order, not |cross|
+                self.__dict__["_cross"] = cross
         pts.flags.writeable = False
         tri = np.ascontiguousarray(tri)
         tri.flags.writeable = False
         self.points = pts
         self.triangles = tri
+
+    def _keep(self, cross: np.ndarray, dots: np.ndarray, topology) -> None:
+        """Keep what the validation computed: the cross products, the edge-vector dot products
+        and (table, pairs) of the half-edges."""
+        dots.flags.writeable = False
+        table, pairs = topology
+        pairs.flags.writeable = False
+        self.__dict__.update(_cross=cross, triangle_edge_dots=dots, _halfedges=table, _edge_halfedges=pairs)
+
+    def _check_generated(self) -> None:
+        """Validation for generators whose triangulation is closed, edge- and vertex-manifold
+        and consistently outward oriented by construction (:func:`torus_mesh`): the element
+        checks run, because moved nodes could still make a triangle degenerate, and the one-sort
+        half-edge table that the mesh needs anyway confirms closedness and orientation (with the
+        usual message otherwise); the vertex fans and the orientation by components are skipped.
+        """
+        cross, dots, _ = _check_elements(self.points, self.triangles)
+        fast = _closed_halfedge_table(self.triangles, self.n_points)
+        if fast is None:
+            _diagnose_topology(self.triangles, self.n_points)
+        self._keep(cross, dots, fast)
 
     # -- sizes ---------------------------------------------------------------------------------
 
@@ -384,6 +528,20 @@ class SurfaceMesh:
         pairs.flags.writeable = False
         return pairs
 
+    @property
+    def edge_halfedges(self) -> np.ndarray:
+        """(E, 2) int64: the half-edges 3 t + k (local edge k of triangle t) of each edge; column 0
+        runs from ``edges[e, 0]`` to ``edges[e, 1]``, so ``edge_halfedges // 3`` is
+        :attr:`edge_triangles` and ``edge_halfedges % 3`` is :attr:`edge_local_index`."""
+        return self._edge_halfedges
+
+    @cached_property
+    def edge_opposite_vertices(self) -> np.ndarray:
+        """(E, 2) int64: the vertex of ``edge_triangles[e, j]`` opposite to edge e."""
+        out = _opposite_vertex(self.triangles, self._edge_halfedges)
+        out.flags.writeable = False
+        return out
+
     @cached_property
     def edges(self) -> np.ndarray:
         """(E, 2) int64: the unique edges, each row sorted (i < j), rows in lexicographic order."""
@@ -426,9 +584,21 @@ class SurfaceMesh:
 
     @cached_property
     def _cross(self) -> np.ndarray:
-        p = self.points
-        t = self.triangles
-        return np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+        """(M, 3) (v_1 - v_0) x (v_2 - v_0) (kept from the validation when check=True)."""
+        return _triangle_geometry(self.points, self.triangles)[0]
+
+    @cached_property
+    def triangle_edge_dots(self) -> np.ndarray:
+        """(2, M, 3) edge-vector dot products: with e_k = v_{k+1} - v_k (indices mod 3),
+        ``[0, t, k]`` is S = e_k . e_k (squared edge lengths) and ``[1, t, k]`` is
+        Q = e_k . e_{k+1}.  Every P1 integral on a flat triangle is a function of these and the
+        area: grad lambda_i = n x e_{i+1} / (2|T|), so |T| grad lambda_i . grad lambda_j =
+        e_{i+1} . e_{j+1} / (4|T|); the outward conormal of edge k is t_k = e_k / |e_k| x n, so
+        t_k . grad lambda_m = -e_k . e_{m+1} / (2|T| |e_k|) (the closed forms of
+        :mod:`cutfem.forms`)."""
+        out = _triangle_geometry(self.points, self.triangles)[1]
+        out.flags.writeable = False
+        return out
 
     @cached_property
     def areas(self) -> np.ndarray:
@@ -489,8 +659,7 @@ class SurfaceMesh:
         K.)  Two coplanar triangles on either side of an edge have t_{E,K1} = -t_{E,K2}.
         """
         p = self.points
-        half = self._edge_halfedges
-        opposite = self.triangles.reshape(-1)[half - half % 3 + _OPPOSITE[half % 3]]  # (E, 2)
+        opposite = self.edge_opposite_vertices  # (E, 2)
         a = p[self.edges[:, 0]]
         d = p[self.edges[:, 1]] - a
         d /= np.linalg.norm(d, axis=1)[:, None]
@@ -570,6 +739,11 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
     Notes: the cells of the unperturbed grid are planar isosceles trapezoids, so "flipped" has the
     same area (and stiffness matrix) as "structured".  Requires n even and >= 6 (so m >= 3 and the
     grid is a simplicial complex) and 0 < r < R (an embedded ring torus).
+
+    Validation: the grid is closed, manifold (six triangles in one fan at every node) and
+    outward by construction, for every family (the offsets move nodes by less than half a cell,
+    which keeps the signed volume positive), so only what the node positions could break is
+    checked: finite, non-degenerate triangles (:meth:`SurfaceMesh._check_generated`).
     """
     n = _check_int("n", n, 6)
     if n % 2:
@@ -585,24 +759,34 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
     coins = rng.random(n * m) < 0.5
     offsets = rng.uniform(-0.25, 0.25, size=(n * m, 2))
 
-    i, j = np.meshgrid(np.arange(n), np.arange(m), indexing="ij")
-    i, j = i.reshape(-1), j.reshape(-1)  # node (and cell) index i * m + j
-    gi, gj = i.astype(float), j.astype(float)
+    # node (and cell) index i * m + j; the angles of the unperturbed grid need only n + m values
+    gi, gj = np.arange(n, dtype=float)[:, None], np.arange(m, dtype=float)[None, :]
     if family in ("perturbed", "perturbed-flipped"):
-        gi = gi + offsets[:, 0]
-        gj = gj + offsets[:, 1]
+        gi = gi + offsets[:, 0].reshape(n, m)
+        gj = gj + offsets[:, 1].reshape(n, m)
     t = 2.0 * np.pi * gi / n
     p = 2.0 * np.pi * gj / m
     ring = R + r * np.cos(p)
-    points = np.stack([ring * np.cos(t), ring * np.sin(t), r * np.sin(p)], axis=1)
+    points = np.empty((n, m, 3))
+    points[..., 0] = ring * np.cos(t)
+    points[..., 1] = ring * np.sin(t)
+    points[..., 2] = r * np.sin(p)
 
-    ip, jp = (i + 1) % n, (j + 1) % m
-    v00, v10, v11, v01 = i * m + j, ip * m + j, ip * m + jp, i * m + jp
-    main = np.stack([np.stack([v00, v10, v11], 1), np.stack([v00, v11, v01], 1)], axis=1)
-    anti = np.stack([np.stack([v00, v10, v01], 1), np.stack([v10, v11, v01], 1)], axis=1)
-    flip = coins if family in ("flipped", "perturbed-flipped") else np.zeros(n * m, dtype=bool)
-    triangles = np.where(flip[:, None, None], anti, main).reshape(-1, 3)
-    mesh = SurfaceMesh(points, triangles)
+    v00 = np.arange(n * m).reshape(n, m)
+    v10, v01 = np.roll(v00, -1, axis=0), np.roll(v00, -1, axis=1)
+    v11 = np.roll(v10, -1, axis=1)
+    triangles = np.empty((n, m, 2, 3), dtype=np.int64)
+    for k, v in enumerate((v00, v10, v11)):  # main diagonal: (v00, v10, v11), (v00, v11, v01)
+        triangles[:, :, 0, k] = v
+    for k, v in enumerate((v00, v11, v01)):
+        triangles[:, :, 1, k] = v
+    if family in ("flipped", "perturbed-flipped"):  # the other diagonal: (v00, v10, v01), (v10, v11, v01)
+        flip = coins.reshape(n, m)
+        triangles[flip, 0, 2] = v01[flip]
+        triangles[flip, 1] = np.stack([v10[flip], v11[flip], v01[flip]], axis=1)
+    points, triangles = points.reshape(-1, 3), triangles.reshape(-1, 3)
+    mesh = SurfaceMesh(points, triangles, check=False)
+    mesh._check_generated()  # the grid is a closed, outward torus; only the geometry is checked
     mesh.grid = (n, m)
     return mesh
 
