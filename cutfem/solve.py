@@ -87,8 +87,8 @@ edges vary 3:1 (inner against outer equator): the slowest multigrid error lives 
 equator, where the first coarse space is six fine edges wide.  On the near-uniform icosphere the
 same hierarchy needs 15-18 iterations.  Along the torus grid (:func:`grid_hierarchy`: every second
 node, weights from the node positions reproducing linear functions) the iterations are 18
-(flipped) and 23 (perturbed) at n = 768, 17-20 at n = 192: setup 0.35-0.45 s, solve 1.7-1.9 s
-under load.  Break-even with SuperLU (grid): about 4 600 unknowns; through the lattice on the
+(flipped) and 23 (perturbed) at n = 768, 17-20 at n = 192: 1.8-2.6 s with the setup (0.35-0.45 s),
+0.6 GiB for the whole run.  Break-even with SuperLU (grid): about 4 600 unknowns; through the lattice on the
 torus: about 30 000.  The L2 errors of H_h agree with the direct ones to 6 digits
 (0.00321778 perturbed, 0.00220570 flipped).
 
