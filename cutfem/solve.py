@@ -336,25 +336,32 @@ def kuhn_prolongation(ijk):
     o = ijk & 1
     lo = (ijk - o) >> 1
     hi = lo + o
-    base = lo.min(axis=0)
-    lo -= base
-    hi -= base
-    dims = np.maximum(lo.max(axis=0), hi.max(axis=0)) + 1
     m = len(ijk)
-    code = np.concatenate([lo[:, 0] + dims[0] * (lo[:, 1] + dims[1] * lo[:, 2]), hi[:, 0] + dims[0] * (hi[:, 1] + dims[1] * hi[:, 2])])
+    cols, cijk = _number_lattice_nodes(np.concatenate([lo, hi]))
+    rows = np.concatenate([np.arange(m), np.arange(m)])
+    P = sp.csr_matrix((np.full(2 * m, 0.5), (rows, cols)), shape=(m, len(cijk)))
+    P.sum_duplicates()
+    return P, cijk
+
+
+def _number_lattice_nodes(ijk):
+    """Number the distinct lattice nodes among ``ijk`` (m, 3) in lexicographic (z, y, x) order:
+    returns (number of each row (m,), the distinct nodes (mc, 3)).  A dense marker array over the
+    bounding box when it is not much larger than the input, else one sort (:func:`unique_keys`)."""
+    base = ijk.min(axis=0)
+    rel = ijk - base
+    dims = rel.max(axis=0) + 1
+    code = rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])
     if int(np.prod(dims)) <= 8 * code.size + 1_000_000:
         mark = np.zeros(int(np.prod(dims)), dtype=np.int64)
         mark[code] = 1
         keys = np.flatnonzero(mark)
         mark[keys] = np.arange(keys.size)
         cols = mark[code]
-    else:  # sparse lattice: sort instead of a dense marker array
-        keys, cols = np.unique(code, return_inverse=True)
-    rows = np.concatenate([np.arange(m), np.arange(m)])
-    P = sp.csr_matrix((np.full(2 * m, 0.5), (rows, cols)), shape=(m, keys.size))
-    P.sum_duplicates()
-    cijk = np.stack([keys % dims[0], (keys // dims[0]) % dims[1], keys // (dims[0] * dims[1])], axis=1) + base
-    return P, cijk
+    else:
+        keys, cols = unique_keys(code, return_inverse=True)
+    nodes = np.stack([keys % dims[0], (keys // dims[0]) % dims[1], keys // (dims[0] * dims[1])], axis=1) + base
+    return cols, nodes
 
 
 def surface_lattice_prolongation(points, spacing: float):
@@ -378,15 +385,11 @@ def surface_lattice_prolongation(points, spacing: float):
     w = np.column_stack([1.0 - u[:, 0], u[:, 0] - u[:, 1], u[:, 1] - u[:, 2], u[:, 2]])
     unit = np.eye(3, dtype=np.int64)[order]  # (N, 3, 3): unit[:, k] = e_{s_k}
     corner = np.stack([np.zeros_like(cell), unit[:, 0], unit[:, 0] + unit[:, 1], np.ones_like(cell)], axis=1)
-    ijk = (cell[:, None, :] + corner).reshape(-1, 3)
-    dims = ijk.max(axis=0) + 1
-    code = ijk[:, 0] + dims[0] * (ijk[:, 1] + dims[1] * ijk[:, 2])
     keep = w.reshape(-1) > 0
-    keys, cols = unique_keys(code[keep], return_inverse=True)
+    cols, cijk = _number_lattice_nodes((cell[:, None, :] + corner).reshape(-1, 3)[keep])
     rows = np.repeat(np.arange(len(X)), 4)[keep]
-    P = sp.csr_matrix((w.reshape(-1)[keep], (rows, cols)), shape=(len(X), keys.size))
+    P = sp.csr_matrix((w.reshape(-1)[keep], (rows, cols)), shape=(len(X), len(cijk)))
     P.sum_duplicates()
-    cijk = np.stack([keys % dims[0], (keys // dims[0]) % dims[1], keys // (dims[0] * dims[1])], axis=1)
     return P, cijk
 
 
