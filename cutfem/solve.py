@@ -4,12 +4,14 @@ What is used when
 -----------------
 :func:`solve` (``method="auto"``) picks, for an SPD matrix with n unknowns:
 
-* n <= :data:`DIRECT_LIMIT` (10 000): :class:`DirectSolver`, one sparse LU (SuperLU, minimum
-  degree on A + A^T, symmetric mode) of the diagonally scaled matrix, reused for all right-hand
-  sides.  It is checked: a zero diagonal entry, a failed factorization or a pivot below ``1e-10``
-  times the largest raises :class:`SingularSystemError`, which carries the smallest pivot (1e-10:
-  the singular unstabilized cut mass matrix of the torus at spacing 0.05 has its smallest pivot at
-  1.3e-13, the next at 1.8e-2; the stabilized torus systems at spacings 0.1-0.04 have 0.03-0.09).
+* n <= :data:`DIRECT_LIMIT` (5 000): :class:`DirectSolver`, one factorization of the diagonally
+  scaled matrix reused for all right-hand sides: a banded Cholesky (LAPACK, after reverse
+  Cuthill-McKee) when the band is narrow enough (:data:`BANDED_MAX_WORK`), else a sparse LU
+  (SuperLU, minimum degree on A + A^T, symmetric mode).  It is checked: a zero diagonal entry, a
+  failed factorization or a pivot below ``1e-10`` times the largest raises
+  :class:`SingularSystemError`, which carries the smallest pivot (1e-10: the singular
+  unstabilized cut mass matrix of the torus at spacing 0.05 has its smallest pivot at 1.3e-13, the
+  next at 1.8e-2; the stabilized torus systems at spacings 0.1-0.04 have 0.03-0.09).
 * n > DIRECT_LIMIT and a geometric hierarchy (:func:`multigrid_hierarchy`): conjugate gradients
   preconditioned by the multigrid :class:`GeometricMultigrid` ("cg-mg"), all right-hand sides at
   once, relative residual :data:`DEFAULT_TOL` (1e-6) per column.  The hierarchies: the nested
@@ -54,7 +56,7 @@ Galerkin products P^T A P (each level has about 4 times fewer unknowns and nonze
 being two-dimensional: operator complexity 1.33).  Cycle: one forward Gauss-Seidel sweep, coarse
 correction, one backward sweep (so the preconditioner is symmetric); V-cycle on the finest level,
 W-cycles below (iterations 18 / 21 / 23 at 1e-6, nearly independent of h, where a V-cycle
-everywhere needs 19 / 27 / 37 at 1e-8); SuperLU on the coarsest level (<= 1500 unknowns).  The
+everywhere needs 19 / 27 / 37 at 1e-8); :class:`DirectSolver` on the coarsest level (<= 1500 unknowns).  The
 residual after the forward sweep from zero is -U x (U the strictly upper part): half a product.
 
 Measured on this machine (2 cores), cut torus of SPEC section 6, K = M + 0.1 J_F, the three
@@ -71,7 +73,18 @@ spacing  n        cg-mg, tol 1e-6 (1e-8)             SuperLU (previous default)
 cg-mg needs 0.16 GiB besides the matrix at spacing 0.0125.  Its solutions differ from the direct
 ones by about 3e-3 times the tolerance (relative 2-norm: 3e-9 at 1e-6, 3e-11 at 1e-8); the L2
 errors of H_h agree to all printed digits (0.193480, 0.064852, 0.018655).  DIRECT_LIMIT is the
-measured break-even (n = 7 056: 0.10 s either way; n = 4 364: direct 0.05 s, cg-mg 0.08 s).
+measured break-even with the direct solver (banded Cholesky or SuperLU, see below), best of 5, in ms:
+
+===================  ======  ======  =====================
+system               n       direct  cg-mg (its)
+===================  ======  ======  =====================
+cut torus 0.1        4 364   25      25 (15)
+cut torus 0.08       7 296   69      51 (19)
+cut torus 0.06       12 776  218     85 (19)
+meshed torus 96      4 608   21      25 (17)
+meshed torus 128     8 192   62      34 (19)
+meshed torus 192     18 432  238     107 (20)
+===================  ======  ======  =====================
 
 Meshed surfaces
 ---------------
@@ -88,14 +101,32 @@ equator, where the first coarse space is six fine edges wide.  On the near-unifo
 same hierarchy needs 15-18 iterations.  Along the torus grid (:func:`grid_hierarchy`: every second
 node, weights from the node positions reproducing linear functions) the iterations are 18
 (flipped) and 23 (perturbed) at n = 768, 17-20 at n = 192: 1.8-2.6 s with the setup (0.35-0.45 s),
-0.6 GiB for the whole run.  Break-even with SuperLU (grid): about 4 600 unknowns; through the lattice on the
-torus: about 30 000.  The L2 errors of H_h agree with the direct ones to 6 digits
+0.6 GiB for the whole run.  Break-even with the direct solver (grid): about 5 000 unknowns (table
+above); with SuperLU through the lattice on the torus: about 30 000.  The L2 errors of H_h agree with the direct ones to 6 digits
 (0.00321778 perturbed, 0.00220570 flipped).
 
-Small systems: a banded Cholesky (LAPACK, after reverse Cuthill-McKee) beats SuperLU on the thick
-cut bands when BLAS runs on one thread (cut torus at spacing 0.2: 4 against 7 ms), but OpenBLAS'
-threaded level-3 kernels made it take 530 ms whenever the other core was busy; SuperLU after the
-same ordering fills twice as much as with minimum degree.  So SuperLU stays.
+Small systems: SuperLU is slow for its fill on the thick cut bands (it factors LU, with little
+gain from its supernodes at these sizes).  After reverse Cuthill-McKee the band is narrow (cut
+torus: bandwidth 139 at spacing 0.2, 263 at 0.1; meshed torus n = 128: 373), and LAPACK's banded
+Cholesky (dpbtrf, n (b + 1)^2 flops) wins up to a work of about 4e9.  Factorization times in ms,
+RCM and band set-up included:
+
+======================  ======  =====  ======  =======
+system                  n       b      banded  SuperLU
+======================  ======  =====  ======  =======
+cut torus 0.2           1 160   139    2-4     7
+cut torus 0.1           4 364   263    16-21   39
+cut sphere 0.1          2 932   228    11      24
+cut torus 0.07          9 588   571    114     116
+cut torus 0.05          18 024  1 041  545     298
+meshed torus 64         2 048   179    4-6     6
+meshed torus 128        8 192   373    46-52   59-65
+meshed icosphere 80     2 562   161    6       14
+======================  ======  =====  ======  =======
+
+The banded factorization runs with BLAS on one thread (threadpoolctl): OpenBLAS' threads gain
+little on these small level-3 blocks, and whenever the other core was busy their synchronization
+made a 2 ms factorization take up to 0.5 s.
 
 BLAS threads: the iteration loops use no BLAS calls (column dot products by ``einsum``): on this
 machine's 2 virtual cores, OpenBLAS' threaded level-1 calls on vectors of 10^5 entries are up to
@@ -140,7 +171,15 @@ __all__ = [
 ]
 
 #: systems with at most this many unknowns are solved directly by ``solve(method="auto")``
-DIRECT_LIMIT = 10_000
+DIRECT_LIMIT = 5_000
+
+#: :class:`DirectSolver` uses a banded Cholesky when its work n (b + 1)^2 is at most this (b the
+#: bandwidth after reverse Cuthill-McKee): measured break-even with SuperLU at about 4e9 (cut torus
+#: at spacing 0.07, n = 9 588, b = 571: 114 against 116 ms)
+BANDED_MAX_WORK = 3e9
+
+#: ... and its band storage n (b + 1) at most this many entries (8 bytes each)
+BANDED_MAX_ENTRIES = 1e7
 
 #: without a geometric hierarchy (no multigrid), ``solve(method="auto")`` stays direct up to this
 #: size: SuperLU beats CG with smoothed aggregation on every system measured (cut torus, 293k
@@ -176,12 +215,19 @@ def _check_diagonal(d):
 
 
 def scaled(A):
-    """(D^{-1/2} A D^{-1/2}, d) with d = diag(A); raises SingularSystemError on a non-positive diagonal."""
+    """(D^{-1/2} A D^{-1/2}, d) with d = diag(A), CSR in canonical form (sorted, no duplicates);
+    raises SingularSystemError on a non-positive diagonal."""
     A = sp.csr_matrix(A)
+    if not A.has_canonical_format:  # sort and merge on a copy: never touch the caller's arrays
+        A = A.copy()
+        A.sum_duplicates()
     d = A.diagonal()
     _check_diagonal(d)
     s = 1.0 / np.sqrt(d)
-    return sp.diags(s) @ A @ sp.diags(s), d
+    rows = np.repeat(s, np.diff(A.indptr))
+    S = sp.csr_matrix((A.data * rows * s[A.indices], A.indices.copy(), A.indptr.copy()), shape=A.shape)
+    S.has_canonical_format = True
+    return S, d
 
 
 @dataclass
@@ -199,20 +245,35 @@ class SolveInfo:
 
 
 class DirectSolver:
-    """Sparse LU of a symmetric matrix, reused for many right-hand sides; raises
-    :class:`SingularSystemError` on (numerical) singularity."""
+    """Direct solver for a symmetric positive definite matrix, factorized once and reused for many
+    right-hand sides; raises :class:`SingularSystemError` on (numerical) singularity.
 
-    def __init__(self, A, pivot_tol: float = 1e-10):
+    Both factorizations work on the diagonally scaled matrix S = D^{-1/2} A D^{-1/2}:
+
+    * ``"banded"``: Cholesky S = U^T U of the band of S after reverse Cuthill-McKee (LAPACK dpbtrf,
+      BLAS on one thread), when its work n (b + 1)^2 (b the bandwidth) is at most
+      :data:`BANDED_MAX_WORK` and its storage n (b + 1) at most :data:`BANDED_MAX_ENTRIES`;
+    * ``"superlu"``: sparse LU (SuperLU, minimum degree on A + A^T, symmetric mode, no pivoting)
+      otherwise, and whenever S is not symmetric or the Cholesky factorization breaks down.
+
+    ``method`` forces one ("banded" still falls back to SuperLU when it does not apply).  The
+    pivots are those of S = L D L^T (U_ii^2 for Cholesky, the diagonal of U for LU); a pivot below
+    ``pivot_tol`` times the largest raises SingularSystemError, as does a zero diagonal entry or a
+    failed LU.  ``smallest_pivot``: the smallest pivot; ``kind``: the factorization used.
+    """
+
+    def __init__(self, A, pivot_tol: float = 1e-10, method: str = "auto"):
+        if method not in ("auto", "banded", "superlu"):
+            raise ValueError(f"unknown factorization {method!r}; use 'auto', 'banded' or 'superlu'")
         S, d = scaled(A)
         self._s = 1.0 / np.sqrt(d)
         self.n = A.shape[0]
-        try:
-            self._lu = spla.splu(
-                sp.csc_matrix(S), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
-            )
-        except RuntimeError as exc:
-            raise SingularSystemError(f"the factorization failed: {exc}; the system is singular", smallest=0.0) from exc
-        piv = np.abs(self._lu.U.diagonal())
+        self.kind = "superlu"
+        piv = None
+        if method != "superlu":
+            piv = self._banded(S, force=method == "banded")
+        if piv is None:
+            piv = self._superlu(S)
         self.smallest_pivot = float(piv.min())
         if self.smallest_pivot <= pivot_tol * piv.max():
             raise SingularSystemError(
@@ -221,11 +282,75 @@ class DirectSolver:
                 smallest=self.smallest_pivot,
             )
 
+    def _superlu(self, S):
+        try:
+            self._lu = spla.splu(
+                sp.csc_matrix(S), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True}
+            )
+        except RuntimeError as exc:
+            raise SingularSystemError(f"the factorization failed: {exc}; the system is singular", smallest=0.0) from exc
+        self.kind = "superlu"
+        return np.abs(self._lu.U.diagonal())
+
+    def _banded(self, S, force=False):
+        """Banded Cholesky of S (canonical CSR) after reverse Cuthill-McKee; the pivots, or None
+        when it does not apply (S not symmetric, too wide a band unless ``force``, S not positive
+        definite)."""
+        from scipy.linalg import lapack
+        from scipy.sparse.csgraph import reverse_cuthill_mckee
+
+        n = S.shape[0]
+        T = S.T.tocsr()
+        T.sort_indices()
+        same = np.array_equal(T.indptr, S.indptr) and np.array_equal(T.indices, S.indices)
+        if not (same and np.allclose(T.data, S.data, rtol=0.0, atol=1e-13)):  # S has a unit diagonal
+            return None
+        perm = reverse_cuthill_mckee(S, symmetric_mode=True)
+        pos = np.empty(n, dtype=np.int64)
+        pos[perm] = np.arange(n)
+        rows = np.repeat(pos, np.diff(S.indptr))
+        cols = pos[S.indices]
+        b = int(np.abs(rows - cols).max()) if S.nnz else 0
+        if not force and (n * (b + 1) ** 2 > BANDED_MAX_WORK or n * (b + 1) > BANDED_MAX_ENTRIES):
+            return None
+        upper = rows <= cols
+        band = np.zeros((b + 1, n))
+        band[b + rows[upper] - cols[upper], cols[upper]] = S.data[upper]
+        with _one_blas_thread():
+            factor, info = lapack.dpbtrf(band, lower=0, overwrite_ab=1)
+        if info != 0:
+            return None
+        self._band, self._perm, self.kind = factor, perm, "banded"
+        return factor[b] ** 2
+
     def solve(self, b):
         """Solve A x = b for b (n,) or (n, c)."""
         b = np.asarray(b, dtype=float)
         s = self._s if b.ndim == 1 else self._s[:, None]
-        return s * self._lu.solve(np.ascontiguousarray(s * b))
+        if self.kind == "superlu":
+            return s * self._lu.solve(np.ascontiguousarray(s * b))
+        from scipy.linalg import lapack
+
+        with _one_blas_thread():
+            y, info = lapack.dpbtrs(self._band, (s * b)[self._perm], lower=0)
+        x = np.empty_like(y)
+        x[self._perm] = y
+        return s * x
+
+
+_BLAS_CONTROLLER = None
+
+
+def _one_blas_thread():
+    """Context limiting BLAS/LAPACK to one thread (threadpoolctl).  The banded factorizations are
+    small level-3 kernels: OpenBLAS' threads gain little on them and, when the other core of this
+    2-core machine is busy, their synchronization made a 2 ms factorization take up to 0.5 s."""
+    global _BLAS_CONTROLLER
+    if _BLAS_CONTROLLER is None:
+        from threadpoolctl import ThreadpoolController
+
+        _BLAS_CONTROLLER = ThreadpoolController()
+    return _BLAS_CONTROLLER.limit(limits=1, user_api="blas")
 
 
 # ---------------------------------------------------------------------------------------------

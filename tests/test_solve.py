@@ -271,3 +271,56 @@ def test_rates_on_synthetic_data():
     np.testing.assert_allclose(rates(h, e), [1.0, 2.0, np.log(1.25) / np.log(4.0)], rtol=1e-12)
     assert fitted_rate(h, 7.0 * h**1.5) == pytest.approx(1.5, rel=1e-12)
     assert len(rates([1.0], [1.0])) == 0
+
+
+# ----------------------------------------------------------------------------------------------
+# the two factorizations of DirectSolver
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["meshed-lb", "cut-mass", "cut-lb"])
+def test_banded_cholesky_agrees_with_superlu(systems, name):
+    A = systems[name]
+    B = np.random.default_rng(2).normal(size=(A.shape[0], 3))
+    banded = DirectSolver(A, method="banded")
+    lu = DirectSolver(A, method="superlu")
+    assert (banded.kind, lu.kind) == ("banded", "superlu")
+    assert DirectSolver(A).kind == "banded"  # these small systems have a narrow band after RCM
+    Xb, Xl = banded.solve(B), lu.solve(B)
+    np.testing.assert_allclose(Xb, Xl, rtol=0, atol=1e-9 * np.abs(Xl).max())
+    np.testing.assert_allclose(banded.solve(B[:, 1]), Xb[:, 1], rtol=0, atol=1e-14 * np.abs(Xb).max())
+    assert np.linalg.norm(A @ Xb - B) <= 1e-10 * np.linalg.norm(B)
+    # the pivots of L D L^T depend on the ordering, but both lie in (0, 1] for the unit-diagonal S
+    assert 0 < banded.smallest_pivot <= 1.0 + 1e-12
+
+
+def test_banded_cholesky_leaves_blas_threads_as_they_were(systems):
+    from threadpoolctl import threadpool_info
+
+    before = [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"]
+    DirectSolver(systems["cut-lb"], method="banded").solve(np.ones(systems["cut-lb"].shape[0]))
+    assert [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"] == before
+
+
+def test_nonsymmetric_matrix_falls_back_to_superlu():
+    """The banded Cholesky reads one triangle only: a non-symmetric matrix must go to the LU."""
+    n = 40
+    A = sp.diags([-1.0, 4.0, -2.0], [-1, 0, 1], shape=(n, n), format="csr")
+    b = np.arange(n, dtype=float)
+    solver = DirectSolver(A, method="banded")
+    assert solver.kind == "superlu"
+    np.testing.assert_allclose(A @ solver.solve(b), b, atol=1e-12 * np.abs(b).max())
+
+
+def test_indefinite_matrix_falls_back_to_superlu():
+    """A symmetric indefinite (non-singular) matrix: the Cholesky breaks down, the LU solves it."""
+    A = sp.csr_matrix(np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 3.0]]))
+    solver = DirectSolver(A)
+    assert solver.kind == "superlu"
+    b = np.array([1.0, 2.0, 3.0])
+    np.testing.assert_allclose(A @ solver.solve(b), b, atol=1e-12)
+
+
+def test_unknown_factorization_is_refused(systems):
+    with pytest.raises(ValueError, match="banded"):
+        DirectSolver(systems["cut-lb"], method="cholmod")
