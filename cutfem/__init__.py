@@ -9,6 +9,10 @@ The data flow is a chain of plain value objects holding numpy arrays::
 
 __version__ = "0.1.0"
 
+from . import memory as _memory  # noqa: E402
+
+_memory.configure()  # allocation settings for large arrays: see cutfem.memory (CUTFEM_ALLOCATOR=system to opt out)
+
 from .registry import Param, Problem, available_problems, get_problem, register, run  # noqa: E402
 
 __all__ = ["Param", "Problem", "register", "run", "get_problem", "available_problems", "__version__"]

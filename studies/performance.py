@@ -12,7 +12,8 @@ peak resident memory (``ru_maxrss``) is its own; the stages are timed with ``per
   with the method and iteration count recorded);
 * errors: the L2 error on S_h (degree-4 quadrature).
 
-The figure shows time and memory against the number of active tets (cut) or surface nodes
+Each record keeps the allocation settings that importing cutfem applied (``allocator``, see
+:mod:`cutfem.memory`).  The figure shows time and memory against the number of active tets (cut) or surface nodes
 (meshed) on log-log axes with the exponents fitted over the finest levels.
 """
 
@@ -131,6 +132,8 @@ def _in_subprocess(kind: str, level) -> dict:
         f"kind, level = {kind!r}, {level!r}\n"
         "rec = cut_level(level) if kind == 'cut' else meshed_level(level, kind.split('-', 1)[1])\n"
         "rec['peak_memory_gib'] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20\n"
+        "import cutfem.memory\n"
+        "rec['allocator'] = dict(cutfem.memory.SETTINGS)\n"
         "print('RESULT ' + json.dumps(rec))\n"
     )
     env = dict(os.environ)
