@@ -329,7 +329,7 @@ def _jump_gram(space, pairs, normals_pair, scale):
     """Gram matrix of the jumps c = (t1 . G_{K1}, t2 . G_{K2}) weighted by ``scale`` (>= 0): one row
     per facet on the dofs of K1 and K2 (shared dofs summed)."""
     G = space.element_gradients
-    c = np.concatenate([G[pairs[:, 0]] @ normals_pair[:, 0, :, None], G[pairs[:, 1]] @ normals_pair[:, 1, :, None]], axis=1)[..., 0]
+    c = np.concatenate([np.einsum("fkd,fd->fk", G[pairs[:, s]], normals_pair[:, s]) for s in (0, 1)], axis=1)
     dofs = np.concatenate([space.element_dofs[pairs[:, 0]], space.element_dofs[pairs[:, 1]]], axis=1)
     return gram(dofs, c * np.sqrt(scale)[:, None], space.n_dofs)
 
