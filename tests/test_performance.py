@@ -34,6 +34,8 @@ def test_run_tiny_writes_json_and_figure(tmp_path):
     assert kinds == {"cut", "meshed-flipped", "meshed-perturbed"}
     for r in data["levels"]:
         assert r["peak_memory_gib"] > 0.01 and r["total"] > 0 and r["dofs"] > 0
+        assert r["cpu_user"] > 0 and r["cpu_system"] >= 0 and r["page_faults"] >= 0
+        assert set(r["allocator"]) >= {"malloc", "numpy_hugepage", "thp_defrag"}
     assert (tmp_path / "performance_scaling.png").stat().st_size > 10_000
     assert summary["levels"] == data["levels"]
     assert performance.fitted_exponent([1, 10, 100], [2, 20, 200]) == pytest.approx(1.0)
