@@ -73,10 +73,11 @@ space), ``assembly`` (bilinear form and the three linear forms), ``solve`` (fact
 solves; NGSolve's default ``sparsecholesky``), ``errors``.  NGSolve runs single-threaded (no
 ``TaskManager``); at spacings >= 0.025 the pipeline is timed once more inside ``TaskManager()``
 (all cores, mesh build reused).  cutfem: the problem's own stages ``geometry`` (box, level set,
-cut, space), ``assembly``, ``solve`` (SuperLU), ``errors``; its total is their sum (the run's wall
+cut, space), ``assembly``, ``solve`` (:class:`~cutfem.solve.DirectSolver`: banded Cholesky after
+reverse Cuthill-McKee, or SuperLU for wide bands), ``errors``; its total is their sum (the run's wall
 time, which also builds pyvista output fields, is recorded as ``wall``).  Same-solver comparison:
 the NGSolve matrix exported (CSR) and factorized by cutfem's :class:`~cutfem.solve.DirectSolver`
-(SuperLU with the same options), ``solve_superlu``.  Ratios are ngsxfem / cutfem.  Where cutfem's
+(the same factorization choice), ``solve_superlu``.  Ratios are ngsxfem / cutfem.  Where cutfem's
 default solver ("auto") is not the direct one (more than ``cutfem.solve.DIRECT_LIMIT`` unknowns)
 cutfem is timed once more with it (``cutfem_auto``).  The structural
 difference: ngsxfem's mesh, CutInfo, facet search and element/facet loops visit the whole
@@ -708,7 +709,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
         "versions": {"ngsolve": ngsolve.__version__, "xfem": _xfem_version()},
         "problem": {"box": BOX, "torus": {"R": 1.0, "r": 0.5}, "tau_f": TAU_F, "face_h_power": 0, "error_quadrature_order": ORDER,
                     "shift": SHIFT.tolist(), "eps": EPS},
-        "solvers": {"cutfem": "SuperLU (scipy splu, MMD on A+A^T, symmetric mode, diagonal scaling)",
+        "solvers": {"cutfem": "DirectSolver on the diagonally scaled matrix: LAPACK banded Cholesky after RCM (SuperLU for wide bands)",
                     "ngsxfem": "NGSolve sparsecholesky; solve_superlu: the NGSolve matrix through cutfem's DirectSolver"},
         "threads": "NGSolve without TaskManager (one thread); cutfem numpy/scipy",
         "cut": cut,
