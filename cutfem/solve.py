@@ -214,13 +214,20 @@ def _check_diagonal(d):
         )
 
 
+def _canonical_csr(A):
+    """A as CSR with sorted indices and no duplicates; sorting and merging happen on a copy, never
+    on the caller's arrays."""
+    A = sp.csr_matrix(A)
+    if not A.has_canonical_format:
+        A = A.copy()
+        A.sum_duplicates()
+    return A
+
+
 def scaled(A):
     """(D^{-1/2} A D^{-1/2}, d) with d = diag(A), CSR in canonical form (sorted, no duplicates);
     raises SingularSystemError on a non-positive diagonal."""
-    A = sp.csr_matrix(A)
-    if not A.has_canonical_format:  # sort and merge on a copy: never touch the caller's arrays
-        A = A.copy()
-        A.sum_duplicates()
+    A = _canonical_csr(A)
     d = A.diagonal()
     _check_diagonal(d)
     s = 1.0 / np.sqrt(d)
@@ -268,7 +275,6 @@ class DirectSolver:
         S, d = scaled(A)
         self._s = 1.0 / np.sqrt(d)
         self.n = A.shape[0]
-        self.kind = "superlu"
         piv = None
         if method != "superlu":
             piv = self._banded(S, force=method == "banded")
@@ -675,10 +681,7 @@ class GeometricMultigrid:
 
     @staticmethod
     def _prepare(A):
-        A = sp.csr_matrix(A)
-        if not A.has_canonical_format:  # sort and merge on a copy: never touch the caller's arrays
-            A = A.copy()
-            A.sum_duplicates()
+        A = _canonical_csr(A)
         if A.indices.dtype != np.int32 and A.shape[0] < 2**31 and A.nnz < 2**31:
             A.indices = A.indices.astype(np.int32)
             A.indptr = A.indptr.astype(np.int32)

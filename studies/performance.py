@@ -40,14 +40,35 @@ OUTPUTS = ["performance", "performance_scaling"]
 BOX = ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6])
 
 
+def _timed_system_solve_error(t, space, penalty_name, penalty, tau, torus):
+    """The stages shared by both kinds: mass, stiffness, the penalty (timed as ``penalty_name``),
+    K = M + tau J with B = A x, the automatic solve and the L2 error; returns (error, SolveInfo)."""
+    from cutfem.errors import l2_error
+    from cutfem.forms import mass, tangential_stiffness
+    from cutfem.solve import solve
+
+    with t("mass"):
+        M = mass(space)
+    with t("stiffness"):
+        A = tangential_stiffness(space)
+    with t(penalty_name):
+        J = penalty(space)
+    with t("system"):
+        K = (M + tau * J).tocsr()
+        B = A @ space.dof_points
+    with t("solve"):
+        H, info = solve(K, B, space=space)
+    with t("errors"):
+        err = l2_error(space, H, torus.exact_mean_curvature_vector)
+    return err, info
+
+
 def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     """One cut-torus level, timed stage by stage (runs in the calling process)."""
     from cutfem.cut import cut_mesh
-    from cutfem.errors import l2_error
-    from cutfem.forms import face_jump_penalty, mass, tangential_stiffness
+    from cutfem.forms import face_jump_penalty
     from cutfem.levelset import Torus
     from cutfem.mesh import structured_box
-    from cutfem.solve import solve
     from cutfem.spaces import CutP1Space
 
     t = Timer()
@@ -59,19 +80,7 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     with t("topology"):
         space = CutP1Space(cut)
         faces = space.faces()
-    with t("mass"):
-        M = mass(space)
-    with t("stiffness"):
-        A = tangential_stiffness(space)
-    with t("face_penalty"):
-        J = face_jump_penalty(space)
-    with t("system"):
-        K = (M + tau_f * J).tocsr()
-        B = A @ space.dof_points
-    with t("solve"):
-        H, info = solve(K, B, space=space)
-    with t("errors"):
-        err = l2_error(space, H, torus.exact_mean_curvature_vector)
+    err, info = _timed_system_solve_error(t, space, "face_penalty", face_jump_penalty, tau_f, torus)
     return {
         "kind": "cut",
         "level": spacing,
@@ -91,10 +100,8 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
 
 def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     """One meshed-torus level, timed stage by stage."""
-    from cutfem.errors import l2_error
-    from cutfem.forms import edge_jump_penalty, mass, tangential_stiffness
+    from cutfem.forms import edge_jump_penalty
     from cutfem.levelset import Torus
-    from cutfem.solve import solve
     from cutfem.spaces import SurfaceP1Space
     from cutfem.surface import torus_mesh
 
@@ -102,19 +109,7 @@ def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     with t("mesh"):
         mesh = torus_mesh(n, family, seed=1)
         space = SurfaceP1Space(mesh)
-    with t("mass"):
-        M = mass(space)
-    with t("stiffness"):
-        A = tangential_stiffness(space)
-    with t("edge_penalty"):
-        J = edge_jump_penalty(space)
-    with t("system"):
-        K = (M + tau_e * J).tocsr()
-        B = A @ space.dof_points
-    with t("solve"):
-        H, info = solve(K, B, space=space)
-    with t("errors"):
-        err = l2_error(space, H, Torus().exact_mean_curvature_vector)
+    err, info = _timed_system_solve_error(t, space, "edge_penalty", edge_jump_penalty, tau_e, Torus())
     return {
         "kind": f"meshed-{family}",
         "level": n,
