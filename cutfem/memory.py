@@ -9,9 +9,11 @@ Two defaults of a Linux process make the first touch of that memory the dominant
   million pages);
 * numpy advises the kernel to back arrays of 4 MB and more by transparent huge pages (``madvise``).
   When the kernel's THP defrag mode is ``madvise`` (or ``always``, ``defer+madvise``) a fault in
-  such an array compacts memory synchronously to find a huge page, which stalls unpredictably:
-  1-5 s of system time per run on this 2-core virtual machine, from 0.2 s to 1.1 s for the same
-  edge penalty.
+  such an array may compact memory synchronously to find a huge page.  On the 2-core virtual
+  machine of the benchmarks no compaction happened (``compact_stall`` in /proc/vmstat stayed 0)
+  and the huge-page faults were still the slow part: about 800 of them per cut run at spacing
+  0.0125 (1.6 GB) took 2-3.6 s of system time, against 0.8-2.1 s for the same memory in 4 KB
+  pages (interleaved runs, three each; the cut stage alone 2.0-2.8 s against 0.9-1.1 s).
 
 :func:`configure` therefore sets glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` to
 :data:`MMAP_THRESHOLD` (256 MB: smaller arrays come from the heap, and freed memory stays with
