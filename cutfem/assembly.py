@@ -157,33 +157,42 @@ def symmetrize_blocks(blocks: np.ndarray) -> np.ndarray:
     return 0.5 * (blocks + blocks.transpose(0, 2, 1))
 
 
-def row_operator(dofs: np.ndarray, values: np.ndarray, n: int) -> sp.csr_matrix:
+def row_operator(dofs: np.ndarray, values: np.ndarray, n: int, overwrite: bool = False) -> sp.csr_matrix:
     """The sparse (r x n) matrix E whose row i has ``values[i]`` at columns ``dofs[i]`` (r, k);
-    repeated columns in a row are summed."""
+    repeated columns in a row are summed.
+
+    ``overwrite=True`` lets E take over ``values`` (float64, C-contiguous) and ``dofs`` (of E's index
+    type, C-contiguous) and sort them in place, instead of copying them (for temporaries of the
+    caller: a copy of the rows of a million elements is 100 MB).
+    """
     dofs = np.asarray(dofs)
     r, k = dofs.shape
     # int32 indices whenever they fit (scipy then stays in int32: less memory traffic in the products)
     index = np.int32 if max(n, r * k) < 2**31 else np.int64
-    # sorting the rows below works in place: never on the caller's arrays
-    data = np.array(values, dtype=float).reshape(-1)
-    cols = dofs.reshape(-1)
-    if cols.dtype != index or np.may_share_memory(cols, dofs):
-        cols = cols.astype(index)
+    # sorting the rows below works in place: on the caller's arrays only when it allows it
+    if overwrite:
+        data = np.ascontiguousarray(values, dtype=float).reshape(-1)
+        cols = np.ascontiguousarray(dofs, dtype=index).reshape(-1)
+    else:
+        data = np.array(values, dtype=float).reshape(-1)
+        cols = dofs.reshape(-1)
+        if cols.dtype != index or np.may_share_memory(cols, dofs):
+            cols = cols.astype(index)
     E = sp.csr_matrix((data, cols, k * np.arange(r + 1, dtype=index)), shape=(r, n))
     E.sum_duplicates()
     return E
 
 
-def gram(dofs: np.ndarray, values: np.ndarray, n: int) -> sp.csr_matrix:
+def gram(dofs: np.ndarray, values: np.ndarray, n: int, overwrite: bool = False) -> sp.csr_matrix:
     """E^T E for the row operator E of (dofs, values): the matrix of the form sum_i (e_i.u)(e_i.v).
 
     Every symmetric positive semidefinite form of cutfem is a sum of squares of this kind (a
     quadrature of products, a jump times a jump), so it is assembled by one sparse product instead
     of a scatter of k x k blocks.  The product accumulates the contributions to (i, j) and to (j, i)
     over the same rows in the same order, and each product commutes, so the result is exactly
-    symmetric.
+    symmetric.  ``overwrite``: see :func:`row_operator`.
     """
-    E = row_operator(dofs, values, n)
+    E = row_operator(dofs, values, n, overwrite)
     C = E.tocsc()  # the CSC arrays of E are the CSR arrays of E^T
     Et = sp.csr_matrix((C.data, C.indices, C.indptr), shape=(n, E.shape[0]))
     return (Et @ E).tocsr()

@@ -61,10 +61,10 @@ from .mesh import (
     StructuredBox,
     TetMesh,
     barycentric_gradients,
-    cross,
     dense_unique,
     pair_up,
     tet_face_keys,
+    triangle_areas,
     unique_keys,
 )
 
@@ -101,9 +101,10 @@ _CASES = _case_table()
 
 def _case_arrays():
     """Lookup tables indexed by the sign code: edge endpoints (16, 4) and polygon size (16,).
-    Triangles repeat their last edge in the fourth slot."""
-    ei = np.zeros((16, 4), dtype=np.int64)
-    ej = np.zeros((16, 4), dtype=np.int64)
+    Triangles repeat their last edge in the fourth slot.  The local node numbers are int8: the
+    (m, 4) slot arrays gathered from them are then 8 times smaller than in int64."""
+    ei = np.zeros((16, 4), dtype=np.int8)
+    ej = np.zeros((16, 4), dtype=np.int8)
     nv = np.zeros(16, dtype=np.int64)
     for code, edges in _CASES.items():
         e = np.array(edges + edges[-1:] * (4 - len(edges)))
@@ -326,15 +327,15 @@ class CutMesh:
         return len(self.triangles)
 
     # -- geometry of S_h ---------------------------------------------------------------------
-    @cached_property
+    @property
     def triangle_points(self) -> np.ndarray:
-        """(T, 3, 3) vertex coordinates of each triangle of S_h."""
+        """(T, 3, 3) vertex coordinates of each triangle of S_h (gathered on each access, not kept:
+        80 MB at a million triangles)."""
         return self.vertices[self.triangles]
 
     @cached_property
     def triangle_areas(self) -> np.ndarray:
-        p = self.triangle_points
-        return 0.5 * np.linalg.norm(cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+        return triangle_areas(self.vertices, self.triangles)
 
     @cached_property
     def piece_areas(self) -> np.ndarray:
@@ -576,8 +577,11 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     code, active, slots = _marching(vals)
     if not np.any(active):
         raise CutError("every piece of the cut collapsed to a point or segment; refine the background mesh")
-    tet_ids, labels, vals, code = tet_ids[active], labels[active], vals[active], code[active]
-    edge_i, edge_j, pi, pj = (a[active] for a in slots)
+    edge_i, edge_j, pi, pj = slots
+    del cand, slots
+    if not active.all():  # collapsed pieces are rare: no copies when there are none
+        tet_ids, labels, vals, code = tet_ids[active], labels[active], vals[active], code[active]
+        edge_i, edge_j, pi, pj = edge_i[active], edge_j[active], pi[active], pj[active]
     m = len(tet_ids)
 
     # active nodes, numbered by increasing background id (labels increase with it)

@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .mesh import cross
+from .mesh import cross, triangle_areas
 from .quadrature import triangle_rule
 
 __all__ = ["l2_error", "h1_error", "discrete_error", "rates", "fitted_rate", "surface_integral"]
@@ -47,7 +47,7 @@ def l2_error(space, coeffs, exact, degree: int = 4, measure: str = "surface", ch
         q, c = len(w), values.shape[1]
         to_points = np.kron(bary.T, np.eye(3))  # (9, 3q): [3v + d, 3i + d] = b_iv
         to_values = np.kron(bary.T, np.eye(c))  # (3c, qc)
-        area = _triangle_areas(points, triangles)
+        area = triangle_areas(points, triangles)
         total = 0.0
         for start in range(0, len(triangles), chunk):  # blocks of triangles, not single elements
             t = triangles[start : start + chunk]
@@ -64,18 +64,6 @@ def l2_error(space, coeffs, exact, degree: int = 4, measure: str = "surface", ch
     if diff.ndim == 3:
         diff = diff.sum(axis=2)
     return float(np.sqrt(np.einsum("mq,mq->", diff, quad.weights)))
-
-
-def _triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """|T| = |(x_1 - x_0) x (x_2 - x_0)| / 2 for all triangles, on coordinate columns."""
-    cols = [np.ascontiguousarray(points[:, d]) for d in range(3)]
-    x0, x1, x2 = ([np.take(col, triangles[:, k]) for col in cols] for k in range(3))
-    u = [b - a for a, b in zip(x0, x1)]
-    v = [b - a for a, b in zip(x0, x2)]
-    cx = u[1] * v[2] - u[2] * v[1]
-    cy = u[2] * v[0] - u[0] * v[2]
-    cz = u[0] * v[1] - u[1] * v[0]
-    return 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
 
 
 def h1_error(space, coeffs, exact_gradient, degree: int = 4) -> float:

@@ -227,6 +227,19 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
+    """|T| = |(x_1 - x_0) x (x_2 - x_0)| / 2 of triangles (m, 3) of ``points`` (p, 3), on coordinate
+    columns: no (m, 3, 3) array of triangle vertices."""
+    cols = [np.ascontiguousarray(points[:, d]) for d in range(3)]
+    x0, x1, x2 = ([np.take(col, triangles[:, k]) for col in cols] for k in range(3))
+    u = [b - a for a, b in zip(x0, x1)]
+    v = [b - a for a, b in zip(x0, x2)]
+    cx = u[1] * v[2] - u[2] * v[1]
+    cy = u[2] * v[0] - u[0] * v[2]
+    cz = u[0] * v[1] - u[1] * v[0]
+    return 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
+
+
 def barycentric_gradients(vertices: np.ndarray):
     """Gradients of the barycentric coordinates of tetrahedra.
 
