@@ -38,6 +38,7 @@ def test_run_tiny_writes_json_and_figure(tmp_path):
         assert set(r["allocator"]) >= {"malloc", "numpy_hugepage", "thp_defrag"}
     assert (tmp_path / "performance_scaling.png").stat().st_size > 10_000
     assert summary["levels"] == data["levels"]
+    assert data["repeat"] == 1 and all(r["totals"] == [r["total"]] for r in data["levels"])
     assert performance.fitted_exponent([1, 10, 100], [2, 20, 200]) == pytest.approx(1.0)
 
 
