@@ -379,6 +379,8 @@ def position_load(space) -> np.ndarray:
     """
     if isinstance(space, SurfaceP1Space):
         return _meshed_stiffness(space) @ space.dof_points
+    if not isinstance(space, CutP1Space):
+        raise TypeError(f"position_load integrates over a surface: give a SurfaceP1Space or a CutP1Space, not {type(space).__name__}")
     local = space.tangential_gradients * space.element_surface_areas[:, None, None]
     return assemble_vector(space.element_dofs, local, space.n_dofs)
 

@@ -137,6 +137,14 @@ def test_position_load_is_stiffness_times_coordinates(space):
     assert np.einsum("ik,ik->", X, B) == pytest.approx(2 * triangles_area(surface_triangles(space)), rel=1e-11)
 
 
+def test_position_load_refuses_a_volume_space():
+    from cutfem.spaces import CutVolumeP1Space
+
+    V = CutVolumeP1Space(structured_box([-1, -1, -1], [1, 1, 1], cells=4), Sphere(0.7))
+    with pytest.raises(TypeError, match="SurfaceP1Space or a CutP1Space"):
+        position_load(V)
+
+
 # ----------------------------------------------------------------------------------------------
 # stabilizations: symmetry, semi-definiteness, consistency on linear functions
 # ----------------------------------------------------------------------------------------------
