@@ -33,7 +33,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from .assembly import assemble_vector, gram
-from .mesh import cross
+from .mesh import cross, vertex_columns
 from .spaces import CutP1Space, SurfaceP1Space
 
 __all__ = [
@@ -307,17 +307,15 @@ def _piece_mass(space) -> sp.csr_matrix:
     tt, area = cut.triangle_tets, cut.triangle_areas
     m = space.n_elements
     piece = np.bincount(tt, weights=area, minlength=m)
-    # vertex coordinates per triangle, column by column (no (T, 3, 3) array)
-    cols = [np.ascontiguousarray(cut.vertices[:, d]) for d in range(3)]
-    x = [[np.take(col, cut.triangles[:, v]) for v in range(3)] for col in cols]  # x[d][v]: (T,)
-    centre = np.stack([np.bincount(tt, weights=area * (x[d][0] + x[d][1] + x[d][2]), minlength=m) for d in range(3)], axis=1)
+    x = vertex_columns(cut.vertices, cut.triangles)  # x[v][d]: (T,), no (T, 3, 3) array
+    centre = np.stack([np.bincount(tt, weights=area * (x[0][d] + x[1][d] + x[2][d]), minlength=m) for d in range(3)], axis=1)
     # a piece of zero area (collinear vertices) gets zero rows; its centre only has to be finite
     np.divide(centre, 3.0 * piece[:, None], out=centre, where=piece[:, None] > 0)
     e1, e2 = _plane_axes(space.element_normals)
     E1, E2, C = e1[tt], e2[tt], centre[tt]
     # in-plane coordinates of the triangle vertices relative to the piece centroid
-    s = [sum((x[d][v] - C[:, d]) * E1[:, d] for d in range(3)) for v in range(3)]
-    t = [sum((x[d][v] - C[:, d]) * E2[:, d] for d in range(3)) for v in range(3)]
+    s = [sum((x[v][d] - C[:, d]) * E1[:, d] for d in range(3)) for v in range(3)]
+    t = [sum((x[v][d] - C[:, d]) * E2[:, d] for d in range(3)) for v in range(3)]
     del x, E1, E2, C
     sbar, tbar = (s[0] + s[1] + s[2]) / 3.0, (t[0] + t[1] + t[2]) / 3.0
     w = area / 12.0

@@ -30,6 +30,8 @@ __all__ = [
     "write_mesh",
     "barycentric_gradients",
     "cross",
+    "triangle_areas",
+    "vertex_columns",
     "dense_unique",
     "stable_argsort",
     "sorted_row_keys",
@@ -227,11 +229,17 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return out
 
 
+def vertex_columns(points: np.ndarray, triangles: np.ndarray) -> list:
+    """x[k][d] (m,): coordinate d of vertex k of every triangle (m, 3), by one 1-d gather per vertex
+    and axis; several times faster than gathering (m, 3, 3) blocks, and no such array is made."""
+    cols = [np.ascontiguousarray(points[:, d]) for d in range(3)]
+    return [[np.take(col, triangles[:, k]) for col in cols] for k in range(3)]
+
+
 def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
     """|T| = |(x_1 - x_0) x (x_2 - x_0)| / 2 of triangles (m, 3) of ``points`` (p, 3), on coordinate
-    columns: no (m, 3, 3) array of triangle vertices."""
-    cols = [np.ascontiguousarray(points[:, d]) for d in range(3)]
-    x0, x1, x2 = ([np.take(col, triangles[:, k]) for col in cols] for k in range(3))
+    columns (:func:`vertex_columns`)."""
+    x0, x1, x2 = vertex_columns(points, triangles)
     u = [b - a for a, b in zip(x0, x1)]
     v = [b - a for a, b in zip(x0, x2)]
     cx = u[1] * v[2] - u[2] * v[1]

@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .mesh import pair_up
+from .mesh import pair_up, vertex_columns
 
 __all__ = [
     "SurfaceMesh",
@@ -202,12 +202,11 @@ def _triangle_geometry(points: np.ndarray, tri: np.ndarray, block: int = 1 << 15
     faster than gathering (M, 3, 3) blocks and calling ``np.cross``, and in blocks of ``block``
     triangles, whose two dozen temporaries stay in cache and reuse the same memory.
     """
-    cols = [np.ascontiguousarray(points[:, d]) for d in range(3)]
     m = len(tri)
     cross, dots, longest = np.empty((m, 3)), np.empty((2, m, 3)), np.empty(m)
     for start in range(0, m, block):  # blocks of triangles, not single elements
         part = slice(start, start + block)
-        x = [[np.take(col, tri[part, k]) for col in cols] for k in range(3)]  # x[k][d]
+        x = vertex_columns(points, tri[part])  # x[k][d]
         e = [[x[(k + 1) % 3][d] - x[k][d] for d in range(3)] for k in range(3)]  # e[k][d]
         v = [x[2][d] - x[0][d] for d in range(3)]  # x_2 - x_0 = -e_2
         u = e[0]
