@@ -54,6 +54,8 @@ from functools import cached_property
 
 import numpy as np
 
+from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet
+from .measures import ElementVolume, FacetMeasure, SideVolume, SurfacePieces
 from .mesh import (
     CUBE_CORNERS,
     KUHN_TETS,
@@ -68,7 +70,7 @@ from .mesh import (
     unique_keys,
 )
 
-__all__ = ["CutMesh", "cut_mesh", "nodal_values", "snapped_nodal_values", "inside_tetrahedra", "CutError"]
+__all__ = ["CutMesh", "cut_mesh", "nodal_values", "snapped_nodal_values", "CutError", "NEG", "POS", "CUT"]
 
 
 class CutError(ValueError):
@@ -307,6 +309,83 @@ class CutMesh:
     triangle_tets: np.ndarray
     _polygons: tuple = field(repr=False)  # (vertex of each polygon slot (n, 4), polygon sizes (n,))
     _gradients: tuple | None = field(default=None, repr=False)  # (basis gradients, volumes) if known
+    levelset: object = field(default=None, repr=False)  # what was cut: for the sides' nodal values
+
+    # -- sides, element sets, facet sets and measures (cutfem.markers, cutfem.measures) ------------
+    @cached_property
+    def background_values(self) -> np.ndarray:
+        """(N,) phi_h at every background node with the zero rule's snap (visits every node; the
+        sides need them, S_h alone does not)."""
+        if self.levelset is None:
+            raise ValueError("this cut was made without its level set; cut with cut_mesh(background, levelset)")
+        return snapped_nodal_values(self.background, self.levelset)
+
+    @cached_property
+    def _element_sets(self) -> dict:
+        return {}
+
+    def elements(self, which=CUT):
+        """The element set ``NEG``, ``POS`` or ``CUT`` (:class:`cutfem.markers.ElementSet`, cached).
+
+        NEG (POS): the tets with a part of positive volume on that side, and the cut tets; CUT: the
+        tets that carry a piece of S_h.  See :mod:`cutfem.markers`."""
+        if isinstance(which, ElementSet):
+            return which
+        sets = self._element_sets
+        if which not in sets:
+            if which == CUT:
+                sets[CUT] = ElementSet(self.background, self.tet_ids, name=CUT, cut=self, tets=self.tets, node_ids=self.node_ids,
+                                       points=self.points, gradients=self.basis_gradients, volumes=self.tet_volumes, normals=self.normals)
+            elif which in SIDES:
+                tv = self.background_values[self.background.tets]
+                mark = (tv < 0).any(axis=1) if which == NEG else (tv > 0).any(axis=1) | (tv == 0).all(axis=1)
+                mark[self.tet_ids] = True
+                sets[which] = ElementSet(self.background, np.flatnonzero(mark), name=which, cut=self)
+            else:
+                raise ValueError(f"element sets of a cut are NEG, POS and CUT; got {which!r}")
+        return sets[which]
+
+    def interior_facets(self, which=CUT) -> FacetSet:
+        """The faces shared by two tets of an element set (default: the cut tets, the faces of J_F)."""
+        return self.elements(which).interior_facets
+
+    def ghost_facets(self, side) -> FacetSet:
+        """The ghost-penalty faces of a side: interior faces of its element set with at least one
+        tet cut (for the bulk ghost penalty of docs/math.md §7)."""
+        es = self.elements(side)
+        faces = es.interior_facets
+        cut_mark = np.zeros(es.n_elements, dtype=bool)
+        cut_mark[es.locate(self.tet_ids, "the cut tets")] = True
+        return faces.subset(cut_mark[faces.pairs[:, 0]] | cut_mark[faces.pairs[:, 1]], name=f"ghost faces of {side}")
+
+    @cached_property
+    def _measures(self) -> dict:
+        return {}
+
+    def ds(self):
+        """The measure on S_h = Gamma_h (:class:`cutfem.measures.SurfacePieces`), normal from NEG to POS."""
+        if "ds" not in self._measures:
+            self._measures["ds"] = SurfacePieces(self)
+        return self._measures["ds"]
+
+    def dx(self, where=NEG):
+        """The volume measure of a side (``NEG``/``POS``: the cut volume parts,
+        :class:`~cutfem.measures.SideVolume`) or of an element set (whole tets,
+        :class:`~cutfem.measures.ElementVolume`)."""
+        key = ("dx", where if isinstance(where, str) else id(where))
+        if key not in self._measures:
+            if isinstance(where, str) and where in SIDES:
+                self._measures[key] = SideVolume(self, where)
+            else:
+                self._measures[key] = ElementVolume(self.elements(where))
+        return self._measures[key]
+
+    def dF(self, facets):
+        """The facet measure of a facet set (:class:`~cutfem.measures.FacetMeasure`)."""
+        key = ("dF", id(facets))
+        if key not in self._measures:
+            self._measures[key] = FacetMeasure(facets)
+        return self._measures[key]
 
     # -- sizes -----------------------------------------------------------------------------
     @property
@@ -394,33 +473,6 @@ class CutMesh:
     def tet_volumes(self) -> np.ndarray:
         """(n,) volumes of the active tets."""
         return self._grads_volumes[1]
-
-    @cached_property
-    def _faces(self):
-        keys = tet_face_keys(self.tets, self.n_nodes)
-        order, starts, counts = pair_up(keys)
-        two = counts == 2
-        first = order[starts[two]]
-        second = order[starts[two] + 1]
-        face_tets = np.stack([first // 4, second // 4], axis=1)
-        local = np.stack([first % 4, second % 4], axis=1)  # local vertex opposite to the face
-        faces = self.tets[face_tets[:, 0, None], TET_FACES[local[:, 0]]]
-        return faces, face_tets, local
-
-    @property
-    def interior_faces(self) -> np.ndarray:
-        """(F, 3) local node indices of the faces shared by two active tets."""
-        return self._faces[0]
-
-    @property
-    def interior_face_tets(self) -> np.ndarray:
-        """(F, 2) the two active tets of each interior face."""
-        return self._faces[1]
-
-    @property
-    def interior_face_opposite(self) -> np.ndarray:
-        """(F, 2) local index (0..3) of the vertex opposite to the face in each of its two tets."""
-        return self._faces[2]
 
     # -- edges of S_h shared by pieces of neighbouring tets -----------------------------------
     def _polygon_edges(self):
@@ -634,6 +686,7 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     tri_tet = np.broadcast_to(np.arange(m)[:, None], (m, 2))[ok]
 
     cm = CutMesh(
+        levelset=levelset,
         background=background,
         node_ids=node_ids,
         points=points,
@@ -657,56 +710,3 @@ def snapped_nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
     discrete level set to other codes and for volume integrals."""
     values = nodal_values(mesh, levelset)
     return _snap_zeros(values, _zero_tolerance(mesh, getattr(levelset, "lipschitz", None), values))
-
-
-def inside_tetrahedra(background: TetMesh, levelset):
-    """The region {phi_h < 0} as tetrahedra, for volume integrals.
-
-    Returns ``(vertices (k, 4, 3), parent (k,))``: every background tet with all nodes inside, plus
-    the inside part of every cut tet split into sub-tets (1 inside node: one tet; 2 inside nodes: a
-    prism, 3 tets; 3 inside nodes: the tet minus a corner, a prism, 3 tets).  Sub-tets may have zero
-    volume under the zero rule (values snapped to zero as in :func:`cut_mesh`); they integrate to
-    zero.  ``parent`` holds background tet ids.
-    This visits every background tet.
-    """
-    values = snapped_nodal_values(background, levelset)
-    tv = values[background.tets]
-    inside = tv < 0
-    k = inside.sum(axis=1)
-    full = np.flatnonzero(k == 4)
-    pieces = [background.points[background.tets[full]]]
-    parents = [full]
-    X = background.points[background.tets]
-    for count in (1, 2, 3):
-        sel = np.flatnonzero(k == count)
-        if sel.size == 0:
-            continue
-        order = np.argsort(~inside[sel], axis=1, kind="stable")  # inside nodes first
-        x = np.take_along_axis(X[sel], order[..., None], axis=1)
-        v = np.take_along_axis(tv[sel], order, axis=1)
-
-        def P(i, j):
-            t = (v[:, i] / (v[:, i] - v[:, j]))[:, None]
-            return x[:, i] + t * (x[:, j] - x[:, i])
-
-        if count == 1:
-            sub = [np.stack([x[:, 0], P(0, 1), P(0, 2), P(0, 3)], axis=1)]
-        elif count == 2:
-            a, b, pac, pad, pbc, pbd = x[:, 0], x[:, 1], P(0, 2), P(0, 3), P(1, 2), P(1, 3)
-            sub = _prism(a, pac, pad, b, pbc, pbd)
-        else:
-            a, b, c = x[:, 0], x[:, 1], x[:, 2]
-            sub = _prism(a, b, c, P(0, 3), P(1, 3), P(2, 3))
-        for s in sub:
-            pieces.append(s)
-            parents.append(sel)
-    return np.concatenate(pieces), np.concatenate(parents)
-
-
-def _prism(a, b, c, a2, b2, c2):
-    """Three tets filling the prism with bottom (a, b, c), top (a2, b2, c2), lateral edges a-a2 etc."""
-    return [
-        np.stack([a, b, c, a2], axis=1),
-        np.stack([b, c, a2, b2], axis=1),
-        np.stack([c, a2, b2, c2], axis=1),
-    ]

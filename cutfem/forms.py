@@ -1,68 +1,161 @@
-"""Forms: bilinear and linear forms written as vectorized integrands, and the stabilizations.
+"""Forms: integrands over measures, for one field or several, and the built-in terms.
 
 Writing a form
 --------------
-A form is a plain function of arrays shaped (elements x quadrature points)::
+A form is a sum of terms, each an integrand over a measure (:mod:`cutfem.measures`)::
 
-    from cutfem.forms import bilinear_form, dot
+    from cutfem.forms import assemble, bilinear_form, dot, linear_form
 
     @bilinear_form(symmetric=True)
-    def helmholtz(u, v, w):
-        return dot(u.tgrad, v.tgrad) - w.k2 * u * v     # w carries x, n, h and any extra data
+    def laplace(u, v, w):
+        return dot(u.grad, v.grad)
 
-    A = helmholtz.assemble(space, k2=4.0)
+    @bilinear_form(symmetric=True)
+    def nitsche(u, v, w):                    # symmetric Nitsche on Gamma, w.h the local h_T
+        return -dot(w.n, u.grad) * v - dot(w.n, v.grad) * u + w.gamma / w.h * u * v
 
-``u`` and ``v`` are :class:`BasisField` objects: ``u.value`` (m, q), ``u.grad`` and ``u.tgrad``
-(m, 1, 3) (the full gradient and the tangential gradient ``P_h grad``; P1 gradients are constant on
-an element), and arithmetic on a BasisField acts on its value.  ``w`` is a :class:`QuadData` with
-``w.x`` (m, q, 3), ``w.n`` (m, 1, 3) (the element normal n_h), ``w.h`` and the keyword arguments given
-to ``assemble``.  The integrand returns an array broadcastable to (m, q).  Assembly loops only over
-the k x k local basis pairs (k = 3 or 4), never over elements; ``symmetric=True`` evaluates i <= j
-and mirrors, so the matrix is exactly symmetric.
+    K = assemble(laplace * cut.dx(NEG) + nitsche * cut.ds() + 0.1 * face_jump_penalty(dg, h_power=1), V, gamma=10.0)
 
-Built-in forms (SPEC §3-4): :func:`mass`, :func:`tangential_stiffness`, :func:`load`, :func:`position_load`,
-:func:`edge_jump_penalty` (J_E), :func:`face_jump_penalty` (J_F), :func:`normal_gradient_penalty`,
-:func:`volume_mass`, :func:`volume_stiffness`.
+An integrand is a plain function of arrays shaped (cells x quadrature points).  ``u`` and ``v``
+are basis functions (:class:`BasisField`): ``u.value`` (m, q), ``u.grad`` and ``u.tgrad`` (m, 1, 3)
+(the gradient and, on surfaces, the tangential gradient P_h grad); arithmetic on a BasisField acts
+on its value.  ``w`` (:class:`QuadData`) holds ``w.x`` (m, q, 3), ``w.n`` (m, 1, 3) the measure's
+normal (n_h on Gamma_h from NEG to POS, n_F on facets from the minus to the plus tet), ``w.h``
+(m, 1) the local size (h_T of the cell's tet, h_F of a facet), ``w.parent``, ``w.at(f)`` (f
+evaluated at the points, once per term) and the keyword arguments given to :func:`assemble`.
+
+On a facet measure each basis function has two traces: ``u.minus`` and ``u.plus`` (one of them is
+zero), with :func:`jump` (minus - plus) and :func:`avg`: ``jump(u)``, ``jump(u.grad)``.
+
+On a :class:`~cutfem.spaces.ProductSpace` ``u`` and ``v`` are tuples with one entry per field, all
+zero (:data:`ZERO`) but one; ``uN - uP`` is then the jump across an interface and the assembly
+skips every pair of fields whose integrand is identically zero.  One form thus assembles to one
+block matrix.  The assembly loops only over fields and local basis pairs, never over elements;
+``symmetric=True`` evaluates half the pairs and mirrors them, and a form whose integrands are all
+symmetric assembles to an exactly symmetric matrix.
+
+Built-in terms
+--------------
+:func:`mass`, :func:`stiffness`, :func:`tangential_stiffness`, :func:`face_jump_penalty` (J_F and
+the bulk ghost penalty), :func:`edge_jump_penalty` (J_E), :func:`normal_gradient_penalty`,
+:func:`nitsche` (symmetric Nitsche for Dirichlet data), :func:`interface_nitsche`
+(Hansbo-Hansbo coupling) and the linear terms :func:`load`, :func:`nitsche_load`,
+:func:`position_load`.  Each takes its measure (and, on a product space, ``field=``); the symmetric
+positive semidefinite ones are assembled as Gram matrices E^T E with exact P1 formulas
+(:func:`cutfem.assembly.gram`), several times faster than the general route and exactly symmetric;
+the general route gives the same matrices to round-off (tested).  Strong Dirichlet conditions:
+:func:`apply_dirichlet`.  The mathematics is in docs/math.md §3, §4 and §7-§10.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
-
 import numpy as np
 import scipy.sparse as sp
 
-from .assembly import assemble_vector, gram
+from .assembly import gram
+from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from .mesh import cross, vertex_columns
-from .spaces import CutP1Space, SurfaceP1Space
+from .spaces import ProductSpace, SurfaceP1Space
 
 __all__ = [
+    "ZERO",
     "BasisField",
+    "FacetField",
     "QuadData",
-    "BilinearForm",
-    "LinearForm",
+    "Integrand",
+    "Form",
     "bilinear_form",
     "linear_form",
+    "assemble",
     "dot",
+    "jump",
+    "avg",
     "mass",
+    "stiffness",
     "tangential_stiffness",
-    "load",
-    "position_load",
-    "edge_jump_penalty",
     "face_jump_penalty",
+    "edge_jump_penalty",
     "normal_gradient_penalty",
-    "volume_mass",
-    "volume_stiffness",
+    "nitsche",
+    "interface_nitsche",
+    "load",
+    "nitsche_load",
+    "position_load",
+    "apply_dirichlet",
 ]
 
 
-def dot(a, b):
-    """Dot product over the last axis."""
-    return np.einsum("...d,...d->...", a, b)
+# ---------------------------------------------------------------------------------------------
+# basis functions at quadrature points
+# ---------------------------------------------------------------------------------------------
+
+
+class _Zero:
+    """The zero function: what a field that is not being varied contributes to an integrand.
+    Absorbs products, vanishes from sums; every attribute (grad, minus, ...) is zero too."""
+
+    __array_ufunc__ = None  # ndarray op ZERO defers to the reflected operators below
+
+    def __repr__(self):
+        return "ZERO"
+
+    def __getattr__(self, name):
+        if name.startswith("__"):
+            raise AttributeError(name)
+        return self
+
+    def __getitem__(self, key):
+        return self
+
+    def __mul__(self, other):
+        return self
+
+    __rmul__ = __truediv__ = __mul__
+
+    def __add__(self, other):
+        return other
+
+    __radd__ = __add__
+
+    def __sub__(self, other):
+        return -other
+
+    def __rsub__(self, other):
+        return other
+
+    def __neg__(self):
+        return self
+
+    def __pow__(self, power):
+        return self
+
+
+ZERO = _Zero()
+
+
+class _Probe(_Zero):
+    """Stands for a nonzero basis function while the assembly finds which field pairs a form couples."""
+
+    def __repr__(self):
+        return "PROBE"
+
+    def __add__(self, other):
+        return self
+
+    __radd__ = __sub__ = __rsub__ = __add__
+
+    def __mul__(self, other):
+        return ZERO if other is ZERO else self
+
+    __rmul__ = __truediv__ = __mul__
+
+
+_PROBE = _Probe()
 
 
 class BasisField:
-    """A basis function (or its values) at quadrature points; arithmetic acts on ``value``."""
+    """A basis function at quadrature points: ``value`` (m, q), ``grad``, ``tgrad`` (m, 1, 3);
+    arithmetic acts on ``value``."""
 
     __slots__ = ("value", "grad", "tgrad")
 
@@ -101,16 +194,64 @@ class BasisField:
         return -self.value
 
 
-@dataclass
-class QuadData:
-    """Quadrature data handed to an integrand: points ``x`` (m, q, 3), element normals ``n``
-    (m, 1, 3) or None, mesh size ``h``, parent element ids, and user parameters as attributes."""
+class _Traces:
+    """A quantity with a value from each side of a facet: ``minus``, ``plus``."""
 
-    x: np.ndarray
-    n: np.ndarray | None
-    h: float
-    parent: np.ndarray
-    params: dict = field(default_factory=dict)
+    __slots__ = ("minus", "plus")
+
+    def __init__(self, minus, plus):
+        self.minus, self.plus = minus, plus
+
+
+class FacetField(_Traces):
+    """A basis function on a facet: its two traces ``minus`` and ``plus`` (:class:`BasisField` or
+    :data:`ZERO`); ``value``, ``grad`` give both traces, for :func:`jump` and :func:`avg`."""
+
+    __slots__ = ()
+
+    @property
+    def value(self):
+        return _Traces(self.minus.value, self.plus.value)
+
+    @property
+    def grad(self):
+        return _Traces(self.minus.grad, self.plus.grad)
+
+
+def _value(a):
+    return a.value if isinstance(a, BasisField) else a
+
+
+def jump(a):
+    """[a] = a^- - a^+ of a facet quantity (``u``, ``u.grad``, ``u.value``)."""
+    if isinstance(a, _Zero):
+        return a
+    return _value(a.minus) - _value(a.plus)
+
+
+def avg(a):
+    """{a} = (a^- + a^+) / 2 of a facet quantity."""
+    if isinstance(a, _Zero):
+        return a
+    return 0.5 * (_value(a.minus) + _value(a.plus))
+
+
+def dot(a, b):
+    """Dot product over the last axis (zero-aware)."""
+    if isinstance(a, _Zero) or isinstance(b, _Zero):
+        return ZERO if (a is ZERO or b is ZERO) else _PROBE
+    return np.einsum("...d,...d->...", a, b)
+
+
+class QuadData:
+    """What an integrand sees besides the basis functions: ``x`` (m, q, 3), ``n`` (m, 1, 3) or None,
+    ``h`` (m, 1) local sizes, ``parent`` (m,) the measure's element (or facet) of each cell, ``at(f)``
+    and the user's parameters as attributes."""
+
+    def __init__(self, x, n, h, parent, params):
+        self.x, self.n, self.h, self.parent = x, n, h, parent
+        self.params = params
+        self._values = {}
 
     def __getattr__(self, name):
         params = self.__dict__.get("params", {})
@@ -118,122 +259,320 @@ class QuadData:
             return params[name]
         raise AttributeError(f"quadrature data has no field {name!r}; pass it as a keyword to assemble()")
 
+    def at(self, f):
+        """``f(x)`` at the quadrature points (m, q) or (m, q, c), evaluated once per term."""
+        key = id(f)
+        if key not in self._values:
+            value = np.asarray(f(self.x), dtype=float)
+            if value.shape[:2] != self.x.shape[:2]:
+                raise ValueError(f"a function of the points must return shape (m, q) or (m, q, c) for points {self.x.shape}; got {value.shape}")
+            self._values[key] = value
+        return self._values[key]
 
-def _element_data(space, measure, degree):
-    quad = space.quadrature(measure, degree)
+
+def _quad_data(measure: Measure, quad, params):
+    """QuadData of a measure's quadrature (normals and local sizes gathered per cell)."""
     parent = quad.parent
-    G = space.element_gradients[parent]  # (m, k, 3)
-    normals = getattr(space, "element_normals", None)
-    if normals is not None and measure != "volume":
-        n = normals[parent]
-        tG = G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
-        n = n[:, None, :]
+    if quad.normal is not None:
+        n = quad.normal[:, None, :]
+    elif measure.normals is not None:
+        n = measure.normals[parent][:, None, :]
     else:
-        n, tG = None, G
-    return quad, G, tG, n
+        n = None
+    return QuadData(quad.points, n, measure.h[parent][:, None], parent, params)
 
 
-def _reduce_to_elements(space, blocks, parent):
-    """Sum per-quadrature-cell blocks into per-element blocks (cells of one element contiguous or not)."""
-    n_el = len(space.element_dofs)
-    if len(parent) == n_el and np.array_equal(parent, np.arange(n_el)):
-        return blocks
-    order = np.argsort(parent, kind="stable")
-    p = parent[order]
-    starts = np.flatnonzero(np.r_[True, p[1:] != p[:-1]])
-    out = np.zeros((n_el,) + blocks.shape[1:])
-    out[p[starts]] = np.add.reduceat(blocks[order], starts, axis=0)
-    return out
-
-
-class BilinearForm:
-    """A bilinear form a(u, v) = sum over quadrature of integrand(u, v, w) * weight."""
-
-    def __init__(self, integrand, symmetric=False, measure="surface", degree=2):
-        self.integrand = integrand
-        self.symmetric = symmetric
-        self.measure = measure
-        self.degree = degree
-        self.__doc__ = integrand.__doc__
-        self.__name__ = getattr(integrand, "__name__", "form")
-
-    def blocks(self, space, measure=None, degree=None, **params):
-        """Local element blocks (n_elements, k, k)."""
-        measure = measure or self.measure
-        degree = self.degree if degree is None else degree
-        quad, G, tG, n = _element_data(space, measure, degree)
-        phi = space.basis_values(quad)
-        w = QuadData(x=quad.points, n=n, h=space.h, parent=quad.parent, params=params)
-        m, k = G.shape[0], G.shape[1]
-        fields = [BasisField(phi[..., a], G[:, None, a], tG[:, None, a]) for a in range(k)]
-        blocks = np.empty((m, k, k))
-        for i in range(k):
-            for j in range(i if self.symmetric else 0, k):
-                val = np.broadcast_to(np.asarray(self.integrand(fields[j], fields[i], w), dtype=float), quad.weights.shape)
-                blocks[:, i, j] = np.einsum("mq,mq->m", val, quad.weights)
-                if self.symmetric:
-                    blocks[:, j, i] = blocks[:, i, j]
-        return _reduce_to_elements(space, blocks, quad.parent)
-
-    def assemble(self, space, measure=None, degree=None, **params) -> sp.csr_matrix:
-        """The n_dofs x n_dofs CSR matrix of the form on ``space``."""
-        return space.pattern("elements").matrix(self.blocks(space, measure, degree, **params))
-
-    __call__ = assemble
-
-
-class LinearForm:
-    """A linear form l(v) = sum over quadrature of integrand(v, w) * weight; the integrand may return
-    (m, q) or (m, q, c) for c components at once."""
-
-    def __init__(self, integrand, measure="surface", degree=4):
-        self.integrand = integrand
-        self.measure = measure
-        self.degree = degree
-        self.__doc__ = integrand.__doc__
-
-    def assemble(self, space, measure=None, degree=None, **params) -> np.ndarray:
-        measure = measure or self.measure
-        degree = self.degree if degree is None else degree
-        quad, G, tG, n = _element_data(space, measure, degree)
-        phi = space.basis_values(quad)
-        w = QuadData(x=quad.points, n=n, h=space.h, parent=quad.parent, params=params)
-        k = G.shape[1]
-        local = []
-        for a in range(k):
-            val = np.asarray(self.integrand(BasisField(phi[..., a], G[:, None, a], tG[:, None, a]), w), dtype=float)
-            if val.ndim == 3:
-                local.append(np.einsum("mqc,mq->mc", val, quad.weights))
-            else:
-                local.append(np.einsum("mq,mq->m", np.broadcast_to(val, quad.weights.shape), quad.weights))
-        local = np.stack(local, axis=1)  # (m, k) or (m, k, c)
-        return assemble_vector(space.element_dofs[quad.parent], local, space.n_dofs)
-
-    __call__ = assemble
-
-
-def bilinear_form(integrand=None, *, symmetric=False, measure="surface", degree=2):
-    """Decorator turning ``integrand(u, v, w)`` into a :class:`BilinearForm`."""
-    if integrand is None:
-        return lambda f: BilinearForm(f, symmetric=symmetric, measure=measure, degree=degree)
-    return BilinearForm(integrand, symmetric=symmetric, measure=measure, degree=degree)
-
-
-def linear_form(integrand=None, *, measure="surface", degree=4):
-    """Decorator turning ``integrand(v, w)`` into a :class:`LinearForm`."""
-    if integrand is None:
-        return lambda f: LinearForm(f, measure=measure, degree=degree)
-    return LinearForm(integrand, measure=measure, degree=degree)
+def _field_basis(space, measure: Measure, quad):
+    """(dofs (m, k), basis fields [k]) of a field at a measure's quadrature points; on a facet
+    measure k = 8 (the minus tet's four, then the plus tet's four)."""
+    if measure.facets is not None:
+        pairs = measure.facets.pairs[quad.parent]
+        dofs, fields = [], []
+        for s in (0, 1):
+            el = space.local_elements(measure, pairs[:, s])
+            phi = space.basis_at(quad.points, el)
+            G = space.element_gradients[el]
+            dofs.append(space.element_dofs[el])
+            for a in range(G.shape[1]):
+                b = BasisField(phi[..., a], G[:, None, a], G[:, None, a])
+                fields.append(FacetField(b, ZERO) if s == 0 else FacetField(ZERO, b))
+        return np.concatenate(dofs, axis=1), fields
+    el = space.local_elements(measure, quad.parent)
+    phi = space.basis_on(measure, quad, el)
+    G = space.element_gradients[el]
+    if measure.surface:
+        n = quad.normal
+        tG = G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
+    else:
+        tG = G
+    return space.element_dofs[el], [BasisField(phi[..., a], G[:, None, a], tG[:, None, a]) for a in range(G.shape[1])]
 
 
 # ---------------------------------------------------------------------------------------------
-# built-in forms
-#
-# The built-in symmetric forms are sums of squares, so each is assembled as a Gram matrix E^T E
-# (cutfem.assembly.gram) with exact P1 formulas per piece, which is several times faster than the
-# general block route on a million elements and exactly symmetric.  The general route gives the
-# same matrices to round-off (tested).  On a triangulated surface (SurfaceP1Space) the mass,
-# stiffness and edge penalty use closed forms on the node graph instead (end of this module).
+# integrands, terms, forms
+# ---------------------------------------------------------------------------------------------
+
+
+class Integrand:
+    """A bilinear ``f(u, v, w)`` or linear ``f(v, w)`` integrand; ``integrand * measure`` is a :class:`Form`."""
+
+    def __init__(self, function, linear: bool, symmetric: bool = False, degree: int | None = None):
+        self.function = function
+        self.linear = linear
+        self.symmetric = symmetric
+        self.degree = degree if degree is not None else (4 if linear else 2)
+        self.__doc__ = function.__doc__
+        self.__name__ = getattr(function, "__name__", "integrand")
+
+    def __call__(self, *args):
+        return self.function(*args)
+
+    def __mul__(self, measure):
+        if not isinstance(measure, Measure):
+            raise TypeError(f"multiply an integrand by a measure (cut.dx(NEG), cut.ds(), cut.dF(...)), not {type(measure).__name__}")
+        return Form([(1.0, _IntegrandTerm(self, measure))], self.linear)
+
+    __rmul__ = __mul__
+
+    def on(self, measure, field=None):
+        """The form of this integrand over ``measure`` for one field of a product space (``field`` a
+        position or name): the integrand then sees that field's basis functions alone."""
+        return Form([(1.0, _IntegrandTerm(self, measure, field))], self.linear)
+
+
+def bilinear_form(function=None, *, symmetric=False, degree=None):
+    """Decorator turning ``f(u, v, w)`` into a bilinear :class:`Integrand` (quadrature degree 2
+    unless given: exact for P1 products with constant coefficients)."""
+    if function is None:
+        return lambda f: Integrand(f, False, symmetric, degree)
+    return Integrand(function, False, symmetric, degree)
+
+
+def linear_form(function=None, *, degree=None):
+    """Decorator turning ``f(v, w)`` into a linear :class:`Integrand` (quadrature degree 4 unless given)."""
+    if function is None:
+        return lambda f: Integrand(f, True, False, degree)
+    return Integrand(function, True, False, degree)
+
+
+class Form:
+    """A sum of terms with coefficients; bilinear or linear (``linear``).  ``+``, ``-`` and scalar
+    ``*`` combine forms; :meth:`assemble` (or :func:`assemble`) gives the matrix or vector."""
+
+    def __init__(self, terms, linear: bool):
+        self.terms = list(terms)
+        self.linear = linear
+
+    def _check(self, other):
+        if not isinstance(other, Form):
+            raise TypeError(f"can only add forms to forms, not {type(other).__name__}")
+        if other.linear != self.linear:
+            raise TypeError("cannot add a linear form and a bilinear form")
+        return other
+
+    def __add__(self, other):
+        if isinstance(other, (int, float)) and other == 0:  # sum() starts from 0
+            return self
+        other = self._check(other)
+        return Form(self.terms + other.terms, self.linear)
+
+    __radd__ = __add__
+
+    def __sub__(self, other):
+        return self + (-1.0) * self._check(other)
+
+    def __mul__(self, c):
+        if not np.isscalar(c):
+            raise TypeError("forms are scaled by numbers; coefficients that vary go into the integrand")
+        return Form([(c * a, t) for a, t in self.terms], self.linear)
+
+    __rmul__ = __mul__
+
+    def __neg__(self):
+        return (-1.0) * self
+
+    def assemble(self, space, **params):
+        return assemble(self, space, **params)
+
+
+class _IntegrandTerm:
+    def __init__(self, integrand: Integrand, measure: Measure, field=None):
+        self.integrand, self.measure, self.field = integrand, measure, field
+
+    def _field_pairs(self, space, w):
+        """The (trial, test) field pairs (or test fields, linear) that the integrand couples."""
+        fields = space.fields if isinstance(space, ProductSpace) else [space]
+        if self.field is not None or len(fields) == 1:
+            k = _field_index(space, self.field)
+            return [(k, k)] if not self.integrand.linear else [k]
+        nf = len(fields)
+
+        def probe(k):
+            return tuple(_PROBE if i == k else ZERO for i in range(nf))
+
+        def couples(*args):
+            try:
+                return self.integrand(*args, w) is not ZERO
+            except Exception:  # an integrand that cannot run on probes: assume it couples
+                return True
+
+        if self.integrand.linear:
+            return [j for j in range(nf) if couples(probe(j))]
+        return [(i, j) for i in range(nf) for j in range(nf) if couples(probe(i), probe(j))]
+
+    def _wrap(self, space, k, basis):
+        """The argument an integrand sees: the bare basis function, or a tuple on a product space."""
+        if not isinstance(space, ProductSpace) or self.field is not None:
+            return basis
+        return tuple(basis if i == k else ZERO for i in range(len(space.fields)))
+
+    def contributions(self, space, params):
+        measure = self.measure
+        quad = measure.quadrature(self.integrand.degree)
+        w = _quad_data(measure, quad, params)
+        weights = quad.weights
+        cache = {}
+
+        def basis(k):
+            if k not in cache:
+                cache[k] = _field_basis(_field(space, k), measure, quad)
+            return cache[k]
+
+        f = self.integrand
+        if f.linear:
+            for j in self._field_pairs(space, w):
+                dofs, fields = basis(j)
+                local = []
+                for b in fields:
+                    val = f(self._wrap(space, j, b), w)
+                    local.append(None if val is ZERO else np.einsum("mq...,mq->m...", np.broadcast_to(val, weights.shape + np.shape(val)[2:]), weights))
+                if all(x is None for x in local):
+                    continue
+                shape = next(x for x in local if x is not None).shape
+                local = np.stack([np.zeros(shape) if x is None else x for x in local], axis=1)
+                yield j, dofs, local
+            return
+        pairs = self._field_pairs(space, w)
+        symmetric = f.symmetric
+        for i, j in pairs:  # i: trial field, j: test field
+            if symmetric and (j, i) in pairs and i > j:
+                continue  # mirrored from (j, i)
+            dofs_u, trial = basis(i)
+            dofs_v, test = basis(j)
+            blocks = np.zeros((weights.shape[0], len(test), len(trial)))
+            same = i == j
+            for b, vb in enumerate(test):
+                for a, ua in enumerate(trial):
+                    if symmetric and same and a < b:
+                        continue
+                    val = f(self._wrap(space, i, ua), self._wrap(space, j, vb), w)
+                    if val is ZERO:
+                        continue
+                    blocks[:, b, a] = np.einsum("mq,mq->m", np.broadcast_to(val, weights.shape), weights)
+                    if symmetric and same:
+                        blocks[:, a, b] = blocks[:, b, a]
+            yield i, j, dofs_u, dofs_v, blocks
+            if symmetric and i != j and (j, i) in pairs:
+                yield j, i, dofs_v, dofs_u, blocks.transpose(0, 2, 1)
+
+
+class _GramTerm:
+    """A built-in bilinear term assembled on one field by ``build(space) -> CSR``."""
+
+    def __init__(self, build, field=None):
+        self.build, self.field = build, field
+
+
+class _VectorTerm:
+    """A built-in linear term assembled on one field by ``build(space) -> (n,) or (n, c)``."""
+
+    def __init__(self, build, field=None):
+        self.build, self.field = build, field
+
+
+def _field_index(space, field):
+    if isinstance(space, ProductSpace):
+        if field is None:
+            if len(space.fields) == 1:
+                return 0
+            raise ValueError(f"on a product space of {len(space.fields)} fields, give field= (a position or one of {space.names})")
+        return space.index(field)
+    if field not in (None, 0):
+        raise ValueError(f"field={field!r} given for a single field")
+    return 0
+
+
+def _field(space, k):
+    return space.fields[k] if isinstance(space, ProductSpace) else space
+
+
+def assemble(form: Form, space, **params):
+    """The matrix (bilinear form: CSR, n x n over all fields of ``space``) or the vector (linear form:
+    (n,) or (n, c)) of ``form`` on ``space`` (one field or a :class:`~cutfem.spaces.ProductSpace`).
+    ``params`` are handed to the integrands as attributes of ``w``."""
+    if isinstance(form, Integrand):
+        raise TypeError("an integrand needs a measure: assemble(integrand * measure, space)")
+    offsets = space.offsets if isinstance(space, ProductSpace) else np.array([0, space.n_dofs])
+    n = int(offsets[-1])
+    if form.linear:
+        out = None
+        for c, term in form.terms:
+            if isinstance(term, _VectorTerm):
+                k = _field_index(space, term.field)
+                parts = [(k, None, c * np.asarray(term.build(_field(space, k)), dtype=float))]
+            else:
+                parts = [(j, dofs, c * local) for j, dofs, local in term.contributions(space, params)]
+            for k, dofs, vals in parts:
+                if out is None:
+                    out = np.zeros((n,) + vals.shape[2 if dofs is not None else 1:])
+                if dofs is None:
+                    out[offsets[k] : offsets[k + 1]] += vals
+                else:
+                    target = out[offsets[k] : offsets[k + 1]]
+                    flat = vals.reshape(dofs.size, -1)
+                    idx = dofs.reshape(-1)
+                    for col in range(flat.shape[1]):  # components, not elements
+                        column = np.bincount(idx, weights=flat[:, col], minlength=len(target))
+                        if target.ndim == 1:
+                            target += column
+                        else:
+                            target[:, col] += column
+        return np.zeros(n) if out is None else out
+    rows, cols, data = [], [], []
+    total = None
+    symmetric = True
+    for c, term in form.terms:
+        if isinstance(term, _GramTerm):
+            k = _field_index(space, term.field)
+            A = term.build(_field(space, k))
+            if c != 1.0:
+                A = c * A
+            if len(offsets) == 2:
+                total = A if total is None else total + A
+            else:
+                A = A.tocoo()
+                rows.append(A.row + offsets[k])
+                cols.append(A.col + offsets[k])
+                data.append(A.data)
+            continue
+        symmetric = symmetric and term.integrand.symmetric
+        for i, j, dofs_u, dofs_v, blocks in term.contributions(space, params):
+            m, kv, ku = blocks.shape
+            rows.append(np.broadcast_to((dofs_v + offsets[j])[:, :, None], blocks.shape).reshape(-1))
+            cols.append(np.broadcast_to((dofs_u + offsets[i])[:, None, :], blocks.shape).reshape(-1))
+            data.append(c * blocks.reshape(-1))
+    if rows:
+        A = sp.coo_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
+        if symmetric:  # the sums of duplicates run in different orders for (i, j) and (j, i)
+            A = 0.5 * (A + A.T).tocsr()
+        total = A if total is None else total + A
+    if total is None:
+        return sp.csr_matrix((n, n))
+    return total.tocsr()
+
+
+# ---------------------------------------------------------------------------------------------
+# built-in terms
 # ---------------------------------------------------------------------------------------------
 
 
@@ -245,15 +584,16 @@ def _sqrt_reference_mass(k: int) -> np.ndarray:
     return np.sqrt(w)[:, None] * Q.T
 
 
-def _simplex_mass(space, vertices, parent, measure):
-    """Gram rows of the exact mass matrix over simplices (triangles or tets) lying in elements."""
-    lam = space.basis_at(vertices, parent)  # (m, k_vertices, k_dofs)
+def _simplex_mass(space, vertices, elements, sizes):
+    """Gram rows of the exact mass matrix over simplices (triangles or tets) lying in the field's
+    ``elements``, with measures ``sizes``."""
+    lam = space.basis_at(vertices, elements)  # (m, k_vertices, k_dofs)
     R = _sqrt_reference_mass(vertices.shape[1])
     rows = R @ lam
     del lam
-    rows *= np.sqrt(measure)[:, None, None]
+    rows *= np.sqrt(sizes)[:, None, None]
     k = rows.shape[2]
-    dofs = np.repeat(_compact(space.element_dofs[parent], space.n_dofs), rows.shape[1], axis=0)
+    dofs = np.repeat(_compact(space.element_dofs[elements], space.n_dofs), rows.shape[1], axis=0)
     return gram(dofs, rows.reshape(-1, k), space.n_dofs, overwrite=True)
 
 
@@ -262,26 +602,50 @@ def _compact(dofs, n):
     return dofs.astype(np.int32) if n < 2**31 else dofs
 
 
-def _gradient_rows(space, grads, measure):
-    """Gram rows sqrt(measure) * grads[:, :, d] for d = 0, 1, 2 (grads (n_el, k, 3))."""
-    rows = (grads * np.sqrt(measure)[:, None, None]).transpose(0, 2, 1).reshape(-1, grads.shape[1])  # (3 n_el, k)
-    dofs = np.repeat(_compact(space.element_dofs, space.n_dofs), 3, axis=0)
+def _gradient_rows(space, grads, weights, elements=None):
+    """Gram rows sqrt(weights) * grads[:, :, d] for d = 0, 1, 2 (grads (m, k, 3) on the field's
+    ``elements``, all of them by default)."""
+    rows = (grads * np.sqrt(weights)[:, None, None]).transpose(0, 2, 1).reshape(-1, grads.shape[1])  # (3 m, k)
+    dofs = space.element_dofs if elements is None else space.element_dofs[elements]
+    dofs = np.repeat(_compact(dofs, space.n_dofs), 3, axis=0)
     return gram(dofs, rows, space.n_dofs, overwrite=True)
 
 
-def mass(space) -> sp.csr_matrix:
-    """Surface mass matrix M_ij = (phi_j, phi_i)_{S_h}, exact.
+def _same_elements(space, measure) -> bool:
+    return measure.elements is space.elements
 
-    On a cut space from the moments of each piece (:func:`_piece_mass`, three Gram rows per active
-    tet); on a triangulated surface in closed form (:func:`_meshed_mass`); otherwise on each
-    triangle T of S_h with the basis values Lambda (3 x k) at its vertices,
-    M_T = Lambda^T |T|/12 (I + 1 1^T) Lambda (:func:`_simplex_mass`)."""
-    if isinstance(space, SurfaceP1Space):
-        return _meshed_mass(space)
-    if isinstance(space, CutP1Space):
-        return _piece_mass(space)
-    vertices, parent, areas = space.surface_triangles()
-    return _simplex_mass(space, vertices, parent, areas)
+
+def _require(measure, kinds, what):
+    if not isinstance(measure, kinds):
+        names = " or ".join(k.__name__ for k in (kinds if isinstance(kinds, tuple) else (kinds,)))
+        raise TypeError(f"{what} integrates over a {names} measure, got {measure!r}")
+
+
+def mass(measure: Measure, field=None) -> Form:
+    """(u, v) over ``measure``, exact for P1: on S_h of a cut from the moments of each piece
+    (:func:`_piece_mass`, three Gram rows per cut tet), on a triangulated surface in closed form,
+    otherwise on each simplex T of the measure (triangles of S_h, sub-tets of a side, whole tets) with
+    the basis values Lambda at its vertices, M_T = Lambda^T |T|/((k)(k+1)) (I + 1 1^T) Lambda."""
+
+    def build(space):
+        if isinstance(measure, MeshedSurface):
+            return _meshed_mass(space)
+        if isinstance(measure, SurfacePieces):
+            if _same_elements(space, measure):
+                return _piece_mass(space)
+            c = measure.cut
+            el = space.local_elements(measure, c.triangle_tets)
+            return _simplex_mass(space, c.triangle_points, el, c.triangle_areas)
+        if isinstance(measure, SideVolume):
+            sub, parent, _ = measure.subtetrahedra
+            sizes = np.abs(np.einsum("ij,ij->i", cross(sub[:, 1] - sub[:, 0], sub[:, 2] - sub[:, 0]), sub[:, 3] - sub[:, 0])) / 6.0
+            return _simplex_mass(space, sub, space.local_elements(measure, parent), sizes)
+        if isinstance(measure, ElementVolume):
+            es = measure.elements
+            return _simplex_mass(space, es.vertices, space.local_elements(measure, np.arange(es.n_elements)), es.volumes)
+        raise TypeError(f"mass integrates over cells (a surface or a volume), not over {measure!r}")
+
+    return Form([(1.0, _GramTerm(build, field))], False)
 
 
 def _piece_mass(space) -> sp.csr_matrix:
@@ -348,18 +712,40 @@ def _plane_axes(normals):
     return e1, cross(normals, e1)
 
 
-def tangential_stiffness(space) -> sp.csr_matrix:
-    """A_ij = (P_h grad phi_j, P_h grad phi_i)_{S_h}; on each element |K| (P_h G_j)·(P_h G_i),
-    |K| the area of the surface part of the element.  On a triangulated surface in closed form,
-    :func:`_meshed_stiffness`."""
-    if isinstance(space, SurfaceP1Space):
-        return _meshed_stiffness(space)
-    return _gradient_rows(space, space.tangential_gradients, space.element_surface_areas)
+def stiffness(measure: Measure, field=None) -> Form:
+    """(grad u, grad v) over a volume measure: |T ∩ side| G G^T per tet (the P1 gradients are
+    constant), for a side of the cut (:class:`~cutfem.measures.SideVolume`) or whole tets."""
+    _require(measure, (SideVolume, ElementVolume), "stiffness")
+
+    def build(space):
+        es = measure.elements
+        el = space.local_elements(measure, np.arange(es.n_elements))
+        return _gradient_rows(space, space.element_gradients[el], measure.part_volumes, el)
+
+    return Form([(1.0, _GramTerm(build, field))], False)
 
 
-def position_load(space) -> np.ndarray:
+def tangential_stiffness(measure: Measure, field=None) -> Form:
+    """(P_h grad u, P_h grad v) over a surface: on each piece |K| (P_h G_j)·(P_h G_i), |K| the area
+    of the piece and P_h = I - n_h n_h^T; on a triangulated surface in closed form
+    (:func:`_meshed_stiffness`)."""
+    _require(measure, (SurfacePieces, MeshedSurface), "tangential_stiffness")
+
+    def build(space):
+        if isinstance(measure, MeshedSurface):
+            return _meshed_stiffness(space)
+        es = measure.elements
+        el = space.local_elements(measure, np.arange(es.n_elements))
+        G, n = space.element_gradients[el], measure.normals
+        tG = G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
+        return _gradient_rows(space, tG, measure.piece_areas, el)
+
+    return Form([(1.0, _GramTerm(build, field))], False)
+
+
+def position_load(measure: Measure, field=None) -> Form:
     """The right-hand sides of the mean curvature problem, b_ik = (grad_{S_h} x_k, grad_{S_h} phi_i)_{S_h},
-    as an (n, 3) array, without assembling the stiffness matrix.
+    an (n, 3) array, without assembling the stiffness matrix.
 
     The coordinates x_k are linear, so their P1 interpolant is exact on every element and
     grad_{S_h} x_k = P_h e_k; since P_h is a symmetric projection and grad_{S_h} phi_i is tangent,
@@ -367,65 +753,45 @@ def position_load(space) -> np.ndarray:
 
         b_i = sum_K |S_K| grad_{S_h} phi_i|_K,
 
-    the area-weighted tangential gradients summed per dof: the same vector as A x_k with
-    A = :func:`tangential_stiffness` (to round-off; tested), at the cost of one scatter instead of
-    a sparse matrix product (20 times less than the product on a cut torus at spacing 0.05).
-    Each element's contributions sum to |S_K| P_h grad(1) = 0, so sum_i b_i = 0 up to round-off
-    (the zero integral of H_h).  On a triangulated surface the closed-form stiffness
-    (:func:`_meshed_stiffness`, no gradients) times x is cheaper (25 against 90 ms at 295k nodes)
-    and is used instead.
+    the area-weighted tangential gradients summed per dof: the same vector as A x_k with A the
+    tangential stiffness (to round-off; tested), at the cost of one scatter instead of a sparse
+    matrix product.  Each element's contributions sum to |S_K| P_h grad(1) = 0, so sum_i b_i = 0 up
+    to round-off (the zero integral of H_h).  On a triangulated surface the closed-form stiffness
+    (no gradients) times x is cheaper and is used instead.
     """
-    if isinstance(space, SurfaceP1Space):
-        return _meshed_stiffness(space) @ space.dof_points
-    if not isinstance(space, CutP1Space):
-        raise TypeError(f"position_load integrates over a surface: give a SurfaceP1Space or a CutP1Space, not {type(space).__name__}")
-    local = space.tangential_gradients * space.element_surface_areas[:, None, None]
-    return assemble_vector(space.element_dofs, local, space.n_dofs)
+    _require(measure, (SurfacePieces, MeshedSurface), "position_load")
+
+    def build(space):
+        if isinstance(measure, MeshedSurface):
+            return _meshed_stiffness(space) @ space.dof_points
+        if not _same_elements(space, measure):
+            raise ValueError("position_load needs the field on the cut tets, CutP1Space(cut, CUT)")
+        local = space.tangential_gradients * measure.piece_areas[:, None, None]
+        flat = local.reshape(-1, 3)
+        idx = space.element_dofs.reshape(-1)
+        return np.stack([np.bincount(idx, weights=flat[:, d], minlength=space.n_dofs) for d in range(3)], axis=1)
+
+    return Form([(1.0, _VectorTerm(build, field))], True)
 
 
-def normal_gradient_penalty(space, h_power: float = 1.0) -> sp.csr_matrix:
-    """s(u, v) = h^a (n_h . grad u, n_h . grad v)_{T_h} over the active tets (multiply by tau_N).
+def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -> Form:
+    """(f, v) over ``measure`` by quadrature of the given degree.
 
-    The normal n_h is the piece normal of each active tet; ``h_power`` is a (default 1).
-    """
-    c = np.einsum("mkd,md->mk", space.element_gradients, space.element_normals)
-    rows = c * np.sqrt(space.h**h_power * space.element_volumes)[:, None]
-    return gram(space.element_dofs, rows, space.n_dofs)
+    ``f(x)`` takes points (m, q, 3) and returns (m, q) or (m, q, c) (then the vector is (n, c)); with
+    ``closest_point`` (a map x -> p(x)) it is evaluated as f o p, the extension f^e of docs/math.md §4."""
+    g = f if closest_point is None else (lambda x: f(closest_point(x)))
 
+    @linear_form(degree=degree)
+    def source(v, w):
+        fx = w.at(g)
+        return fx * v.value[..., None] if fx.ndim == 3 else fx * v
 
-def volume_mass(space) -> sp.csr_matrix:
-    """(u, v) over the cut volume {phi_h < 0} (a :class:`~cutfem.spaces.CutVolumeP1Space`), exact:
-    on each sub-tetrahedron |T|/20 (I + 1 1^T) in its vertex values."""
-    vertices, parent, volumes = space.volume_tetrahedra()
-    return _simplex_mass(space, vertices, parent, volumes)
-
-
-def volume_stiffness(space) -> sp.csr_matrix:
-    """(grad u, grad v) over the cut volume {phi_h < 0}: the inside volume of each element times G G^T."""
-    vertices, parent, volumes = space.volume_tetrahedra()
-    inside = np.bincount(parent, weights=volumes, minlength=len(space.element_dofs))
-    return _gradient_rows(space, space.element_gradients, inside)
-
-
-def load(space, f, degree: int = 4, measure: str = "surface", closest_point=None) -> np.ndarray:
-    """Load vector b_i = (f, phi_i) over the measure, by quadrature of the given degree.
-
-    ``f(x)`` takes points (m, q, 3) and returns (m, q) or (m, q, c) (then b is (n, c)).  With
-    ``closest_point`` (a map x -> p(x)), f is evaluated as f o p (the extension f^e of SPEC §4).
-    """
-    quad = space.quadrature(measure, degree)
-    x = quad.points if closest_point is None else closest_point(quad.points)
-    fx = np.asarray(f(x), dtype=float)
-    if fx.shape[:2] != quad.weights.shape:
-        raise ValueError(f"f must return values of shape (m, q) or (m, q, c) for points (m, q, 3); got {fx.shape}")
-    phi = space.basis_values(quad) * quad.weights[..., None]  # (m, q, k)
-    local = np.einsum("mqk,mq...->mk...", phi, fx)
-    return assemble_vector(space.element_dofs[quad.parent], local, space.n_dofs)
+    return source.on(measure, field) if field is not None else source * measure
 
 
 def _jump_gram(space, pairs, normals_pair, scale):
     """Gram matrix of the jumps c = (t1 . G_{K1}, t2 . G_{K2}) weighted by ``scale`` (>= 0): one row
-    per facet on the dofs of K1 and K2 (shared dofs summed)."""
+    per facet on the dofs of K1 and K2 (shared dofs summed); ``pairs`` index the field's elements."""
     G = space.element_gradients
     c = np.concatenate([np.einsum("fkd,fd->fk", G[pairs[:, s]], normals_pair[:, s]) for s in (0, 1)], axis=1)
     c *= np.sqrt(scale)[:, None]
@@ -434,27 +800,161 @@ def _jump_gram(space, pairs, normals_pair, scale):
     return gram(dofs, c, space.n_dofs, overwrite=True)
 
 
-def edge_jump_penalty(space, h: float | None = None) -> sp.csr_matrix:
-    """J_E(u, v) = sum_E h ([t_E . grad u], [t_E . grad v])_E (multiply by tau_E).
+def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -> Form:
+    """sum_F h_F^a ([n_F . grad u], [n_F . grad v])_F over a facet set, with the local h_F (the
+    longest edge of F) and a = ``h_power``.
+
+    [n_F . grad u] = n_{F,T1}.grad u|T1 + n_{F,T2}.grad u|T2 with outward unit face normals; for P1
+    it is constant on F, so the integral is |F| times the product of jumps.  Over the interior faces
+    of the cut tets with a = 0 this is the face stabilization J_F of the mean curvature problem
+    (docs/math.md §3); over the ghost faces of a side with a = 1 it is the Burman-Hansbo ghost
+    penalty of a bulk field (§7), to be multiplied by gamma_g."""
+    _require(measure, FacetMeasure, "face_jump_penalty")
+
+    def build(space):
+        f = measure.facets
+        pairs = np.stack([space.local_elements(measure, f.pairs[:, s]) for s in (0, 1)], axis=1)
+        n = f.normals
+        scale = f.areas if h_power == 0 else f.h**h_power * f.areas
+        return _jump_gram(space, pairs, np.stack([n, -n], axis=1), scale)
+
+    return Form([(1.0, _GramTerm(build, field))], False)
+
+
+def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> Form:
+    """J_E(u, v) = sum_E h ([t_E . grad u], [t_E . grad v])_E over the edges of a surface, between
+    neighbouring pieces of S_h (cut) or triangles (meshed).
 
     [t_E . grad u] = t_{E,K1} . grad u|K1 + t_{E,K2} . grad u|K2 with the outward conormals of the
     two surface elements; constant on E for P1, so the integral is |E| times the product of jumps.
-    ``h`` defaults to the space's global mesh size.
-    """
-    h = space.h if h is None else h
-    if isinstance(space, SurfaceP1Space):
-        return _meshed_edge_penalty(space, h)
-    pairs, conormals, lengths = space.edges()
-    return _jump_gram(space, pairs, conormals, h * lengths)
+    ``h`` defaults to the field's global mesh size (docs/math.md §3 asks for exactly that value)."""
+    _require(measure, (SurfacePieces, MeshedSurface), "edge_jump_penalty")
+
+    def build(space):
+        hh = space.h if h is None else h
+        if isinstance(measure, MeshedSurface):
+            return _meshed_edge_penalty(space, hh)
+        if not _same_elements(space, measure):
+            raise ValueError("edge_jump_penalty needs the field on the cut tets, CutP1Space(cut, CUT)")
+        c = measure.cut
+        return _jump_gram(space, c.surface_edge_tets, c.surface_edge_conormals, hh * c.surface_edge_lengths)
+
+    return Form([(1.0, _GramTerm(build, field))], False)
 
 
-def face_jump_penalty(space, h_power: float = 0.0) -> sp.csr_matrix:
-    """J_F(u, v) = sum_F h^a ([n_F . grad u], [n_F . grad v])_F over interior faces of the active mesh
-    (multiply by tau_F).  [n_F . grad u] = n_{F,T1}.grad u|T1 + n_{F,T2}.grad u|T2; a = ``h_power``
-    (0 in the paper)."""
-    pairs, n, areas = space.faces()
-    normals_pair = np.stack([n, -n], axis=1)
-    return _jump_gram(space, pairs, normals_pair, space.h**h_power * areas)
+def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=None) -> Form:
+    """s(u, v) = sum_T h_T^a (n_h . grad u, n_h . grad v)_T over whole tets that carry a normal n_h
+    (the cut tets: ``cut.dx(CUT)``), with the local h_T and a = ``h_power`` (multiply by tau_N)."""
+    _require(measure, ElementVolume, "normal_gradient_penalty")
+    if measure.normals is None:
+        raise ValueError("normal_gradient_penalty needs tets with a normal n_h: integrate over cut.dx(CUT)")
+
+    def build(space):
+        es = measure.elements
+        el = space.local_elements(measure, np.arange(es.n_elements))
+        c = np.einsum("mkd,md->mk", space.element_gradients[el], measure.normals)
+        rows = c * np.sqrt(es.h**h_power * es.volumes)[:, None]
+        return gram(space.element_dofs[el], rows, space.n_dofs)
+
+    return Form([(1.0, _GramTerm(build, field))], False)
+
+
+def nitsche(measure: Measure, gamma: float = 10.0, field=None) -> Form:
+    """Symmetric Nitsche terms for u = g on Gamma (Burman-Hansbo, docs/math.md §8):
+
+        -(n . grad u, v)_Gamma - (u, n . grad v)_Gamma + (gamma / h) (u, v)_Gamma,
+
+    n the normal of the measure (n_h, out of NEG) and h the local h_T of the cut tet.  The matching
+    right-hand side is :func:`nitsche_load`.  gamma must exceed an inverse-estimate constant, or the
+    matrix is indefinite; the solver reports that."""
+    _positive(gamma=gamma)
+
+    @bilinear_form(symmetric=True)
+    def terms(u, v, w):
+        return -dot(w.n, u.grad) * v - dot(w.n, v.grad) * u + (gamma / w.h) * (u * v)
+
+    return terms.on(measure, field) if field is not None else terms * measure
+
+
+def nitsche_load(g, measure: Measure, gamma: float = 10.0, field=None) -> Form:
+    """The Nitsche right-hand side of u = g on Gamma: -(g, n . grad v)_Gamma + (gamma / h) (g, v)_Gamma,
+    with ``g(x)`` evaluated at the quadrature points of Gamma_h (docs/math.md §8)."""
+    _positive(gamma=gamma)
+
+    @linear_form
+    def terms(v, w):
+        gx = w.at(g)
+        return gx * (-dot(w.n, v.grad) + (gamma / w.h) * v.value)
+
+    return terms.on(measure, field) if field is not None else terms * measure
+
+
+def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma: float = 10.0, weights: str = "harmonic",
+                      fields=(0, 1)) -> Form:
+    """The Nitsche coupling of two fields across Gamma (Hansbo-Hansbo, docs/math.md §9):
+
+        -({a n . grad u}, [v]) - ([u], {a n . grad v}) + (lambda / h) ([u], [v])   over Gamma_h,
+
+    [w] = w_NEG - w_POS, {w} = k_NEG w_NEG + k_POS w_POS, n from NEG to POS and h the local h_T.
+    ``weights="harmonic"``: k_NEG = a_POS / (a_NEG + a_POS) (and k_POS = 1 - k_NEG), robust in the
+    contrast; ``weights="volume"``: k_i = |T ∩ Omega_i| / |T| per cut tet.  The penalty is
+    lambda = 2 gamma (k_NEG^2 a_NEG + k_POS^2 a_POS), the weight that bounds the flux average by the
+    energy of both sides; for harmonic weights it equals gamma times the harmonic mean
+    2 a_NEG a_POS / (a_NEG + a_POS).  ``fields`` names the NEG and the POS field of the product space."""
+    _require(measure, SurfacePieces, "interface_nitsche")
+    _positive(a_neg=a_neg, a_pos=a_pos, gamma=gamma)
+    if weights == "harmonic":
+        k_neg = np.full(measure.elements.n_elements, a_pos / (a_neg + a_pos))
+    elif weights == "volume":
+        from .markers import NEG
+
+        k_neg = measure.side_fraction(NEG)
+    else:
+        raise ValueError(f"weights must be 'harmonic' or 'volume', got {weights!r}")
+    k_pos = 1.0 - k_neg
+    lam = 2.0 * gamma * (k_neg**2 * a_neg + k_pos**2 * a_pos)
+    i_neg, i_pos = fields
+
+    @bilinear_form(symmetric=True)
+    def coupling(u, v, w):
+        kn, kp, penalty = k_neg[w.parent][:, None], k_pos[w.parent][:, None], lam[w.parent][:, None] / w.h
+        un, up, vn, vp = u[i_neg], u[i_pos], v[i_neg], v[i_pos]
+        flux_u = kn * a_neg * dot(w.n, un.grad) + kp * a_pos * dot(w.n, up.grad)
+        flux_v = kn * a_neg * dot(w.n, vn.grad) + kp * a_pos * dot(w.n, vp.grad)
+        ju, jv = un - up, vn - vp
+        return -flux_u * jv - flux_v * ju + penalty * ju * jv
+
+    return coupling * measure
+
+
+def _positive(**values):
+    for name, value in values.items():
+        if not (np.isfinite(value) and value > 0):
+            raise ValueError(f"{name} must be a positive number, got {value!r}")
+
+
+def apply_dirichlet(K, b, dofs, values):
+    """Strong Dirichlet conditions u[dofs] = values, by symmetric elimination in place of the rows.
+
+    Returns ``(K_bc, b_bc)`` of the same size: the rows and columns of ``dofs`` are replaced by the
+    identity and b_bc = b - K[:, dofs] g outside ``dofs``, b_bc = g on them.  K_bc stays symmetric
+    (positive definite when K is on the other dofs), its solution carries the prescribed values, and
+    the dof numbering (hence a multigrid hierarchy) is unchanged.  ``values``: (len(dofs),) or
+    (len(dofs), c), or a number."""
+    K = sp.csr_matrix(K)
+    n = K.shape[0]
+    dofs = np.unique(np.asarray(dofs, dtype=np.int64))
+    if dofs.size and (dofs[0] < 0 or dofs[-1] >= n):
+        raise ValueError(f"Dirichlet dofs must lie in [0, {n})")
+    b = np.asarray(b, dtype=float)
+    g = np.zeros((n,) + b.shape[1:])
+    g[dofs] = np.broadcast_to(np.asarray(values, dtype=float), (dofs.size,) + b.shape[1:])
+    keep = np.ones(n)
+    keep[dofs] = 0.0
+    D = sp.diags(keep)
+    b_bc = keep.reshape((n,) + (1,) * (b.ndim - 1)) * (b - K @ g) + g
+    K_bc = (D @ K @ D + sp.diags(1.0 - keep)).tocsr()
+    return K_bc, b_bc
 
 
 # ---------------------------------------------------------------------------------------------

@@ -279,10 +279,11 @@ class RunResult:
         return json.dumps(self.to_json(), indent=2)
 
     def error_keys(self) -> list:
+        """The record keys that hold errors: ``*_error`` and per-field ``*_error_<field>``."""
         keys = []
         for r in self.records:
             for k, v in r.items():
-                if k.endswith("_error") and k not in keys and v is not None:
+                if ("_error" in k and not k.startswith("solver")) and k not in keys and isinstance(v, (int, float)):
                     keys.append(k)
         return keys
 

@@ -1,18 +1,17 @@
-"""Continuous P1 spaces: on a triangulated surface, on the active mesh of a cut, on a cut volume.
+"""Continuous P1 fields: on a triangulated surface, and on an element set of a cut.
 
 Every space exposes the same plain arrays, so that forms are written once:
 
 ``n_dofs``; ``element_dofs`` (n_el, k) global dof numbers of each element (triangles, k = 3, or
 tets, k = 4); ``element_gradients`` (n_el, k, 3) the constant gradients of the P1 basis functions
 (on a surface triangle this is already the surface gradient); ``element_normals`` (n_el, 3) the
-discrete normal n_h (surface spaces); ``h`` the global mesh size (SPEC §2); and
-``quadrature(measure, degree)`` returning a :class:`~cutfem.quadrature.Quadrature` whose ``parent``
-indexes the elements, together with the basis values there, (m, q, k).
+discrete normal n_h (surface and trace spaces; None for bulk fields); ``elements`` the element set
+(or surface mesh) the field lives on, which :mod:`cutfem.forms` matches against the elements of a
+measure; ``h`` the global mesh size, the abscissa of convergence tables (docs/math.md §2).
 
-Measures: ``"surface"`` (S_h: triangles of a surface mesh, or the pieces of a cut),
-``"active"`` (the whole active tets, for volume stabilizations), ``"volume"`` (the region
-{phi_h < 0} of a cut volume space).  Vector-valued spaces [V_h]^3 are represented by (n, 3) arrays of
-coefficients sharing the scalar matrices.
+Measures are not owned by spaces: see :mod:`cutfem.measures`.  Vector-valued fields [V_h]^c are
+(n, c) arrays of coefficients sharing the scalar matrices; several fields together form a
+:class:`ProductSpace` with a block numbering of their dofs.
 """
 
 from __future__ import annotations
@@ -22,9 +21,9 @@ from functools import cached_property
 import numpy as np
 
 from .assembly import Pattern, SymmetricPattern
-from .quadrature import Quadrature, map_tetrahedra, map_triangles
+from .markers import CUT
 
-__all__ = ["SurfaceP1Space", "CutP1Space", "CutVolumeP1Space", "triangle_gradients", "barycentric_at"]
+__all__ = ["SurfaceP1Space", "CutP1Space", "ProductSpace", "triangle_gradients", "barycentric_at"]
 
 
 def triangle_gradients(vertices: np.ndarray):
@@ -74,10 +73,6 @@ class _P1Space:
             cache[name] = Pattern(dofs, self.n_dofs)
         return cache[name]
 
-    def basis_values(self, quad: Quadrature) -> np.ndarray:
-        """(m, q, k) P1 basis values at the quadrature points, per parent element."""
-        return self.basis_at(quad.points, quad.parent)
-
     def basis_at(self, points: np.ndarray, parent: np.ndarray) -> np.ndarray:
         """(m, j, k) P1 basis values of element ``parent[i]`` at ``points[i]`` (m, j, 3)."""
         return barycentric_at(points, self.element_origin[parent], self.element_gradients[parent])
@@ -92,11 +87,38 @@ class _P1Space:
     def element_origin(self) -> np.ndarray:
         return self.dof_points[self.element_dofs[:, 0]]
 
-    def evaluate(self, coeffs: np.ndarray, quad: Quadrature) -> np.ndarray:
-        """Values of the discrete function with ``coeffs`` (n,) or (n, c) at the quadrature points:
-        (m, q) or (m, q, c)."""
-        phi = self.basis_values(quad)
-        local = np.asarray(coeffs)[self.element_dofs[quad.parent]]  # (m, k) or (m, k, c)
+    def local_elements(self, measure, parent=None) -> np.ndarray:
+        """The field's element of each cell of ``measure`` (its ``quadrature().parent``, or the given
+        ``parent`` ids of the measure's elements); a clear error where the field does not live."""
+        if parent is None:
+            parent = measure.quadrature(0).parent
+        if measure.elements is self.elements:
+            return parent
+        source = getattr(measure.elements, "tet_ids", None)
+        if source is None or not hasattr(self.elements, "locate"):
+            raise ValueError(f"the field on {getattr(self.elements, 'name', self.elements)!r} does not live on the measure {measure.name!r}")
+        return self.elements.locate(source[parent], f"the measure {measure.name!r}")
+
+    def basis_on(self, measure, quad, elements) -> np.ndarray:
+        """(m, q, k) basis values at the points of ``quad`` (a quadrature of ``measure``) in the field's
+        ``elements``.  Cells that are whole elements of the field (``measure.whole_cells``, the first
+        cells of a side's volume) take the reference barycentric coordinates of the rule as they are;
+        the others are mapped."""
+        whole = getattr(measure, "whole_cells", 0) if measure.elements is self.elements and quad.bary is not None else 0
+        if whole == 0:
+            return self.basis_at(quad.points, elements)
+        phi = np.empty(quad.points.shape[:2] + (self.element_dofs.shape[1],))
+        phi[:whole] = quad.bary
+        phi[whole:] = self.basis_at(quad.points[whole:], elements[whole:])
+        return phi
+
+    def evaluate(self, coeffs: np.ndarray, measure, degree: int = 4) -> np.ndarray:
+        """Values of the discrete function with ``coeffs`` (n,) or (n, c) at the quadrature points of
+        ``measure`` (cell measures): (m, q) or (m, q, c)."""
+        quad = measure.quadrature(degree)
+        el = self.local_elements(measure, quad.parent)
+        phi = self.basis_on(measure, quad, el)
+        local = np.asarray(coeffs)[self.element_dofs[el]]  # (m, k) or (m, k, c)
         if local.ndim == 2:
             return np.einsum("mqk,mk->mq", phi, local)
         return np.einsum("mqk,mkc->mqc", phi, local)
@@ -130,6 +152,7 @@ class SurfaceP1Space(_P1Space):
         self.element_dofs = np.asarray(mesh.triangles, dtype=np.int64)
         self.dof_points = np.asarray(mesh.points, dtype=float)
         self.h = float(h) if h is not None else self.n_dofs ** -0.5
+        self.elements = mesh
 
     @cached_property
     def element_gradients(self) -> np.ndarray:
@@ -186,15 +209,6 @@ class SurfaceP1Space(_P1Space):
         """(points (V, 3), triangles (T, 3), values at the points) of a discrete function on S_h."""
         return self.dof_points, self.element_dofs, np.asarray(coeffs)
 
-    def quadrature(self, measure: str = "surface", degree: int = 2) -> Quadrature:
-        if measure != "surface":
-            raise ValueError(f"a surface mesh space has only the 'surface' measure, got {measure!r}")
-        key = ("surface", degree)
-        cache = self._patterns()
-        if key not in cache:
-            cache[key] = map_triangles(self.dof_points[self.element_dofs], degree, normal=self.element_normals)
-        return cache[key]
-
     def edges(self):
         """Edges for the edge stabilization: (element pairs (E, 2), conormals (E, 2, 3), lengths (E,))."""
         m = self.mesh
@@ -202,37 +216,45 @@ class SurfaceP1Space(_P1Space):
 
 
 class CutP1Space(_P1Space):
-    """Continuous P1 on the active tets of a cut (traces live on S_h); dofs are the active nodes.
-
-    ``node_ids`` maps dofs back to background nodes.  ``h`` is the background ``N**(-1/3)``.
+    """Continuous P1 on an element set of a cut: ``on=CUT`` (default) the cut tets, whose traces
+    live on S_h (TraceFEM); ``on=NEG`` or ``POS`` the tets of one side (a bulk field of CutFEM);
+    or any :class:`~cutfem.markers.ElementSet` of the cut.  Dofs are the nodes of the set, numbered
+    by increasing background id; ``node_ids`` maps them back.  ``h`` is the background ``N**(-1/3)``.
     """
 
-    def __init__(self, cut, h: float | None = None):
+    def __init__(self, cut, on=CUT, h: float | None = None):
+        es = cut.elements(on)
         self.cut = cut
-        self.n_dofs = cut.n_nodes
-        self.element_dofs = cut.tets
-        self.dof_points = cut.points
-        self.element_gradients = cut.basis_gradients
-        self.element_normals = cut.normals
-        self.element_volumes = cut.tet_volumes
-        self.node_ids = cut.node_ids
+        self.elements = es
+        self.n_dofs = es.n_nodes
+        self.element_dofs = es.tets
+        self.dof_points = es.points
+        self.element_gradients = es.gradients
+        self.element_normals = es.normals
+        self.element_volumes = es.volumes
+        self.node_ids = es.node_ids
         self.h = float(h) if h is not None else cut.h
+
+    def __repr__(self) -> str:
+        return f"CutP1Space(on={self.elements.name!r}, dofs={self.n_dofs})"
 
     @property
     def n_elements(self) -> int:
         return len(self.element_dofs)
 
-    def quadrature(self, measure: str = "surface", degree: int = 2) -> Quadrature:
-        key = (measure, degree)
-        cache = self._patterns()
-        if key not in cache:
-            if measure == "surface":
-                cache[key] = self.cut.surface_quadrature(degree)
-            elif measure == "active":
-                cache[key] = map_tetrahedra(self.cut.tet_vertices, degree)
-            else:
-                raise ValueError(f"unknown measure {measure!r} for a cut space; use 'surface' or 'active'")
-        return cache[key]
+    @property
+    def is_trace(self) -> bool:
+        """True for the field on the cut tets (traces on S_h)."""
+        return self.elements is self.cut.elements(CUT)
+
+    def _require_trace(self, what):
+        if not self.is_trace:
+            raise ValueError(f"{what} needs the field on the cut tets (CutP1Space(cut, CUT)); this field lives on {self.elements.name!r}")
+
+    @cached_property
+    def boundary_dofs(self) -> np.ndarray:
+        """Dofs on the boundary of the background box (for strong Dirichlet conditions)."""
+        return self.elements.boundary_nodes
 
     @property
     def element_surface_areas(self) -> np.ndarray:
@@ -241,11 +263,13 @@ class CutP1Space(_P1Space):
 
     def surface_triangles(self):
         """(vertices (m, 3, 3), parent active tet (m,), areas (m,)) of the triangles of S_h."""
+        self._require_trace("surface_triangles")
         c = self.cut
         return c.triangle_points, c.triangle_tets, c.triangle_areas
 
     def surface_vertex_data(self, coeffs):
         """(points (V, 3), triangles (T, 3), values at the points) of a discrete function on S_h."""
+        self._require_trace("surface_vertex_data")
         return self.cut.vertices, self.cut.triangles, self.surface_vertex_values(coeffs)
 
     @cached_property
@@ -269,61 +293,60 @@ class CutP1Space(_P1Space):
         c = self.cut
         return c.surface_edge_tets, c.surface_edge_conormals, c.surface_edge_lengths
 
-    def faces(self):
-        """Interior faces of the active mesh: (element pairs (F, 2), unit normals out of the first
-        element (F, 3), areas (F,))."""
-        c = self.cut
-        ft = c.interior_face_tets
-        opp = c.interior_face_opposite[:, 0]
-        # outward normal of face opposite to local vertex k of tet T is -grad(lambda_k)/|grad(lambda_k)|
-        g = c.basis_gradients[ft[:, 0], opp]
-        gn = np.linalg.norm(g, axis=1)
-        normals = -g / gn[:, None]
-        # |F| = 3 |T| |grad lambda_k|... from volume = |F| * height / 3 and |grad lambda_k| = 1/height
-        areas = 3.0 * c.tet_volumes[ft[:, 0]] * gn
-        return ft, normals, areas
 
+class ProductSpace:
+    """Several fields together, with a block numbering: field k has the global dofs
+    ``offsets[k] : offsets[k + 1]``.  Forms on a product space see tuples of basis functions
+    (:mod:`cutfem.forms`), and assemble to one block matrix.
 
-class CutVolumeP1Space(_P1Space):
-    """Continuous P1 on the background tets that meet the region {phi_h < 0} (a cut volume).
-
-    Elements are those tets; the ``"volume"`` measure integrates over their inside parts only
-    (sub-tetrahedra from :func:`cutfem.cut.inside_tetrahedra`).  This visits every background tet.
+    ``ProductSpace(V_neg, V_pos)`` or with names, ``ProductSpace(bulk=V_B, surface=V_S)``.
     """
 
-    def __init__(self, background, levelset):
-        from .cut import inside_tetrahedra
-        from .mesh import barycentric_gradients, unique_keys
+    def __init__(self, *fields, **named):
+        if fields and named:
+            raise ValueError("give the fields either all by position or all by name")
+        self.names = list(named) if named else [f"u{k}" for k in range(len(fields))]
+        self.fields = list(named.values()) if named else list(fields)
+        if not self.fields:
+            raise ValueError("a product space needs at least one field")
+        for f in self.fields:
+            if isinstance(f, ProductSpace):
+                raise TypeError("nest product spaces by listing their fields instead")
+        self.offsets = np.concatenate([[0], np.cumsum([f.n_dofs for f in self.fields])]).astype(np.int64)
+        self.n_dofs = int(self.offsets[-1])
+        self.h = self.fields[0].h
 
-        sub, parent_bg = inside_tetrahedra(background, levelset)
-        tet_ids, parent = unique_keys(parent_bg, return_inverse=True)
-        nodes = background.tets[tet_ids]
-        node_ids, inv = unique_keys(nodes.reshape(-1), return_inverse=True)
-        self.background = background
-        self.node_ids = node_ids
-        self.tet_ids = tet_ids
-        self.n_dofs = len(node_ids)
-        self.element_dofs = inv.reshape(-1, 4)
-        self.dof_points = background.points[node_ids]
-        self.element_gradients, vol = barycentric_gradients(self.dof_points[self.element_dofs])
-        self.element_volumes = np.abs(vol)
-        self._sub, self._sub_parent = sub, parent
-        self.h = background.h
+    def __repr__(self) -> str:
+        return "ProductSpace(" + ", ".join(f"{n}={f!r}" for n, f in zip(self.names, self.fields)) + ")"
 
-    def volume_tetrahedra(self):
-        """(vertices (s, 4, 3), parent element (s,), volumes (s,)) of the sub-tetrahedra of {phi_h < 0}."""
-        v = self._sub
-        vol = np.abs(np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), v[:, 3] - v[:, 0])) / 6.0
-        return v, self._sub_parent, vol
+    def __len__(self) -> int:
+        return len(self.fields)
 
-    def quadrature(self, measure: str = "volume", degree: int = 2) -> Quadrature:
-        key = (measure, degree)
-        cache = self._patterns()
-        if key not in cache:
-            if measure == "volume":
-                cache[key] = map_tetrahedra(self._sub, degree, parent=self._sub_parent)
-            elif measure == "active":
-                cache[key] = map_tetrahedra(self.dof_points[self.element_dofs], degree)
-            else:
-                raise ValueError(f"unknown measure {measure!r} for a cut volume space; use 'volume' or 'active'")
-        return cache[key]
+    def __getitem__(self, k):
+        return self.fields[self.index(k)]
+
+    def index(self, k) -> int:
+        """The position of a field given by position or name."""
+        if isinstance(k, str):
+            if k not in self.names:
+                raise KeyError(f"no field named {k!r}; the fields are {self.names}")
+            return self.names.index(k)
+        return int(k)
+
+    def split(self, x) -> list:
+        """The coefficient blocks of each field of a global vector (n,) or (n, c)."""
+        x = np.asarray(x)
+        if x.shape[0] != self.n_dofs:
+            raise ValueError(f"a vector of the product space has {self.n_dofs} rows, got {x.shape[0]}")
+        return [x[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
+
+    def join(self, parts) -> np.ndarray:
+        """The global vector of per-field blocks (the inverse of :meth:`split`)."""
+        if len(parts) != len(self.fields):
+            raise ValueError(f"need {len(self.fields)} blocks, got {len(parts)}")
+        return np.concatenate([np.asarray(p, dtype=float) for p in parts])
+
+    def dofs(self, k) -> np.ndarray:
+        """Global dof numbers of field k."""
+        k = self.index(k)
+        return np.arange(self.offsets[k], self.offsets[k + 1])

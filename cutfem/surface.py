@@ -670,6 +670,14 @@ class SurfaceMesh:
 
     # -- conversion ----------------------------------------------------------------------------
 
+    def ds(self):
+        """The measure on this surface: its triangles (:class:`cutfem.measures.MeshedSurface`, cached)."""
+        if "_ds" not in self.__dict__:
+            from .measures import MeshedSurface
+
+            self.__dict__["_ds"] = MeshedSurface(self)
+        return self.__dict__["_ds"]
+
     def to_pyvista(self):
         """The mesh as a ``pyvista.PolyData`` of triangles (points copied, faces (M, 3))."""
         import pyvista as pv

@@ -6,4 +6,4 @@
   solutions (SPEC §4).
 """
 
-from . import laplace_beltrami, mean_curvature  # noqa: F401  (registration on import)
+from . import bulk_surface, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson  # noqa: F401  (registration on import)

@@ -139,5 +139,5 @@ def cut_record(cut) -> dict:
         "active_tets": int(cut.n_tets),
         "pieces": int(cut.n_tets),
         "surface_triangles": int(cut.n_triangles),
-        "interior_faces": int(len(cut.interior_faces)),
+        "interior_faces": int(cut.interior_facets().n_facets),
     }

@@ -21,11 +21,12 @@ import numpy as np
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import h1_error, l2_error
-from cutfem.forms import edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
+from cutfem.forms import assemble, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.levelset import Sphere, Torus
 from cutfem.registry import LazyFields, Param, Problem, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.markers import CUT
 from cutfem.surface import TORUS_FAMILIES
 
 from .common import SHAPE_PARAMS, check_resolution, Timer, background_for, cut_record, levelset_for, surface_mesh_for
@@ -98,9 +99,9 @@ def manufactured(levelset):
     raise ProblemError("Laplace-Beltrami has manufactured solutions on the sphere and the torus only")
 
 
-def _solve_and_measure(space, K, closest_point, sol, t, solver):
+def _solve_and_measure(space, surface, K, closest_point, sol, t, solver):
     with t("assembly"):
-        b = load(space, sol.f, degree=4, closest_point=closest_point)
+        b = assemble(load(sol.f, surface, degree=4, closest_point=closest_point), space)
     with t("solve"):
         u, info = solve(K, b, method=solver, space=space)
     with t("errors"):
@@ -140,11 +141,12 @@ class LaplaceBeltramiMeshed(Problem):
             sol = manufactured(exact)
             space = SurfaceP1Space(mesh)
         with t("assembly"):
-            M = mass(space)
-            K = tangential_stiffness(space) + M
+            dS = mesh.ds()
+            M = assemble(mass(dS), space)
+            K = assemble(tangential_stiffness(dS), space) + M
             if tau_e > 0:
-                K = K + tau_e * edge_jump_penalty(space)
-        u, rec = _solve_and_measure(space, K.tocsr(), exact.closest_point, sol, t, solver)
+                K = K + tau_e * assemble(edge_jump_penalty(dS), space)
+        u, rec = _solve_and_measure(space, dS, K.tocsr(), exact.closest_point, sol, t, solver)
         rec["area"] = float(M.sum())
         rec["time"] = dict(t)
         rec["fields"] = LazyFields(lambda: {"surface": _with_point_data(mesh.to_pyvista(), u_h=u, u_exact=sol.u(exact.closest_point(space.dof_points)))})
@@ -180,13 +182,14 @@ class LaplaceBeltramiCut(Problem):
             check_resolution(cut, phi, level)
             space = CutP1Space(cut)
         with t("assembly"):
-            M = mass(space)
-            K = tangential_stiffness(space) + M
+            dS = cut.ds()
+            M = assemble(mass(dS), space)
+            K = assemble(tangential_stiffness(dS), space) + M
             if stabilization == "face" and tau_f > 0:
-                K = K + tau_f * face_jump_penalty(space, h_power=face_h_power)
+                K = K + tau_f * assemble(face_jump_penalty(cut.dF(cut.interior_facets(CUT)), h_power=face_h_power), space)
             elif stabilization == "normal" and tau_n > 0:
-                K = K + tau_n * normal_gradient_penalty(space, h_power=normal_h_power)
-        u, rec = _solve_and_measure(space, K.tocsr(), phi.closest_point, sol, t, solver)
+                K = K + tau_n * assemble(normal_gradient_penalty(cut.dx(CUT), h_power=normal_h_power), space)
+        u, rec = _solve_and_measure(space, dS, K.tocsr(), phi.closest_point, sol, t, solver)
         rec.update(cut_record(cut))
         rec["area"] = float(M.sum())
         rec["time"] = dict(t)

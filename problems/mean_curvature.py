@@ -18,10 +18,11 @@ import numpy as np
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import discrete_error, l2_error
-from cutfem.forms import edge_jump_penalty, face_jump_penalty, mass, position_load
+from cutfem.forms import assemble, edge_jump_penalty, face_jump_penalty, mass, position_load
 from cutfem.registry import LazyFields, Param, Problem, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.markers import CUT
 from cutfem.surface import TORUS_FAMILIES
 
 from .common import SHAPE_PARAMS, check_resolution, SURFACES, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
@@ -29,16 +30,17 @@ from .common import SHAPE_PARAMS, check_resolution, SURFACES, Timer, background_
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
 
-def mean_curvature_system(space, tau_e=0.0, tau_f=0.0, face_h_power=0.0):
-    """(M, K = M + tau_E J_E + tau_F J_F, B): the matrices of the mean curvature problem and its
-    right-hand sides B = A X, (n, 3), computed without A (:func:`cutfem.forms.position_load`)."""
-    M = mass(space)
+def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0):
+    """(M, K = M + tau_E J_E + tau_F J_F, B): the matrices of the mean curvature problem on the
+    measure ``surface`` (S_h) and its right-hand sides B = A X, (n, 3), computed without A
+    (:func:`cutfem.forms.position_load`); J_F over the facet measure ``faces`` (cut case)."""
+    M = assemble(mass(surface), space)
     K = M
     if tau_e > 0:
-        K = K + tau_e * edge_jump_penalty(space)
+        K = K + tau_e * assemble(edge_jump_penalty(surface), space)
     if tau_f > 0:
-        K = K + tau_f * face_jump_penalty(space, h_power=face_h_power)
-    return M, K.tocsr(), position_load(space)
+        K = K + tau_f * assemble(face_jump_penalty(faces, h_power=face_h_power), space)
+    return M, K.tocsr(), assemble(position_load(surface), space)
 
 
 def _common_record(space, M, H, timer, levelset, solve_info):
@@ -79,7 +81,7 @@ class MeanCurvatureMeshed(Problem):
             mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
             space = SurfaceP1Space(mesh)
         with t("assembly"):
-            M, K, B = mean_curvature_system(space, tau_e=tau_e)
+            M, K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e)
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space)
         with t("errors"):
@@ -123,7 +125,7 @@ class MeanCurvatureCut(Problem):
             check_resolution(cut, phi, level)
             space = CutP1Space(cut)
         with t("assembly"):
-            M, K, B = mean_curvature_system(space, tau_e=tau_e, tau_f=tau_f, face_h_power=face_h_power)
+            M, K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)), face_h_power=face_h_power)
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space)
         exact = phi if has_exact(phi) else None

@@ -46,8 +46,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.cut import cut_mesh
-from cutfem.forms import face_jump_penalty, mass
+from cutfem.cut import CUT, cut_mesh
+from cutfem.forms import assemble, face_jump_penalty, mass
 from cutfem.levelset import Sphere, Torus
 from cutfem.solve import condition_number, scaled
 from cutfem.spaces import CutP1Space
@@ -121,7 +121,8 @@ def matrices(levelset, spacing, box=None):
     """(space, M, J_F) of the cut of ``levelset`` on a structured background of the given spacing."""
     cut = cut_mesh(background_for(levelset, spacing, box=box), levelset)
     space = CutP1Space(cut)
-    return space, mass(space).tocsr(), face_jump_penalty(space).tocsr()
+    M = assemble(mass(cut.ds()), space).tocsr()
+    return space, M, assemble(face_jump_penalty(cut.dF(cut.interior_facets(CUT))), space).tocsr()
 
 
 def _measure(space, M, J):

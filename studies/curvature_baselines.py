@@ -33,7 +33,7 @@ import numpy as np
 import cutfem
 from cutfem.baselines import cotangent_mean_curvature, pyvista_mean_curvature_vector
 from cutfem.errors import discrete_error, fitted_rate
-from cutfem.forms import mass
+from cutfem.forms import assemble, mass
 from cutfem.levelset import Torus
 from cutfem.spaces import SurfaceP1Space
 from cutfem.surface import TORUS_FAMILIES, torus_mesh
@@ -105,7 +105,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
             _say(progress, f"{family} n={n}")
             mesh = torus_mesh(n, family=family, seed=SEED)
             space = SurfaceP1Space(mesh)
-            M = mass(space)
+            M = assemble(mass(mesh.ds()), space)
             He = torus.exact_mean_curvature_vector(mesh.points)
             for method in METHODS:
                 if method == "stabilized":

@@ -577,7 +577,7 @@ def meshed_level(family, n) -> list[dict]:
     """Two rows (cotangent + Voronoi lumped mass, stabilized tau_E = 1/10) on one torus mesh."""
     import cutfem
     from cutfem.baselines import cotangent_mean_curvature
-    from cutfem.forms import mass
+    from cutfem.forms import assemble, mass
     from cutfem.levelset import Torus
     from cutfem.spaces import SurfaceP1Space
     from cutfem.surface import torus_mesh
@@ -585,7 +585,7 @@ def meshed_level(family, n) -> list[dict]:
     t0 = time.perf_counter()
     mesh = torus_mesh(n, family=family, seed=SEED)
     t_mesh = time.perf_counter() - t0
-    M = mass(SurfaceP1Space(mesh))
+    M = assemble(mass(mesh.ds()), SurfaceP1Space(mesh))
     He = Torus().exact_mean_curvature_vector(mesh.points)
     rows = []
     best = float("inf")

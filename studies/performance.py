@@ -43,20 +43,20 @@ OUTPUTS = ["performance", "performance_scaling"]
 BOX = ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6])
 
 
-def _timed_system_solve_error(t, space, penalty_name, penalty, tau, torus):
-    """The stages shared by both kinds: mass, the right-hand sides B = A x (``rhs``), the penalty
-    (timed as ``penalty_name``), K = M + tau J, the automatic solve and the L2 error; returns
-    (error, SolveInfo)."""
+def _timed_system_solve_error(t, space, surface, penalty_name, penalty, tau, torus):
+    """The stages shared by both kinds: mass over the measure ``surface`` (S_h), the right-hand
+    sides B = A x (``rhs``), the penalty form (timed as ``penalty_name``), K = M + tau J, the
+    automatic solve and the L2 error; returns (error, SolveInfo)."""
     from cutfem.errors import l2_error
-    from cutfem.forms import mass, position_load
+    from cutfem.forms import assemble, mass, position_load
     from cutfem.solve import solve
 
     with t("mass"):
-        M = mass(space)
+        M = assemble(mass(surface), space)
     with t("rhs"):
-        B = position_load(space)
+        B = assemble(position_load(surface), space)
     with t(penalty_name):
-        J = penalty(space)
+        J = assemble(penalty, space)
     with t("system"):
         K = (M + tau * J).tocsr()
     with t("solve"):
@@ -68,7 +68,7 @@ def _timed_system_solve_error(t, space, penalty_name, penalty, tau, torus):
 
 def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     """One cut-torus level, timed stage by stage (runs in the calling process)."""
-    from cutfem.cut import cut_mesh
+    from cutfem.cut import CUT, cut_mesh
     from cutfem.forms import face_jump_penalty
     from cutfem.levelset import Torus
     from cutfem.mesh import structured_box
@@ -82,8 +82,8 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
         cut = cut_mesh(box, torus)
     with t("topology"):
         space = CutP1Space(cut)
-        faces = space.faces()
-    err, info = _timed_system_solve_error(t, space, "face_penalty", face_jump_penalty, tau_f, torus)
+        faces = cut.interior_facets(CUT)
+    err, info = _timed_system_solve_error(t, space, cut.ds(), "face_penalty", face_jump_penalty(cut.dF(faces)), tau_f, torus)
     return {
         "kind": "cut",
         "level": spacing,
@@ -91,7 +91,7 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
         "active_tets": int(cut.n_tets),
         "pieces": int(cut.n_tets),
         "surface_triangles": int(cut.n_triangles),
-        "interior_faces": int(len(faces[0])),
+        "interior_faces": int(faces.n_facets),
         "dofs": int(space.n_dofs),
         "l2_error": err,
         "solver": info.method,
@@ -112,7 +112,7 @@ def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     with t("mesh"):
         mesh = torus_mesh(n, family, seed=1)
         space = SurfaceP1Space(mesh)
-    err, info = _timed_system_solve_error(t, space, "edge_penalty", edge_jump_penalty, tau_e, Torus())
+    err, info = _timed_system_solve_error(t, space, mesh.ds(), "edge_penalty", edge_jump_penalty(mesh.ds()), tau_e, Torus())
     return {
         "kind": f"meshed-{family}",
         "level": n,

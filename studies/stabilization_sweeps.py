@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from cutfem.errors import fitted_rate, l2_error
-from cutfem.forms import position_load
+from cutfem.forms import assemble, position_load
 from cutfem.levelset import Torus
 from cutfem.solve import SingularSystemError, solve
 
@@ -51,7 +51,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
         s = 0.4 / k
         _say(progress, f"spacing {s:.4g}: {len(POWERS) * len(taus)} settings")
         space, M, J = matrices(torus, s, box=PAPER_BOX)
-        B = position_load(space)
+        B = assemble(position_load(space.cut.ds()), space)
         for a in POWERS:
             for tau in taus:
                 K = (M + tau * space.h**a * J).tocsr()

@@ -9,7 +9,8 @@ cutfem.spaces: P1 basis functions from inverting the 4 x 4 (tet) or the 3 x 2 le
 normals and conormals from cross products, element loops in Python.  They run on small meshes: a
 meshed sphere and torus, cut surfaces on a structured and on a randomly perturbed background,
 and a cut volume (inside parts of tets split by scipy's Delaunay, independently of
-cutfem.cut.inside_tetrahedra).
+cutfem.markers.side_subtetrahedra).  The penalties with a power of h use the local sizes: h_F the
+longest edge of the face, h_T the longest edge of the tet.
 """
 
 from collections import Counter, defaultdict
@@ -22,17 +23,18 @@ from scipy.spatial import Delaunay
 from cutfem.assembly import Pattern, assemble_matrix, assemble_vector, symmetrize_blocks
 from cutfem.cut import cut_mesh
 from cutfem.forms import (
+    assemble,
     edge_jump_penalty,
     face_jump_penalty,
     mass,
     normal_gradient_penalty,
+    stiffness,
     tangential_stiffness,
-    volume_mass,
-    volume_stiffness,
 )
 from cutfem.levelset import Sphere, Torus
+from cutfem.markers import CUT, NEG
 from cutfem.mesh import TetMesh, structured_box
-from cutfem.spaces import CutP1Space, CutVolumeP1Space, SurfaceP1Space
+from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import sphere_mesh, torus_mesh
 
 # ----------------------------------------------------------------------------------------------
@@ -180,13 +182,21 @@ def reference_meshed(points, triangles, h):
     return M, A, JE
 
 
-def reference_cut(cut, h, face_h_power=0.0, normal_h_power=1.0):
-    """Mass, tangential stiffness, J_E, J_F and the normal-gradient penalty of a cut P1 space,
-    in the numbering of the active nodes (cut.points, cut.tets); pieces from cut.triangles."""
+def longest_edge(X):
+    """The longest edge of the simplex with vertex rows X."""
+    return max(np.linalg.norm(X[a] - X[b]) for a in range(len(X)) for b in range(a))
+
+
+def reference_cut(cut, h, face_h_powers=(0.0, 2.0), normal_h_powers=(1.0, 0.0)):
+    """Mass, tangential stiffness, J_E (with the global h), and J_F and the normal-gradient penalty
+    for each power a of the local h (dicts a -> matrix: h_F^a per face, h_T^a per tet) of a cut P1
+    space, in the numbering of the active nodes (cut.points, cut.tets); pieces from cut.triangles."""
     pts, tets = cut.points, cut.tets
     n = len(pts)
     basis = [tet_basis(pts[T]) for T in tets]
-    M, A, JE, JF, S = (np.zeros((n, n)) for _ in range(5))
+    M, A, JE = (np.zeros((n, n)) for _ in range(3))
+    JF = {a: np.zeros((n, n)) for a in face_h_powers}
+    S = {a: np.zeros((n, n)) for a in normal_h_powers}
 
     piece_normal = {}
     piece_vertices = defaultdict(set)
@@ -243,14 +253,16 @@ def reference_cut(cut, h, face_h_power=0.0, normal_h_power=1.0):
         np.add.at(c, tets[k1], basis[k1][1] @ nF)
         np.add.at(c, tets[k2], -(basis[k2][1] @ nF))
         nz = np.flatnonzero(c)
-        JF[np.ix_(nz, nz)] += h**face_h_power * area * np.outer(c[nz], c[nz])
+        for a in face_h_powers:
+            JF[a][np.ix_(nz, nz)] += longest_edge(X) ** a * area * np.outer(c[nz], c[nz])
 
     # normal-gradient volume penalty over the whole active tets, n = piece normal
     for k, T in enumerate(tets):
         X = pts[T]
         vol = abs(np.linalg.det(X[1:] - X[0])) / 6.0
         gn = basis[k][1] @ piece_normal[k]
-        S[np.ix_(T, T)] += h**normal_h_power * vol * np.outer(gn, gn)
+        for a in normal_h_powers:
+            S[a][np.ix_(T, T)] += longest_edge(X) ** a * vol * np.outer(gn, gn)
     return M, A, JE, JF, S
 
 
@@ -309,10 +321,11 @@ def test_meshed_matrices_match_reference(make):
     V = SurfaceP1Space(mesh)
     pts, tris = np.asarray(mesh.points), np.asarray(mesh.triangles)
     M, A, JE = reference_meshed(pts, tris, V.h)
-    assert_matrix_equal(mass(V), M)
-    assert_matrix_equal(tangential_stiffness(V), A)
-    assert_matrix_equal(edge_jump_penalty(V), JE)
-    assert_matrix_equal(edge_jump_penalty(V, h=0.37), JE * 0.37 / V.h)
+    dS = mesh.ds()
+    assert_matrix_equal(assemble(mass(dS), V), M)
+    assert_matrix_equal(assemble(tangential_stiffness(dS), V), A)
+    assert_matrix_equal(assemble(edge_jump_penalty(dS), V), JE)
+    assert_matrix_equal(assemble(edge_jump_penalty(dS, h=0.37), V), JE * 0.37 / V.h)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -343,30 +356,33 @@ CUT_CASES = {
 def cut_case(request):
     cut = CUT_CASES[request.param]()
     V = CutP1Space(cut)
-    return V, reference_cut(cut, V.h, face_h_power=0.0, normal_h_power=1.0)
+    return V, reference_cut(cut, V.h, face_h_powers=(0.0, 2.0), normal_h_powers=(1.0, 0.0))
 
 
 def test_cut_mass_and_stiffness_match_reference(cut_case):
     V, (M, A, _, _, _) = cut_case
-    assert_matrix_equal(mass(V), M)
-    assert_matrix_equal(tangential_stiffness(V), A)
+    dS = V.cut.ds()
+    assert_matrix_equal(assemble(mass(dS), V), M)
+    assert_matrix_equal(assemble(tangential_stiffness(dS), V), A)
 
 
 def test_cut_edge_jump_matches_reference(cut_case):
     V, (_, _, JE, _, _) = cut_case
-    assert_matrix_equal(edge_jump_penalty(V), JE)
+    assert_matrix_equal(assemble(edge_jump_penalty(V.cut.ds()), V), JE)
 
 
 def test_cut_face_jump_matches_reference(cut_case):
     V, (_, _, _, JF, _) = cut_case
-    assert_matrix_equal(face_jump_penalty(V), JF)
-    assert_matrix_equal(face_jump_penalty(V, h_power=2.0), JF * V.h**2)
+    dF = V.cut.dF(V.cut.interior_facets(CUT))
+    assert_matrix_equal(assemble(face_jump_penalty(dF), V), JF[0.0])
+    assert_matrix_equal(assemble(face_jump_penalty(dF, h_power=2.0), V), JF[2.0])
 
 
 def test_cut_normal_gradient_penalty_matches_reference(cut_case):
     V, (_, _, _, _, S) = cut_case
-    assert_matrix_equal(normal_gradient_penalty(V), S)
-    assert_matrix_equal(normal_gradient_penalty(V, h_power=0.0), S / V.h)
+    dT = V.cut.dx(CUT)
+    assert_matrix_equal(assemble(normal_gradient_penalty(dT), V), S[1.0])
+    assert_matrix_equal(assemble(normal_gradient_penalty(dT, h_power=0.0), V), S[0.0])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -382,14 +398,15 @@ def test_volume_mass_and_stiffness_match_reference(perturbed):
         bg = structured_box([-1, -1, -1], [1, 1, 1], cells=5)
         bg = TetMesh(np.array(bg.points), np.array(bg.tets))
     ls = Sphere(0.71, [0.05, -0.03, 0.02])
-    V = CutVolumeP1Space(bg, ls)
+    cut = cut_mesh(bg, ls)
+    V = CutP1Space(cut, NEG)
     M, K = reference_volume(bg, ls.value(bg.points))
     ids = V.node_ids
     # the space's dofs are exactly the nodes touched by the reference
     touched = np.flatnonzero(np.abs(M).sum(axis=1) > 0)
     np.testing.assert_array_equal(np.sort(ids), touched)
-    assert_matrix_equal(volume_mass(V), M[np.ix_(ids, ids)])
-    assert_matrix_equal(volume_stiffness(V), K[np.ix_(ids, ids)])
+    assert_matrix_equal(assemble(mass(cut.dx(NEG)), V), M[np.ix_(ids, ids)])
+    assert_matrix_equal(assemble(stiffness(cut.dx(NEG)), V), K[np.ix_(ids, ids)])
 
 
 # ----------------------------------------------------------------------------------------------

@@ -10,8 +10,9 @@ least squares in log-log scale over at least four spacings.
 import numpy as np
 import pytest
 
-from cutfem.cut import CutError, CutMesh, cut_mesh, inside_tetrahedra, snapped_nodal_values
+from cutfem.cut import CutError, CutMesh, cut_mesh, snapped_nodal_values
 from cutfem.levelset import Sphere, Torus
+from cutfem.markers import CUT, NEG
 from cutfem.mesh import TET_FACES, TetMesh, structured_box
 from cutfem.quadrature import map_tetrahedra
 
@@ -120,7 +121,7 @@ def convergence(request):
     for n in cells:
         box = structured_box(lower, upper, cells=n)
         cut = cut_mesh(box, levelset)
-        sub, parent = inside_tetrahedra(box, levelset)
+        sub, parent, _ = cut.dx(NEG).subtetrahedra
         inside_volume = map_tetrahedra(sub, 1, parent=parent).weights.sum()
         rows.append((box.spacing.max(), cut.area, cut.enclosed_volume, inside_volume))
     return request.param, np.array(rows)
@@ -138,7 +139,7 @@ def test_volume_converges_at_rate_two(convergence):
     name, rows = convergence
     _, volume = EXACT[name]
     h = rows[:, 0]
-    for column in (2, 3):  # CutMesh.enclosed_volume, inside_tetrahedra + quadrature
+    for column in (2, 3):  # CutMesh.enclosed_volume, sub-tetrahedra of cut.dx(NEG) + quadrature
         err = np.abs(rows[:, column] - volume)
         assert 1.8 <= fitted_rate(h, err) <= 2.3
         assert err[-1] / volume < 5e-3
@@ -259,8 +260,13 @@ def a_cut(request):
 
 def test_interior_faces(a_cut):
     cut = a_cut
-    faces, ft, opp = cut.interior_faces, cut.interior_face_tets, cut.interior_face_opposite
+    facets = cut.interior_facets(CUT)
+    ft, opp = facets.pairs, facets.opposite
+    # the face's local node numbers: those of the first tet without the opposite vertex
+    faces = np.take_along_axis(cut.tets[ft[:, 0]], TET_FACES[opp[:, 0]], axis=1)
+    np.testing.assert_array_equal(facets.vertices, cut.points[faces])
     assert faces.shape[1] == 3 and ft.shape == (len(faces), 2) and opp.shape == (len(faces), 2)
+    assert facets.n_facets == len(faces)
     assert np.all(ft[:, 0] != ft[:, 1])
     for s in range(2):
         tets = cut.tets[ft[:, s]]  # (F, 4)
@@ -403,8 +409,8 @@ def test_nan_values():
         for levelset in (f, BandNaN()):
             with pytest.raises(ValueError, match="NaN"):
                 cut_mesh(box, levelset)
-    with pytest.raises(ValueError, match="NaN"):
-        inside_tetrahedra(SPHERE_BOX, f)
+    with pytest.raises(ValueError, match="NaN"):  # the nodal values behind the sides of a cut
+        snapped_nodal_values(SPHERE_BOX, f)
     values = Sphere(1.0).value(SPHERE_BOX.points)
     values[17] = np.nan
     with pytest.raises(ValueError, match="NaN"):
@@ -416,7 +422,7 @@ def test_nodal_values_of_the_wrong_length():
     with pytest.raises(ValueError, match=f"got {values.size - 1} nodal values for a mesh of {values.size} nodes"):
         cut_mesh(SPHERE_BOX, values[:-1])
     with pytest.raises(ValueError, match="nodal values"):
-        inside_tetrahedra(SPHERE_BOX, np.append(values, 1.0))
+        snapped_nodal_values(SPHERE_BOX, np.append(values, 1.0))
 
 
 # ----------------------------------------------------------------------------------------------

@@ -19,6 +19,7 @@ import scipy.sparse as sp
 
 from cutfem.cut import cut_mesh
 from cutfem.forms import (
+    assemble,
     bilinear_form,
     dot,
     edge_jump_penalty,
@@ -30,6 +31,7 @@ from cutfem.forms import (
     tangential_stiffness,
 )
 from cutfem.levelset import Sphere, Torus
+from cutfem.markers import CUT, NEG
 from cutfem.mesh import structured_box, unstructured_box
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import SurfaceMesh, sphere_mesh, torus_mesh
@@ -45,6 +47,36 @@ def surface_triangles(V):
     if isinstance(V, SurfaceP1Space):
         return np.asarray(V.dof_points)[V.element_dofs]
     return V.cut.vertices[V.cut.triangles]
+
+
+def ds(V):
+    """The measure on S_h of a meshed or cut space."""
+    return V.mesh.ds() if isinstance(V, SurfaceP1Space) else V.cut.ds()
+
+
+def dF(V):
+    """The facet measure of J_F: the interior faces of the cut tets."""
+    return V.cut.dF(V.cut.interior_facets(CUT))
+
+
+def mass_matrix(V):
+    return assemble(mass(ds(V)), V)
+
+
+def stiffness_matrix(V):
+    return assemble(tangential_stiffness(ds(V)), V)
+
+
+def edge_matrix(V, **kw):
+    return assemble(edge_jump_penalty(ds(V), **kw), V)
+
+
+def face_matrix(V, **kw):
+    return assemble(face_jump_penalty(dF(V), **kw), V)
+
+
+def load_vector(V, f, **kw):
+    return assemble(load(f, ds(V), **kw), V)
 
 
 SPACES = {
@@ -89,9 +121,9 @@ def relative_norm(x, scale):
 
 def test_mass_sums_to_area(space):
     area = triangles_area(surface_triangles(space))
-    M = mass(space)
+    M = mass_matrix(space)
     assert M.sum() == pytest.approx(area, rel=1e-12)
-    assert mass(space).sum() == pytest.approx(area, rel=1e-12)
+    assert mass_matrix(space).sum() == pytest.approx(area, rel=1e-12)
     one = np.ones(space.n_dofs)
     assert one @ M @ one == pytest.approx(area, rel=1e-12)
 
@@ -103,7 +135,7 @@ def test_cut_mass_by_piece_moments_equals_triangle_route(which):
     from cutfem.forms import _simplex_mass
 
     space = SPACES[which]()
-    M = mass(space)
+    M = mass_matrix(space)
     reference = _simplex_mass(space, *space.surface_triangles())
     assert relative_norm((M - reference).data, np.abs(reference).max()) < 1e-12
     assert (M - M.T).nnz == 0
@@ -116,7 +148,7 @@ def test_cut_mass_by_piece_moments_equals_triangle_route(which):
 
 
 def test_tangential_stiffness_identities(space):
-    A = tangential_stiffness(space)
+    A = stiffness_matrix(space)
     scale = np.abs(A).max()
     assert relative_norm(A @ np.ones(space.n_dofs), scale) < 1e-12  # constants are annihilated
     X = space.interpolate(lambda x: x)
@@ -127,9 +159,9 @@ def test_tangential_stiffness_identities(space):
 def test_position_load_is_stiffness_times_coordinates(space):
     """b = A x without A: the same vector to round-off, columns summing to zero (closed surface),
     and x^T b = sum_k x_k^T A x_k = 2 |S_h|."""
-    B = position_load(space)
+    B = assemble(position_load(ds(space)), space)
     X = space.interpolate(lambda x: x)
-    AX = tangential_stiffness(space) @ X
+    AX = stiffness_matrix(space) @ X
     scale = np.abs(AX).max()
     assert B.shape == (space.n_dofs, 3)
     assert relative_norm(B - AX, scale) < 1e-12
@@ -138,11 +170,12 @@ def test_position_load_is_stiffness_times_coordinates(space):
 
 
 def test_position_load_refuses_a_volume_space():
-    from cutfem.spaces import CutVolumeP1Space
-
-    V = CutVolumeP1Space(structured_box([-1, -1, -1], [1, 1, 1], cells=4), Sphere(0.7))
-    with pytest.raises(TypeError, match="SurfaceP1Space or a CutP1Space"):
-        position_load(V)
+    cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=4), Sphere(0.7))
+    V = CutP1Space(cut, NEG)
+    with pytest.raises(TypeError, match="SurfacePieces or MeshedSurface"):
+        position_load(cut.dx(NEG))
+    with pytest.raises(ValueError, match="needs the field on the cut tets"):
+        assemble(position_load(cut.ds()), V)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -152,7 +185,7 @@ def test_position_load_refuses_a_volume_space():
 
 def test_jump_penalties_exactly_symmetric_and_semidefinite(small_space):
     V = small_space
-    mats = [edge_jump_penalty(V)] + ([face_jump_penalty(V)] if isinstance(V, CutP1Space) else [])
+    mats = [edge_matrix(V)] + ([face_matrix(V)] if isinstance(V, CutP1Space) else [])
     for J in mats:
         assert (J - J.T).nnz == 0  # bitwise symmetric
         ev = np.linalg.eigvalsh(J.toarray())
@@ -202,7 +235,7 @@ def test_edge_jump_on_flat_faces_only_creases_count(seed):
     mesh = cube_mesh(5, seed)
     assert mesh.flipped_components == 0 and mesh.euler_characteristic == 2
     V = SurfaceP1Space(mesh)
-    J = edge_jump_penalty(V)
+    J = edge_matrix(V)
     g = np.array([0.4, -1.1, 0.7])
     u = V.interpolate(lambda x: x @ g)
     # the flat faces contribute nothing, each crease its exact share (nonzero: the check can fail)
@@ -216,7 +249,7 @@ def test_edge_jump_vanishes_on_linear_functions_on_a_cut_plane():
     with warnings.catch_warnings():  # the plane's border edges (on the box) have one piece only
         warnings.simplefilter("ignore", RuntimeWarning)
         V = CutP1Space(cut_mesh(box, lambda x: x @ normal - 0.137, check_boundary=False))
-        J = edge_jump_penalty(V)
+        J = edge_matrix(V)
     assert J.nnz > 0
     g = np.array([0.7, -1.3, 0.4])
     u = V.interpolate(lambda x: x @ g)
@@ -235,12 +268,12 @@ def unstructured_cut_space():
 @pytest.mark.parametrize("which", ["cut-sphere", "cut-torus", "unstructured"])
 def test_face_jump_vanishes_on_linear_functions(which, unstructured_cut_space):
     V = unstructured_cut_space if which == "unstructured" else SPACES[which]()
-    J = face_jump_penalty(V)
+    J = face_matrix(V)
     g = np.array([1.3, 0.2, -0.8])
     u = V.interpolate(lambda x: x @ g + 0.5)
     scale = np.abs(J).max() * np.abs(u).max()
     assert relative_norm(J @ u, scale) < 1e-12
-    assert relative_norm(face_jump_penalty(V, h_power=1.0) @ u, scale * V.h) < 1e-12
+    assert relative_norm(face_matrix(V, h_power=1.0) @ u, scale * V.h) < 1e-12
     quadratic = V.interpolate(lambda x: (x**2).sum(axis=-1))
     assert quadratic @ J @ quadratic > 1e-3 * np.abs(J).max()  # the check can fail
 
@@ -251,7 +284,7 @@ def test_cut_trace_space_contains_the_level_set():
     on a curved surface."""
     V = SPACES["cut-sphere"]()
     phi = V.cut.values
-    M, A, J = mass(V), tangential_stiffness(V), face_jump_penalty(V)
+    M, A, J = mass_matrix(V), stiffness_matrix(V), face_matrix(V)
     assert relative_norm(M @ phi, np.abs(M).max() * np.abs(phi).max()) < 1e-12
     assert relative_norm(A @ phi, np.abs(A).max() * np.abs(phi).max()) < 1e-12
     assert phi @ J @ phi > 1e-3 * np.abs(J).max() * np.abs(phi).max() ** 2
@@ -259,7 +292,7 @@ def test_cut_trace_space_contains_the_level_set():
 
 def test_stabilized_cut_mass_is_positive_definite(small_cut_spaces):
     for V in small_cut_spaces:
-        M, J = mass(V), face_jump_penalty(V)
+        M, J = mass_matrix(V), face_matrix(V)
         for tau in (0.1, 1e-3):
             ev = np.linalg.eigvalsh((M + tau * J).toarray())
             assert ev[0] > 1e-9 * ev[-1]
@@ -273,7 +306,7 @@ def test_flat_cut_is_not_stabilized_by_face_jumps():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         V = CutP1Space(cut_mesh(box, lambda x: x[..., 2] - 0.3 * x[..., 0] - 0.11, check_boundary=False))
-    S = mass(V) + 0.1 * face_jump_penalty(V)
+    S = assemble(mass(ds(V)) + 0.1 * face_jump_penalty(dF(V)), V)
     phi = V.dof_points[:, 2] - 0.3 * V.dof_points[:, 0] - 0.11
     assert relative_norm(S @ phi, np.abs(S).max() * np.abs(phi).max()) < 1e-12
 
@@ -297,13 +330,21 @@ def helmholtz_plain(u, v, w):
 def test_user_helmholtz_form_matches_builtins(which):
     V = SMALL[which]()
     k2 = 3.7
-    expected = (tangential_stiffness(V) + k2 * mass(V)).toarray()
-    H = helmholtz.assemble(V, k2=k2)
-    assert isinstance(H, sp.csr_matrix) and (H - H.T).nnz == 0
+    expected = (stiffness_matrix(V) + k2 * mass_matrix(V)).toarray()
+    H = assemble(helmholtz * ds(V), V, k2=k2)
+    assert isinstance(H, sp.csr_matrix)
     np.testing.assert_allclose(H.toarray(), expected, rtol=0, atol=1e-13 * np.abs(expected).max())
-    np.testing.assert_allclose(helmholtz_plain(V, k2=k2).toarray(), expected, rtol=0, atol=1e-13 * np.abs(expected).max())
+    plain = assemble(helmholtz_plain * ds(V), V, k2=k2)
+    np.testing.assert_allclose(plain.toarray(), expected, rtol=0, atol=1e-13 * np.abs(expected).max())
     with pytest.raises(AttributeError, match="k2"):
-        helmholtz.assemble(V)
+        assemble(helmholtz * ds(V), V)
+
+
+@pytest.mark.parametrize("which", ["meshed-torus", "cut-sphere"])
+def test_symmetric_user_form_is_exactly_symmetric(which):
+    V = SMALL[which]()
+    H = assemble(helmholtz * ds(V), V, k2=3.7)
+    assert (H - H.T).nnz == 0
 
 
 @bilinear_form
@@ -350,7 +391,7 @@ def advection_reference(V, omega):
 def test_user_advection_form_matches_reference(which):
     V = SMALL[which]()
     omega = np.array([0.2, -0.3, 1.0])
-    B = advection.assemble(V, omega=omega)
+    B = assemble(advection * ds(V), V, omega=omega)
     ref = advection_reference(V, omega)
     scale = np.abs(ref).max()
     np.testing.assert_allclose(B.toarray(), ref, rtol=0, atol=1e-12 * scale)
@@ -365,16 +406,16 @@ def test_user_advection_form_matches_reference(which):
 
 def test_load_constant_vector_and_linear(space):
     area = triangles_area(surface_triangles(space))
-    b = load(space, lambda x: np.full(x.shape[:2], 2.5))
+    b = load_vector(space, lambda x: np.full(x.shape[:2], 2.5))
     assert b.shape == (space.n_dofs,) and b.sum() == pytest.approx(2.5 * area, rel=1e-12)
     c = np.array([1.0, -2.0, 0.5])
-    B = load(space, lambda x: np.broadcast_to(c, x.shape))
+    B = load_vector(space, lambda x: np.broadcast_to(c, x.shape))
     assert B.shape == (space.n_dofs, 3)
     np.testing.assert_allclose(B.sum(axis=0), c * area, rtol=1e-12)
     # a linear f lies in V_h: (f, phi_i) = (M f_nodes)_i exactly
     g = np.array([0.3, 0.9, -0.4])
-    f = load(space, lambda x: x @ g + 1.0, degree=2)
-    expected = mass(space) @ space.interpolate(lambda x: x @ g + 1.0)
+    f = load_vector(space, lambda x: x @ g + 1.0, degree=2)
+    expected = mass_matrix(space) @ space.interpolate(lambda x: x @ g + 1.0)
     np.testing.assert_allclose(f, expected, rtol=0, atol=1e-13 * np.abs(expected).max())
 
 
@@ -390,9 +431,9 @@ def test_load_with_closest_point_and_bad_shape():
         d = x - c
         return 0.7 * d[..., 2] / np.linalg.norm(d, axis=-1)
 
-    np.testing.assert_allclose(load(V, f, closest_point=sphere.closest_point), load(V, radial), rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(load_vector(V, f, closest_point=sphere.closest_point), load_vector(V, radial), rtol=1e-12, atol=1e-15)
     with pytest.raises(ValueError, match="shape"):
-        load(V, lambda x: np.zeros(len(x)))
+        load_vector(V, lambda x: np.zeros(len(x)))
 
 
 @linear_form
@@ -407,5 +448,5 @@ def components(v, w):
 
 def test_user_linear_forms_match_load():
     V = SMALL["cut-sphere"]()
-    np.testing.assert_allclose(weighted(V, a=2.0), 2.0 * load(V, lambda x: x[..., 0]), rtol=1e-13, atol=1e-16)
-    np.testing.assert_allclose(components.assemble(V), load(V, lambda x: x, degree=2), rtol=1e-13, atol=1e-16)
+    np.testing.assert_allclose(assemble(weighted * ds(V), V, a=2.0), 2.0 * load_vector(V, lambda x: x[..., 0]), rtol=1e-13, atol=1e-16)
+    np.testing.assert_allclose(assemble(components * ds(V), V), load_vector(V, lambda x: x, degree=2), rtol=1e-13, atol=1e-16)

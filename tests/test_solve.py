@@ -12,12 +12,35 @@ import scipy.sparse.linalg as spla
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import discrete_error, fitted_rate, h1_error, l2_error, rates, surface_integral
-from cutfem.forms import face_jump_penalty, mass, tangential_stiffness
+from cutfem.forms import assemble, edge_jump_penalty, face_jump_penalty, mass, tangential_stiffness
 from cutfem.levelset import Sphere, Torus
+from cutfem.markers import CUT
 from cutfem.mesh import structured_box
 from cutfem.solve import DirectSolver, SingularSystemError, cg_solve, condition_number, solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import sphere_mesh
+
+
+def ds(V):
+    """The measure on S_h of a meshed or cut space."""
+    return V.mesh.ds() if isinstance(V, SurfaceP1Space) else V.cut.ds()
+
+
+def mass_matrix(V):
+    return assemble(mass(ds(V)), V)
+
+
+def stiffness_matrix(V):
+    return assemble(tangential_stiffness(ds(V)), V)
+
+
+def face_matrix(V):
+    """J_F over the interior faces of the cut tets."""
+    return assemble(face_jump_penalty(V.cut.dF(V.cut.interior_facets(CUT))), V)
+
+
+def edge_matrix(V):
+    return assemble(edge_jump_penalty(ds(V)), V)
 
 
 @pytest.fixture(scope="module")
@@ -30,9 +53,9 @@ def systems(cut_torus):
     """SPD systems: meshed Laplace-Beltrami A + M, stabilized cut mass and cut Laplace-Beltrami."""
     S = SurfaceP1Space(sphere_mesh(4))
     V = cut_torus
-    M, A, J = mass(V), tangential_stiffness(V), face_jump_penalty(V)
+    M, A, J = mass_matrix(V), stiffness_matrix(V), face_matrix(V)
     return {
-        "meshed-lb": tangential_stiffness(S) + mass(S),
+        "meshed-lb": stiffness_matrix(S) + mass_matrix(S),
         "cut-mass": M + 0.1 * J,
         "cut-lb": A + M + 0.1 * J,
     }
@@ -69,7 +92,7 @@ def test_direct_solver_reuse_matches_spsolve(systems, name):
 def test_zero_diagonal_is_reported_singular(small_cut_sphere):
     """An unknown without support on S_h has a zero row: SingularSystemError with smallest 0."""
     V = small_cut_sphere
-    S = (mass(V) + 0.1 * face_jump_penalty(V)).tolil()
+    S = (mass_matrix(V) + 0.1 * face_matrix(V)).tolil()
     S[5, :] = 0.0
     S[:, 5] = 0.0
     S = S.tocsr()
@@ -83,11 +106,11 @@ def test_zero_diagonal_is_reported_singular(small_cut_sphere):
 
 def test_unstabilized_cut_mass_is_reported_singular(small_cut_sphere):
     V = small_cut_sphere
-    M = mass(V)
+    M = mass_matrix(V)
     with pytest.raises(SingularSystemError, match="numerically singular") as err:
         DirectSolver(M)
     assert 0.0 <= err.value.smallest < 1e-12  # relative to a largest pivot of order one
-    DirectSolver(M + 0.1 * face_jump_penalty(V))  # stabilized: no error
+    DirectSolver(M + 0.1 * face_matrix(V))  # stabilized: no error
 
 
 def test_plane_on_a_node_layer_is_reported_singular():
@@ -97,7 +120,7 @@ def test_plane_on_a_node_layer_is_reported_singular():
     V = CutP1Space(cut_mesh(box, lambda x: x[..., 2], check_boundary=False))
     below = V.dof_points[:, 2] < 0
     assert below.any()
-    M = mass(V)
+    M = mass_matrix(V)
     assert np.abs(M.diagonal()[below]).max() < 1e-25 * M.diagonal().max()
     with pytest.raises(SingularSystemError) as err:
         DirectSolver(M)
@@ -155,17 +178,17 @@ def scaled_condition(A):
 def test_condition_number_matches_dense_reference(small_cut_sphere):
     V = small_cut_sphere  # fewer than 400 unknowns: dense path
     assert V.n_dofs <= 400
-    A = mass(V) + 0.1 * face_jump_penalty(V)
+    A = mass_matrix(V) + 0.1 * face_matrix(V)
     assert condition_number(A) == pytest.approx(scaled_condition(A), rel=1e-8)
     box = structured_box([-1, -1, -1], [1, 1, 1], cells=11)
     coarse = CutP1Space(cut_mesh(box, Sphere(0.7, [0.03, -0.01, 0.02])))
     assert coarse.n_dofs > 400  # Lanczos path
-    B = mass(coarse) + 0.1 * face_jump_penalty(coarse)
+    B = mass_matrix(coarse) + 0.1 * face_matrix(coarse)
     assert condition_number(B) == pytest.approx(scaled_condition(B), rel=1e-5)
 
 
 def test_condition_number_of_singular_matrix_lanczos_path(cut_torus):
-    M = mass(cut_torus)  # singular: M phi_h = 0
+    M = mass_matrix(cut_torus)  # singular: M phi_h = 0
     assert cut_torus.n_dofs > 400
     assert condition_number(M) > 1e12
 
@@ -184,9 +207,9 @@ def test_conditioning_over_random_shifts():
     for _ in range(30):
         cut = cut_mesh(box, Sphere(rng.uniform(0.6, 0.8), rng.uniform(-0.125, 0.125, size=3)))
         V = CutP1Space(cut)
-        M = mass(V)
+        M = mass_matrix(V)
         unstabilized.append(condition_number(M))
-        stabilized.append(condition_number(M + 0.1 * face_jump_penalty(V)))
+        stabilized.append(condition_number(M + 0.1 * face_matrix(V)))
         smallest_piece.append(cut.piece_areas.min() / cut.piece_areas.max())
     assert min(smallest_piece) < 1e-4  # the sample does contain tiny pieces
     assert min(unstabilized) > 1e12  # every one blows up (inf counts)
@@ -253,7 +276,7 @@ def test_discrete_error_and_surface_integral():
     V = SurfaceP1Space(sphere_mesh(2))
     P = np.asarray(V.dof_points)[V.element_dofs]
     area = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1).sum()
-    M = mass(V)
+    M = mass_matrix(V)
     assert discrete_error(M, np.full(V.n_dofs, 3.0)) == pytest.approx(3.0 * np.sqrt(area), rel=1e-12)
     E = np.column_stack([np.ones(V.n_dofs), 2 * np.ones(V.n_dofs), np.zeros(V.n_dofs)])
     assert discrete_error(M, E) == pytest.approx(np.sqrt(5 * area), rel=1e-12)  # components summed

@@ -9,8 +9,9 @@ import scipy.sparse as sp
 
 import cutfem.solve as solve_module
 from cutfem.cut import cut_mesh
-from cutfem.forms import face_jump_penalty, mass, tangential_stiffness
+from cutfem.forms import assemble, edge_jump_penalty, face_jump_penalty, mass, tangential_stiffness
 from cutfem.levelset import Sphere, Torus
+from cutfem.markers import CUT
 from cutfem.mesh import structured_box
 from cutfem.solve import (
     DirectSolver,
@@ -26,6 +27,28 @@ from cutfem.solve import (
 )
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import SurfaceMesh, sphere_mesh, torus_mesh
+
+
+def ds(V):
+    """The measure on S_h of a meshed or cut space."""
+    return V.mesh.ds() if isinstance(V, SurfaceP1Space) else V.cut.ds()
+
+
+def mass_matrix(V):
+    return assemble(mass(ds(V)), V)
+
+
+def stiffness_matrix(V):
+    return assemble(tangential_stiffness(ds(V)), V)
+
+
+def face_matrix(V):
+    """J_F over the interior faces of the cut tets."""
+    return assemble(face_jump_penalty(V.cut.dF(V.cut.interior_facets(CUT))), V)
+
+
+def edge_matrix(V):
+    return assemble(edge_jump_penalty(ds(V)), V)
 
 
 @pytest.fixture(scope="module")
@@ -81,7 +104,7 @@ def test_coarse_space_is_nested(torus_space):
 @pytest.mark.parametrize("system", ["mean-curvature", "laplace-beltrami"])
 def test_mg_solve_agrees_with_direct(torus_space, system):
     V = torus_space
-    M, A, J = mass(V), tangential_stiffness(V), face_jump_penalty(V)
+    M, A, J = mass_matrix(V), stiffness_matrix(V), face_matrix(V)
     K = M + 0.1 * J if system == "mean-curvature" else A + M + 0.1 * J
     B = A @ V.dof_points
     X_direct = DirectSolver(K).solve(B)
@@ -95,7 +118,7 @@ def test_mg_solve_agrees_with_direct(torus_space, system):
 
 def test_auto_picks_multigrid_above_the_limit(torus_space, monkeypatch):
     V = torus_space
-    K = mass(V) + 0.1 * face_jump_penalty(V)
+    K = mass_matrix(V) + 0.1 * face_matrix(V)
     b = np.ones(V.n_dofs)
     monkeypatch.setattr(solve_module, "DIRECT_LIMIT", 1000)
     x, info = solve(K, b, space=V)
@@ -107,7 +130,7 @@ def test_auto_picks_multigrid_above_the_limit(torus_space, monkeypatch):
 
 def test_multigrid_hierarchy_shape(torus_space):
     V = torus_space
-    K = mass(V) + 0.1 * face_jump_penalty(V)
+    K = mass_matrix(V) + 0.1 * face_matrix(V)
     mg = GeometricMultigrid(K, lattice_indices(V), coarse_size=500)
     assert mg.sizes[0] == V.n_dofs and all(a > 3 * b for a, b in zip(mg.sizes, mg.sizes[1:]))
     assert mg.operator_complexity < 1.5
@@ -120,7 +143,7 @@ def test_multigrid_hierarchy_shape(torus_space):
 
 def test_multigrid_reports_zero_diagonal_and_bad_lattice(torus_space):
     V = torus_space
-    K = (mass(V) + 0.1 * face_jump_penalty(V)).tolil()
+    K = (mass_matrix(V) + 0.1 * face_matrix(V)).tolil()
     K[7, :] = 0.0
     K[:, 7] = 0.0
     with pytest.raises(SingularSystemError, match="zero"):
@@ -135,7 +158,7 @@ def test_unstabilized_system_is_not_hidden(monkeypatch):
     """tau_F = 0: the nodal vector of phi_h is a null vector of the surface forms; solve() with the
     space reports it on the iterative path too (a consistent right-hand side would hide it)."""
     V = CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=24), Sphere(0.7, [0.03, -0.01, 0.02])))
-    M, A, J = mass(V), tangential_stiffness(V), face_jump_penalty(V)
+    M, A, J = mass_matrix(V), stiffness_matrix(V), face_matrix(V)
     B = A @ V.dof_points
     monkeypatch.setattr(solve_module, "DIRECT_LIMIT", 100)
     for K in (M, A + M):
@@ -152,10 +175,8 @@ def test_unstabilized_system_is_not_hidden(monkeypatch):
 
 
 def _edge_system(mesh):
-    from cutfem.forms import edge_jump_penalty
-
     V = SurfaceP1Space(mesh)
-    return V, (mass(V) + 0.1 * edge_jump_penalty(V)).tocsr(), tangential_stiffness(V) @ V.dof_points
+    return V, (mass_matrix(V) + 0.1 * edge_matrix(V)).tocsr(), stiffness_matrix(V) @ V.dof_points
 
 
 def test_grid_prolongation_is_exact_for_linear_functions_on_a_planar_grid():

@@ -1,4 +1,4 @@
-"""Tests for cutfem.spaces: P1 data of meshed, cut and cut-volume spaces.
+"""Tests for cutfem.spaces: P1 data of meshed fields, trace fields on the cut tets and bulk fields on a side.
 
 Expected values come from independent formulas written here: basis gradients by inverting the
 vertex systems, Heron's formula, cross products, exact volumes of boxes cut by planes, and the
@@ -12,8 +12,9 @@ import pytest
 
 from cutfem.cut import cut_mesh
 from cutfem.levelset import Sphere
+from cutfem.markers import CUT, NEG, POS
 from cutfem.mesh import structured_box
-from cutfem.spaces import CutP1Space, CutVolumeP1Space, SurfaceP1Space, barycentric_at, triangle_gradients
+from cutfem.spaces import CutP1Space, SurfaceP1Space, barycentric_at, triangle_gradients
 from cutfem.surface import torus_mesh
 
 
@@ -94,10 +95,12 @@ def test_surface_space_data(meshed_torus):
     # quadrature on S_h: weights sum to the area, points inside the triangles
     area = sum(heron(np.asarray(mesh.points)[t]) for t in mesh.triangles)
     for degree in (0, 2, 4):
-        q = V.quadrature("surface", degree)
+        q = mesh.ds().quadrature(degree)
         assert q.weights.sum() == pytest.approx(area, rel=1e-12)
-    with pytest.raises(ValueError, match="only the 'surface' measure"):
-        V.quadrature("active")
+    # a field on a surface mesh does not live on the tets of a cut
+    cut = cut_mesh(structured_box([-2, -2, -1], [2, 2, 1], cells=4), Sphere(0.9))
+    with pytest.raises(ValueError, match="does not live on the measure"):
+        V.evaluate(np.zeros(V.n_dofs), cut.dx(CUT))
 
 
 def test_surface_space_edges(meshed_torus):
@@ -142,16 +145,20 @@ def test_cut_space_data(cut_sphere):
     np.testing.assert_allclose(np.linalg.norm(V.element_normals, axis=1), 1.0, atol=1e-14)
     for a, b in ((0, 1), (0, 2)):
         assert np.abs(np.einsum("ij,ij->i", tri_pts[:, b] - tri_pts[:, a], n)).max() < 1e-12
-    # the active measure is the union of the whole active tets
-    q = V.quadrature("active", 2)
+    # the measure of the whole cut tets is their union
+    q = cut.dx(CUT).quadrature(2)
     assert q.weights.sum() == pytest.approx(V.n_elements * (0.2**3 / 6), rel=1e-12)  # Kuhn tets: 1/6 of a cube
-    with pytest.raises(ValueError, match="unknown measure"):
-        V.quadrature("volume")
+    # the trace field does not live on the tets inside the surface
+    with pytest.raises(ValueError, match="not in the element set"):
+        V.evaluate(np.zeros(V.n_dofs), cut.dx(NEG))
 
 
 def test_cut_space_faces(cut_sphere):
     V = cut_sphere
-    pairs, normals, areas = V.faces()
+    facets = V.cut.interior_facets(CUT)
+    assert facets.elements is V.elements
+    pairs, normals, areas = facets.pairs, facets.normals, facets.areas
+    assert facets.n_facets == len(pairs)
     tets, pts = V.element_dofs, V.dof_points
     # the same faces as an independent count of faces shared by two active tets
     owners = defaultdict(list)
@@ -171,6 +178,12 @@ def test_cut_space_faces(cut_sphere):
         assert abs(normals[f] @ unit(cross)) == pytest.approx(1.0, abs=1e-12)
         opposite = pts[np.setdiff1d(tets[pairs[f, 0]], common)[0]]
         assert normals[f] @ (opposite - X[0]) < 0  # out of the first tet
+        for s in range(2):  # the local vertex opposite to the face, in each tet
+            assert tets[pairs[f, s], facets.opposite[f, s]] not in common
+        # the face's vertices and size h_F, the longest edge
+        np.testing.assert_array_equal(np.sort(facets.vertices[f], axis=0), np.sort(X, axis=0))
+        longest = max(np.linalg.norm(X[a] - X[b]) for a, b in ((0, 1), (1, 2), (0, 2)))
+        assert facets.h[f] == pytest.approx(longest, rel=1e-14)
 
 
 def test_cut_space_edges(cut_sphere):
@@ -211,12 +224,13 @@ def test_linear_functions_are_reproduced(which, meshed_torus, cut_sphere):
     g, c = np.array([0.3, -1.2, 0.7]), 0.25
     u = V.interpolate(lambda x: x @ g + c)
     assert u.shape == (V.n_dofs,)
-    q = V.quadrature("surface", 4)
-    np.testing.assert_allclose(V.evaluate(u, q), q.points @ g + c, atol=1e-12)
+    ds = V.mesh.ds() if which == "meshed" else V.cut.ds()
+    q = ds.quadrature(4)
+    np.testing.assert_allclose(V.evaluate(u, ds, 4), q.points @ g + c, atol=1e-12)
     X = V.interpolate(lambda x: x)  # vector-valued: the coordinate map
     assert X.shape == (V.n_dofs, 3)
-    np.testing.assert_allclose(V.evaluate(X, q), q.points, atol=1e-12)
-    phi = V.basis_values(q)
+    np.testing.assert_allclose(V.evaluate(X, ds, 4), q.points, atol=1e-12)
+    phi = V.basis_at(q.points, q.parent)
     np.testing.assert_allclose(phi.sum(axis=2), 1.0, atol=1e-12)
     grad = V.element_gradient_of(u)
     gradX = V.element_gradient_of(X)  # (n_el, 3, 3): row c is the gradient of x_c
@@ -231,7 +245,7 @@ def test_linear_functions_are_reproduced(which, meshed_torus, cut_sphere):
 
 
 # ----------------------------------------------------------------------------------------------
-# CutVolumeP1Space
+# bulk fields: CutP1Space(cut, NEG) with the measure cut.dx(NEG)
 # ----------------------------------------------------------------------------------------------
 
 
@@ -239,23 +253,26 @@ def test_cut_volume_space_plane():
     """phi = z - 0.1 on [-1, 1]^3 with spacing 0.5: the region is the slab z < 0.1 (volume 4.4),
     the elements are the tets with a node at z <= 0 (three layers of cells, volume 6)."""
     box = structured_box([-1, -1, -1], [1, 1, 1], spacing=0.5)
-    V = CutVolumeP1Space(box, lambda x: x[..., 2] - 0.1)
+    cut = cut_mesh(box, lambda x: x[..., 2] - 0.1, check_boundary=False)  # a slab meets the box sides
+    V = CutP1Space(cut, NEG)
+    dx = cut.dx(NEG)
     tets = np.asarray(box.tets)
     expected = np.flatnonzero((box.points[tets][:, :, 2] < 0.1).any(axis=1))
-    np.testing.assert_array_equal(np.sort(V.tet_ids), expected)
+    np.testing.assert_array_equal(np.sort(V.elements.tet_ids), expected)
     assert len(V.element_dofs) == 3 * 16 * 6
     assert V.n_dofs == 5 * 5 * 4  # node layers z = -1, -0.5, 0, 0.5
     assert V.h == pytest.approx(125 ** (-1 / 3), rel=1e-14)
-    q = V.quadrature("volume", 2)
+    q = dx.quadrature(2)
     assert q.weights.sum() == pytest.approx(4 * 1.1, rel=1e-13)
     # int z over [-1,1]^2 x [-1, 0.1] = 4 (0.1^2 - 1) / 2
     assert np.sum(q.weights * q.points[..., 2]) == pytest.approx(2 * (0.01 - 1), rel=1e-12)
     # the quadrature parents are the elements holding the points
-    lam = V.basis_values(q)
+    lam = V.basis_at(q.points, V.local_elements(dx, q.parent))
     assert lam.min() > -1e-12 and lam.max() < 1 + 1e-12
-    assert V.quadrature("active", 1).weights.sum() == pytest.approx(6.0, rel=1e-13)
-    with pytest.raises(ValueError, match="unknown measure"):
-        V.quadrature("surface")
+    assert cut.dx(V.elements).quadrature(1).weights.sum() == pytest.approx(6.0, rel=1e-13)
+    # the field on NEG does not live on the tets above the slab
+    with pytest.raises(ValueError, match="not in the element set"):
+        V.evaluate(np.zeros(V.n_dofs), cut.dx(POS))
 
 
 def test_cut_volume_space_sphere_volume_converges():
@@ -263,6 +280,6 @@ def test_cut_volume_space_sphere_volume_converges():
     R = 0.7
     errors = []
     for cells in (8, 16):
-        V = CutVolumeP1Space(structured_box([-1, -1, -1], [1, 1, 1], cells=cells), Sphere(R, [0.01, 0.02, -0.03]))
-        errors.append(abs(V.quadrature("volume", 1).weights.sum() - 4 / 3 * np.pi * R**3))
+        cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=cells), Sphere(R, [0.01, 0.02, -0.03]))
+        errors.append(abs(cut.dx(NEG).quadrature(1).weights.sum() - 4 / 3 * np.pi * R**3))
     assert errors[1] < errors[0] / 3  # rate >= log2(3) ~ 1.6, expected 2

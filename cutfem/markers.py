@@ -1,0 +1,312 @@
+"""Sides, element sets and facet sets of a cut (docs/math.md §7).
+
+One P1 level set phi_h splits the background box into two sides, ``NEG = {phi_h < 0}`` (inside) and
+``POS = {phi_h > 0}`` (outside), with the interface Gamma_h = {phi_h = 0} between them.  Nodal values
+that are exactly zero follow the zero rule of :mod:`cutfem.cut`: they count as outside.  Per tet T:
+
+* all nodes < 0: T lies in NEG;  all nodes >= 0: T lies in POS (also when every node is zero);
+* otherwise (mixed signs) T is split by the plane of its piece of Gamma_h into the two sides.
+
+So ``|T ∩ NEG| + |T ∩ POS| = |T|`` for every tet and Gamma_h is the common boundary of the sides.
+
+Element sets (:class:`ElementSet`, tets of the background with a node numbering of their own):
+
+* ``NEG``: the tets with ``|T ∩ NEG| > 0`` (a node < 0) together with the cut tets;
+* ``POS``: the tets with ``|T ∩ POS| > 0`` (a node > 0, or all nodes zero) together with the cut tets;
+* ``CUT``: the cut tets, those that carry a piece of Gamma_h of positive area (the active mesh of
+  :class:`cutfem.cut.CutMesh`).
+
+The cut tets belong to both sides even in the rare case where a zero rule makes one side's part of
+the tet empty (a piece lying in a face of the tet): then every field of a side is defined on the
+whole of Gamma_h, which the Nitsche terms need; the ghost penalty controls the extra nodes.
+
+Facet sets (:class:`FacetSet`): the interior faces of an element set (faces shared by two of its
+tets), the ghost-penalty faces of a side (interior faces of the side's set with at least one tet
+cut) and the interior faces of the cut tets (the face stabilization J_F of §3).
+
+Local sizes: ``h_T`` is the longest edge of T; ``h_F`` the longest edge of the face F.  These enter
+penalties; the global ``N**(-1/3)`` serves only as the abscissa of convergence tables.
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+
+import numpy as np
+
+from .mesh import KUHN_TETS, TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, pair_up, tet_face_keys
+
+__all__ = ["NEG", "POS", "CUT", "SIDES", "ElementSet", "FacetSet", "interior_facets", "side_subtetrahedra", "longest_edges"]
+
+NEG = "neg"
+POS = "pos"
+CUT = "cut"
+SIDES = (NEG, POS)
+
+
+def longest_edges(vertices: np.ndarray) -> np.ndarray:
+    """(m,) the longest edge of each simplex, vertices (m, k, 3) with k = 3 or 4."""
+    k = vertices.shape[1]
+    pairs = TET_EDGES if k == 4 else np.array([[0, 1], [1, 2], [0, 2]])
+    longest = np.zeros(len(vertices))
+    for a, b in pairs:  # six (or three) edges, each over all elements at once
+        np.maximum(longest, np.linalg.norm(vertices[:, b] - vertices[:, a], axis=1), out=longest)
+    return longest
+
+
+def interior_facets(tets: np.ndarray, n_nodes: int):
+    """The faces shared by two of the tets (m, 4) (node numbers below ``n_nodes``).
+
+    Returns ``(pairs (F, 2), opposite (F, 2))``: the two tets of each face (first the one that comes
+    first in ``tets``) and, in each, the local index of the vertex opposite to the face.  One sort
+    of the face keys.
+    """
+    keys = tet_face_keys(tets, n_nodes)
+    order, starts, counts = pair_up(keys)
+    two = counts == 2
+    first, second = order[starts[two]], order[starts[two] + 1]
+    pairs = np.stack([first // 4, second // 4], axis=1)
+    opposite = np.stack([first % 4, second % 4], axis=1)
+    return pairs, opposite
+
+
+class ElementSet:
+    """A set of tets of a background mesh with a node numbering of its own.
+
+    ``tet_ids`` (m,) background tet ids; ``tets`` (m, 4) local node numbers; ``node_ids`` (p,)
+    background ids of the nodes (increasing), ``points`` (p, 3); ``gradients`` (m, 4, 3) of the
+    barycentric coordinates; ``volumes`` (m,); ``h`` (m,) the longest edge of each tet.
+    ``name`` says which set it is (``"neg"``, ``"pos"``, ``"cut"`` or a user's name); ``cut`` is the
+    cut it comes from (or None).  ``normals`` (m, 3): n_h of the cut tets (only for the set of cut tets).
+    """
+
+    def __init__(self, background, tet_ids, *, name="elements", cut=None, tets=None, node_ids=None, points=None,
+                 gradients=None, volumes=None, normals=None):
+        self.background = background
+        self.tet_ids = np.asarray(tet_ids, dtype=np.int64)
+        self.name = name
+        self.cut = cut
+        structured = isinstance(background, StructuredBox)
+        if tets is None:
+            if structured:
+                nodes = np.take_along_axis(background.cell_corner_ids(self.tet_ids // 6), KUHN_TETS[self.tet_ids % 6], axis=1)
+            else:
+                nodes = background.tets[self.tet_ids]
+            node_ids, tets = dense_unique(nodes, background.n_points)
+            tets = tets.astype(np.int64)
+        self.tets = tets
+        self.node_ids = node_ids
+        if points is None:
+            points = background.node_coordinates(node_ids) if structured else background.points[node_ids]
+        self.points = points
+        if gradients is None:
+            if structured:
+                gradients = background.tet_gradients(self.tet_ids)
+                volumes = np.full(len(self.tet_ids), background.tet_volume)
+            else:
+                gradients, volumes = barycentric_gradients(points[tets])
+                volumes = np.abs(volumes)
+        self.gradients = gradients
+        self.volumes = volumes
+        self.normals = normals
+
+    def __repr__(self) -> str:
+        return f"ElementSet({self.name!r}, tets={self.n_elements}, nodes={self.n_nodes})"
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.tet_ids)
+
+    @property
+    def n_nodes(self) -> int:
+        return len(self.node_ids)
+
+    @cached_property
+    def vertices(self) -> np.ndarray:
+        """(m, 4, 3) coordinates of the tets."""
+        return self.points[self.tets]
+
+    @cached_property
+    def h(self) -> np.ndarray:
+        """(m,) local size h_T: the longest edge of each tet."""
+        return longest_edges(self.vertices)
+
+    @cached_property
+    def _lookup(self):
+        order = np.argsort(self.tet_ids, kind="stable")
+        return order, self.tet_ids[order]
+
+    def locate(self, tet_ids, what: str = "the measure") -> np.ndarray:
+        """Local indices of background tets ``tet_ids`` in this set; a clear error when some are not in it."""
+        order, sorted_ids = self._lookup
+        tet_ids = np.asarray(tet_ids, dtype=np.int64)
+        pos = np.minimum(np.searchsorted(sorted_ids, tet_ids), max(len(sorted_ids) - 1, 0))
+        found = sorted_ids[pos] == tet_ids if len(sorted_ids) else np.zeros(tet_ids.shape, bool)
+        if not np.all(found):
+            raise ValueError(
+                f"{int(np.sum(~found))} elements of {what} are not in the element set {self.name!r}: a field on "
+                f"{self.name!r} does not live there. Integrate over a measure inside the field's elements, or define "
+                "the field on a larger element set."
+            )
+        return order[pos]
+
+    def contains(self, tet_ids) -> np.ndarray:
+        """Boolean mask: which background tets ``tet_ids`` are in this set."""
+        order, sorted_ids = self._lookup
+        tet_ids = np.asarray(tet_ids, dtype=np.int64)
+        if not len(sorted_ids):
+            return np.zeros(tet_ids.shape, bool)
+        pos = np.minimum(np.searchsorted(sorted_ids, tet_ids), len(sorted_ids) - 1)
+        return sorted_ids[pos] == tet_ids
+
+    def to_pyvista(self, **point_data):
+        """The tets as a ``pyvista.UnstructuredGrid`` with point data phi_h (when the set comes from a
+        cut), cell data ``cut`` (1 on the cut tets) and the given per-node arrays."""
+        import pyvista as pv
+
+        grid = pv.UnstructuredGrid({pv.CellType.TETRA: self.tets}, self.points)
+        if self.cut is not None:
+            if self.levelset_values is not None:
+                grid.point_data["phi_h"] = self.levelset_values
+            grid.cell_data["cut"] = self.contains_cut.astype(np.uint8)
+        for name, values in point_data.items():
+            grid.point_data[name] = np.asarray(values)
+        return grid
+
+    @property
+    def levelset_values(self):
+        """phi_h at the nodes of the set (None without a cut)."""
+        if self.cut is None:
+            return None
+        if self.name == CUT:
+            return self.cut.values
+        return self.cut.background_values[self.node_ids]
+
+    @property
+    def contains_cut(self) -> np.ndarray:
+        """(m,) whether each tet is a cut tet."""
+        return self.cut.elements(CUT).contains(self.tet_ids) if self.name != CUT else np.ones(self.n_elements, bool)
+
+    @cached_property
+    def interior_facets(self) -> "FacetSet":
+        """The faces shared by two tets of the set."""
+        pairs, opposite = interior_facets(self.tets, self.n_nodes)
+        return FacetSet(self, pairs, opposite, name=f"interior faces of {self.name}")
+
+    @cached_property
+    def boundary_nodes(self) -> np.ndarray:
+        """Local numbers of the nodes of the set that lie on the boundary of the background mesh."""
+        bnodes = self.background.boundary_nodes
+        mark = np.zeros(self.background.n_points, dtype=bool)
+        mark[bnodes] = True
+        return np.flatnonzero(mark[self.node_ids])
+
+
+class FacetSet:
+    """Faces shared by two tets of an :class:`ElementSet`.
+
+    ``pairs`` (F, 2) local element indices (the minus and the plus tet), ``opposite`` (F, 2) the
+    local vertex opposite to the face in each.  ``normals`` (F, 3) unit, pointing out of the minus tet
+    into the plus tet; ``areas`` (F,); ``vertices`` (F, 3, 3); ``h`` (F,) the longest edge of each face.
+    """
+
+    def __init__(self, elements: ElementSet, pairs, opposite, name="facets"):
+        self.elements = elements
+        self.pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        self.opposite = np.asarray(opposite, dtype=np.int64).reshape(-1, 2)
+        self.name = name
+
+    def __repr__(self) -> str:
+        return f"FacetSet({self.name!r}, faces={self.n_facets})"
+
+    @property
+    def n_facets(self) -> int:
+        return len(self.pairs)
+
+    def subset(self, mask, name=None) -> "FacetSet":
+        """The facets where ``mask`` (F,) is true."""
+        mask = np.asarray(mask, dtype=bool)
+        return FacetSet(self.elements, self.pairs[mask], self.opposite[mask], name=name or self.name)
+
+    @cached_property
+    def _normals_areas(self):
+        es = self.elements
+        g = es.gradients[self.pairs[:, 0], self.opposite[:, 0]]
+        gn = np.linalg.norm(g, axis=1)
+        # the face opposite to vertex k has outward normal -grad(lambda_k)/|grad(lambda_k)|, and
+        # |F| = 3 |T| |grad lambda_k| (volume = |F| height / 3, |grad lambda_k| = 1 / height)
+        return -g / gn[:, None], 3.0 * es.volumes[self.pairs[:, 0]] * gn
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self._normals_areas[0]
+
+    @property
+    def areas(self) -> np.ndarray:
+        return self._normals_areas[1]
+
+    @cached_property
+    def vertices(self) -> np.ndarray:
+        """(F, 3, 3) the face's vertices (those of the minus tet without the opposite one)."""
+        es = self.elements
+        local = TET_FACES[self.opposite[:, 0]]  # (F, 3)
+        nodes = np.take_along_axis(es.tets[self.pairs[:, 0]], local, axis=1)
+        return es.points[nodes]
+
+    @cached_property
+    def h(self) -> np.ndarray:
+        """(F,) local size h_F: the longest edge of each face."""
+        return longest_edges(self.vertices)
+
+
+def side_subtetrahedra(vertices: np.ndarray, values: np.ndarray, side: str):
+    """The part of each tet on one side of its level-set plane, as sub-tetrahedra.
+
+    ``vertices`` (m, 4, 3), ``values`` (m, 4) phi_h at the nodes (zero rule already applied).
+    NEG = {phi_h < 0}; POS is its complement in the tet, {phi_h > 0} up to a set of measure zero.
+    A tet whose nodes all lie on the side gives itself; otherwise the side's nodes (1, 2 or 3 of them)
+    give one tet, a prism (three tets) or the tet minus a corner (a prism, three tets), cut at the
+    points x_i + t (x_j - x_i), t = phi_i / (phi_i - phi_j), of the edges that change side.  Some
+    sub-tets have zero volume under the zero rule; they integrate to zero.
+
+    Returns ``(sub (s, 4, 3), parent (s,), w)`` with ``parent`` indexing the input tets; the first w
+    sub-tets are the whole tets, vertices in their own order.
+    """
+    v = np.asarray(values, dtype=float)
+    if side == NEG:
+        inside = v < 0
+        whole = inside.all(axis=1)
+    elif side == POS:
+        inside = v > 0
+        whole = (v >= 0).all(axis=1)
+    else:
+        raise ValueError(f"side must be NEG or POS, got {side!r}")
+    k = inside.sum(axis=1)
+    full = np.flatnonzero(whole)
+    pieces, parents = [vertices[full]], [full]
+    for count in (1, 2, 3):
+        sel = np.flatnonzero((k == count) & ~whole)
+        if sel.size == 0:
+            continue
+        order = np.argsort(~inside[sel], axis=1, kind="stable")  # the side's nodes first
+        x = np.take_along_axis(vertices[sel], order[..., None], axis=1)
+        w = np.take_along_axis(v[sel], order, axis=1)
+
+        def at(i, j):
+            t = (w[:, i] / (w[:, i] - w[:, j]))[:, None]
+            return x[:, i] + t * (x[:, j] - x[:, i])
+
+        if count == 1:
+            sub = [np.stack([x[:, 0], at(0, 1), at(0, 2), at(0, 3)], axis=1)]
+        elif count == 2:
+            sub = _prism(x[:, 0], at(0, 2), at(0, 3), x[:, 1], at(1, 2), at(1, 3))
+        else:
+            sub = _prism(x[:, 0], x[:, 1], x[:, 2], at(0, 3), at(1, 3), at(2, 3))
+        pieces.extend(sub)
+        parents.extend([sel] * len(sub))
+    return np.concatenate(pieces), np.concatenate(parents), len(full)
+
+
+def _prism(a, b, c, a2, b2, c2):
+    """Three tets filling the prism with bottom (a, b, c), top (a2, b2, c2), lateral edges a-a2 etc."""
+    return [np.stack([a, b, c, a2], axis=1), np.stack([b, c, a2, b2], axis=1), np.stack([c, a2, b2, c2], axis=1)]

@@ -1,0 +1,221 @@
+"""Measures: integration domains that own their quadrature (docs/math.md §7).
+
+A measure is independent of any field: it knows its cells (or facets), the element each cell lies
+in, the local size h and, where one exists, the normal.  Forms are written ``integrand * measure``
+(:mod:`cutfem.forms`) and a field can be integrated over any measure whose elements it lives on.
+
+====================  ==========================================  ===============================
+measure               cells (quadrature)                          made by
+====================  ==========================================  ===============================
+:class:`SurfacePieces`   the pieces of Gamma_h (S_h), triangles     ``cut.ds()``
+:class:`SideVolume`      the part of each tet on one side,          ``cut.dx(NEG)``, ``cut.dx(POS)``
+                         sub-tetrahedra
+:class:`ElementVolume`   whole tets of an element set               ``cut.dx(cut.elements(CUT))``
+:class:`FacetMeasure`    faces of a facet set; two traces           ``cut.dF(facets)``
+:class:`MeshedSurface`   the triangles of a surface mesh            ``mesh.ds()``
+====================  ==========================================  ===============================
+
+Every measure has ``elements`` (the element set, or the surface mesh, its cells lie in),
+``quadrature(degree)`` (a :class:`~cutfem.quadrature.Quadrature` whose ``parent`` indexes
+``elements``; for a facet measure it indexes the facets), ``h`` (local size per element or facet),
+``normals`` (per element or facet, or None) and ``surface`` (True for two-dimensional domains, where
+gradients in integrands have a tangential part ``tgrad``).
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+
+import numpy as np
+
+from .markers import CUT, NEG, POS, side_subtetrahedra
+from .quadrature import Quadrature, map_tetrahedra, map_triangles
+
+__all__ = ["Measure", "SurfacePieces", "SideVolume", "ElementVolume", "FacetMeasure", "MeshedSurface"]
+
+
+class Measure:
+    """Base class: quadrature cached per degree; see the module docstring."""
+
+    surface = False
+    facets = None
+
+    def __init__(self, elements, name: str):
+        self.elements = elements
+        self.name = name
+        self._quadratures: dict = {}
+
+    def __repr__(self) -> str:
+        return f"{type(self).__name__}({self.name!r})"
+
+    def quadrature(self, degree: int = 2) -> Quadrature:
+        """The quadrature of the given degree (cached)."""
+        if degree not in self._quadratures:
+            self._quadratures[degree] = self._build(degree)
+        return self._quadratures[degree]
+
+    def _build(self, degree: int) -> Quadrature:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    @property
+    def h(self) -> np.ndarray:
+        """(m,) local size of the elements (h_T) or facets (h_F)."""
+        return self.elements.h
+
+    @property
+    def normals(self):
+        return None
+
+    def integrate(self, f, degree: int = 4):
+        """The integral of ``f(x)`` (x (m, q, 3) -> (m, q) or (m, q, c)) over the measure."""
+        quad = self.quadrature(degree)
+        return quad.integrate(np.asarray(f(quad.points), dtype=float))
+
+    @property
+    def size(self) -> float:
+        """The measure of the whole domain (area or volume)."""
+        return float(self.quadrature(0).weights.sum())
+
+
+class SurfacePieces(Measure):
+    """ds over Gamma_h = S_h: the planar piece of each cut tet, split into triangles, with the
+    normal n_h = grad phi_h / |grad phi_h| pointing from NEG to POS."""
+
+    surface = True
+
+    def __init__(self, cut):
+        super().__init__(cut.elements(CUT), "Gamma_h")
+        self.cut = cut
+
+    def _build(self, degree):
+        c = self.cut
+        return map_triangles(c.triangle_points, degree, parent=c.triangle_tets, normal=c.normals[c.triangle_tets])
+
+    @property
+    def normals(self):
+        return self.cut.normals
+
+    @property
+    def piece_areas(self) -> np.ndarray:
+        """(m,) area of the piece in each cut tet."""
+        return self.cut.piece_areas
+
+    @property
+    def size(self) -> float:
+        return self.cut.area
+
+    def side_fraction(self, side: str) -> np.ndarray:
+        """(m,) |T ∩ side| / |T| for each cut tet T (the cut-volume weights of the interface problem)."""
+        volume = self.cut.dx(side)
+        local = volume.elements.locate(self.elements.tet_ids, "Gamma_h")
+        return volume.part_volumes[local] / self.elements.volumes
+
+
+class SideVolume(Measure):
+    """dx over one side (NEG or POS) of the cut: whole tets inside the side and, in the cut tets, the
+    side's part as sub-tetrahedra (:func:`cutfem.markers.side_subtetrahedra`)."""
+
+    def __init__(self, cut, side: str):
+        if side not in (NEG, POS):
+            raise ValueError(f"a side is NEG or POS, got {side!r}")
+        super().__init__(cut.elements(side), f"{side} side")
+        self.cut = cut
+        self.side = side
+
+    @cached_property
+    def subtetrahedra(self):
+        """(vertices (s, 4, 3), parent (s,), w): the side's part of every element as tetrahedra, the
+        first w of them whole elements."""
+        es = self.elements
+        values = self.cut.background_values[es.node_ids][es.tets]
+        return side_subtetrahedra(es.vertices, values, self.side)
+
+    @property
+    def whole_cells(self) -> int:
+        """The number of leading cells of the quadrature that are whole elements, in their own vertex
+        order (their basis values are the rule's barycentric coordinates)."""
+        return self.subtetrahedra[2]
+
+    @cached_property
+    def part_volumes(self) -> np.ndarray:
+        """(m,) |T ∩ side| per element."""
+        sub, parent, _ = self.subtetrahedra
+        v = np.abs(np.einsum("ij,ij->i", np.cross(sub[:, 1] - sub[:, 0], sub[:, 2] - sub[:, 0]), sub[:, 3] - sub[:, 0])) / 6.0
+        return np.bincount(parent, weights=v, minlength=self.elements.n_elements)
+
+    def _build(self, degree):
+        sub, parent, _ = self.subtetrahedra
+        return map_tetrahedra(sub, degree, parent=parent)
+
+    @property
+    def size(self) -> float:
+        return float(self.part_volumes.sum())
+
+
+class ElementVolume(Measure):
+    """dx over the whole tets of an element set (e.g. the cut tets, for the normal-gradient term)."""
+
+    def __init__(self, elements):
+        super().__init__(elements, f"tets of {elements.name}")
+        self.whole_cells = elements.n_elements
+
+    def _build(self, degree):
+        return map_tetrahedra(self.elements.vertices, degree)
+
+    @property
+    def normals(self):
+        return self.elements.normals
+
+    @property
+    def part_volumes(self) -> np.ndarray:
+        return self.elements.volumes
+
+
+class FacetMeasure(Measure):
+    """dF over a facet set: each face with its minus and plus tets and the unit normal n_F from the
+    minus into the plus tet.  In integrands a field has both traces (``u.minus``, ``u.plus``)."""
+
+    def __init__(self, facets):
+        super().__init__(facets.elements, facets.name)
+        self.facets = facets
+
+    def _build(self, degree):
+        f = self.facets
+        return map_triangles(f.vertices, degree, normal=f.normals)
+
+    @property
+    def h(self) -> np.ndarray:
+        return self.facets.h
+
+    @property
+    def normals(self):
+        return self.facets.normals
+
+
+class MeshedSurface(Measure):
+    """dS over the triangles of a surface mesh (:class:`cutfem.surface.SurfaceMesh`); the elements
+    are the mesh itself and h is the longest edge of each triangle."""
+
+    surface = True
+
+    def __init__(self, mesh):
+        super().__init__(mesh, "surface mesh")
+        self.mesh = mesh
+
+    def _build(self, degree):
+        m = self.mesh
+        return map_triangles(m.points[m.triangles], degree, normal=m.normals)
+
+    @property
+    def normals(self):
+        return self.mesh.normals
+
+    @cached_property
+    def h(self) -> np.ndarray:
+        from .markers import longest_edges
+
+        return longest_edges(self.mesh.points[self.mesh.triangles])
+
+    @property
+    def size(self) -> float:
+        return float(self.mesh.areas.sum())

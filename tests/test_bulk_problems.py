@@ -1,0 +1,99 @@
+"""Convergence of the bulk and coupled problems (docs/math.md §8-§11), through cutfem.run.
+
+Every problem has a smooth manufactured solution that is not a polynomial; the expected orders
+are 2 in L2 and 1 in H1 for every field.  The rates are those of ``RunResult.rates`` (against the
+global h = N^(-1/3)) on the last pair of levels, with the thresholds L2 >= 1.9 and H1 >= 0.95.
+
+The default tests run three coarse levels.  The interface problem is pre-asymptotic in H1 inside
+the sphere at the coarsest spacings (rate 0.90 from 0.2 to 0.1, 0.94 to 0.95 between 0.15, 0.12
+and 0.1), so its fast test ends with the pair 0.1 -> 0.08.  The slow tests run four levels down
+to the spacing 0.05.
+"""
+
+import pytest
+
+import cutfem
+
+L2_RATE = 1.9
+H1_RATE = 0.95
+
+
+def _assert_rates(result, fields):
+    """The last-pair rate of every error field: L2 >= 1.9, H1 >= 0.95; ``fields`` must all be there."""
+    last = {k: v[-1] for k, v in result.rates.items()}
+    missing = [k for k in fields if k not in last]
+    assert not missing, f"{result.problem}: no rates for {missing}; got {sorted(last)}"
+    low = {k: r for k, r in last.items() if k in fields and (r is None or r < (L2_RATE if k.startswith("l2") else H1_RATE))}
+    assert not low, f"{result.problem} {result.parameters}: last-pair rates below threshold {low}; all rates {result.rates}"
+    # the errors fall at every refinement, not only on the last pair
+    for k in fields:
+        errors = [r[k] for r in result.records]
+        assert all(b < a for a, b in zip(errors, errors[1:])), f"{k} does not decrease: {errors}"
+
+
+POISSON = ["l2_error", "h1_error"]
+INTERFACE = ["l2_error_inside", "h1_error_inside", "l2_error_outside", "h1_error_outside"]
+BULK_SURFACE = ["l2_error_bulk", "h1_error_bulk", "l2_error_surface", "h1_error_surface"]
+HEAT = ["l2_error"]
+
+
+# ---------------------------------------------------------------------------------------------
+# fast: three coarse levels
+# ---------------------------------------------------------------------------------------------
+
+
+def test_poisson_cut_sphere_rates():
+    res = cutfem.run("poisson-cut", levels=[0.4, 0.2, 0.1], surface="sphere")
+    _assert_rates(res, POISSON)
+
+
+@pytest.mark.parametrize("a_outside", [1.0, 1000.0])
+def test_interface_poisson_cut_rates(a_outside):
+    res = cutfem.run("interface-poisson-cut", levels=[0.2, 0.1, 0.08], a_outside=a_outside)
+    _assert_rates(res, INTERFACE)
+
+
+def test_bulk_surface_cut_rates():
+    res = cutfem.run("bulk-surface-cut", levels=[0.4, 0.2, 0.1])
+    _assert_rates(res, BULK_SURFACE)
+
+
+@pytest.mark.parametrize("theta", [1.0, 0.5])
+def test_heat_surface_cut_rates(theta):
+    res = cutfem.run("heat-surface-cut", levels=[0.4, 0.2, 0.1], theta=theta)
+    _assert_rates(res, HEAT)
+
+
+# ---------------------------------------------------------------------------------------------
+# slow: four levels down to the spacing 0.05
+# ---------------------------------------------------------------------------------------------
+
+FOUR = [0.4, 0.2, 0.1, 0.05]
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("surface", ["sphere", "torus"])
+def test_poisson_cut_rates_four_levels(surface):
+    res = cutfem.run("poisson-cut", levels=FOUR, surface=surface)
+    _assert_rates(res, POISSON)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("weights", ["harmonic", "volume"])
+@pytest.mark.parametrize("a_inside, a_outside", [(1.0, 1.0), (1.0, 1000.0), (1000.0, 1.0)])
+def test_interface_poisson_cut_rates_four_levels(a_inside, a_outside, weights):
+    res = cutfem.run("interface-poisson-cut", levels=FOUR, a_inside=a_inside, a_outside=a_outside, weights=weights)
+    _assert_rates(res, INTERFACE)
+
+
+@pytest.mark.slow
+def test_bulk_surface_cut_rates_four_levels():
+    res = cutfem.run("bulk-surface-cut", levels=FOUR)
+    _assert_rates(res, BULK_SURFACE)
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("theta", [1.0, 0.5])
+def test_heat_surface_cut_rates_four_levels(theta):
+    res = cutfem.run("heat-surface-cut", levels=FOUR, theta=theta)
+    _assert_rates(res, HEAT)
