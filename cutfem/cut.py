@@ -43,6 +43,14 @@ cells are refined coarse to fine, and a block with centre c and half-diagonal r 
 ``|phi(c)| > L r``, which proves phi has no zero there.  Only the cells that survive to the finest
 level have their corner values evaluated.  Without a bound every node is evaluated.
 
+Trust at the edges: a bound that is too small would drop cut cells silently.  The bound is checked
+where it is relied on, at no extra evaluation: each kept block's value against its 8 children's
+(centres r / 2 apart) and each band cell's centre value against its 8 corners' (|spacing| / 2
+apart); a difference larger than L times the distance raises :class:`CutError` naming the bound
+seen.  Every cut then checks that S_h is closed and edge-manifold (every edge of its triangles in
+exactly two triangles, from the one-sort edge counts that the Euler characteristic reuses), which
+also catches what the samples missed, and raises :class:`CutError` with the likely cause.
+
 Mesh size ``h = N**(-1/3)`` with N the number of background nodes (SPEC §2).
 """
 
@@ -209,8 +217,34 @@ def _candidates_full(mesh: TetMesh, values):
     return cut, mesh.tets[cut], tv[cut], None, values
 
 
-def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0) -> np.ndarray:
-    """Cell ids of all cells that may contain a zero of phi, by coarse-to-fine block pruning."""
+def _lipschitz_check(dphi, dist, lipschitz: float, tol: float) -> None:
+    """Raise CutError when sampled differences break the declared bound: |dphi| > L dist.
+
+    ``dphi`` (...) are differences of phi between evaluated points ``dist`` apart (a scalar or an
+    array broadcasting with dphi).  The same slack as the pruning test (relative 1e-9, absolute
+    1e-14 + the zero rule's tol) keeps rounding from raising for a valid bound."""
+    bad = np.abs(dphi) > lipschitz * dist * (1 + 1e-9) + 1e-14 + tol
+    if np.any(bad):
+        ratio = float(np.max(np.abs(dphi) / dist))
+        raise CutError(
+            f"the level set breaks its declared Lipschitz bound L = {lipschitz:g}: between points the band "
+            f"search evaluated, |phi(x) - phi(y)| / |x - y| reaches {ratio:.4g} ({int(np.count_nonzero(bad))} "
+            "pairs). The band search drops cells where |phi(centre)| > L r and would leave S_h open. Fix: declare "
+            f"a true bound (levelset.lipschitz >= {ratio:.3g}, or None to evaluate every node). A signed distance "
+            "to a surface mesh is 1-Lipschitz only when its closed components neither overlap nor intersect: "
+            "repair such a mesh (merge the overlapping parts into one closed surface)."
+        )
+
+
+def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
+    """Cells that may contain a zero of phi, by coarse-to-fine block pruning.
+
+    Returns ``(cell ids (k,), phi at their centres (k,))``.  A block of ``size`` cells (centre c,
+    half-diagonal r = size |spacing| / 2) is dropped when |phi(c)| > L r.  The bound is also
+    verified where it is relied on: the centre of each of the 8 children of a kept block lies
+    r / 2 from the block's centre, so |phi(child) - phi(parent)| <= L r / 2 must hold; a violation
+    raises CutError (see :func:`_lipschitz_check`) instead of silently dropping cells.  This costs
+    one comparison per evaluated centre; it samples the bound, it does not prove it."""
     cells = box.cells
     size = 1
     while size * 4 <= cells.min():
@@ -219,24 +253,30 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0) -> np
     blocks = np.stack(np.meshgrid(*[np.arange(n) for n in nblocks], indexing="ij"), axis=-1).reshape(-1, 3)
     blocks = blocks * size  # lower cell index of each block
     half_diag = 0.5 * np.linalg.norm(box.spacing)
+    parent_phi = None
     while True:
         centre = box.coordinates(blocks + 0.5 * size)
         phi = np.asarray(f(centre), dtype=float)
         _check_finite(phi, "block centres of the band search")
+        if parent_phi is not None:
+            _lipschitz_check(phi - parent_phi, half_diag * size, lipschitz, tol)
         keep = np.abs(phi) <= lipschitz * half_diag * size * (1 + 1e-9) + 1e-14 + tol
-        blocks = blocks[keep]
+        blocks, phi = blocks[keep], phi[keep]
         if size == 1:
             break
         size //= 2
         children = blocks[:, None, :] + size * CUBE_CORNERS[None, :, :]
-        children = children.reshape(-1, 3)
-        blocks = children[np.all(children < cells, axis=1)]
-    return blocks[:, 0] + cells[0] * (blocks[:, 1] + cells[1] * blocks[:, 2])
+        inside = np.all(children < cells, axis=2)
+        blocks = children[inside]
+        parent_phi = np.broadcast_to(phi[:, None], inside.shape)[inside]
+    return blocks[:, 0] + cells[0] * (blocks[:, 1] + cells[1] * blocks[:, 2]), phi
 
 
 def _candidates_structured(box: StructuredBox, f, lipschitz):
     """Candidates of a structured box.  With a Lipschitz bound only the corners of the band cells
-    are evaluated, each distinct node once (labels = their rank among those nodes)."""
+    are evaluated, each distinct node once (labels = their rank among those nodes); the corner
+    values are checked against the bound (each corner lies r = |spacing| / 2 from its cell's centre,
+    see :func:`_band_cells`)."""
     if lipschitz is None:
         cell_ids = np.arange(box.n_cells)
         values = np.asarray(f(box.points), dtype=float).reshape(-1)
@@ -246,10 +286,11 @@ def _candidates_structured(box: StructuredBox, f, lipschitz):
         label_ids = None
     else:
         tol = _zero_tolerance(box, lipschitz)
-        cell_ids = _band_cells(box, f, float(lipschitz), tol)
+        cell_ids, centre_phi = _band_cells(box, f, float(lipschitz), tol)
         label_ids, corner = dense_unique(box.cell_corner_ids(cell_ids), box.n_points)
         values = np.asarray(f(box.node_coordinates(label_ids)), dtype=float)
         _check_finite(values, "background nodes near the surface")
+        _lipschitz_check(values[corner] - centre_phi[:, None], 0.5 * np.linalg.norm(box.spacing), float(lipschitz), tol)
         label_values = _snap_zeros(values, tol)
     tv = label_values[corner][:, KUHN_TETS].reshape(-1, 4)
     mixed = np.flatnonzero(_mixed(tv))
@@ -596,11 +637,15 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
 
     ``levelset``: a LevelSet (``value``, optional ``lipschitz``), a callable ``f(x)`` with x (..., 3),
     or an array of nodal values (N,) (not with a structured box's band search).
-    Raises :class:`CutError` when the level set does not cut the mesh or the surface reaches the box
-    boundary, ValueError for NaN/inf values.  See the module docstring for the zero rule.
+    Raises :class:`CutError` when the level set does not cut the mesh, the surface reaches the box
+    boundary (unless ``check_boundary=False``), the declared Lipschitz bound is seen to be broken
+    (:func:`_band_cells`) or S_h is not closed and edge-manifold (:func:`_check_closed`: every
+    edge of its triangles in exactly two triangles; with ``check_boundary=False`` S_h may end on
+    the faces of the box); ValueError for NaN/inf values.  See the module docstring for the zero rule.
     """
     lipschitz = getattr(levelset, "lipschitz", None)
     structured = isinstance(background, StructuredBox)
+    band = structured and lipschitz is not None and not isinstance(levelset, np.ndarray)  # band search used
     if isinstance(levelset, np.ndarray):
         values = nodal_values(background, levelset)
         values = _snap_zeros(values, _zero_tolerance(background, None, values))
@@ -625,6 +670,8 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
             "the level set does not cut the background mesh: no tetrahedron has nodal values of both signs. "
             "Check that the surface lies inside the box and is larger than a cell (refine the mesh), and that "
             "the level set is negative inside."
+            + (" With the band search, also check that the declared Lipschitz bound (levelset.lipschitz) is "
+               "a true bound." if band else "")
         )
     code, active, slots = _marching(vals)
     if not np.any(active):
@@ -700,7 +747,55 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
         _polygons=(vinv, nvert),
         _gradients=(grads, volumes),
     )
+    _check_closed(cm, check_boundary, band)
     return cm
+
+
+def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
+    """Raise CutError unless S_h is closed and edge-manifold: every edge of its triangles in
+    exactly two triangles.
+
+    Uses the edge counts of :attr:`CutMesh._triangle_edge_counts` (one sort, cached: the Euler
+    characteristic and ``is_closed`` reuse it).  With ``check_boundary=False`` the surface may
+    leave the box: an edge in one triangle is then accepted when both its ends lie on the faces of
+    the background's bounding box (within 1e-9 of its diagonal).  The P1 zero set of values at
+    every node is always closed inside the mesh, so an open S_h means that the band search
+    (``band``) dropped cut cells: phi changes faster than its declared Lipschitz bound somewhere
+    it was not sampled (see :func:`_band_cells`)."""
+    counts = cut._triangle_edge_counts
+    if np.all(counts == 2):
+        return
+    t = cut.triangles
+    V = len(cut.vertices)
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    keys = np.minimum(e[:, 0], e[:, 1]) * V + np.maximum(e[:, 0], e[:, 1])
+    order, starts, counts = pair_up(keys)
+    edges = e[order[starts]]
+    open_ = counts == 1
+    if not check_boundary and np.any(open_):
+        lo, hi = (np.asarray(b, float) for b in cut.background.bounds)
+        eps = 1e-9 * float(np.linalg.norm(hi - lo))
+        x = cut.vertices[edges[open_]]  # (k, 2, 3)
+        on_face = np.any((np.abs(x - lo) <= eps) | (np.abs(x - hi) <= eps), axis=2)
+        open_[np.flatnonzero(open_)[np.all(on_face, axis=1)]] = False
+    many = counts > 2
+    if not (np.any(open_) or np.any(many)):
+        return
+    first = edges[open_ | many][0]
+    where = cut.vertices[first].mean(axis=0)
+    cause = (
+        "the level set changes faster than its declared Lipschitz bound (levelset.lipschitz), so the band "
+        "search dropped cut cells: declare a true bound, or None to evaluate every node"
+        if band
+        else "the zero set of phi_h touches or crosses itself: refine the background mesh or move the level set"
+    )
+    raise CutError(
+        f"the cut surface S_h is not a closed manifold: {int(open_.sum())} edges lie in one triangle only and "
+        f"{int(many.sum())} in more than two (first near {np.round(where, 6).tolist()}). Likely cause: {cause}. "
+        "A signed distance to a surface mesh whose closed components overlap or intersect (for example a model "
+        "made of overlapping parts) has this defect too: repair the mesh into one closed surface without "
+        "self-intersections."
+    )
 
 
 def snapped_nodal_values(mesh: TetMesh, levelset) -> np.ndarray:

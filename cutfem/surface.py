@@ -358,21 +358,26 @@ def _check_topology(tri: np.ndarray, n_points: int, degree: np.ndarray):
     return table, pairs
 
 
-def _orient_outward(points: np.ndarray, tri: np.ndarray, pairs: np.ndarray, cross: np.ndarray):
+def _components(tri: np.ndarray, pairs: np.ndarray):
+    """(number of components, component of each triangle (M,)): the connected components of the
+    graph of triangles sharing an edge (``pairs``, the half-edge pairs of a closed mesh).  The
+    graph is symmetric, so its strong components are its components."""
+    m = len(tri)
+    neighbour = _twin_halfedges(pairs) // 3  # the triangle across each half-edge
+    graph = sp.csr_matrix((np.ones(3 * m, dtype=np.int8), neighbour, 3 * np.arange(m + 1)), shape=(m, m))
+    return connected_components(graph, directed=True, connection="strong")
+
+
+def _orient_outward(points: np.ndarray, tri: np.ndarray, component: np.ndarray, cross: np.ndarray):
     """Flip the triangles of every connected component whose enclosed signed volume is negative.
 
     Signed volume of a closed oriented component C: V = (1/6) sum_{K in C} (a - o) . ((b - o) x (c - o)),
     independent of o; o = mean of the points.  Per triangle (a - o) . ((b - o) x (c - o)) =
     (a - o) . ((b - a) x (c - a)), so the cross products ``cross`` (M, 3) of the validation are
-    reused.  The components are those of the graph of triangles sharing an edge (``pairs``, the
-    half-edge pairs), symmetric, so its strong components are its components.  Returns
+    reused.  ``component`` (M,) is the component of each triangle (:func:`_components`).  Returns
     (triangles, cross products, number of flipped components); a flipped triangle (a, c, b) has
     the cross product negated (exactly).
     """
-    m = len(tri)
-    neighbour = _twin_halfedges(pairs) // 3  # the triangle across each half-edge
-    graph = sp.csr_matrix((np.ones(3 * m, dtype=np.int8), neighbour, 3 * np.arange(m + 1)), shape=(m, m))
-    _, component = connected_components(graph, directed=True, connection="strong")
     o = points.mean(axis=0)
     vol6 = np.einsum("ij,ij->i", np.take(points, tri[:, 0], axis=0) - o, cross)
     volume = np.bincount(component, weights=vol6) / 6.0
@@ -385,6 +390,166 @@ def _orient_outward(points: np.ndarray, tri: np.ndarray, pairs: np.ndarray, cros
     cross = cross.copy()
     cross[flip] *= -1.0
     return tri, cross, int(flip_component.sum())
+
+
+def _overlapping_boxes(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """(P, 2) index pairs i < j of the boxes [lo_i, hi_i] (n, 3) that overlap (closed boxes), by a
+    sweep along x: sorted by lo_x, box i meets the boxes j after it with lo_x[j] <= hi_x[i]."""
+    order = np.argsort(lo[:, 0], kind="stable")
+    lo, hi = lo[order], hi[order]
+    end = np.searchsorted(lo[:, 0], hi[:, 0], side="right")  # boxes i+1 .. end-1 start before i ends
+    count = np.maximum(end - np.arange(len(lo)) - 1, 0)
+    i = np.repeat(np.arange(len(lo)), count)
+    j = i + 1 + (np.arange(count.sum()) - np.repeat(np.cumsum(count) - count, count))
+    meet = np.all((lo[j] <= hi[i]) & (lo[i] <= hi[j]), axis=1)
+    pairs = np.stack([order[i[meet]], order[j[meet]]], axis=1)
+    return np.sort(pairs, axis=1)
+
+
+def _orient(a, b, c, d) -> np.ndarray:
+    """(b - a) . ((c - a) x (d - a)) row by row: six times the signed volume of the tet abcd."""
+    return np.einsum("ij,ij->i", b - a, np.cross(c - a, d - a))
+
+
+def _segments_cross_triangles(p, q, a, b, c) -> np.ndarray:
+    """Whether segment [p, q] meets triangle abc, row by row (all (k, 3)).
+
+    The segment's ends are on opposite sides of the triangle's plane (or on it), and the line pq
+    passes the three edges of the triangle on the same side (all three orientations >= 0 or all
+    <= 0): the closed segment meets the closed triangle.  A segment lying in the triangle's plane
+    (both orientations zero) is not counted: coplanar contact is left to the other edges."""
+    sp_, sq = _orient(a, b, c, p), _orient(a, b, c, q)
+    straddle = (sp_ * sq <= 0) & ~((sp_ == 0) & (sq == 0))
+    u = np.stack([_orient(p, q, a, b), _orient(p, q, b, c), _orient(p, q, c, a)], axis=1)
+    inside = np.all(u >= 0, axis=1) | np.all(u <= 0, axis=1)
+    return straddle & inside
+
+
+def _crossing_triangles(points: np.ndarray, tri: np.ndarray, component: np.ndarray, tlo: np.ndarray, thi: np.ndarray) -> np.ndarray:
+    """(P, 2) pairs of triangles of different components that meet (one triangle's edge crosses the
+    other triangle): the surfaces of the two components intersect or touch.
+
+    Candidates by a uniform grid: the cell is twice the median extent of the triangles' bounding
+    boxes (grown, if needed, to keep the number of (triangle, cell) entries below 16 M + 64 per
+    triangle); each triangle enters every cell its bounding box meets, only the cells met by two
+    components or more are kept, and two triangles of different components sharing such a cell,
+    with overlapping bounding boxes, are tested exactly with
+    :func:`_segments_cross_triangles`, all three edges of each against the other.  Two transversal
+    triangles meet along a segment whose ends lie on edges of one or the other, so this finds every
+    transversal intersection; a contact only within a common plane is not seen.  ``tlo``, ``thi``
+    (M, 3) are the triangles' bounding boxes."""
+    x = points[tri]  # (M, 3, 3)
+    extent = float(np.median(np.max(thi - tlo, axis=1)))
+    span = float(np.max(points.max(axis=0) - points.min(axis=0)))
+    cell = max(2.0 * extent, 1e-9 * span, np.finfo(float).tiny)
+    origin = points.min(axis=0)
+    while True:
+        c0 = np.floor((tlo - origin) / cell).astype(np.int64)
+        c1 = np.floor((thi - origin) / cell).astype(np.int64)
+        n = np.prod(c1 - c0 + 1, axis=1)
+        if n.sum() <= 16_000_000 + 64 * len(tri):
+            break
+        cell *= 2.0
+    grid = c1.max(axis=0) + 1
+    owner = np.repeat(np.arange(len(tri)), n)
+    local = np.arange(n.sum()) - np.repeat(np.cumsum(n) - n, n)
+    shape = (c1 - c0 + 1)[owner]
+    ijk = c0[owner] + np.stack([local % shape[:, 0], (local // shape[:, 0]) % shape[:, 1], local // (shape[:, 0] * shape[:, 1])], axis=1)
+    key = ijk[:, 0] + grid[0] * (ijk[:, 1] + grid[1] * ijk[:, 2])
+    order, starts, counts = pair_up(key)
+    # only the cells holding triangles of two components or more matter
+    comp = component[owner[order]]
+    mixed = np.minimum.reduceat(comp, starts) != np.maximum.reduceat(comp, starts)
+    order = order[np.repeat(mixed, counts)]
+    starts, counts = np.cumsum(counts[mixed]) - counts[mixed], counts[mixed]
+    # all pairs (s, t), s before t, within each cell's run of the sorted entries
+    pos = np.arange(order.size)
+    run_end = np.repeat(starts + counts, counts)
+    later = run_end - pos - 1
+    first = np.repeat(pos, later)
+    second = first + 1 + (np.arange(later.sum()) - np.repeat(np.cumsum(later) - later, later))
+    t1, t2 = owner[order[first]], owner[order[second]]
+    keep = (component[t1] != component[t2]) & np.all((tlo[t1] <= thi[t2]) & (tlo[t2] <= thi[t1]), axis=1)
+    pairs = np.unique(np.sort(np.stack([t1[keep], t2[keep]], axis=1), axis=1), axis=0)
+    if len(pairs) == 0:
+        return pairs
+    hit = np.zeros(len(pairs), dtype=bool)
+    for s, t in ((0, 1), (1, 0)):
+        P, T = x[pairs[:, s]], x[pairs[:, t]]
+        for k in range(3):
+            hit |= _segments_cross_triangles(P[:, k], P[:, (k + 1) % 3], T[:, 0], T[:, 1], T[:, 2])
+    return pairs[hit]
+
+
+def _winding_number(point: np.ndarray, tri_points: np.ndarray) -> float:
+    """Winding number of a closed oriented triangle surface (triangles (M, 3, 3)) about ``point``
+    (3,): (1 / 4 pi) times the sum of the triangles' signed solid angles, tan(Omega / 2) =
+    det[a b c] / (|a||b||c| + (a.b)|c| + (b.c)|a| + (c.a)|b|) with a, b, c the vertices minus the
+    point.  +-1 inside, 0 outside (up to rounding), for either orientation."""
+    a, b, c = (tri_points[:, k] - point for k in range(3))
+    la, lb, lc = (np.linalg.norm(v, axis=1) for v in (a, b, c))
+    num = np.einsum("ij,ij->i", a, np.cross(b, c))
+    dot = lambda u, v: np.einsum("ij,ij->i", u, v)  # noqa: E731
+    den = la * lb * lc + dot(a, b) * lc + dot(b, c) * la + dot(c, a) * lb
+    return float(np.sum(2.0 * np.arctan2(num, den)) / (4.0 * np.pi))
+
+
+def _check_disjoint_components(points: np.ndarray, tri: np.ndarray, component: np.ndarray, n_components: int) -> None:
+    """Raise ValueError unless the regions enclosed by distinct closed components are disjoint.
+
+    Decision: components must neither intersect (their surfaces cross or touch) nor nest (one
+    inside another, a shell inside a shell).  A file of overlapping parts (a model assembled from
+    closed pieces pushed into each other) has a signed distance that is not 1-Lipschitz and whose
+    sign is wrong inside the overlaps, and a nested shell is ambiguous (a cavity, or a part swallowed
+    by another) for the outward orientation per component and for the signed distance; both are
+    rejected rather than guessed.  Components whose bounding boxes are disjoint are skipped at once.
+
+    Intersection: :func:`_crossing_triangles` (every transversal crossing of two triangles of
+    different components).  Nesting, for components whose boxes overlap and whose surfaces do not
+    meet: one surface lies wholly inside or wholly outside the other, so the winding number of one
+    vertex decides (:func:`_winding_number`, |w| > 1/2 means inside).
+    """
+    if n_components < 2:
+        return
+    order = np.argsort(component, kind="stable")
+    starts = np.searchsorted(component[order], np.arange(n_components))
+    ends = np.append(starts[1:], len(tri))
+    x0, x1, x2 = (points[tri[:, k]] for k in range(3))
+    tlo, thi = np.minimum(np.minimum(x0, x1), x2), np.maximum(np.maximum(x0, x1), x2)  # triangle boxes
+    lo, hi = np.minimum.reduceat(tlo[order], starts), np.maximum.reduceat(thi[order], starts)
+    candidates = _overlapping_boxes(lo, hi)
+    if len(candidates) == 0:
+        return
+    near = np.zeros(len(tri), dtype=bool)  # triangles meeting the box of a component paired with theirs
+    for a, b in candidates:  # component pairs (few), each vectorized over the triangles
+        for own, other in ((a, b), (b, a)):
+            ids = order[starts[own]:ends[own]]
+            near[ids] |= np.all((tlo[ids] <= hi[other]) & (lo[other] <= thi[ids]), axis=1)
+    cross = _crossing_triangles(points, tri[near], component[near], tlo[near], thi[near])
+    if len(cross):
+        tri_ids = np.flatnonzero(near)[cross]
+        comps = np.unique(np.sort(component[tri_ids], axis=1), axis=0)
+        where = points[tri[tri_ids[0, 0]]].mean(axis=0)
+        raise ValueError(
+            f"closed components of the surface intersect: {len(comps)} pair(s) of components whose surfaces cross "
+            f"or touch, first pairs of components {_pairs(comps)} (triangles {_pairs(tri_ids)}), first near "
+            f"{np.round(where, 6).tolist()}. Overlapping parts have no single inside and their signed distance is "
+            "wrong in the overlaps; merge them into one closed surface without self-intersections (a boolean "
+            "union, e.g. with a mesh repair tool) or separate them."
+        )
+    nested = []
+    for a, b in candidates:
+        for outer, inner in ((a, b), (b, a)):
+            w = _winding_number(points[tri[order[starts[inner]], 0]], points[tri[order[starts[outer]:ends[outer]]]])
+            if abs(w) > 0.5:
+                nested.append((inner, outer))
+    if nested:
+        raise ValueError(
+            f"closed components of the surface are nested: {len(nested)} component(s) lie inside another, "
+            f"first (inner, outer) pairs {_pairs(nested)}. A shell inside a shell is ambiguous (a cavity, or a part "
+            "swallowed by another) and is not supported: remove the inner shell, or give the shells as separate "
+            "surfaces."
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -418,15 +583,17 @@ class SurfaceMesh:
       boundary edges);
     * edge-manifold: no edge in more than two triangles; vertex-manifold: the triangles around each
       node form a single fan;
-    * consistently oriented: the two triangles of an edge traverse it in opposite directions.
+    * consistently oriented: the two triangles of an edge traverse it in opposite directions;
+    * **disjoint components** (decision): the regions enclosed by distinct connected components
+      neither intersect (surfaces crossing or touching: overlapping parts) nor nest (a shell inside
+      a shell, ambiguous between a cavity and a swallowed part); see
+      :func:`_check_disjoint_components`, vectorized, skipped for a single component.
 
     Orientation (decision): after these checks, each connected component whose signed enclosed
     volume (1/6) sum_K a.(b x c) is negative has all its triangles flipped (vertices 1 and 2
     swapped), so that every component's normals point out of the region it encloses.  Flipping per
-    component (not globally) keeps every sphere of a set of disjoint spheres outward.  (For a
-    solid with a cavity this makes the cavity's normals point into the cavity region, i.e. into
-    the solid: the normal of the surface, not of a solid.)  ``flipped_components`` records how
-    many components were flipped.
+    component (not globally) keeps every sphere of a set of disjoint spheres outward.
+    ``flipped_components`` records how many components were flipped.
 
     Attributes
     ----------
@@ -450,7 +617,9 @@ class SurfaceMesh:
         if check:
             cross, dots, degree = _check_elements(pts, tri)
             table, pairs = _check_topology(tri, len(pts), degree)
-            tri, cross, self.flipped_components = _orient_outward(pts, tri, pairs, cross)
+            n_components, component = _components(tri, pairs)
+            _check_disjoint_components(pts, tri, component, n_components)
+            tri, cross, self.flipped_components = _orient_outward(pts, tri, component, cross)
             if self.flipped_components == 0:
                 self._keep(cross, dots, (table, pairs))
             else:  # a flip changes the half-edges and the local edge order, not |cross|
@@ -894,7 +1063,9 @@ def read_surface(path) -> SurfaceMesh:
     Points used by no triangle are dropped and coincident points are merged (see
     :func:`_merge_points`, tolerance MERGE_TOLERANCE relative to the bounding-box diagonal), so
     that STL facet soups become a connected mesh.  The result is validated and oriented outward
-    as in :class:`SurfaceMesh`.
+    as in :class:`SurfaceMesh`, which includes the test that distinct closed components neither
+    intersect nor nest (a model made of overlapping closed parts is refused with the pairs of
+    components named: its signed distance would be wrong inside the overlaps).
 
     Raises FileNotFoundError when ``path`` does not exist, ValueError (naming ``path``) when the
     file cannot be read or its format is unknown, and ValueError when the surface is invalid.
