@@ -336,14 +336,9 @@ class LevelSet:
         Where the foot point is not unique (the medial set) the one Newton reaches is returned.
         """
         x = _as_points(x)
-        return self._newton_projection(x.reshape(-1, 3))[0].reshape(x.shape)
-
-    def _newton_projection(self, y):
-        """(p, grad phi, Hess phi) for points y (m, 3): the foot points of :meth:`closest_point` and
-        the derivatives at the last evaluated iterate, within about 1e-12 |y|_inf of p (the final
-        polishing step moves p by the converged residual only)."""
+        y = x.reshape(-1, 3)
         if len(y) == 0:
-            return y.copy(), y.copy(), np.zeros((0, 3, 3))
+            return x.copy()
         scale = np.maximum(1.0, np.max(np.abs(y), axis=-1))
         f = self.value(y)
         g = self.gradient(y)
@@ -354,7 +349,6 @@ class LevelSet:
         todo = np.arange(len(y))
         saddle = np.zeros(len(y), dtype=bool)
         failed = np.zeros(len(y), dtype=bool)
-        g_foot, hess_foot = np.zeros((len(y), 3)), np.zeros((len(y), 3, 3))
         for _ in range(self.newton_steps + 1):
             pt, yt, mt, st = p[todo], y[todo], mu[todo], scale[todo]
             f = self.value(pt)
@@ -372,7 +366,6 @@ class LevelSet:
                 proj = np.eye(3) - nn
                 m = proj @ (np.eye(3) + mt[done, None, None] * hess[done]) @ proj + nn
                 saddle[todo[done]] = ~_positive_definite_3x3(m)
-                g_foot[todo[done]], hess_foot[todo[done]] = g[done], hess[done]
             # one Newton step for every point, also the converged ones (a last, polishing step that
             # costs no evaluation: their residual is squared once more)
             jac = np.zeros((len(todo), 4, 4))
@@ -406,7 +399,7 @@ class LevelSet:
                 "points lie beyond a focal point of S (too far from the surface for its curvature); "
                 "evaluate the exact fields only near S"
             )
-        return p, g_foot, hess_foot
+        return p.reshape(x.shape)
 
     def bounds(self):
         """Axis-aligned bounding box of S as (lower (3,), upper (3,)), or None when not known."""
@@ -433,10 +426,10 @@ class LevelSet:
         """
         return self._curvature_and_normal(_as_points(x))[0]
 
-    def _curvature_and_normal(self, x, g=None, hess=None):
-        """(div n, n) at the points x (..., 3) from one gradient and one Hessian (given or evaluated)."""
-        g = self.gradient(x) if g is None else g
-        hess = self.hessian(x) if hess is None else hess
+    def _curvature_and_normal(self, x):
+        """(div n, n) at the points x (..., 3) from one gradient and one Hessian evaluation."""
+        g = self.gradient(x)
+        hess = self.hessian(x)
         norm = np.linalg.norm(g, axis=-1)
         _raise_if_singular(norm == 0.0, x, "the mean curvature", "where grad phi = 0")
         n = g / norm[..., None]
@@ -444,27 +437,13 @@ class LevelSet:
         nhn = np.einsum("...i,...ij,...j->...", n, hess, n)
         return (trace - nhn) / norm, n
 
-    def _exact_curvature_and_normal(self, x):
-        """((k1 + k2)(p(x)), n(p(x))) of shapes (...) and (..., 3).
-
-        With the general projection the derivatives of its last Newton iterate are reused (no new
-        evaluation; that iterate is within about 1e-12 of p(x)); with a subclass's closed-form
-        closest point they are evaluated at p(x).
-        """
-        x = _as_points(x)
-        if type(self).closest_point is LevelSet.closest_point:
-            p, g, hess = self._newton_projection(x.reshape(-1, 3))
-            kappa, n = self._curvature_and_normal(p, g, hess)
-            return kappa.reshape(x.shape[:-1]), n.reshape(x.shape)
-        return self._curvature_and_normal(self.closest_point(x))
-
     def exact_mean_curvature(self, x) -> np.ndarray:
         """(k1 + k2)(p(x)): the exact mean curvature at the closest point, shape (...)."""
-        return self._exact_curvature_and_normal(x)[0]
+        return self.mean_curvature(self.closest_point(x))
 
     def exact_normal(self, x) -> np.ndarray:
         """n(p(x)): the exact outward unit normal at the closest point, shape (..., 3)."""
-        return self._exact_curvature_and_normal(x)[1]
+        return self.normal(self.closest_point(x))
 
     def exact_mean_curvature_vector(self, x) -> np.ndarray:
         """H^e(x) = H(p(x)) = (k1 + k2)(p(x)) n(p(x)), shape (..., 3).
@@ -472,7 +451,7 @@ class LevelSet:
         With n = grad phi/|grad phi| and k1 + k2 = trace(P Hess phi)/|grad phi|, P = I - n n^T, at
         the closest point p(x) (docs/math.md §1): valid for any level set, distance or not.
         """
-        kappa, n = self._exact_curvature_and_normal(x)
+        kappa, n = self._curvature_and_normal(self.closest_point(x))
         return kappa[..., None] * n
 
 
