@@ -9,7 +9,9 @@ SPEC section 1:
   P = I - n n^T, so that a sphere of radius R has k1 + k2 = 2/R;
 * mean curvature vector H = (k1 + k2) n (points outward on a sphere);
 * closest-point map p(x) in S; the exact fields used to measure errors are extended constantly
-  along normals: H^e(x) = H(p(x)), n^e(x) = n(p(x)).
+  along normals: H^e(x) = H(p(x)), n^e(x) = n(p(x)).  For any smooth level set (distance or not)
+  p(x) is found by Newton's method on the closest-point system (:meth:`LevelSet.closest_point`)
+  and H(p) from the formula above; the named surfaces have closed forms.
 
 Every point argument is an array of shape (..., 3); scalar results have shape (...), vector results
 (..., 3) and matrix results (..., 3, 3).  Lengths are in the units of the coordinates.
@@ -20,7 +22,8 @@ LevelSet          base class (normal, curvature and exact-field machinery on top
 Sphere            signed distance |x - c| - R
 Torus             signed distance to a ring torus with axis z
 Ellipsoid         the quadratic (x/a)^2 + (y/b)^2 + (z/c)^2 - 1 (not a distance)
-FunctionLevelSet  a user callable, derivatives by central differences when not given
+FunctionLevelSet  user callables, a text expression in x, y, z, or a Python file; derivatives by
+                  central differences when not given
 SignedDistance    signed distance to a closed triangle mesh, evaluated by VTK
 
 and the function :func:`interpolate` (nodal values of a level set, with a finiteness check).
