@@ -147,11 +147,15 @@ _FLIP = _flip_table()
 
 
 def _as_values_function(levelset):
-    """A callable x (..., 3) -> (...) from a LevelSet-like object or a plain callable."""
+    """A callable x (..., 3) -> (...) from a LevelSet-like object or a plain callable; a plain
+    callable is wrapped in a FunctionLevelSet, whose output-shape check names the fix at the first
+    evaluation (e.g. a function written for one point, or returning shape (n, 1))."""
     if hasattr(levelset, "value"):
         return levelset.value
     if callable(levelset):
-        return levelset
+        from .levelset import FunctionLevelSet
+
+        return FunctionLevelSet(levelset).value
     raise TypeError("levelset must be a LevelSet, a callable f(x) with x of shape (..., 3), or an array of nodal values")
 
 

@@ -9,7 +9,9 @@ SPEC section 1:
   P = I - n n^T, so that a sphere of radius R has k1 + k2 = 2/R;
 * mean curvature vector H = (k1 + k2) n (points outward on a sphere);
 * closest-point map p(x) in S; the exact fields used to measure errors are extended constantly
-  along normals: H^e(x) = H(p(x)), n^e(x) = n(p(x)).
+  along normals: H^e(x) = H(p(x)), n^e(x) = n(p(x)).  For any smooth level set (distance or not)
+  p(x) is found by Newton's method on the closest-point system (:meth:`LevelSet.closest_point`)
+  and H(p) from the formula above; the named surfaces have closed forms.
 
 Every point argument is an array of shape (..., 3); scalar results have shape (...), vector results
 (..., 3) and matrix results (..., 3, 3).  Lengths are in the units of the coordinates.
@@ -20,7 +22,8 @@ LevelSet          base class (normal, curvature and exact-field machinery on top
 Sphere            signed distance |x - c| - R
 Torus             signed distance to a ring torus with axis z
 Ellipsoid         the quadratic (x/a)^2 + (y/b)^2 + (z/c)^2 - 1 (not a distance)
-FunctionLevelSet  a user callable, derivatives by central differences when not given
+FunctionLevelSet  user callables, a text expression in x, y, z, or a Python file; derivatives by
+                  central differences when not given
 SignedDistance    signed distance to a closed triangle mesh, evaluated by VTK
 
 and the function :func:`interpolate` (nodal values of a level set, with a finiteness check).
@@ -91,14 +94,184 @@ def _center(center) -> np.ndarray:
     return c
 
 
+def _positive_definite_3x3(m: np.ndarray) -> np.ndarray:
+    """Whether each symmetric matrix of m (k, 3, 3) is positive definite (Sylvester's criterion:
+    the three leading principal minors are positive), shape (k,)."""
+    a, b, c = m[:, 0, 0], m[:, 0, 1], m[:, 0, 2]
+    d, e, f = m[:, 1, 1], m[:, 1, 2], m[:, 2, 2]
+    minor2 = a * d - b * b
+    det = a * (d * f - e * e) - b * (b * f - e * c) + c * (b * e - d * c)
+    return (a > 0) & (minor2 > 0) & (det > 0)
+
+
+def _batched_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve a[k] d[k] = b[k] for (m, 4, 4) matrices and (m, 4) right-hand sides in one call; rows
+    whose matrix is singular or not finite get NaN (the caller treats them as failed)."""
+    out = np.full(b.shape, np.nan)
+    good = np.all(np.isfinite(a), axis=(-2, -1)) & np.all(np.isfinite(b), axis=-1)
+    try:
+        out[good] = np.linalg.solve(a[good], b[good][..., None])[..., 0]
+    except np.linalg.LinAlgError:  # some matrix is exactly singular: find them, solve the others
+        with np.errstate(all="ignore"):
+            good &= np.linalg.cond(np.where(good[:, None, None], a, np.eye(a.shape[-1]))) < 1.0 / _EPS
+        out[good] = np.linalg.solve(a[good], b[good][..., None])[..., 0]
+    return out
+
+
+def _as_bounds(bounds, name: str):
+    """(lower (3,), upper (3,)) from a pair of 3-vectors or six numbers x0, y0, z0, x1, y1, z1."""
+    try:
+        arr = np.asarray(bounds, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        arr = np.zeros(0)
+    if arr.size != 6 or not np.all(np.isfinite(arr)) or not np.all(arr[:3] < arr[3:]):
+        raise ValueError(
+            f"{name} must be a box (lower, upper) or six numbers x0, y0, z0, x1, y1, z1 with "
+            f"x0 < x1, y0 < y1, z0 < z1, got {bounds!r}"
+        )
+    return arr[:3].copy(), arr[3:].copy()
+
+
+def _shape_message(name: str, got: tuple, xshape: tuple, expected: tuple) -> str:
+    """The error for a user callable ``name`` that returned shape ``got`` instead of ``expected``."""
+    lead = xshape[:-1]
+    if got == ():
+        hint = ("it returned one number for all the points: it is written for a single point (math "
+                "functions, float(), a loop); use numpy on whole arrays, e.g. np.sqrt(x[..., 0]**2 + ...)")
+    elif got == expected + (1,):
+        hint = "it has an extra trailing axis of length 1: drop keepdims=True, or return out[..., 0]"
+    elif len(got) >= 1 and got[0] == 3 and got[1:] == lead:
+        hint = ("the components are along the first axis: stack them along the last one, "
+                "np.stack([gx, gy, gz], axis=-1)")
+    elif len(got) >= 1 and got[0] == 3 and (len(lead) == 0 or lead[0] != 3):
+        hint = ("x[0], x[1], x[2] are the first three POINTS, not the coordinates: write x[..., 0], "
+                "x[..., 1], x[..., 2]")
+    elif got == xshape and expected == lead:
+        hint = "it returned one value per coordinate: reduce over the last axis, e.g. np.sum(x**2, axis=-1)"
+    else:
+        hint = ("write it vectorized over the leading axes (there may be several: the differences call "
+                "it on shape (..., k, 3)), with x[..., 0] and reductions along axis=-1")
+    return (f"{name}(x) returned shape {got} for points x of shape {xshape}; it must return shape "
+            f"{expected}: {hint}")
+
+
+#: numpy functions allowed in a text expression (FunctionLevelSet.from_expression)
+_EXPRESSION_FUNCTIONS = {
+    name: getattr(np, name)
+    for name in ("sin", "cos", "tan", "arcsin", "arccos", "arctan", "arctan2", "sinh", "cosh", "tanh",
+                 "exp", "log", "log2", "log10", "sqrt", "cbrt", "abs", "hypot", "minimum", "maximum")
+}
+_EXPRESSION_CONSTANTS = {"pi": np.pi, "e": np.e}
+_EXPRESSION_MAX_LENGTH = 10000
+
+
+def _integer_power(a, n: int):
+    """a**n for an integer 2 <= n <= 16 by repeated squaring (a few multiplications instead of the
+    much slower general pow; the result differs from pow by a few ulp at most)."""
+    result, base = None, a
+    while n:
+        if n & 1:
+            result = base if result is None else result * base
+        n >>= 1
+        if n:
+            base = base * base
+    return result
+
+
+def _integer_powers_transformer():
+    import ast
+
+    class IntegerPowers(ast.NodeTransformer):
+        """Rewrite ``a ** n`` with an integer literal 2 <= n <= 16 into ``_integer_power(a, n)``."""
+
+        def visit_BinOp(self, node):
+            self.generic_visit(node)
+            exponent = node.right
+            if isinstance(node.op, ast.Pow) and isinstance(exponent, ast.Constant) \
+                    and type(exponent.value) is int and 2 <= exponent.value <= 16:
+                return ast.Call(ast.Name("_integer_power", ast.Load()), [node.left, exponent], [])
+            return node
+
+    return IntegerPowers()
+
+
+def _expression_function(text):
+    """A vectorized f(x) for the expression ``text`` in x, y, z; ValueError for anything not allowed."""
+    import ast
+
+    if not isinstance(text, str) or not text.strip():
+        raise ValueError(f"a level-set expression must be a non-empty string in x, y, z, got {text!r}")
+    if len(text) > _EXPRESSION_MAX_LENGTH:
+        raise ValueError(f"the level-set expression is longer than {_EXPRESSION_MAX_LENGTH} characters; use a Python file")
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except SyntaxError as exc:
+        raise ValueError(
+            f"cannot parse the level-set expression {text!r}: {exc.msg}; write it in Python syntax, "
+            "e.g. 'x**2 + y**2 + z**2 - 1'"
+        ) from None
+    operators = (ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Pow, ast.USub, ast.UAdd)
+    variables = {"x", "y", "z"} | set(_EXPRESSION_CONSTANTS)
+    for node in ast.walk(tree):
+        if isinstance(node, (ast.Expression, ast.Load) + operators):
+            continue
+        if isinstance(node, ast.BitXor):
+            raise ValueError(f"the level-set expression {text!r} uses ^, which is not a power in Python: write ** (x**2)")
+        if isinstance(node, (ast.BinOp, ast.UnaryOp)):
+            continue  # the operator itself is checked as its own node
+        if isinstance(node, ast.Constant) and type(node.value) in (int, float):
+            continue
+        if isinstance(node, ast.Call):
+            if not isinstance(node.func, ast.Name) or node.func.id not in _EXPRESSION_FUNCTIONS or node.keywords:
+                raise ValueError(
+                    f"the level-set expression {text!r} calls {ast.unparse(node)!r}, which is not allowed; "
+                    f"the functions are {', '.join(_EXPRESSION_FUNCTIONS)} with positional arguments"
+                )
+            continue
+        if isinstance(node, ast.Name):
+            if node.id in variables or node.id in _EXPRESSION_FUNCTIONS:
+                continue
+            raise ValueError(
+                f"the level-set expression {text!r} uses the unknown name {node.id!r}; it may use x, y, z, "
+                f"pi, e and the functions {', '.join(_EXPRESSION_FUNCTIONS)}"
+            )
+        raise ValueError(
+            f"the level-set expression {text!r} contains {ast.unparse(node)!r} ({type(node).__name__}), "
+            "which is not allowed: use numbers, x, y, z, pi, e, + - * / ** and the listed numpy functions"
+        )
+    tree = ast.fix_missing_locations(_integer_powers_transformer().visit(tree))
+    code = compile(tree, "<level-set expression>", "eval")
+
+    def expression(x):
+        x = np.asarray(x, dtype=float)
+        names = {"__builtins__": {}, **_EXPRESSION_FUNCTIONS, **_EXPRESSION_CONSTANTS, "_integer_power": _integer_power,
+                 "x": x[..., 0], "y": x[..., 1], "z": x[..., 2]}
+        with np.errstate(all="ignore"):  # NaN/inf values are reported by the callers, with the points
+            out = eval(code, names)  # noqa: S307 - the tree was checked above
+        return np.broadcast_to(np.asarray(out, dtype=float), x.shape[:-1]).copy()
+
+    return expression
+
+
+#: index pairs (i, j), i < j, of the off-diagonal Hessian entries
+_PAIRS = np.array([[0, 1], [0, 2], [1, 2]])
+#: offsets (in units of h) of the 19 points of the difference Hessian from values: 0, +2e_i, -2e_i,
+#: then for each pair (i, j) of _PAIRS the four points +e_i+e_j, +e_i-e_j, -e_i+e_j, -e_i-e_j
+_HESSIAN_STENCIL = np.concatenate([
+    np.zeros((1, 3)), 2.0 * np.eye(3), -2.0 * np.eye(3),
+    np.array([s * np.eye(3)[i] + t * np.eye(3)[j] for i, j in _PAIRS for s, t in ((1, 1), (1, -1), (-1, 1), (-1, -1))]),
+])
+
 # ----------------------------------------------------------------------------------------------
 # base class
 # ----------------------------------------------------------------------------------------------
 class LevelSet:
     """A level-set function phi: R^3 -> R whose zero set is a closed surface S.
 
-    Subclasses implement :meth:`value`, :meth:`gradient` and :meth:`hessian` (and, when available,
-    :meth:`closest_point`); everything else is derived here.
+    Subclasses implement :meth:`value`, :meth:`gradient` and :meth:`hessian`; everything else is
+    derived here: the normal and mean curvature of docs/math.md §1 at a point, the closest-point map
+    (Newton's method on the closest-point system, :meth:`closest_point`) and the exact fields at
+    the closest point.  Subclasses with closed forms (Sphere, Torus, Ellipsoid) override the latter.
 
     Attributes
     ----------
@@ -110,8 +283,11 @@ class LevelSet:
         True when phi is the signed distance to S (|grad phi| = 1, Lap phi = k1 + k2 on S).
     area, volume : float or None
         Exact area of S and volume enclosed by S when known.
+    newton_steps : int
+        Most Newton steps of the general :meth:`closest_point` (12; points near S need 2 to 5).
     """
 
+    newton_steps: int = 12
     lipschitz: float | None = None
     is_distance: bool = False
     area: float | None = None
@@ -131,12 +307,102 @@ class LevelSet:
         raise NotImplementedError(f"{type(self).__name__} must implement hessian(x)")
 
     def closest_point(self, x) -> np.ndarray:
-        """Closest point p(x) on S for points x of shape (..., 3); returns shape (..., 3)."""
-        raise NotImplementedError(
-            f"closest_point is not available for {type(self).__name__}: the closest-point map of a "
-            "general level set needs a surface-specific projection; use Sphere, Torus, Ellipsoid, "
-            "SignedDistance, or a FunctionLevelSet with is_distance=True (p = x - phi grad phi)"
-        )
+        """Closest point p(x) on S for points x of shape (..., 3) near S; returns shape (..., 3).
+
+        The general projection, for any smooth level set with :meth:`value`, :meth:`gradient` and
+        :meth:`hessian` (subclasses with a closed form override it).  p is a solution of the
+        closest-point system in the unknowns (p, mu) in R^3 x R,
+
+            F(p, mu) = (p - x + mu grad phi(p),  phi(p)) = 0,
+
+        (p on S, x - p parallel to grad phi(p)), solved by Newton's method with the 4 x 4 Jacobian
+
+            [[I + mu Hess phi(p), grad phi(p)], [grad phi(p)^T, 0]],
+
+        vectorized over all points (one batched 4 x 4 solve per step, only for the points not yet
+        converged).  Start: the first-order projection p0 = x - phi(x) grad phi(x) / |grad phi(x)|^2
+        and mu0 = phi(x) / |grad phi(x)|^2, which is within O(dist^2) of the foot point, so Newton
+        converges quadratically for points closer to S than a fraction of its smallest curvature
+        radius (the quadrature points of a cut surface are O(h^2) away).
+
+        A point is converged when, with L = max(1, |x|_inf) and g = grad phi(p),
+
+            |phi(p)| <= 1e-12 |g| L       (phi vanishes to 1e-12 relative to its scale |g| L), and
+            |p - x + mu g| <= 1e-12 L + 1e-9 |x - p|   (x - p parallel to g to the accuracy of a
+                                                         difference gradient, about 1e-10),
+
+        and p is then checked to be a local minimizer of |x - p| on S: I + mu Hess phi(p) must be
+        positive definite on the tangent plane (x lies before the first focal point).  At most
+        :attr:`newton_steps` steps; points that do not converge, or reach a critical point of the
+        distance that is not a minimum, raise ValueError naming their count, the first one, and the
+        fix (such points are too far from S; evaluate the exact fields only near the surface).
+        Where the foot point is not unique (the medial set) the one Newton reaches is returned.
+        """
+        x = _as_points(x)
+        y = x.reshape(-1, 3)
+        if len(y) == 0:
+            return x.copy()
+        scale = np.maximum(1.0, np.max(np.abs(y), axis=-1))
+        f = self.value(y)
+        g = self.gradient(y)
+        gg = np.einsum("ij,ij->i", g, g)
+        _raise_if_singular(gg == 0.0, y, "the closest-point projection", "where grad phi = 0")
+        mu = f / gg
+        p = y - mu[:, None] * g
+        todo = np.arange(len(y))
+        saddle = np.zeros(len(y), dtype=bool)
+        failed = np.zeros(len(y), dtype=bool)
+        for _ in range(self.newton_steps + 1):
+            pt, yt, mt, st = p[todo], y[todo], mu[todo], scale[todo]
+            f = self.value(pt)
+            g = self.gradient(pt)
+            hess = self.hessian(pt)
+            r = pt - yt + mt[:, None] * g
+            gnorm = np.linalg.norm(g, axis=-1)
+            done = (np.abs(f) <= 1e-12 * gnorm * st) & (
+                np.linalg.norm(r, axis=-1) <= 1e-12 * st + 1e-9 * np.linalg.norm(yt - pt, axis=-1)
+            )
+            if done.any():
+                # second-order condition: n n^T + P (I + mu Hess) P positive definite
+                n = g[done] / gnorm[done, None]
+                nn = n[:, :, None] * n[:, None, :]
+                proj = np.eye(3) - nn
+                m = proj @ (np.eye(3) + mt[done, None, None] * hess[done]) @ proj + nn
+                saddle[todo[done]] = ~_positive_definite_3x3(m)
+            # one Newton step for every point, also the converged ones (a last, polishing step that
+            # costs no evaluation: their residual is squared once more)
+            jac = np.zeros((len(todo), 4, 4))
+            jac[:, :3, :3] = np.eye(3) + mt[:, None, None] * hess
+            jac[:, :3, 3] = g
+            jac[:, 3, :3] = g
+            d = _batched_solve(jac, -np.concatenate([r, f[:, None]], axis=1))
+            ok = np.all(np.isfinite(d), axis=-1)
+            p[todo[ok]] += d[ok, :3]
+            mu[todo[ok]] += d[ok, 3]
+            failed[todo[~ok & ~done]] = True
+            todo = todo[ok & ~done]
+            if len(todo) == 0:
+                break
+        bad = failed.copy()
+        bad[todo] = True
+        if bad.any():
+            first = y[bad][0]
+            raise ValueError(
+                f"the closest-point projection of {type(self).__name__} did not converge in "
+                f"{self.newton_steps} Newton steps for {int(bad.sum())} of {len(y)} point(s) "
+                f"(first: {first}, phi there {float(self.value(first))!r}); it is meant for points "
+                "near the surface (closer than its smallest curvature radius): evaluate the exact "
+                "fields only near S, or check that phi is smooth and has a nonzero gradient on S"
+            )
+        if saddle.any():
+            first = y[saddle][0]
+            raise ValueError(
+                f"the closest-point projection of {type(self).__name__} reached a point of S that is "
+                f"not nearest for {int(saddle.sum())} of {len(y)} point(s) (first: {first}): these "
+                "points lie beyond a focal point of S (too far from the surface for its curvature); "
+                "evaluate the exact fields only near S"
+            )
+        return p.reshape(x.shape)
 
     def bounds(self):
         """Axis-aligned bounding box of S as (lower (3,), upper (3,)), or None when not known."""
@@ -161,7 +427,10 @@ class LevelSet:
         P = I - n n^T.  On S this is k1 + k2 (2/R on a sphere of radius R); off S it is the
         curvature of the level set of phi through x, which differs from (k1 + k2)(p(x)).
         """
-        x = _as_points(x)
+        return self._curvature_and_normal(_as_points(x))[0]
+
+    def _curvature_and_normal(self, x):
+        """(div n, n) at the points x (..., 3) from one gradient and one Hessian evaluation."""
         g = self.gradient(x)
         hess = self.hessian(x)
         norm = np.linalg.norm(g, axis=-1)
@@ -169,7 +438,7 @@ class LevelSet:
         n = g / norm[..., None]
         trace = np.trace(hess, axis1=-2, axis2=-1)
         nhn = np.einsum("...i,...ij,...j->...", n, hess, n)
-        return (trace - nhn) / norm
+        return (trace - nhn) / norm, n
 
     def exact_mean_curvature(self, x) -> np.ndarray:
         """(k1 + k2)(p(x)): the exact mean curvature at the closest point, shape (...)."""
@@ -180,9 +449,13 @@ class LevelSet:
         return self.normal(self.closest_point(x))
 
     def exact_mean_curvature_vector(self, x) -> np.ndarray:
-        """H^e(x) = H(p(x)) = (k1 + k2)(p(x)) n(p(x)), shape (..., 3)."""
-        p = self.closest_point(x)
-        return self.mean_curvature(p)[..., None] * self.normal(p)
+        """H^e(x) = H(p(x)) = (k1 + k2)(p(x)) n(p(x)), shape (..., 3).
+
+        With n = grad phi/|grad phi| and k1 + k2 = trace(P Hess phi)/|grad phi|, P = I - n n^T, at
+        the closest point p(x) (docs/math.md §1): valid for any level set, distance or not.
+        """
+        kappa, n = self._curvature_and_normal(self.closest_point(x))
+        return kappa[..., None] * n
 
 
 # ----------------------------------------------------------------------------------------------
@@ -564,37 +837,56 @@ class Ellipsoid(LevelSet):
 # user function
 # ----------------------------------------------------------------------------------------------
 class FunctionLevelSet(LevelSet):
-    """Level set given by user callables.
+    """Level set given by user callables: any smooth phi, a distance or not.
+
+    Everything geometric comes from the base class: the normal n = grad phi/|grad phi|, the mean
+    curvature k1 + k2 = trace(P Hess phi)/|grad phi| (P = I - n n^T), the closest point p(x) by
+    Newton's method on the closest-point system (:meth:`LevelSet.closest_point`, which satisfies
+    phi(p) = 0 to 1e-12 relative to |grad phi| max(1, |x|_inf)), and the exact fields at p(x) of
+    docs/math.md §1.  Also built from a text expression (:meth:`from_expression`) or a Python file
+    (:meth:`from_file`).
 
     Parameters
     ----------
     value : callable
         f(x) -> phi, mapping points of shape (..., 3) to shape (...) (vectorized over any leading
-        shape: the finite differences call it on arrays of shape (..., k, 3)).
+        shape: the finite differences call it on arrays of shape (..., k, 3), so write x[..., 0],
+        not x[:, 0]).  A wrong output shape, e.g. (n, 1) or a scalar or (3,) for x of shape (n, 3),
+        raises ValueError at the first evaluation, naming the expected shape and the likely fix.
     gradient, hessian : callable or None
-        grad phi (..., 3) and Hess phi (..., 3, 3).  When missing they are central differences:
-          * gradient: g_j = (f(x + h e_j) - f(x - h e_j)) / (2h),  h = eps^(1/3) max(1, |x|_inf);
+        grad phi (..., 3) and Hess phi (..., 3, 3), checked likewise.  When missing they are central
+        differences, h scaled with the point's size max(1, |x|_inf):
+          * gradient: g_j = (f(x + h e_j) - f(x - h e_j)) / (2h),  h = eps^(1/3) max(1, |x|_inf)
+            (the truncation error, h^2 times third derivatives, balances the rounding eps |f| / h);
           * Hessian from a given gradient: H_ij = (g_i(x + h e_j) - g_i(x - h e_j)) / (2h),
             h = eps^(1/3) max(1, |x|_inf), then symmetrized;
           * Hessian from values only: H_ij = (f(x+he_i+he_j) - f(x+he_i-he_j) - f(x-he_i+he_j)
             + f(x-he_i-he_j)) / (4h^2), h = eps^(1/4) max(1, |x|_inf).
         ``step`` (a float) overrides the relative factor eps^(1/3) / eps^(1/4) by an absolute h.
-        Expected accuracy ~1e-10 (gradient) and ~1e-7 (Hessian) relative to the derivative scale.
+        Measured on the tanglecube sum_i (x_i^4 - 5 x_i^2) + 11.8 near its zero set, relative to the
+        largest entry: gradient 1e-10, Hessian from the gradient 3e-11, Hessian from values 1e-8;
+        the mean curvature vector from values only is then within 1e-7 of the analytic one.  The
+        difference gradient is not smooth at the 1e-10 level, so with it x - p is parallel to
+        grad phi(p) to about 1e-10 |x - p| (to round-off with an analytic gradient).
     lipschitz : float or None
         A true global bound on |grad phi| (used to skip cells in the cut), or None.
     is_distance : bool
-        Whether phi is a signed distance; then closest_point(x) = x - phi(x) grad phi(x).
+        Whether phi is a signed distance (information only; the projection is the same Newton
+        iteration, which starts from the exact foot point x - phi grad phi of a distance).
     area, volume : float or None
         Exact values when the caller knows them.
-    bounds : (lower, upper) or None
-        Bounding box of the surface when known.
+    bounds : (lower, upper) or six numbers, or None
+        A box containing the surface when known (the problems grow it by 0.1 into the background
+        box); without it the problems ask for an explicit box.
+    name : str or None
+        Shown by repr (the expression or file the level set came from).
     """
 
     def __init__(self, value, gradient=None, hessian=None, lipschitz=None, is_distance=False,
-                 area=None, volume=None, bounds=None, step=None):
-        for name, fn in (("value", value), ("gradient", gradient), ("hessian", hessian)):
+                 area=None, volume=None, bounds=None, step=None, name=None):
+        for label, fn in (("value", value), ("gradient", gradient), ("hessian", hessian)):
             if fn is not None and not callable(fn):
-                raise ValueError(f"{name} must be a callable f(x) of points (..., 3), got {fn!r}")
+                raise ValueError(f"{label} must be a callable f(x) of points (..., 3), got {fn!r}")
         if value is None:
             raise ValueError("value must be a callable f(x) of points (..., 3) returning shape (...)")
         self._value = value
@@ -605,33 +897,93 @@ class FunctionLevelSet(LevelSet):
         self.area = None if area is None else _positive(area, "area")
         self.volume = None if volume is None else _positive(volume, "volume")
         self.step = None if step is None else _positive(step, "step")
-        if bounds is not None:
-            lo, hi = (np.asarray(b, dtype=float) for b in bounds)
-            if lo.shape != (3,) or hi.shape != (3,) or not np.all(lo <= hi):
-                raise ValueError(
-                    f"bounds must be (lower (3,), upper (3,)) with lower <= upper, got {bounds!r}"
-                )
-            self._bounds = (lo, hi)
-        else:
-            self._bounds = None
+        self.name = name if name is not None else getattr(value, "__name__", "f")
+        self._bounds = None if bounds is None else _as_bounds(bounds, "bounds")
 
     def __repr__(self) -> str:
-        return (f"FunctionLevelSet({getattr(self._value, '__name__', 'f')}, "
-                f"is_distance={self.is_distance}, lipschitz={self.lipschitz})")
+        return f"FunctionLevelSet({self.name}, is_distance={self.is_distance}, lipschitz={self.lipschitz})"
+
+    @classmethod
+    def from_expression(cls, text: str, **kwargs) -> "FunctionLevelSet":
+        """The level set phi(x, y, z) written as a text expression, e.g. ``"x**2 + y**2 + z**2 - 1"``.
+
+        The text is parsed (Python syntax) and checked before anything is evaluated: it may use
+        the coordinates ``x``, ``y``, ``z``, numbers, the constants ``pi`` and ``e``, the operators
+        ``+ - * / **`` and the numpy functions ``sin cos tan arcsin arccos arctan arctan2 sinh cosh
+        tanh exp log log2 log10 sqrt cbrt abs hypot minimum maximum``, called with positional
+        arguments; any other name, attribute, subscript, keyword, comparison or statement is
+        refused with ValueError (``^`` with a hint to write ``**``).  It is evaluated by numpy on
+        whole arrays with no builtins in reach.  Derivatives are central differences (see the
+        class); ``kwargs`` go to the constructor (``bounds``, ``lipschitz``, ``area``, ...).
+        """
+        return cls(_expression_function(text), name=repr(str(text)), **kwargs)
+
+    @classmethod
+    def from_file(cls, path) -> "FunctionLevelSet":
+        """The level set defined by a Python file.
+
+        The file is run (it is the user's own code, with full Python) and must define
+
+        * ``phi(x)``: phi at points x of shape (..., 3), returning shape (...);
+
+        and may define
+
+        * ``grad(x)`` -> (..., 3) and ``hessian(x)`` -> (..., 3, 3): analytic derivatives
+          (otherwise central differences, see the class);
+        * ``lipschitz``: a true bound on |grad phi| (lets the cut skip cells far from S);
+        * ``box``: a box containing the surface, six numbers (x0, y0, z0, x1, y1, z1) or a pair
+          (lower, upper); the problems grow it by 0.1 into the background box (``--box`` overrides);
+        * ``area``: the exact area of S (adds ``area_error`` to the records).
+
+        Other names (imports, helpers) are ignored.  Example, a sphere written as a polynomial::
+
+            import numpy as np
+
+            def phi(x):
+                return np.sum(x**2, axis=-1) - 1.0
+
+            def grad(x):
+                return 2.0 * x
+
+            box = (-1, -1, -1, 1, 1, 1)
+        """
+        import runpy
+        from pathlib import Path
+
+        path = Path(path)
+        if not path.is_file():
+            raise ValueError(f"surface file {str(path)!r} does not exist; give the path of a Python file that defines phi(x)")
+        try:
+            ns = runpy.run_path(str(path), run_name="cutfem_surface")
+        except Exception as exc:
+            raise ValueError(f"running the surface file {str(path)!r} failed: {type(exc).__name__}: {exc}") from exc
+        if not callable(ns.get("phi")):
+            raise ValueError(
+                f"the surface file {str(path)!r} defines no function phi(x); define phi(x) for points x "
+                "of shape (..., 3) returning shape (...), and optionally grad, hessian, lipschitz, box, area"
+            )
+        box = ns.get("box")
+        return cls(ns["phi"], gradient=ns.get("grad"), hessian=ns.get("hessian"), lipschitz=ns.get("lipschitz"),
+                   area=ns.get("area"), bounds=None if box is None else _as_bounds(box, f"box in {path.name}"),
+                   name=repr(str(path)))
 
     def bounds(self):
-        """The bounding box given at construction, or None."""
+        """The box containing the surface given at construction, or None."""
         return self._bounds
 
     def _call(self, fn, x, tail, name):
-        out = np.asarray(fn(x), dtype=float)
+        """fn(x) as floats, checked to have shape x.shape[:-1] + tail (ValueError naming the fix)."""
+        try:
+            out = np.asarray(fn(x), dtype=float)
+        except IndexError as exc:
+            raise ValueError(
+                f"{name}(x) raised IndexError ({exc}) for x of shape {x.shape}: the coordinates are along "
+                "the last axis of x and there may be several leading axes; write x[..., 0], x[..., 1], "
+                "x[..., 2] (not x[:, 0] or x[0])"
+            ) from exc
         expected = x.shape[:-1] + tail
         if out.shape != expected:
-            raise ValueError(
-                f"{name}(x) returned shape {out.shape} for x of shape {x.shape}; it must return "
-                f"{expected}: write it vectorized over the leading axes, e.g. use x[..., 0] and "
-                "reductions along axis=-1"
-            )
+            raise ValueError(_shape_message(name, out.shape, x.shape, expected))
         return out
 
     def _h(self, x, power):
@@ -670,27 +1022,18 @@ class FunctionLevelSet(LevelSet):
             hj = (g[..., :3, :] - g[..., 3:, :]) / (2.0 * h)  # (..., j, i)
             hess = np.swapaxes(hj, -1, -2)
             return 0.5 * (hess + np.swapaxes(hess, -1, -2))
+        # the 19 distinct points of the stencil: x, x +- 2h e_i (diagonal, where the four points
+        # x +- h e_i +- h e_i are x + 2h e_i, x, x, x - 2h e_i) and x + s h e_i + t h e_j, i < j
         h = self._h(x, 0.25)
-        eye = np.eye(3)
-        # sign pattern (+,+), (+,-), (-,+), (-,-) for each pair (i, j): shape (4, 3, 3, 3)
-        signs = np.array([[1, 1], [1, -1], [-1, 1], [-1, -1]], dtype=float)
-        shifts = signs[:, 0, None, None, None] * eye[None, :, None, :] \
-            + signs[:, 1, None, None, None] * eye[None, None, :, :]  # (4, i, j, 3)
-        xs = x[..., None, None, None, :] + h[..., None, None, None, None] * shifts
-        f = self._call(self._value, xs, (), "value")  # (..., 4, 3, 3)
-        hess = (f[..., 0, :, :] - f[..., 1, :, :] - f[..., 2, :, :] + f[..., 3, :, :]) \
-            / (4.0 * h[..., None, None] ** 2)
-        return 0.5 * (hess + np.swapaxes(hess, -1, -2))
-
-    def closest_point(self, x):
-        """x - phi(x) grad phi(x) when is_distance (exact for a signed distance), shape (..., 3).
-
-        NotImplementedError for a general level set.
-        """
-        if not self.is_distance:
-            return super().closest_point(x)
-        x = _as_points(x)
-        return x - self.value(x)[..., None] * self.gradient(x)
+        f = self._call(self._value, x[..., None, :] + h[..., None, None] * _HESSIAN_STENCIL, (), "value")
+        diag = (f[..., 1:4] - 2.0 * f[..., :1] + f[..., 4:7]) / (4.0 * h[..., None] ** 2)
+        pairs = f[..., 7:].reshape(f.shape[:-1] + (3, 4))  # (..., pair, sign pattern ++ +- -+ --)
+        off = (pairs[..., 0] - pairs[..., 1] - pairs[..., 2] + pairs[..., 3]) / (4.0 * h[..., None] ** 2)
+        hess = np.zeros(x.shape[:-1] + (3, 3))
+        hess[..., [0, 1, 2], [0, 1, 2]] = diag
+        hess[..., _PAIRS[:, 0], _PAIRS[:, 1]] = off
+        hess[..., _PAIRS[:, 1], _PAIRS[:, 0]] = off
+        return hess
 
 
 # ----------------------------------------------------------------------------------------------

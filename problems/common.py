@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.levelset import Ellipsoid, LevelSet, SignedDistance, Sphere, Torus
+from cutfem.levelset import Ellipsoid, FunctionLevelSet, LevelSet, SignedDistance, Sphere, Torus
 from cutfem.mesh import structured_box, unstructured_box
 from cutfem.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
 from cutfem.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
@@ -40,13 +40,27 @@ def is_file(surface) -> bool:
     return isinstance(surface, (str, Path)) and str(surface) not in SURFACES
 
 
+#: how a user surface is given (the help of --surface and the error for a surface not understood)
+USER_SURFACES = (
+    "a closed mesh file (STL, OBJ, PLY, VTK, ...: signed distance), a Python file NAME.py defining phi(x) "
+    "and optionally grad, hessian, lipschitz, box, area (cutfem.levelset.FunctionLevelSet.from_file), or an "
+    "expression in x, y, z such as 'x**4 - 5*x**2 + y**4 - 5*y**2 + z**4 - 5*z**2 + 11.8' "
+    "(numpy functions sin, cos, exp, sqrt, ...; FunctionLevelSet.from_expression)"
+)
+
+
 def levelset_for(surface, R=1.0, r=0.5, radius=1.0, axes="1.0,0.8,0.6") -> LevelSet:
-    """The level set of a named surface, a closed mesh file (signed distance), or a LevelSet/callable."""
+    """The level set of ``surface``.
+
+    ``surface`` is a LevelSet (used as is), a callable phi(x) of points (..., 3) (a FunctionLevelSet,
+    derivatives by differences), a named surface (``torus``, ``sphere``, ``ellipsoid`` with the shape
+    parameters), a Python file ``*.py`` (:meth:`FunctionLevelSet.from_file`), an existing closed mesh
+    file (signed distance), or else a text expression in x, y, z (:meth:`FunctionLevelSet.from_expression`).
+    ProblemError names the choices when none fits.
+    """
     if isinstance(surface, LevelSet):
         return surface
     if callable(surface):
-        from cutfem.levelset import FunctionLevelSet
-
         return FunctionLevelSet(surface)
     if surface == "torus":
         if not 0 < r < R:
@@ -57,14 +71,27 @@ def levelset_for(surface, R=1.0, r=0.5, radius=1.0, axes="1.0,0.8,0.6") -> Level
     if surface == "ellipsoid":
         return Ellipsoid(*parse_numbers(axes, 3, "--axes"))
     path = Path(surface)
-    if not path.exists():
-        raise ProblemError(f"--surface: {surface!r} is neither one of {', '.join(SURFACES)} nor an existing mesh file")
-    return SignedDistance(read_surface(path))
+    if path.suffix == ".py":
+        try:
+            return FunctionLevelSet.from_file(path)
+        except ValueError as exc:
+            raise ProblemError(f"--surface: {exc}") from exc
+    if path.exists():
+        return SignedDistance(read_surface(path))
+    try:
+        return FunctionLevelSet.from_expression(str(surface))
+    except ValueError as exc:
+        raise ProblemError(
+            f"--surface: {str(surface)!r} is none of {', '.join(SURFACES)}, an existing file, or a valid expression "
+            f"({exc}); give a named surface or {USER_SURFACES}"
+        ) from None
 
 
 def has_exact(levelset) -> bool:
-    """Whether the level set provides exact closest points and curvature."""
-    return not isinstance(levelset, SignedDistance) and type(levelset).closest_point is not LevelSet.closest_point
+    """Whether the exact closest point and mean curvature vector are available: every level set with a
+    Hessian (closed forms for the named surfaces, Newton's projection and the formula of docs/math.md §1
+    otherwise), not the distance to a triangle mesh (no curvature)."""
+    return not isinstance(levelset, SignedDistance) and type(levelset).hessian is not LevelSet.hessian
 
 
 def surface_mesh_for(surface, n, family="structured", seed=0, R=1.0, r=0.5, radius=1.0):
@@ -97,7 +124,11 @@ def box_for(levelset, spacing, box=None):
         return np.array(v[:3]), np.array(v[3:])
     b = levelset.bounds() if hasattr(levelset, "bounds") else None
     if b is None:
-        raise ProblemError("the surface has no known bounding box: give --box x0,y0,z0,x1,y1,z1")
+        raise ProblemError(
+            f"the surface {levelset!r} has no known bounding box: give the background box, --box x0,y0,z0,x1,y1,z1 "
+            "(box='x0,y0,z0,x1,y1,z1' in cutfem.run), or a box containing the surface (box = (x0, y0, z0, x1, y1, z1) "
+            "in a surface file, bounds= of FunctionLevelSet)"
+        )
     lo, hi = np.asarray(b[0], float) - 0.1, np.asarray(b[1], float) + 0.1
     lo = np.floor(lo / spacing + 1e-9) * spacing
     hi = np.ceil(hi / spacing - 1e-9) * spacing

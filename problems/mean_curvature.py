@@ -25,7 +25,7 @@ from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
 from cutfem.surface import TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, check_resolution, SURFACES, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
+from .common import SHAPE_PARAMS, USER_SURFACES, check_resolution, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
 
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
@@ -106,7 +106,7 @@ class MeanCurvatureCut(Problem):
     level_type = float
     default_levels = [0.2, 0.1, 0.05, 0.025]
     params = [
-        Param("surface", str, "torus", "torus, sphere, ellipsoid, or a closed mesh file (signed distance)", choices=SURFACES),
+        Param("surface", str, "torus", f"torus, sphere, ellipsoid, {USER_SURFACES}; H^e is exact at the closest point"),
         Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)"),
         Param("tau_f", float, 0.1, "face stabilization tau_F", minimum=0),

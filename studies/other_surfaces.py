@@ -12,8 +12,8 @@
 3. **A genus-2 surface** given by a level set that is not a distance (:class:`DoubleTorus`): the
    smoothed union phi = a + b - sqrt(a^2 + b^2 + delta^2) of the distances a, b to two ring tori
    (R, r) = (1, 0.4) centred at (-+1.05, 0, 0), delta = 0.4, with analytic gradient and Hessian
-   and exact closest points by a vectorized Newton iteration on the Lagrange system
-   (:class:`ImplicitSurface`).  Passed to ``cutfem.run`` as a LevelSet object.  Checked: Euler
+   and exact closest points by the vectorized Newton iteration on the closest-point system of
+   :class:`cutfem.levelset.FunctionLevelSet`.  Passed to ``cutfem.run`` as a LevelSet object.  Checked: Euler
    characteristic -2 of S_h, integral of H_h ~ 0, L2 error against the exact H at the closest point.
 
 Outputs (prefix ``other_surfaces``): ``.json``, ``_convergence.png/.pdf`` (errors and invariants
@@ -45,48 +45,7 @@ STL_RADIUS = 0.9
 STL_CENTER = (0.05, -0.03, 0.02)
 
 
-class ImplicitSurface(FunctionLevelSet):
-    """A :class:`~cutfem.levelset.FunctionLevelSet` with analytic gradient and Hessian and exact closest
-    points computed by Newton's method (for points near the surface).
-
-    p(x) solves the Lagrange system F(p, mu) = (p - x + mu grad phi(p), phi(p)) = 0, Jacobian
-    [[I + mu Hess phi(p), grad phi(p)], [grad phi(p)^T, 0]], vectorized over the points.  Start:
-    three gradient projections p <- p - phi(p) grad phi(p) / |grad phi(p)|^2 (which land on S up to
-    O(dist^2)) and mu = (x - p) . grad phi(p) / |grad phi(p)|^2.  For points within a fraction of
-    the smallest curvature radius of S (the quadrature points of S_h are O(h^2) away) this converges
-    quadratically to the foot point; RuntimeError if |F| is not below 1e-12 max(1, |x|) after 30 steps.
-    """
-
-    def closest_point(self, x):
-        """Foot point on S of points x (..., 3) near S."""
-        x = np.asarray(x, dtype=float)
-        shape = x.shape
-        y = x.reshape(-1, 3)
-        p = y.copy()
-        for _ in range(3):
-            g = self.gradient(p)
-            p = p - (self.value(p) / np.einsum("nd,nd->n", g, g))[:, None] * g
-        g = self.gradient(p)
-        mu = np.einsum("nd,nd->n", y - p, g) / np.einsum("nd,nd->n", g, g)
-        scale = max(1.0, float(np.abs(y).max())) if len(y) else 1.0
-        for _ in range(30):
-            g = self.gradient(p)
-            F = np.concatenate([p - y + mu[:, None] * g, self.value(p)[:, None]], axis=1)
-            if not len(F) or np.abs(F).max() <= 1e-12 * scale:
-                break
-            J = np.zeros((len(p), 4, 4))
-            J[:, :3, :3] = np.eye(3) + mu[:, None, None] * self.hessian(p)
-            J[:, :3, 3] = g
-            J[:, 3, :3] = g
-            d = np.linalg.solve(J, -F[..., None])[..., 0]
-            p = p + d[:, :3]
-            mu = mu + d[:, 3]
-        else:
-            raise RuntimeError(f"{type(self).__name__}.closest_point: Newton did not converge (points too far from the surface?)")
-        return p.reshape(shape)
-
-
-class DoubleTorus(ImplicitSurface):
+class DoubleTorus(FunctionLevelSet):
     """A smooth closed surface of genus 2: the smoothed union of two ring tori side by side.
 
     With a, b the signed distances to the tori (R, r) centred at (-d, 0, 0) and (d, 0, 0) (axis z),
@@ -104,7 +63,7 @@ class DoubleTorus(ImplicitSurface):
 
     from the exact torus data of :class:`cutfem.levelset.Torus`.  |grad phi| < 4 (both weights lie
     in (0, 2)): lipschitz 4.  Not a distance; exact H = (trace(P Hess phi)/|grad phi|) n at the closest
-    point (:class:`ImplicitSurface`).
+    point, found by the Newton projection of :meth:`cutfem.levelset.LevelSet.closest_point`.
     """
 
     def __init__(self, d: float = 1.05, R: float = 1.0, r: float = 0.4, delta: float = 0.4):
