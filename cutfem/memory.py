@@ -1,4 +1,9 @@
-"""Process-wide allocation settings for large arrays (Linux), applied when cutfem is imported.
+"""Process-wide allocation settings for large arrays (Linux): opt-in, never applied on import.
+
+Importing cutfem leaves the process as it was.  :func:`configure` is called by the ``cutfem``
+command (:func:`cutfem.cli.main`), by the studies' command lines (``python -m cutfem.studies.NAME``,
+``cutfem reproduce``) and by every timed level of the performance benchmark; a script that builds
+large problems may call ``cutfem.memory.configure()`` itself, once, before the large arrays.
 
 A cut or meshed pipeline at a million elements allocates and frees hundreds of arrays of 1-300 MB.
 Two defaults of a Linux process make the first touch of that memory the dominant cost:
@@ -32,9 +37,14 @@ meshed torus 768, perturbed     3.0-4.1      2.4-3.0         0.6 GiB
 
 The memory retained is bounded by the threshold; the peak resident memory is unchanged.  (The
 peak of the cut case has since come down to 1.07 GiB, with fewer temporaries in the cut and the
-assembly, and its page faults from 441k to 260k per run.)  Opt out
-by setting ``CUTFEM_ALLOCATOR=system`` before importing cutfem; a ``NUMPY_MADVISE_HUGEPAGE`` set
-by the user is respected.  ``SETTINGS`` records what was applied (the benchmark saves it).
+assembly, and its page faults from 441k to 260k per run.)  The settings are a trade: memory freed
+by the program stays with the process (up to the threshold) instead of returning to the system,
+which suits a run that allocates and frees large arrays repeatedly, not a long-lived host process
+that should give memory back; that is why importing the library does not apply them.
+
+The command line and the studies skip them when the environment has ``CUTFEM_ALLOCATOR=system``;
+a ``NUMPY_MADVISE_HUGEPAGE`` set by the user is respected.  ``SETTINGS`` records what was applied
+(empty until :func:`configure` runs; the benchmark saves it with every level).
 """
 
 from __future__ import annotations
@@ -90,7 +100,12 @@ def _numpy_hugepage_functions():
 def configure(force: bool = False) -> dict:
     """Apply the settings of the module docstring once (again with ``force``); returns SETTINGS.
 
-    Does nothing when the environment has ``CUTFEM_ALLOCATOR=system``.
+    Sets glibc's mmap and trim thresholds to :data:`MMAP_THRESHOLD` (Linux with glibc only) and
+    turns numpy's transparent-huge-page advice off when the kernel's defrag mode can stall a fault
+    (``always``, ``madvise``, ``defer+madvise``) and ``NUMPY_MADVISE_HUGEPAGE`` is not set.
+    Does nothing but record ``skipped`` when the environment has ``CUTFEM_ALLOCATOR=system``.
+    Returns the dict ``SETTINGS``: {"malloc": bool (thresholds set), "numpy_hugepage": bool | None
+    (numpy's advice afterwards, None where numpy has no switch), "thp_defrag": str | None}.
     """
     if SETTINGS and not force:
         return SETTINGS

@@ -12,7 +12,7 @@ from cutfem.levelset import Torus
 from cutfem.mesh import structured_box
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space
-from studies import performance
+from cutfem.studies import performance
 
 
 def test_levels_record_stages_sizes_and_errors():
