@@ -254,6 +254,7 @@ def _infinity_line(ax, cap, text):
 
 def _plot_h(out, rows, growth):
     from .common import subplots
+
     from matplotlib.ticker import NullFormatter
 
     fig, ax = subplots(figsize=(5.6, 4.4))
@@ -286,6 +287,7 @@ def _plot_h(out, rows, growth):
 
 def _plot_shifts(out, rows, spacing):
     from .common import subplots
+
     fig, (ax1, ax2) = subplots(1, 2, figsize=(10.5, 4.3))
     cap = _cap([r[k] for r in rows for k in ("kappa_stabilized", "kappa_effective_unstabilized")])
     ratio = np.array([r["min_mass_diagonal_ratio"] for r in rows])

@@ -160,6 +160,7 @@ def _plot_errors(out, rows):
     from cutfem.convergence import loglog_with_rates
 
     from .common import subplots
+
     from matplotlib.ticker import NullFormatter
 
     fig, axes = subplots(2, len(TORUS_FAMILIES), figsize=(4.0 * len(TORUS_FAMILIES), 7.2), sharex=True)
@@ -187,6 +188,7 @@ def _plot_errors(out, rows):
 
 def _plot_time(out, rows):
     from .common import subplots
+
     fig, ax = subplots(figsize=(5.2, 4))
     for m in METHODS:
         sel = [r for r in rows if r["method"] == m]

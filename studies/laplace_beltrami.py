@@ -104,6 +104,7 @@ def _plot(out, results):
     from cutfem.convergence import loglog_with_rates
 
     from .common import subplots
+
     fig, axes = subplots(2, 2, figsize=(10, 8))
     style = {"meshed": dict(color="C0"), "cut, face": dict(color="C1"), "cut, normal": dict(color="C2", ls="--")}
     for i, surface in enumerate(("sphere", "torus")):

@@ -250,6 +250,7 @@ def _plot_convergence(out, results):
     from cutfem.convergence import loglog_with_rates
 
     from .common import subplots
+
     fig, (ax1, ax2) = subplots(1, 2, figsize=(11, 4.3))
     e, s, g = results["ellipsoid"]["records"], results["stl_sphere"]["records"], results["genus2"]["records"]
     loglog_with_rates(ax1, [r["h"] for r in e], [r["l2_error"] for r in e], r"ellipsoid: $\|H^e - H_h\|_{L^2(S_h)}$", color="C0")
@@ -306,6 +307,7 @@ def _picture(out, surfaces: dict) -> str | None:
     p.close()
     # the same image as a PDF page for the paper build
     from .common import imread, subplots
+
     img = imread(path)
     fig, ax = subplots(figsize=(img.shape[1] / 150, img.shape[0] / 150))
     ax.imshow(img)

@@ -168,6 +168,7 @@ def _mesh_figure(out, surface, active, spacing):
 
 def _convergence_figure(out, data):
     from .common import subplots
+
     h = np.array(data["h"])
     fig, ax = subplots(figsize=(5.6, 4.2))
     loglog_with_rates(ax, h, data["l2_error"], "$\\|H^e - H_h\\|_{L^2(S_h)}$", marker="o", color="#c0392b", lw=1.5)

@@ -104,6 +104,7 @@ def render_mesh(mesh, path: Path, window_size=(1000, 720)):
 def combine_pngs(paths, titles, out: Path, name: str, ncols=2, panel_size=(3.6, 2.6)):
     """Several PNG renderings as one matplotlib figure with panel titles (PNG + PDF)."""
     from .common import imread, subplots
+
     nrows = -(-len(paths) // ncols)
     fig, axes = subplots(nrows, ncols, figsize=(panel_size[0] * ncols, panel_size[1] * nrows))
     for ax, path, title in zip(np.ravel(axes), paths, titles):
@@ -186,6 +187,7 @@ MARKERS = {"structured": "o", "flipped": "s", "perturbed": "^", "perturbed-flipp
 
 def _convergence_figure(out, series):
     from .common import subplots
+
     fig, ax = subplots(figsize=(6.8, 4.4))
     for s in series:
         dashed = s["tau_e"] == 0
@@ -276,6 +278,7 @@ def _isoline_figure(out, fields, n, levels):
     from matplotlib.tri import Triangulation
 
     from .common import subplots
+
     surf = fields[TAUS[0]]
     pts = np.asarray(surf.points)
     tri = np.asarray(surf.faces).reshape(-1, 4)[:, 1:]

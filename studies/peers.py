@@ -736,6 +736,7 @@ def _plot(out, rows, meshed):
     from matplotlib.ticker import NullFormatter
 
     from .common import subplots
+
     fig, axes = subplots(2, 2, figsize=(11.5, 8.6))
     ax = axes[0, 0]
     for variant, mk in (("paper", "o"), ("shifted", "s")):

@@ -122,6 +122,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
 
 def _plot(out, settings, taus):
     from .common import subplots
+
     fig, axes = subplots(1, 3, figsize=(13.5, 4.2))
     colors = {a: f"C{i}" for i, a in enumerate(POWERS)}
     h_fine = settings[0]["h"][-1]
