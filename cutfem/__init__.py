@@ -5,13 +5,13 @@ The data flow is a chain of plain value objects holding numpy arrays::
     background mesh -> level set -> cut -> quadrature -> P1 space -> forms -> assemble -> solve -> errors
 
 (a triangulated surface skips the level set and the cut).  See README.md for a tour.
+
+Importing cutfem changes nothing process-wide.  The ``cutfem`` command and the benchmark studies
+tune how the process allocates large arrays (:func:`cutfem.memory.configure`); a script that
+builds large problems may call it too.
 """
 
 __version__ = "0.1.0"
-
-from . import memory as _memory  # noqa: E402
-
-_memory.configure()  # allocation settings for large arrays: see cutfem.memory (CUTFEM_ALLOCATOR=system to opt out)
 
 from .registry import Param, Problem, available_problems, get_problem, register, run  # noqa: E402
 

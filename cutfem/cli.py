@@ -110,12 +110,20 @@ def _cmd_run(argv) -> int:
 
 
 def _cmd_reproduce(argv) -> int:
-    from studies.reproduce import main as reproduce_main
+    from .studies.reproduce import main as reproduce_main
 
     return reproduce_main(argv)
 
 
 def main(argv=None) -> int:
+    """Run the ``cutfem`` command with ``argv`` (default: the process's arguments); returns the exit status.
+
+    The command opts the process into the allocation settings of :mod:`cutfem.memory` (large runs
+    are faster with them; ``CUTFEM_ALLOCATOR=system`` keeps the system's defaults).
+    """
+    from .memory import configure
+
+    configure()
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     parser = _Parser(prog="cutfem", description="unfitted finite element methods on surfaces: problems, runs, studies")

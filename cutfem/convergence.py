@@ -1,4 +1,11 @@
-"""Convergence plots: errors against h on log-log axes with fitted rates (matplotlib, no display needed)."""
+"""Convergence plots: errors against h on log-log axes with fitted rates (matplotlib, no display needed).
+
+Figures are made with matplotlib's object-oriented API (:func:`new_figure`, :func:`subplots`): a
+:class:`matplotlib.figure.Figure` with its own Agg canvas, never registered with pyplot, so that
+drawing or saving one selects no backend and leaves the caller's pyplot state (open figures, the
+interactive backend of a notebook) as it was.  ``Figure.savefig`` writes PNG through the Agg
+canvas and PDF or SVG through matplotlib's vector canvases, chosen by the file's suffix.
+"""
 
 from __future__ import annotations
 
@@ -6,7 +13,31 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["convergence_plot", "loglog_with_rates"]
+__all__ = ["convergence_plot", "loglog_with_rates", "new_figure", "subplots"]
+
+
+def new_figure(figsize=(6.4, 4.8), layout=None):
+    """A matplotlib Figure of ``figsize`` inches (width, height) on an Agg canvas, made without pyplot.
+
+    ``layout`` is matplotlib's layout engine name (None, "tight" or "constrained").  Nothing
+    process-wide is touched; the figure is freed with its last reference (no ``close`` needed).
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=figsize, layout=layout)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def subplots(nrows=1, ncols=1, *, figsize=(6.4, 4.8), constrained_layout=False, **kw):
+    """(figure, axes) like ``pyplot.subplots``, but on a :func:`new_figure` (no backend touched).
+
+    ``kw`` goes to ``Figure.subplots`` (``sharex``, ``sharey``, ``squeeze``, ...); the axes are one
+    Axes for 1 x 1 and an array of shape (nrows, ncols) squeezed as pyplot does otherwise.
+    """
+    fig = new_figure(figsize, layout="constrained" if constrained_layout else None)
+    return fig, fig.subplots(nrows, ncols, **kw)
 
 
 def loglog_with_rates(ax, h, errors, label, marker="o", **kw):
@@ -27,14 +58,14 @@ def _reference_slope(ax, h, e, order, style=":"):
 
 
 def convergence_plot(result, path, title=None):
-    """Errors of a :class:`~cutfem.registry.RunResult` against h, with fitted rates; PNG or PDF."""
-    import matplotlib
+    """Errors of a :class:`~cutfem.registry.RunResult` against h, with fitted rates; PNG or PDF.
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    One curve per ``*_error`` entry of the records, with its least-squares rate in the legend and
+    reference slopes h and h^2 through the first error; written to ``path`` (folders created, the
+    format from the suffix) without touching pyplot or the matplotlib backend.  Returns the path.
+    """
     h = [r["h"] for r in result.records]
-    fig, ax = plt.subplots(figsize=(5, 4))
+    fig, ax = subplots(figsize=(5, 4))
     for k in result.error_keys():
         e = [r.get(k, np.nan) for r in result.records]
         loglog_with_rates(ax, h, e, k.replace("_", " "))
@@ -51,5 +82,4 @@ def convergence_plot(result, path, title=None):
     fig.tight_layout()
     Path(path).parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(path, dpi=150)
-    plt.close(fig)
     return Path(path)

@@ -1,4 +1,9 @@
-"""Process-wide allocation settings for large arrays (Linux), applied when cutfem is imported.
+"""Process-wide allocation settings for large arrays (Linux): opt-in, never applied on import.
+
+Importing cutfem leaves the process as it was.  :func:`configure` is called by the ``cutfem``
+command (:func:`cutfem.cli.main`), by the studies' command lines (``python -m cutfem.studies.NAME``,
+``cutfem reproduce``) and by every timed level of the performance benchmark; a script that builds
+large problems may call ``cutfem.memory.configure()`` itself, once, before the large arrays.
 
 A cut or meshed pipeline at a million elements allocates and frees hundreds of arrays of 1-300 MB.
 Two defaults of a Linux process make the first touch of that memory the dominant cost:
@@ -15,11 +20,11 @@ Two defaults of a Linux process make the first touch of that memory the dominant
   0.0125 (1.6 GB) took 2-3.6 s of system time, against 0.8-2.1 s for the same memory in 4 KB
   pages (interleaved runs, three each; the cut stage alone 2.0-2.8 s against 0.9-1.1 s).
 
-:func:`configure` therefore sets glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` to
+The effect of :func:`configure` is to set glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` to
 :data:`MMAP_THRESHOLD` (256 MB: smaller arrays come from the heap, and freed memory stays with
-the process until 256 MB are free at its top) and turns numpy's huge-page advice off when the
-defrag mode would stall.  Measured end to end (``studies/performance.py`` stages, seconds; runs
-interleaved, several each):
+the process until 256 MB are free at its top) and to turn numpy's huge-page advice off when the
+defrag mode would stall.  Measured end to end when the settings were introduced
+(``studies/performance.py`` stages, seconds; runs interleaved, several each):
 
 ==============================  ===========  ==============  =========
 case                            default      configured      peak
@@ -30,11 +35,22 @@ meshed torus 768, perturbed     3.0-4.1      2.4-3.0         0.6 GiB
   system time                   1.0-1.5      0.27-0.31
 ==============================  ===========  ==============  =========
 
-The memory retained is bounded by the threshold; the peak resident memory is unchanged.  (The
-peak of the cut case has since come down to 1.07 GiB, with fewer temporaries in the cut and the
-assembly, and its page faults from 441k to 260k per run.)  Opt out
-by setting ``CUTFEM_ALLOCATOR=system`` before importing cutfem; a ``NUMPY_MADVISE_HUGEPAGE`` set
-by the user is respected.  ``SETTINGS`` records what was applied (the benchmark saves it).
+Measured again on the current code (cut torus at spacing 0.0125, ``cut_level`` of
+``cutfem.studies.performance`` in fresh processes, three interleaved runs each, the machine shared
+with other jobs so that wall times were not meaningful): system time 1.96-2.36 s by default
+against 0.88-0.93 s configured, user time 9.9-10.2 s against 9.7-10.9 s (unchanged within the
+noise), peak resident memory 1.01 GiB against 1.08-1.09 GiB, minor page faults 52-54 thousand
+against 263-266 thousand (4 KB pages instead of huge pages).  So the gain is the system time of
+first touches of memory, about 1-1.4 s a run here, paid for by about 7 % more peak memory.
+
+The settings are a trade: memory freed by the program stays with the process (up to the
+threshold) instead of returning to the system, which suits a run that allocates and frees large
+arrays repeatedly, not a long-lived host process that should give memory back; that is why
+importing the library does not apply them.
+
+The command line and the studies skip them when the environment has ``CUTFEM_ALLOCATOR=system``;
+a ``NUMPY_MADVISE_HUGEPAGE`` set by the user is respected.  ``SETTINGS`` records what was applied
+(empty until :func:`configure` runs; the benchmark saves it with every level).
 """
 
 from __future__ import annotations
@@ -90,7 +106,12 @@ def _numpy_hugepage_functions():
 def configure(force: bool = False) -> dict:
     """Apply the settings of the module docstring once (again with ``force``); returns SETTINGS.
 
-    Does nothing when the environment has ``CUTFEM_ALLOCATOR=system``.
+    Sets glibc's mmap and trim thresholds to :data:`MMAP_THRESHOLD` (Linux with glibc only) and
+    turns numpy's transparent-huge-page advice off when the kernel's defrag mode can stall a fault
+    (``always``, ``madvise``, ``defer+madvise``) and ``NUMPY_MADVISE_HUGEPAGE`` is not set.
+    Does nothing but record ``skipped`` when the environment has ``CUTFEM_ALLOCATOR=system``.
+    Returns the dict ``SETTINGS``: {"malloc": bool (thresholds set), "numpy_hugepage": bool | None
+    (numpy's advice afterwards, None where numpy has no switch), "thp_defrag": str | None}.
     """
     if SETTINGS and not force:
         return SETTINGS

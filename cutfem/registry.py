@@ -218,7 +218,7 @@ def _load_builtin_and_plugins():
     if _LOADED:
         return
     _LOADED = True
-    importlib.import_module("problems")
+    importlib.import_module("cutfem.problems")
     try:
         from importlib.metadata import entry_points
 

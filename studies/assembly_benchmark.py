@@ -1,6 +1,6 @@
 """Assembly cost on the cut torus of SPEC §6: how the time to build the matrices grows with the mesh.
 
-``python -m studies.assembly_benchmark [--out DIR] [--spacings 0.05 0.025 0.0125] [--repeat 3]
+``python -m cutfem.studies.assembly_benchmark [--out DIR] [--spacings 0.05 0.025 0.0125] [--repeat 3]
 [--cold-repeat 2]``
 (or ``--tiny`` / ``--quick`` / ``--full`` for preset spacings; the default is ``--quick``, the three
 spacings above).
@@ -52,7 +52,7 @@ from cutfem.levelset import Torus
 from cutfem.mesh import structured_box
 from cutfem.spaces import CutP1Space
 
-from .common import Progress, add_size_arguments, figure, pick, save_csv, save_json
+from .common import Progress, add_size_arguments, pick, save_csv, save_json, subplots
 
 NAME = "assembly_benchmark"
 OUTPUTS = [NAME]
@@ -177,8 +177,7 @@ def format_table(rows: list[dict]) -> str:
 
 
 def plot(rows: list[dict], out: Path) -> Path:
-    plt = figure()
-    fig, ax = plt.subplots(figsize=(6.4, 4.6))
+    fig, ax = subplots(figsize=(6.4, 4.6))
     n = np.array([r["active_tets"] for r in rows], dtype=float)
     styles = {"mass": "C0", "stiffness": "C1", "face_jump": "C2", "together": "k"}
     labels = {"mass": "mass", "stiffness": "tangential stiffness", "face_jump": "$J_F$", "together": "all three"}
@@ -199,7 +198,6 @@ def plot(rows: list[dict], out: Path) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     path = out / f"{NAME}.png"
     fig.savefig(path, dpi=150, bbox_inches="tight")
-    plt.close(fig)
     return path
 
 
@@ -238,7 +236,10 @@ def run(out: Path, size: str = "quick", progress=None, spacings=None, repeat: in
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog=f"python -m studies.{NAME}", description=__doc__.split("\n")[0])
+    from cutfem.memory import configure
+
+    configure()  # a benchmark: opt into the allocation settings (cutfem.memory)
+    p = argparse.ArgumentParser(prog=f"python -m cutfem.studies.{NAME}", description=__doc__.split("\n")[0])
     p.add_argument("--out", default=f"out/{NAME}", help="output folder (default out/assembly_benchmark)")
     p.add_argument("--spacings", type=float, nargs="+", help="background cube spacings (default 0.05 0.025 0.0125)")
     p.add_argument("--repeat", type=int, default=3, help="repetitions for the warm timings (best of)")

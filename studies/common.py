@@ -3,7 +3,7 @@
 A study is a module with a function ``run(out: Path, size: str, progress) -> dict`` that writes its
 numbers (JSON, and CSV or LaTeX tables) and figures (PNG and PDF) into ``out`` and returns a summary
 dict, plus ``main = study_main(run, "name")`` so that it runs as
-``python -m studies.NAME [--out DIR] [--tiny | --quick | --full]``.
+``python -m cutfem.studies.NAME [--out DIR] [--tiny | --quick | --full]``.
 
 Sizes: ``tiny`` (seconds, for the tests), ``quick`` (the default: all studies together in a few
 minutes on 2 cores), ``full`` (the paper's finest levels).
@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cutfem.convergence import new_figure, subplots  # noqa: F401  (the studies' figures)
+from cutfem.memory import configure
 from cutfem.registry import jsonable
 
 SIZES = ("tiny", "quick", "full")
@@ -82,26 +84,20 @@ def save_latex_table(out: Path, name: str, header: list[str], rows: list[list], 
     return path
 
 
-def figure():
-    """A matplotlib (fig, ax) on the Agg backend."""
-    import matplotlib
+def imread(path):
+    """An image file as an array (rows, columns, channels), read by matplotlib without pyplot."""
+    from matplotlib.image import imread as read
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    return plt
+    return read(path)
 
 
 def save_figure(fig, out: Path, name: str) -> list[Path]:
-    """Save a matplotlib figure as PNG (150 dpi) and PDF; close it."""
-    import matplotlib.pyplot as plt
-
+    """Save a matplotlib figure (from :func:`new_figure` or :func:`subplots`) as PNG (150 dpi) and PDF."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     paths = [out / f"{name}.png", out / f"{name}.pdf"]
     fig.savefig(paths[0], dpi=150, bbox_inches="tight")
     fig.savefig(paths[1], bbox_inches="tight")
-    plt.close(fig)
     return paths
 
 
@@ -118,10 +114,11 @@ def add_size_arguments(parser) -> None:
 
 
 def study_main(run, name: str):
-    """A ``main(argv)`` for ``python -m studies.NAME``."""
+    """A ``main(argv)`` for ``python -m cutfem.studies.NAME``; it applies :func:`cutfem.memory.configure`."""
 
     def main(argv=None) -> int:
-        p = argparse.ArgumentParser(prog=f"python -m studies.{name}")
+        configure()  # a study is a large run: opt into the allocation settings (cutfem.memory)
+        p = argparse.ArgumentParser(prog=f"python -m cutfem.studies.{name}")
         p.add_argument("--out", default=f"out/{name}", help="output folder")
         add_size_arguments(p)
         a = p.parse_args(argv)

@@ -51,7 +51,7 @@ from cutfem.forms import assemble, face_jump_penalty, mass
 from cutfem.levelset import Sphere, Torus
 from cutfem.solve import condition_number, scaled
 from cutfem.spaces import CutP1Space
-from problems.common import background_for
+from cutfem.problems.common import background_for
 
 from .common import pick, save_figure, save_json, save_latex_table, study_main
 
@@ -254,12 +254,11 @@ def _infinity_line(ax, cap, text):
 
 
 def _plot_h(out, rows, growth):
-    from .common import figure
+    from .common import subplots
 
-    plt = figure()
     from matplotlib.ticker import NullFormatter
 
-    fig, ax = plt.subplots(figsize=(5.6, 4.4))
+    fig, ax = subplots(figsize=(5.6, 4.4))
     h = np.array([r["h"] for r in rows])
     cap = _cap([r[k] for r in rows for k in ("kappa_stabilized", "kappa_effective_unstabilized")])
     ks = np.array([r["kappa_stabilized"] for r in rows])
@@ -288,10 +287,9 @@ def _plot_h(out, rows, growth):
 
 
 def _plot_shifts(out, rows, spacing):
-    from .common import figure
+    from .common import subplots
 
-    plt = figure()
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(10.5, 4.3))
+    fig, (ax1, ax2) = subplots(1, 2, figsize=(10.5, 4.3))
     cap = _cap([r[k] for r in rows for k in ("kappa_stabilized", "kappa_effective_unstabilized")])
     ratio = np.array([r["min_mass_diagonal_ratio"] for r in rows])
     x = np.arange(1, len(rows) + 1)

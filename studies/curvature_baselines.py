@@ -159,12 +159,11 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
 def _plot_errors(out, rows):
     from cutfem.convergence import loglog_with_rates
 
-    from .common import figure
+    from .common import subplots
 
-    plt = figure()
     from matplotlib.ticker import NullFormatter
 
-    fig, axes = plt.subplots(2, len(TORUS_FAMILIES), figsize=(4.0 * len(TORUS_FAMILIES), 7.2), sharex=True)
+    fig, axes = subplots(2, len(TORUS_FAMILIES), figsize=(4.0 * len(TORUS_FAMILIES), 7.2), sharex=True)
     for j, family in enumerate(TORUS_FAMILIES):
         for i, (key, label) in enumerate((("discrete_error", r"$\|\pi_h H - H_h\|_{S_h}$"), ("max_error", r"$\max_i |H(x_i) - H_i|$"))):
             ax = axes[i, j]
@@ -188,10 +187,9 @@ def _plot_errors(out, rows):
 
 
 def _plot_time(out, rows):
-    from .common import figure
+    from .common import subplots
 
-    plt = figure()
-    fig, ax = plt.subplots(figsize=(5.2, 4))
+    fig, ax = subplots(figsize=(5.2, 4))
     for m in METHODS:
         sel = [r for r in rows if r["method"] == m]
         nodes = sorted({r["nodes"] for r in sel})

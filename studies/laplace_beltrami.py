@@ -1,6 +1,6 @@
 """Laplace-Beltrami convergence (SPEC §4): -Lap_S u + u = f on the sphere and the torus.
 
-Manufactured solutions of :mod:`problems.laplace_beltrami` (sphere: u = x y + z; torus:
+Manufactured solutions of :mod:`cutfem.problems.laplace_beltrami` (sphere: u = x y + z; torus:
 u = cos(3t) sin(p)).  Four discretizations per surface, all through ``cutfem.run``:
 
 * meshed (``laplace-beltrami-meshed``): icosahedral sphere / structured n x n/2 torus grid,
@@ -103,10 +103,9 @@ def _plot(out, results):
 
     from cutfem.convergence import loglog_with_rates
 
-    from .common import figure
+    from .common import subplots
 
-    plt = figure()
-    fig, axes = plt.subplots(2, 2, figsize=(10, 8))
+    fig, axes = subplots(2, 2, figsize=(10, 8))
     style = {"meshed": dict(color="C0"), "cut, face": dict(color="C1"), "cut, normal": dict(color="C2", ls="--")}
     for i, surface in enumerate(("sphere", "torus")):
         for j, kind in enumerate(("meshed", "cut")):

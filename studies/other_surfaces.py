@@ -208,10 +208,9 @@ def _plot_convergence(out, results):
 
     from cutfem.convergence import loglog_with_rates
 
-    from .common import figure
+    from .common import subplots
 
-    plt = figure()
-    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(11, 4.3))
+    fig, (ax1, ax2) = subplots(1, 2, figsize=(11, 4.3))
     e, s, g = results["ellipsoid"]["records"], results["stl_sphere"]["records"], results["genus2"]["records"]
     loglog_with_rates(ax1, [r["h"] for r in e], [r["l2_error"] for r in e], r"ellipsoid: $\|H^e - H_h\|_{L^2(S_h)}$", color="C0")
     loglog_with_rates(ax1, [r["h"] for r in g], [r["l2_error"] for r in g], r"genus 2: $\|H^e - H_h\|_{L^2(S_h)}$", color="C2")
@@ -266,15 +265,13 @@ def _picture(out, surfaces: dict) -> str | None:
     p.screenshot(str(path))
     p.close()
     # the same image as a PDF page for the paper build
-    from .common import figure
+    from .common import imread, subplots
 
-    plt = figure()
-    img = plt.imread(path)
-    fig, ax = plt.subplots(figsize=(img.shape[1] / 150, img.shape[0] / 150))
+    img = imread(path)
+    fig, ax = subplots(figsize=(img.shape[1] / 150, img.shape[0] / 150))
     ax.imshow(img)
     ax.axis("off")
     fig.savefig(Path(out) / f"{NAME}_pictures.pdf", bbox_inches="tight", dpi=150)
-    plt.close(fig)
     return path.name
 
 

@@ -135,17 +135,16 @@ def _section(active, surface, y):
 def _mesh_figure(out, surface, active, spacing):
     from matplotlib.collections import LineCollection, PolyCollection
 
-    from .common import figure
+    from .common import imread, new_figure
 
     _render_surface(surface, out / "cut_surface_mesh.png")
     _render_active(surface, active, out / "cut_active_tets.png")
     tri, edges, segments = _section(active, surface, SECTION_Y)
-    plt = figure()
-    fig = plt.figure(figsize=(12, 3.9))
+    fig = new_figure(figsize=(12, 3.9))
     gs = fig.add_gridspec(1, 3, width_ratios=[1.0, 1.0, 0.8])
     for k, (name, title) in enumerate((("cut_surface_mesh.png", f"(a) $S_h$, spacing {spacing:g}"), ("cut_active_tets.png", "(b) active tetrahedra (a quarter removed)"))):
         ax = fig.add_subplot(gs[0, k])
-        img = plt.imread(out / name)
+        img = imread(out / name)
         ink = (img[..., :3] < 0.99).any(axis=2)
         rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
         ax.imshow(img[max(rows[0] - 5, 0) : rows[-1] + 6, max(cols[0] - 5, 0) : cols[-1] + 6])
@@ -168,11 +167,10 @@ def _mesh_figure(out, surface, active, spacing):
 
 
 def _convergence_figure(out, data):
-    from .common import figure
+    from .common import subplots
 
-    plt = figure()
     h = np.array(data["h"])
-    fig, ax = plt.subplots(figsize=(5.6, 4.2))
+    fig, ax = subplots(figsize=(5.6, 4.2))
     loglog_with_rates(ax, h, data["l2_error"], "$\\|H^e - H_h\\|_{L^2(S_h)}$", marker="o", color="#c0392b", lw=1.5)
     loglog_with_rates(ax, h, data["area_error"], "$|\\,|S_h| - |S|\\,|$", marker="s", color="#1f3b70", lw=1.2, ls="--")
     for order, style, e0 in ((1, ":", data["l2_error"][0]), (2, "-.", data["area_error"][0])):

@@ -103,13 +103,12 @@ def render_mesh(mesh, path: Path, window_size=(1000, 720)):
 
 def combine_pngs(paths, titles, out: Path, name: str, ncols=2, panel_size=(3.6, 2.6)):
     """Several PNG renderings as one matplotlib figure with panel titles (PNG + PDF)."""
-    from .common import figure
+    from .common import imread, subplots
 
-    plt = figure()
     nrows = -(-len(paths) // ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(panel_size[0] * ncols, panel_size[1] * nrows))
+    fig, axes = subplots(nrows, ncols, figsize=(panel_size[0] * ncols, panel_size[1] * nrows))
     for ax, path, title in zip(np.ravel(axes), paths, titles):
-        img = plt.imread(path)
+        img = imread(path)
         keep = np.flatnonzero((img[..., :3] < 0.99).any(axis=2).any(axis=0))
         rows = np.flatnonzero((img[..., :3] < 0.99).any(axis=2).any(axis=1))
         if keep.size and rows.size:  # crop the white margin
@@ -187,10 +186,9 @@ MARKERS = {"structured": "o", "flipped": "s", "perturbed": "^", "perturbed-flipp
 
 
 def _convergence_figure(out, series):
-    from .common import figure
+    from .common import subplots
 
-    plt = figure()
-    fig, ax = plt.subplots(figsize=(6.8, 4.4))
+    fig, ax = subplots(figsize=(6.8, 4.4))
     for s in series:
         dashed = s["tau_e"] == 0
         loglog_with_rates(
@@ -279,9 +277,8 @@ def _isoline_runs(n, progress):
 def _isoline_figure(out, fields, n, levels):
     from matplotlib.tri import Triangulation
 
-    from .common import figure
+    from .common import subplots
 
-    plt = figure()
     surf = fields[TAUS[0]]
     pts = np.asarray(surf.points)
     tri = np.asarray(surf.faces).reshape(-1, 4)[:, 1:]
@@ -292,7 +289,7 @@ def _isoline_figure(out, fields, n, levels):
         (f"$H_h\\cdot n$, stabilized ($\\tau_E = {TAUS[0]:g}$)", np.asarray(fields[TAUS[0]].point_data["mean_curvature"])),
         ("$H_h\\cdot n$, unstabilized ($\\tau_E = 0$)", np.asarray(fields[TAUS[1]].point_data["mean_curvature"])),
     ]
-    fig, axes = plt.subplots(1, 3, figsize=(11.5, 3.7), sharey=True, constrained_layout=True)
+    fig, axes = subplots(1, 3, figsize=(11.5, 3.7), sharey=True, constrained_layout=True)
     cmap = ISO_CMAP()
     cs = None
     for ax, (title, vals) in zip(axes, panels):
@@ -321,7 +318,7 @@ def _isoline_figure_3d(out, fields, levels):
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
 
-    from .common import figure
+    from .common import imread, subplots
 
     clim = (float(levels[0]), float(levels[-1]))
     paths = []
@@ -341,11 +338,10 @@ def _isoline_figure_3d(out, fields, levels):
         plotter.screenshot(str(path))
         plotter.close()
         paths.append(path)
-    plt = figure()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 3.9), constrained_layout=True)
+    fig, axes = subplots(1, 2, figsize=(10, 3.9), constrained_layout=True)
     titles = [f"stabilized ($\\tau_E = {TAUS[0]:g}$)", "unstabilized ($\\tau_E = 0$)"]
     for ax, path, title in zip(axes, paths, titles):
-        img = plt.imread(path)
+        img = imread(path)
         ink = (img[..., :3] < 0.99).any(axis=2)
         rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
         img = img[max(rows[0] - 5, 0) : rows[-1] + 6, max(cols[0] - 5, 0) : cols[-1] + 6]

@@ -320,7 +320,7 @@ class NgBackground:
     spent building both (materializing points/tets included)."""
 
     def __init__(self, spacing, levelset, box=None, orientation="netgen"):
-        from problems.common import background_for
+        from cutfem.problems.common import background_for
 
         t0 = time.perf_counter()
         self.box = background_for(levelset, spacing, "structured", box)  # a fresh box: nothing cached
@@ -506,7 +506,7 @@ def compare_level(spacing, variant="paper", progress=None, taskmanager=False, re
     import ngsolve
 
     from cutfem.levelset import Torus
-    from problems.common import background_for
+    from cutfem.problems.common import background_for
 
     if variant == "shifted":
         torus, box = Torus(center=tuple(SHIFT)), BOX
@@ -735,10 +735,9 @@ def _xfem_version():
 def _plot(out, rows, meshed):
     from matplotlib.ticker import NullFormatter
 
-    from .common import figure
+    from .common import subplots
 
-    plt = figure()
-    fig, axes = plt.subplots(2, 2, figsize=(11.5, 8.6))
+    fig, axes = subplots(2, 2, figsize=(11.5, 8.6))
     ax = axes[0, 0]
     for variant, mk in (("paper", "o"), ("shifted", "s")):
         sel = sorted((r for r in rows if r["variant"] == variant), key=lambda r: r["active_tets"])

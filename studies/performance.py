@@ -19,8 +19,8 @@ records the CPU time of the timed stages split into user and system time, and th
 number of page faults: on a virtual machine the system time of first touches of memory varies from
 run to run (0.6-5 s at spacing 0.0125), so the user-time exponent is reported beside the wall one.
 
-Each record keeps the allocation settings that importing cutfem applied (``allocator``, see
-:mod:`cutfem.memory`).  The figure shows time and memory against the number of active tets (cut) or surface nodes
+Every level's process opts into the allocation settings of :mod:`cutfem.memory` before it imports
+the stages, and each record keeps what was applied (``allocator``).  The figure shows time and memory against the number of active tets (cut) or surface nodes
 (meshed) on log-log axes with the exponents fitted over the finest levels.
 """
 
@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from cutfem.registry import Timer
-from studies.common import Progress, figure, pick, save_figure, save_json, study_main
+from .common import Progress, pick, save_figure, save_json, study_main, subplots
 
 OUTPUTS = ["performance", "performance_scaling"]
 
@@ -130,7 +130,9 @@ def _in_subprocess(kind: str, level) -> dict:
     """Run one level in a fresh interpreter and return its record with the peak memory (GiB)."""
     code = (
         "import json, resource, sys\n"
-        "from studies.performance import cut_level, meshed_level\n"
+        "import cutfem.memory\n"
+        "cutfem.memory.configure()\n"  # the benchmark measures the configured process (see cutfem.memory)
+        "from cutfem.studies.performance import cut_level, meshed_level\n"
         f"kind, level = {kind!r}, {level!r}\n"
         # import everything the stages use first, so that the CPU times are the stages' own
         "import pyamg, threadpoolctl, cutfem.cut, cutfem.errors, cutfem.forms, cutfem.levelset, cutfem.mesh, cutfem.solve, cutfem.spaces, cutfem.surface\n"
@@ -141,12 +143,13 @@ def _in_subprocess(kind: str, level) -> dict:
         "rec['cpu_user'] = r1.ru_utime - r0.ru_utime\n"
         "rec['cpu_system'] = r1.ru_stime - r0.ru_stime\n"
         "rec['page_faults'] = r1.ru_minflt - r0.ru_minflt\n"
-        "import cutfem.memory\n"
         "rec['allocator'] = dict(cutfem.memory.SETTINGS)\n"
         "print('RESULT ' + json.dumps(rec))\n"
     )
-    env = dict(os.environ)
-    root = str(Path(__file__).resolve().parents[1])
+    import cutfem
+
+    env = dict(os.environ)  # the child imports the same cutfem as this process
+    root = str(Path(cutfem.__file__).resolve().parents[1])
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
     if proc.returncode != 0:
@@ -232,8 +235,7 @@ def _print_table(records):
 
 
 def _plot(out, records, summary):
-    plt = figure()
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4))
+    fig, axes = subplots(1, 2, figsize=(10, 4))
     for kind, marker in (("cut", "o"), ("meshed-flipped", "s"), ("meshed-perturbed", "^")):
         rs = [r for r in records if r["kind"] == kind]
         if not rs:

@@ -49,7 +49,7 @@ def _load_studies(names=STUDY_NAMES, verbose=True):
     found = {}
     for name in names:
         try:
-            found[name] = importlib.import_module(f"studies.{name}")
+            found[name] = importlib.import_module(f"cutfem.studies.{name}")
         except ImportError as exc:
             if verbose:
                 print(f"note: study {name!r} is not available ({exc}); skipped", file=sys.stderr)
@@ -230,6 +230,9 @@ def _file_outputs(scratch: Path, out: Path, name: str, owners: dict) -> list[str
 
 
 def main(argv=None) -> int:
+    from cutfem.memory import configure
+
+    configure()  # a large run: opt into the allocation settings (cutfem.memory)
     p = argparse.ArgumentParser(prog="cutfem reproduce", description="run every study of the paper; figures to OUT/figures, tables to OUT/tables")
     p.add_argument("--out", default="paper", help="output folder (default: paper, the manuscript's folder)")
     g = p.add_mutually_exclusive_group()

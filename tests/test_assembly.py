@@ -417,7 +417,7 @@ def test_volume_mass_and_stiffness_match_reference(perturbed):
 def test_assembly_benchmark_runs_and_records(tmp_path):
     import json
 
-    from studies import assembly_benchmark
+    from cutfem.studies import assembly_benchmark
 
     data = assembly_benchmark.run(tmp_path, spacings=[0.4], repeat=1, cold_repeat=1)
     for suffix in (".json", ".csv", ".png"):

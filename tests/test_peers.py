@@ -1,4 +1,4 @@
-"""studies.peers: ngsxfem (NGSolve + xfem) on the identical cut mean curvature problem.
+"""cutfem.studies.peers: ngsxfem (NGSolve + xfem) on the identical cut mean curvature problem.
 
 The comparisons need the optional peers (``pip install -e ".[peers]"``) and are skipped without
 them; the geometry helpers and the "peer absent" path are tested always.
@@ -9,7 +9,7 @@ import json
 import numpy as np
 import pytest
 
-from studies import peers
+from cutfem.studies import peers
 
 REASON = 'ngsxfem comparison needs the optional peers: pip install -e ".[peers]" (ngsolve, xfem)'
 
@@ -71,7 +71,7 @@ def test_ngsolve_mesh_is_the_structured_box(ngsxfem):
     import ngsolve
 
     from cutfem.levelset import Torus
-    from problems.common import background_for
+    from cutfem.problems.common import background_for
 
     box = background_for(Torus(), 0.4)
     mesh = peers.ngsolve_mesh(box)
@@ -87,7 +87,7 @@ def test_exact_field_matches_cutfem(ngsxfem):
     import ngsolve
 
     from cutfem.levelset import Torus
-    from problems.common import background_for
+    from cutfem.problems.common import background_for
 
     torus = Torus(center=tuple(peers.SHIFT))
     mesh = peers.ngsolve_mesh(background_for(torus, 0.4, box=peers.BOX))

@@ -13,7 +13,7 @@ from cutfem.markers import CUT
 from cutfem.mesh import structured_box
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
-from studies import performance
+from cutfem.studies import performance
 
 
 def ds(V):

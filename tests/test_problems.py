@@ -102,7 +102,7 @@ def test_laplace_beltrami_cut_normal_gradient_stabilization():
 
 def test_manufactured_data_against_finite_differences():
     """f = -Lap_S u + u from the closed forms agrees with a finite-difference Laplace-Beltrami."""
-    from problems.laplace_beltrami import SphereSolution, TorusSolution
+    from cutfem.problems.laplace_beltrami import SphereSolution, TorusSolution
 
     R, r = 1.0, 0.5
     sol = TorusSolution(R, r)

@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from studies import conditioning, curvature_baselines, laplace_beltrami, other_surfaces, stabilization_sweeps
+from cutfem.studies import conditioning, curvature_baselines, laplace_beltrami, other_surfaces, stabilization_sweeps
 
 
 def _run(module, tmp_path_factory):

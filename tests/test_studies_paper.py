@@ -14,7 +14,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from studies import paper_cut, paper_meshed, reproduce
+from cutfem.studies import paper_cut, paper_meshed, reproduce
 
 PAPER = Path(__file__).resolve().parents[1] / "paper"
 
