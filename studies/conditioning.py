@@ -74,7 +74,8 @@ def scaled_spectrum(A, n_small: int = 6):
     Returns (lambda_max, the n_small smallest eigenvalues ascending, their eigenvectors (n, n_small)).
     Dense ``eigh`` up to 300 unknowns; otherwise Lanczos for lambda_max and shift-invert Lanczos
     at sigma = -1e-8 lambda_max (S - sigma I is positive definite even when S is singular, so the
-    factorization is safe and the null vectors are found).
+    factorization is safe and the null vectors are found).  Lanczos starts from a seeded random
+    vector, so that reruns give the same digits.
     """
     import scipy.sparse.linalg as spla
 
@@ -83,8 +84,9 @@ def scaled_spectrum(A, n_small: int = 6):
     if n <= 300:
         ev, vec = np.linalg.eigh(S.toarray())
         return float(ev[-1]), ev[:n_small], vec[:, :n_small]
-    lmax = float(spla.eigsh(S, k=1, which="LA", tol=1e-8, return_eigenvectors=False)[0])
-    ev, vec = spla.eigsh(S, k=n_small, sigma=-1e-8 * lmax, which="LM", tol=1e-12)
+    v0 = np.random.default_rng(0).standard_normal(n)
+    lmax = float(spla.eigsh(S, k=1, which="LA", tol=1e-8, v0=v0, return_eigenvectors=False)[0])
+    ev, vec = spla.eigsh(S, k=n_small, sigma=-1e-8 * lmax, which="LM", tol=1e-12, v0=v0)
     order = np.argsort(ev)
     return lmax, ev[order], vec[:, order]
 
