@@ -166,25 +166,32 @@ def _tick_text(v: float) -> str:
 
 
 def log_ticks(ax, axis: str = "both") -> None:
-    """Readable ticks on a log axis: call after plotting.  Decades only when the range spans more
-    than 2.5 decades (every second or third decade beyond 8), ticks at 1, 2, 5 times powers of ten
-    when it spans 1.2 to 2.5 decades, and 1, 1.5, 2, 3, 5, 7 below that; minor ticks unlabelled,
-    labels as plain numbers between 1e-3 and 1e3, else as powers of ten."""
+    """Readable ticks on a log axis: call after plotting (and with the figure at its final size).
+
+    Major ticks at ``m * 10^k`` for the densest of the mantissa sets (1, 1.5, 2, 3, 5, 7),
+    (1, 2, 5), (1, 3), (1,) that puts no more labels on the axis than fit side by side (one per
+    0.45 in along x, one per 0.25 in along y, at the 8 pt of :data:`STYLE`); with decades only and
+    still too many, every second or third decade.  Minor ticks unlabelled; labels as plain numbers
+    between 1e-3 and 1e3, else as powers of ten."""
     from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
 
+    box = ax.get_position()
+    fig_w, fig_h = ax.figure.get_size_inches()
     for name in ("x", "y") if axis == "both" else (axis,):
         a = ax.xaxis if name == "x" else ax.yaxis
-        lo, hi = ax.get_xlim() if name == "x" else ax.get_ylim()
-        if lo <= 0 or hi <= 0:
+        lo, hi = sorted(ax.get_xlim() if name == "x" else ax.get_ylim())
+        if lo <= 0:
             continue
-        decades = abs(math.log10(hi / lo))
-        if decades > 2.5:
-            subs = (1.0,)
-        elif decades > 1.2:
-            subs = (1.0, 2.0, 5.0)
-        else:
-            subs = (1.0, 1.5, 2.0, 3.0, 5.0, 7.0)
-        a.set_major_locator(LogLocator(base=10, subs=subs, numticks=10))
+        length = box.width * fig_w if name == "x" else box.height * fig_h
+        room = max(2, int(length / (0.45 if name == "x" else 0.25)))
+        k = np.arange(math.floor(math.log10(lo)), math.ceil(math.log10(hi)) + 1)
+        subs = (1.0,)
+        for cand in ((1.0, 1.5, 2.0, 3.0, 5.0, 7.0), (1.0, 2.0, 5.0), (1.0, 3.0), (1.0,)):
+            ticks = (np.asarray(cand)[None, :] * 10.0 ** k[:, None]).ravel()
+            if np.count_nonzero((ticks >= lo) & (ticks <= hi)) <= room:
+                subs = cand
+                break
+        a.set_major_locator(LogLocator(base=10, subs=subs, numticks=room + 1))
         a.set_minor_locator(LogLocator(base=10, subs=np.arange(2, 10) * 1.0, numticks=100))
         a.set_major_formatter(FuncFormatter(lambda v, _pos: _tick_text(v)))
         a.set_minor_formatter(NullFormatter())
