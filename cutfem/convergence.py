@@ -1,85 +1,241 @@
-"""Convergence plots: errors against h on log-log axes with fitted rates (matplotlib, no display needed).
+"""Convergence plots: errors against h on log-log axes with fitted rates and rate triangles.
 
-Figures are made with matplotlib's object-oriented API (:func:`new_figure`, :func:`subplots`): a
-:class:`matplotlib.figure.Figure` with its own Agg canvas, never registered with pyplot, so that
-drawing or saving one selects no backend and leaves the caller's pyplot state (open figures, the
-interactive backend of a notebook) as it was.  ``Figure.savefig`` writes PNG through the Agg
-canvas and PDF or SVG through matplotlib's vector canvases, chosen by the file's suffix.
+Everything here draws on a :class:`matplotlib.figure.Figure` with its own Agg canvas
+(:func:`new_figure`), so nothing in matplotlib's global state (the pyplot backend, the list of open
+figures) is touched.  Text sizes come from :data:`STYLE`, applied with :func:`style` around the
+drawing *and* the saving (matplotlib reads some font sizes only when it draws).
+
+The rate of a curve is the least-squares slope of ``log e`` against ``log h`` over all points with
+``e > 0`` (:func:`fitted_rate`).  A rate triangle (:func:`rate_triangle`) is a right triangle whose
+hypotenuse has slope ``order`` on the log-log axes, with its legs labelled ``1`` and ``order``.
 """
 
 from __future__ import annotations
 
+import contextlib
+import math
+import textwrap
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["convergence_plot", "loglog_with_rates", "new_figure", "subplots"]
+__all__ = [
+    "STYLE",
+    "convergence_plot",
+    "fitted_rate",
+    "log_ticks",
+    "loglog_with_rates",
+    "new_figure",
+    "rate_triangle",
+    "save_reproducible",
+    "style",
+]
+
+#: matplotlib settings for figures drawn at the size they print: every text 8 pt (titles 9 pt).
+STYLE = {
+    "font.size": 8,
+    "axes.titlesize": 9,
+    "axes.labelsize": 8,
+    "xtick.labelsize": 8,
+    "ytick.labelsize": 8,
+    "legend.fontsize": 8,
+    "legend.title_fontsize": 8,
+    "figure.titlesize": 9,
+    "lines.markersize": 4,
+    "lines.linewidth": 1.2,
+    "axes.linewidth": 0.6,
+    "grid.linewidth": 0.4,
+    "legend.handlelength": 2.2,
+    "legend.borderaxespad": 0.3,
+    "legend.labelspacing": 0.3,
+}
 
 
-def new_figure(figsize=(6.4, 4.8), layout=None):
-    """A matplotlib Figure of ``figsize`` inches (width, height) on an Agg canvas, made without pyplot.
+def style():
+    """A context in which matplotlib uses :data:`STYLE` (``matplotlib.rc_context``); the settings
+    before it are restored on exit."""
+    import matplotlib
 
-    ``layout`` is matplotlib's layout engine name (None, "tight" or "constrained").  Nothing
-    process-wide is touched; the figure is freed with its last reference (no ``close`` needed).
-    """
+    return matplotlib.rc_context(STYLE)
+
+
+def new_figure(width: float, height: float, **subplots):
+    """``(fig, axes)``: a Figure of exactly ``width`` x ``height`` inches with constrained layout
+    and an Agg canvas; ``subplots`` go to :meth:`Figure.subplots` (``nrows``, ``ncols``,
+    ``sharex``, ``gridspec_kw`` ...; ``nrows=0`` gives no axes, ``axes`` is then None).
+
+    The size is the printed size: a figure saved by :func:`save_reproducible` keeps it (no tight
+    bounding box), so that a document includes it at scale 1."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=figsize, layout=layout)
+    if not (np.isfinite(width) and np.isfinite(height) and width > 0 and height > 0):
+        raise ValueError(f"a figure needs a positive finite width and height in inches, got {width!r} x {height!r}")
+    fig = Figure(figsize=(width, height), layout="constrained")
     FigureCanvasAgg(fig)
-    return fig
+    if subplots.get("nrows", 1) == 0:
+        return fig, None
+    return fig, fig.subplots(**subplots)
 
 
-def subplots(nrows=1, ncols=1, *, figsize=(6.4, 4.8), constrained_layout=False, **kw):
-    """(figure, axes) like ``pyplot.subplots``, but on a :func:`new_figure` (no backend touched).
+def save_reproducible(fig, path, dpi: int = 200) -> Path:
+    """Save ``fig`` to ``path`` (PNG, PDF or SVG by its suffix) at its own size, without the
+    creation date or software version that matplotlib writes by default, so that the same figure
+    gives the same bytes on every run.  Returns the path."""
+    path = Path(path)
+    suffix = path.suffix.lower()
+    metadata = {".pdf": {"CreationDate": None, "Producer": None, "Creator": None},
+                ".png": {"Software": None},
+                ".svg": {"Date": None, "Creator": None}}.get(suffix)
+    if metadata is None:
+        raise ValueError(f"figures are saved as .png, .pdf or .svg; got {path.name!r}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with style():
+        fig.savefig(path, dpi=dpi, metadata=metadata)
+    return path
 
-    ``kw`` goes to ``Figure.subplots`` (``sharex``, ``sharey``, ``squeeze``, ...); the axes are one
-    Axes for 1 x 1 and an array of shape (nrows, ncols) squeezed as pyplot does otherwise.
-    """
-    fig = new_figure(figsize, layout="constrained" if constrained_layout else None)
-    return fig, fig.subplots(nrows, ncols, **kw)
+
+def fitted_rate(h, errors) -> float:
+    """Least-squares slope of ``log e`` against ``log h`` over the points with finite ``e > 0``;
+    NaN with fewer than two such points."""
+    h = np.asarray(h, float)
+    e = np.asarray(errors, float)
+    ok = np.isfinite(e) & (e > 0) & np.isfinite(h) & (h > 0)
+    return float(np.polyfit(np.log(h[ok]), np.log(e[ok]), 1)[0]) if ok.sum() >= 2 else float("nan")
 
 
 def loglog_with_rates(ax, h, errors, label, marker="o", **kw):
-    """Plot one error curve on ``ax`` and put its least-squares rate in the legend label."""
+    """Plot one error curve on ``ax`` (log-log) with its fitted rate in the legend label,
+    ``"label (rate 1.23)"``; points with ``e <= 0`` or NaN are left out.  Returns the rate."""
     h = np.asarray(h, float)
     e = np.asarray(errors, float)
     ok = np.isfinite(e) & (e > 0)
-    rate = float(np.polyfit(np.log(h[ok]), np.log(e[ok]), 1)[0]) if ok.sum() >= 2 else float("nan")
+    rate = fitted_rate(h, e)
     ax.loglog(h[ok], e[ok], marker=marker, label=f"{label} (rate {rate:.2f})", **kw)
     return rate
 
 
-def _reference_slope(ax, h, e, order, style=":"):
+def rate_triangle(ax, h, errors, order, *, below=True, color="0.3", size=0.5):
+    """A slope triangle for the rate ``order`` next to the fine end of the curve ``(h, errors)``.
+
+    The triangle's hypotenuse has slope ``order`` on the log-log axes; it spans the fraction
+    ``size`` of the last interval ``[h[-1], h[-2]]`` in log h (the two smallest h), and sits a
+    factor 1.6 below the curve (``below=True``) or above it.  The horizontal leg is labelled
+    ``1``, the vertical one ``order``.  Returns the three vertices (3, 2) in data coordinates, or
+    None when fewer than two positive finite errors are given."""
+    from matplotlib.patches import Polygon
+
     h = np.asarray(h, float)
-    ref = e * (h / h[0]) ** order
-    ax.loglog(h, ref, style, color="gray", lw=1)
-    ax.annotate(f"$h^{order}$", (h[-1], ref[-1]), color="gray", fontsize=8)
+    e = np.asarray(errors, float)
+    ok = np.isfinite(e) & (e > 0) & np.isfinite(h) & (h > 0)
+    if ok.sum() < 2:
+        return None
+    h, e = h[ok], e[ok]
+    idx = np.argsort(h)
+    h0, h1 = h[idx[0]], h[idx[1]]
+    x0 = h0 * (h1 / h0) ** ((1 - size) / 2)
+    x1 = x0 * (h1 / h0) ** size
+    e_at = float(np.exp(np.interp(np.log(x0), np.log(h[idx]), np.log(e[idx]))))
+    shift = 1 / 1.6 if below else 1.6
+    y0 = e_at * shift
+    y1 = y0 * (x1 / x0) ** order
+    if below:  # right angle under the hypotenuse
+        verts = np.array([[x0, y0], [x1, y1], [x1, y0]])
+        leg_x, leg_y = (math.sqrt(x0 * x1), y0), (x1, math.sqrt(y0 * y1))
+        va, ha = "top", "left"
+    else:  # right angle above it
+        verts = np.array([[x0, y0], [x1, y1], [x0, y1]])
+        leg_x, leg_y = (math.sqrt(x0 * x1), y1), (x0, math.sqrt(y0 * y1))
+        va, ha = "bottom", "right"
+    ax.add_patch(Polygon(verts, closed=True, fill=False, edgecolor=color, lw=0.8))
+    ax.annotate("1", leg_x, xytext=(0, -2 if below else 2), textcoords="offset points", ha="center", va=va, color=color)
+    ax.annotate(f"{order:g}", leg_y, xytext=(2 if below else -2, 0), textcoords="offset points", ha=ha, va="center", color=color)
+    ax.update_datalim(verts)
+    return verts
 
 
-def convergence_plot(result, path, title=None):
-    """Errors of a :class:`~cutfem.registry.RunResult` against h, with fitted rates; PNG or PDF.
+def _tick_text(v: float) -> str:
+    if v <= 0 or not np.isfinite(v):
+        return ""
+    k = math.floor(math.log10(v) + 1e-9)
+    m = v / 10.0**k
+    if -3 <= k <= 3:
+        return f"{v:.{max(0, -k)}f}" if abs(m - round(m)) < 1e-6 else f"{v:g}"
+    m_text = "" if abs(m - 1) < 1e-6 else f"{m:g}\\cdot"
+    return f"${m_text}10^{{{k}}}$"
 
-    One curve per ``*_error`` entry of the records, with its least-squares rate in the legend and
-    reference slopes h and h^2 through the first error; written to ``path`` (folders created, the
-    format from the suffix) without touching pyplot or the matplotlib backend.  Returns the path.
-    """
-    h = [r["h"] for r in result.records]
-    fig, ax = subplots(figsize=(5, 4))
-    for k in result.error_keys():
-        e = [r.get(k, np.nan) for r in result.records]
-        loglog_with_rates(ax, h, e, k.replace("_", " "))
+
+def log_ticks(ax, axis: str = "both") -> None:
+    """Readable ticks on a log axis: call after plotting (and with the figure at its final size).
+
+    Major ticks at ``m * 10^k`` for the densest of the mantissa sets (1, 1.5, 2, 3, 5, 7),
+    (1, 2, 5), (1, 3), (1,) that puts no more labels on the axis than fit side by side (one per
+    0.45 in along x, one per 0.25 in along y, at the 8 pt of :data:`STYLE`); with decades only and
+    still too many, every second or third decade.  Minor ticks unlabelled; labels as plain numbers
+    between 1e-3 and 1e3, else as powers of ten."""
+    from matplotlib.ticker import FuncFormatter, LogLocator, NullFormatter
+
+    box = ax.get_position()
+    fig_w, fig_h = ax.figure.get_size_inches()
+    for name in ("x", "y") if axis == "both" else (axis,):
+        a = ax.xaxis if name == "x" else ax.yaxis
+        lo, hi = sorted(ax.get_xlim() if name == "x" else ax.get_ylim())
+        if lo <= 0:
+            continue
+        length = box.width * fig_w if name == "x" else box.height * fig_h
+        room = max(2, int(length / (0.45 if name == "x" else 0.25)))
+        k = np.arange(math.floor(math.log10(lo)), math.ceil(math.log10(hi)) + 1)
+        subs = (1.0,)
+        for cand in ((1.0, 1.5, 2.0, 3.0, 5.0, 7.0), (1.0, 2.0, 5.0), (1.0, 3.0), (1.0,)):
+            ticks = (np.asarray(cand)[None, :] * 10.0 ** k[:, None]).ravel()
+            if np.count_nonzero((ticks >= lo) & (ticks <= hi)) <= room:
+                subs = cand
+                break
+        a.set_major_locator(LogLocator(base=10, subs=subs, numticks=room + 1))
+        a.set_minor_locator(LogLocator(base=10, subs=np.arange(2, 10) * 1.0, numticks=100))
+        a.set_major_formatter(FuncFormatter(lambda v, _pos: _tick_text(v)))
+        a.set_minor_formatter(NullFormatter())
+
+
+def _title(result) -> str:
+    params = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in sorted(result.parameters.items()))
+    head = result.problem + (f": {params}" if params else "")
+    return "\n".join(textwrap.wrap(head, width=64)) or result.problem
+
+
+def convergence_plot(result, path, title=None, width: float = 5.0, height: float = 3.8):
+    """Errors of a :class:`~cutfem.registry.RunResult` against h, one curve per ``*_error`` key
+    with its fitted rate in the legend and a rate triangle (slope: the rate between the two finest
+    levels rounded to the nearest 1/2, left out below 1/2; one triangle per slope, under the lowest curve with it) at the fine end; the title names the
+    problem and its parameters (``title`` replaces it).  Written as PNG, PDF or SVG by the suffix
+    of ``path`` at ``width`` x ``height`` inches, with :data:`STYLE` fonts (8 pt); returns the path."""
+    h = np.array([r["h"] for r in result.records], float)
     keys = result.error_keys()
-    if keys:
-        e0 = result.records[0][keys[0]]
-        _reference_slope(ax, h, e0, 1)
-        _reference_slope(ax, h, e0, 2, "--")
-    ax.set_xlabel("h")
-    ax.set_ylabel("error")
-    ax.set_title(title or result.problem)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    Path(path).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=150)
-    return Path(path)
+    with style():
+        fig, ax = new_figure(width, height)
+        triangles = {}  # slope -> (h, e, colour) of the lowest curve with it
+        for j, k in enumerate(keys):
+            e = np.array([np.nan if r.get(k) is None else r[k] for r in result.records], float)
+            color = f"C{j % 10}"
+            loglog_with_rates(ax, h, e, k.replace("_", " "), marker="os^Dv<>ph*"[j % 10], color=color)
+            ok = np.isfinite(e) & (e > 0)
+            if ok.sum() >= 2:
+                hh, ee = h[ok], e[ok]
+                i = np.argsort(hh)[:2]
+                last = math.log(ee[i[1]] / ee[i[0]]) / math.log(hh[i[1]] / hh[i[0]])
+                order = round(2 * last) / 2
+                if order >= 0.5 and (order not in triangles or ee.min() < triangles[order][1].min()):
+                    triangles[order] = (hh, ee, color)
+        for order, (hh, ee, color) in sorted(triangles.items()):
+            rate_triangle(ax, hh, ee, order, color=color)
+        ax.set_xlabel("$h$")
+        ax.set_ylabel("error")
+        ax.set_title(title or _title(result), loc="left", fontsize=8)
+        ax.grid(True, which="major", alpha=0.35)
+        ax.grid(True, which="minor", alpha=0.12)
+        ax.autoscale_view()
+        if len(h):
+            log_ticks(ax)
+        if keys:
+            ax.legend(loc="best")
+        return save_reproducible(fig, path, dpi=200)

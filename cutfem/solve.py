@@ -916,7 +916,8 @@ def condition_number(A, tol: float = 1e-8) -> float:
     """2-norm condition number of D^{-1/2} A D^{-1/2} (A symmetric positive semidefinite).
 
     Largest eigenvalue by Lanczos; smallest by shift-invert Lanczos around 0 (dense for n <= 400).
-    Returns ``inf`` for a singular matrix (zero diagonal or failed factorization).
+    Lanczos starts from a seeded random vector, so the same matrix gives the same digits on every
+    run (ARPACK's own start vector varies).  Returns ``inf`` for a singular matrix (zero diagonal or failed factorization).
     """
     try:
         S, _ = scaled(A)
@@ -926,7 +927,8 @@ def condition_number(A, tol: float = 1e-8) -> float:
     if n <= 400:
         ev = np.linalg.eigvalsh(S.toarray())
         return float(ev[-1] / ev[0]) if ev[0] > 0 else float("inf")
-    lmax = spla.eigsh(S, k=1, which="LA", tol=tol, return_eigenvectors=False)[0]
+    v0 = np.random.default_rng(0).standard_normal(n)
+    lmax = spla.eigsh(S, k=1, which="LA", tol=tol, v0=v0, return_eigenvectors=False)[0]
     try:
         lu = spla.splu(sp.csc_matrix(S), permc_spec="MMD_AT_PLUS_A", diag_pivot_thresh=0.0, options={"SymmetricMode": True})
     except RuntimeError:
@@ -934,7 +936,7 @@ def condition_number(A, tol: float = 1e-8) -> float:
     op = spla.LinearOperator(S.shape, matvec=lu.solve, dtype=float)
     # largest *magnitude* eigenvalue of S^{-1}: for a singular S whose near-null eigenvalue comes out
     # slightly negative in round-off, 'LA' would return 1/lambda_min over the positive ones only
-    inv_min = spla.eigsh(op, k=1, which="LM", tol=tol, return_eigenvectors=False)[0]
+    inv_min = spla.eigsh(op, k=1, which="LM", tol=tol, v0=v0, return_eigenvectors=False)[0]
     if not np.isfinite(inv_min) or inv_min <= 0:
         return float("inf")
     return float(lmax * inv_min)

@@ -52,7 +52,7 @@ from cutfem.levelset import Torus
 from cutfem.mesh import structured_box
 from cutfem.spaces import CutP1Space
 
-from .common import Progress, add_size_arguments, pick, save_csv, save_json, subplots
+from .common import PAGE_WIDTH, Progress, add_size_arguments, figure_style, pick, save_csv, save_json
 
 NAME = "assembly_benchmark"
 OUTPUTS = [NAME]
@@ -176,8 +176,11 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join(lines)
 
 
+@figure_style
 def plot(rows: list[dict], out: Path) -> Path:
-    fig, ax = subplots(figsize=(6.4, 4.6))
+    from cutfem.convergence import new_figure, save_reproducible
+
+    fig, ax = new_figure(PAGE_WIDTH, 4.0)
     n = np.array([r["active_tets"] for r in rows], dtype=float)
     styles = {"mass": "C0", "stiffness": "C1", "face_jump": "C2", "together": "k"}
     labels = {"mass": "mass", "stiffness": "tangential stiffness", "face_jump": "$J_F$", "together": "all three"}
@@ -194,11 +197,8 @@ def plot(rows: list[dict], out: Path) -> Path:
     ax.set_ylabel("wall time [s]")
     ax.set_title("Assembly on the cut torus (SPEC §6.3)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7, ncol=2)
-    out.mkdir(parents=True, exist_ok=True)
-    path = out / f"{NAME}.png"
-    fig.savefig(path, dpi=150, bbox_inches="tight")
-    return path
+    ax.legend(ncol=2)
+    return save_reproducible(fig, out / f"{NAME}.png")
 
 
 def environment() -> dict:

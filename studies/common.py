@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.convergence import new_figure, subplots  # noqa: F401  (the studies' figures)
+from cutfem.convergence import new_figure  # noqa: F401  (the studies' figures)
 from cutfem.memory import configure
 from cutfem.registry import jsonable
 
@@ -44,9 +44,11 @@ class Progress:
 
 
 def save_json(out: Path, name: str, data) -> Path:
+    """``data`` as ``OUT/name.json``: keys sorted, two-space indent, trailing newline, so that the
+    same data give the same bytes."""
     path = Path(out) / f"{name}.json"
     path.parent.mkdir(parents=True, exist_ok=True)
-    path.write_text(json.dumps(jsonable(data), indent=2))
+    path.write_text(json.dumps(jsonable(data), indent=2, sort_keys=True) + "\n")
     return path
 
 
@@ -84,21 +86,46 @@ def save_latex_table(out: Path, name: str, header: list[str], rows: list[list], 
     return path
 
 
-def imread(path):
-    """An image file as an array (rows, columns, channels), read by matplotlib without pyplot."""
-    from matplotlib.image import imread as read
+#: printed width of a full-width figure in paper/main.tex (A4 with 2.5 cm margins): 16 cm
+PAGE_WIDTH = 6.3
 
-    return read(path)
+
+def figure_style(plot):
+    """Decorator: run a plotting function with the 8 pt fonts of :data:`cutfem.convergence.STYLE`
+    (a ``matplotlib.rc_context``; the settings before it are restored)."""
+    import functools
+
+    @functools.wraps(plot)
+    def styled(*args, **kwargs):
+        from cutfem.convergence import style
+
+        with style():
+            return plot(*args, **kwargs)
+
+    return styled
+
+
+def read_png(path):
+    """A PNG as a float array (rows, cols, channels) in [0, 1], cropped to its drawn part plus
+    5 pixels (a white margin is removed)."""
+    import matplotlib.image
+
+    img = matplotlib.image.imread(path)
+    ink = (img[..., :3] < 0.99).any(axis=2)
+    rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
+    if rows.size == 0:
+        return img
+    return img[max(rows[0] - 5, 0) : rows[-1] + 6, max(cols[0] - 5, 0) : cols[-1] + 6]
 
 
 def save_figure(fig, out: Path, name: str) -> list[Path]:
-    """Save a matplotlib figure (from :func:`new_figure` or :func:`subplots`) as PNG (150 dpi) and PDF."""
+    """Save a figure as PNG (200 dpi) and PDF at its own size (the size it prints at: no tight
+    bounding box), without dates or version strings, so that an unchanged figure gives unchanged
+    files."""
+    from cutfem.convergence import save_reproducible
+
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    paths = [out / f"{name}.png", out / f"{name}.pdf"]
-    fig.savefig(paths[0], dpi=150, bbox_inches="tight")
-    fig.savefig(paths[1], bbox_inches="tight")
-    return paths
+    return [save_reproducible(fig, out / f"{name}.png", dpi=200), save_reproducible(fig, out / f"{name}.pdf", dpi=200)]
 
 
 def fmt_rate(r) -> str:

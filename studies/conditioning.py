@@ -53,7 +53,7 @@ from cutfem.solve import condition_number, scaled
 from cutfem.spaces import CutP1Space
 from cutfem.problems.common import background_for
 
-from .common import pick, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, pick, save_figure, save_json, save_latex_table, study_main
 
 NAME = "conditioning"
 OUTPUTS = [NAME, f"{NAME}_h", f"{NAME}_shifts", f"{NAME}_table"]
@@ -74,7 +74,8 @@ def scaled_spectrum(A, n_small: int = 6):
     Returns (lambda_max, the n_small smallest eigenvalues ascending, their eigenvectors (n, n_small)).
     Dense ``eigh`` up to 300 unknowns; otherwise Lanczos for lambda_max and shift-invert Lanczos
     at sigma = -1e-8 lambda_max (S - sigma I is positive definite even when S is singular, so the
-    factorization is safe and the null vectors are found).
+    factorization is safe and the null vectors are found).  Lanczos starts from a seeded random
+    vector, so that reruns give the same digits.
     """
     import scipy.sparse.linalg as spla
 
@@ -83,8 +84,9 @@ def scaled_spectrum(A, n_small: int = 6):
     if n <= 300:
         ev, vec = np.linalg.eigh(S.toarray())
         return float(ev[-1]), ev[:n_small], vec[:, :n_small]
-    lmax = float(spla.eigsh(S, k=1, which="LA", tol=1e-8, return_eigenvectors=False)[0])
-    ev, vec = spla.eigsh(S, k=n_small, sigma=-1e-8 * lmax, which="LM", tol=1e-12)
+    v0 = np.random.default_rng(0).standard_normal(n)
+    lmax = float(spla.eigsh(S, k=1, which="LA", tol=1e-8, v0=v0, return_eigenvectors=False)[0])
+    ev, vec = spla.eigsh(S, k=n_small, sigma=-1e-8 * lmax, which="LM", tol=1e-12, v0=v0)
     order = np.argsort(ev)
     return lmax, ev[order], vec[:, order]
 
@@ -250,15 +252,16 @@ def _infinity_line(ax, cap, text):
     ax.set_yticks(ticks + [cap])
     ax.set_yticklabels([f"$10^{{{int(round(math.log10(t)))}}}$" for t in ticks] + [r"$\infty$"])
     ax.set_ylim(top=cap * 3)
-    ax.annotate(text, (0.02, cap), xycoords=("axes fraction", "data"), xytext=(0, -11), textcoords="offset points", fontsize=7, color="gray")
+    ax.annotate(text, (0.02, cap), xycoords=("axes fraction", "data"), xytext=(0, -11), textcoords="offset points", color="gray")
 
 
+@figure_style
 def _plot_h(out, rows, growth):
-    from .common import subplots
-
     from matplotlib.ticker import NullFormatter
 
-    fig, ax = subplots(figsize=(5.6, 4.4))
+    from cutfem.convergence import new_figure
+
+    fig, ax = new_figure(4.2, 3.4)
     h = np.array([r["h"] for r in rows])
     cap = _cap([r[k] for r in rows for k in ("kappa_stabilized", "kappa_effective_unstabilized")])
     ks = np.array([r["kappa_stabilized"] for r in rows])
@@ -279,17 +282,17 @@ def _plot_h(out, rows, growth):
     ax.set_title("Cut torus on the paper's box")
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xticks(h)
-    ax.set_xticklabels([f"{v:.3f}" for v in h], fontsize=8)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7.5, loc="center right")
-    fig.tight_layout()
+    ax.set_xticklabels([f"{v:.3f}" for v in h])
+    ax.grid(True, which="major", alpha=0.3)
+    ax.legend(loc="center right")
     save_figure(fig, out, f"{NAME}_h")
 
 
+@figure_style
 def _plot_shifts(out, rows, spacing):
-    from .common import subplots
+    from cutfem.convergence import new_figure
 
-    fig, (ax1, ax2) = subplots(1, 2, figsize=(10.5, 4.3))
+    fig, (ax1, ax2) = new_figure(PAGE_WIDTH, 3.2, nrows=1, ncols=2)
     cap = _cap([r[k] for r in rows for k in ("kappa_stabilized", "kappa_effective_unstabilized")])
     ratio = np.array([r["min_mass_diagonal_ratio"] for r in rows])
     x = np.arange(1, len(rows) + 1)
@@ -307,17 +310,16 @@ def _plot_shifts(out, rows, spacing):
     _infinity_line(ax1, cap, r"singular: $\lambda_{\min} \leq 10^{-13}\lambda_{\max}$")
     lo, hi = ax2.get_ylim()
     ax2.set_ylim(top=hi * (hi / lo) ** 0.25)
-    ax1.legend(fontsize=8, loc="center right")
-    ax2.legend(fontsize=8, loc="upper center", ncol=2)
+    ax1.legend(loc="center right")
+    ax2.legend(loc="upper center")
     for ax in (ax1, ax2):
         ax.grid(True, which="both", alpha=0.3)
     ax1.set_xlabel("grid position (sorted by condition number)")
     ax1.set_ylabel("scaled condition number")
-    ax1.set_title(f"Unit sphere, {len(rows)} random grid positions, spacing {spacing:g}")
+    ax1.set_title(f"Unit sphere, {len(rows)} grid positions, spacing {spacing:g}")
     ax2.set_xlabel(r"smallest cut: $\min_i M_{ii} / \max_i M_{ii}$")
     ax2.set_ylabel("scaled condition number")
-    ax2.set_title("Against the smallest cut of a basis function")
-    fig.tight_layout()
+    ax2.set_title("Against the smallest cut")
     save_figure(fig, out, f"{NAME}_shifts")
 
 

@@ -38,7 +38,7 @@ from cutfem.levelset import Torus
 from cutfem.spaces import SurfaceP1Space
 from cutfem.surface import TORUS_FAMILIES, torus_mesh
 
-from .common import fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
 
 NAME = "curvature_baselines"
 OUTPUTS = [NAME, f"{NAME}_errors", f"{NAME}_time", f"{NAME}_rates"]
@@ -156,51 +156,48 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     return {k: summary[k] for k in ("size", "levels", "rates", "finest")}
 
 
+@figure_style
 def _plot_errors(out, rows):
-    from cutfem.convergence import loglog_with_rates
+    from cutfem.convergence import log_ticks, new_figure, rate_triangle
 
-    from .common import subplots
-
-    from matplotlib.ticker import NullFormatter
-
-    fig, axes = subplots(2, len(TORUS_FAMILIES), figsize=(4.0 * len(TORUS_FAMILIES), 7.2), sharex=True)
+    fig, axes = new_figure(PAGE_WIDTH, 4.6, nrows=2, ncols=len(TORUS_FAMILIES), sharex=True, sharey="row")
     for j, family in enumerate(TORUS_FAMILIES):
         for i, (key, label) in enumerate((("discrete_error", r"$\|\pi_h H - H_h\|_{S_h}$"), ("max_error", r"$\max_i |H(x_i) - H_i|$"))):
             ax = axes[i, j]
             for m in METHODS:
                 sel = [r for r in rows if r["family"] == family and r["method"] == m]
-                loglog_with_rates(ax, [r["h"] for r in sel], [r[key] for r in sel], m, **STYLE[m])
+                ax.loglog([r["h"] for r in sel], [r[key] for r in sel], label=m.replace("tau_E=0", "$\\tau_E = 0$"), **STYLE[m])
+                if m == "stabilized" and i == 0:
+                    rate_triangle(ax, [r["h"] for r in sel], [r[key] for r in sel], 1)
             if i == 1:
                 ax.set_xlabel(r"$h = N^{-1/2}$")
-            ax.xaxis.set_minor_formatter(NullFormatter())
-            hs = sorted({r["h"] for r in rows})
-            ax.set_xticks(hs)
-            ax.set_xticklabels([f"{v:.3f}" for v in hs], fontsize=8)
             if j == 0:
                 ax.set_ylabel(label)
-            ax.set_title(f"torus, {family}" if i == 0 else "")
-            ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=6.5, loc="best")
-    fig.suptitle("Mean curvature vector on the torus: mesh-processing formulas vs. the stabilized method", y=1.0)
-    fig.tight_layout()
+            ax.set_title(family if i == 0 else "")
+            ax.grid(True, which="major", alpha=0.3)
+    for ax in axes.ravel():
+        log_ticks(ax)
+    # one legend for all panels; the fitted rates of every panel are in the rates table
+    handles, labels = axes[0, 0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=3)
     save_figure(fig, out, f"{NAME}_errors")
 
 
+@figure_style
 def _plot_time(out, rows):
-    from .common import subplots
+    from cutfem.convergence import new_figure
 
-    fig, ax = subplots(figsize=(5.2, 4))
+    fig, ax = new_figure(4.2, 3.2)
     for m in METHODS:
         sel = [r for r in rows if r["method"] == m]
         nodes = sorted({r["nodes"] for r in sel})
         t = [np.median([r["seconds"] for r in sel if r["nodes"] == k]) for k in nodes]
         ax.loglog(nodes, t, label=m, **STYLE[m])
     ax.set_xlabel("surface nodes N")
-    ax.set_ylabel("wall time [s] (median over the four families)")
+    ax.set_ylabel("wall time [s] (median of the families)")
     ax.set_title("Cost of the curvature computations")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
+    ax.legend()
     save_figure(fig, out, f"{NAME}_time")
 
 

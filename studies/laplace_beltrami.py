@@ -26,7 +26,7 @@ import numpy as np
 import cutfem
 from cutfem.errors import fitted_rate
 
-from .common import fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
 
 NAME = "laplace_beltrami"
 OUTPUTS = [NAME, f"{NAME}_table"]
@@ -98,40 +98,30 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     }
 
 
+@figure_style
 def _plot(out, results):
-    from matplotlib.ticker import NullFormatter
+    from cutfem.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
 
-    from cutfem.convergence import loglog_with_rates
-
-    from .common import subplots
-
-    fig, axes = subplots(2, 2, figsize=(10, 8))
+    fig, axes = new_figure(PAGE_WIDTH, 5.4, nrows=2, ncols=2)
     style = {"meshed": dict(color="C0"), "cut, face": dict(color="C1"), "cut, normal": dict(color="C2", ls="--")}
     for i, surface in enumerate(("sphere", "torus")):
         for j, kind in enumerate(("meshed", "cut")):
             ax = axes[i, j]
-            h1_first, l2_last = [], []
             for c in results:
                 if c["surface"] != surface or not c["method"].startswith(kind):
                     continue
                 tag = "" if kind == "meshed" else c["method"].split(", ")[1] + ": "
                 loglog_with_rates(ax, c["h"], c["l2_error"], f"{tag}$L^2$", marker="o", **style[c["method"]])
                 loglog_with_rates(ax, c["h"], c["h1_error"], f"{tag}$H^1$", marker="s", mfc="none", **style[c["method"]])
-                h = np.array(c["h"])
-                h1_first.append(c["h1_error"][0])
-                l2_last.append(c["l2_error"][-1])
-            ax.loglog(h, 1.6 * max(h1_first) * (h / h[0]), ":", color="gray", lw=1, label="$h^1$")
-            ax.loglog(h, 0.6 * min(l2_last) * (h / h[-1]) ** 2, "-.", color="gray", lw=1, label="$h^2$")
+            first = next(c for c in results if c["surface"] == surface and c["method"].startswith(kind))
+            rate_triangle(ax, first["h"], first["h1_error"], 1, below=False)
+            rate_triangle(ax, first["h"], first["l2_error"], 2)
             ax.set_xlabel(r"$h = N^{-1/2}$ (surface nodes)" if kind == "meshed" else r"$h = N^{-1/3}$ (background nodes)")
             ax.set_ylabel("error")
-            ax.set_title(f"{surface}, {kind}" + (" (face $\\tau_F=0.1$ / normal $\\tau_N h$)" if kind == "cut" else ""))
-            ax.xaxis.set_minor_formatter(NullFormatter())
-            ax.set_xticks(h)
-            ax.set_xticklabels([f"{v:.3f}" for v in h], fontsize=8)
-            ax.grid(True, which="both", alpha=0.3)
-            ax.legend(fontsize=7.5)
-    fig.suptitle(r"Laplace-Beltrami $-\Delta_S u + u = f$: P1 errors with fitted rates", y=1.0)
-    fig.tight_layout()
+            ax.set_title(f"{surface}, {kind}")
+            ax.grid(True, which="major", alpha=0.3)
+            log_ticks(ax)
+            ax.legend(loc="best")
     save_figure(fig, out, NAME)
 
 

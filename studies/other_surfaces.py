@@ -32,7 +32,7 @@ from cutfem.errors import fitted_rate
 from cutfem.levelset import FunctionLevelSet, Sphere, Torus
 from cutfem.surface import sphere_mesh, write_surface
 
-from .common import fmt_rate, pick, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, save_figure, save_json, save_latex_table, study_main
 
 NAME = "other_surfaces"
 OUTPUTS = [NAME, f"{NAME}_convergence", f"{NAME}_pictures", f"{NAME}_table", f"{NAME}_sphere"]
@@ -203,40 +203,34 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     return summary_out
 
 
+@figure_style
 def _plot_convergence(out, results):
-    from matplotlib.ticker import NullFormatter
+    from cutfem.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
 
-    from cutfem.convergence import loglog_with_rates
-
-    from .common import subplots
-
-    fig, (ax1, ax2) = subplots(1, 2, figsize=(11, 4.3))
+    fig, (ax1, ax2) = new_figure(PAGE_WIDTH, 3.6, nrows=1, ncols=2)
     e, s, g = results["ellipsoid"]["records"], results["stl_sphere"]["records"], results["genus2"]["records"]
-    loglog_with_rates(ax1, [r["h"] for r in e], [r["l2_error"] for r in e], r"ellipsoid: $\|H^e - H_h\|_{L^2(S_h)}$", color="C0")
-    loglog_with_rates(ax1, [r["h"] for r in g], [r["l2_error"] for r in g], r"genus 2: $\|H^e - H_h\|_{L^2(S_h)}$", color="C2")
-    loglog_with_rates(ax1, [r["h"] for r in s], [r["nodal_rms_error"] for r in s], "sphere (STL): RMS nodal error", marker="s", color="C1")
-    loglog_with_rates(ax1, [r["h"] for r in s], [r["nodal_max_error"] for r in s], "sphere (STL): max nodal error",
+    loglog_with_rates(ax1, [r["h"] for r in e], [r["l2_error"] for r in e], "ellipsoid: $L^2$", color="C0")
+    loglog_with_rates(ax1, [r["h"] for r in g], [r["l2_error"] for r in g], "genus 2: $L^2$", color="C2")
+    loglog_with_rates(ax1, [r["h"] for r in s], [r["nodal_rms_error"] for r in s], "STL sphere: RMS", marker="s", color="C1")
+    loglog_with_rates(ax1, [r["h"] for r in s], [r["nodal_max_error"] for r in s], "STL sphere: max",
                       marker="s", mfc="none", ls="--", color="C1")
+    rate_triangle(ax1, [r["h"] for r in e], [r["l2_error"] for r in e], 1)
     ax1.set_ylabel("error of the mean curvature vector")
     ax1.set_title("Errors (cut, $\\tau_F = 0.1$)")
-    loglog_with_rates(ax2, [r["h"] for r in e], [r["area_error"] for r in e], "ellipsoid: area error", color="C0")
-    loglog_with_rates(ax2, [r["h"] for r in s], [r["area_error_polyhedron"] for r in s], "sphere (STL): area error vs polyhedron",
+    loglog_with_rates(ax2, [r["h"] for r in e], [r["area_error"] for r in e], "ellipsoid: area", color="C0")
+    loglog_with_rates(ax2, [r["h"] for r in s], [r["area_error_polyhedron"] for r in s], "STL sphere: area",
                       marker="s", color="C1")
-    for recs, lab, col, m in ((e, "ellipsoid", "C0", "o"), (s, "sphere (STL)", "C1", "s"), (g, "genus 2", "C2", "^")):
+    for recs, lab, col, m in ((e, "ellipsoid", "C0", "o"), (s, "STL sphere", "C1", "s"), (g, "genus 2", "C2", "^")):
         ax2.loglog([r["h"] for r in recs], [max(r["integral_H_norm"], 1e-17) for r in recs], ls=":", marker=m, mfc="none", color=col,
                    label=rf"{lab}: $|\int_{{S_h}} H_h|$")
-    ax2.set_ylabel("area error / size of the integral of $H_h$")
+    rate_triangle(ax2, [r["h"] for r in e], [r["area_error"] for r in e], 2)
+    ax2.set_ylabel(r"area error, $|\int_{S_h} H_h|$")
     ax2.set_title("Invariants")
-    hs = [r["h"] for recs in (e, s, g) for r in recs]
-    ticks = [t for t in (0.01, 0.015, 0.02, 0.03, 0.05, 0.08, 0.12) if 0.8 * min(hs) <= t <= 1.25 * max(hs)]
     for ax in (ax1, ax2):
-        ax.set_xlabel(r"$h = N^{-1/3}$ (background nodes)")
-        ax.xaxis.set_minor_formatter(NullFormatter())
-        ax.set_xticks(ticks)
-        ax.set_xticklabels([f"{t:g}" for t in ticks])
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
+        ax.set_xlabel(r"$h = N^{-1/3}$")
+        ax.grid(True, which="major", alpha=0.3)
+        log_ticks(ax)
+        ax.legend(loc="best")
     save_figure(fig, out, f"{NAME}_convergence")
 
 
@@ -245,33 +239,43 @@ def _picture(out, surfaces: dict) -> str | None:
     on each S_h, colour limits at the 1st and 99th percentiles; PNG, and a PDF of the same image."""
     import pyvista as pv
 
+    from matplotlib.cm import ScalarMappable
+    from matplotlib.colors import Normalize
+
+    from cutfem.convergence import new_figure, style
+
     pv.OFF_SCREEN = True
     names = list(surfaces)
-    p = pv.Plotter(off_screen=True, shape=(1, len(names)), window_size=(640 * len(names), 520), border=False)
+    renders, limits = [], []
     for j, name in enumerate(names):
         poly = surfaces[name]
-        p.subplot(0, j)
         values = np.asarray(poly.point_data["mean_curvature"])
         lo, hi = np.percentile(values, [1, 99])
-        p.add_mesh(poly.copy(), scalars=values, cmap="viridis", clim=(lo, hi), smooth_shading=True,
-                   scalar_bar_args={"title": f"H_h . n ({name})", "vertical": True, "height": 0.6, "width": 0.06, "position_x": 0.86,
-                                    "position_y": 0.2, "title_font_size": 13, "label_font_size": 12, "n_labels": 5, "fmt": "%.4g"})
-        p.add_text(name, font_size=12)
+        p = pv.Plotter(off_screen=True, window_size=(900, 760), border=False)
+        p.set_background("white")
+        p.add_mesh(poly.copy(), scalars=values, cmap="viridis", clim=(lo, hi), smooth_shading=True, show_scalar_bar=False)
         p.view_isometric()
         if name == "genus 2":
             p.camera.elevation = 25
         p.camera.zoom(1.15)
+        path = Path(out) / f"_{NAME}_picture_{j}.png"
+        p.screenshot(str(path))
+        p.close()
+        renders.append(path)
+        limits.append((lo, hi))
+    # the renderings side by side, each with its own colour bar, at the printed width
+    with style():
+        fig, axes = new_figure(PAGE_WIDTH, 2.5, nrows=1, ncols=len(names))
+        for ax, name, path, clim in zip(np.atleast_1d(axes), names, renders, limits):
+            ax.imshow(read_png(path))
+            ax.set_axis_off()
+            ax.set_title(name)
+            cb = fig.colorbar(ScalarMappable(norm=Normalize(*clim), cmap="viridis"), ax=ax, orientation="horizontal", shrink=0.85, pad=0.02)
+            cb.set_label("$H_h\\cdot n$")
+            cb.ax.locator_params(nbins=4)
+            path.unlink()
+        save_figure(fig, out, f"{NAME}_pictures")
     path = Path(out) / f"{NAME}_pictures.png"
-    p.screenshot(str(path))
-    p.close()
-    # the same image as a PDF page for the paper build
-    from .common import imread, subplots
-
-    img = imread(path)
-    fig, ax = subplots(figsize=(img.shape[1] / 150, img.shape[0] / 150))
-    ax.imshow(img)
-    ax.axis("off")
-    fig.savefig(Path(out) / f"{NAME}_pictures.pdf", bbox_inches="tight", dpi=150)
     return path.name
 
 

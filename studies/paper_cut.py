@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 import cutfem
-from cutfem.convergence import loglog_with_rates
+from cutfem.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
 from cutfem.levelset import Torus
 
-from .common import fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, save_csv, save_figure, save_json, save_latex_table, study_main
 from .paper_meshed import offscreen_plotter
 
 NAME = "paper_cut"
@@ -132,23 +132,19 @@ def _section(active, surface, y):
     return tri, edge_xz, seg_xz
 
 
+@figure_style
 def _mesh_figure(out, surface, active, spacing):
     from matplotlib.collections import LineCollection, PolyCollection
-
-    from .common import imread, new_figure
 
     _render_surface(surface, out / "cut_surface_mesh.png")
     _render_active(surface, active, out / "cut_active_tets.png")
     tri, edges, segments = _section(active, surface, SECTION_Y)
-    fig = new_figure(figsize=(12, 3.9))
-    gs = fig.add_gridspec(1, 3, width_ratios=[1.0, 1.0, 0.8])
-    for k, (name, title) in enumerate((("cut_surface_mesh.png", f"(a) $S_h$, spacing {spacing:g}"), ("cut_active_tets.png", "(b) active tetrahedra (a quarter removed)"))):
+    fig, _ = new_figure(PAGE_WIDTH, 2.3, nrows=0)
+    gs = fig.add_gridspec(1, 3, width_ratios=[1.0, 1.0, 0.75])
+    for k, (name, title) in enumerate((("cut_surface_mesh.png", f"(a) $S_h$, spacing {spacing:g}"), ("cut_active_tets.png", "(b) active tetrahedra"))):
         ax = fig.add_subplot(gs[0, k])
-        img = imread(out / name)
-        ink = (img[..., :3] < 0.99).any(axis=2)
-        rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
-        ax.imshow(img[max(rows[0] - 5, 0) : rows[-1] + 6, max(cols[0] - 5, 0) : cols[-1] + 6])
-        ax.set_title(title, fontsize=10)
+        ax.imshow(read_png(out / name))
+        ax.set_title(title)
         ax.set_axis_off()
     ax = fig.add_subplot(gs[0, 2])
     ax.add_collection(PolyCollection(tri[tri[:, :, 0].mean(axis=1) > 0], facecolors="#dbe6f4", edgecolors="none"))
@@ -161,28 +157,24 @@ def _mesh_figure(out, surface, active, spacing):
     ax.set_aspect("equal")
     ax.set_xlabel("$x$")
     ax.set_ylabel("$z$")
-    ax.set_title(f"(c) section $y = {SECTION_Y:g}$: active tets, $S_h$ (red), $S$ (dotted)", fontsize=9)
-    fig.tight_layout()
+    ax.set_title(f"(c) section $y = {SECTION_Y:g}$")
     return save_figure(fig, out, "cut_mesh")
 
 
+@figure_style
 def _convergence_figure(out, data):
-    from .common import subplots
-
     h = np.array(data["h"])
-    fig, ax = subplots(figsize=(5.6, 4.2))
+    fig, ax = new_figure(4.2, 3.0)
     loglog_with_rates(ax, h, data["l2_error"], "$\\|H^e - H_h\\|_{L^2(S_h)}$", marker="o", color="#c0392b", lw=1.5)
     loglog_with_rates(ax, h, data["area_error"], "$|\\,|S_h| - |S|\\,|$", marker="s", color="#1f3b70", lw=1.2, ls="--")
-    for order, style, e0 in ((1, ":", data["l2_error"][0]), (2, "-.", data["area_error"][0])):
-        ref = 0.5 * e0 * (h / h[0]) ** order
-        ax.loglog(h, ref, style, color="gray", lw=1)
-        ax.annotate(f"$h^{order}$", (h[-1], ref[-1]), textcoords="offset points", xytext=(4, -4), color="gray", fontsize=9)
+    rate_triangle(ax, h, data["l2_error"], 1)
+    rate_triangle(ax, h, data["area_error"], 2)
     ax.set_xlabel("$h = N^{-1/3}$ (background nodes)")
     ax.set_ylabel("error")
-    ax.set_title(f"Cut torus, $\\tau_F = {TAU_F:g}$, $\\tau_E = {TAU_E:g}$", fontsize=10)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=8, loc="lower right")
-    fig.tight_layout()
+    ax.set_title(f"Cut torus, $\\tau_F = {TAU_F:g}$, $\\tau_E = {TAU_E:g}$")
+    ax.grid(True, which="major", alpha=0.3)
+    log_ticks(ax)
+    ax.legend(loc="lower right")
     return save_figure(fig, out, "cut_convergence")
 
 

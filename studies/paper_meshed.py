@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 import cutfem
-from cutfem.convergence import loglog_with_rates
+from cutfem.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
 from cutfem.surface import TORUS_FAMILIES, torus_mesh
 
-from .common import fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, save_csv, save_figure, save_json, save_latex_table, study_main
 
 NAME = "paper_meshed"
 R_MAJOR, R_MINOR = 1.0, 0.5
@@ -101,23 +101,17 @@ def render_mesh(mesh, path: Path, window_size=(1000, 720)):
     return path
 
 
-def combine_pngs(paths, titles, out: Path, name: str, ncols=2, panel_size=(3.6, 2.6)):
-    """Several PNG renderings as one matplotlib figure with panel titles (PNG + PDF)."""
-    from .common import imread, subplots
-
+@figure_style
+def combine_pngs(paths, titles, out: Path, name: str, ncols=2, width=PAGE_WIDTH, panel_height=2.0):
+    """Several PNG renderings (white margins cropped) as one figure, ``width`` inches wide with
+    rows of ``panel_height`` inches, and panel titles (PNG + PDF)."""
     nrows = -(-len(paths) // ncols)
-    fig, axes = subplots(nrows, ncols, figsize=(panel_size[0] * ncols, panel_size[1] * nrows))
+    fig, axes = new_figure(width, panel_height * nrows, nrows=nrows, ncols=ncols)
     for ax, path, title in zip(np.ravel(axes), paths, titles):
-        img = imread(path)
-        keep = np.flatnonzero((img[..., :3] < 0.99).any(axis=2).any(axis=0))
-        rows = np.flatnonzero((img[..., :3] < 0.99).any(axis=2).any(axis=1))
-        if keep.size and rows.size:  # crop the white margin
-            img = img[max(rows[0] - 5, 0) : rows[-1] + 6, max(keep[0] - 5, 0) : keep[-1] + 6]
-        ax.imshow(img)
-        ax.set_title(title, fontsize=10)
+        ax.imshow(read_png(path))
+        ax.set_title(title)
     for ax in np.ravel(axes):
         ax.set_axis_off()
-    fig.tight_layout()
     return save_figure(fig, out, name)
 
 
@@ -185,29 +179,26 @@ COLORS = {"structured": "#1f77b4", "flipped": "#d62728", "perturbed": "#2ca02c",
 MARKERS = {"structured": "o", "flipped": "s", "perturbed": "^", "perturbed-flipped": "D"}
 
 
+@figure_style
 def _convergence_figure(out, series):
-    from .common import subplots
-
-    fig, ax = subplots(figsize=(6.8, 4.4))
+    fig, ax = new_figure(PAGE_WIDTH, 3.4)
     for s in series:
         dashed = s["tau_e"] == 0
         loglog_with_rates(
-            ax, s["h"], s["discrete_error"], f"{FAMILY_LABEL[s['family']]}, $\\tau_E={s['tau_e']:g}$",
+            ax, s["h"], s["discrete_error"], FAMILY_LABEL[s["family"]],
             marker=MARKERS[s["family"]], color=COLORS[s["family"]], ls="--" if dashed else "-",
             mfc="white" if dashed else COLORS[s["family"]], ms=5, lw=1.3,
         )
-    h = np.array(series[0]["h"])
-    e0 = min(s["discrete_error"][0] for s in series if s["tau_e"] > 0)
-    for order, style in ((1, ":"), (2, "-.")):
-        ref = 0.55 * e0 * (h / h[0]) ** order
-        ax.loglog(h, ref, style, color="gray", lw=1)
-        ax.annotate(f"$h^{order}$", (h[-1], ref[-1]), textcoords="offset points", xytext=(4, -4), color="gray", fontsize=9)
+    # rate triangles above the highest stabilized curve (slope 1) and under the structured unstabilized one (2)
+    stab = max((s for s in series if s["tau_e"] > 0), key=lambda s: s["discrete_error"][-1])
+    rate_triangle(ax, stab["h"], stab["discrete_error"], 1, below=False)
+    sup = next(s for s in series if s["tau_e"] == 0 and s["family"] == "structured")
+    rate_triangle(ax, sup["h"], sup["discrete_error"], 2)
     ax.set_xlabel("$h = N^{-1/2}$")
     ax.set_ylabel(r"$\|\pi_h H - H_h\|_{S_h}$")
-    ax.set_title("Meshed torus: discrete error of the mean curvature vector", fontsize=10)
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7.5, loc="center left", bbox_to_anchor=(1.01, 0.5), title="solid: stabilized, dashed: $\\tau_E=0$", title_fontsize=7.5)
-    fig.tight_layout()
+    ax.grid(True, which="major", alpha=0.3)
+    log_ticks(ax)
+    ax.legend(loc="center left", bbox_to_anchor=(1.01, 0.5), title="solid: $\\tau_E = 0.1$, dashed: $\\tau_E = 0$")
     return save_figure(fig, out, "meshed_convergence")
 
 
@@ -274,10 +265,18 @@ def _isoline_runs(n, progress):
     return fields, errors
 
 
+def _thirds_ticks(colorbar, levels):
+    """Every second level of ``levels`` (multiples of 1/3) as a colour-bar tick, labelled as a
+    fraction of 3 (``0``, ``2/3``, ``4/3``, ``2``, ``8/3``)."""
+    from fractions import Fraction
+
+    ticks = np.asarray(levels)[::2]
+    colorbar.set_ticks(ticks, labels=[str(Fraction(float(t)).limit_denominator(3)) for t in ticks])
+
+
+@figure_style
 def _isoline_figure(out, fields, n, levels):
     from matplotlib.tri import Triangulation
-
-    from .common import subplots
 
     surf = fields[TAUS[0]]
     pts = np.asarray(surf.points)
@@ -285,11 +284,11 @@ def _isoline_figure(out, fields, n, levels):
     tp, ptri, vertex = parameter_triangulation(pts, tri)
     T = Triangulation(tp[:, 0], tp[:, 1], ptri)
     panels = [
-        ("exact $\\kappa_1 + \\kappa_2$ (at the nodes)", exact_mean_curvature(pts)),
-        (f"$H_h\\cdot n$, stabilized ($\\tau_E = {TAUS[0]:g}$)", np.asarray(fields[TAUS[0]].point_data["mean_curvature"])),
-        ("$H_h\\cdot n$, unstabilized ($\\tau_E = 0$)", np.asarray(fields[TAUS[1]].point_data["mean_curvature"])),
+        ("exact $\\kappa_1 + \\kappa_2$", exact_mean_curvature(pts)),
+        (f"$H_h\\cdot n$, $\\tau_E = {TAUS[0]:g}$", np.asarray(fields[TAUS[0]].point_data["mean_curvature"])),
+        ("$H_h\\cdot n$, $\\tau_E = 0$", np.asarray(fields[TAUS[1]].point_data["mean_curvature"])),
     ]
-    fig, axes = subplots(1, 3, figsize=(11.5, 3.7), sharey=True, constrained_layout=True)
+    fig, axes = new_figure(PAGE_WIDTH, 2.55, nrows=1, ncols=3, sharey=True)
     cmap = ISO_CMAP()
     cs = None
     for ax, (title, vals) in zip(axes, panels):
@@ -299,26 +298,24 @@ def _isoline_figure(out, fields, n, levels):
         ax.set_xlim(0, 2 * np.pi)
         ax.set_ylim(0, 2 * np.pi)
         ax.set_aspect("equal")
-        ax.set_title(title, fontsize=10)
+        ax.set_title(title)
         ax.set_xlabel("$t$")
         ticks = [0, np.pi, 2 * np.pi]
         ax.set_xticks(ticks, ["0", "$\\pi$", "$2\\pi$"])
         ax.set_yticks(ticks, ["0", "$\\pi$", "$2\\pi$"])
     axes[0].set_ylabel("$p$")
     cb = fig.colorbar(cs, ax=axes, shrink=0.9, pad=0.015)
-    cb.set_label("mean curvature (black: $<0$, white: $>8/3$)")
-    cb.set_ticks(levels)
-    fig.suptitle(f"Iso-levels of the mean curvature on the flipped torus mesh, n = {n} ({n} x {n // 2} cells)", fontsize=11)
+    cb.set_label("mean curvature")
+    _thirds_ticks(cb, levels)
     return save_figure(fig, out, "meshed_isolines")
 
 
+@figure_style
 def _isoline_figure_3d(out, fields, levels):
     """The two computed fields on the surface (pyvista, one rendering each, same clim) with their
     contour lines, put side by side with one matplotlib colour bar."""
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
-
-    from .common import imread, subplots
 
     clim = (float(levels[0]), float(levels[-1]))
     paths = []
@@ -338,21 +335,17 @@ def _isoline_figure_3d(out, fields, levels):
         plotter.screenshot(str(path))
         plotter.close()
         paths.append(path)
-    fig, axes = subplots(1, 2, figsize=(10, 3.9), constrained_layout=True)
+    fig, axes = new_figure(PAGE_WIDTH, 2.5, nrows=1, ncols=2)
     titles = [f"stabilized ($\\tau_E = {TAUS[0]:g}$)", "unstabilized ($\\tau_E = 0$)"]
     for ax, path, title in zip(axes, paths, titles):
-        img = imread(path)
-        ink = (img[..., :3] < 0.99).any(axis=2)
-        rows, cols = np.flatnonzero(ink.any(axis=1)), np.flatnonzero(ink.any(axis=0))
-        img = img[max(rows[0] - 5, 0) : rows[-1] + 6, max(cols[0] - 5, 0) : cols[-1] + 6]
-        ax.imshow(img)
-        ax.set_title(title, fontsize=10)
+        ax.imshow(read_png(path))
+        ax.set_title(title)
         ax.set_axis_off()
         path.unlink()
     sm = ScalarMappable(norm=Normalize(*clim), cmap=ISO_CMAP())
     cb = fig.colorbar(sm, ax=axes, shrink=0.85, pad=0.01, extend="both", extendfrac=0.04)
-    cb.set_ticks(levels)
-    cb.set_label("$H_h\\cdot n$ (black: $<0$, white: $>8/3$)")
+    _thirds_ticks(cb, levels)
+    cb.set_label("$H_h\\cdot n$")
     return save_figure(fig, out, "meshed_isolines_3d")
 
 

@@ -112,7 +112,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import pick, save_csv, save_figure, save_json, study_main
+from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, study_main
 
 NAME = "peers"
 OUTPUTS = [NAME, f"{NAME}_meshed"]  # peers.json/.csv/.png/.pdf, peers_meshed.csv
@@ -732,12 +732,13 @@ def _xfem_version():
         return None
 
 
+@figure_style
 def _plot(out, rows, meshed):
     from matplotlib.ticker import NullFormatter
 
-    from .common import subplots
+    from cutfem.convergence import new_figure
 
-    fig, axes = subplots(2, 2, figsize=(11.5, 8.6))
+    fig, axes = new_figure(PAGE_WIDTH, 5.6, nrows=2, ncols=2)
     ax = axes[0, 0]
     for variant, mk in (("paper", "o"), ("shifted", "s")):
         sel = sorted((r for r in rows if r["variant"] == variant), key=lambda r: r["active_tets"])
@@ -761,7 +762,7 @@ def _plot(out, rows, meshed):
     ax.set_ylabel("wall time, end to end [s]")
     ax.set_title("cut torus: time (mesh, level set, cut, assembly, solve, error)")
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend()
 
     ax = axes[0, 1]
     ax2 = ax.twinx()
@@ -794,7 +795,7 @@ def _plot(out, rows, meshed):
     ax.grid(True, which="both", alpha=0.3)
     lines = ax.get_legend_handles_labels()
     lines2 = ax2.get_legend_handles_labels()
-    ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], fontsize=6, loc="lower right")
+    ax.legend(lines[0] + lines2[0], lines[1] + lines2[1], loc="lower right")
 
     for col, (key, ylabel, title) in enumerate((
         ("discrete_error", r"$\|\pi_h H - H_h\|_{S_h}$", "meshed torus: cotangent + lumped mass vs stabilized"),
@@ -811,10 +812,9 @@ def _plot(out, rows, meshed):
         ax.set_ylabel(ylabel)
         ax.set_title(title)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend()
     for ax in axes.ravel():
         ax.xaxis.set_minor_formatter(NullFormatter())
-    fig.tight_layout()
     save_figure(fig, out, NAME)
 
 

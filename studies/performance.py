@@ -36,7 +36,7 @@ from pathlib import Path
 import numpy as np
 
 from cutfem.registry import Timer
-from .common import Progress, pick, save_figure, save_json, study_main, subplots
+from cutfem.studies.common import PAGE_WIDTH, Progress, figure_style, pick, save_figure, save_json, study_main
 
 OUTPUTS = ["performance", "performance_scaling"]
 
@@ -234,8 +234,11 @@ def _print_table(records):
               f"{max(r['totals']):>8.2f} {r['cpu_user']:>7.2f} {r['cpu_system']:>6.2f} {r['peak_memory_gib']:>6.2f}  {stages}")
 
 
+@figure_style
 def _plot(out, records, summary):
-    fig, axes = subplots(1, 2, figsize=(10, 4))
+    from cutfem.convergence import new_figure
+
+    fig, axes = new_figure(PAGE_WIDTH, 3.2, nrows=1, ncols=2)
     for kind, marker in (("cut", "o"), ("meshed-flipped", "s"), ("meshed-perturbed", "^")):
         rs = [r for r in records if r["kind"] == kind]
         if not rs:
@@ -250,10 +253,9 @@ def _plot(out, records, summary):
         ax.set_xlabel("active tets / surface nodes")
         ax.set_ylabel(title)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=7)
+        ax.legend()
     axes[0].set_title("time, fitted over the three finest levels")
     axes[1].set_title("peak resident memory of the process")
-    fig.tight_layout()
     save_figure(fig, out, "performance_scaling")
 
 

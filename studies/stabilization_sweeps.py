@@ -28,7 +28,7 @@ from cutfem.forms import assemble, position_load
 from cutfem.levelset import Torus
 from cutfem.solve import SingularSystemError, solve
 
-from .common import fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
 from .conditioning import PAPER_BOX, matrices, scaled_condition
 
 NAME = "stabilization_sweeps"
@@ -120,10 +120,11 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     }
 
 
+@figure_style
 def _plot(out, settings, taus):
-    from .common import subplots
+    from cutfem.convergence import log_ticks, new_figure
 
-    fig, axes = subplots(1, 3, figsize=(13.5, 4.2))
+    fig, axes = new_figure(PAGE_WIDTH, 2.6, nrows=1, ncols=3)
     colors = {a: f"C{i}" for i, a in enumerate(POWERS)}
     h_fine = settings[0]["h"][-1]
     for a in POWERS:
@@ -142,19 +143,19 @@ def _plot(out, settings, taus):
             axes[2].loglog(t[~fin], np.full((~fin).sum(), top), ls="none", marker="v", ms=9, color=colors[a])
     for ax in axes:
         ax.axvline(0.1, color="gray", lw=0.8, ls=":")
-        ax.set_xlabel(r"$\tau_F$ (stabilization $\tau_F h^a J_F$)")
-        ax.grid(True, which="both", alpha=0.3)
-        ax.legend(fontsize=8)
-    axes[0].set_ylabel(r"$\|H^e - H_h\|_{L^2(S_h)}$" + f" at $h = {h_fine:.3f}$")
-    axes[0].set_title("L2 error at the finest spacing")
-    hs = settings[0]["h"]
-    axes[1].set_ylabel("fitted L2 rate")
-    axes[1].set_title(f"Rate over h = {', '.join(f'{v:.3f}' for v in hs)}")
-    axes[2].set_ylabel(r"scaled condition number of $K$" + f" at $h = {h_fine:.3f}$")
-    axes[2].set_title(r"Condition number ($\blacktriangledown$: singular)")
-    axes[0].annotate("paper", (0.1, axes[0].get_ylim()[1]), xytext=(3, -12), textcoords="offset points", fontsize=7, color="gray")
-    fig.suptitle(r"Cut torus, $K = M + \tau_F h^a J_F$ ($h = N^{-1/3}$)", y=1.02)
-    fig.tight_layout()
+        ax.set_xlabel(r"$\tau_F$")
+        ax.grid(True, which="major", alpha=0.3)
+    for ax in (axes[0], axes[2]):
+        log_ticks(ax)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=len(POWERS))
+    axes[0].set_ylabel(r"$\|H^e - H_h\|_{L^2(S_h)}$")
+    axes[0].set_title(f"$L^2$ error, $h = {h_fine:.3f}$")
+    axes[1].set_ylabel("fitted $L^2$ rate")
+    axes[1].set_title("rate over all spacings")
+    axes[2].set_ylabel(r"scaled condition number of $K$")
+    axes[2].set_title(f"$\\kappa(K)$, $h = {h_fine:.3f}$")
+    axes[0].annotate("paper", (0.1, axes[0].get_ylim()[1]), xytext=(3, -10), textcoords="offset points", color="gray")
     save_figure(fig, out, NAME)
 
 

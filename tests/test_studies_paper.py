@@ -267,15 +267,52 @@ def test_build_script_names_the_packages_without_latex(tmp_path):
     assert run.returncode == 2 and "cutfem reproduce" in run.stderr
 
 
-@pytest.mark.slow
-def test_reproduce_tiny_and_build(tmp_path):
-    """The whole chain at the tiny size: every available study, the claims, and (with LaTeX) the PDF."""
-    out = tmp_path / "paper"
+@pytest.fixture(scope="module")
+def tiny_paper(tmp_path_factory):
+    """``cutfem reproduce --tiny`` into a fresh folder: (out, exit status)."""
+    out = tmp_path_factory.mktemp("reproduce") / "paper"
     status = reproduce.main(["--tiny", "--out", str(out), "--quiet"])
+    return out, status
+
+
+def test_split_timings_keeps_the_nesting():
+    data = {"a": 1, "wall_time": 2.5, "series": [{"x": [1, 2], "seconds": [0.1, 0.2]}, {"x": [3]}], "time": {"solve": 1.0}}
+    rest, timings = reproduce.split_timings(data)
+    assert rest == {"a": 1, "series": [{"x": [1, 2]}, {"x": [3]}]}
+    assert timings == {"wall_time": 2.5, "series": [{"seconds": [0.1, 0.2]}, None], "time": {"solve": 1.0}}
+    assert reproduce.split_timings({"a": [1, {"b": 2}]}) == ({"a": [1, {"b": 2}]}, None)
+
+
+def test_manuscript_includes_figures_at_their_own_size():
+    """No \\includegraphics option scales a figure: they are drawn at the printed size."""
+    tex = (PAPER / "main.tex").read_text()
+    options = re.findall(r"\\includegraphics\[([^\]]*)\]", tex)
+    assert options == [], f"figures are scaled in main.tex: {options}"
+
+
+@pytest.mark.slow
+def test_reproduce_tiny_and_build(tiny_paper):
+    """The whole chain at the tiny size: every available study, the claims, figures at the printed
+    width, timings kept apart, and (with LaTeX) the PDF."""
+    out, status = tiny_paper
     summary = json.loads((out / "tables" / "summary.json").read_text())
     assert status == 0, {k: v.get("error") for k, v in summary["studies"].items() if v["status"] != "ok"}
     assert set(summary["studies"]) == set(reproduce._load_studies(verbose=False))
-    assert all(v["wall_time"] > 0 for v in summary["studies"].values())
+    timings = json.loads((out / "tables" / "timings.json").read_text())
+    assert set(timings["studies"]) == set(summary["studies"])
+    assert all(v["wall_time"] > 0 for v in timings["studies"].values())
+    assert timings["total_wall_time"] >= max(v["wall_time"] for v in timings["studies"].values())
+    # no table but the timing files holds a wall time
+    for path in (out / "tables").glob("*.json"):
+        if f"tables/{path.name}" not in reproduce.TIMING_FILES:
+            assert reproduce.split_timings(json.loads(path.read_text()))[1] is None, path.name
+    for path in (out / "tables").glob("*.csv"):
+        header = path.read_text().splitlines()[0].split(",")
+        assert not set(header) & reproduce.TIMING_KEYS, path.name
+    # every figure is drawn at most 6.3 in (the text width) wide: it prints at scale 1
+    for path in (out / "figures").glob("*.pdf"):
+        box = re.search(rb"/MediaBox \[\s*0 0 ([\d.]+) ([\d.]+)\s*\]", path.read_bytes())
+        assert box is not None and float(box.group(1)) <= 6.3 * 72 + 0.5, (path.name, box and box.group(1))
     for name in paper_meshed.OUTPUTS + paper_cut.OUTPUTS:
         folder = "figures" if Path(name).suffix in (".png", ".pdf") else "tables"
         assert (out / folder / name).exists(), name
@@ -291,3 +328,21 @@ def test_reproduce_tiny_and_build(tmp_path):
     run = subprocess.run(["bash", str(out / "build.sh")], capture_output=True, text=True)
     assert run.returncode == 0, run.stderr
     assert (out / "main.pdf").stat().st_size > 100_000
+
+
+@pytest.mark.slow
+def test_reproduce_twice_gives_identical_files(tiny_paper, tmp_path):
+    """A second run changes no byte of the tracked outputs (figures/, tables/) except the files that
+    hold timings; data/ (raw per-level records, not tracked) is not compared."""
+    first, _ = tiny_paper
+    second = tmp_path / "paper"
+    assert reproduce.main(["--tiny", "--out", str(second), "--quiet"]) == 0
+
+    def files(root):
+        return {str(p.relative_to(root)) for d in ("figures", "tables") for p in (root / d).rglob("*") if p.is_file()}
+
+    assert files(first) == files(second)
+    compared = sorted(files(first) - set(reproduce.TIMING_FILES))
+    assert len(compared) > 40
+    differ = [name for name in compared if (first / name).read_bytes() != (second / name).read_bytes()]
+    assert differ == [], f"changed between two identical runs: {differ}"
