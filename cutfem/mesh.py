@@ -459,7 +459,7 @@ class StructuredBox(TetMesh):
     serve any subset.
     """
 
-    def __init__(self, lower, upper, cells):
+    def __init__(self, lower, upper, cells, spacing=None):
         lower = np.asarray(lower, dtype=float).reshape(3)
         upper = np.asarray(upper, dtype=float).reshape(3)
         cells = np.asarray(cells, dtype=np.int64).reshape(3)
@@ -470,7 +470,8 @@ class StructuredBox(TetMesh):
         if np.any(cells < 1):
             raise ValueError(f"need at least one cell per axis, got cells={cells.tolist()}")
         self.lower, self.upper, self.cells = lower, upper, cells
-        self.spacing = (upper - lower) / cells
+        # the spacing as requested when known (structured_box), not recomputed from the corners
+        self.spacing = (upper - lower) / cells if spacing is None else np.broadcast_to(np.asarray(spacing, float), (3,)).copy()
         self.node_shape = cells + 1
 
     # sizes without building anything
@@ -566,28 +567,38 @@ class StructuredBox(TetMesh):
 def structured_box(lower, upper, spacing=None, cells=None) -> StructuredBox:
     """Structured tetrahedral mesh of the box ``[lower, upper]`` (6 Kuhn tets per cuboid).
 
-    Give either ``spacing`` (a number or 3 numbers; ``(upper - lower) / spacing`` must be a whole
-    number in each axis to within 1e-9, otherwise the call fails and names the nearest counts) or
-    ``cells`` (an int or 3 ints).
+    Give either ``cells`` (an int or 3 ints: the spacing is then ``(upper - lower) / cells``) or
+    ``spacing`` (a positive finite number or 3 of them).  With ``spacing`` the mesh has exactly that
+    spacing (``box.spacing`` is the number given, bit for bit) and a whole number of cells per axis:
+
+    * when ``(upper - lower) / spacing`` is a whole number n (to within 1e-9 relative), the box is
+      the one given, with n cells;
+    * otherwise the box is *grown* symmetrically about its centre to the next whole number of cells,
+      ``n = ceil((upper - lower) / spacing)``, so that it still contains the box asked for (and the
+      surface inside it); ``box.lower``/``box.upper`` are the corners used.  It is never shrunk and
+      the spacing is never changed to fit the box.
     """
     lower = np.asarray(lower, dtype=float).reshape(3)
     upper = np.asarray(upper, dtype=float).reshape(3)
     if (spacing is None) == (cells is None):
         raise ValueError("give exactly one of spacing= or cells=")
-    if spacing is not None:
-        spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (3,))
-        if np.any(~np.isfinite(spacing)) or np.any(spacing <= 0):
-            raise ValueError(f"spacing must be positive, got {spacing.tolist()}")
-        ratio = (upper - lower) / spacing
-        cells = np.rint(ratio).astype(np.int64)
-        if np.any(np.abs(ratio - cells) > 1e-9 * np.maximum(ratio, 1)) or np.any(cells < 1):
-            raise ValueError(
-                f"box extents {(upper - lower).tolist()} are not whole multiples of spacing {spacing.tolist()} "
-                f"(ratio {ratio.tolist()}); adjust the box or pass cells={np.maximum(cells, 1).tolist()}"
-            )
-    else:
-        cells = np.broadcast_to(np.asarray(cells, dtype=np.int64), (3,))
-    return StructuredBox(lower, upper, cells)
+    if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))) or np.any(upper <= lower):
+        raise ValueError(f"box must have finite corners with upper > lower in every axis, got lower={lower.tolist()}, upper={upper.tolist()}")
+    if cells is not None:
+        return StructuredBox(lower, upper, np.broadcast_to(np.asarray(cells, dtype=np.int64), (3,)))
+    spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (3,))
+    if np.any(~np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise ValueError(f"spacing must be a positive finite number, got {spacing.tolist()}; give e.g. spacing=0.1")
+    ratio = (upper - lower) / spacing
+    whole = np.rint(ratio)
+    fits = (np.abs(ratio - whole) <= 1e-9 * np.maximum(ratio, 1)) & (whole >= 1)
+    cells = np.where(fits, whole, np.ceil(ratio)).astype(np.int64)
+    if not fits.all():
+        centre = 0.5 * (lower + upper)
+        grown = ~fits
+        lower = np.where(grown, centre - 0.5 * cells * spacing, lower)
+        upper = np.where(grown, lower + cells * spacing, upper)
+    return StructuredBox(lower, upper, cells, spacing=spacing)
 
 
 def _box_surface(lower, upper):

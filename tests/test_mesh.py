@@ -303,9 +303,32 @@ def test_bad_shapes():
         TetMesh(UNIT_TET_POINTS, [[0, 1, 2]])
 
 
-def test_spacing_not_dividing_the_box():
-    with pytest.raises(ValueError, match="not whole multiples.*cells="):
-        structured_box([0, 0, 0], [1, 1, 1], spacing=0.3)
+def test_spacing_not_dividing_the_box_grows_the_box_at_exactly_that_spacing():
+    """A box that is not a whole number of cells is grown symmetrically to the next whole number;
+    the spacing used is the one asked for, bit for bit, and the grown box contains the given one."""
+    box = structured_box([0, -1, 2], [1, 1, 2.5], spacing=0.3)
+    assert np.all(box.spacing == 0.3)
+    np.testing.assert_array_equal(box.cells, [4, 7, 2])  # ceil(1/0.3), ceil(2/0.3), ceil(0.5/0.3)
+    np.testing.assert_allclose(box.lower, [0.5 - 0.6, -1.05, 2.25 - 0.3], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(box.upper - box.lower, box.cells * 0.3, rtol=1e-15)
+    np.testing.assert_allclose(0.5 * (box.lower + box.upper), [0.5, 0.0, 2.25], atol=1e-15)
+    # the node coordinates step by exactly the spacing
+    x = box.node_coordinates(np.arange(box.node_shape[0]))[:, 0]
+    np.testing.assert_array_equal(x, box.lower[0] + np.arange(5) * 0.3)
+    # per-axis spacings, and a box that fits in one axis only keeps that axis as given
+    box = structured_box([0, 0, 0], [1, 1, 1], spacing=(0.25, 0.3, 0.5))
+    np.testing.assert_array_equal(box.spacing, [0.25, 0.3, 0.5])
+    np.testing.assert_array_equal(box.cells, [4, 4, 2])
+    assert box.lower[0] == 0 and box.upper[0] == 1 and box.lower[2] == 0 and box.upper[2] == 1
+    assert box.lower[1] == pytest.approx(-0.1) and box.upper[1] == pytest.approx(1.1)
+
+
+def test_spacing_that_fits_keeps_the_box():
+    box = structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1)
+    np.testing.assert_array_equal(box.cells, [32, 32, 12])
+    np.testing.assert_array_equal(box.lower, [-1.6, -1.6, -0.6])
+    np.testing.assert_array_equal(box.upper, [1.6, 1.6, 0.6])
+    assert np.all(box.spacing == 0.1)
 
 
 def test_structured_box_bad_arguments():
@@ -313,8 +336,9 @@ def test_structured_box_bad_arguments():
         structured_box([0, 0, 0], [1, 1, 1])
     with pytest.raises(ValueError, match="exactly one of spacing= or cells="):
         structured_box([0, 0, 0], [1, 1, 1], spacing=0.5, cells=2)
-    with pytest.raises(ValueError, match="spacing must be positive"):
-        structured_box([0, 0, 0], [1, 1, 1], spacing=-0.5)
+    for bad in (-0.5, 0.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="spacing must be a positive finite number"):
+            structured_box([0, 0, 0], [1, 1, 1], spacing=bad)
     with pytest.raises(ValueError, match="upper > lower"):
         structured_box([0, 0, 0], [1, 0, 1], cells=2)
     with pytest.raises(ValueError, match="at least one cell"):
