@@ -203,12 +203,15 @@ def pair_up(keys):
     cols = _as_columns(keys)
     order = stable_argsort(tuple(cols))
     size = cols[0].size
-    new = np.zeros(size, bool)
+    new = np.empty(size, bool)
     if size:
         new[0] = True
-        for col in cols:
+        sk = cols[0][order]
+        np.not_equal(sk[1:], sk[:-1], out=new[1:])  # in place: no key-sized temporary (90 M keys in a face penalty)
+        for col in cols[1:]:
             sk = col[order]
             new[1:] |= sk[1:] != sk[:-1]
+        del sk
     starts = np.flatnonzero(new)
     counts = np.diff(np.append(starts, size))
     return order, starts, counts
