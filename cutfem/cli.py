@@ -1,17 +1,24 @@
 """The ``cutfem`` command.
 
+    cutfem --version
     cutfem list
     cutfem run PROBLEM [--param value ...] [--levels L1 L2 ...] [--json PATH|-] [--vtk DIR] [--plot PATH]
     cutfem reproduce [--out DIR] [--full]
 
 Errors in the input (an unknown problem or parameter, a bad value, an open surface file, a level
-set that misses the box, ...) print one line and exit with status 2; ``--debug`` shows the traceback.
+set that misses the box, a size that cannot fit in memory, ...) print one line and exit with
+status 2; ``--debug`` shows the traceback.  The levels and the output paths (``--json``, ``--plot``,
+``--vtk``: parent folder writable, extension known) are checked before anything is solved.  When a
+level fails after others finished, the table and the JSON are still written with the finished
+levels and the failure (level, error type, message), and the exit status is 2 (1 for an
+unexpected error, which is a bug).
 """
 
 from __future__ import annotations
 
 import argparse
 import sys
+import tempfile
 from pathlib import Path
 
 __all__ = ["main"]
@@ -70,8 +77,46 @@ def _join_negative_values(argv, problem):
     return out
 
 
+#: extensions of --json and --plot
+JSON_SUFFIXES = (".json",)
+PLOT_SUFFIXES = (".png", ".pdf", ".svg")
+#: the errors of bad input or of a size or problem that cannot be solved: one line, status 2
+INPUT_ERRORS = (ValueError, FileNotFoundError, RuntimeError, OSError, MemoryError)
+
+
+def _check_output(flag: str, path: str, suffixes=None, folder: bool = False) -> None:
+    """Refuse, before solving, an output that cannot be written: a wrong extension, a path that is
+    (or is not) a folder, or a nearest existing parent folder that is not writable."""
+    from .registry import ProblemError
+
+    target = Path(path)
+    if suffixes is not None and target.suffix.lower() not in suffixes:
+        raise ProblemError(f"{flag}: {path!r} should end in {' or '.join(suffixes)}")
+    if target.exists() and target.is_dir() != folder:
+        raise ProblemError(f"{flag}: {path!r} is {'not ' if folder else ''}a folder; give {'a folder' if folder else 'a file path'}")
+    parent = target if folder and target.exists() else target.parent
+    while not parent.exists():
+        parent = parent.parent
+    try:  # a real write (permission bits say nothing to root, nor about read-only file systems)
+        if not parent.is_dir():
+            raise NotADirectoryError(str(parent))
+        with tempfile.TemporaryFile(dir=parent, prefix=".cutfem-write-test-"):
+            pass
+    except OSError:
+        raise ProblemError(f"{flag}: cannot write {path!r}: the folder {str(parent)!r} is not writable; choose another path") from None
+
+
+def _level_flag(argv, problem) -> str:
+    """The flag the levels were given with, for messages: --levels or --<level name>."""
+    own = "--" + problem.level_name.replace("_", "-")
+    for tok in argv:
+        if tok in ("--levels", own) or tok.startswith(("--levels=", own + "=")):
+            return tok.split("=", 1)[0]
+    return "--levels"
+
+
 def _cmd_run(argv) -> int:
-    from .registry import ProblemError, get_problem, run
+    from .registry import ProblemError, check_levels, get_problem, run
 
     if not argv or argv[0].startswith("-"):
         raise ProblemError("usage: cutfem run PROBLEM [--param value ...]; 'cutfem list' shows the problems")
@@ -82,17 +127,27 @@ def _cmd_run(argv) -> int:
     if unknown:
         raise ProblemError(f"unknown argument(s) {' '.join(unknown)} for {problem.name}; allowed: {allowed}")
     params = {q.name: getattr(known, q.name) for q in problem.params if getattr(known, q.name) is not None}
+    levels = check_levels(problem, known.levels, _level_flag(argv, problem))
     to_stdout = known.json == "-"
-    result = run(problem.name, levels=known.levels, progress=not (known.quiet or to_stdout), **params)
+    if known.json and not to_stdout:
+        _check_output("--json", known.json, JSON_SUFFIXES)
+    if known.plot:
+        _check_output("--plot", known.plot, PLOT_SUFFIXES)
+    if known.vtk:
+        _check_output("--vtk", known.vtk, folder=True)
+    result = run(
+        problem.name, levels=levels, progress=not (known.quiet or to_stdout), keep_finished=True,
+        command=["cutfem", "run", *argv], **params,
+    )
     if to_stdout:
         print(result.dumps())
-    else:
+    elif result.records:
         print(result.table())
     if known.json and not to_stdout:
         Path(known.json).parent.mkdir(parents=True, exist_ok=True)
         Path(known.json).write_text(result.dumps())
         print(f"wrote {known.json}", file=sys.stderr)
-    if known.vtk:
+    if known.vtk and result.records:
         out = Path(known.vtk)
         out.mkdir(parents=True, exist_ok=True)
         for level, rec in zip(result.levels, result.records):
@@ -101,12 +156,20 @@ def _cmd_run(argv) -> int:
                 path = out / f"{problem.name}_{problem.level_name}{level}_{kind}{ext}"
                 ds.save(path)
         print(f"wrote VTK files to {out}", file=sys.stderr)
-    if known.plot:
+    if known.plot and result.records:
         from .convergence import convergence_plot
 
+        Path(known.plot).parent.mkdir(parents=True, exist_ok=True)
         convergence_plot(result, known.plot)
         print(f"wrote {known.plot}", file=sys.stderr)
-    return 0
+    if result.failure is None:
+        return 0
+    if known.debug:
+        raise result.exception
+    f = result.failure
+    done = f" ({f['index']} finished level(s) kept)" if f["index"] else ""
+    _fail(f"{problem.level_name}={f['level']} failed{done}: {f['message']}")
+    return 2 if isinstance(result.exception, INPUT_ERRORS) else 1
 
 
 def _cmd_reproduce(argv) -> int:
@@ -128,6 +191,12 @@ def main(argv=None) -> int:
     debug = "--debug" in argv
     parser = _Parser(prog="cutfem", description="unfitted finite element methods on surfaces: problems, runs, studies")
     parser.add_argument("command", choices=["list", "run", "reproduce"], help="list the problems, run one, or reproduce the paper")
+    parser.add_argument("--version", action="store_true", help="print the version of cutfem")
+    if argv and argv[0] == "--version":
+        from . import __version__
+
+        print(f"cutfem {__version__}")
+        return 0
     if not argv or argv[0] in ("-h", "--help"):
         parser.print_help()
         print("\ncommands:\n  list [-v]                 the registered problems\n  run PROBLEM [options]     solve at several levels, print rates"
@@ -151,7 +220,7 @@ def main(argv=None) -> int:
         return _fail(f"unknown command {command!r}; use list, run or reproduce")
     except SystemExit as exc:
         return int(exc.code or 0)
-    except (ValueError, FileNotFoundError, RuntimeError, OSError) as exc:
+    except INPUT_ERRORS as exc:
         if debug:
             raise
         return _fail(str(exc))

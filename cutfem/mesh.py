@@ -35,7 +35,6 @@ __all__ = [
     "dense_unique",
     "stable_argsort",
     "sorted_row_keys",
-    "decode_triple_keys",
     "tet_face_keys",
     "pair_up",
     "unique_keys",
@@ -89,101 +88,132 @@ TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.
 
 
 def sorted_row_keys(rows: np.ndarray, n: int) -> np.ndarray:
-    """Encode each row of non-negative integers below ``n`` as one int64, independent of the order
-    of the entries in the row.
+    """Encode each row (a, b) of two non-negative integers below ``n`` as one int64, independent of
+    the order of the two entries: ``min(a, b) * n + max(a, b)``, computed column-wise.
 
-    ``rows`` (m, k) with k = 2 or 3.  The key is the mixed-radix number ``(lo*n + mid)*n + hi`` of
-    the sorted row (``lo*n + hi`` for pairs), computed column-wise.  Raises OverflowError if n**k
-    does not fit in int64.
+    ``rows`` (m, 2).  Fits in int64 for n below 3.0e9 (n**2 < 2**63); raises OverflowError above.
+    Triples (faces) are not packed into one integer: :func:`tet_face_keys` keeps their three sorted
+    columns, so that their size is not capped (n**3 < 2**63 would stop at n = 2**21).
     """
     rows = np.asarray(rows, dtype=np.int64)
-    k = rows.shape[1]
-    if float(n) ** k >= 2.0**63:
-        raise OverflowError(f"cannot encode rows of {k} indices below {n} in int64")
-    cols = [np.ascontiguousarray(rows[:, j]) for j in range(k)]
-    if k == 2:
-        a, b = cols
-        return np.minimum(a, b) * n + np.maximum(a, b)
-    if k == 3:
-        a, b, c = cols
+    if rows.ndim != 2 or rows.shape[1] != 2:
+        raise ValueError(f"rows must have shape (m, 2), got {rows.shape}; faces use tet_face_keys")
+    if float(n) ** 2 >= 2.0**63:
+        raise OverflowError(f"cannot encode pairs of indices below {n} in int64")
+    a, b = np.ascontiguousarray(rows[:, 0]), np.ascontiguousarray(rows[:, 1])
+    return np.minimum(a, b) * n + np.maximum(a, b)
+
+
+def tet_face_keys(tets: np.ndarray, n: int) -> tuple:
+    """Keys of the faces of tets (m, 4) with node ids below ``n``: three (4m,) columns
+    ``(lo, mid, hi)``, the sorted node ids of each face.  The face opposite to local vertex k of
+    tet t is row 4t + k; equal faces have equal rows.
+
+    The columns are int32 when n <= 2**31 (int64 otherwise); :func:`pair_up` and
+    :func:`stable_argsort` sort such column tuples lexicographically, packing the 3 * ceil(log2 n)
+    bits of a row into as few radix passes as the key count allows, so there is no cap on n.
+    """
+    tets = np.asarray(tets, dtype=np.int64)
+    dtype = np.int32 if n <= 2**31 else np.int64
+    m = len(tets)
+    cols = [np.empty((m, 4), dtype=dtype) for _ in range(3)]
+    for k, face in enumerate(TET_FACES):  # the four local faces, each over all tets at once
+        a, b, c = (np.ascontiguousarray(tets[:, j]) for j in face)
         lo = np.minimum(np.minimum(a, b), c)
         hi = np.maximum(np.maximum(a, b), c)
-        return (lo * n + (a + b + c - lo - hi)) * n + hi
-    raise ValueError(f"rows must have 2 or 3 columns, got {k}")
+        cols[0][:, k] = lo
+        cols[1][:, k] = a + b + c - lo - hi
+        cols[2][:, k] = hi
+    return tuple(col.reshape(-1) for col in cols)
 
 
-def tet_face_keys(tets: np.ndarray, n: int) -> np.ndarray:
-    """(4m,) int64 keys of the faces of tets (m, 4) with node ids below n: the key of the face
-    opposite to local vertex k of tet t is at 4t + k; equal faces get equal keys."""
-    tets = np.asarray(tets, dtype=np.int64)
-    keys = np.empty((len(tets), 4), dtype=np.int64)
-    for k, face in enumerate(TET_FACES):  # the four local faces, each over all tets at once
-        keys[:, k] = sorted_row_keys(tets[:, face], n)
-    return keys.reshape(-1)
+def _as_columns(keys) -> list:
+    """A key array or a tuple of key columns (most significant first) as a list of 1-d arrays of one length."""
+    cols = [np.asarray(c).reshape(-1) for c in (keys if isinstance(keys, (tuple, list)) else (keys,))]
+    if len({c.size for c in cols}) > 1:
+        raise ValueError(f"key columns must have one length, got {[c.size for c in cols]}")
+    return cols
 
 
-def decode_triple_keys(keys: np.ndarray, n: int) -> np.ndarray:
-    """Inverse of :func:`sorted_row_keys` for triples: (m, 3) sorted rows."""
-    keys = np.asarray(keys, dtype=np.int64)
-    out = np.empty((keys.size, 3), dtype=np.int64)
-    rest = keys // n
-    out[:, 2] = keys - rest * n
-    out[:, 0] = rest // n
-    out[:, 1] = rest - out[:, 0] * n
-    return out
+def stable_argsort(keys) -> np.ndarray:
+    """The stable sorting order of integer keys, by plain (SIMD) sorts of packed keys.
 
+    ``keys``: a 1-d integer array, or a tuple of 1-d integer arrays of one length (columns, the most
+    significant first), sorted lexicographically: the order of ``np.lexsort(keys[::-1])``.
 
-def stable_argsort(keys: np.ndarray) -> np.ndarray:
-    """``np.argsort(keys, kind="stable")`` for 1-d integer keys, by plain (SIMD) sorts of packed keys.
-
-    The stable order is the order of the pairs (key, position).  With b bits for the positions,
-    a key of at most 63 - b bits is packed into one int64 ``key << b | position`` and sorted by
-    ``np.sort``, which is many times faster than an argsort on this numpy; the low b bits of the
-    result are the order.  Wider keys are sorted digit by digit from the least significant one (LSD
-    radix sort), each pass stable because the position breaks the ties.  Same result as the stable
-    argsort for every input; other dtypes fall back to it.
+    A row is the bit string of its columns, each shifted to start at 0 and given
+    ``w_j = bit_length(max_j - min_j)`` bits, so a row has B = sum w_j bits.  With b bits for the
+    positions (b = bit_length(n - 1)), a digit of up to 63 - b bits is packed into one int64
+    ``digit << b | position`` and sorted by ``np.sort``, which is many times faster than an argsort
+    on this numpy; the low b bits of the result are the order.  The B bits are sorted digit by digit
+    from the least significant one (LSD radix sort), each pass stable because the position breaks
+    the ties: ceil(B / (63 - b)) passes, whatever the number or widths of the columns.  Same result
+    as the stable argsort for every input; unsigned 64-bit and non-integer keys fall back to it.
     """
-    keys = np.asarray(keys).reshape(-1)
-    n = keys.size
-    if n < 2 or keys.dtype.kind not in "iu" or keys.dtype == np.uint64:
-        return np.argsort(keys, kind="stable")
-    lo, hi = int(keys.min()), int(keys.max())
-    shift = (keys.astype(np.int64) - lo) if (lo < 0 or keys.dtype != np.int64) else keys
+    cols = _as_columns(keys)
+    n = cols[0].size
+    if n < 2 or any(c.dtype.kind not in "iu" or c.dtype == np.uint64 for c in cols):
+        return np.lexsort(cols[::-1]) if len(cols) > 1 else np.argsort(cols[0], kind="stable")
     pos_bits = (n - 1).bit_length()
     digit = 63 - pos_bits
-    key_bits = max(hi - min(lo, 0), 1).bit_length()
     if digit < 8:  # absurdly many keys: no room for a digit
-        return np.argsort(keys, kind="stable")
+        return np.lexsort(cols[::-1])
+    # (column, its offset (subtracted), its width, its first bit in the row), least significant first
+    layout, first_bit = [], 0
+    for col in reversed(cols):
+        lo, hi = int(col.min()), int(col.max())
+        offset = lo if lo < 0 else 0
+        width = max(hi - offset, 1).bit_length()
+        layout.append((col, offset, width, first_bit))
+        first_bit += width
+    total_bits = first_bit
     positions = np.arange(n, dtype=np.int64)
     low_mask = (1 << pos_bits) - 1
     order = None
-    for start in range(0, key_bits, digit):
-        d = shift if order is None else shift[order]
-        if start:
-            d = d >> start
-        if start + digit < key_bits:
-            d = d & ((1 << digit) - 1)
+    for start in range(0, total_bits, digit):
+        stop = min(start + digit, total_bits)
+        d = None
+        for col, offset, width, at in layout:
+            lo, hi = max(start, at), min(stop, at + width)
+            if lo >= hi:
+                continue
+            part = (col if order is None else col[order]).astype(np.int64, copy=False)
+            if offset:
+                part = part - offset
+            if lo > at:
+                part = part >> (lo - at)
+            if hi < at + width:
+                part = part & ((1 << (hi - lo)) - 1)
+            if lo > start:
+                part = part << (lo - start)
+            d = part if d is None else d | part
         packed = np.sort((d << pos_bits) | positions)
         step = packed & low_mask
         order = step if order is None else order[step]
     return order
 
 
-def pair_up(keys: np.ndarray):
+def pair_up(keys):
     """Group equal keys by one stable sort (:func:`stable_argsort`).
 
-    Returns ``(order, starts, counts)``: ``keys[order]`` is sorted and the run of the g-th
-    distinct key is ``order[starts[g] : starts[g] + counts[g]]``.
+    ``keys``: a 1-d integer array or a tuple of such columns (a key is then a row).
+    Returns ``(order, starts, counts)``: the keys in the order ``order`` are sorted and the run of
+    the g-th distinct key is ``order[starts[g] : starts[g] + counts[g]]``.
     """
-    keys = np.asarray(keys)
-    order = stable_argsort(keys)
-    sk = keys[order]
-    new = np.empty(sk.size, bool)
-    if sk.size:
+    cols = _as_columns(keys)
+    order = stable_argsort(tuple(cols))
+    size = cols[0].size
+    new = np.empty(size, bool)
+    if size:
         new[0] = True
-        np.not_equal(sk[1:], sk[:-1], out=new[1:])
+        sk = cols[0][order]
+        np.not_equal(sk[1:], sk[:-1], out=new[1:])  # in place: no key-sized temporary (90 M keys in a face penalty)
+        for col in cols[1:]:
+            sk = col[order]
+            new[1:] |= sk[1:] != sk[:-1]
+        del sk
     starts = np.flatnonzero(new)
-    counts = np.diff(np.append(starts, sk.size))
+    counts = np.diff(np.append(starts, size))
     return order, starts, counts
 
 
@@ -354,20 +384,12 @@ class TetMesh:
     @cached_property
     def _face_topology(self):
         m, n = self.n_tets, self.n_points
-        tets = self.tets
-        if float(n) ** 3 >= 2.0**63:
-            used, inv = unique_keys(tets, return_inverse=True)
-            tets, n = inv.reshape(-1, 4), len(used)
-        else:
-            used = None
-        keys = tet_face_keys(tets, n)
+        keys = tet_face_keys(self.tets, n)
         order, starts, counts = pair_up(keys)
         if np.any(counts > 2):
             raise ValueError(f"{int(np.sum(counts > 2))} faces are shared by more than two tets: the mesh is not conforming")
         first = order[starts]
-        faces = decode_triple_keys(keys[first], n)
-        if used is not None:
-            faces = used[faces]
+        faces = np.stack([col[first] for col in keys], axis=1).astype(np.int64)
         face_tets = np.full((len(starts), 2), -1, dtype=np.int64)
         face_tets[:, 0] = first // 4
         two = counts == 2
@@ -440,7 +462,7 @@ class StructuredBox(TetMesh):
     serve any subset.
     """
 
-    def __init__(self, lower, upper, cells):
+    def __init__(self, lower, upper, cells, spacing=None):
         lower = np.asarray(lower, dtype=float).reshape(3)
         upper = np.asarray(upper, dtype=float).reshape(3)
         cells = np.asarray(cells, dtype=np.int64).reshape(3)
@@ -451,7 +473,8 @@ class StructuredBox(TetMesh):
         if np.any(cells < 1):
             raise ValueError(f"need at least one cell per axis, got cells={cells.tolist()}")
         self.lower, self.upper, self.cells = lower, upper, cells
-        self.spacing = (upper - lower) / cells
+        # the spacing as requested when known (structured_box), not recomputed from the corners
+        self.spacing = (upper - lower) / cells if spacing is None else np.broadcast_to(np.asarray(spacing, float), (3,)).copy()
         self.node_shape = cells + 1
 
     # sizes without building anything
@@ -547,28 +570,38 @@ class StructuredBox(TetMesh):
 def structured_box(lower, upper, spacing=None, cells=None) -> StructuredBox:
     """Structured tetrahedral mesh of the box ``[lower, upper]`` (6 Kuhn tets per cuboid).
 
-    Give either ``spacing`` (a number or 3 numbers; ``(upper - lower) / spacing`` must be a whole
-    number in each axis to within 1e-9, otherwise the call fails and names the nearest counts) or
-    ``cells`` (an int or 3 ints).
+    Give either ``cells`` (an int or 3 ints: the spacing is then ``(upper - lower) / cells``) or
+    ``spacing`` (a positive finite number or 3 of them).  With ``spacing`` the mesh has exactly that
+    spacing (``box.spacing`` is the number given, bit for bit) and a whole number of cells per axis:
+
+    * when ``(upper - lower) / spacing`` is a whole number n (to within 1e-9 relative), the box is
+      the one given, with n cells;
+    * otherwise the box is *grown* symmetrically about its centre to the next whole number of cells,
+      ``n = ceil((upper - lower) / spacing)``, so that it still contains the box asked for (and the
+      surface inside it); ``box.lower``/``box.upper`` are the corners used.  It is never shrunk and
+      the spacing is never changed to fit the box.
     """
     lower = np.asarray(lower, dtype=float).reshape(3)
     upper = np.asarray(upper, dtype=float).reshape(3)
     if (spacing is None) == (cells is None):
         raise ValueError("give exactly one of spacing= or cells=")
-    if spacing is not None:
-        spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (3,))
-        if np.any(~np.isfinite(spacing)) or np.any(spacing <= 0):
-            raise ValueError(f"spacing must be positive, got {spacing.tolist()}")
-        ratio = (upper - lower) / spacing
-        cells = np.rint(ratio).astype(np.int64)
-        if np.any(np.abs(ratio - cells) > 1e-9 * np.maximum(ratio, 1)) or np.any(cells < 1):
-            raise ValueError(
-                f"box extents {(upper - lower).tolist()} are not whole multiples of spacing {spacing.tolist()} "
-                f"(ratio {ratio.tolist()}); adjust the box or pass cells={np.maximum(cells, 1).tolist()}"
-            )
-    else:
-        cells = np.broadcast_to(np.asarray(cells, dtype=np.int64), (3,))
-    return StructuredBox(lower, upper, cells)
+    if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))) or np.any(upper <= lower):
+        raise ValueError(f"box must have finite corners with upper > lower in every axis, got lower={lower.tolist()}, upper={upper.tolist()}")
+    if cells is not None:
+        return StructuredBox(lower, upper, np.broadcast_to(np.asarray(cells, dtype=np.int64), (3,)))
+    spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (3,))
+    if np.any(~np.isfinite(spacing)) or np.any(spacing <= 0):
+        raise ValueError(f"spacing must be a positive finite number, got {spacing.tolist()}; give e.g. spacing=0.1")
+    ratio = (upper - lower) / spacing
+    whole = np.rint(ratio)
+    fits = (np.abs(ratio - whole) <= 1e-9 * np.maximum(ratio, 1)) & (whole >= 1)
+    cells = np.where(fits, whole, np.ceil(ratio)).astype(np.int64)
+    if not fits.all():
+        centre = 0.5 * (lower + upper)
+        grown = ~fits
+        lower = np.where(grown, centre - 0.5 * cells * spacing, lower)
+        upper = np.where(grown, lower + cells * spacing, upper)
+    return StructuredBox(lower, upper, cells, spacing=spacing)
 
 
 def _box_surface(lower, upper):

@@ -34,7 +34,29 @@ from typing import Any, Callable
 
 import numpy as np
 
-__all__ = ["Param", "Problem", "register", "get_problem", "available_problems", "run", "RunResult", "ProblemError", "LazyFields", "Timer"]
+__all__ = [
+    "Param",
+    "Problem",
+    "register",
+    "get_problem",
+    "available_problems",
+    "run",
+    "check_levels",
+    "RunResult",
+    "ProblemError",
+    "LazyFields",
+    "Timer",
+    "SCHEMA_VERSION",
+]
+
+#: version of the layout of :meth:`RunResult.to_json` (2: metadata, definitions, failure)
+SCHEMA_VERSION = 2
+
+#: definitions of the record entries shared by every problem (a problem's own ``definitions`` add to them)
+COMMON_DEFINITIONS = {
+    "h": "global mesh size: N**(-1/3), N the number of background nodes (cut problems); N**(-1/2), N the number of surface nodes (meshed problems)",
+    "dofs": "unknowns per component: the number of P1 nodes (active nodes of a cut, surface nodes of a mesh)",
+}
 
 
 class Timer(dict):
@@ -130,7 +152,8 @@ class Problem:
 
     Subclasses set ``name``, ``summary``, ``params`` (list of :class:`Param`), ``level_name`` and
     ``default_levels``, and implement :meth:`solve_level`, which returns a record dict with at least
-    ``h``; error entries end in ``_error``; timings go in ``record["time"]`` (stage -> seconds).
+    ``h``; error entries end in ``_error`` (defined in ``definitions``); timings go in
+    ``record["time"]`` (stage -> seconds); ``components`` is the number of solution components.
     A record may carry ``"fields"``: a dict of pyvista datasets for VTK output (not saved to JSON).
     """
 
@@ -140,6 +163,10 @@ class Problem:
     level_name: str = "level"
     level_type: type = float
     default_levels: list = []
+    #: number of solution components (each has ``dofs`` unknowns)
+    components: int = 1
+    #: record key -> its definition (every ``*_error`` key should have one), saved in the JSON
+    definitions: dict = {}
 
     def solve_level(self, level, **params) -> dict:  # pragma: no cover - abstract
         raise NotImplementedError
@@ -246,32 +273,54 @@ def get_problem(name: str) -> Problem:
 
 @dataclass
 class RunResult:
-    """Records of a convergence run, with rates between levels for every ``*_error`` entry."""
+    """Records of a convergence run, with rates between levels for every ``*_error`` entry.
+
+    ``levels`` are the levels asked for, ``records`` those of the finished levels (the first
+    ``len(records)``).  ``failure`` is None, or the level that failed (:func:`run` with
+    ``keep_finished=True``): ``{"index", "level", "error_type", "message"}``.
+    """
 
     problem: str
     parameters: dict
     levels: list
     records: list
     rates: dict = field(default_factory=dict)
+    failure: dict | None = None
+    level_name: str = "level"
+    components: int = 1
+    definitions: dict = field(default_factory=dict)
+    command: list | None = None
+    created_utc: str = field(default_factory=lambda: time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    #: the exception of the failed level (not saved to JSON)
+    exception: BaseException | None = field(default=None, repr=False, compare=False)
 
     def to_json(self) -> dict:
-        import scipy
-
-        from . import __version__
-
+        """The run as plain JSON data, self-describing (``schema_version`` :data:`SCHEMA_VERSION`):
+        the problem, its parameters, the levels asked for and the records of those finished, the
+        rates, the failure (or None), the definitions of ``h``, ``dofs`` and every error key, the
+        number of components and the dofs per component of each level, the command line, the UTC
+        time the run started, the git commit of the source (None outside a git checkout), the
+        thread pools (threadpoolctl) and the versions of cutfem, numpy, scipy, pyvista, VTK and Python."""
+        keys = ["h", "dofs"] + self.error_keys()
+        definitions = {k: self.definitions.get(k, COMMON_DEFINITIONS.get(k, "not defined by the problem")) for k in keys}
         return jsonable(
             {
+                "schema_version": SCHEMA_VERSION,
                 "problem": self.problem,
+                "level_name": self.level_name,
                 "parameters": self.parameters,
                 "levels": self.levels,
                 "records": [{k: v for k, v in r.items() if k != "fields"} for r in self.records],
                 "rates": self.rates,
-                "versions": {
-                    "cutfem": __version__,
-                    "numpy": np.__version__,
-                    "scipy": scipy.__version__,
-                    "python": platform.python_version(),
-                },
+                "failure": self.failure,
+                "components": self.components,
+                "dofs_per_component": [r.get("dofs") for r in self.records],
+                "definitions": definitions,
+                "command": self.command,
+                "created_utc": self.created_utc,
+                "git_commit": _git_commit(),
+                "threads": _thread_info(),
+                "versions": _versions(),
             }
         )
 
@@ -302,9 +351,58 @@ class RunResult:
             row.append(f"{r['area']:.6f}" if "area" in r else "")
             row.append(f"{sum(r.get('time', {}).values()):.2f}")
             rows.append(row)
-        widths = [max(len(h), *(len(r[j]) for r in rows)) for j, h in enumerate(head)]
+        widths = [max([len(h)] + [len(r[j]) for r in rows]) for j, h in enumerate(head)]
         fmt = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, widths))  # noqa: E731
-        return "\n".join([fmt(head), fmt(["-" * w for w in widths])] + [fmt(r) for r in rows])
+        lines = [fmt(head), fmt(["-" * w for w in widths])] + [fmt(r) for r in rows]
+        if self.failure is not None:
+            f = self.failure
+            lines.append(f"{self.level_name}={f['level']} failed ({f['error_type']}): {f['message']}")
+        return "\n".join(lines)
+
+
+def _git_commit() -> str | None:
+    """The commit of the checkout cutfem runs from, or None (no git, not a checkout: never fails)."""
+    import subprocess
+    from pathlib import Path
+
+    try:
+        out = subprocess.run(
+            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True, text=True, timeout=5
+        )
+    except (OSError, subprocess.SubprocessError):
+        return None
+    commit = out.stdout.strip()
+    return commit if out.returncode == 0 and len(commit) >= 40 else None
+
+
+def _thread_info() -> dict:
+    """CPU count and the native thread pools (BLAS, OpenMP) with their thread counts."""
+    info = {"cpu_count": __import__("os").cpu_count(), "pools": []}
+    try:
+        from threadpoolctl import threadpool_info
+
+        info["pools"] = [
+            {k: p.get(k) for k in ("user_api", "internal_api", "num_threads", "version")} for p in threadpool_info()
+        ]
+    except Exception:  # pragma: no cover - threadpoolctl missing or failing: the record says so
+        info["pools"] = None
+    return info
+
+
+def _versions() -> dict:
+    import scipy
+
+    from . import __version__
+
+    out = {"cutfem": __version__, "numpy": np.__version__, "scipy": scipy.__version__, "python": platform.python_version()}
+    for name, module in (("pyvista", "pyvista"), ("vtk", "vtkmodules")):
+        try:
+            from importlib.metadata import version
+
+            out[name] = version("vtk" if name == "vtk" else name)
+        except Exception:
+            out[name] = getattr(sys.modules.get(module), "__version__", None)
+    return out
 
 
 def jsonable(obj):
@@ -325,19 +423,47 @@ def jsonable(obj):
     return repr(obj)
 
 
-def run(name: str, levels=None, progress: bool | Callable = False, **params) -> RunResult:
+def check_levels(problem: Problem, levels, source: str = "levels") -> list:
+    """The levels converted to the problem's level type and checked: each a positive finite number
+    (a positive integer for integer levels).  ``source`` names the input in the message: the
+    parameter (``levels``) from Python, the flag (``--spacing``, ``--levels``, ``--n``) from the
+    command line.  Raises ProblemError naming the source, the bad value and the fix."""
+    if levels is None:
+        levels = problem.default_levels
+    levels = [levels] if isinstance(levels, (str, int, float)) else list(levels)
+    if not levels:
+        raise ProblemError(f"{source}: no levels given for problem {problem.name!r}; give e.g. {problem.default_levels}")
+    kind = "positive integer" if problem.level_type is int else "positive finite number"
+    out = []
+    for v in levels:
+        try:
+            x = problem.level_type(v) if isinstance(v, str) else v
+            if isinstance(x, bool) or not isinstance(x, (int, float, np.integer, np.floating)):
+                raise TypeError
+            ok = math.isfinite(x) and x > 0 and (problem.level_type is not int or float(x) == int(x))
+        except (TypeError, ValueError, OverflowError):
+            ok = False
+        if not ok:
+            raise ProblemError(
+                f"{source}: {problem.level_name} {v!r} is not a {kind}; give {problem.level_name} values like {problem.default_levels}"
+            )
+        out.append(int(x) if problem.level_type is int else x)
+    return out
+
+
+def run(name: str, levels=None, progress: bool | Callable = False, keep_finished: bool = False, command=None, **params) -> RunResult:
     """Solve problem ``name`` at each level (default: the problem's levels) and compute rates.
 
-    ``progress``: True prints one line per level to standard error; a callable gets
-    (index, count, level, record-or-None).
+    ``levels`` are checked before anything is solved (:func:`check_levels`).  ``progress``: True
+    prints one line per level to standard error; a callable gets (index, count, level,
+    record-or-None).  When a level fails its exception propagates, unless ``keep_finished``: then
+    the run stops there and returns the finished levels with ``failure`` set (the command line
+    writes those).  ``command``: the command line to record in the JSON.
     """
     problem = get_problem(name)
     p = problem.resolve(params)
-    levels = list(problem.default_levels if levels is None else levels)
-    if not levels:
-        raise ProblemError(f"no levels given for problem {name!r}")
-    levels = [problem.level_type(v) if isinstance(v, str) else v for v in levels]
-    records = []
+    levels = check_levels(problem, levels)
+    records, failure = [], None
     for i, level in enumerate(levels):
         if progress is True:
             print(f"[{i + 1}/{len(levels)}] {problem.name} {problem.level_name}={level} ...", file=sys.stderr, end="", flush=True)
@@ -346,6 +472,13 @@ def run(name: str, levels=None, progress: bool | Callable = False, **params) -> 
         t0 = time.perf_counter()
         try:
             rec = problem.solve_level(level, **p)
+        except Exception as exc:
+            if progress is True:
+                print(" failed", file=sys.stderr, flush=True)
+            if not keep_finished:
+                raise
+            failure = {"index": i, "level": level, "error_type": type(exc).__name__, "message": str(exc), "exception": exc}
+            break
         except BaseException:
             if progress is True:
                 print(" failed", file=sys.stderr, flush=True)
@@ -358,7 +491,13 @@ def run(name: str, levels=None, progress: bool | Callable = False, **params) -> 
             print(f" done in {rec['wall_time']:.2f} s", file=sys.stderr, flush=True)
         elif callable(progress):
             progress(i, len(levels), level, rec)
-    result = RunResult(problem.name, p, levels, records)
+    result = RunResult(
+        problem.name, p, levels, records, level_name=problem.level_name, components=problem.components,
+        definitions=dict(problem.definitions), command=None if command is None else list(command),
+    )
+    if failure is not None:
+        result.exception = failure.pop("exception")
+        result.failure = failure
     h = [r["h"] for r in records]
     for k in result.error_keys():
         e = [r.get(k) for r in records]

@@ -103,9 +103,11 @@ def surface_mesh_for(surface, n, family="structured", seed=0, R=1.0, r=0.5, radi
     if surface == "torus":
         if family not in TORUS_FAMILIES:
             raise ProblemError(f"--family: {family!r} is not one of {', '.join(TORUS_FAMILIES)}")
+        check_surface_memory(n * (n // 2), f"the meshed torus at n = {n} ({n * (n // 2)} nodes)")
         return torus_mesh(int(n), family=family, R=R, r=r, seed=seed), Torus(R=R, r=r)
     if surface == "sphere":
         level = max(0, int(round(math.log2(max(n, 1) / 5.0))))
+        check_surface_memory(10 * 4**level + 2, f"the sphere mesh at n = {n} ({10 * 4**level + 2} nodes)")
         return sphere_mesh(level, radius=radius), Sphere(radius=radius)
     if surface in SURFACES:
         raise ProblemError(f"--surface {surface} has no surface mesh generator; use torus, sphere or a mesh file")
@@ -121,7 +123,10 @@ def box_for(levelset, spacing, box=None):
     the grid contains the origin and the paper's box [-1.6,1.6]^2 x [-0.6,0.6] comes out for the torus."""
     if box is not None:
         v = parse_numbers(box, 6, "--box")
-        return np.array(v[:3]), np.array(v[3:])
+        lo, hi = np.array(v[:3]), np.array(v[3:])
+        if not (np.all(np.isfinite(v)) and np.all(hi > lo)):
+            raise ProblemError(f"--box: need finite x0,y0,z0,x1,y1,z1 with x1 > x0, y1 > y0, z1 > z0; got {box!r}")
+        return lo, hi
     b = levelset.bounds() if hasattr(levelset, "bounds") else None
     if b is None:
         raise ProblemError(
@@ -136,10 +141,14 @@ def box_for(levelset, spacing, box=None):
 
 
 def background_for(levelset, spacing, kind="structured", box=None):
-    """Structured (Kuhn) or unstructured (pytetwild, target edge length = spacing) background mesh."""
+    """Structured (Kuhn) or unstructured (pytetwild, target edge length = spacing) background mesh.
+
+    The structured mesh has exactly the given spacing: a ``--box`` that is not a whole number of
+    cells is grown symmetrically to the next whole number (:func:`cutfem.mesh.structured_box`); the
+    record of the level keeps the box used (:func:`cut_record`)."""
     lo, hi = box_for(levelset, spacing, box)
     if kind == "structured":
-        return structured_box(lo, hi, cells=np.rint((hi - lo) / spacing).astype(int))
+        return structured_box(lo, hi, spacing=spacing)
     if kind == "tetwild":
         return unstructured_box(lo, hi, edge_length=spacing)
     raise ProblemError(f"--background: {kind!r} is not one of structured, tetwild")
@@ -163,9 +172,32 @@ def check_resolution(cut, levelset, spacing) -> None:
         )
 
 
+def check_cut_memory(cut) -> None:
+    """Refuse, before the space and the matrices are built, a cut whose later stages cannot fit:
+    :data:`cutfem.memory.BYTES_PER_ACTIVE_TET` bytes per active tet (the measured peak of the
+    space, faces, matrices, solve and errors), against :func:`cutfem.memory.available_memory`."""
+    from cutfem.memory import BYTES_PER_ACTIVE_TET, check_memory
+
+    check_memory(
+        BYTES_PER_ACTIVE_TET * float(cut.n_tets),
+        f"the matrices and the solve of {cut.n_tets} active tets",
+        "use a coarser spacing (the memory grows like spacing**-2)",
+    )
+
+
+def check_surface_memory(nodes: float, what: str) -> None:
+    """Refuse a meshed surface problem of ``nodes`` nodes that cannot fit
+    (:data:`cutfem.memory.BYTES_PER_SURFACE_NODE` bytes per node), before the mesh is made."""
+    from cutfem.memory import BYTES_PER_SURFACE_NODE, check_memory
+
+    check_memory(BYTES_PER_SURFACE_NODE * float(nodes), what, "use a smaller n (the memory grows like n**2)")
+
+
 def cut_record(cut) -> dict:
-    """Sizes of a cut for the per-level records."""
-    return {
+    """Sizes of a cut for the per-level records (and the box used, for a structured background)."""
+    bg = cut.background
+    box = {"box": [bg.lower.tolist(), bg.upper.tolist()]} if hasattr(bg, "lower") else {}
+    return box | {
         "background_nodes": int(cut.background.n_points),
         "active_tets": int(cut.n_tets),
         "pieces": int(cut.n_tets),

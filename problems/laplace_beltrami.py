@@ -29,7 +29,14 @@ from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
 from cutfem.surface import TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, check_resolution, Timer, background_for, cut_record, levelset_for, surface_mesh_for
+from .common import SHAPE_PARAMS, check_cut_memory, check_resolution, Timer, background_for, cut_record, levelset_for, surface_mesh_for
+
+
+#: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
+DEFINITIONS = {
+    "l2_error": "||u_h - u o p||_{L2(S_h)}, u the manufactured solution at the closest point (degree-4 quadrature on S_h)",
+    "h1_error": "||P_h (grad u^e - grad u_h)||_{L2(S_h)}, P_h the tangential projection of S_h, u^e = u o p (degree-4 quadrature)",
+}
 
 
 class SphereSolution:
@@ -121,6 +128,7 @@ class LaplaceBeltramiMeshed(Problem):
     name = "laplace-beltrami-meshed"
     summary = "-Lap_S u + u = f with a manufactured solution on a triangulated sphere or torus (SPEC §4)"
     level_name = "n"
+    definitions = DEFINITIONS
     level_type = int
     default_levels = [16, 32, 64, 128]
     params = [
@@ -158,6 +166,7 @@ class LaplaceBeltramiCut(Problem):
     name = "laplace-beltrami-cut"
     summary = "-Lap_S u + u = f with a manufactured solution on a cut sphere or torus, face or normal-gradient stabilization (SPEC §4)"
     level_name = "spacing"
+    definitions = DEFINITIONS
     level_type = float
     default_levels = [0.2, 0.1, 0.05, 0.025]
     params = [
@@ -180,6 +189,7 @@ class LaplaceBeltramiCut(Problem):
             sol = manufactured(phi)
             cut = cut_mesh(background_for(phi, level, background, box), phi)
             check_resolution(cut, phi, level)
+            check_cut_memory(cut)
             space = CutP1Space(cut)
         with t("assembly"):
             dS = cut.ds()

@@ -25,9 +25,16 @@ from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
 from cutfem.surface import TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, USER_SURFACES, check_resolution, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
+from .common import SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
 
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
+
+#: the record entries of the mean curvature problems (saved in the JSON of a run)
+DEFINITIONS = {
+    "l2_error": "||H_h - H^e||_{L2(S_h)}, H^e = H o p the exact mean curvature vector at the closest point, the three components together (degree-4 quadrature on S_h)",
+    "discrete_error": "sqrt(e^T M e), e = H^e(x_i) - H_h(x_i) at the nodes, M the mass matrix on the surface: ||pi_h H^e - H_h||_{L2(S_h)}",
+    "area_error": "|area(S_h) - area(S)|, area(S_h) = 1^T M 1",
+}
 
 
 def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0):
@@ -66,6 +73,8 @@ class MeanCurvatureMeshed(Problem):
     level_name = "n"
     level_type = int
     default_levels = [16, 32, 64, 128]
+    components = 3
+    definitions = DEFINITIONS
     params = [
         Param("surface", str, "torus", "torus, sphere, or a closed mesh file (STL, OBJ, PLY, VTK, ...)", choices=("torus", "sphere")),
         Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES),
@@ -105,6 +114,8 @@ class MeanCurvatureCut(Problem):
     level_name = "spacing"
     level_type = float
     default_levels = [0.2, 0.1, 0.05, 0.025]
+    components = 3
+    definitions = DEFINITIONS
     params = [
         Param("surface", str, "torus", f"torus, sphere, ellipsoid, {USER_SURFACES}; H^e is exact at the closest point"),
         Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),
@@ -123,6 +134,7 @@ class MeanCurvatureCut(Problem):
             bg = background_for(phi, level, background, box)
             cut = cut_mesh(bg, phi)
             check_resolution(cut, phi, level)
+            check_cut_memory(cut)
             space = CutP1Space(cut)
         with t("assembly"):
             M, K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)), face_h_power=face_h_power)

@@ -151,3 +151,171 @@ def test_readme_commands_match_ci():
     assert 'pip install -e ".[test]"' in readme and 'pip install -e ".[test]"' in ci
     assert "python -m pytest -q" in readme and "python -m pytest -q" in ci
     assert "cutfem reproduce" in readme
+
+
+# ----------------------------------------------------------------------------------------------
+# inputs checked before solving, sizes, failures that keep the finished levels, the JSON record
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("flag", ["--spacing", "--levels"])
+@pytest.mark.parametrize("value", ["0", "nan", "-0.1", "inf", "abc"])
+def test_bad_spacing_names_the_flag(flag, value, capsys):
+    assert main(["run", "mean-curvature-cut", flag, "0.2", value, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {flag}: spacing '{value}' is not a positive finite number" in err, err
+    assert "box" not in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("value", [0, float("nan"), -0.1, float("inf")])
+def test_bad_spacing_names_the_parameter_in_python(value):
+    with pytest.raises(ProblemError, match=r"^levels: spacing .* is not a positive finite number"):
+        cutfem.run("mean-curvature-cut", levels=[0.2, value])
+    with pytest.raises(ProblemError, match=r"^levels: n .* is not a positive integer"):
+        cutfem.run("mean-curvature-meshed", levels=[value])
+
+
+def test_box_that_does_not_fit_the_spacing_is_grown_at_that_spacing(capsys):
+    """--box of width 3 at spacing 0.4 (7.5 cells) is grown symmetrically to 8 cells, [-1.6, 1.6]^3;
+    the spacing stays 0.4, so N = 9**3 background nodes and h = N**(-1/3) = 1/9."""
+    assert main(["run", "mean-curvature-cut", "--surface", "sphere", "--box", "-1.5,-1.5,-1.5,1.5,1.5,1.5", "--spacing", "0.4", "--json", "-"]) == 0
+    rec = json.loads(capsys.readouterr().out)["records"][0]
+    np.testing.assert_allclose(rec["box"], [[-1.6] * 3, [1.6] * 3], atol=1e-14)
+    assert rec["background_nodes"] == 9**3
+    assert rec["h"] == pytest.approx(1 / 9, rel=1e-12)
+
+
+def test_size_that_cannot_fit_is_refused_before_allocating(capsys):
+    """Spacing 1e-4 on the torus (1.2e13 background nodes) is refused at once, in Python and on the
+    command line, with the estimate, the memory available and the fix."""
+    import time
+
+    from cutfem.memory import InsufficientMemoryError
+
+    t0 = time.perf_counter()
+    with pytest.raises(InsufficientMemoryError, match=r"spacing 0.0001 .* needs about .*TiB of memory, more than the .* available .*coarser spacing"):
+        cutfem.run("mean-curvature-cut", levels=[1e-4])
+    assert main(["run", "mean-curvature-cut", "--spacing", "1e-4", "--quiet"]) == 2
+    assert time.perf_counter() - t0 < 2.0
+    err = capsys.readouterr().err
+    assert "coarser spacing" in err and "Traceback" not in err
+
+
+def test_memory_limit_refuses_the_band_and_the_matrices(monkeypatch):
+    """With CUTFEM_MEMORY_LIMIT the cut is refused from the band estimate, and a cut that fits but
+    whose matrices would not is refused before they are built."""
+    from cutfem.memory import InsufficientMemoryError
+
+    monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "20MiB")
+    with pytest.raises(InsufficientMemoryError, match=r"cells near the surface\) needs about .* more than the 20 MiB available \(CUTFEM_MEMORY_LIMIT\)"):
+        cutfem.run("mean-curvature-cut", levels=[0.025])
+    # spacing 0.05: the cut (14,024 band cells, estimated at most 1.44 x 14,024 x 3000 bytes = 61 MB)
+    # fits in 70 MiB (73.4 MB); its 52,252 active tets at 1450 bytes (75.8 MB) do not
+    monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "70MiB")
+    with pytest.raises(InsufficientMemoryError, match=r"matrices and the solve of 52252 active tets"):
+        cutfem.run("mean-curvature-cut", levels=[0.05])
+    with pytest.raises(InsufficientMemoryError, match=r"meshed torus at n = 4096"):
+        cutfem.run("mean-curvature-meshed", levels=[4096])
+
+
+def test_failing_last_level_keeps_the_finished_ones(tmp_path, capsys):
+    """A spacing too coarse to cut the torus fails the last level: the table and the JSON keep the
+    two finished levels and record the failure; the plot is drawn; the exit status is 2."""
+    js, png = tmp_path / "out" / "r.json", tmp_path / "c.png"
+    code = main(["run", "mean-curvature-cut", "--spacing", "0.2", "0.1", "5", "--json", str(js), "--plot", str(png), "--quiet"])
+    assert code == 2
+    out, err = capsys.readouterr()
+    assert "spacing=5.0 failed (CutError)" in out and out.count("\n") >= 4
+    assert "error: spacing=5.0 failed (2 finished level(s) kept)" in err
+    data = json.loads(js.read_text())
+    assert data["levels"] == [0.2, 0.1, 5.0] and [r["spacing"] for r in data["records"]] == [0.2, 0.1]
+    assert data["failure"]["level"] == 5.0 and data["failure"]["index"] == 2
+    assert data["failure"]["error_type"] == "CutError" and "does not cut" in data["failure"]["message"]
+    assert len(data["rates"]["l2_error"]) == 1 and data["rates"]["l2_error"][0] > 1.0
+    assert png.stat().st_size > 5000
+
+
+def test_failing_level_in_python_raises_unless_kept(monkeypatch):
+    from cutfem.levelset import Torus
+
+    calls = []
+
+    def boom(*a, **k):
+        calls.append(1)
+        if len(calls) == 2:
+            raise FloatingPointError("level two broke")
+        return orig(*a, **k)
+
+    problem = cutfem.get_problem("mean-curvature-cut")
+    orig = problem.solve_level
+    monkeypatch.setattr(problem, "solve_level", boom)
+    with pytest.raises(FloatingPointError):
+        cutfem.run("mean-curvature-cut", levels=[0.2, 0.1, 0.05])
+    calls.clear()
+    res = cutfem.run("mean-curvature-cut", levels=[0.2, 0.1, 0.05], keep_finished=True)
+    assert len(res.records) == 1 and res.failure == {"index": 1, "level": 0.1, "error_type": "FloatingPointError", "message": "level two broke"}
+    assert isinstance(res.exception, FloatingPointError) and len(calls) == 2
+    assert Torus  # the module of the problem is importable alongside
+
+
+def test_unexpected_error_in_a_level_exits_1(monkeypatch, tmp_path, capsys):
+    problem = cutfem.get_problem("mean-curvature-meshed")
+    monkeypatch.setattr(problem, "solve_level", lambda *a, **k: [][1])
+    js = tmp_path / "r.json"
+    assert main(["run", "mean-curvature-meshed", "--n", "8", "--json", str(js), "--quiet"]) == 1
+    assert json.loads(js.read_text())["failure"]["error_type"] == "IndexError"
+    assert "list index out of range" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flag,path,pattern", [
+    ("--plot", "conv.txt", "should end in .png or .pdf or .svg"),
+    ("--json", "out.csv", "should end in .json"),
+    ("--json", "/proc/no/r.json", "is not writable"),
+    ("--vtk", "/proc/cpuinfo", "is not a folder"),
+])
+def test_outputs_are_checked_before_solving(flag, path, pattern, monkeypatch, capsys):
+    problem = cutfem.get_problem("mean-curvature-cut")
+    monkeypatch.setattr(problem, "solve_level", lambda *a, **k: pytest.fail("solved before checking the outputs"))
+    assert main(["run", "mean-curvature-cut", "--spacing", "0.2", flag, path, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert f"error: {flag}: " in err and re.search(pattern, err), err
+
+
+def test_version(capsys):
+    assert main(["--version"]) == 0
+    assert capsys.readouterr().out.strip() == f"cutfem {cutfem.__version__}"
+    out = subprocess.run([sys.executable, "-m", "cutfem.cli", "--version"], capture_output=True, text=True, check=True).stdout
+    assert out.strip() == f"cutfem {cutfem.__version__}"
+
+
+def test_json_record_describes_itself(capsys):
+    import scipy
+    import threadpoolctl  # noqa: F401 - a dependency: the thread pools are recorded
+
+    assert main(["run", "mean-curvature-cut", "--spacing", "0.2", "--json", "-"]) == 0
+    data = json.loads(capsys.readouterr().out)
+    assert data["schema_version"] == cutfem.registry.SCHEMA_VERSION == 2
+    assert data["failure"] is None and data["level_name"] == "spacing"
+    assert set(data["definitions"]) == {"h", "dofs", "l2_error", "area_error"}
+    assert "N**(-1/3)" in data["definitions"]["h"] and "H^e" in data["definitions"]["l2_error"]
+    assert data["components"] == 3 and data["dofs_per_component"] == [data["records"][0]["dofs"]]
+    assert data["command"] == ["cutfem", "run", "mean-curvature-cut", "--spacing", "0.2", "--json", "-"]
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", data["created_utc"])
+    assert data["git_commit"] is None or re.fullmatch(r"[0-9a-f]{40}", data["git_commit"])
+    assert data["threads"]["cpu_count"] >= 1 and isinstance(data["threads"]["pools"], list)
+    v = data["versions"]
+    assert v["numpy"] == np.__version__ and v["scipy"] == scipy.__version__ and v["cutfem"] == cutfem.__version__
+    assert v["pyvista"] and v["vtk"]
+
+
+def test_git_commit_is_none_without_git(monkeypatch):
+    import cutfem.registry as reg
+
+    def no_git(*a, **k):
+        raise FileNotFoundError("git")
+
+    monkeypatch.setattr(subprocess, "run", no_git)
+    assert reg._git_commit() is None
+    res = cutfem.run("test-quadratic") if "test-quadratic" in available_problems() else None
+    if res is not None:
+        assert res.to_json()["git_commit"] is None

@@ -303,9 +303,32 @@ def test_bad_shapes():
         TetMesh(UNIT_TET_POINTS, [[0, 1, 2]])
 
 
-def test_spacing_not_dividing_the_box():
-    with pytest.raises(ValueError, match="not whole multiples.*cells="):
-        structured_box([0, 0, 0], [1, 1, 1], spacing=0.3)
+def test_spacing_not_dividing_the_box_grows_the_box_at_exactly_that_spacing():
+    """A box that is not a whole number of cells is grown symmetrically to the next whole number;
+    the spacing used is the one asked for, bit for bit, and the grown box contains the given one."""
+    box = structured_box([0, -1, 2], [1, 1, 2.5], spacing=0.3)
+    assert np.all(box.spacing == 0.3)
+    np.testing.assert_array_equal(box.cells, [4, 7, 2])  # ceil(1/0.3), ceil(2/0.3), ceil(0.5/0.3)
+    np.testing.assert_allclose(box.lower, [0.5 - 0.6, -1.05, 2.25 - 0.3], rtol=0, atol=1e-15)
+    np.testing.assert_allclose(box.upper - box.lower, box.cells * 0.3, rtol=1e-15)
+    np.testing.assert_allclose(0.5 * (box.lower + box.upper), [0.5, 0.0, 2.25], atol=1e-15)
+    # the node coordinates step by exactly the spacing
+    x = box.node_coordinates(np.arange(box.node_shape[0]))[:, 0]
+    np.testing.assert_array_equal(x, box.lower[0] + np.arange(5) * 0.3)
+    # per-axis spacings, and a box that fits in one axis only keeps that axis as given
+    box = structured_box([0, 0, 0], [1, 1, 1], spacing=(0.25, 0.3, 0.5))
+    np.testing.assert_array_equal(box.spacing, [0.25, 0.3, 0.5])
+    np.testing.assert_array_equal(box.cells, [4, 4, 2])
+    assert box.lower[0] == 0 and box.upper[0] == 1 and box.lower[2] == 0 and box.upper[2] == 1
+    assert box.lower[1] == pytest.approx(-0.1) and box.upper[1] == pytest.approx(1.1)
+
+
+def test_spacing_that_fits_keeps_the_box():
+    box = structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1)
+    np.testing.assert_array_equal(box.cells, [32, 32, 12])
+    np.testing.assert_array_equal(box.lower, [-1.6, -1.6, -0.6])
+    np.testing.assert_array_equal(box.upper, [1.6, 1.6, 0.6])
+    assert np.all(box.spacing == 0.1)
 
 
 def test_structured_box_bad_arguments():
@@ -313,8 +336,9 @@ def test_structured_box_bad_arguments():
         structured_box([0, 0, 0], [1, 1, 1])
     with pytest.raises(ValueError, match="exactly one of spacing= or cells="):
         structured_box([0, 0, 0], [1, 1, 1], spacing=0.5, cells=2)
-    with pytest.raises(ValueError, match="spacing must be positive"):
-        structured_box([0, 0, 0], [1, 1, 1], spacing=-0.5)
+    for bad in (-0.5, 0.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="spacing must be a positive finite number"):
+            structured_box([0, 0, 0], [1, 1, 1], spacing=bad)
     with pytest.raises(ValueError, match="upper > lower"):
         structured_box([0, 0, 0], [1, 0, 1], cells=2)
     with pytest.raises(ValueError, match="at least one cell"):
@@ -373,3 +397,74 @@ def test_kuhn_gradient_table_equals_the_barycentric_gradients(lower, upper, cell
     ref = np.rint(table * box.spacing)
     assert set(np.unique(ref)) <= {-1.0, 0.0, 1.0}
     np.testing.assert_array_equal(table, ref / box.spacing)
+
+
+@pytest.mark.parametrize("base", [2**21 - 3, 2**22 + 5, 20_000_000, 2**31 + 7])
+def test_face_keys_group_faces_with_large_node_ids(base):
+    """Faces of tets whose node ids lie above 2**21 and 2**22 (a single int64 of three ids would
+    overflow there) and at 20 million are grouped exactly: the two tets sharing a face pair up, the
+    others stay alone, and the sorted columns are the face's node ids."""
+    from cutfem.mesh import pair_up, tet_face_keys
+
+    n = base + 10
+    # two tets sharing the face {base, base+1, base+2}, listed in different orders, and one apart
+    tets = np.array([[base, base + 1, base + 2, base + 3], [base + 4, base + 2, base, base + 1], [base + 5, base + 6, base + 7, base + 9]])
+    keys = tet_face_keys(tets, n)
+    assert len(keys) == 3 and all(col.shape == (12,) for col in keys)
+    rows = np.stack(keys, axis=1)
+    np.testing.assert_array_equal(rows, np.sort(tets[:, None, :].repeat(4, 1)[:, np.arange(4)[:, None], [[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]]].reshape(-1, 3), axis=1))
+    order, starts, counts = pair_up(keys)
+    assert counts.sum() == 12 and len(counts) == 11  # 12 face rows, one face shared
+    shared = np.flatnonzero(counts == 2)
+    assert shared.size == 1
+    pair = np.sort(order[starts[shared[0]] : starts[shared[0]] + 2])
+    np.testing.assert_array_equal(pair, [3, 4])  # face opposite local vertex 3 of tet 0 and vertex 0 of tet 1
+    np.testing.assert_array_equal(rows[pair[0]], [base, base + 1, base + 2])
+    # the groups come in lexicographic order of the rows
+    firsts = rows[order[starts]]
+    assert np.all(np.diff(firsts[:, 0]) >= 0)
+    np.testing.assert_array_equal(np.lexsort(firsts.T[::-1]), np.arange(len(firsts)))
+
+
+@pytest.mark.parametrize("base", [2**21 + 1, 2**22 + 3])
+def test_tetmesh_topology_with_large_node_ids(base):
+    """The face and edge topology of a mesh whose tets use node ids above 2**21 and 2**22 (the old
+    single-integer face key stopped at 2**21): two tets sharing one face."""
+    points = np.zeros((base + 5, 3))  # untouched zeros: no memory is paid for them
+    points[base : base + 5] = [[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1], [0, 0, -1]]
+    tets = np.array([[0, 1, 2, 3], [0, 2, 1, 4]]) + base
+    mesh = TetMesh(points, tets, check=False)
+    assert len(mesh.faces) == 7 and len(mesh.interior_faces) == 1
+    np.testing.assert_array_equal(mesh.faces[mesh.interior_faces[0]], [base, base + 1, base + 2])
+    np.testing.assert_array_equal(mesh.face_tets[mesh.interior_faces[0]], [0, 1])
+    assert len(mesh.edges) == 9 and mesh.edges.max() == base + 4 and mesh.edges.min() == base
+
+
+def test_sorted_row_keys_pairs_with_large_ids():
+    from cutfem.mesh import sorted_row_keys
+
+    n = 20_000_001
+    rows = np.array([[n - 1, 2**22 + 1], [2**22 + 1, n - 1], [3, 2**21 + 9]])
+    k = sorted_row_keys(rows, n)
+    assert k[0] == k[1] == (2**22 + 1) * n + n - 1 and k[2] == 3 * n + 2**21 + 9
+    with pytest.raises(ValueError, match="tet_face_keys"):
+        sorted_row_keys(np.zeros((2, 3), int), 10)
+
+
+def test_stable_argsort_of_columns_is_the_lexsort():
+    """Column tuples (mixed dtypes, negative values, widths summing past 63 bits) sort as np.lexsort."""
+    from cutfem.mesh import stable_argsort
+
+    rng = np.random.default_rng(11)
+    for trial in range(40):
+        n = int(rng.integers(0, 3000))
+        cols = []
+        for j in range(int(rng.integers(1, 4))):
+            bits = int(rng.integers(1, 40))
+            c = rng.integers(0, 2**bits, n, dtype=np.int64)
+            if trial % 3 == 0:
+                c %= 3  # ties
+            if trial % 4 == j:
+                c -= 2 ** (bits - 1)
+            cols.append(c.astype(np.int32) if bits < 31 and trial % 2 else c)
+        np.testing.assert_array_equal(stable_argsort(tuple(cols)), np.lexsort(cols[::-1]))
