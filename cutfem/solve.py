@@ -738,9 +738,14 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
                                where=f"{name} (breakdown at iteration {it}: p^T A p / p^T D p = {curvature.min():.3e}, "
                                f"r^T M r = {rz.min():.3e})", _checks=checks)
             alpha = rz / pq
-            x[act] += alpha[:, None] * p
-            ra = r[act] - alpha[:, None] * q
-            r[act] = ra
+            if act.size == len(r):  # all columns active: update in place, no gathered copies
+                x += alpha[:, None] * p
+                r -= alpha[:, None] * q
+                ra = r
+            else:
+                x[act] += alpha[:, None] * p
+                ra = r[act] - alpha[:, None] * q
+                r[act] = ra
             it += 1
             rel_a = np.sqrt(_columns_dot(ra, ra)) / nb[act]
             rel[act] = rel_a
