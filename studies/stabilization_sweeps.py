@@ -26,7 +26,7 @@ import numpy as np
 from cutfem.errors import fitted_rate, l2_error
 from cutfem.forms import assemble, position_load
 from cutfem.levelset import Torus
-from cutfem.solve import SingularSystemError, solve
+from cutfem.solve import SolverError, solve
 
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
 from .conditioning import PAPER_BOX, matrices, scaled_condition
@@ -60,7 +60,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
                     H, _ = solve(K, B, method="direct")
                     err = l2_error(space, H, torus.exact_mean_curvature_vector)
                     status = "ok"
-                except SingularSystemError:
+                except SolverError:
                     err, status = None, "singular"
                 secs = time.perf_counter() - t0
                 rows.append({"spacing": s, "h": space.h, "dofs": int(space.n_dofs), "a": a, "tau_f": float(tau),

@@ -84,7 +84,7 @@ def test_iterative_and_direct_solves_agree(spacing):
 
 @pytest.mark.parametrize("family", ["flipped", "perturbed"])
 def test_meshed_multigrid_and_direct_errors_agree(family):
-    """The meshed torus with the default tolerance (1e-6): CG with the grid multigrid and SuperLU
+    """The meshed torus with the default tolerance (1e-8): CG with the grid multigrid and SuperLU
     give L2 errors that agree to at least 5 significant digits (3 are asked for)."""
     from cutfem.surface import torus_mesh
 

@@ -16,7 +16,7 @@ from cutfem.forms import assemble, edge_jump_penalty, face_jump_penalty, mass, t
 from cutfem.levelset import Sphere, Torus
 from cutfem.markers import CUT
 from cutfem.mesh import structured_box
-from cutfem.solve import DirectSolver, SingularSystemError, cg_solve, condition_number, solve
+from cutfem.solve import DirectSolver, SolverError, cg_solve, condition_number, solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import sphere_mesh
 
@@ -90,16 +90,16 @@ def test_direct_solver_reuse_matches_spsolve(systems, name):
 
 
 def test_zero_diagonal_is_reported_singular(small_cut_sphere):
-    """An unknown without support on S_h has a zero row: SingularSystemError with smallest 0."""
+    """An unknown without support on S_h has a zero row: SolverError with smallest 0."""
     V = small_cut_sphere
     S = (mass_matrix(V) + 0.1 * face_matrix(V)).tolil()
     S[5, :] = 0.0
     S[:, 5] = 0.0
     S = S.tocsr()
-    with pytest.raises(SingularSystemError, match="zero") as err:
+    with pytest.raises(SolverError, match="zero") as err:
         DirectSolver(S)
     assert err.value.smallest == 0.0
-    with pytest.raises(SingularSystemError):
+    with pytest.raises(SolverError):
         solve(S, np.ones(V.n_dofs), method="direct")
     assert condition_number(S) == np.inf
 
@@ -107,7 +107,7 @@ def test_zero_diagonal_is_reported_singular(small_cut_sphere):
 def test_unstabilized_cut_mass_is_reported_singular(small_cut_sphere):
     V = small_cut_sphere
     M = mass_matrix(V)
-    with pytest.raises(SingularSystemError, match="numerically singular") as err:
+    with pytest.raises(SolverError, match="numerically singular") as err:
         DirectSolver(M)
     assert 0.0 <= err.value.smallest < 1e-12  # relative to a largest pivot of order one
     DirectSolver(M + 0.1 * face_matrix(V))  # stabilized: no error
@@ -122,7 +122,7 @@ def test_plane_on_a_node_layer_is_reported_singular():
     assert below.any()
     M = mass_matrix(V)
     assert np.abs(M.diagonal()[below]).max() < 1e-25 * M.diagonal().max()
-    with pytest.raises(SingularSystemError) as err:
+    with pytest.raises(SolverError) as err:
         DirectSolver(M)
     assert err.value.smallest < 1e-12
 
@@ -325,21 +325,28 @@ def test_banded_cholesky_leaves_blas_threads_as_they_were(systems):
     assert [lib["num_threads"] for lib in threadpool_info() if lib["user_api"] == "blas"] == before
 
 
-def test_nonsymmetric_matrix_falls_back_to_superlu():
-    """The banded Cholesky reads one triangle only: a non-symmetric matrix must go to the LU."""
+def test_nonsymmetric_matrix_is_refused_unless_spd_false():
+    """The banded Cholesky reads one triangle only: a non-symmetric matrix declared SPD is refused;
+    with spd=False SuperLU (partial pivoting) solves it."""
     n = 40
     A = sp.diags([-1.0, 4.0, -2.0], [-1, 0, 1], shape=(n, n), format="csr")
     b = np.arange(n, dtype=float)
-    solver = DirectSolver(A, method="banded")
+    with pytest.raises(ValueError, match="not symmetric.*spd=False"):
+        DirectSolver(A, method="banded")
+    solver = DirectSolver(A, spd=False)
     assert solver.kind == "superlu"
     np.testing.assert_allclose(A @ solver.solve(b), b, atol=1e-12 * np.abs(b).max())
 
 
-def test_indefinite_matrix_falls_back_to_superlu():
-    """A symmetric indefinite (non-singular) matrix: the Cholesky breaks down, the LU solves it."""
-    A = sp.csr_matrix(np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 3.0]]))
-    solver = DirectSolver(A)
-    assert solver.kind == "superlu"
+def test_small_indefinite_matrix_is_refused_unless_spd_false():
+    """A symmetric indefinite (non-singular) matrix: the Cholesky breaks down and the signs of
+    L D L^T name it indefinite; with spd=False the LU solves it."""
+    A = sp.csr_matrix(np.array([[1.0, 2.0, 0.0], [2.0, 1.0, 0.0], [0.0, 0.0, 3.0]]))  # eigenvalues -1, 3, 3
+    for method in ("banded", "superlu"):
+        with pytest.raises(SolverError, match="indefinite") as err:
+            DirectSolver(A, method=method)
+        assert err.value.cause == "indefinite" and err.value.smallest < 0
+    solver = DirectSolver(A, spd=False)
     b = np.array([1.0, 2.0, 3.0])
     np.testing.assert_allclose(A @ solver.solve(b), b, atol=1e-12)
 
