@@ -997,6 +997,7 @@ class GeometricMultigrid:
             A = self._prepare(A)
             P = sp.csr_matrix(P)
             Ac = (P.T @ (A @ P)).tocsr()
+            Ac = (0.5 * (Ac + Ac.T)).tocsr()  # symmetric in exact arithmetic: remove the round-off of the products
             self.levels.append(dict(A=A, U=sp.triu(A, 1, format="csr"), P=P, R=P.T.tocsr()))
             A = Ac
         self.coarse_n = A.shape[0]
@@ -1305,8 +1306,8 @@ class ConditionNumber(float):
 
 
 def condition_number(A, tol: float = 1e-8, kernels=None, stabilization=None) -> ConditionNumber:
-    """2-norm condition number of S = D^{-1/2} A D^{-1/2} (A symmetric) and whether S is positive
-    definite: a :class:`ConditionNumber` (a float with ``cause``), never an exception, so that
+    """2-norm condition number of S = |D|^{-1/2} A |D|^{-1/2} (A symmetric, D = diag A; |D| = D for a
+    positive diagonal, and a negative entry makes A indefinite) and whether S is positive definite: a :class:`ConditionNumber` (a float with ``cause``), never an exception, so that
     studies can tabulate singular and indefinite systems next to the definite ones.
 
     Dense eigenvalues for n <= 400.  Otherwise: largest magnitude by Lanczos; S = L D L^T by
@@ -1317,10 +1318,14 @@ def condition_number(A, tol: float = 1e-8, kernels=None, stabilization=None) -> 
     checks = _Checks.of(kernels, stabilization, None, A.shape[0])
     A = _canonical_csr(A)
     d = A.diagonal()
-    if np.any(d <= 0):
+    if np.any(d == 0) or not np.all(np.isfinite(d)):
         err = diagnose(A, where="condition_number", _checks=checks)
         return ConditionNumber(np.inf, err.cause, err.smallest, np.nan, err)
-    S, _ = scaled(A)
+    # a negative diagonal entry is a basis function of negative energy (indefinite); scaling by |d|
+    # still measures the spread of the spectrum, which studies of unstabilized systems tabulate
+    d = np.abs(d)
+    S = sp.diags(1.0 / np.sqrt(d)) @ A @ sp.diags(1.0 / np.sqrt(d))
+    S = (0.5 * (S + S.T)).tocsr()
     n = S.shape[0]
     negative = 0
     if n <= 400:
