@@ -1,7 +1,7 @@
 """Mesh-processing baselines for the mean curvature of a triangulated surface (no FEM solve).
 
 These are the usual pointwise formulas of geometry processing, used in the studies as a point of
-comparison for the stabilized P1 mean curvature vector of SPEC §3.  All are vectorized over the
+comparison for the stabilized P1 mean curvature vector of docs/math.md §3.  All are vectorized over the
 triangles of a closed triangle mesh with ``points`` (N, 3) and ``triangles`` (M, 3).
 
 Cotangent formula
@@ -12,7 +12,7 @@ The cotangent Laplacian is the P1 stiffness matrix of the surface mesh,
     L_ii = -sum_{j != i} L_ij,
 
 so that (L x)_i = (grad_{S_h} x, grad_{S_h} phi_i)_{S_h} ~ (H, phi_i) with the convention of
-SPEC §1 (H = -Lap_S x = (k1 + k2) n, outward).  With a lumped (diagonal) mass m_i the nodal mean
+docs/math.md §1 (H = -Lap_S x = (k1 + k2) n, outward).  With a lumped (diagonal) mass m_i the nodal mean
 curvature vector is
 
     H_i = (L X)_i / m_i        (X the (N, 3) node coordinates),
@@ -25,7 +25,7 @@ which points outward with |H_i| ~ 2/R on a sphere of radius R.  Two lumped masse
   in an obtuse triangle |K| / 2 to the obtuse vertex and |K| / 4 to the other two (so the m_i still
   sum to the total area).
 
-Compared with the consistent-mass L2 projection of SPEC §3 with tau_E = 0, these are the same
+Compared with the consistent-mass L2 projection of docs/math.md §3 with tau_E = 0, these are the same
 right-hand side with the mass matrix lumped; they do not add any stabilization.
 
 VTK / pyvista curvature
@@ -33,7 +33,7 @@ VTK / pyvista curvature
 ``pyvista.PolyData.curvature("mean")`` (vtkCurvatures) returns, per node, a discrete *mean*
 curvature in the differential-geometry sense, (k1 + k2) / 2, positive on a sphere with outward
 normals (1/R on a sphere of radius R; this is checked in the tests).  To compare it with the mean
-curvature vector of SPEC §1 we use H_i = 2 c_i n_i with c_i the pyvista value and n_i the
+curvature vector of docs/math.md §1 we use H_i = 2 c_i n_i with c_i the pyvista value and n_i the
 area-weighted vertex normal (:func:`vertex_normals`).
 """
 
@@ -135,7 +135,7 @@ def vertex_normals(points, triangles) -> np.ndarray:
 
 def cotangent_mean_curvature(points, triangles, mass: str = "voronoi") -> np.ndarray:
     """Nodal mean curvature vectors H_i = (L X)_i / m_i (N, 3) of the cotangent formula, with the
-    lumped mass ``mass`` ("voronoi" or "barycentric").  H = (k1 + k2) n, outward (SPEC §1)."""
+    lumped mass ``mass`` ("voronoi" or "barycentric").  H = (k1 + k2) n, outward (docs/math.md §1)."""
     p, t = _arrays(points, triangles)
     L = cotangent_laplacian(p, t)
     m = lumped_mass(p, t, mass)
@@ -156,7 +156,7 @@ def pyvista_mean_curvature(points, triangles) -> np.ndarray:
 
 
 def pyvista_mean_curvature_vector(points, triangles) -> np.ndarray:
-    """The pyvista value as a mean curvature vector in the convention of SPEC §1:
+    """The pyvista value as a mean curvature vector in the convention of docs/math.md §1:
     H_i = 2 c_i n_i, c_i = :func:`pyvista_mean_curvature`, n_i = :func:`vertex_normals`; (N, 3)."""
     c = pyvista_mean_curvature(points, triangles)
     return 2.0 * c[:, None] * vertex_normals(points, triangles)

@@ -51,7 +51,7 @@ seen.  Every cut then checks that S_h is closed and edge-manifold (every edge of
 exactly two triangles, from the one-sort edge counts that the Euler characteristic reuses), which
 also catches what the samples missed, and raises :class:`CutError` with the likely cause.
 
-Mesh size ``h = N**(-1/3)`` with N the number of background nodes (SPEC §2).
+Mesh size ``h = N**(-1/3)`` with N the number of background nodes (docs/math.md §2).
 """
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Error functionals and convergence rates (SPEC §5).
+"""Error functionals and convergence rates (docs/math.md §5).
 
 * :func:`l2_error`: ``sqrt( sum over S_h of |u^e - u_h|^2 )`` by quadrature of degree >= 4 on every
   triangle of S_h (quadrilateral pieces are two triangles).
@@ -37,7 +37,7 @@ def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1
     here, several times more on a loaded machine).
     """
     if degree < 4:
-        raise ValueError("SPEC §5 asks for quadrature of degree >= 4 in error norms")
+        raise ValueError("docs/math.md §5 asks for quadrature of degree >= 4 in error norms")
     if measure is None:
         _surface_measure(space)  # a clear error for a bulk field
         points, triangles, values = space.surface_vertex_data(coeffs)

@@ -1001,7 +1001,7 @@ def _meshed_stiffness(space) -> sp.csr_matrix:
 
 
 def _meshed_edge_penalty(space, h: float) -> sp.csr_matrix:
-    """J_E of SPEC §3 on S_h in closed form: sum_E h |E| a a^T with a the jump coefficients.
+    """J_E of docs/math.md §3 on S_h in closed form: sum_E h |E| a a^T with a the jump coefficients.
 
     The outward conormal of triangle K at its edge k is t = e_k / |e_k| x n_K, and
     t . grad lambda_m = -e_k . e_{m+1} / (2 |K| |E|): at the start, the end and the opposite vertex

@@ -1,7 +1,7 @@
 """Level-set descriptions of closed surfaces and their exact geometric data.
 
 A closed surface S in R^3 is the zero set of a function phi: R^3 -> R with the sign convention of
-SPEC section 1:
+docs/math.md §1:
 
 * phi < 0 inside, phi > 0 outside;
 * outward unit normal n = grad phi / |grad phi|;
@@ -1195,7 +1195,7 @@ class SignedDistance(LevelSet):
 def interpolate(levelset: LevelSet, points) -> np.ndarray:
     """Nodal values phi(x_i) of a level set at points (n, 3); returns (n,) float64.
 
-    This is the nodal interpolant rho_h of SPEC section 2 given by its nodal values.  ValueError
+    This is the nodal interpolant rho_h of docs/math.md §2 given by its nodal values.  ValueError
     if the points are not (n, 3) or if any value is NaN or infinite (the count and the first bad
     point are named; the level set is probably evaluated outside its domain of definition).
     """

@@ -8,7 +8,7 @@ is the same in every cube, so the mesh is conforming.  A structured box never ne
 whole point or tet arrays: the cut (:mod:`cutfem.cut`) asks it only for the cells near the
 surface.  ``points``/``tets`` are built lazily if a user wants the whole mesh.
 
-Mesh size: the global value ``h = N**(-1/3)`` (N = number of background nodes), as in SPEC §2.
+Mesh size: the global value ``h = N**(-1/3)`` (N = number of background nodes), as in docs/math.md §2.
 """
 
 from __future__ import annotations
@@ -367,7 +367,7 @@ class TetMesh:
 
     @property
     def h(self) -> float:
-        """Global mesh size N**(-1/3), N = number of nodes (SPEC §2)."""
+        """Global mesh size N**(-1/3), N = number of nodes (docs/math.md §2)."""
         return float(self.n_points) ** (-1.0 / 3.0)
 
     @cached_property

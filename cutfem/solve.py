@@ -69,7 +69,7 @@ W-cycles below (iterations 18 / 21 / 23 at 1e-6, nearly independent of h, where 
 everywhere needs 19 / 27 / 37 at 1e-8); :class:`DirectSolver` on the coarsest level (<= 1500 unknowns).  The
 residual after the forward sweep from zero is -U x (U the strictly upper part): half a product.
 
-Measured on this machine (2 cores), cut torus of SPEC section 6, K = M + 0.1 J_F, the three
+Measured on this machine (2 cores), cut torus of docs/math.md §6, K = M + 0.1 J_F, the three
 right-hand sides A @ x_k; times in s (wall; the machine is noisy, +-30 %), "its" per column:
 
 =======  =======  =================================  =============================

@@ -138,7 +138,7 @@ class _P1Space:
 class SurfaceP1Space(_P1Space):
     """Continuous P1 on a closed triangle surface mesh (meshed case); dofs are the mesh nodes.
 
-    ``h`` defaults to the global ``N**(-1/2)`` of SPEC §2 (N = number of nodes).
+    ``h`` defaults to the global ``N**(-1/2)`` of docs/math.md §2 (N = number of nodes).
 
     The geometry is computed on demand: the mass, stiffness and edge penalty of
     :mod:`cutfem.forms` use closed forms in the areas and the edge-vector dot products of the

@@ -1,9 +1,9 @@
-"""Closed triangle surface meshes: the meshed case of SPEC §2.
+"""Closed triangle surface meshes: the meshed case of docs/math.md §2.
 
 A :class:`SurfaceMesh` is a closed, edge- and vertex-manifold, consistently and outward oriented
 triangulation S_h with ``points`` (N, 3) and ``triangles`` (M, 3).  Its topology (unique edges,
 the two triangles of each edge, the three edges of each triangle) and its geometry (areas, unit
-normals, enclosed volume, edge conormals t_{E,K} of SPEC §3) are computed on demand, vectorized,
+normals, enclosed volume, edge conormals t_{E,K} of docs/math.md §3) are computed on demand, vectorized,
 by sorting integer keys.
 
 Conventions
@@ -11,10 +11,10 @@ Conventions
 * Local edge k of triangle (v_0, v_1, v_2) is the half-edge (v_k, v_{k+1 mod 3}).
 * The normal of a triangle is (v_1 - v_0) x (v_2 - v_0) / |...|; a triangle is *outward* when its
   normal points out of the region its connected component encloses.
-* Mesh size for tables and for the edge stabilization: the global ``h = N**(-1/2)`` (SPEC §2,
+* Mesh size for tables and for the edge stabilization: the global ``h = N**(-1/2)`` (docs/math.md §2,
   N = number of surface nodes).
 
-Generators: :func:`torus_mesh` (the four families of SPEC §6.1) and :func:`sphere_mesh`
+Generators: :func:`torus_mesh` (the four families of docs/math.md §6.1) and :func:`sphere_mesh`
 (refined icosahedron).  File I/O through meshio: :func:`read_surface`, :func:`write_surface`.
 """
 
@@ -50,7 +50,7 @@ DEGENERATE_TOLERANCE = 1e-12
 #: MERGE_TOLERANCE * (diagonal of the bounding box).
 MERGE_TOLERANCE = 1e-10
 
-#: The torus families of SPEC §6.1 accepted by :func:`torus_mesh`.
+#: The torus families of docs/math.md §6.1 accepted by :func:`torus_mesh`.
 TORUS_FAMILIES = ("structured", "flipped", "perturbed", "perturbed-flipped")
 
 _READ_EXTENSIONS_HINT = ".stl, .obj, .ply, .off, .vtk, .vtu, .msh (Gmsh), .mesh (Medit)"
@@ -558,7 +558,7 @@ def _check_disjoint_components(points: np.ndarray, tri: np.ndarray, component: n
 
 
 class SurfaceMesh:
-    """A closed, manifold, outward oriented triangle surface S_h (SPEC §2, meshed case).
+    """A closed, manifold, outward oriented triangle surface S_h (docs/math.md §2, meshed case).
 
     Parameters
     ----------
@@ -670,7 +670,7 @@ class SurfaceMesh:
 
     @property
     def h(self) -> float:
-        """Global mesh size h = N^(-1/2), N = number of surface nodes (SPEC §2).
+        """Global mesh size h = N^(-1/2), N = number of surface nodes (docs/math.md §2).
 
         This is a node-count measure, not an edge length: for the n x n/2 torus grid it is several
         times smaller than an edge.  It is the h of the edge stabilization and of the rate tables.
@@ -816,7 +816,7 @@ class SurfaceMesh:
 
     @cached_property
     def edge_conormals(self) -> np.ndarray:
-        """(E, 2, 3) unit conormals t_{E,K} (SPEC §3).
+        """(E, 2, 3) unit conormals t_{E,K} (docs/math.md §3).
 
         For edge E = [a, b] and its k-th triangle K = edge_triangles[e, k] with opposite vertex c,
         t_{E,K} lies in the plane of K, is orthogonal to E and points out of K:
@@ -884,7 +884,7 @@ def _check_positive(name: str, value) -> float:
 
 
 def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.5, seed=0) -> SurfaceMesh:
-    """Triangulated torus on an n x n/2 grid in the angles (t, p) (SPEC §6.1).
+    """Triangulated torus on an n x n/2 grid in the angles (t, p) (docs/math.md §6.1).
 
     Node (i, j), i = 0..n-1, j = 0..m-1 with m = n // 2, has grid angles t_i = 2 pi i / n,
     p_j = 2 pi j / m and sits at

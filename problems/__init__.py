@@ -1,9 +1,13 @@
 """The problems hosted by cutfem, each registered by name on import (see ``cutfem list``).
 
 * ``mean-curvature-meshed`` / ``mean-curvature-cut``: the stabilized mean curvature vector on
-  triangulated surfaces and on cut surfaces (SPEC §3).
+  triangulated surfaces and on cut surfaces (docs/math.md §3).
 * ``laplace-beltrami-meshed`` / ``laplace-beltrami-cut``: -Lap_S u + u = f with manufactured
-  solutions (SPEC §4).
+  solutions (docs/math.md §4).
+* ``poisson-cut``: fictitious-domain Poisson, Nitsche and ghost penalty (§8).
+* ``interface-poisson-cut``: a coefficient jump across a sphere, Nitsche-XFEM (§9).
+* ``bulk-surface-cut``: coupled bulk-surface diffusion (§10).
+* ``heat-surface-cut``: the heat equation on a cut sphere, theta-scheme (§11).
 """
 
 from . import bulk_surface, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson  # noqa: F401  (registration on import)

@@ -97,7 +97,7 @@ def has_exact(levelset) -> bool:
 def surface_mesh_for(surface, n, family="structured", seed=0, R=1.0, r=0.5, radius=1.0):
     """(SurfaceMesh, level set or None) of a meshed surface at resolution ``n``.
 
-    torus: the n x n/2 grid of SPEC §6.1 in the given family; sphere: an icosahedron refined
+    torus: the n x n/2 grid of docs/math.md §6.1 in the given family; sphere: an icosahedron refined
     L = round(log2(n / 5)) times (about n edges around a great circle); a file: read as is.
     """
     if surface == "torus":

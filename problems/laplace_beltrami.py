@@ -1,4 +1,4 @@
-"""Laplace-Beltrami: -Lap_S u + u = f on a closed surface (SPEC §4), meshed and cut.
+"""Laplace-Beltrami: -Lap_S u + u = f on a closed surface (docs/math.md §4), meshed and cut.
 
 Discrete: (grad_{S_h} u, grad_{S_h} v) + (u, v) + J_h(u, v) = (f^e, v), f^e = f o p.
 Cut stabilizations: ``face`` (tau_F h^a J_F), ``normal`` (tau_N h^a (n_h.grad u, n_h.grad v) over the
@@ -126,7 +126,7 @@ def _solve_and_measure(space, surface, K, closest_point, sol, t, solver):
 @register
 class LaplaceBeltramiMeshed(Problem):
     name = "laplace-beltrami-meshed"
-    summary = "-Lap_S u + u = f with a manufactured solution on a triangulated sphere or torus (SPEC §4)"
+    summary = "-Lap_S u + u = f with a manufactured solution on a triangulated sphere or torus (docs/math.md §4)"
     level_name = "n"
     definitions = DEFINITIONS
     level_type = int
@@ -164,7 +164,7 @@ class LaplaceBeltramiMeshed(Problem):
 @register
 class LaplaceBeltramiCut(Problem):
     name = "laplace-beltrami-cut"
-    summary = "-Lap_S u + u = f with a manufactured solution on a cut sphere or torus, face or normal-gradient stabilization (SPEC §4)"
+    summary = "-Lap_S u + u = f with a manufactured solution on a cut sphere or torus, face or normal-gradient stabilization (docs/math.md §4)"
     level_name = "spacing"
     definitions = DEFINITIONS
     level_type = float

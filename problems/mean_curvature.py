@@ -1,4 +1,4 @@
-"""The stabilized mean curvature vector (SPEC §3), on triangulated and on cut surfaces.
+"""The stabilized mean curvature vector (docs/math.md §3), on triangulated and on cut surfaces.
 
 Find H_h in [V_h]^3 with, for all v in [V_h]^3,
 
@@ -69,7 +69,7 @@ def _common_record(space, M, H, timer, levelset, solve_info):
 @register
 class MeanCurvatureMeshed(Problem):
     name = "mean-curvature-meshed"
-    summary = "stabilized mean curvature vector on a triangulated closed surface (SPEC §3, meshed)"
+    summary = "stabilized mean curvature vector on a triangulated closed surface (docs/math.md §3, meshed)"
     level_name = "n"
     level_type = int
     default_levels = [16, 32, 64, 128]
@@ -110,7 +110,7 @@ class MeanCurvatureMeshed(Problem):
 @register
 class MeanCurvatureCut(Problem):
     name = "mean-curvature-cut"
-    summary = "stabilized mean curvature vector on the zero level set of a P1 level set on tetrahedra (SPEC §3, cut)"
+    summary = "stabilized mean curvature vector on the zero level set of a P1 level set on tetrahedra (docs/math.md §3, cut)"
     level_name = "spacing"
     level_type = float
     default_levels = [0.2, 0.1, 0.05, 0.025]

@@ -1,4 +1,4 @@
-"""Assembly cost on the cut torus of SPEC §6: how the time to build the matrices grows with the mesh.
+"""Assembly cost on the cut torus of docs/math.md §6: how the time to build the matrices grows with the mesh.
 
 ``python -m cutfem.studies.assembly_benchmark [--out DIR] [--spacings 0.05 0.025 0.0125] [--repeat 3]
 [--cold-repeat 2]``
@@ -195,7 +195,7 @@ def plot(rows: list[dict], out: Path) -> Path:
     ax.xaxis.set_minor_formatter(NullFormatter())
     ax.set_xlabel("active tetrahedra")
     ax.set_ylabel("wall time [s]")
-    ax.set_title("Assembly on the cut torus (SPEC §6.3)")
+    ax.set_title("Assembly on the cut torus (docs/math.md §6.3)")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(ncol=2)
     return save_reproducible(fig, out / f"{NAME}.png")

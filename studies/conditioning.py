@@ -1,6 +1,6 @@
 """Conditioning of the cut mean-curvature system, with and without the face stabilization.
 
-The system matrix of SPEC §3 on a cut surface is K = M + tau_F J_F (tau_E = 0, face term without a
+The system matrix of docs/math.md §3 on a cut surface is K = M + tau_F J_F (tau_E = 0, face term without a
 power of h as in the paper).  We report the 2-norm condition number of the diagonally scaled matrix
 D^{-1/2} K D^{-1/2} (:func:`cutfem.solve.condition_number`), for tau_F = 1/10 (stabilized) and
 tau_F = 0 (K = M, the surface mass matrix on the active nodes).

@@ -1,6 +1,6 @@
 """Mesh-processing curvature formulas against the stabilized mean curvature vector (meshed torus).
 
-On the four torus families of SPEC §6.1 (structured, flipped, perturbed, perturbed-flipped; seed 0)
+On the four torus families of docs/math.md §6.1 (structured, flipped, perturbed, perturbed-flipped; seed 0)
 we compute the mean curvature vector at the nodes by
 
 * ``cotan-voronoi``: the cotangent Laplacian with the mixed Voronoi lumped mass,
@@ -8,13 +8,13 @@ we compute the mean curvature vector at the nodes by
 * ``cotan-barycentric``: the same with the barycentric lumped mass (|K|/3 per corner);
 * ``pyvista``: ``PolyData.curvature("mean")`` (VTK), which is (k1 + k2)/2, turned into a vector
   2 c_i n_i with area-weighted vertex normals;
-* ``P1, tau_E=0``: the consistent-mass L2 projection of SPEC §3 without stabilization
+* ``P1, tau_E=0``: the consistent-mass L2 projection of docs/math.md §3 without stabilization
   (``cutfem.run("mean-curvature-meshed", tau_e=0)``);
 * ``stabilized``: the same with tau_E = 1/10 (the paper's method).
 
 Errors against the exact H = (k1 + k2) n at the nodes (which lie on the torus): the nodal maximum
 max_i |H_i - H(x_i)|, the nodal RMS, and the discrete L2 error ||pi_h H - H_h||_{S_h} through the
-P1 mass matrix (SPEC §5; the pointwise formulas are read as P1 functions for this norm).  h = N^(-1/2).
+P1 mass matrix (docs/math.md §5; the pointwise formulas are read as P1 functions for this norm).  h = N^(-1/2).
 Wall times: the formula itself for the baselines (mesh given; best of three calls, after a warm-up
 call that loads VTK), assembly + solve for the FEM (one call, from the problem's timer).
 
@@ -133,7 +133,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
         "seed": SEED,
         "tau_e": TAU_E,
         "conventions": {
-            "H": "mean curvature vector (k1 + k2) n, outward (SPEC §1)",
+            "H": "mean curvature vector (k1 + k2) n, outward (docs/math.md §1)",
             "pyvista": "PolyData.curvature('mean') = (k1 + k2)/2; used as 2 c n with area-weighted vertex normals",
             "h": "N^(-1/2), N = number of surface nodes",
             "seconds": "baselines: the formula on a given mesh; FEM: assembly + solve",

@@ -1,4 +1,4 @@
-"""Laplace-Beltrami convergence (SPEC §4): -Lap_S u + u = f on the sphere and the torus.
+"""Laplace-Beltrami convergence (docs/math.md §4): -Lap_S u + u = f on the sphere and the torus.
 
 Manufactured solutions of :mod:`cutfem.problems.laplace_beltrami` (sphere: u = x y + z; torus:
 u = cos(3t) sin(p)).  Four discretizations per surface, all through ``cutfem.run``:

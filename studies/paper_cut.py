@@ -1,4 +1,4 @@
-"""The paper's cut torus (SPEC §6.3).
+"""The paper's cut torus (docs/math.md §6.3).
 
 The torus R = 1, r = 1/2 is the zero level set of its signed distance, interpolated on a structured
 (Kuhn: six tetrahedra per cube) background mesh of the box [-1.6, 1.6] x [-1.6, 1.6] x [-0.6, 0.6],

@@ -1,4 +1,4 @@
-"""The paper's meshed-torus experiments (SPEC §6.1-6.2).
+"""The paper's meshed-torus experiments (docs/math.md §6.1-6.2).
 
 * The torus mesh families on the n x n/2 grid in the angles (t, p): structured, flipped, perturbed
   (the paper's "unstructured") and perturbed-flipped, rendered off-screen with pyvista, one PNG
@@ -12,7 +12,7 @@
   (t, p) parameter square, one shared colour scale; and the same on the surface in 3D (pyvista).
 
 Rates: "fit" is the least-squares slope of log(error) against log(h) over all levels, "last" the
-rate between the two finest levels.  h = N^(-1/2) with N surface nodes (SPEC §2).
+rate between the two finest levels.  h = N^(-1/2) with N surface nodes (docs/math.md §2).
 """
 
 from __future__ import annotations

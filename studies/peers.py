@@ -1,6 +1,6 @@
 """Side by side with a peer: ngsxfem (NGSolve + xfem) on the identical cut mean curvature problem.
 
-The cut problem (SPEC §3, §6.3)
+The cut problem (docs/math.md §3, §6.3)
 -------------------------------
 Both codes solve, on the paper's box [-1.6,1.6]^2 x [-0.6,0.6] with the torus R = 1, r = 1/2:
 

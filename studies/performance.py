@@ -1,6 +1,6 @@
 """Performance benchmark: stage times, peak memory and sizes of the mean curvature problems.
 
-Cut torus of SPEC §6 (box [-1.6,1.6]^2 x [-0.6,0.6], structured Kuhn background, tau_F = 0.1) at
+Cut torus of docs/math.md §6 (box [-1.6,1.6]^2 x [-0.6,0.6], structured Kuhn background, tau_F = 0.1) at
 spacings 0.1 ... 0.0125 (0.00625 with ``--full``), and the meshed torus (flipped and perturbed
 families, tau_E = 0.1) at n = 64 ... 768.  Every level runs in a fresh Python process, so that its
 peak resident memory (``ru_maxrss``) is its own; the stages are timed with ``perf_counter``:

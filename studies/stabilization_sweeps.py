@@ -5,7 +5,7 @@ background, spacings 0.4/k, h = N^(-1/3) with N the number of background nodes),
 
     K = M + tau_F h^a J_F,   a in {-1, 0, 1, 2},   tau_F on a logarithmic range 1e-3 .. 10,
 
-we record the L2(S_h) error ||H^e - H_h|| (SPEC §5, degree-4 quadrature), its least-squares rate
+we record the L2(S_h) error ||H^e - H_h|| (docs/math.md §5, degree-4 quadrature), its least-squares rate
 over the spacings, and the scaled condition number of K (:func:`cutfem.studies.conditioning.scaled_condition`,
 infinite when numerically singular).  The paper's setting is a = 0, tau_F = 1/10.  M, A, J_F are
 assembled once per spacing; the direct solver raises on a numerically singular K, which is recorded

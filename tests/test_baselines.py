@@ -1,6 +1,6 @@
 """Tests of cutfem.baselines: the cotangent formula and pyvista's curvature, with their conventions.
 
-Reference values are closed-form: a sphere of radius R has H = (2/R) n (SPEC §1) and VTK's mean
+Reference values are closed-form: a sphere of radius R has H = (2/R) n (docs/math.md §1) and VTK's mean
 curvature (k1 + k2)/2 = 1/R; a regular tetrahedron has equilateral faces (Voronoi = barycentric
 areas); a triangle with a 120 degree angle is obtuse (mixed areas A/2, A/4, A/4).
 """

@@ -51,7 +51,7 @@ def parametric_geometry(r_u, r_v, r_uu, r_uv, r_vv, outward_hint):
 
 
 def torus_param(R, r, t, p):
-    """Point, derivatives and outward hint of the SPEC torus parametrization."""
+    """Point, derivatives and outward hint of the torus of docs/math.md parametrization."""
     ct, st, cp, sp = np.cos(t), np.sin(t), np.cos(p), np.sin(p)
     rho = R + r * cp
     x = np.stack([rho * ct, rho * st, r * sp], axis=-1)
@@ -218,7 +218,7 @@ def test_torus_curvature_identities_on_the_surface():
     n_param, k_param = parametric_geometry(r_t, r_p, r_tt, r_tp, r_pp, hint)
     np.testing.assert_allclose(tor.value(x), 0.0, atol=1e-14)
     k_closed = tor.exact_mean_curvature(x)
-    # closed form (SPEC) vs trace(P Hess)/|grad| vs the fundamental forms
+    # closed form (docs/math.md §1) vs trace(P Hess)/|grad| vs the fundamental forms
     np.testing.assert_allclose(k_closed, (R + 2 * r * np.cos(p)) / (r * (R + r * np.cos(p))), atol=1e-12)
     np.testing.assert_allclose(k_closed, tor.mean_curvature(x), atol=1e-12)
     np.testing.assert_allclose(k_closed, k_param, atol=1e-10)

@@ -1,4 +1,4 @@
-"""The hosted problems: rates, invariants and the qualitative behaviour reported in the paper (SPEC §3-4)."""
+"""The hosted problems: rates, invariants and the qualitative behaviour reported in the paper (docs/math.md §3-4)."""
 
 import numpy as np
 import pytest

@@ -251,8 +251,8 @@ def test_simultaneous_cg_equals_column_by_column_and_direct(torus_space, monkeyp
     round-off, the block agrees with the direct solution to the tolerance, and a converged column
     is frozen (a zero column costs no product; the products are the sum of the columns' own)."""
     V = torus_space
-    K = (mass(V) + 0.1 * face_jump_penalty(V)).tocsr()
-    B = np.column_stack([tangential_stiffness(V) @ V.dof_points, np.zeros(V.n_dofs)])  # (n, 4)
+    K = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
+    B = np.column_stack([stiffness_matrix(V) @ V.dof_points, np.zeros(V.n_dofs)])  # (n, 4)
     products = []
     rowwise = solve_module._rowwise
     monkeypatch.setattr(solve_module, "_rowwise", lambda A: (lambda X: (products.append(X.shape[0]), rowwise(A)(X))[1]))
@@ -275,14 +275,15 @@ def test_default_tolerance_keeps_the_integral_of_H_at_round_off(surface):
     """int_{S_h} H_h = 1^T M H = -1^T r (1^T B = 0, J 1 = 0): with the default tolerance of the
     multigrid path it stays below 1e-10 of the area (spacing 0.08 is the worst measured: 1.5e-11;
     it was 1.4e-9 with the former 1e-6)."""
-    from problems.mean_curvature import mean_curvature_system
+    from cutfem.problems.mean_curvature import mean_curvature_system
 
     if surface == "cut-0.08":
-        V = CutP1Space(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.08), Torus()))
-        M, K, B = mean_curvature_system(V, tau_f=0.1)
+        cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.08), Torus())
+        V = CutP1Space(cut)
+        M, K, B = mean_curvature_system(V, cut.ds(), tau_f=0.1, faces=cut.dF(cut.interior_facets(CUT)))
     else:
         V = SurfaceP1Space(torus_mesh(96, "perturbed", seed=1))
-        M, K, B = mean_curvature_system(V, tau_e=0.1)
+        M, K, B = mean_curvature_system(V, V.mesh.ds(), tau_e=0.1)
     H, info = solve(K, B, method="cg-mg", space=V)
     assert info.method == "cg-mg" and info.residual <= solve_module.DEFAULT_TOL
     ones_M = np.asarray(M.sum(axis=0)).ravel()

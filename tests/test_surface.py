@@ -1,4 +1,4 @@
-"""Tests for cutfem.surface: closed triangle surface meshes (SPEC §2, §6.1).
+"""Tests for cutfem.surface: closed triangle surface meshes (docs/math.md §2, §6.1).
 
 Expected numbers come from closed-form geometry (torus trapezoid areas, icosahedron formulas,
 cube), never from the code under test.
@@ -22,7 +22,7 @@ from cutfem.surface import (
 
 
 def torus_rho(x, R, r):
-    """Exact signed distance to the torus (SPEC §1)."""
+    """Exact signed distance to the torus (docs/math.md §1)."""
     return np.sqrt(x[:, 2] ** 2 + (np.hypot(x[:, 0], x[:, 1]) - R) ** 2) - r
 
 
