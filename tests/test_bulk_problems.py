@@ -97,3 +97,14 @@ def test_bulk_surface_cut_rates_four_levels():
 def test_heat_surface_cut_rates_four_levels(theta):
     res = cutfem.run("heat-surface-cut", levels=FOUR, theta=theta)
     _assert_rates(res, HEAT)
+
+
+@pytest.mark.parametrize("solver", ["direct", "cg-mg"])
+def test_too_small_nitsche_penalty_is_reported_with_its_fix(solver):
+    """gamma = 0.5 makes the fictitious-domain system indefinite: every solver path says so and
+    names the Nitsche penalty, instead of returning a solution."""
+    from cutfem.solve import SolverError
+
+    with pytest.raises(SolverError, match=r"raise the Nitsche penalty \(--gamma 0.5") as err:
+        cutfem.run("poisson-cut", levels=[0.1], gamma=0.5, solver=solver)
+    assert err.value.cause == "indefinite"
