@@ -12,7 +12,6 @@ hypotenuse has slope ``order`` on the log-log axes, with its legs labelled ``1``
 
 from __future__ import annotations
 
-import contextlib
 import math
 import textwrap
 from pathlib import Path

@@ -67,13 +67,11 @@ from .measures import ElementVolume, FacetMeasure, SideVolume, SurfacePieces
 from .mesh import (
     CUBE_CORNERS,
     KUHN_TETS,
-    TET_FACES,
     StructuredBox,
     TetMesh,
     barycentric_gradients,
     dense_unique,
     pair_up,
-    tet_face_keys,
     triangle_areas,
     unique_keys,
 )

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .measures import surface_measure
 from .mesh import triangle_areas
 from .quadrature import triangle_rule
 
@@ -39,7 +40,7 @@ def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1
     if degree < 4:
         raise ValueError("docs/math.md §5 asks for quadrature of degree >= 4 in error norms")
     if measure is None:
-        _surface_measure(space)  # a clear error for a bulk field
+        surface_measure(space)  # a clear error for a bulk field
         points, triangles, values = space.surface_vertex_data(coeffs)
         points = np.ascontiguousarray(points, dtype=float)
         # C order: a solver may return the coefficients in Fortran order, and the row gathers
@@ -75,7 +76,7 @@ def h1_error(space, coeffs, exact_gradient, measure=None, degree: int = 4) -> fl
     measure, ``|| P_h (grad u^e - grad u_h) ||`` over a surface (``measure=None``: S_h of a trace or
     meshed field).  ``exact_gradient(x)`` maps (m, q, 3) to (m, q, 3)."""
     if measure is None:
-        measure = _surface_measure(space)
+        measure = surface_measure(space)
     quad = measure.quadrature(degree)
     el = space.local_elements(measure, quad.parent)
     local = np.asarray(coeffs)[space.element_dofs[el]]
@@ -90,14 +91,6 @@ def h1_error(space, coeffs, exact_gradient, measure=None, degree: int = 4) -> fl
     return float(np.sqrt(np.einsum("mqd,mqd,mq->", d, d, quad.weights)))
 
 
-def _surface_measure(space):
-    """S_h of a field: the pieces of its cut (trace field) or its surface mesh."""
-    if hasattr(space, "cut"):
-        space._require_trace("an integral over S_h without a measure")
-        return space.cut.ds()
-    return space.mesh.ds()
-
-
 def discrete_error(M, e) -> float:
     """sqrt(e^T M e) for e (n,) or (n, c) (components summed): ||pi_h u - u_h||_{S_h} for P1."""
     e = np.asarray(e, dtype=float)
@@ -108,7 +101,7 @@ def discrete_error(M, e) -> float:
 def surface_integral(space, coeffs) -> np.ndarray:
     """Integral over S_h of a discrete function: scalar or (c,) vector.  Exact: a linear function
     integrates over a triangle to its area times the mean of its vertex values."""
-    _surface_measure(space)  # a clear error for a bulk field
+    surface_measure(space)  # a clear error for a bulk field
     points, triangles, values = space.surface_vertex_data(coeffs)
     area = triangle_areas(points, triangles)
     return np.einsum("m,mk...->...", area / 3.0, np.asarray(values)[triangles])

@@ -55,7 +55,7 @@ import scipy.sparse as sp
 from .assembly import gram
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from .mesh import cross, vertex_columns
-from .spaces import ProductSpace, SurfaceP1Space
+from .spaces import ProductSpace
 
 __all__ = [
     "ZERO",

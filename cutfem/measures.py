@@ -31,7 +31,7 @@ import numpy as np
 from .markers import CUT, NEG, POS, side_subtetrahedra
 from .quadrature import Quadrature, map_tetrahedra, map_triangles
 
-__all__ = ["Measure", "SurfacePieces", "SideVolume", "ElementVolume", "FacetMeasure", "MeshedSurface"]
+__all__ = ["Measure", "SurfacePieces", "SideVolume", "ElementVolume", "FacetMeasure", "MeshedSurface", "surface_measure"]
 
 
 class Measure:
@@ -219,3 +219,12 @@ class MeshedSurface(Measure):
     @property
     def size(self) -> float:
         return float(self.mesh.areas.sum())
+
+
+def surface_measure(space) -> Measure:
+    """The measure on S_h of a surface field: the pieces of its cut (a field on the cut tets) or the
+    triangles of its surface mesh; a clear error for a bulk field."""
+    if hasattr(space, "cut"):
+        space._require_trace("a measure on S_h")
+        return space.cut.ds()
+    return space.mesh.ds()

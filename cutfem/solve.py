@@ -344,7 +344,6 @@ def diagnose(A, vectors=(), smallest=None, where="the solver", negative_pivots=0
     """
     checks = _checks if _checks is not None else _Checks.of(kernels, stabilization, indefinite_hint)
     A = _canonical_csr(A)
-    n = A.shape[0]
     d = A.diagonal()
     hint = checks.indefinite_hint or GENERIC_INDEFINITE_ADVICE
     # 1. the diagonal

@@ -49,7 +49,6 @@ import time
 from pathlib import Path
 
 import numpy as np
-import scipy.sparse as sp
 
 from cutfem.cut import cut_mesh
 from cutfem.forms import assemble, face_jump_penalty, nitsche, stiffness

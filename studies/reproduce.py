@@ -134,7 +134,7 @@ def claims(tables: Path) -> list[dict]:
             if s is not None:
                 row(f"meshed, {fam}, $\\tau_E = 0$", "not stated", s["rate_fit_discrete"], s["rate_last_discrete"], "--", None, src)
         worst = max(max(s["integral_H_max"]) for s in meshed["series"])
-        row("meshed: $\\int_{S_h} H_h = 0$", "exact", worst, None, f"$\\max |\\cdot| \\le 10^{{-8}}$", worst <= ZERO_INTEGRAL, src, kind="integral")
+        row("meshed: $\\int_{S_h} H_h = 0$", "exact", worst, None, "$\\max |\\cdot| \\le 10^{-8}$", worst <= ZERO_INTEGRAL, src, kind="integral")
     if cut is not None:
         sp = cut["spacing"]
         src = f"cut torus, spacing {sp[0]:g}..{sp[-1]:g}"
@@ -145,7 +145,7 @@ def claims(tables: Path) -> list[dict]:
         row("cut: area of $S_h$, $O(h^2)$", "$2$", cut["rate_fit_area"], cut["rate_last_area"],
             f"$|\\text{{fit}} - 2| \\le {ABOUT_TOL}$", abs(cut["rate_fit_area"] - 2) <= ABOUT_TOL, src)
         worst = max(cut["integral_H_max"])
-        row("cut: $\\int_{S_h} H_h = 0$", "exact", worst, None, f"$\\max |\\cdot| \\le 10^{{-8}}$", worst <= ZERO_INTEGRAL, src, kind="integral")
+        row("cut: $\\int_{S_h} H_h = 0$", "exact", worst, None, "$\\max |\\cdot| \\le 10^{-8}$", worst <= ZERO_INTEGRAL, src, kind="integral")
     return rows
 
 

@@ -22,19 +22,18 @@ from cutfem.forms import (
     assemble,
     bilinear_form,
     dot,
-    edge_jump_penalty,
     face_jump_penalty,
     linear_form,
-    load,
     mass,
     position_load,
-    tangential_stiffness,
 )
 from cutfem.levelset import Sphere, Torus
-from cutfem.markers import CUT, NEG
+from cutfem.markers import NEG
 from cutfem.mesh import structured_box, unstructured_box
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import SurfaceMesh, sphere_mesh, torus_mesh
+from cutfem.measures import surface_measure as ds
+from surface_matrices import dF, edge_matrix, face_matrix, load_vector, mass_matrix, stiffness_matrix
 
 
 def triangles_area(P):
@@ -47,36 +46,6 @@ def surface_triangles(V):
     if isinstance(V, SurfaceP1Space):
         return np.asarray(V.dof_points)[V.element_dofs]
     return V.cut.vertices[V.cut.triangles]
-
-
-def ds(V):
-    """The measure on S_h of a meshed or cut space."""
-    return V.mesh.ds() if isinstance(V, SurfaceP1Space) else V.cut.ds()
-
-
-def dF(V):
-    """The facet measure of J_F: the interior faces of the cut tets."""
-    return V.cut.dF(V.cut.interior_facets(CUT))
-
-
-def mass_matrix(V):
-    return assemble(mass(ds(V)), V)
-
-
-def stiffness_matrix(V):
-    return assemble(tangential_stiffness(ds(V)), V)
-
-
-def edge_matrix(V, **kw):
-    return assemble(edge_jump_penalty(ds(V), **kw), V)
-
-
-def face_matrix(V, **kw):
-    return assemble(face_jump_penalty(dF(V), **kw), V)
-
-
-def load_vector(V, f, **kw):
-    return assemble(load(f, ds(V), **kw), V)
 
 
 SPACES = {

@@ -12,35 +12,12 @@ import scipy.sparse.linalg as spla
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import discrete_error, fitted_rate, h1_error, l2_error, rates, surface_integral
-from cutfem.forms import assemble, edge_jump_penalty, face_jump_penalty, mass, tangential_stiffness
 from cutfem.levelset import Sphere, Torus
-from cutfem.markers import CUT
 from cutfem.mesh import structured_box
 from cutfem.solve import DirectSolver, SolverError, cg_solve, condition_number, solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import sphere_mesh
-
-
-def ds(V):
-    """The measure on S_h of a meshed or cut space."""
-    return V.mesh.ds() if isinstance(V, SurfaceP1Space) else V.cut.ds()
-
-
-def mass_matrix(V):
-    return assemble(mass(ds(V)), V)
-
-
-def stiffness_matrix(V):
-    return assemble(tangential_stiffness(ds(V)), V)
-
-
-def face_matrix(V):
-    """J_F over the interior faces of the cut tets."""
-    return assemble(face_jump_penalty(V.cut.dF(V.cut.interior_facets(CUT))), V)
-
-
-def edge_matrix(V):
-    return assemble(edge_jump_penalty(ds(V)), V)
+from surface_matrices import face_matrix, mass_matrix, stiffness_matrix
 
 
 @pytest.fixture(scope="module")

@@ -27,7 +27,7 @@ from cutfem.solve import (
 )
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import sphere_mesh
-from test_solve_mg import face_matrix, mass_matrix, stiffness_matrix
+from surface_matrices import face_matrix, mass_matrix, stiffness_matrix
 
 
 @pytest.fixture(scope="module")
