@@ -51,6 +51,7 @@ def source(x):
     level_name="spacing",
     params=[
         Param("surface", str, "sphere", "domain: sphere (ball), torus (solid torus), ellipsoid or a closed mesh file"),
+        Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)"),
         Param("gamma", float, 10.0, "Nitsche penalty gamma", minimum=0),
         Param("gamma_g", float, 0.1, "ghost penalty gamma_g", minimum=0),
@@ -58,12 +59,12 @@ def source(x):
         *SHAPE_PARAMS,
     ],
 )
-def poisson_cut(spacing, surface, box, gamma, gamma_g, solver, R, r, radius, axes):
+def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r, radius, axes):
     """One level of the fictitious-domain Poisson problem."""
     t = Timer()
     with t("geometry"):
         phi = levelset_for(surface, R, r, radius, axes)
-        cut = cut_mesh(background_for(phi, spacing, "structured", box), phi)
+        cut = cut_mesh(background_for(phi, spacing, background, box), phi)
         V = CutP1Space(cut, NEG)
         dx, ds = cut.dx(NEG), cut.ds()
     with t("assembly"):

@@ -108,3 +108,9 @@ def test_too_small_nitsche_penalty_is_reported_with_its_fix(solver):
     with pytest.raises(SolverError, match=r"raise the Nitsche penalty \(--gamma 0.5") as err:
         cutfem.run("poisson-cut", levels=[0.1], gamma=0.5, solver=solver)
     assert err.value.cause == "indefinite"
+
+
+def test_poisson_cut_on_an_unstructured_background():
+    """The same problem on a pytetwild background (no lattice: a direct solve at these sizes)."""
+    result = cutfem.run("poisson-cut", levels=[0.3, 0.15], background="tetwild")
+    assert result.rates["l2_error"][-1] >= 1.9 and result.rates["h1_error"][-1] >= 0.95
