@@ -150,12 +150,16 @@ def _cmd_run(argv) -> int:
     if known.vtk and result.records:
         out = Path(known.vtk)
         out.mkdir(parents=True, exist_ok=True)
-        for level, rec in zip(result.levels, result.records):
+        series = {}
+        for index, (level, rec) in enumerate(zip(result.levels, result.records)):
             for kind, ds in rec.get("fields", {}).items():
                 ext = ".vtp" if ds.__class__.__name__ == "PolyData" else ".vtu"
                 path = out / f"{problem.name}_{problem.level_name}{level}_{kind}{ext}"
                 ds.save(path)
-        print(f"wrote VTK files to {out}", file=sys.stderr)
+                series.setdefault(kind, []).append((index, path.name))
+        for kind, entries in series.items():
+            write_pvd(out / f"{problem.name}_{kind}.pvd", entries)
+        print(f"wrote VTK files and one .pvd series over the levels per field to {out}", file=sys.stderr)
     if known.plot and result.records:
         from .convergence import convergence_plot
 
@@ -170,6 +174,16 @@ def _cmd_run(argv) -> int:
     done = f" ({f['index']} finished level(s) kept)" if f["index"] else ""
     _fail(f"{problem.level_name}={f['level']} failed{done}: {f['message']}")
     return 2 if isinstance(result.exception, INPUT_ERRORS) else 1
+
+
+def write_pvd(path, entries) -> None:
+    """A ParaView collection (.pvd) of the files ``entries`` = [(step, file name relative to the
+    .pvd), ...]: the levels of a run become the time steps 0, 1, 2, ... of one series."""
+    rows = "\n".join(f'    <DataSet timestep="{step}" part="0" file="{name}"/>' for step, name in entries)
+    Path(path).write_text(
+        '<?xml version="1.0"?>\n<VTKFile type="Collection" version="0.1">\n  <Collection>\n'
+        f"{rows}\n  </Collection>\n</VTKFile>\n"
+    )
 
 
 def _cmd_reproduce(argv) -> int:

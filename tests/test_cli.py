@@ -49,12 +49,31 @@ def test_run_writes_json_vtk_and_plot(tmp_path, capsys):
     assert "discrete_error" in out and "rate" in out
     assert json.loads(js.read_text())["parameters"]["family"] == "flipped"
     files = sorted(p.name for p in vtk.iterdir())
-    assert files == ["mean-curvature-meshed_n16_surface.vtp", "mean-curvature-meshed_n8_surface.vtp"]
+    assert files == ["mean-curvature-meshed_n16_surface.vtp", "mean-curvature-meshed_n8_surface.vtp", "mean-curvature-meshed_surface.pvd"]
     import pyvista as pv
 
     poly = pv.read(vtk / files[0])
     assert poly.point_data["H_h"].shape == (poly.n_points, 3)
+    # the levels as one series, in order, readable by ParaView's (and pyvista's) .pvd reader
+    series = pv.get_reader(vtk / files[2])
+    assert series.time_values == [0.0, 1.0]
+    assert [d.path for d in series.datasets] == ["mean-curvature-meshed_n8_surface.vtp", "mean-curvature-meshed_n16_surface.vtp"]
     assert png.stat().st_size > 5000
+
+
+def test_bulk_fields_in_vtk_carry_phi_h_and_the_cut_marker(tmp_path):
+    """A bulk problem's fields: u_h and u_exact on its element set with phi_h and the cut marker, and
+    the interface surface; the unstructured grid is readable by meshio too."""
+    import meshio
+    import pyvista as pv
+
+    assert main(["run", "poisson-cut", "--spacing", "0.4", "--vtk", str(tmp_path), "--quiet"]) == 0
+    grid = pv.read(tmp_path / "poisson-cut_spacing0.4_domain.vtu")
+    assert {"u_h", "u_exact", "phi_h"} <= set(grid.point_data.keys()) and "cut" in grid.cell_data.keys()
+    assert grid.point_data["phi_h"].min() < 0 and 0 < grid.cell_data["cut"].sum() < grid.n_cells
+    mesh = meshio.read(tmp_path / "poisson-cut_spacing0.4_domain.vtu")
+    assert len(mesh.points) == grid.n_points and "u_h" in mesh.point_data
+    assert (tmp_path / "poisson-cut_domain.pvd").exists() and (tmp_path / "poisson-cut_boundary.pvd").exists()
 
 
 @pytest.mark.parametrize("argv,pattern", [
