@@ -180,7 +180,12 @@ def test_cut_torus_beyond_two_million_active_nodes():
         pytest.skip("needs about 8 GiB free (the cut estimate at this spacing is 5.7 GiB)")
     cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.0042), Torus(1.0, 0.5))
     assert cut.n_nodes > 2**21
-    faces, face_tets = cut.interior_faces, cut.interior_face_tets
+    from cutfem.markers import CUT
+    from cutfem.mesh import TET_FACES
+
+    facets = cut.interior_facets(CUT)
+    face_tets = facets.pairs
+    faces = np.take_along_axis(cut.tets[face_tets[:, 0]], TET_FACES[facets.opposite[:, 0]], axis=1)
     F = len(faces)
     # an interior face takes two of the 4 T face slots; the thin band has many boundary faces
     # (F / T = 1.66 at this spacing)
