@@ -37,7 +37,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import Timer, background_for, cut_record
+from .common import Timer, background_for, cut_record, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -156,13 +156,8 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
     rec["fields"] = LazyFields(
         lambda: {
             "bulk": W["bulk"].elements.to_pyvista(u_h=u_b, u_exact=sol.u_bulk(W["bulk"].dof_points)),
-            "surface": _with(cut.to_pyvista(), u_h=W["surface"].surface_vertex_values(u_s), u_exact=sol.u_surface(cut.vertices)),
+            "surface": with_point_data(cut.to_pyvista(), u_h=W["surface"].surface_vertex_values(u_s), u_exact=sol.u_surface(cut.vertices)),
         }
     )
     return rec
 
-
-def _with(poly, **point_data):
-    for name, values in point_data.items():
-        poly.point_data[name] = values
-    return poly

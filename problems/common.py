@@ -204,3 +204,10 @@ def cut_record(cut) -> dict:
         "surface_triangles": int(cut.n_triangles),
         "interior_faces": int(cut.interior_facets().n_facets),
     }
+
+
+def with_point_data(dataset, **arrays):
+    """``dataset`` (a pyvista mesh) with the given per-point arrays attached; returns it."""
+    for name, values in arrays.items():
+        dataset.point_data[name] = np.asarray(values)
+    return dataset

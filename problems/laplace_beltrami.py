@@ -29,7 +29,7 @@ from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
 from cutfem.surface import TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, check_cut_memory, check_resolution, Timer, background_for, cut_record, levelset_for, surface_mesh_for
+from .common import SHAPE_PARAMS, check_cut_memory, check_resolution, Timer, background_for, cut_record, levelset_for, surface_mesh_for, with_point_data
 
 
 #: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
@@ -88,12 +88,6 @@ class TorusSolution:
         dt = -3 * np.sin(3 * t) * np.sin(p)
         dp = np.cos(3 * t) * np.cos(p)
         return (dt / s)[..., None] * et + (dp / r)[..., None] * ep
-
-
-def _with_point_data(ds, **arrays):
-    for k, v in arrays.items():
-        ds.point_data[k] = np.asarray(v)
-    return ds
 
 
 def manufactured(levelset):
@@ -157,7 +151,7 @@ class LaplaceBeltramiMeshed(Problem):
         u, rec = _solve_and_measure(space, dS, K.tocsr(), exact.closest_point, sol, t, solver)
         rec["area"] = float(M.sum())
         rec["time"] = dict(t)
-        rec["fields"] = LazyFields(lambda: {"surface": _with_point_data(mesh.to_pyvista(), u_h=u, u_exact=sol.u(exact.closest_point(space.dof_points)))})
+        rec["fields"] = LazyFields(lambda: {"surface": with_point_data(mesh.to_pyvista(), u_h=u, u_exact=sol.u(exact.closest_point(space.dof_points)))})
         return rec
 
 
@@ -204,6 +198,6 @@ class LaplaceBeltramiCut(Problem):
         rec["area"] = float(M.sum())
         rec["time"] = dict(t)
         rec["fields"] = LazyFields(
-            lambda: {"surface": _with_point_data(cut.to_pyvista(), u_h=space.surface_vertex_values(u), u_exact=sol.u(phi.closest_point(cut.vertices)))}
+            lambda: {"surface": with_point_data(cut.to_pyvista(), u_h=space.surface_vertex_values(u), u_exact=sol.u(phi.closest_point(cut.vertices)))}
         )
         return rec
