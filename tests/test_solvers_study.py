@@ -104,6 +104,8 @@ def test_predicted_unknowns_and_skips():
     assert "direct above" in st.skip_reason(bulk, "direct", st.DIRECT_BULK_LIMIT + 1)
     assert st.skip_reason(meshed, "direct", st.DIRECT_BULK_LIMIT + 1) is None  # surface systems go further
     assert "cg-jacobi above" in st.skip_reason(meshed, "cg-jacobi", st.JACOBI_LIMIT + 1)
+    assert "cg-amg above" in st.skip_reason(meshed, "cg-amg", st.AMG_SURFACE_LIMIT + 1)
+    assert st.skip_reason(bulk, "cg-amg", st.AMG_SURFACE_LIMIT + 1) is None  # bulk systems: 8-48 iterations
     assert st.skip_reason(bulk, "cg-mg", 10**9) is None and st.skip_reason(bulk, "direct", None) is None
 
 
