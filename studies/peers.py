@@ -97,6 +97,20 @@ error, and times (cotangent: the formula on a given mesh, best of three; stabili
 solve from the problem's timer; both also end to end including the mesh), with the ratios
 cotangent / stabilized.
 
+Fictitious-domain Poisson (``--problem poisson``; ``both`` runs the two comparisons)
+-----------------------------------------------------------------------------------
+``cutfem.run("poisson-cut")`` (docs/math.md §8: unit ball in its default structured box, gamma = 10
+with h_T, gamma_g = 0.1 with h_F^1 on the ghost faces of NEG, u = sin(pi x/2) cos(pi y/3) exp(z/2))
+against :func:`ngsxfem_poisson` on the same tets, the same snapped P1 level set (zeros -> +EPS and
+the collapsed tets not counted as cut, as above), h_T from netgen's element table, h_F from the
+facet normal (:func:`kuhn_face_h`: exact on a Kuhn lattice, where NGSolve offers no longest edge
+of a facet), the same quadrature degrees (2 for the form and the volume load, 4 for the Nitsche
+load and the errors).  Solvers: each code's fastest for this SPD system -- cutfem's default, CG
+with the geometric multigrid on the nested Kuhn lattices; NGSolve's sparse Cholesky (its
+multigrid needs a mesh hierarchy that an imported mesh does not have, and BDDC on P1 keeps every
+vertex in the coarse space, i.e. a direct solve).  Each level runs both codes ``repeat`` times,
+alternating, and reports the median.  Outputs ``peers_poisson.json``/``.csv`` and a table.
+
 Outputs (prefix ``peers``): ``peers.json``, ``peers.csv`` (cut levels), ``peers_meshed.csv``,
 ``peers.png/.pdf`` (time against active tets for both codes; errors of both codes and their relative
 difference; the meshed comparison).  Without ngsolve/xfem, ``run`` writes ``peers.json`` saying so
@@ -116,6 +130,7 @@ from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_
 
 NAME = "peers"
 OUTPUTS = [NAME, f"{NAME}_meshed"]  # peers.json/.csv/.png/.pdf, peers_meshed.csv
+POISSON_NAME = f"{NAME}_poisson"  # --problem poisson: peers_poisson.json/.csv
 INSTALL = 'install with pip install -e ".[peers]"'
 BOX = "-1.6,-1.6,-0.6,1.6,1.6,0.6"
 TAU_F = 0.1
@@ -569,6 +584,271 @@ def compare_level(spacing, variant="paper", progress=None, taskmanager=False, re
 
 
 # ---------------------------------------------------------------------------------------------
+# fictitious-domain Poisson (docs/math.md §8) in both codes
+# ---------------------------------------------------------------------------------------------
+
+#: the Poisson comparison: unit ball in cutfem's default structured box, its default penalties
+POISSON_GAMMA = 10.0
+POISSON_GAMMA_G = 0.1
+
+
+def poisson_exact_cf():
+    """(u, grad u, f) of cutfem's manufactured Poisson solution as NGSolve CoefficientFunctions:
+    u = sin(pi x/2) cos(pi y/3) exp(z/2), f = -Lap u = (pi^2/4 + pi^2/9 - 1/4) u."""
+    from ngsolve import CF, cos, exp, sin, x, y, z
+
+    a, b, c = math.pi / 2, math.pi / 3, 0.5
+    u = sin(a * x) * cos(b * y) * exp(c * z)
+    grad = CF((a * cos(a * x) * cos(b * y) * exp(c * z), -b * sin(a * x) * sin(b * y) * exp(c * z), c * u))
+    return u, grad, (a * a + b * b - c * c) * u
+
+
+def kuhn_face_h(spacing):
+    """h_F = the longest edge of a facet of a Kuhn lattice of the given spacing, as an NGSolve
+    CoefficientFunction on the skeleton (NGSolve has no longest-edge-of-the-facet function and no
+    vectorized facet-to-vertex table to build one from).  A facet of a Kuhn tet either lies in a
+    face of its cube (half a square: longest edge sqrt(2) s, normal along an axis, sum n_i^4 = 1) or
+    contains the cube's diagonal (edges s, sqrt(2) s, sqrt(3) s, normal (0, 1, -1)/sqrt(2) up to
+    permutation and sign, sum n_i^4 = 1/2); the normal tells them apart."""
+    from ngsolve import IfPos, specialcf
+
+    n = specialcf.normal(3)
+    n4 = n[0] ** 4 + n[1] ** 4 + n[2] ** 4
+    return IfPos(n4 - 0.75, math.sqrt(2.0) * spacing, math.sqrt(3.0) * spacing)
+
+
+def element_longest_edges(mesh) -> np.ndarray:
+    """(ne,) longest edge h_T of each tet of an NGSolve mesh (vectorized over netgen's element table)."""
+    tets = mesh.ngmesh.Elements3D().NumPy()["nodes"].astype(np.int64) - 1  # netgen's nodes are 1-based
+    p = np.asarray(mesh.ngmesh.Coordinates())
+    h = np.zeros(len(tets))
+    for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
+        h = np.maximum(h, np.linalg.norm(p[tets[:, i]] - p[tets[:, j]], axis=1))
+    return h
+
+
+def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON_GAMMA_G, inverse="sparsecholesky",
+                    background=None) -> dict:
+    """Fictitious-domain Poisson (docs/math.md §8) with ngsxfem on cutfem's structured background.
+
+    The same problem as ``cutfem.run("poisson-cut")``: P1 on the tets that meet Omega_h
+    (``HASNEG``; the H1 space with ``dgjumps=True`` compressed to their dofs), the form
+    (grad u, grad v)_{Omega_h} - (n.grad u, v)_Gamma - (u, n.grad v)_Gamma + (gamma/h_T)(u, v)_Gamma
+    + gamma_g sum_F h_F ([n_F.grad u], [n_F.grad v])_F, n = grad phi_h/|grad phi_h|, h_T the longest
+    edge of the cut tet (an order-0 L2 GridFunction from netgen's element table), h_F the longest
+    edge of the facet (:func:`kuhn_face_h`), the ghost facets the interior facets between two
+    HASNEG tets of which one is cut (``GetFacetsWithNeighborTypes(a=HASNEG, b=cut)``).  Quadrature:
+    order 2 for the form and the volume load (cutfem: degree 2), order 4 for the Nitsche load and
+    the errors (cutfem: degree 4).  Zero nodal values (nodes on the sphere) are made +EPS, and the
+    tets whose piece of Gamma_h collapses under cutfem's zero rule (:func:`collapsed_tets`) are not
+    counted as cut for the ghost facets (their Gamma pieces have area O(EPS)).  ``inverse``: an
+    NGSolve direct inverse (default its sparse Cholesky).  Returns errors, sizes and stage times.
+    """
+    import ngsolve as ngs
+    from ngsolve import H1, L2, GridFunction, InnerProduct, Integrate, LinearForm, grad, specialcf, sqrt
+    from xfem import HASNEG, IF, NEG, CutInfo, GetDofsOfElements, GetFacetsWithNeighborTypes, RestrictedBilinearForm, dCut
+
+    from cutfem.levelset import Sphere
+
+    levelset = Sphere() if levelset is None else levelset
+    T = {}
+    if background is None:
+        background = NgBackground(spacing, levelset)
+    bg, mesh = background.box, background.mesh
+    T["mesh"] = background.seconds
+
+    t0 = time.perf_counter()
+    snapped = cutfem_nodal_values(bg, levelset)
+    values = snapped.copy()
+    values[values == 0] = EPS
+    lset = GridFunction(H1(mesh, order=1))
+    lset.vec.FV().NumPy()[:] = values
+    T["levelset"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    ci = CutInfo(mesh, lset)
+    hasneg = ci.GetElementsOfType(HASNEG)
+    cut = ngs.BitArray(ci.GetElementsOfType(IF))
+    drop = collapsed_tets(bg, snapped)
+    for k in drop.tolist():  # only around the nodes on the sphere
+        cut.Clear(k)
+    ghost = GetFacetsWithNeighborTypes(mesh, a=hasneg, b=cut, bnd_val_a=False, bnd_val_b=False, use_and=True)
+    Vf = H1(mesh, order=1, dgjumps=True)
+    V = ngs.Compress(Vf, GetDofsOfElements(Vf, hasneg))
+    hT = GridFunction(L2(mesh, order=0))
+    hT.vec.FV().NumPy()[:] = element_longest_edges(mesh)
+    T["cut"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    u_ex, grad_ex, f = poisson_exact_cf()
+    u, v = V.TnT()
+    g = grad(lset)
+    n = g / sqrt(InnerProduct(g, g))
+    dxn = dCut(levelset=lset, domain_type=NEG, definedonelements=hasneg, order=2)
+    ds = dCut(levelset=lset, domain_type=IF, definedonelements=cut, order=2)
+    ds4 = dCut(levelset=lset, domain_type=IF, definedonelements=cut, order=4)
+    dw = ngs.dx(skeleton=True, definedonelements=ghost)
+    nF = specialcf.normal(3)
+    a = RestrictedBilinearForm(V, element_restriction=hasneg, facet_restriction=ghost, symmetric=True, check_unused=False)
+    a += InnerProduct(grad(u), grad(v)) * dxn
+    a += (-InnerProduct(grad(u), n) * v - InnerProduct(grad(v), n) * u + gamma / hT * u * v) * ds
+    a += gamma_g * kuhn_face_h(spacing) * InnerProduct(grad(u) - grad(u.Other()), nF) * InnerProduct(grad(v) - grad(v.Other()), nF) * dw
+    a.Assemble()
+    b = LinearForm(V)
+    b += f * v * dxn
+    b += u_ex * (-InnerProduct(grad(v), n) + gamma / hT * v) * ds4
+    b.Assemble()
+    T["assembly"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    inv = a.mat.Inverse(V.FreeDofs(), inverse=inverse)
+    uh = GridFunction(V)
+    uh.vec.data = inv * b.vec
+    T["solve"] = time.perf_counter() - t0
+    del inv
+
+    t0 = time.perf_counter()
+    dxe = dCut(levelset=lset, domain_type=NEG, definedonelements=hasneg, order=4)
+    e = uh - u_ex
+    eg = grad(uh) - grad_ex
+    l2 = math.sqrt(Integrate(e * e * dxe, mesh))
+    h1 = math.sqrt(Integrate(InnerProduct(eg, eg) * dxe, mesh))
+    T["errors"] = time.perf_counter() - t0
+    volume = Integrate(ngs.CF(1.0) * dxn, mesh)
+    return {
+        "l2_error": l2,
+        "h1_error": h1,
+        "volume": volume,
+        "dofs": int(V.ndof),
+        "active_tets": int(hasneg.NumSet()),
+        "cut_tets": int(cut.NumSet()),
+        "ghost_faces": int(ghost.NumSet()),
+        "zero_nodes": int(np.sum(snapped == 0)),
+        "dropped_collapsed_tets": int(drop.size),
+        "background_nodes": int(mesh.nv),
+        "background_tets": int(mesh.ne),
+        "solver": inverse,
+        "time": T,
+        "total": sum(T.values()),
+    }
+
+def cutfem_poisson(spacing, solver="auto") -> dict:
+    """cutfem's ``poisson-cut`` at one spacing (unit sphere, its default box, gamma = 10, gamma_g = 0.1);
+    stage times from the problem's timer, total = their sum, wall = the whole run."""
+    import cutfem
+
+    t0 = time.perf_counter()
+    res = cutfem.run("poisson-cut", levels=[spacing], gamma=POISSON_GAMMA, gamma_g=POISSON_GAMMA_G, solver=solver)
+    wall = time.perf_counter() - t0
+    r = res.records[0]
+    rec = {k: r[k] for k in ("l2_error", "h1_error", "volume", "dofs", "background_nodes", "solver", "solver_iterations")}
+    rec["cut_tets"] = r["active_tets"]
+    rec["time"] = dict(r["time"])
+    rec["total"] = sum(r["time"].values())
+    rec["wall"] = wall
+    return rec
+
+
+def cutfem_poisson_sets(spacing, levelset=None) -> dict:
+    """The sizes of cutfem's Poisson problem that ngsxfem reports too: the tets of NEG (the active
+    set) and its ghost faces (untimed: one cut of the background)."""
+    from cutfem.cut import cut_mesh
+    from cutfem.levelset import Sphere
+    from cutfem.markers import NEG
+    from cutfem.problems.common import background_for
+
+    levelset = Sphere() if levelset is None else levelset
+    cut = cut_mesh(background_for(levelset, spacing), levelset)
+    return {"active_tets": int(cut.elements(NEG).n_elements), "ghost_faces": int(cut.ghost_facets(NEG).n_facets)}
+
+
+def _median_run(runs):
+    """The run with the median total (the lower middle one for an even count), with every total kept."""
+    ordered = sorted(runs, key=lambda r: r["total"])
+    return dict(ordered[(len(ordered) - 1) // 2], totals=[r["total"] for r in runs])
+
+
+def compare_poisson_level(spacing, progress=None, repeat=1) -> dict:
+    """Both codes on the fictitious-domain Poisson problem at one spacing, ``repeat`` times each,
+    alternating (cutfem, ngsxfem, cutfem, ...); the run with the median total is reported."""
+    import os
+
+    from cutfem.levelset import Sphere
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    cfs, ngs_ = [], []
+    for i in range(repeat):
+        _say(progress, f"poisson spacing {spacing}: cutfem ({i + 1}/{repeat})")
+        cfs.append(cutfem_poisson(spacing))
+        gc.collect()
+        _say(progress, f"poisson spacing {spacing}: ngsxfem ({i + 1}/{repeat})")
+        ngs_.append(ngsxfem_poisson(spacing, Sphere()))
+        gc.collect()
+    cf, ng = _median_run(cfs), _median_run(ngs_)
+    cf.update(cutfem_poisson_sets(spacing))
+    out = {"spacing": spacing, "cutfem": cf, "ngsxfem": ng, "load_average": load, "repeat": repeat,
+           "same_problem": all(ng[k] == cf[k] for k in ("dofs", "active_tets", "cut_tets", "ghost_faces")),
+           "rel_diff_l2": _rel(ng["l2_error"], cf["l2_error"]), "rel_diff_h1": _rel(ng["h1_error"], cf["h1_error"]),
+           "rel_diff_volume": _rel(ng["volume"], cf["volume"]), "time_ratio": ng["total"] / cf["total"]}
+    _say(progress, f"  L2 {ng['l2_error']:.8g} (ngsxfem) {cf['l2_error']:.8g} (cutfem), rel diff {out['rel_diff_l2']:.1e}; "
+                   f"time {ng['total']:.2f} s / {cf['total']:.2f} s")
+    return out
+
+
+def _poisson_row(c):
+    cf, ng = c["cutfem"], c["ngsxfem"]
+    row = {"spacing": c["spacing"], "dofs": cf["dofs"], "active_tets": cf["active_tets"], "ghost_faces": cf["ghost_faces"],
+           "same_problem": c["same_problem"], "l2_cutfem": cf["l2_error"], "l2_ngsxfem": ng["l2_error"], "rel_diff_l2": c["rel_diff_l2"],
+           "h1_cutfem": cf["h1_error"], "h1_ngsxfem": ng["h1_error"], "rel_diff_h1": c["rel_diff_h1"],
+           "time_cutfem": cf["total"], "time_ngsxfem": ng["total"], "time_ratio": c["time_ratio"],
+           "cutfem_solver": cf["solver"], "cutfem_iterations": cf["solver_iterations"], "ngsxfem_solver": ng["solver"], "runs": c["repeat"]}
+    row.update({f"cutfem_{k}": v for k, v in cf["time"].items()})
+    row.update({f"ngsxfem_{k}": v for k, v in ng["time"].items()})
+    return row
+
+
+def run_poisson(out: Path, size: str = "quick", progress=None) -> dict:
+    """The Poisson comparison: ``peers_poisson.json`` / ``.csv`` and a table on standard output."""
+    out = Path(out)
+    missing = peer_missing()
+    if missing is not None:
+        print(f"peers: ngsolve/xfem not importable ({missing}); {INSTALL}")
+        save_json(out, POISSON_NAME, {"size": size, "peer": "ngsxfem", "available": False, "reason": missing, "skipped": INSTALL})
+        return {"skipped": INSTALL}
+    import ngsolve
+
+    spacings = pick(size, [0.2], [0.1, 0.05], [0.1, 0.05, 0.035])
+    repeat = pick(size, 1, 3, 3)
+    levels = [compare_poisson_level(s, progress, repeat) for s in spacings]
+    rows = [_poisson_row(c) for c in levels]
+    save_json(out, POISSON_NAME, {
+        "size": size, "peer": "ngsxfem", "available": True,
+        "versions": {"ngsolve": ngsolve.__version__, "xfem": _xfem_version()},
+        "problem": {"domain": "unit ball (cutfem's default structured box)", "gamma": POISSON_GAMMA, "gamma_g": POISSON_GAMMA_G,
+                    "nitsche_h": "h_T, longest edge of the cut tet", "ghost_h": "h_F^1, longest edge of the facet",
+                    "exact": "sin(pi x/2) cos(pi y/3) exp(z/2)", "zero_nodal_values": f"ngsxfem: +{EPS:g}, collapsed tets not cut"},
+        "solvers": {"cutfem": "solve(method='auto'): CG + geometric multigrid on the nested Kuhn lattices (direct up to 5000 unknowns)",
+                    "ngsxfem": "NGSolve sparsecholesky (its sparse direct Cholesky)"},
+        "threads": "NGSolve without TaskManager (one thread); cutfem numpy/scipy",
+        "timing": f"median total of {repeat} alternating runs per code",
+        "levels": levels, "table": rows,
+    })
+    save_csv(out, POISSON_NAME, rows)
+    print(poisson_table(rows))
+    return {"size": size, "table": rows}
+
+
+def poisson_table(rows) -> str:
+    """The Poisson comparison as a fixed-width text table."""
+    head = f"{'spacing':>8} {'unknowns':>9} {'L2 cutfem':>11} {'L2 ngsxfem':>11} {'rel':>8} {'H1 cutfem':>10} {'H1 ngsxfem':>10} " \
+           f"{'t cutfem':>9} {'t ngsxfem':>9} {'ratio':>6}"
+    lines = [head]
+    for r in rows:
+        lines.append(f"{r['spacing']:>8g} {r['dofs']:>9d} {r['l2_cutfem']:>11.5e} {r['l2_ngsxfem']:>11.5e} {r['rel_diff_l2']:>8.1e} "
+                     f"{r['h1_cutfem']:>10.5e} {r['h1_ngsxfem']:>10.5e} {r['time_cutfem']:>8.2f}s {r['time_ngsxfem']:>8.2f}s {r['time_ratio']:>6.1f}")
+    return "\n".join(lines)
+
+# ---------------------------------------------------------------------------------------------
 # the meshed case: cotangent Laplacian with lumped mass against the stabilized method
 # ---------------------------------------------------------------------------------------------
 
@@ -818,7 +1098,27 @@ def _plot(out, rows, meshed):
     save_figure(fig, out, NAME)
 
 
-main = study_main(run, NAME)
+PROBLEMS = ("mean-curvature", "poisson", "both")
+
+
+def main(argv=None) -> int:
+    """``python -m cutfem.studies.peers [--problem mean-curvature|poisson|both]`` plus the usual
+    study options (``--out``, the size flags).  Default: the mean curvature comparison."""
+    import argparse
+
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--problem", default="mean-curvature", choices=PROBLEMS,
+                   help="which cut problem to compare with ngsxfem (default mean-curvature)")
+    a, rest = p.parse_known_args(argv)
+    if "-h" in rest or "--help" in rest:
+        p.print_help()
+    runners = {"mean-curvature": [run], "poisson": [run_poisson], "both": [run, run_poisson]}[a.problem]
+
+    def run_selected(out, size, progress):
+        return [r(out, size, progress) for r in runners]
+
+    return study_main(run_selected, NAME)(rest)
+
 
 if __name__ == "__main__":
     raise SystemExit(main())

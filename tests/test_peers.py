@@ -1,4 +1,5 @@
-"""cutfem.studies.peers: ngsxfem (NGSolve + xfem) on the identical cut mean curvature problem.
+"""cutfem.studies.peers: ngsxfem (NGSolve + xfem) on the identical cut mean curvature and
+fictitious-domain Poisson problems.
 
 The comparisons need the optional peers (``pip install -e ".[peers]"``) and are skipped without
 them; the geometry helpers and the "peer absent" path are tested always.
@@ -140,3 +141,42 @@ def test_study_tiny(ngsxfem, tmp_path):
     assert {r["family"] for r in meshed} == set(peers.FAMILIES)
     assert {r["method"] for r in meshed} == {"cotan-voronoi", "stabilized"}
     assert all(r["discrete_error"] > 0 and r["seconds"] > 0 for r in meshed)
+
+
+def test_kuhn_face_h_is_the_longest_edge_of_each_facet(ngsxfem):
+    """sum over the facets of every tet of |F| h_F: NGSolve's integral of kuhn_face_h against the
+    longest edges of cutfem's face table."""
+    import ngsolve
+
+    from cutfem.mesh import structured_box
+
+    box = structured_box([0, 0, 0], [0.75, 0.5, 0.5], spacing=0.25)
+    got = ngsolve.Integrate(peers.kuhn_face_h(0.25) * ngsolve.dx(element_boundary=True), peers.ngsolve_mesh(box))
+    p = box.points[box.faces]
+    longest = np.max([np.linalg.norm(p[:, i] - p[:, j], axis=1) for i, j in ((0, 1), (1, 2), (0, 2))], axis=0)
+    area = 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+    times = np.full(len(area), 2.0)  # interior faces belong to two tets
+    times[box.boundary_faces] = 1.0
+    assert got == pytest.approx(np.sum(times * area * longest), rel=1e-12)
+
+
+def test_poisson_same_problem_and_errors(ngsxfem):
+    """Spacing 0.2 (nodes on the sphere included): the same unknowns, active tets, cut tets and ghost
+    faces, the same volume of Omega_h, and L2/H1 errors within 1e-4 (the two codes place their
+    quadrature points differently in the cut tets)."""
+    c = peers.compare_poisson_level(0.2)
+    cf, ng = c["cutfem"], c["ngsxfem"]
+    assert ng["zero_nodes"] > 0 and ng["dropped_collapsed_tets"] > 0
+    assert c["same_problem"]
+    assert ng["dofs"] == cf["dofs"] and ng["active_tets"] == cf["active_tets"]
+    assert c["rel_diff_volume"] < 1e-10
+    assert c["rel_diff_l2"] < 1e-4 and c["rel_diff_h1"] < 1e-4
+
+
+def test_poisson_study_tiny_writes_json_and_table(ngsxfem, tmp_path, capsys):
+    assert peers.main(["--problem", "poisson", "--tiny", "--quiet", "--out", str(tmp_path)]) == 0
+    data = json.loads((tmp_path / "peers_poisson.json").read_text())
+    row = data["table"][0]
+    assert data["available"] and row["same_problem"] and row["time_ratio"] > 0
+    assert {p.name for p in tmp_path.iterdir()} == {"peers_poisson.json", "peers_poisson.csv"}
+    assert "L2 ngsxfem" in capsys.readouterr().out
