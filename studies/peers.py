@@ -106,9 +106,10 @@ the collapsed tets not counted as cut, as above), h_T from netgen's element tabl
 facet normal (:func:`kuhn_face_h`: exact on a Kuhn lattice, where NGSolve offers no longest edge
 of a facet), the same quadrature degrees (2 for the form and the volume load, 4 for the Nitsche
 load and the errors).  Solvers: each code's fastest for this SPD system -- cutfem's default, CG
-with the geometric multigrid on the nested Kuhn lattices; NGSolve's sparse Cholesky (its
-multigrid needs a mesh hierarchy that an imported mesh does not have, and BDDC on P1 keeps every
-vertex in the coarse space, i.e. a direct solve).  Each level runs both codes ``repeat`` times,
+with the geometric multigrid on the nested Kuhn lattices; NGSolve's CG with Jacobi ("local"; its
+multigrid needs a mesh hierarchy that an imported mesh does not have, BDDC on P1 keeps every
+vertex in the coarse space, i.e. a direct solve, CG with h1amg stops at a wrong answer at 40k
+unknowns; its sparse Cholesky is timed once per level as ``solve_direct``).  Each level runs both codes ``repeat`` times,
 alternating, and reports the median.  Outputs ``peers_poisson.json``/``.csv`` and a table.
 
 Outputs (prefix ``peers``): ``peers.json``, ``peers.csv`` (cut levels), ``peers_meshed.csv``,
@@ -627,8 +628,8 @@ def element_longest_edges(mesh) -> np.ndarray:
     return h
 
 
-def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON_GAMMA_G, inverse="sparsecholesky",
-                    background=None) -> dict:
+def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON_GAMMA_G, inverse="cg-local",
+                    background=None, also_direct=False) -> dict:
     """Fictitious-domain Poisson (docs/math.md §8) with ngsxfem on cutfem's structured background.
 
     The same problem as ``cutfem.run("poisson-cut")``: P1 on the tets that meet Omega_h
@@ -642,7 +643,11 @@ def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON
     the errors (cutfem: degree 4).  Zero nodal values (nodes on the sphere) are made +EPS, and the
     tets whose piece of Gamma_h collapses under cutfem's zero rule (:func:`collapsed_tets`) are not
     counted as cut for the ghost facets (their Gamma pieces have area O(EPS)).  ``inverse``: an
-    NGSolve direct inverse (default its sparse Cholesky).  Returns errors, sizes and stage times.
+    NGSolve direct inverse ("sparsecholesky", ...) or "cg-" + an NGSolve preconditioner name: CG to
+    a relative residual of 1e-10 (default "cg-local", Jacobi: the fastest here; "cg-h1amg" stops at a
+    wrong answer at 40k unknowns, L2 error 1.1e-2 against 9.8e-4, "cg-bddc" on P1 is a direct solve and slower).  ``also_direct``: time NGSolve's
+    sparse Cholesky on the same system too (``solve_direct``, not in the total).  Returns errors,
+    sizes and stage times.
     """
     import ngsolve as ngs
     from ngsolve import H1, L2, GridFunction, InnerProduct, Integrate, LinearForm, grad, specialcf, sqrt
@@ -693,6 +698,7 @@ def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON
     a += InnerProduct(grad(u), grad(v)) * dxn
     a += (-InnerProduct(grad(u), n) * v - InnerProduct(grad(v), n) * u + gamma / hT * u * v) * ds
     a += gamma_g * kuhn_face_h(spacing) * InnerProduct(grad(u) - grad(u.Other()), nF) * InnerProduct(grad(v) - grad(v.Other()), nF) * dw
+    pre = ngs.Preconditioner(a, inverse[3:]) if inverse.startswith("cg-") else None
     a.Assemble()
     b = LinearForm(V)
     b += f * v * dxn
@@ -701,11 +707,24 @@ def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON
     T["assembly"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
-    inv = a.mat.Inverse(V.FreeDofs(), inverse=inverse)
+    if pre is None:
+        inv = a.mat.Inverse(V.FreeDofs(), inverse=inverse)
+    else:
+        inv = ngs.solvers.CGSolver(a.mat, pre.mat, tol=1e-10, maxiter=5000)
     uh = GridFunction(V)
     uh.vec.data = inv * b.vec
     T["solve"] = time.perf_counter() - t0
+    iterations = getattr(inv, "iterations", 0)
     del inv
+    extra = {}
+    if also_direct:
+        t0 = time.perf_counter()
+        ud = GridFunction(V)
+        ud.vec.data = a.mat.Inverse(V.FreeDofs(), inverse="sparsecholesky") * b.vec
+        extra["solve_direct"] = time.perf_counter() - t0
+        x, xd = uh.vec.FV().NumPy(), ud.vec.FV().NumPy()
+        extra["direct_vs_solver"] = float(np.abs(x - xd).max() / np.abs(xd).max())
+        del ud
 
     t0 = time.perf_counter()
     dxe = dCut(levelset=lset, domain_type=NEG, definedonelements=hasneg, order=4)
@@ -728,8 +747,10 @@ def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON
         "background_nodes": int(mesh.nv),
         "background_tets": int(mesh.ne),
         "solver": inverse,
+        "solver_iterations": int(iterations),
         "time": T,
         "total": sum(T.values()),
+        **extra,
     }
 
 def cutfem_poisson(spacing, solver="auto") -> dict:
@@ -768,9 +789,10 @@ def _median_run(runs):
     return dict(ordered[(len(ordered) - 1) // 2], totals=[r["total"] for r in runs])
 
 
-def compare_poisson_level(spacing, progress=None, repeat=1) -> dict:
+def compare_poisson_level(spacing, progress=None, repeat=1, also_direct=False) -> dict:
     """Both codes on the fictitious-domain Poisson problem at one spacing, ``repeat`` times each,
-    alternating (cutfem, ngsxfem, cutfem, ...); the run with the median total is reported."""
+    alternating (cutfem, ngsxfem, cutfem, ...); the run with the median total is reported.
+    ``also_direct``: the first ngsxfem run also times NGSolve's sparse Cholesky (``solve_direct``)."""
     import os
 
     from cutfem.levelset import Sphere
@@ -782,9 +804,11 @@ def compare_poisson_level(spacing, progress=None, repeat=1) -> dict:
         cfs.append(cutfem_poisson(spacing))
         gc.collect()
         _say(progress, f"poisson spacing {spacing}: ngsxfem ({i + 1}/{repeat})")
-        ngs_.append(ngsxfem_poisson(spacing, Sphere()))
+        ngs_.append(ngsxfem_poisson(spacing, Sphere(), also_direct=also_direct and i == 0))
         gc.collect()
     cf, ng = _median_run(cfs), _median_run(ngs_)
+    if also_direct:
+        ng.update({k: ngs_[0][k] for k in ("solve_direct", "direct_vs_solver")})
     cf.update(cutfem_poisson_sets(spacing))
     out = {"spacing": spacing, "cutfem": cf, "ngsxfem": ng, "load_average": load, "repeat": repeat,
            "same_problem": all(ng[k] == cf[k] for k in ("dofs", "active_tets", "cut_tets", "ghost_faces")),
@@ -801,7 +825,8 @@ def _poisson_row(c):
            "same_problem": c["same_problem"], "l2_cutfem": cf["l2_error"], "l2_ngsxfem": ng["l2_error"], "rel_diff_l2": c["rel_diff_l2"],
            "h1_cutfem": cf["h1_error"], "h1_ngsxfem": ng["h1_error"], "rel_diff_h1": c["rel_diff_h1"],
            "time_cutfem": cf["total"], "time_ngsxfem": ng["total"], "time_ratio": c["time_ratio"],
-           "cutfem_solver": cf["solver"], "cutfem_iterations": cf["solver_iterations"], "ngsxfem_solver": ng["solver"], "runs": c["repeat"]}
+           "cutfem_solver": cf["solver"], "cutfem_iterations": cf["solver_iterations"], "ngsxfem_solver": ng["solver"],
+           "ngsxfem_iterations": ng["solver_iterations"], "ngsxfem_solve_direct": ng.get("solve_direct"), "runs": c["repeat"]}
     row.update({f"cutfem_{k}": v for k, v in cf["time"].items()})
     row.update({f"ngsxfem_{k}": v for k, v in ng["time"].items()})
     return row
@@ -817,9 +842,9 @@ def run_poisson(out: Path, size: str = "quick", progress=None) -> dict:
         return {"skipped": INSTALL}
     import ngsolve
 
-    spacings = pick(size, [0.2], [0.1, 0.05], [0.1, 0.05, 0.035])
-    repeat = pick(size, 1, 3, 3)
-    levels = [compare_poisson_level(s, progress, repeat) for s in spacings]
+    spacings = pick(size, [0.2], [0.1, 0.05], [0.05, 0.035, 0.025])
+    levels = [compare_poisson_level(s, progress, repeat=1 if size == "tiny" or s < 0.05 else 3, also_direct=s >= 0.035)
+              for s in spacings]
     rows = [_poisson_row(c) for c in levels]
     save_json(out, POISSON_NAME, {
         "size": size, "peer": "ngsxfem", "available": True,
@@ -828,9 +853,9 @@ def run_poisson(out: Path, size: str = "quick", progress=None) -> dict:
                     "nitsche_h": "h_T, longest edge of the cut tet", "ghost_h": "h_F^1, longest edge of the facet",
                     "exact": "sin(pi x/2) cos(pi y/3) exp(z/2)", "zero_nodal_values": f"ngsxfem: +{EPS:g}, collapsed tets not cut"},
         "solvers": {"cutfem": "solve(method='auto'): CG + geometric multigrid on the nested Kuhn lattices (direct up to 5000 unknowns)",
-                    "ngsxfem": "NGSolve sparsecholesky (its sparse direct Cholesky)"},
+                    "ngsxfem": "NGSolve CG (rel. residual 1e-10) with Jacobi ('local'); solve_direct: its sparsecholesky"},
         "threads": "NGSolve without TaskManager (one thread); cutfem numpy/scipy",
-        "timing": f"median total of {repeat} alternating runs per code",
+        "timing": "median total of 3 alternating runs per code at spacings >= 0.05, one run below",
         "levels": levels, "table": rows,
     })
     save_csv(out, POISSON_NAME, rows)
