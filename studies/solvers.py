@@ -46,7 +46,8 @@ problems up to 360k-570k unknowns (peak memory measured with the automatic solve
 Poisson at spacing 0.05 (40k unknowns), 4.2 GB at 0.025 (292k); 1.9 GB for the interface problem
 at 0.05 (125k)).
 
-Outputs (prefix ``solvers``): ``.json`` (cases, limits and one row per level and solver),
+Outputs (prefix ``solvers``): ``.json`` (cases, limits and one row per level and solver; written
+after each case too, with ``complete`` false until the last),
 ``.csv`` (the rows), ``.png`` / ``.pdf`` (two panels: CG iterations of the automatic choice
 against the unknowns, with ``cg-mg`` at every level; solve seconds per million unknowns against the
 unknowns for each solver).
@@ -233,11 +234,9 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     out = Path(out)
     todo = cases(size)
     warm_up()
-    rows = []
-    for case in todo:
-        rows += study_case(case, progress)
     from cutfem.solve import DEFAULT_TOL, DIRECT_LIMIT, DIRECT_LIMIT_NO_MG
 
+    rows = []
     summary = {
         "size": size,
         "limits": {"direct_bulk": DIRECT_BULK_LIMIT, "direct_surface": DIRECT_SURFACE_LIMIT, "jacobi": JACOBI_LIMIT,
@@ -245,7 +244,13 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
                    "auto_direct_limit": DIRECT_LIMIT, "auto_direct_limit_no_mg": DIRECT_LIMIT_NO_MG, "cg_tolerance": DEFAULT_TOL},
         "cases": todo,
         "rows": rows,
+        "complete": False,
     }
+    for case in todo:
+        rows += study_case(case, progress)
+        # the rows so far, so that a long run stopped part way keeps what it measured
+        save_json(out, NAME, summary)
+    summary["complete"] = True
     paths = [save_json(out, NAME, summary), save_csv(out, NAME, rows)]
     paths += plot(out, rows, todo)
     print(table(rows))

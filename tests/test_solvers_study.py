@@ -33,6 +33,7 @@ def test_study_writes_its_outputs(tiny):
         assert (out / f"{st.NAME}{suffix}").stat().st_size > 0
     assert (out / f"{st.NAME}.png").read_bytes()[:4] == b"\x89PNG"
     data = json.loads((out / f"{st.NAME}.json").read_text())
+    assert data["complete"] is True
     cases = {c["key"]: c for c in data["cases"]}
     # every problem with a solver parameter, the heat equation (no solver parameter) left out
     assert set(cases) == set(BULK) | {"poisson-cut tetwild", "laplace-beltrami-cut", "mean-curvature-cut",
