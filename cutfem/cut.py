@@ -62,7 +62,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet
+from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet, interior_facets
 from .measures import ElementVolume, FacetMeasure, SideVolume, SurfacePieces
 from .mesh import (
     CUBE_CORNERS,
@@ -443,10 +443,17 @@ class CutMesh:
         """The ghost-penalty faces of a side: interior faces of its element set with at least one
         tet cut (for the bulk ghost penalty of docs/math.md §7)."""
         es = self.elements(side)
-        faces = es.interior_facets
         cut_mark = np.zeros(es.n_elements, dtype=bool)
         cut_mark[es.locate(self.tet_ids, "the cut tets")] = True
-        return faces.subset(cut_mark[faces.pairs[:, 0]] | cut_mark[faces.pairs[:, 1]], name=f"ghost faces of {side}")
+        # both tets of such a face touch a node of a cut tet: look for faces only among those tets
+        # (a band around Gamma_h) instead of sorting every face of the side
+        near = np.zeros(es.n_nodes, dtype=bool)
+        near[es.tets[cut_mark]] = True
+        band = np.flatnonzero(near[es.tets].any(axis=1))
+        pairs, opposite = interior_facets(es.tets[band], es.n_nodes)
+        pairs = band[pairs]
+        keep = cut_mark[pairs[:, 0]] | cut_mark[pairs[:, 1]]
+        return FacetSet(es, pairs[keep], opposite[keep], name=f"ghost faces of {side}")
 
     @cached_property
     def _measures(self) -> dict:

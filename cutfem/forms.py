@@ -249,9 +249,16 @@ class QuadData:
     and the user's parameters as attributes."""
 
     def __init__(self, x, n, h, parent, params):
-        self.x, self.n, self.h, self.parent = x, n, h, parent
+        self.x, self.n, self.parent = x, n, parent
+        self._h = h  # the local sizes, or a function giving them: computed only when an integrand asks
         self.params = params
         self._values = {}
+
+    @property
+    def h(self):
+        if callable(self._h):
+            self._h = self._h()
+        return self._h
 
     def __getattr__(self, name):
         params = self.__dict__.get("params", {})
@@ -279,7 +286,7 @@ def _quad_data(measure: Measure, quad, params):
         n = measure.normals[parent][:, None, :]
     else:
         n = None
-    return QuadData(quad.points, n, measure.h[parent][:, None], parent, params)
+    return QuadData(quad.points, n, lambda: measure.h[parent][:, None], parent, params)
 
 
 def _field_basis(space, measure: Measure, quad):

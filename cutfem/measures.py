@@ -138,10 +138,14 @@ class SideVolume(Measure):
 
     @cached_property
     def part_volumes(self) -> np.ndarray:
-        """(m,) |T ∩ side| per element."""
-        sub, parent, _ = self.subtetrahedra
-        v = np.abs(np.einsum("ij,ij->i", np.cross(sub[:, 1] - sub[:, 0], sub[:, 2] - sub[:, 0]), sub[:, 3] - sub[:, 0])) / 6.0
-        return np.bincount(parent, weights=v, minlength=self.elements.n_elements)
+        """(m,) |T ∩ side| per element: the whole element's volume for the whole cells, the sum of the
+        sub-tets' volumes in the others."""
+        sub, parent, whole = self.subtetrahedra
+        out = np.zeros(self.elements.n_elements)
+        out[parent[:whole]] = self.elements.volumes[parent[:whole]]
+        s = sub[whole:]
+        v = np.abs(np.einsum("ij,ij->i", np.cross(s[:, 1] - s[:, 0], s[:, 2] - s[:, 0]), s[:, 3] - s[:, 0])) / 6.0
+        return out + np.bincount(parent[whole:], weights=v, minlength=self.elements.n_elements)
 
     def _build(self, degree):
         sub, parent, _ = self.subtetrahedra
