@@ -20,7 +20,8 @@ What is used when
   :class:`~cutfem.spaces.CutP1Space` on a :class:`~cutfem.mesh.StructuredBox`, or ``lattice=``
   their integer indices); on a surface mesh (``space=`` a :class:`~cutfem.spaces.SurfaceP1Space`)
   its periodic grid when it has one (the torus families) and otherwise a Kuhn lattice around it.
-* otherwise: direct up to :data:`DIRECT_LIMIT_NO_MG` (400 000), then CG with smoothed aggregation
+* otherwise: direct up to :data:`DIRECT_LIMIT_NO_MG` (400 000; :data:`DIRECT_LIMIT_NO_MG_BULK`,
+  20 000, for bulk fields, whose factorizations fill in like 3-D grids), then CG with smoothed aggregation
   AMG (pyamg, "cg-amg"), with the globally linear functions as near-kernel candidates when the dof
   coordinates are known (``space``).  Callers with a cut space should pass ``space=`` so that the
   multigrid can be used.
@@ -199,6 +200,11 @@ BANDED_MAX_ENTRIES = 1e7
 #: size: SuperLU beats CG with smoothed aggregation on every system measured (cut torus, 293k
 #: unknowns: 31 s and 3 GiB against 68 s, or 23 s with the linear candidates)
 DIRECT_LIMIT_NO_MG = 400_000
+
+#: ... but only this far for fields that fill a volume (bulk fields of a side, product spaces with
+#: one): their direct factorizations fill in like a 3-D grid's.  Fictitious-domain Poisson on a
+#: pytetwild background at 39k unknowns took 27-46 s direct against 2.4 s with cg-amg
+DIRECT_LIMIT_NO_MG_BULK = 20_000
 
 #: CG with multigrid warns (RuntimeWarning) when it needs more iterations than this: the stabilized
 #: cut systems need 15-40 at any spacing, an unstabilized (singular) one hundreds
@@ -1158,10 +1164,21 @@ def mg_solve(A, B, lattice=None, tol: float = DEFAULT_TOL, maxiter: int = 300, p
 # ---------------------------------------------------------------------------------------------
 
 
+def _fills_volume(space) -> bool:
+    """Whether a field of ``space`` lives on whole volumes (a bulk field of a cut side), as opposed
+    to traces on a surface or a surface mesh."""
+    fields = getattr(space, "fields", None)
+    if fields is not None:
+        return any(_fills_volume(f) for f in fields)
+    return getattr(space, "is_trace", True) is False
+
+
 def _amg(A, points=None):
     import pyamg
 
-    kw = dict(symmetry="symmetric", max_coarse=500)
+    # the coarsest level by sparse LU: pyamg's default pseudo-inverse (an SVD of the dense coarsest
+    # matrix) took 9 s of a 5.7k-unknown solve whose hierarchy stopped at 1 728 unknowns
+    kw = dict(symmetry="symmetric", max_coarse=500, coarse_solver="splu")
     if points is not None:
         # the near-kernel of the face penalty: the globally linear functions
         P = np.asarray(points, dtype=float)
@@ -1259,7 +1276,8 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
         elif has_mg:
             method = "cg-mg"
         else:
-            method = "direct" if n <= DIRECT_LIMIT_NO_MG else "cg-amg"
+            limit = DIRECT_LIMIT_NO_MG_BULK if _fills_volume(space) else DIRECT_LIMIT_NO_MG
+            method = "direct" if n <= limit else "cg-amg"
     if method == "direct":
         t0 = time.perf_counter()
         solver = DirectSolver(A, _checks=checks)
