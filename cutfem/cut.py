@@ -32,8 +32,17 @@ Active mesh
 -----------
 Active tets are the cut tets with a piece of at least three distinct vertices (positive area).  Their
 nodes, renumbered 0..n-1 in increasing background id, are the active nodes; ``node_ids`` maps back.
-Interior faces are the faces shared by two active tets; surface edges are the edges of the pieces
-(polygons, not the quad diagonals), each shared by the pieces of two neighbouring tets.
+Interior faces are the faces shared by two active tets (``cut.interior_facets(CUT)``); surface
+edges are the edges of the pieces (polygons, not the quad diagonals), each shared by the pieces of
+two neighbouring tets.
+
+Sides, element sets and measures
+--------------------------------
+The cut also gives the two sides NEG = {phi_h < 0} and POS of the box, their element sets
+(``cut.elements(NEG)``; the cut tets are ``cut.elements(CUT)``), the ghost faces of a side
+(``cut.ghost_facets(NEG)``) and the measures ``cut.dx(NEG)``, ``cut.ds()``, ``cut.dF(facets)``:
+see :mod:`cutfem.markers` and :mod:`cutfem.measures`.  The sides need phi_h at every node of the
+background, which the band search does not evaluate; they are computed when first asked for.
 
 Band search
 -----------
