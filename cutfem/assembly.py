@@ -1,12 +1,14 @@
-"""Vectorized assembly of local element blocks into scipy.sparse CSR.
+"""Vectorized assembly into scipy.sparse CSR and numpy vectors.
 
-A :class:`Pattern` is computed once per connectivity (an (m, k) array of global dof numbers,
-e.g. the active tets, or the union of the two tets of every interior face): one stable sort of the
-int64 keys ``row * n + col`` gives the CSR structure and the permutation that sums the m*k*k local
-entries into it (``np.add.reduceat``).  Assembling another matrix on the same connectivity costs one
-gather and one reduction.  Entries that land on (i, j) and on (j, i) are summed in the same fixed
-order (element by element, also when a block repeats a dof), so a form whose local blocks are
-exactly symmetric gives an exactly symmetric matrix.
+* :func:`gram`: E^T E for a row operator E (:func:`row_operator`), the route of every built-in
+  symmetric positive semidefinite form (a quadrature of products, a jump times a jump): exactly
+  symmetric by construction.
+* :class:`SymmetricPattern`: a diagonal plus one value per pair of nodes written straight into a
+  cached CSR structure (the closed-form matrices of a triangulated surface).
+* :func:`assemble_vector`: local vectors scattered by their dof numbers.
+
+The general route of user integrands (:func:`cutfem.forms.assemble`) sums its local blocks through
+one COO matrix per form.
 """
 
 from __future__ import annotations
@@ -16,54 +18,7 @@ import scipy.sparse as sp
 
 from .mesh import pair_up
 
-__all__ = ["Pattern", "SymmetricPattern", "assemble_matrix", "assemble_vector", "symmetrize_blocks", "gram", "row_operator"]
-
-
-class Pattern:
-    """CSR sparsity pattern and scatter map of the blocks of connectivity ``dofs`` (m, k).
-
-    Entries of ``dofs`` that are negative are not allowed.  ``n`` is the number of dofs.
-    """
-
-    def __init__(self, dofs: np.ndarray, n: int):
-        dofs = np.ascontiguousarray(dofs, dtype=np.int64)
-        if dofs.ndim != 2:
-            raise ValueError(f"dofs must be (m, k), got shape {dofs.shape}")
-        m, k = dofs.shape
-        self.n, self.k, self.m = int(n), k, m
-        # Within each element the local positions (a, b) are listed in the order of the unordered
-        # pair (min(a, b), max(a, b)), then a.  The stable sort then sums the contributions to (I, J)
-        # and to (J, I) in the same sequence (element by element, pair by pair) even when a block
-        # repeats a dof (the two elements of a face or an edge share nodes), so exactly symmetric
-        # blocks give an exactly symmetric matrix.
-        kk = k * k
-        a, b = np.divmod(np.arange(kk), k)
-        perm = np.lexsort((a, np.maximum(a, b), np.minimum(a, b)))
-        key = np.take(dofs, a[perm], axis=1).reshape(-1) * self.n + np.take(dofs, b[perm], axis=1).reshape(-1)
-        order, starts, counts = pair_up(key)
-        ukey = key[order[starts]]
-        elem, slot = np.divmod(order, kk)
-        order = elem * kk + perm[slot]  # index into blocks.reshape(-1)
-        r = ukey // self.n
-        self.indices = (ukey - r * self.n).astype(np.int32 if self.n < 2**31 else np.int64)
-        self.indptr = np.zeros(self.n + 1, dtype=self.indices.dtype)
-        np.cumsum(np.bincount(r, minlength=self.n), out=self.indptr[1:])
-        self.order = order
-        self.starts = starts
-
-    @property
-    def nnz(self) -> int:
-        return len(self.indices)
-
-    def matrix(self, blocks: np.ndarray) -> sp.csr_matrix:
-        """CSR matrix sum_e P_e^T blocks[e] P_e from local blocks (m, k, k)."""
-        blocks = np.asarray(blocks, dtype=float)
-        if blocks.shape != (self.m, self.k, self.k):
-            raise ValueError(f"blocks must have shape {(self.m, self.k, self.k)}, got {blocks.shape}")
-        if self.m == 0:
-            return sp.csr_matrix((self.n, self.n))
-        data = np.add.reduceat(blocks.reshape(-1)[self.order], self.starts)
-        return sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
+__all__ = ["SymmetricPattern", "assemble_vector", "gram", "row_operator"]
 
 
 class SymmetricPattern:
@@ -135,12 +90,6 @@ class SymmetricPattern:
         return out
 
 
-def assemble_matrix(dofs: np.ndarray, blocks: np.ndarray, n: int, pattern: Pattern | None = None) -> sp.csr_matrix:
-    """Assemble local blocks (m, k, k) with dof numbers (m, k) into an n x n CSR matrix."""
-    pattern = pattern or Pattern(dofs, n)
-    return pattern.matrix(blocks)
-
-
 def assemble_vector(dofs: np.ndarray, local: np.ndarray, n: int) -> np.ndarray:
     """Assemble local vectors (m, k) or (m, k, c) with dof numbers (m, k) into (n,) or (n, c)."""
     dofs = np.asarray(dofs).reshape(-1)
@@ -150,11 +99,6 @@ def assemble_vector(dofs: np.ndarray, local: np.ndarray, n: int) -> np.ndarray:
     flat = local.reshape(dofs.size, -1)
     out = np.stack([np.bincount(dofs, weights=flat[:, c], minlength=n) for c in range(flat.shape[1])], axis=1)
     return out.reshape((n,) + local.shape[2:])
-
-
-def symmetrize_blocks(blocks: np.ndarray) -> np.ndarray:
-    """0.5 (B + B^T) per block: exactly symmetric in floating point."""
-    return 0.5 * (blocks + blocks.transpose(0, 2, 1))
 
 
 def row_operator(dofs: np.ndarray, values: np.ndarray, n: int, overwrite: bool = False) -> sp.csr_matrix:

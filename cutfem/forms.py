@@ -52,7 +52,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .assembly import gram
+from .assembly import assemble_vector, gram
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from .mesh import cross, vertex_columns
 from .spaces import ProductSpace
@@ -535,15 +535,7 @@ def assemble(form: Form, space, **params):
                 if dofs is None:
                     out[offsets[k] : offsets[k + 1]] += vals
                 else:
-                    target = out[offsets[k] : offsets[k + 1]]
-                    flat = vals.reshape(dofs.size, -1)
-                    idx = dofs.reshape(-1)
-                    for col in range(flat.shape[1]):  # components, not elements
-                        column = np.bincount(idx, weights=flat[:, col], minlength=len(target))
-                        if target.ndim == 1:
-                            target += column
-                        else:
-                            target[:, col] += column
+                    out[offsets[k] : offsets[k + 1]] += assemble_vector(dofs, vals, int(offsets[k + 1] - offsets[k]))
         return np.zeros(n) if out is None else out
     rows, cols, data = [], [], []
     total = None
@@ -773,10 +765,7 @@ def position_load(measure: Measure, field=None) -> Form:
             return _meshed_stiffness(space) @ space.dof_points
         if not _same_elements(space, measure):
             raise ValueError("position_load needs the field on the cut tets, CutP1Space(cut, CUT)")
-        local = space.tangential_gradients * measure.piece_areas[:, None, None]
-        flat = local.reshape(-1, 3)
-        idx = space.element_dofs.reshape(-1)
-        return np.stack([np.bincount(idx, weights=flat[:, d], minlength=space.n_dofs) for d in range(3)], axis=1)
+        return assemble_vector(space.element_dofs, space.tangential_gradients * measure.piece_areas[:, None, None], space.n_dofs)
 
     return Form([(1.0, _VectorTerm(build, field))], True)
 

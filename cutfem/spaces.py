@@ -20,7 +20,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .assembly import Pattern, SymmetricPattern
+from .assembly import SymmetricPattern
 from .markers import CUT
 
 __all__ = ["SurfaceP1Space", "CutP1Space", "ProductSpace", "triangle_gradients", "barycentric_at"]
@@ -52,7 +52,7 @@ def barycentric_at(points: np.ndarray, origin: np.ndarray, grads: np.ndarray) ->
 
 
 class _P1Space:
-    """Shared machinery: cached sparsity patterns and evaluation of discrete functions."""
+    """Shared machinery: cached sparsity patterns (surface meshes) and evaluation of discrete functions."""
 
     element_dofs: np.ndarray
     n_dofs: int
@@ -61,17 +61,6 @@ class _P1Space:
         if "_pattern_cache" not in self.__dict__:
             self.__dict__["_pattern_cache"] = {}
         return self.__dict__["_pattern_cache"]
-
-    def pattern(self, name: str, dofs: np.ndarray | None = None) -> Pattern:
-        """The cached :class:`Pattern` of a named connectivity ("elements", "faces", "edges", ...)."""
-        cache = self._patterns()
-        if name not in cache:
-            if dofs is None:
-                if name != "elements":
-                    raise KeyError(f"no connectivity named {name!r} cached; pass dofs")
-                dofs = self.element_dofs
-            cache[name] = Pattern(dofs, self.n_dofs)
-        return cache[name]
 
     def basis_at(self, points: np.ndarray, parent: np.ndarray) -> np.ndarray:
         """(m, j, k) P1 basis values of element ``parent[i]`` at ``points[i]`` (m, j, 3)."""

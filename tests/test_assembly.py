@@ -20,7 +20,7 @@ import pytest
 import scipy.sparse as sp
 from scipy.spatial import Delaunay
 
-from cutfem.assembly import Pattern, assemble_matrix, assemble_vector, symmetrize_blocks
+from cutfem.assembly import assemble_vector
 from cutfem.cut import cut_mesh
 from cutfem.forms import (
     assemble,
@@ -38,67 +38,8 @@ from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import sphere_mesh, torus_mesh
 
 # ----------------------------------------------------------------------------------------------
-# Pattern / assemble_* on synthetic blocks
+# assemble_vector on synthetic blocks
 # ----------------------------------------------------------------------------------------------
-
-
-def dense_reference(dofs, blocks, n):
-    """sum_e P_e^T B_e P_e with np.add.at, entry by entry."""
-    A = np.zeros((n, n))
-    m, k = dofs.shape
-    for e in range(m):
-        for a in range(k):
-            for b in range(k):
-                A[dofs[e, a], dofs[e, b]] += blocks[e, a, b]
-    return A
-
-
-def test_pattern_matches_dense_reference_nonsymmetric():
-    rng = np.random.default_rng(0)
-    n, m, k = 30, 50, 4
-    dofs = np.array([rng.choice(n, k, replace=False) for _ in range(m)])
-    blocks = rng.normal(size=(m, k, k))
-    A = Pattern(dofs, n).matrix(blocks)
-    assert isinstance(A, sp.csr_matrix) and A.shape == (n, n)
-    np.testing.assert_allclose(A.toarray(), dense_reference(dofs, blocks, n), rtol=0, atol=1e-13)
-    # orientation: block[e, a, b] lands in row dofs[e, a], column dofs[e, b]
-    one = np.zeros((1, 2, 2))
-    one[0, 0, 1] = 7.0
-    B = Pattern(np.array([[3, 5]]), 6).matrix(one).toarray()
-    assert B[3, 5] == 7.0 and B[5, 3] == 0.0 and np.count_nonzero(B) == 1
-
-
-def test_pattern_sums_repeated_dofs_and_is_exactly_symmetric():
-    """Blocks that repeat a dof (as the two tets of a face do) must sum correctly and, when
-    symmetric, give a bitwise symmetric matrix."""
-    rng = np.random.default_rng(1)
-    n, m, k = 25, 400, 8
-    dofs = rng.integers(0, n, size=(m, k))  # many repeats inside rows
-    raw = rng.normal(size=(m, k, k)) * 10.0 ** rng.uniform(-8, 8, size=(m, 1, 1))
-    blocks = symmetrize_blocks(raw)
-    assert np.array_equal(blocks, blocks.transpose(0, 2, 1))
-    A = Pattern(dofs, n).matrix(blocks)
-    assert (A - A.T).nnz == 0
-    ref = dense_reference(dofs, blocks, n)
-    np.testing.assert_allclose(A.toarray(), ref, rtol=1e-12, atol=1e-12 * np.abs(ref).max())
-    # nnz: the distinct (row, col) pairs of the blocks
-    pairs = {(r, c) for row in dofs for r in row for c in row}
-    assert Pattern(dofs, n).nnz == len(pairs) == A.nnz
-
-
-def test_pattern_reuse_and_bad_input():
-    dofs = np.array([[0, 1, 2], [1, 2, 3]])
-    p = Pattern(dofs, 4)
-    B1 = np.ones((2, 3, 3))
-    assert p.matrix(B1).toarray().sum() == 18.0
-    assert p.matrix(2 * B1).toarray()[1, 2] == 4.0  # shared entry, two elements, 2 each
-    assert assemble_matrix(dofs, B1, 4).toarray()[0, 3] == 0.0
-    with pytest.raises(ValueError, match="blocks must have shape"):
-        p.matrix(np.ones((2, 2, 2)))
-    with pytest.raises(ValueError, match=r"dofs must be \(m, k\)"):
-        Pattern(np.arange(3), 4)
-    empty = Pattern(np.zeros((0, 3), dtype=int), 5).matrix(np.zeros((0, 3, 3)))
-    assert empty.shape == (5, 5) and empty.nnz == 0
 
 
 def test_assemble_vector_scalar_and_components():
