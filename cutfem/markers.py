@@ -136,28 +136,29 @@ class ElementSet:
         order = np.argsort(self.tet_ids, kind="stable")
         return order, self.tet_ids[order]
 
-    def locate(self, tet_ids, what: str = "the measure") -> np.ndarray:
-        """Local indices of background tets ``tet_ids`` in this set; a clear error when some are not in it."""
+    def _find(self, tet_ids):
+        """(local index candidates, found mask) of background tets ``tet_ids``, by one binary search."""
         order, sorted_ids = self._lookup
         tet_ids = np.asarray(tet_ids, dtype=np.int64)
-        pos = np.minimum(np.searchsorted(sorted_ids, tet_ids), max(len(sorted_ids) - 1, 0))
-        found = sorted_ids[pos] == tet_ids if len(sorted_ids) else np.zeros(tet_ids.shape, bool)
+        if not len(sorted_ids):
+            return np.zeros(tet_ids.shape, np.int64), np.zeros(tet_ids.shape, bool)
+        pos = np.minimum(np.searchsorted(sorted_ids, tet_ids), len(sorted_ids) - 1)
+        return order[pos], sorted_ids[pos] == tet_ids
+
+    def locate(self, tet_ids, what: str = "the measure") -> np.ndarray:
+        """Local indices of background tets ``tet_ids`` in this set; a clear error when some are not in it."""
+        local, found = self._find(tet_ids)
         if not np.all(found):
             raise ValueError(
                 f"{int(np.sum(~found))} elements of {what} are not in the element set {self.name!r}: a field on "
                 f"{self.name!r} does not live there. Integrate over a measure inside the field's elements, or define "
                 "the field on a larger element set."
             )
-        return order[pos]
+        return local
 
     def contains(self, tet_ids) -> np.ndarray:
         """Boolean mask: which background tets ``tet_ids`` are in this set."""
-        order, sorted_ids = self._lookup
-        tet_ids = np.asarray(tet_ids, dtype=np.int64)
-        if not len(sorted_ids):
-            return np.zeros(tet_ids.shape, bool)
-        pos = np.minimum(np.searchsorted(sorted_ids, tet_ids), len(sorted_ids) - 1)
-        return sorted_ids[pos] == tet_ids
+        return self._find(tet_ids)[1]
 
     def to_pyvista(self, **point_data):
         """The tets as a ``pyvista.UnstructuredGrid`` with point data phi_h (when the set comes from a

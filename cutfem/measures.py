@@ -28,7 +28,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .markers import CUT, NEG, POS, side_subtetrahedra
+from .markers import CUT, NEG, POS, longest_edges, side_subtetrahedra
 from .quadrature import Quadrature, map_tetrahedra, map_triangles
 
 __all__ = ["Measure", "SurfacePieces", "SideVolume", "ElementVolume", "FacetMeasure", "MeshedSurface", "surface_measure"]
@@ -216,8 +216,6 @@ class MeshedSurface(Measure):
 
     @cached_property
     def h(self) -> np.ndarray:
-        from .markers import longest_edges
-
         return longest_edges(self.mesh.points[self.mesh.triangles])
 
     @property
