@@ -32,7 +32,6 @@ and the function :func:`interpolate` (nodal values of a level set, with a finite
 from __future__ import annotations
 
 import numpy as np
-from scipy.special import ellipeinc, ellipkinc
 
 __all__ = [
     "LevelSet",
@@ -750,6 +749,8 @@ class Ellipsoid(LevelSet):
         sin_phi = np.sqrt((1.0 - cos_phi) * (1.0 + cos_phi))
         phi = np.arccos(cos_phi)
         m = a**2 * (b**2 - c**2) / (b**2 * (a**2 - c**2))
+        from scipy.special import ellipeinc, ellipkinc  # only here: scipy.special takes 0.1-0.4 s to import
+
         elliptic = ellipeinc(phi, m) * sin_phi**2 + ellipkinc(phi, m) * cos_phi**2
         return float(2.0 * np.pi * c**2 + 2.0 * np.pi * a * b * elliptic / sin_phi)
 
