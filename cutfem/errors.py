@@ -113,9 +113,12 @@ def _blocks(space, measure, quad, chunk):
     for start in range(0, len(el), chunk):  # blocks of cells, not single elements
         stop = min(start + chunk, len(el))
         e = el[start:stop]
-        phi = space.basis_at(quad.points[start:stop], e)
-        if start < whole:
-            phi[: min(whole, stop) - start] = quad.bary
+        if stop <= whole:  # whole elements only: the basis values are the rule's barycentric coordinates
+            phi = np.broadcast_to(quad.bary, (stop - start,) + quad.bary.shape)
+        else:
+            phi = space.basis_at(quad.points[start:stop], e)
+            if start < whole:
+                phi[: whole - start] = quad.bary
         yield slice(start, stop), e, phi
 
 

@@ -55,6 +55,7 @@ import scipy.sparse as sp
 from .assembly import assemble_vector, gram
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from .mesh import cross, vertex_columns
+from .quadrature import signed_volumes
 from .spaces import ProductSpace
 
 __all__ = [
@@ -637,7 +638,7 @@ def mass(measure: Measure, field=None) -> Form:
             return _simplex_mass(space, c.triangle_points, el, c.triangle_areas)
         if isinstance(measure, SideVolume):
             sub, parent, _ = measure.subtetrahedra
-            sizes = np.abs(np.einsum("ij,ij->i", cross(sub[:, 1] - sub[:, 0], sub[:, 2] - sub[:, 0]), sub[:, 3] - sub[:, 0])) / 6.0
+            sizes = np.abs(signed_volumes(sub))
             return _simplex_mass(space, sub, space.local_elements(measure, parent), sizes)
         if isinstance(measure, ElementVolume):
             es = measure.elements

@@ -29,7 +29,7 @@ from functools import cached_property
 import numpy as np
 
 from .markers import CUT, NEG, POS, longest_edges, side_subtetrahedra
-from .quadrature import Quadrature, map_tetrahedra, map_triangles
+from .quadrature import Quadrature, map_tetrahedra, map_triangles, signed_volumes
 
 __all__ = ["Measure", "SurfacePieces", "SideVolume", "ElementVolume", "FacetMeasure", "MeshedSurface", "surface_measure"]
 
@@ -143,8 +143,7 @@ class SideVolume(Measure):
         sub, parent, whole = self.subtetrahedra
         out = np.zeros(self.elements.n_elements)
         out[parent[:whole]] = self.elements.volumes[parent[:whole]]
-        s = sub[whole:]
-        v = np.abs(np.einsum("ij,ij->i", np.cross(s[:, 1] - s[:, 0], s[:, 2] - s[:, 0]), s[:, 3] - s[:, 0])) / 6.0
+        v = np.abs(signed_volumes(sub[whole:]))
         return out + np.bincount(parent[whole:], weights=v, minlength=self.elements.n_elements)
 
     def _build(self, degree):
