@@ -94,6 +94,28 @@ def test_mg_solve_agrees_with_direct(torus_space, system):
     assert np.linalg.norm(X - X_direct) <= 1e-8 * np.linalg.norm(X_direct)
 
 
+def test_constant_correction_makes_the_residual_sum_vanish(torus_space):
+    """CG ends with the Galerkin correction on the constants: 1^T (B - K X) = 0 to round-off at a
+    loose tolerance, and the error in the energy norm is no larger than without it."""
+    V = torus_space
+    M, A, J = mass_matrix(V), stiffness_matrix(V), face_matrix(V)
+    K = (M + 0.1 * J).tocsr()
+    B = A @ V.dof_points  # 1^T B = 0: the mean curvature identity int H_h = 0
+    X_direct = DirectSolver(K).solve(B)
+    X, info = mg_solve(K, B, lattice_indices(V), tol=1e-4)
+    assert info.residual <= 1e-4
+    area = M.sum()
+    ones = np.ones(V.n_dofs)
+    integral = ones @ (M @ X)  # 1^T M H = 1^T B - 1^T r - 1^T J H, J 1 = 0
+    assert np.max(np.abs(integral)) <= 1e-12 * area
+    R = B - K @ X
+    assert np.max(np.abs(ones @ R)) <= 1e-12 * np.abs(B).sum()
+    E = X - X_direct
+    for delta in (-1e-6, 1e-6):  # the corrected error is K-orthogonal to the constants: a shift is worse
+        shifted = E + delta
+        assert np.all(np.einsum("ic,ic->c", E, K @ E) < np.einsum("ic,ic->c", shifted, K @ shifted))
+
+
 def test_auto_picks_multigrid_above_the_limit(torus_space, monkeypatch):
     V = torus_space
     K = mass_matrix(V) + 0.1 * face_matrix(V)
