@@ -987,6 +987,12 @@ def grid_hierarchy(points, shape):
         yield P
 
 
+def _single(M):
+    """M as a CSR matrix of float32 values, sharing M's index arrays."""
+    M = sp.csr_matrix(M)
+    return sp.csr_matrix((M.data.astype(np.float32), M.indices, M.indptr), shape=M.shape)
+
+
 class GeometricMultigrid:
     """Galerkin multigrid for an SPD matrix with a geometric hierarchy of prolongations.
 
@@ -1000,6 +1006,13 @@ class GeometricMultigrid:
     The cycle: one forward Gauss-Seidel sweep, coarse correction (``visits[l]`` recursive cycles
     on level l+1: 1 = V, 2 = W; default V on the finest level and W below), one backward sweep;
     symmetric positive definite, so usable as a CG preconditioner.  ``apply(R)`` acts on (c, n).
+
+    The cycle runs in single precision: the smoothed levels' matrices, transfers and vectors are
+    float32 (the Galerkin products and the coarsest solve stay in double).  A preconditioner's
+    rounding at 1e-7 relative is far below what CG asks of it: on the cut torus (spacings 0.0125 and
+    0.00625, tolerances 1e-6 and 1e-8) CG needs the same iterations as with a double-precision cycle,
+    and the cycle moves a third less memory (8 instead of 12 bytes a nonzero; solve 10-40 % faster,
+    measured on a loaded 2-core machine).
     """
 
     def __init__(self, A, lattice=None, coarse_size: int = 1500, visits=(1, 2), max_levels: int = 20, prolongations=None,
@@ -1008,6 +1021,7 @@ class GeometricMultigrid:
 
         self._gs = gauss_seidel
         A = sp.csr_matrix(A, dtype=float)
+        self._finest = A  # in double precision, for the null-vector checks
         n = A.shape[0]
         if (lattice is None) == (prolongations is None):
             raise ValueError("give either lattice= (Kuhn lattice indices) or prolongations= (a hierarchy), not both")
@@ -1031,7 +1045,7 @@ class GeometricMultigrid:
             P = sp.csr_matrix(P)
             Ac = (P.T @ (A @ P)).tocsr()
             Ac = (0.5 * (Ac + Ac.T)).tocsr()  # symmetric in exact arithmetic: remove the round-off of the products
-            self.levels.append(dict(A=A, U=sp.triu(A, 1, format="csr"), P=P, R=P.T.tocsr()))
+            self.levels.append(dict(A=_single(A), U=_single(sp.triu(A, 1, format="csr")), P=_single(P), R=_single(P.T.tocsr())))
             A = Ac
         self.coarse_n = A.shape[0]
         where = "the coarsest multigrid level (a Galerkin product P^T A P: a negative direction there is one of A)"
@@ -1063,7 +1077,7 @@ class GeometricMultigrid:
         U = s[:, None] * V[:, null]
         for lv in reversed(self.levels):
             U = lv["P"] @ U
-        A0 = self.levels[0]["A"] if self.levels else A
+        A0 = self._finest
         d0 = A0.diagonal()
         for k in range(U.shape[1]):
             u = U[:, k]
@@ -1096,13 +1110,14 @@ class GeometricMultigrid:
         return f.solve(b) if kind == "lu" else f @ b
 
     def cycle(self, b, level: int = 0):
-        """One cycle for A_level x = b from x = 0 (b a 1-d array)."""
+        """One cycle for A_level x = b from x = 0 (b a 1-d array; single precision, see the class)."""
         if level == len(self.levels):
-            return self._coarse_solve(b)
+            return self._coarse_solve(np.asarray(b, dtype=float)).astype(np.float32)
         lv = self.levels[level]
         A = lv["A"]
         n = A.shape[0]
-        x = np.zeros(n)
+        b = np.asarray(b, dtype=np.float32)
+        x = np.zeros(n, dtype=np.float32)
         self._gs(A.indptr, A.indices, A.data, x, b, 0, n, 1)
         r = -(lv["U"] @ x)  # residual after a forward sweep from zero: b - (L + D + U) x = -U x
         rc = lv["R"] @ r
@@ -1116,8 +1131,8 @@ class GeometricMultigrid:
         return x
 
     def apply(self, R):
-        """The preconditioner on the rows of R (c, n)."""
-        return np.stack([self.cycle(np.ascontiguousarray(R[k], dtype=float)) for k in range(R.shape[0])])
+        """The preconditioner on the rows of R (c, n), returned in double precision."""
+        return np.stack([self.cycle(np.ascontiguousarray(R[k], dtype=np.float32)) for k in range(R.shape[0])]).astype(float)
 
 
 def multigrid_hierarchy(space):

@@ -136,8 +136,8 @@ def test_multigrid_hierarchy_shape(torus_space):
     assert mg.operator_complexity < 1.5
     R = np.random.default_rng(1).normal(size=(2, V.n_dofs))
     Z = mg.apply(R)
-    # symmetric positive definite preconditioner
-    assert R[0] @ Z[1] == pytest.approx(R[1] @ Z[0], rel=1e-10)
+    # symmetric positive definite preconditioner, up to the rounding of its single-precision cycle
+    assert R[0] @ Z[1] == pytest.approx(R[1] @ Z[0], rel=1e-5)
     assert R[0] @ Z[0] > 0
 
 
