@@ -142,6 +142,12 @@ def test_limit_stops_before_the_level_predicted_to_exceed():
     lim = performance.limit_search(_fake_runner(lambda t: 0.5 + 1e-4 * t, ran), 1.0)
     assert ran == [0.1] and lim["largest"]["level"] == 0.1
     assert lim["next"]["peak_memory_gib"] == pytest.approx(4 * 0.6)
+    # a fixed start-up memory makes the fitted exponent < 1 (0.45 over 0.1-0.025); the prediction uses 1:
+    # 2.1 x 4 = 8.4 GiB > 5 at 0.0125 (true 6.9 GiB), where the fit alone would predict 3.9 GiB and run it
+    ran.clear()
+    lim = performance.limit_search(_fake_runner(lambda t: 0.5 + 1e-4 * t, ran), 5.0)
+    assert ran == [0.1, 0.05, 0.025] and lim["next"]["memory_exponent"] < 0.5
+    assert lim["next"]["memory_exponent_used"] == 1.0 and lim["next"]["peak_memory_gib"] == pytest.approx(4 * 2.1)
     # memory available now caps the limit: 90 % of 5 GiB < 16 GiB predicted at 0.025
     ran.clear()
     lim = performance.limit_search(_fake_runner(lambda t: 1e-3 * t, ran), 20.0, available_gib=lambda: 5.0)
