@@ -5,7 +5,7 @@ level that fits in memory.
 Cut torus of docs/math.md §6 (box [-1.6,1.6]^2 x [-0.6,0.6], structured Kuhn background, tau_F = 0.1) at
 spacings 0.1 ... 0.0125 (down to 0.003125 with ``--full``), and the meshed torus (flipped and
 perturbed families, tau_E = 0.1) at n = 64 ... 768.  Every level runs in a fresh Python process, so
-that its peak resident memory (``ru_maxrss``) is its own; the stages are timed with ``perf_counter``:
+that its peak resident memory (VmHWM) is its own; the stages are timed with ``perf_counter``:
 
 * cut: background mesh (a :class:`~cutfem.mesh.StructuredBox`, nothing stored), cut (band search,
   level-set values near the surface, marching tets), topology (interior faces of the active mesh);
@@ -81,8 +81,11 @@ Options of the command line (besides ``--out`` and the size flags)
   active tets).  The meshed levels are not run in this mode.
 * ``--bulk``: fictitious-domain Poisson on the solid torus, ``cutfem run poisson-cut --surface torus
   --spacing S --json F`` in a fresh process per level (0.1, 0.05, 0.025; down to 0.0125 with
-  ``--full``; one run each): unknowns, wall time, stages, peak memory (the child's own
-  ``ru_maxrss`` from ``os.wait4``), time and memory per million unknowns.
+  ``--full``; one run each): unknowns, wall time, stages, peak memory, time and memory per million
+  unknowns.
+
+Peak memory is each process's own VmHWM (``/proc/self/status``), not ``ru_maxrss``, which on Linux
+also counts the parent's peak (the parent's address space at fork/exec).
 
 Exponents (``exponents``): least-squares slopes of log(wall time), log(user CPU time),
 log(peak memory) and log(stage time) against log(active tets) over the three finest cut levels
@@ -234,7 +237,24 @@ def ngsxfem_level(spacing: float) -> dict:
     return {"kind": "ngsxfem", "level": spacing, **{k: r[k] for k in keep}}
 
 
-_LEVEL_CODE = """\
+#: defines _peak(): the process's own peak resident memory in GiB, VmHWM of /proc/self/status (the
+#: high-water mark of its address space since exec).  Not ru_maxrss: on Linux a child's ru_maxrss
+#: starts from its parent's peak (the parent's address space at fork/exec counts), so a parent that
+#: once held 0.6 GiB made every level report 0.6 GiB.  ru_maxrss where /proc is absent.
+_PEAK_CODE = """\
+def _peak():
+    try:
+        with open('/proc/self/status') as fh:
+            for line in fh:
+                if line.startswith('VmHWM:'):
+                    return int(line.split()[1]) / 2**20
+    except OSError:
+        pass
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+"""
+
+_LEVEL_CODE = _PEAK_CODE + """\
 import json, resource, sys
 import cutfem.memory
 cutfem.memory.configure()
@@ -246,7 +266,7 @@ if kind == 'ngsxfem':
 r0 = resource.getrusage(resource.RUSAGE_SELF)
 rec = cut_level(level) if kind == 'cut' else ngsxfem_level(level) if kind == 'ngsxfem' else meshed_level(level, kind.split('-', 1)[1])
 r1 = resource.getrusage(resource.RUSAGE_SELF)
-rec['peak_memory_gib'] = r1.ru_maxrss / 2**20
+rec['peak_memory_gib'] = _peak()
 rec['cpu_user'] = r1.ru_utime - r0.ru_utime
 rec['cpu_system'] = r1.ru_stime - r0.ru_stime
 rec['page_faults'] = r1.ru_minflt - r0.ru_minflt
@@ -471,25 +491,34 @@ def _available_gib():
 # ---------------------------------------------------------------------------------------------
 
 
+_BULK_CODE = _PEAK_CODE + """\
+import sys
+from cutfem.cli import main
+rc = main(sys.argv[1:])
+print(f'PEAK {_peak()!r}')
+sys.exit(rc)
+"""
+
+
 def bulk_level(spacing: float) -> dict:
-    """``cutfem run poisson-cut --surface torus --spacing S --json F`` in a fresh process: the
-    level's unknowns, stage times and wall time from its JSON record, the process's own peak
-    resident memory and CPU times from ``os.wait4`` (Linux ru_maxrss in KiB), the process wall time
-    (start-up included), and the time (s) and memory (GiB) per million unknowns."""
+    """``cutfem run poisson-cut --surface torus --spacing S --json F`` in a fresh process (the
+    command's ``main``, followed by a print of the process's own peak resident memory, VmHWM):
+    the level's unknowns, stage times and wall time from its JSON record, the peak, the CPU times
+    from ``os.wait4``, the process wall time (start-up included), and the time (s) and memory
+    (GiB) per million unknowns."""
     with tempfile.TemporaryDirectory() as tmp:
-        path, err = Path(tmp) / "level.json", Path(tmp) / "stderr.txt"
-        cmd = [sys.executable, "-m", "cutfem.cli", "run", "poisson-cut", "--surface", "torus", "--spacing", repr(spacing),
-               "--json", str(path), "--quiet"]
+        path, out, err = Path(tmp) / "level.json", Path(tmp) / "stdout.txt", Path(tmp) / "stderr.txt"
+        args = ["run", "poisson-cut", "--surface", "torus", "--spacing", repr(spacing), "--json", str(path), "--quiet"]
         t0 = time.perf_counter()
-        with err.open("w") as fh:
-            proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=fh, env=_child_env())
+        with out.open("w") as fo, err.open("w") as fe:
+            proc = subprocess.Popen([sys.executable, "-c", _BULK_CODE, *args], stdout=fo, stderr=fe, env=_child_env())
             _, status, usage = os.wait4(proc.pid, 0)
         proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait again
         process_wall = time.perf_counter() - t0
         if proc.returncode != 0:
-            raise RuntimeError(f"bulk level {spacing} failed ({' '.join(cmd[1:])}):\n{err.read_text()[-3000:]}")
+            raise RuntimeError(f"bulk level {spacing} failed (cutfem {' '.join(args)}):\n{err.read_text()[-3000:]}")
         r = json.loads(path.read_text())["records"][0]
-    peak = usage.ru_maxrss / 2**20
+        peak = float([ln for ln in out.read_text().splitlines() if ln.startswith("PEAK ")][-1].split()[1])
     mega = r["dofs"] / 1e6
     return {"kind": "bulk-poisson", "level": spacing, "dofs": r["dofs"], "active_tets": r["active_tets"],
             "solver": r["solver"], "iterations": r.get("solver_iterations"), "l2_error": r["l2_error"],
@@ -553,6 +582,15 @@ def _peers(cut_records, memory_gib, down_to, progress) -> dict:
 # ---------------------------------------------------------------------------------------------
 
 
+def _bandwidth_in_subprocess(mebibytes: int) -> dict:
+    """:func:`memory_bandwidth` in a fresh process with the allocation settings of the levels (and
+    without leaving its arrays on this process's heap)."""
+    code = ("import json, cutfem.memory\ncutfem.memory.configure()\nfrom cutfem.studies.performance import memory_bandwidth\n"
+            f"print('RESULT ' + json.dumps(memory_bandwidth({int(mebibytes)})))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_child_env(), check=True)
+    return json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1][len("RESULT "):])
+
+
 def _best_of(kind: str, level, repeat: int) -> dict:
     """Run a level ``repeat`` times (fresh processes) and keep the fastest run; all the end-to-end
     times are kept in ``totals`` and their system CPU times in ``cpu_system_all``."""
@@ -593,7 +631,7 @@ def run(out: Path, size: str = "quick", progress=None, peers: bool = False, limi
     progress = progress or Progress("performance")
     repeat = 1 if limit else pick(size, 1, 3, 3)
     progress("memory bandwidth")
-    bw = memory_bandwidth(pick(size, 32, 200, 200))
+    bw = _bandwidth_in_subprocess(pick(size, 32, 200, 200))
     progress(f"  {bw['bandwidth'] / 1e9:.2f} GB/s (copy {bw['copy'] / 1e9:.2f}, triad {bw['triad'] / 1e9:.2f})")
     run_cut = _cut_runner(repeat, progress)
     summary = {"repeat": repeat, "bandwidth": bw}

@@ -58,6 +58,18 @@ def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
     assert performance.fitted_exponent([1, 10, 100], [2, 20, 200]) == pytest.approx(1.0)
 
 
+def test_peak_memory_is_the_level_process_own():
+    """A parent that once held 0.4 GiB: the child's ru_maxrss would start there (Linux), its VmHWM does not."""
+    import resource
+
+    a = np.ones(50_000_000)
+    a[1::512] = 2.0
+    del a
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20 > 0.37
+    rec = performance._in_subprocess("meshed-flipped", 16)
+    assert 0.02 < rec["peak_memory_gib"] < 0.3
+
+
 def _fabricated_level(**changes):
     rec = {"level": 0.05, "dofs": 500, "active_tets": 1000, "surface_triangles": 1200, "interior_faces": 2000,
            "iterations": 10, "nnz": {"M": 5000, "J": 8000, "K": 8000},
