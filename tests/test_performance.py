@@ -126,6 +126,9 @@ def test_scaling_exponents_over_the_three_finest_levels():
     assert e["time"] == pytest.approx(1.5) and e["memory"] == pytest.approx(1.0) and e["user_time"] == pytest.approx(1.0)
     assert e["stages"] == {"solve": pytest.approx(1.2)}  # a stage timed at 0 has no exponent
     assert performance.scaling_exponents(recs[:2]) == {}
+    for r in recs:
+        r["wall"] = r.pop("total")
+    assert performance.scaling_exponents(recs, time_key="wall")["time"] == pytest.approx(1.5)
 
 
 def _fake_runner(peak_of_tets, ran, fail_at=None):
