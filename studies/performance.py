@@ -1,9 +1,11 @@
-"""Performance benchmark: stage times, peak memory and sizes of the mean curvature problems.
+"""Performance benchmark: stage times, peak memory and sizes of the mean curvature problems, with a
+lower bound for every stage, the fitted exponents, ngsxfem beside it, bulk Poisson, and the largest
+level that fits in memory.
 
 Cut torus of docs/math.md §6 (box [-1.6,1.6]^2 x [-0.6,0.6], structured Kuhn background, tau_F = 0.1) at
-spacings 0.1 ... 0.0125 (0.00625 with ``--full``), and the meshed torus (flipped and perturbed
-families, tau_E = 0.1) at n = 64 ... 768.  Every level runs in a fresh Python process, so that its
-peak resident memory (``ru_maxrss``) is its own; the stages are timed with ``perf_counter``:
+spacings 0.1 ... 0.0125 (down to 0.003125 with ``--full``), and the meshed torus (flipped and
+perturbed families, tau_E = 0.1) at n = 64 ... 768.  Every level runs in a fresh Python process, so
+that its peak resident memory (VmHWM) is its own; the stages are timed with ``perf_counter``:
 
 * cut: background mesh (a :class:`~cutfem.mesh.StructuredBox`, nothing stored), cut (band search,
   level-set values near the surface, marching tets), topology (interior faces of the active mesh);
@@ -14,14 +16,84 @@ peak resident memory (``ru_maxrss``) is its own; the stages are timed with ``per
 * errors: the L2 error on S_h (degree-4 quadrature).
 
 Each level runs three times (once at the tiny size) and the fastest run is kept, with all the
-totals recorded (``totals``) and the exponent also fitted to the slowest runs.  Each level also
-records the CPU time of the timed stages split into user and system time, and the
-number of page faults: on a virtual machine the system time of first touches of memory varies from
-run to run (0.6-5 s at spacing 0.0125), so the user-time exponent is reported beside the wall one.
+totals recorded (``totals``).  Each level also records the CPU time of the timed stages split into
+user and system time, and the number of page faults: on a virtual machine the system time of first
+touches of memory varies from run to run (0.6-5 s at spacing 0.0125), so the user-time exponent is
+reported beside the wall one.  Every level's process opts into the allocation settings of
+:mod:`cutfem.memory` before it imports the stages, and each record keeps what was applied
+(``allocator``).
 
-Every level's process opts into the allocation settings of :mod:`cutfem.memory` before it imports
-the stages, and each record keeps what was applied (``allocator``).  The figure shows time and memory against the number of active tets (cut) or surface nodes
-(meshed) on log-log axes with the exponents fitted over the finest levels.
+Lower bounds per stage (``bounds`` of each cut level)
+-----------------------------------------------------
+An estimate, not a proof: each stage of a cut level is given the bytes it must at least move
+through main memory, and its bound is bytes / B, with B the machine's sustained bandwidth measured
+once per run (:func:`memory_bandwidth`: numpy copy ``a[:] = b`` and triad ``a = b + s c`` on three
+arrays of 200 MiB, best of 5 each; the copy moves 2, the triad, two numpy passes, 5 array sizes;
+B is the larger of the two rates).  The ratio measured / bound says how far a stage is from
+streaming its data once; the flop counts are not modelled.  With N unknowns (per component), T active
+tets (one surface piece each), S triangles of S_h, F interior faces, nnz(M), nnz(J), nnz(K) the
+nonzeros of the mass, the penalty and K = M + tau J (CSR: 8-byte value + 4-byte column, 12 bytes a
+nonzero; row pointers neglected), c = 3 right-hand sides and ``it`` CG iterations (the most over
+the columns, so the solve bound may count a few iterations too many), the bytes of
+:func:`stage_bytes` are:
+
+=============  ==================================================================================
+background     0: the box is lazy (its nodes and tets are computed on demand), O(1) work; no
+               bandwidth bound, no ratio
+cut            16 N (level-set value and node id of each band node written) + 72 T (four values
+               read, four vertex ids and the tet id written, 8 bytes each) + 24 S (three vertex
+               ids of each triangle written)
+topology       96 T (the tets read; four face keys a tet written and read) + 32 F (the pair of
+               tets and the two opposite vertices of each interior face written)
+mass           288 T (three Gram rows of four 12-byte entries a tet, written then read by the
+               product E^T E) + 12 nnz(M) (the CSR written)
+rhs            192 T (four local values x 3 components a tet, written then read by the scatter)
+               + 24 N (the N x 3 result written)
+face_penalty   192 F (one Gram row of eight 12-byte entries a face, written then read) + 12 nnz(J)
+system         12 (nnz(M) + nnz(J) + nnz(K)) (M and J read, K written)
+solve          it c (3.5 x 12 nnz(K) + 24 N): per CG iteration and column, the fine matrix is read
+               by one product, two Gauss-Seidel sweeps (forward and backward) and the residual
+               -U x after the forward sweep (the strictly upper part: half a pass); the transfers
+               read the fine residual and read and write the fine correction (3 x 8 N).  The
+               coarse levels, the multigrid setup and the CG vector updates are left out.  A direct
+               solve (it = 0): 12 nnz(K) + 24 N (K read once, the solution written; the factor
+               not counted)
+errors         80 Q S: Q = 6 points of the degree-4 triangle rule, each with its coordinates (24),
+               weight (8) and the discrete and exact fields (2 x 24) written
+=============  ==================================================================================
+
+Each stage's record says so in ``bound_method``.
+
+Options of the command line (besides ``--out`` and the size flags)
+------------------------------------------------------------------
+* ``--peers``: the same cut torus level in ngsxfem (:func:`cutfem.studies.peers.ngsxfem_mean_curvature`
+  on the same Kuhn tets, the same snapped level set, zeros to +1e-14 and the collapsed tets left
+  out, so the same unknowns; NGSolve's sparse Cholesky, one thread), once per level in a fresh
+  process, down to ``--peers-down-to`` (0.025: the NGSolve mesh of the whole background needs about
+  400 bytes a background tet, 15 GB at 0.0125) and only where that fits in ``--memory-gib`` and
+  in 90 % of the available memory; the ratio ngsxfem / cutfem of the stage sums (``ratio``).  cutfem
+  keeps its automatic solver (CG with multigrid above 20 000 unknowns).  Without ngsolve/xfem a
+  note is printed and saved (``peers.skipped``).
+* ``--limit``: the cut torus at spacings 0.1, 0.05, ... (one run each, fresh processes) until the
+  next level's predicted peak exceeds ``--memory-gib`` (default 20) or 90 % of the memory
+  available when it would start (:func:`limit_search`); records the largest level that ran and the
+  prediction for the next (:func:`predict_next`: the fitted exponents, memory at least linear in the
+  active tets).  The meshed levels are not run in this mode.
+* ``--bulk``: fictitious-domain Poisson on the solid torus, ``cutfem run poisson-cut --surface torus
+  --spacing S --json F`` in a fresh process per level (0.1, 0.05, 0.025; down to 0.0125 with
+  ``--full``; one run each): unknowns, wall time, stages, peak memory, time and memory per million
+  unknowns.
+
+Peak memory is each process's own VmHWM (``/proc/self/status``), not ``ru_maxrss``, which on Linux
+also counts the parent's peak (the parent's address space at fork/exec).
+
+Exponents (``exponents``): least-squares slopes of log(wall time), log(user CPU time),
+log(peak memory) and log(stage time) against log(active tets) over the three finest cut levels
+that ran (none with fewer than three), and of log(wall time) and log(peak) against log(unknowns)
+for the bulk levels.  The figure ``performance_scaling`` shows time and memory against active
+tets (cut, with ngsxfem when run) or surface nodes (meshed) on log-log axes with the exponents;
+``performance_bounds`` shows measured / bound per stage and, with ``--bulk``, the bulk costs per
+million unknowns.
 """
 
 from __future__ import annotations
@@ -30,6 +102,8 @@ import json
 import os
 import subprocess
 import sys
+import tempfile
+import time
 from pathlib import Path
 
 import numpy as np
@@ -37,15 +111,33 @@ import numpy as np
 from cutfem.registry import Timer
 from cutfem.studies.common import PAGE_WIDTH, Progress, figure_style, pick, save_figure, save_json, study_main
 
-OUTPUTS = ["performance", "performance_scaling"]
+OUTPUTS = ["performance", "performance_scaling", "performance_bounds"]
 
 BOX = ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6])
+
+#: the timed stages of a cut level, in order
+CUT_STAGES = ("background", "cut", "topology", "mass", "rhs", "face_penalty", "system", "solve", "errors")
+
+#: right-hand sides of the mean curvature system (one per coordinate)
+COLUMNS = 3
+#: bytes of one CSR nonzero: float64 value and int32 column index
+CSR_BYTES = 12
+#: passes over the fine matrix per CG iteration and column: product, two Gauss-Seidel sweeps, half-product residual
+SOLVE_PASSES = 3.5
+#: points of the degree-4 triangle rule the L2 error uses
+ERROR_POINTS = 6
+
+#: ngsxfem runs at spacings >= this by default (the NGSolve mesh covers the whole background)
+PEERS_DOWN_TO = 0.025
+#: the cut levels of --limit start here and halve
+LIMIT_START = 0.1
 
 
 def _timed_system_solve_error(t, space, surface, penalty_name, penalty, tau, torus):
     """The stages shared by both kinds: mass over the measure ``surface`` (S_h), the right-hand
     sides B = A x (``rhs``), the penalty form (timed as ``penalty_name``), K = M + tau J, the
-    automatic solve and the L2 error; returns (error, SolveInfo)."""
+    automatic solve and the L2 error; returns (error, SolveInfo, nonzeros) with nonzeros the dict
+    {"M", "J", "K"} of the three matrices' stored entries."""
     from cutfem.errors import l2_error
     from cutfem.forms import assemble, mass, position_load
     from cutfem.solve import solve
@@ -62,11 +154,13 @@ def _timed_system_solve_error(t, space, surface, penalty_name, penalty, tau, tor
         H, info = solve(K, B, space=space)
     with t("errors"):
         err = l2_error(space, H, torus.exact_mean_curvature_vector)
-    return err, info
+    return err, info, {"M": int(M.nnz), "J": int(J.nnz), "K": int(K.nnz)}
 
 
 def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
-    """One cut-torus level, timed stage by stage (runs in the calling process)."""
+    """One cut-torus level, timed stage by stage (runs in the calling process).  The record has
+    the sizes the bounds need: ``dofs`` (N), ``active_tets`` (T), ``surface_triangles`` (S),
+    ``interior_faces`` (F), ``iterations`` and ``nnz`` ({"M", "J", "K"})."""
     from cutfem.cut import CUT, cut_mesh
     from cutfem.forms import face_jump_penalty
     from cutfem.levelset import Torus
@@ -82,16 +176,18 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     with t("topology"):
         space = CutP1Space(cut)
         faces = cut.interior_facets(CUT)
-    err, info = _timed_system_solve_error(t, space, cut.ds(), "face_penalty", face_jump_penalty(cut.dF(faces)), tau_f, torus)
+    err, info, nnz = _timed_system_solve_error(t, space, cut.ds(), "face_penalty", face_jump_penalty(cut.dF(faces)), tau_f, torus)
     return {
         "kind": "cut",
         "level": spacing,
         "background_nodes": int(box.n_points),
+        "background_tets": int(box.n_tets),
         "active_tets": int(cut.n_tets),
         "pieces": int(cut.n_tets),
         "surface_triangles": int(cut.n_triangles),
         "interior_faces": int(faces.n_facets),
         "dofs": int(space.n_dofs),
+        "nnz": nnz,
         "l2_error": err,
         "solver": info.method,
         "iterations": info.iterations,
@@ -111,12 +207,13 @@ def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     with t("mesh"):
         mesh = torus_mesh(n, family, seed=1)
         space = SurfaceP1Space(mesh)
-    err, info = _timed_system_solve_error(t, space, mesh.ds(), "edge_penalty", edge_jump_penalty(mesh.ds()), tau_e, Torus())
+    err, info, nnz = _timed_system_solve_error(t, space, mesh.ds(), "edge_penalty", edge_jump_penalty(mesh.ds()), tau_e, Torus())
     return {
         "kind": f"meshed-{family}",
         "level": n,
         "dofs": int(space.n_dofs),
         "triangles": int(mesh.n_triangles),
+        "nnz": nnz,
         "l2_error": err,
         "solver": info.method,
         "iterations": info.iterations,
@@ -125,32 +222,76 @@ def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     }
 
 
-def _in_subprocess(kind: str, level) -> dict:
-    """Run one level in a fresh interpreter and return its record with the peak memory (GiB)."""
-    code = (
-        "import json, resource, sys\n"
-        "import cutfem.memory\n"
-        "cutfem.memory.configure()\n"  # the benchmark measures the configured process (see cutfem.memory)
-        "from cutfem.studies.performance import cut_level, meshed_level\n"
-        f"kind, level = {kind!r}, {level!r}\n"
-        # import everything the stages use first, so that the CPU times are the stages' own
-        "import pyamg, threadpoolctl, cutfem.cut, cutfem.errors, cutfem.forms, cutfem.levelset, cutfem.mesh, cutfem.solve, cutfem.spaces, cutfem.surface\n"
-        "r0 = resource.getrusage(resource.RUSAGE_SELF)\n"
-        "rec = cut_level(level) if kind == 'cut' else meshed_level(level, kind.split('-', 1)[1])\n"
-        "r1 = resource.getrusage(resource.RUSAGE_SELF)\n"
-        "rec['peak_memory_gib'] = r1.ru_maxrss / 2**20\n"
-        "rec['cpu_user'] = r1.ru_utime - r0.ru_utime\n"
-        "rec['cpu_system'] = r1.ru_stime - r0.ru_stime\n"
-        "rec['page_faults'] = r1.ru_minflt - r0.ru_minflt\n"
-        "rec['allocator'] = dict(cutfem.memory.SETTINGS)\n"
-        "print('RESULT ' + json.dumps(rec))\n"
-    )
+def ngsxfem_level(spacing: float) -> dict:
+    """The cut torus level of :func:`cut_level` in ngsxfem (:func:`cutfem.studies.peers.ngsxfem_mean_curvature`
+    with the zeros of the level set moved to +1e-14 and the collapsed tets left out: cutfem's
+    discrete problem; NGSolve's sparse Cholesky, no TaskManager).  ``time`` has the stages mesh,
+    levelset, cut, assembly, solve, errors; ``total`` is their sum."""
+    from cutfem.levelset import Torus
+    from cutfem.studies.peers import ngsxfem_mean_curvature
+
+    r = ngsxfem_mean_curvature(spacing, Torus(1.0, 0.5), zero_rule="+eps-cutfem-active", superlu=False)
+    if "failed" in r:
+        raise RuntimeError(f"ngsxfem failed at spacing {spacing}: {r['failed']}")
+    keep = ("dofs", "active_tets", "interior_faces", "background_tets", "l2_error", "solver", "time", "total")
+    return {"kind": "ngsxfem", "level": spacing, **{k: r[k] for k in keep}}
+
+
+#: defines _peak(): the process's own peak resident memory in GiB, VmHWM of /proc/self/status (the
+#: high-water mark of its address space since exec).  Not ru_maxrss: on Linux a child's ru_maxrss
+#: starts from its parent's peak (the parent's address space at fork/exec counts), so a parent that
+#: once held 0.6 GiB made every level report 0.6 GiB.  ru_maxrss where /proc is absent.
+_PEAK_CODE = """\
+def _peak():
+    try:
+        with open('/proc/self/status') as fh:
+            for line in fh:
+                if line.startswith('VmHWM:'):
+                    return int(line.split()[1]) / 2**20
+    except OSError:
+        pass
+    import resource
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
+"""
+
+_LEVEL_CODE = _PEAK_CODE + """\
+import json, resource, sys
+import cutfem.memory
+cutfem.memory.configure()
+from cutfem.studies.performance import cut_level, meshed_level, ngsxfem_level
+kind, level = {kind!r}, {level!r}
+import pyamg, threadpoolctl, cutfem.cut, cutfem.errors, cutfem.forms, cutfem.levelset, cutfem.mesh, cutfem.solve, cutfem.spaces, cutfem.surface
+if kind == 'ngsxfem':
+    import ngsolve, xfem, cutfem.studies.peers
+r0 = resource.getrusage(resource.RUSAGE_SELF)
+rec = cut_level(level) if kind == 'cut' else ngsxfem_level(level) if kind == 'ngsxfem' else meshed_level(level, kind.split('-', 1)[1])
+r1 = resource.getrusage(resource.RUSAGE_SELF)
+rec['peak_memory_gib'] = _peak()
+rec['cpu_user'] = r1.ru_utime - r0.ru_utime
+rec['cpu_system'] = r1.ru_stime - r0.ru_stime
+rec['page_faults'] = r1.ru_minflt - r0.ru_minflt
+rec['allocator'] = dict(cutfem.memory.SETTINGS)
+print('RESULT ' + json.dumps(rec))
+"""
+
+
+def _child_env() -> dict:
+    """The environment of a fresh process that imports the same cutfem as this one."""
     import cutfem
 
-    env = dict(os.environ)  # the child imports the same cutfem as this process
+    env = dict(os.environ)
     root = str(Path(cutfem.__file__).resolve().parents[1])
     env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env)
+    return env
+
+
+def _in_subprocess(kind: str, level) -> dict:
+    """Run one level (``kind`` "cut", "meshed-<family>" or "ngsxfem") in a fresh interpreter that
+    first applies :func:`cutfem.memory.configure` and imports everything the stages use (so that
+    the CPU times are the stages' own); returns its record with the peak memory (GiB), CPU times
+    and page faults."""
+    proc = subprocess.run([sys.executable, "-c", _LEVEL_CODE.format(kind=kind, level=level)],
+                          capture_output=True, text=True, env=_child_env())
     if proc.returncode != 0:
         raise RuntimeError(f"level {kind} {level} failed:\n{proc.stderr[-3000:]}")
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
@@ -161,6 +302,293 @@ def fitted_exponent(x, y) -> float:
     """Least-squares slope of log y against log x."""
     x, y = np.asarray(x, float), np.asarray(y, float)
     return float(np.polyfit(np.log(x), np.log(y), 1)[0]) if len(x) >= 2 else float("nan")
+
+
+# ---------------------------------------------------------------------------------------------
+# lower bounds
+# ---------------------------------------------------------------------------------------------
+
+
+def memory_bandwidth(mebibytes: int = 200, repeat: int = 5) -> dict:
+    """The sustained memory bandwidth of one core, in bytes per second.
+
+    Three float64 arrays of ``mebibytes`` MiB each (touched before timing); best of ``repeat`` of a
+    copy ``a[:] = b`` (2 array sizes moved) and of a triad ``a = b + s c`` done as two numpy passes,
+    ``a = s c`` then ``a += b`` (5 array sizes moved; write-allocate traffic not counted).  Returns
+    {"copy", "triad", "bandwidth" (the larger rate: the bound uses the fastest streaming seen),
+    "mebibytes", "repeat", "method"}."""
+    n = int(mebibytes) * 2**20 // 8
+    a, b, c = np.zeros(n), np.full(n, 1.0), np.full(n, 2.0)
+    best = {"copy": np.inf, "triad": np.inf}
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        np.copyto(a, b)
+        t1 = time.perf_counter()
+        np.multiply(c, 3.0, out=a)
+        np.add(a, b, out=a)
+        t2 = time.perf_counter()
+        best["copy"], best["triad"] = min(best["copy"], t1 - t0), min(best["triad"], t2 - t1)
+    copy, triad = 2 * 8 * n / best["copy"], 5 * 8 * n / best["triad"]
+    return {"copy": copy, "triad": triad, "bandwidth": max(copy, triad), "mebibytes": int(mebibytes), "repeat": repeat,
+            "method": f"numpy copy a[:] = b (2 x {mebibytes} MiB moved) and triad a = s c; a += b (5 x {mebibytes} MiB), "
+                      f"best of {repeat} each; the larger rate"}
+
+
+def stage_bytes(rec: dict) -> dict:
+    """The bytes each stage of a cut level must at least move, {stage: (bytes, how)}, from the
+    sizes in ``rec``: ``dofs`` N, ``active_tets`` T, ``surface_triangles`` S, ``interior_faces`` F,
+    ``iterations`` it and ``nnz`` {"M", "J", "K"}; the model is the table of the module docstring
+    (c = :data:`COLUMNS` right-hand sides, 12 bytes a CSR nonzero, Q = :data:`ERROR_POINTS`)."""
+    N, T, S, F = rec["dofs"], rec["active_tets"], rec["surface_triangles"], rec["interior_faces"]
+    it, nnz = rec["iterations"], rec["nnz"]
+    nM, nJ, nK = nnz["M"], nnz["J"], nnz["K"]
+    c, q = COLUMNS, ERROR_POINTS
+    return {
+        "background": (0.0, "0 bytes: the box is lazy (nodes and tets computed on demand), O(1) work; no bandwidth bound"),
+        "cut": (16 * N + 72 * T + 24 * S, "16 N + 72 T + 24 S: level-set value and id of each band node written; 4 values "
+                "read, 4 vertex ids and the id of each active tet written; 3 vertex ids of each triangle of S_h written"),
+        "topology": (96 * T + 32 * F, "96 T + 32 F: the tets read, 4 face keys a tet written and read; the 2 tets and 2 "
+                     "opposite vertices of each interior face written"),
+        "mass": (288 * T + CSR_BYTES * nM, "288 T + 12 nnz(M): 3 Gram rows of 4 entries (8-byte value, 4-byte index) a "
+                 "tet written and read by E^T E; the CSR of M written"),
+        "rhs": (192 * T + 24 * N, "192 T + 24 N: 4 local values x 3 components a tet written and read by the scatter; "
+                "the N x 3 result written"),
+        "face_penalty": (192 * F + CSR_BYTES * nJ, "192 F + 12 nnz(J): one Gram row of 8 entries (12 bytes) a face "
+                         "written and read by E^T E; the CSR of J written"),
+        "system": (CSR_BYTES * (nM + nJ + nK), "12 (nnz(M) + nnz(J) + nnz(K)): M and J read, K written"),
+        "solve": (it * c * (SOLVE_PASSES * CSR_BYTES * nK + 24 * N), f"it x {c} x (3.5 x 12 nnz(K) + 24 N): per CG "
+                  "iteration and column, one product, two Gauss-Seidel sweeps and the half-product residual -U x over "
+                  "the fine matrix, the transfers reading the fine residual and updating the fine correction; coarse "
+                  "levels, setup and vector updates left out; it = the most iterations over the columns")
+        if it > 0 else (CSR_BYTES * nK + 8 * c * N, f"12 nnz(K) + {8 * c} N (direct solve): K read once, the N x {c} "
+                        "solution written; the factor not counted"),
+        "errors": (80 * q * S, f"80 x {q} S: coordinates, weight, discrete and exact field (80 bytes) of each point of "
+                   "the degree-4 triangle rule written"),
+    }
+
+
+def stage_bounds(rec: dict, bandwidth: float) -> dict:
+    """{stage: {"bytes", "bound" (s), "measured" (s), "ratio" (measured / bound, None where the
+    bound is 0), "bound_method"}} for the stages of a cut level, with the bytes of
+    :func:`stage_bytes` and ``bandwidth`` in bytes per second.  An estimate: see the module
+    docstring."""
+    if not bandwidth > 0:
+        raise ValueError(f"the bandwidth must be a positive number of bytes per second, got {bandwidth!r}: "
+                         "pass memory_bandwidth()['bandwidth']")
+    out = {}
+    for stage, (nbytes, how) in stage_bytes(rec).items():
+        bound = nbytes / bandwidth
+        measured = rec["time"][stage]
+        out[stage] = {"bytes": float(nbytes), "bound": bound, "measured": measured,
+                      "ratio": measured / bound if bound > 0 else None,
+                      "bound_method": f"memory traffic / {bandwidth / 1e9:.2f} GB/s; {how}"}
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# exponents
+# ---------------------------------------------------------------------------------------------
+
+
+def scaling_exponents(records: list[dict], x: str = "active_tets", finest: int = 3, stages=(), time_key: str = "total") -> dict:
+    """Slopes of log(``time_key``), log(cpu_user), log(peak_memory_gib) and log(time[stage]) for each of
+    ``stages`` against log(``x``) over the ``finest`` records with the largest ``x`` (keys absent
+    from the records are skipped).  Empty dict with fewer than ``finest`` records: an exponent
+    fitted to two coarse levels says more about start-up costs than about scaling."""
+    rs = sorted(records, key=lambda r: r[x])[-finest:]
+    if len(rs) < finest:
+        return {}
+    xs = [r[x] for r in rs]
+    out = {"levels": [r["level"] for r in rs], "x": x}
+    for key, name in ((time_key, "time"), ("cpu_user", "user_time"), ("peak_memory_gib", "memory")):
+        if all(key in r for r in rs):
+            out[name] = fitted_exponent(xs, [r[key] for r in rs])
+    times = {s: [r["time"].get(s, 0.0) for r in rs] for s in stages}
+    out["stages"] = {s: fitted_exponent(xs, v) for s, v in times.items() if min(v) > 0}
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# the largest level that fits
+# ---------------------------------------------------------------------------------------------
+
+
+def predict_next(levels: list[dict], spacing: float) -> dict:
+    """The active tets and peak memory of the cut level at ``spacing`` from the ``levels`` already
+    run (records with ``level``, ``active_tets``, ``peak_memory_gib``): with q the slope of
+    log(active tets) against log(spacing) and p that of log(peak) against log(active tets), both
+    over the last three levels, T = T_last (spacing / s_last)^q and peak = peak_last (T / T_last)^P
+    with P = max(p, 1): every array of a level grows at least like its active tets, and a fitted
+    p below 1 comes from the fixed memory of the interpreter and its imports (0.12 GiB), which
+    weighs less and less (measured: p = 0.32 over spacings 0.1-0.025 predicted 0.48 GiB at 0.0125,
+    which took 1.02 GiB; P = 1 predicts 1.27 GiB).  With a single level, q = -2 (a surface band)
+    and p = 1 are assumed."""
+    last = levels[-3:]
+    if len(last) >= 2:
+        q = fitted_exponent([r["level"] for r in last], [r["active_tets"] for r in last])
+        p = fitted_exponent([r["active_tets"] for r in last], [r["peak_memory_gib"] for r in last])
+        how = f"fitted over spacings {[r['level'] for r in last]}"
+    else:
+        q, p, how = -2.0, 1.0, "assumed (one level): tets ~ spacing^-2, peak ~ tets"
+    r = levels[-1]
+    tets = r["active_tets"] * (spacing / r["level"]) ** q
+    used = max(p, 1.0)
+    return {"spacing": spacing, "active_tets": tets, "peak_memory_gib": r["peak_memory_gib"] * (tets / r["active_tets"]) ** used,
+            "tets_exponent": q, "memory_exponent": p, "memory_exponent_used": used, "exponents": how}
+
+
+def limit_search(runner, memory_gib: float, start: float = LIMIT_START, available_gib=None, progress=None,
+                 max_levels: int = 16) -> dict:
+    """Run cut levels at ``start``, start/2, ... with ``runner(spacing) -> record`` (a record with
+    ``active_tets`` and ``peak_memory_gib``, or ``failed``) until the next level's predicted peak
+    (:func:`predict_next`) exceeds ``memory_gib`` or 90 % of ``available_gib()`` (GiB available
+    now; None: no such check), a level fails, or a level's measured peak exceeds the limit.
+
+    Returns {"memory_gib", "levels" (the records run), "largest" (the finest level that ran
+    within the limit, None if none did), "next" (the prediction for the level after it),
+    "stopped" (why)}."""
+    if not memory_gib > 0:
+        raise ValueError(f"--memory-gib must be a positive number of GiB, got {memory_gib!r}")
+    say = progress or (lambda msg: None)
+    levels, spacing, stopped = [], float(start), None
+    for _ in range(max_levels):
+        if levels:
+            pred = predict_next(levels, spacing)
+            avail = available_gib() if available_gib else None
+            cap = memory_gib if avail is None else min(memory_gib, 0.9 * avail)
+            if pred["peak_memory_gib"] > cap:
+                which = "the limit" if cap == memory_gib else f"90 % of the available {avail:.1f} GiB"
+                stopped = f"spacing {spacing:g} predicted to need {pred['peak_memory_gib']:.2f} GiB > {cap:.2f} GiB ({which})"
+                break
+            say(f"limit: spacing {spacing:g}, predicted {pred['peak_memory_gib']:.2f} GiB")
+        rec = runner(spacing)
+        levels.append(rec)
+        if "failed" in rec:
+            stopped = f"spacing {spacing:g} failed"
+            break
+        if rec["peak_memory_gib"] > memory_gib:
+            stopped = f"spacing {spacing:g} used {rec['peak_memory_gib']:.2f} GiB > {memory_gib:g} GiB"
+            break
+        spacing /= 2
+    else:
+        stopped = f"{max_levels} levels run"
+    ran = [r for r in levels if "failed" not in r and r["peak_memory_gib"] <= memory_gib]
+    largest = ran[-1] if ran else None
+    nxt = predict_next(ran, largest["level"] / 2) if largest else None
+    return {"memory_gib": memory_gib, "levels": levels, "stopped": stopped, "next": nxt,
+            "largest": None if largest is None else {k: largest[k] for k in ("level", "active_tets", "dofs", "peak_memory_gib", "total") if k in largest}}
+
+
+def _available_gib():
+    from cutfem.studies.peers import available_memory
+
+    avail = available_memory()
+    return None if avail is None else avail / 2**30
+
+
+# ---------------------------------------------------------------------------------------------
+# bulk Poisson and ngsxfem
+# ---------------------------------------------------------------------------------------------
+
+
+_BULK_CODE = _PEAK_CODE + """\
+import sys
+from cutfem.cli import main
+rc = main(sys.argv[1:])
+print(f'PEAK {_peak()!r}')
+sys.exit(rc)
+"""
+
+
+def bulk_level(spacing: float) -> dict:
+    """``cutfem run poisson-cut --surface torus --spacing S --json F`` in a fresh process (the
+    command's ``main``, followed by a print of the process's own peak resident memory, VmHWM):
+    the level's unknowns, stage times and wall time from its JSON record, the peak, the CPU times
+    from ``os.wait4``, the process wall time (start-up included), and the time (s) and memory
+    (GiB) per million unknowns."""
+    with tempfile.TemporaryDirectory() as tmp:
+        path, out, err = Path(tmp) / "level.json", Path(tmp) / "stdout.txt", Path(tmp) / "stderr.txt"
+        args = ["run", "poisson-cut", "--surface", "torus", "--spacing", repr(spacing), "--json", str(path), "--quiet"]
+        t0 = time.perf_counter()
+        with out.open("w") as fo, err.open("w") as fe:
+            proc = subprocess.Popen([sys.executable, "-c", _BULK_CODE, *args], stdout=fo, stderr=fe, env=_child_env())
+            _, status, usage = os.wait4(proc.pid, 0)
+        proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait again
+        process_wall = time.perf_counter() - t0
+        if proc.returncode != 0:
+            raise RuntimeError(f"bulk level {spacing} failed (cutfem {' '.join(args)}):\n{err.read_text()[-3000:]}")
+        r = json.loads(path.read_text())["records"][0]
+        peak = float([ln for ln in out.read_text().splitlines() if ln.startswith("PEAK ")][-1].split()[1])
+    mega = r["dofs"] / 1e6
+    return {"kind": "bulk-poisson", "level": spacing, "dofs": r["dofs"], "active_tets": r["active_tets"],
+            "solver": r["solver"], "iterations": r.get("solver_iterations"), "l2_error": r["l2_error"],
+            "time": r["time"], "wall": r["wall_time"], "process_wall": process_wall, "peak_memory_gib": peak,
+            "cpu_user": usage.ru_utime, "cpu_system": usage.ru_stime,
+            "seconds_per_million": r["wall_time"] / mega, "gib_per_million": peak / mega}
+
+
+def _peer_missing():
+    import contextlib
+    import io
+
+    from cutfem.studies.peers import INSTALL, peer_missing
+
+    with contextlib.redirect_stdout(io.StringIO()):  # xfem prints its version when imported
+        why = peer_missing()
+    return None if why is None else f"ngsolve/xfem are not importable ({why}); {INSTALL}"
+
+
+def _peers(cut_records, memory_gib, down_to, progress) -> dict:
+    """ngsxfem at the cut levels that ran (see the module docstring), with the ratio of totals."""
+    from cutfem.mesh import structured_box
+    from cutfem.studies.peers import BYTES_PER_TET
+
+    missing = _peer_missing()
+    if missing:
+        progress(f"peers skipped: {missing}")
+        print(f"note: ngsxfem comparison skipped: {missing}")
+        return {"skipped": missing}
+    rows = []
+    for cf in cut_records:
+        s = cf["level"]
+        tets = structured_box(*BOX, spacing=s).n_tets
+        avail = _available_gib()
+        need = BYTES_PER_TET * tets / 2**30
+        cap = memory_gib if avail is None else min(memory_gib, 0.9 * avail)
+        row = {"level": s, "cutfem_total": cf["total"], "cutfem_solver": cf["solver"]}
+        if s < down_to:
+            row["skipped"] = f"finer than --peers-down-to {down_to:g} (the NGSolve mesh needs about {need:.1f} GiB)"
+        elif need > cap:
+            row["skipped"] = f"the NGSolve mesh of {tets} tets needs about {need:.1f} GiB > {cap:.1f} GiB"
+        else:
+            progress(f"ngsxfem, spacing {s}")
+            try:
+                ng = _in_subprocess("ngsxfem", s)
+            except RuntimeError as exc:
+                row["failed"] = str(exc)[-500:]
+            else:
+                row.update(ngsxfem=ng, ratio=ng["total"] / cf["total"],
+                           same_problem=all(ng[k] == cf[k] for k in ("dofs", "active_tets", "interior_faces")))
+                progress(f"  ngsxfem {ng['total']:.2f} s against cutfem {cf['total']:.2f} s: ratio {row['ratio']:.1f}")
+        if "skipped" in row or "failed" in row:
+            progress(f"  ngsxfem at {s}: {row.get('skipped') or row['failed'].splitlines()[-1]}")
+        rows.append(row)
+    return {"levels": rows, "note": "ngsxfem: NGSolve sparse Cholesky, one thread, one run a level; cutfem: its automatic "
+                                   "solver, the fastest of its runs; ratio = ngsxfem / cutfem of the stage sums"}
+
+
+# ---------------------------------------------------------------------------------------------
+# the study
+# ---------------------------------------------------------------------------------------------
+
+
+def _bandwidth_in_subprocess(mebibytes: int) -> dict:
+    """:func:`memory_bandwidth` in a fresh process with the allocation settings of the levels (and
+    without leaving its arrays on this process's heap)."""
+    code = ("import json, cutfem.memory\ncutfem.memory.configure()\nfrom cutfem.studies.performance import memory_bandwidth\n"
+            f"print('RESULT ' + json.dumps(memory_bandwidth({int(mebibytes)})))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_child_env(), check=True)
+    return json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1][len("RESULT "):])
 
 
 def _best_of(kind: str, level, repeat: int) -> dict:
@@ -178,59 +606,133 @@ def _spread(r) -> str:
     return f"{r['total']:.2f} s" if len(t) == 1 else f"{r['total']:.2f} s (best of {len(t)}; {min(t):.2f}-{max(t):.2f})"
 
 
-def run(out: Path, size: str = "quick", progress=None) -> dict:
-    """Each level runs ``repeat`` times (1 for tiny, 3 otherwise) and the fastest run is kept: the
-    spread on this kind of machine is the kernel's page-fault time, not the algorithm (the user
-    CPU time varies far less), and the minimum is the least noisy estimate of the cost.  The
-    exponents are fitted to the kept runs; every run's total is in the JSON (``totals``)."""
-    progress = progress or Progress("performance")
-    spacings = pick(size, [0.2, 0.1], [0.1, 0.05, 0.025, 0.0125], [0.1, 0.05, 0.025, 0.0125, 0.00625])
-    ns = pick(size, [32, 64], [64, 128, 256, 512, 768], [64, 128, 256, 512, 768])
-    repeat = pick(size, 1, 3, 3)
-    records = []
-    for s in spacings:
+def _cut_runner(repeat, progress):
+    def run_cut(s):
         progress(f"cut torus, spacing {s}" + (f" ({repeat} runs)" if repeat > 1 else ""))
         try:
-            records.append(_best_of("cut", s, repeat))
-        except RuntimeError as exc:  # e.g. out of memory at 0.00625: recorded, not hidden
+            r = _best_of("cut", s, repeat)
+        except RuntimeError as exc:  # e.g. out of memory: recorded, not hidden
             progress(f"  failed: {str(exc).splitlines()[-1]}")
-            records.append({"kind": "cut", "level": s, "failed": str(exc)[-500:]})
-            continue
-        r = records[-1]
+            return {"kind": "cut", "level": s, "failed": str(exc)[-500:]}
         progress(f"  {r['active_tets']} active tets, {r['dofs']} dofs: {_spread(r)}, {r['peak_memory_gib']:.2f} GiB, "
                  f"{r['solver']} ({r['iterations']} its), L2 error {r['l2_error']:.4e}")
-    for family in ("flipped", "perturbed"):
-        for n in ns:
-            progress(f"meshed torus {family}, n = {n}")
-            records.append(_best_of(f"meshed-{family}", n, repeat))
-            r = records[-1]
-            progress(f"  {r['dofs']} dofs: {_spread(r)}, {r['peak_memory_gib']:.2f} GiB, {r['solver']}")
+        return r
+
+    return run_cut
+
+
+def run(out: Path, size: str = "quick", progress=None, peers: bool = False, limit: bool = False, bulk: bool = False,
+        memory_gib: float = 20.0, peers_down_to: float = PEERS_DOWN_TO) -> dict:
+    """The benchmark (see the module docstring).  Each level runs ``repeat`` times (1 for tiny and
+    in ``limit`` mode, 3 otherwise) and the fastest run is kept: the spread on this kind of machine
+    is the kernel's page-fault time, not the algorithm (the user CPU time varies far less), and the
+    minimum is the least noisy estimate of the cost.  The exponents are fitted to the kept runs;
+    every run's total is in the JSON (``totals``)."""
+    progress = progress or Progress("performance")
+    repeat = 1 if limit else pick(size, 1, 3, 3)
+    progress("memory bandwidth")
+    bw = _bandwidth_in_subprocess(pick(size, 32, 200, 200))
+    progress(f"  {bw['bandwidth'] / 1e9:.2f} GB/s (copy {bw['copy'] / 1e9:.2f}, triad {bw['triad'] / 1e9:.2f})")
+    run_cut = _cut_runner(repeat, progress)
+    summary = {"repeat": repeat, "bandwidth": bw}
+    if limit:
+        summary["limit"] = lim = limit_search(run_cut, memory_gib, available_gib=_available_gib, progress=progress)
+        records = list(lim["levels"])
+        progress(f"limit: {lim['stopped']}")
+    else:
+        spacings = pick(size, [0.2, 0.1], [0.1, 0.05, 0.025, 0.0125], [0.1, 0.05, 0.025, 0.0125, 0.00625, 0.003125])
+        records = [run_cut(s) for s in spacings]
+        ns = pick(size, [32, 64], [64, 128, 256, 512, 768], [64, 128, 256, 512, 768])
+        for family in ("flipped", "perturbed"):
+            for n in ns:
+                progress(f"meshed torus {family}, n = {n}")
+                records.append(_best_of(f"meshed-{family}", n, repeat))
+                r = records[-1]
+                progress(f"  {r['dofs']} dofs: {_spread(r)}, {r['peak_memory_gib']:.2f} GiB, {r['solver']}")
     ok = [r for r in records if "failed" not in r]
-    summary = {"levels": records, "repeat": repeat}
     cut = [r for r in ok if r["kind"] == "cut"]
-    fine = [r for r in cut if r["level"] <= 0.05]
-    if len(fine) >= 2:
-        x = [r["active_tets"] for r in fine]
-        summary["cut_time_exponent"] = fitted_exponent(x, [r["total"] for r in fine])
-        summary["cut_memory_exponent"] = fitted_exponent(x, [r["peak_memory_gib"] for r in fine])
-        # the wall time includes the kernel's page-fault time, which varies from run to run on a
-        # virtual machine (see cutfem.memory); the user CPU time is the algorithm's own
-        summary["cut_user_time_exponent"] = fitted_exponent(x, [r["cpu_user"] for r in fine])
-        if repeat > 1:  # the same fit on the slowest runs
-            summary["cut_time_exponent_slowest"] = fitted_exponent(x, [max(r["totals"]) for r in fine])
+    for r in cut:
+        r["bounds"] = stage_bounds(r, bw["bandwidth"])
+    summary["levels"] = records
+    summary["exponents"] = {"cut": scaling_exponents(cut, "active_tets", stages=CUT_STAGES[1:])}  # background: microseconds
+    if peers:
+        summary["peers"] = _peers(cut, memory_gib, peers_down_to, progress)
+    if bulk:
+        rows = []
+        for s in pick(size, [0.2], [0.1, 0.05, 0.025], [0.1, 0.05, 0.025, 0.0125]):
+            progress(f"bulk poisson-cut on the solid torus, spacing {s}")
+            try:
+                rows.append(bulk_level(s))
+            except RuntimeError as exc:
+                progress(f"  failed: {str(exc).splitlines()[-1]}")
+                rows.append({"kind": "bulk-poisson", "level": s, "failed": str(exc)[-500:]})
+                continue
+            progress(f"  {rows[-1]['dofs']} unknowns: {rows[-1]['wall']:.2f} s, {rows[-1]['peak_memory_gib']:.2f} GiB")
+        summary["bulk"] = rows
+        summary["exponents"]["bulk"] = scaling_exponents([r for r in rows if "failed" not in r], "dofs", time_key="wall")
     save_json(out, "performance", summary)
     _plot(out, ok, summary)
-    _print_table(ok)
+    _plot_bounds(out, cut, summary)
+    _print_tables(ok, summary)
     return summary
 
 
-def _print_table(records):
-    """The kept (fastest) run of each level, with the slowest run's total beside it."""
+def _fmt(v, spec):
+    return "--" if v is None or not np.isfinite(v) else format(v, spec)
+
+
+def _print_tables(records, summary):
+    """The kept (fastest) run of each level with the slowest run's total beside it; the bounds and
+    ratios per stage of the cut levels; the exponents; ngsxfem and the bulk levels when run."""
     print(f"{'kind':18s} {'level':>8s} {'dofs':>8s} {'tets':>8s} {'total s':>8s} {'slowest':>8s} {'user s':>7s} {'sys s':>6s} {'GiB':>6s}  stages")
     for r in records:
         stages = " ".join(f"{k}={v:.2f}" for k, v in r["time"].items())
         print(f"{r['kind']:18s} {r['level']:>8g} {r['dofs']:>8d} {r.get('active_tets', 0):>8d} {r['total']:>8.2f} "
               f"{max(r['totals']):>8.2f} {r['cpu_user']:>7.2f} {r['cpu_system']:>6.2f} {r['peak_memory_gib']:>6.2f}  {stages}")
+    cut = [r for r in records if r["kind"] == "cut"]
+    if cut:
+        bw = summary["bandwidth"]["bandwidth"]
+        print(f"\nlower bounds from the memory traffic at {bw / 1e9:.2f} GB/s (estimates, see the module docstring): "
+              "bound [ms] and measured / bound per stage")
+        print(f"{'level':>8s} " + " ".join(f"{s:>15s}" for s in CUT_STAGES))
+        for r in cut:
+            b = r["bounds"]
+            cells = (f"{b[s]['bound'] * 1e3:8.2f} " + ("    --" if b[s]["ratio"] is None else f"{b[s]['ratio']:5.0f}x") for s in CUT_STAGES)
+            print(f"{r['level']:>8g} " + " ".join(f"{c:>15s}" for c in cells))
+    for name, e in summary["exponents"].items():
+        if e:
+            stages = " ".join(f"{k}={v:.2f}" for k, v in e.get("stages", {}).items())
+            print(f"\nexponents ({name}, against {e['x']}, levels {e['levels']}): time {_fmt(e.get('time'), '.2f')}, "
+                  f"user time {_fmt(e.get('user_time'), '.2f')}, memory {_fmt(e.get('memory'), '.2f')}" + (f"; stages {stages}" if stages else ""))
+        else:
+            print(f"\nexponents ({name}): fewer than three levels ran")
+    peers = summary.get("peers")
+    if peers is not None:
+        print()
+        if "skipped" in peers:
+            print(f"ngsxfem: skipped ({peers['skipped']})")
+        for p in peers.get("levels", []):
+            if "ratio" in p:
+                print(f"ngsxfem {p['level']:>8g}: {p['ngsxfem']['total']:.2f} s against cutfem {p['cutfem_total']:.2f} s, "
+                      f"ratio {p['ratio']:.1f}, same problem {p['same_problem']}, peak {p['ngsxfem']['peak_memory_gib']:.2f} GiB")
+            else:
+                print(f"ngsxfem {p['level']:>8g}: {p.get('skipped') or p['failed'].splitlines()[-1]}")
+    if summary.get("bulk"):
+        print(f"\n{'bulk poisson':>12s} {'unknowns':>9s} {'wall s':>7s} {'GiB':>6s} {'s/M':>7s} {'GiB/M':>6s}  stages")
+        for r in summary["bulk"]:
+            if "failed" in r:
+                print(f"{r['level']:>12g} failed")
+                continue
+            stages = " ".join(f"{k}={v:.2f}" for k, v in r["time"].items())
+            print(f"{r['level']:>12g} {r['dofs']:>9d} {r['wall']:>7.2f} {r['peak_memory_gib']:>6.2f} {r['seconds_per_million']:>7.2f} "
+                  f"{r['gib_per_million']:>6.2f}  {stages}")
+    if "limit" in summary:
+        lim = summary["limit"]
+        big, nxt = lim["largest"], lim["next"]
+        print(f"\nlimit {lim['memory_gib']:g} GiB: stopped: {lim['stopped']}")
+        if big:
+            print(f"  largest level run: spacing {big['level']:g}, {big['active_tets']} active tets, {big['peak_memory_gib']:.2f} GiB; "
+                  f"next: spacing {nxt['spacing']:g}, predicted {nxt['active_tets']:.0f} tets, {nxt['peak_memory_gib']:.2f} GiB")
 
 
 @figure_style
@@ -238,16 +740,17 @@ def _plot(out, records, summary):
     from cutfem.convergence import new_figure
 
     fig, axes = new_figure(PAGE_WIDTH, 3.2, nrows=1, ncols=2)
-    for kind, marker in (("cut", "o"), ("meshed-flipped", "s"), ("meshed-perturbed", "^")):
-        rs = [r for r in records if r["kind"] == kind]
+    ng = [p["ngsxfem"] for p in summary.get("peers", {}).get("levels", []) if "ngsxfem" in p]
+    series = [(kind, [r for r in records if r["kind"] == kind]) for kind in ("cut", "meshed-flipped", "meshed-perturbed")]
+    for (kind, rs), marker in zip(series + [("ngsxfem", ng)], ("o", "s", "^", "D")):
         if not rs:
             continue
-        x = [r["active_tets"] if kind == "cut" else r["dofs"] for r in rs]
-        label = "cut torus (active tets)" if kind == "cut" else f"{kind} (nodes)"
+        x = [r["dofs"] if kind.startswith("meshed") else r["active_tets"] for r in rs]
+        label = {"cut": "cut torus (active tets)", "ngsxfem": "ngsxfem, cut torus"}.get(kind, f"{kind} (nodes)")
         for ax, key in zip(axes, ("total", "peak_memory_gib")):
             y = [r[key] for r in rs]
             p = fitted_exponent(x[-3:], y[-3:])
-            ax.loglog(x, y, marker=marker, label=f"{label}, exponent {p:.2f}")
+            ax.loglog(x, y, marker=marker, label=f"{label}, exponent {p:.2f}" if len(x) >= 3 else label)
     for ax, title in zip(axes, ("end-to-end time [s]", "peak memory [GiB]")):
         ax.set_xlabel("active tets / surface nodes")
         ax.set_ylabel(title)
@@ -258,7 +761,59 @@ def _plot(out, records, summary):
     save_figure(fig, out, "performance_scaling")
 
 
-main = study_main(run, "performance")
+@figure_style
+def _plot_bounds(out, cut, summary):
+    """Measured / bound per stage of the cut levels; with bulk levels, their time and memory per
+    million unknowns."""
+    from cutfem.convergence import new_figure
+
+    bulk = [r for r in summary.get("bulk", []) if "failed" not in r]
+    fig, axes = new_figure(PAGE_WIDTH, 3.2, nrows=1, ncols=2 if bulk else 1, squeeze=False)
+    ax = axes[0, 0]
+    x = [r["active_tets"] for r in cut]
+    for stage in CUT_STAGES[1:]:
+        ax.loglog(x, [r["bounds"][stage]["ratio"] for r in cut], marker="o", label=stage)
+    ax.set_xlabel("active tets")
+    ax.set_ylabel("measured / memory-traffic bound")
+    ax.set_title(f"cut torus, bound at {summary['bandwidth']['bandwidth'] / 1e9:.1f} GB/s (estimate)")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(ncols=2)
+    if bulk:
+        ax = axes[0, 1]
+        n = [r["dofs"] for r in bulk]
+        ax.semilogx(n, [r["seconds_per_million"] for r in bulk], marker="o", label="wall time [s per million unknowns]")
+        ax.semilogx(n, [r["gib_per_million"] for r in bulk], marker="s", label="peak memory [GiB per million unknowns]")
+        ax.set_xlabel("unknowns")
+        ax.set_title("poisson-cut, solid torus")
+        ax.set_ylim(bottom=0)
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend()
+    save_figure(fig, out, "performance_bounds")
+
+
+def main(argv=None) -> int:
+    """``python -m cutfem.studies.performance [--peers] [--limit] [--bulk] [--memory-gib G]
+    [--peers-down-to S]`` plus the usual study options (``--out``, the size flags)."""
+    import argparse
+
+    p = argparse.ArgumentParser(add_help=False)
+    p.add_argument("--peers", action="store_true", help="run ngsxfem on the same cut levels (needs ngsolve and xfem)")
+    p.add_argument("--limit", action="store_true", help="halve the spacing until the next cut level is predicted not to fit in --memory-gib")
+    p.add_argument("--bulk", action="store_true", help="also time poisson-cut on the solid torus")
+    p.add_argument("--memory-gib", type=float, default=20.0, help="memory limit of --limit and --peers in GiB (default 20)")
+    p.add_argument("--peers-down-to", type=float, default=PEERS_DOWN_TO, help=f"finest spacing for ngsxfem (default {PEERS_DOWN_TO})")
+    a, rest = p.parse_known_args(argv)
+    if "-h" in rest or "--help" in rest:
+        p.print_help()
+    if not a.memory_gib > 0:
+        p.error(f"--memory-gib must be a positive number of GiB, got {a.memory_gib}")
+
+    def run_selected(out, size, progress):
+        return run(out, size, progress, peers=a.peers, limit=a.limit, bulk=a.bulk, memory_gib=a.memory_gib,
+                   peers_down_to=a.peers_down_to)
+
+    return study_main(run_selected, "performance")(rest)
+
 
 if __name__ == "__main__":
     sys.exit(main())

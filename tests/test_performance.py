@@ -27,8 +27,10 @@ def test_levels_record_stages_sizes_and_errors():
     assert set(m["time"]) >= {"mesh", "mass", "rhs", "edge_penalty", "solve", "errors"}
 
 
-def test_run_tiny_writes_json_and_figure(tmp_path):
-    summary = performance.run(tmp_path, "tiny", progress=lambda msg: None)
+def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
+    """Tiny run with the bulk table and --peers where ngsxfem is reported missing: a note, no failure."""
+    monkeypatch.setattr(performance, "_peer_missing", lambda: "ngsolve/xfem are not importable (test)")
+    summary = performance.run(tmp_path, "tiny", progress=lambda msg: None, peers=True, bulk=True)
     data = json.loads((tmp_path / "performance.json").read_text())
     kinds = {r["kind"] for r in data["levels"]}
     assert kinds == {"cut", "meshed-flipped", "meshed-perturbed"}
@@ -36,10 +38,150 @@ def test_run_tiny_writes_json_and_figure(tmp_path):
         assert r["peak_memory_gib"] > 0.01 and r["total"] > 0 and r["dofs"] > 0
         assert r["cpu_user"] > 0 and r["cpu_system"] >= 0 and r["page_faults"] >= 0
         assert set(r["allocator"]) >= {"malloc", "numpy_hugepage", "thp_defrag"}
-    assert (tmp_path / "performance_scaling.png").stat().st_size > 10_000
+        if r["kind"] == "cut":  # a bound for every stage, with its method, and measured / bound
+            assert set(r["bounds"]) == set(r["time"])
+            assert r["nnz"]["K"] >= r["nnz"]["M"] > r["dofs"]
+            for stage, b in r["bounds"].items():
+                assert b["bound_method"] and b["measured"] == r["time"][stage]
+                assert (b["ratio"] is None) == (stage == "background")
+    assert data["bandwidth"]["bandwidth"] > 1e8
+    assert data["peers"] == {"skipped": "ngsolve/xfem are not importable (test)"}
+    assert [r["level"] for r in data["bulk"]] == [0.2]
+    for r in data["bulk"]:
+        assert r["dofs"] > 1000 and r["peak_memory_gib"] > 0.01 and set(r["time"]) == {"geometry", "assembly", "solve", "errors"}
+        assert r["seconds_per_million"] == pytest.approx(r["wall"] / (r["dofs"] / 1e6))
+    assert data["exponents"]["cut"] == {}  # two cut levels: too few to fit
+    for name in ("performance_scaling", "performance_bounds"):
+        assert (tmp_path / f"{name}.png").stat().st_size > 10_000
     assert summary["levels"] == data["levels"]
     assert data["repeat"] == 1 and all(r["totals"] == [r["total"]] for r in data["levels"])
     assert performance.fitted_exponent([1, 10, 100], [2, 20, 200]) == pytest.approx(1.0)
+
+
+def test_peak_memory_is_the_level_process_own():
+    """A parent that once held 0.4 GiB: the child's ru_maxrss would start there (Linux), its VmHWM does not."""
+    import resource
+
+    a = np.ones(50_000_000)
+    a[1::512] = 2.0
+    del a
+    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20 > 0.37
+    rec = performance._in_subprocess("meshed-flipped", 16)
+    assert 0.02 < rec["peak_memory_gib"] < 0.3
+
+
+def _fabricated_level(**changes):
+    rec = {"level": 0.05, "dofs": 500, "active_tets": 1000, "surface_triangles": 1200, "interior_faces": 2000,
+           "iterations": 10, "nnz": {"M": 5000, "J": 8000, "K": 8000},
+           "time": {"background": 1e-5, "cut": 1.088e-4, "topology": 1.6e-4, "mass": 3.48e-4, "rhs": 2.04e-4,
+                    "face_penalty": 4.8e-4, "system": 2.52e-4, "solve": 1.044e-2, "errors": 5.76e-4}}
+    rec.update(changes)
+    return rec
+
+
+def test_stage_bounds_by_hand():
+    """N = 500, T = 1000, S = 1200, F = 2000, it = 10, nnz M/J/K = 5000/8000/8000 at 1e10 bytes/s;
+    the times are 10 x the bounds worked out here."""
+    bytes_by_hand = {
+        "background": 0,
+        "cut": 16 * 500 + 72 * 1000 + 24 * 1200,  # 108 800
+        "topology": 96 * 1000 + 32 * 2000,  # 160 000
+        "mass": 288 * 1000 + 12 * 5000,  # 348 000
+        "rhs": 192 * 1000 + 24 * 500,  # 204 000
+        "face_penalty": 192 * 2000 + 12 * 8000,  # 480 000
+        "system": 12 * 21000,  # 252 000
+        "solve": 10 * 3 * (3.5 * 12 * 8000 + 24 * 500),  # 10 440 000
+        "errors": 80 * 6 * 1200,  # 576 000
+    }
+    rec = _fabricated_level()
+    b = performance.stage_bounds(rec, 1e10)
+    assert set(b) == set(bytes_by_hand)
+    for stage, nbytes in bytes_by_hand.items():
+        assert b[stage]["bytes"] == pytest.approx(nbytes)
+        assert b[stage]["bound"] == pytest.approx(nbytes / 1e10)
+        assert b[stage]["bound_method"].startswith("memory traffic / 10.00 GB/s")
+    assert b["solve"]["bound"] == pytest.approx(1.044e-3)
+    for stage in ("cut", "topology", "mass", "rhs", "face_penalty", "system", "solve", "errors"):
+        assert b[stage]["ratio"] == pytest.approx(10.0), stage
+    assert b["background"]["ratio"] is None
+    # a direct solve (no iterations): K read once and the 500 x 3 solution written
+    direct = performance.stage_bounds(_fabricated_level(iterations=0), 1e10)["solve"]
+    assert direct["bytes"] == 12 * 8000 + 24 * 500 and "direct" in direct["bound_method"]
+    with pytest.raises(ValueError, match="bandwidth"):
+        performance.stage_bounds(rec, 0.0)
+
+
+def test_memory_bandwidth_is_a_plausible_rate():
+    bw = performance.memory_bandwidth(16, repeat=2)
+    assert 1e8 < bw["copy"] < 1e12 and 1e8 < bw["triad"] < 1e12
+    assert bw["bandwidth"] == max(bw["copy"], bw["triad"]) and "best of 2" in bw["method"]
+
+
+def test_scaling_exponents_over_the_three_finest_levels():
+    # time ~ tets^1.5 and memory ~ tets on the three finest; the coarsest level lies off both laws
+    recs = [{"level": s, "active_tets": t, "total": t**1.5 if t > 10 else 1.0, "cpu_user": 2 * t, "peak_memory_gib": 3 * t if t > 10 else 5.0,
+             "time": {"solve": t**1.2, "cut": 0.0}} for s, t in ((0.4, 10), (0.2, 100), (0.1, 1000), (0.05, 10000))]
+    e = performance.scaling_exponents(recs, stages=("solve", "cut"))
+    assert e["levels"] == [0.2, 0.1, 0.05]
+    assert e["time"] == pytest.approx(1.5) and e["memory"] == pytest.approx(1.0) and e["user_time"] == pytest.approx(1.0)
+    assert e["stages"] == {"solve": pytest.approx(1.2)}  # a stage timed at 0 has no exponent
+    assert performance.scaling_exponents(recs[:2]) == {}
+    for r in recs:
+        r["wall"] = r.pop("total")
+    assert performance.scaling_exponents(recs, time_key="wall")["time"] == pytest.approx(1.5)
+
+
+def _fake_runner(peak_of_tets, ran, fail_at=None):
+    """A cut level with 1000 (0.1 / s)^2 active tets and the given peak; records the spacings run."""
+    def runner(s):
+        ran.append(s)
+        if fail_at is not None and s <= fail_at:
+            return {"level": s, "failed": "out of memory"}
+        t = 1000 * (0.1 / s) ** 2
+        return {"level": s, "active_tets": t, "peak_memory_gib": peak_of_tets(t), "total": 1.0}
+    return runner
+
+
+def test_limit_stops_before_the_level_predicted_to_exceed():
+    ran = []
+    # peak = 1e-3 GiB a tet: 1, 4, 16, 64 GiB at 0.1, 0.05, 0.025, 0.0125; with 20 GiB, 0.0125 is predicted at 64
+    lim = performance.limit_search(_fake_runner(lambda t: 1e-3 * t, ran), 20.0)
+    assert ran == [0.1, 0.05, 0.025]
+    assert lim["largest"]["level"] == 0.025 and lim["largest"]["peak_memory_gib"] == pytest.approx(16.0)
+    assert lim["next"]["spacing"] == 0.0125
+    assert lim["next"]["peak_memory_gib"] == pytest.approx(64.0) and lim["next"]["active_tets"] == pytest.approx(64000)
+    assert lim["next"]["memory_exponent"] == pytest.approx(1.0) and lim["next"]["tets_exponent"] == pytest.approx(-2.0)
+    assert "0.0125 predicted" in lim["stopped"]
+    # a tiny limit: the first level runs, the second is predicted (assumed factor 4) above it
+    ran.clear()
+    lim = performance.limit_search(_fake_runner(lambda t: 0.5 + 1e-4 * t, ran), 1.0)
+    assert ran == [0.1] and lim["largest"]["level"] == 0.1
+    assert lim["next"]["peak_memory_gib"] == pytest.approx(4 * 0.6)
+    # a fixed start-up memory makes the fitted exponent < 1 (0.45 over 0.1-0.025); the prediction uses 1:
+    # 2.1 x 4 = 8.4 GiB > 5 at 0.0125 (true 6.9 GiB), where the fit alone would predict 3.9 GiB and run it
+    ran.clear()
+    lim = performance.limit_search(_fake_runner(lambda t: 0.5 + 1e-4 * t, ran), 5.0)
+    assert ran == [0.1, 0.05, 0.025] and lim["next"]["memory_exponent"] < 0.5
+    assert lim["next"]["memory_exponent_used"] == 1.0 and lim["next"]["peak_memory_gib"] == pytest.approx(4 * 2.1)
+    # memory available now caps the limit: 90 % of 5 GiB < 16 GiB predicted at 0.025
+    ran.clear()
+    lim = performance.limit_search(_fake_runner(lambda t: 1e-3 * t, ran), 20.0, available_gib=lambda: 5.0)
+    assert ran == [0.1, 0.05] and "available" in lim["stopped"]
+
+
+def test_limit_records_a_failed_or_oversized_level():
+    ran = []
+    lim = performance.limit_search(_fake_runner(lambda t: 1e-3 * t, ran, fail_at=0.025), 20.0)
+    assert ran == [0.1, 0.05, 0.025] and lim["largest"]["level"] == 0.05 and "failed" in lim["stopped"]
+    # a level over the limit although predicted below it (memory grows faster than the fit): not the largest
+    ran.clear()
+    lim = performance.limit_search(_fake_runner(lambda t: 1e-3 * t if t < 5000 else 30.0, ran), 20.0)
+    assert ran == [0.1, 0.05, 0.025] and lim["largest"]["level"] == 0.05 and "30.00 GiB > 20 GiB" in lim["stopped"]
+    ran.clear()
+    lim = performance.limit_search(_fake_runner(lambda t: 5.0, ran), 1.0)
+    assert ran == [0.1] and lim["largest"] is None and lim["next"] is None
+    with pytest.raises(ValueError, match="memory-gib"):
+        performance.limit_search(_fake_runner(lambda t: 1.0, ran), 0)
 
 
 @pytest.mark.parametrize("spacing", [0.05])
