@@ -60,19 +60,20 @@ def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1
             d *= d
             total += float(area[start : start + chunk] @ (d.reshape(len(t), -1) @ np.repeat(w, d.shape[2])))
         return float(np.sqrt(total))
-    quad = measure.quadrature(degree)
     coeffs = np.asarray(coeffs)
     total = 0.0
-    for cells, elements, phi in _blocks(space, measure, quad, 8 * chunk):
+    for _, quad in measure.blocks(degree, 8 * chunk):
+        elements = space.local_elements(measure, quad.parent)
+        phi = space.basis_on(measure, quad, elements)
         local = coeffs[space.element_dofs[elements]]  # (b, k) or (b, k, c)
         uh = np.einsum("bqk,bk...->bq...", phi, local)
-        ue = np.asarray(exact(quad.points[cells]), dtype=float)
+        ue = np.asarray(exact(quad.points), dtype=float)
         if ue.shape != uh.shape:
-            raise ValueError(f"exact(x) must return shape {uh.shape} at points {quad.points[cells].shape}, got {ue.shape}")
+            raise ValueError(f"exact(x) must return shape {uh.shape} at points {quad.points.shape}, got {ue.shape}")
         d = (ue - uh) ** 2
         if d.ndim == 3:
             d = d.sum(axis=2)
-        total += float(np.einsum("bq,bq->", d, quad.weights[cells]))
+        total += float(np.einsum("bq,bq->", d, quad.weights))
     return float(np.sqrt(total))
 
 
@@ -83,43 +84,21 @@ def h1_error(space, coeffs, exact_gradient, measure=None, degree: int = 4, chunk
     (see :func:`l2_error`)."""
     if measure is None:
         measure = surface_measure(space)
-    quad = measure.quadrature(degree)
-    el = space.local_elements(measure, quad.parent)
     coeffs = np.asarray(coeffs)
     total = 0.0
-    for start in range(0, len(el), chunk):  # blocks of cells, not single elements
-        cells = slice(start, start + chunk)
-        e = el[cells]
+    for _, quad in measure.blocks(degree, chunk):  # blocks of cells, not single elements
+        e = space.local_elements(measure, quad.parent)
         gh = np.einsum("bk,bkd->bd", coeffs[space.element_dofs[e]], space.element_gradients[e])[:, None, :]
-        x = quad.points[cells]
+        x = quad.points
         ge = np.asarray(exact_gradient(x), dtype=float)
         if ge.shape != x.shape:
             raise ValueError(f"exact_gradient(x) must return shape {x.shape}, got {ge.shape}")
         d = ge - gh
         if measure.surface:
-            n = quad.normal[cells][:, None, :]
+            n = quad.normal[:, None, :]
             d = d - np.einsum("bqd,bqd->bq", d, np.broadcast_to(n, d.shape))[..., None] * n
-        total += float(np.einsum("bqd,bqd,bq->", d, d, quad.weights[cells]))
+        total += float(np.einsum("bqd,bqd,bq->", d, d, quad.weights))
     return float(np.sqrt(total))
-
-
-def _blocks(space, measure, quad, chunk):
-    """(cells, field elements, basis values (b, q, k)) of a measure's quadrature in blocks of ``chunk``
-    cells: the exact solution is evaluated block by block, so its temporaries stay small (at 2.6
-    million cells of 14 points, whole arrays of the points cost 0.9 GB each and made the error stage
-    memory-bound).  The basis values are those of :meth:`~cutfem.spaces.CutP1Space.basis_on`."""
-    el = space.local_elements(measure, quad.parent)
-    whole = getattr(measure, "whole_cells", 0) if measure.elements is space.elements and quad.bary is not None else 0
-    for start in range(0, len(el), chunk):  # blocks of cells, not single elements
-        stop = min(start + chunk, len(el))
-        e = el[start:stop]
-        if stop <= whole:  # whole elements only: the basis values are the rule's barycentric coordinates
-            phi = np.broadcast_to(quad.bary, (stop - start,) + quad.bary.shape)
-        else:
-            phi = space.basis_at(quad.points[start:stop], e)
-            if start < whole:
-                phi[: whole - start] = quad.bary
-        yield slice(start, stop), e, phi
 
 
 def discrete_error(M, e) -> float:

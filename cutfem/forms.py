@@ -435,9 +435,18 @@ class _IntegrandTerm:
         return tuple(basis if i == k else ZERO for i in range(len(space.fields)))
 
     def contributions(self, space, params):
+        """Local vectors (linear) or matrices (bilinear) of the term, block by block of the measure's
+        cells (:meth:`~cutfem.measures.Measure.blocks`): the points, basis values and integrand
+        values of one block at a time.  The coupled field pairs are found on the first block."""
+        pairs = None
+        for _, quad in self.measure.blocks(self.integrand.degree):
+            w = _quad_data(self.measure, quad, params)
+            if pairs is None:
+                pairs = self._field_pairs(space, w)
+            yield from self._block(space, quad, w, pairs)
+
+    def _block(self, space, quad, w, pairs):
         measure = self.measure
-        quad = measure.quadrature(self.integrand.degree)
-        w = _quad_data(measure, quad, params)
         weights = quad.weights
         cache = {}
 
@@ -448,7 +457,7 @@ class _IntegrandTerm:
 
         f = self.integrand
         if f.linear:
-            for j in self._field_pairs(space, w):
+            for j in pairs:
                 dofs, fields = basis(j)
                 local = []
                 for b in fields:
@@ -460,7 +469,6 @@ class _IntegrandTerm:
                 local = np.stack([np.zeros(shape) if x is None else x for x in local], axis=1)
                 yield j, dofs, local
             return
-        pairs = self._field_pairs(space, w)
         symmetric = f.symmetric
         for i, j in pairs:  # i: trial field, j: test field
             if symmetric and (j, i) in pairs and i > j:

@@ -344,6 +344,10 @@ class Quadrature:
     bary : (q, k) float or None
         Reference barycentric coordinates of the points (k = 2 segment, 3 triangle, 4 tet);
         the same for every element.  ``points[e] = bary @ vertices[e]``.
+    whole : int
+        The first ``whole`` elements are whole cells of the measure's element set, with their
+        vertices in the element's own order: there the barycentric coordinates of the points in
+        the parent element are ``bary`` (0: unknown or none).
 
     Bad shapes raise ``ValueError``.
     """
@@ -353,6 +357,7 @@ class Quadrature:
     parent: np.ndarray | None = None
     normal: np.ndarray | None = None
     bary: np.ndarray | None = None
+    whole: int = 0
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=float)
@@ -390,6 +395,12 @@ class Quadrature:
     def n_elements(self) -> int:
         """Number of elements m."""
         return self.points.shape[0]
+
+    def cells(self, start: int, stop: int) -> "Quadrature":
+        """The elements start..stop-1 as a quadrature of their own (views, no copies)."""
+        return Quadrature(self.points[start:stop], self.weights[start:stop], self.parent[start:stop],
+                          None if self.normal is None else self.normal[start:stop], self.bary,
+                          max(0, min(self.whole, stop) - start))
 
     @property
     def n_points(self) -> int:
@@ -556,7 +567,7 @@ def signed_volumes(vertices) -> np.ndarray:
             + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])) / 6.0
 
 
-def map_tetrahedra(vertices, degree: int, parent=None) -> Quadrature:
+def map_tetrahedra(vertices, degree: int, parent=None, whole: int = 0) -> Quadrature:
     """Quadrature on ``m`` tetrahedra.
 
     ``points[e] = bary @ vertices[e]``, ``weights[e] = w * |det[x_1 - x_0, x_2 - x_0, x_3 - x_0]| / 6``
@@ -567,6 +578,8 @@ def map_tetrahedra(vertices, degree: int, parent=None) -> Quadrature:
     vertices : (m, 4, 3) float
     degree : int, polynomial degree integrated exactly on each tetrahedron
     parent : (m,) int or None (default ``arange(m)``)
+    whole : int, the number of leading tets that are whole elements of the parent set in their
+        own vertex order (see :class:`Quadrature`)
 
     Returns
     -------
@@ -577,7 +590,7 @@ def map_tetrahedra(vertices, degree: int, parent=None) -> Quadrature:
     volume = np.abs(signed_volumes(vertices))
     points = bary @ vertices
     weights = volume[:, None] * w[None, :]
-    return Quadrature(points, weights, parent=parent, normal=None, bary=bary)
+    return Quadrature(points, weights, parent=parent, normal=None, bary=bary, whole=whole)
 
 
 def concatenate(*quads: Quadrature) -> Quadrature:

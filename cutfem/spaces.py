@@ -90,12 +90,16 @@ class _P1Space:
 
     def basis_on(self, measure, quad, elements) -> np.ndarray:
         """(m, q, k) basis values at the points of ``quad`` (a quadrature of ``measure``) in the field's
-        ``elements``.  Cells that are whole elements of the field (``measure.whole_cells``, the first
-        cells of a side's volume) take the reference barycentric coordinates of the rule as they are;
-        the others are mapped."""
-        whole = getattr(measure, "whole_cells", 0) if measure.elements is self.elements and quad.bary is not None else 0
+        ``elements``.  Cells that are whole elements of the field (``quad.whole``, the first cells of
+        a side's volume, when the measure's elements are the field's) take the reference barycentric
+        coordinates of the rule as they are (a broadcast view when all cells are whole); the others
+        are mapped."""
+        whole = quad.whole if measure.elements is self.elements and quad.bary is not None else 0
+        m = quad.n_elements
         if whole == 0:
             return self.basis_at(quad.points, elements)
+        if whole == m:
+            return np.broadcast_to(quad.bary, (m,) + quad.bary.shape)
         phi = np.empty(quad.points.shape[:2] + (self.element_dofs.shape[1],))
         phi[:whole] = quad.bary
         phi[whole:] = self.basis_at(quad.points[whole:], elements[whole:])
