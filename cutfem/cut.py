@@ -75,6 +75,7 @@ from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet, interior_facets
 from .measures import ElementVolume, FacetMeasure, SideVolume, SurfacePieces
 from .mesh import (
     CUBE_CORNERS,
+    KUHN_EDGE_CODES,
     KUHN_TETS,
     StructuredBox,
     TetMesh,
@@ -459,7 +460,8 @@ class CutMesh:
         near = np.zeros(es.n_nodes, dtype=bool)
         near[es.tets[cut_mark]] = True
         band = np.flatnonzero(near[es.tets].any(axis=1))
-        pairs, opposite = interior_facets(es.tets[band], es.n_nodes)
+        kuhn = es.kuhn_types
+        pairs, opposite = interior_facets(es.tets[band], es.n_nodes, None if kuhn is None else kuhn[band])
         pairs = band[pairs]
         keep = cut_mark[pairs[:, 0]] | cut_mark[pairs[:, 1]]
         return FacetSet(es, pairs[keep], opposite[keep], name=f"ghost faces of {side}")
@@ -540,12 +542,25 @@ class CutMesh:
 
     @cached_property
     def _triangle_edge_counts(self):
+        """(E,) how many triangles hold each edge of S_h, edges in increasing key
+        ``min * V + max``: one plain sort of the 3T keys (no order is needed, only the runs)."""
         t = self.triangles
         V = len(self.vertices)
-        e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-        keys = np.minimum(e[:, 0], e[:, 1]) * V + np.maximum(e[:, 0], e[:, 1])
-        _, _, counts = pair_up(keys)
-        return counts
+        T = len(t)
+        keys = np.empty(3 * T, dtype=np.int64)
+        for k, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
+            ta, tb = t[:, a], t[:, b]
+            np.minimum(ta, tb, out=keys[k * T : (k + 1) * T])
+            keys[k * T : (k + 1) * T] *= V
+            keys[k * T : (k + 1) * T] += np.maximum(ta, tb)
+        keys.sort()
+        new = np.empty(keys.size, dtype=bool)
+        if keys.size:
+            new[0] = True
+            np.not_equal(keys[1:], keys[:-1], out=new[1:])
+        del keys
+        starts = np.flatnonzero(new)
+        return np.diff(np.append(starts, new.size))
 
     @property
     def euler_characteristic(self) -> int:
@@ -774,8 +789,19 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     # surface vertices: key = active node (on-node vertex) or p + edge (min, max), numbered by key
     li, lj = np.take_along_axis(tets, edge_i, axis=1), np.take_along_axis(tets, edge_j, axis=1)
     on_node = pj == 0
-    key = np.where(on_node, lj, p + np.minimum(li, lj) * p + np.maximum(li, lj))
-    vkeys, vinv = unique_keys(key.reshape(-1), return_inverse=True)
+    if structured:
+        # the lattice edge {v, v + e_S} (v = min(li, lj): the active nodes increase with the
+        # background ids) has the key p - 1 + 7 v + c(S) in [p, 8p), ordered as (v, max) (see
+        # mesh.KUHN_EDGE_CODES): the numbering below, with no sort
+        codes = KUHN_EDGE_CODES.reshape(-1)[16 * (tet_ids % 6)[:, None] + 4 * edge_i + edge_j]
+        key = np.where(on_node, lj, (p - 1) + 7 * np.minimum(li, lj) + codes)
+        del codes
+        vkeys, vinv = dense_unique(key.reshape(-1), 8 * p)
+        vinv = vinv.astype(np.int64)
+    else:
+        key = np.where(on_node, lj, p + np.minimum(li, lj) * p + np.maximum(li, lj))
+        vkeys, vinv = unique_keys(key.reshape(-1), return_inverse=True)
+    del key
     vinv = vinv.reshape(m, 4)
     vfirst = np.empty(len(vkeys), dtype=np.int64)
     vfirst[vinv.reshape(-1)[::-1]] = np.arange(vinv.size)[::-1]
