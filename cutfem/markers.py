@@ -241,11 +241,17 @@ class FacetSet:
     @cached_property
     def _normals_areas(self):
         es = self.elements
-        g = es.gradients[self.pairs[:, 0], self.opposite[:, 0]]
-        gn = np.linalg.norm(g, axis=1)
+        minus = self.pairs[:, 0]
+        g = np.take(es.gradients.reshape(-1, 3), 4 * minus + self.opposite[:, 0], axis=0)  # (F, 3)
+        gx, gy, gz = g[:, 0], g[:, 1], g[:, 2]
+        gn = gx * gx
+        gn += gy * gy
+        gn += gz * gz
+        np.sqrt(gn, out=gn)
         # the face opposite to vertex k has outward normal -grad(lambda_k)/|grad(lambda_k)|, and
         # |F| = 3 |T| |grad lambda_k| (volume = |F| height / 3, |grad lambda_k| = 1 / height)
-        return -g / gn[:, None], 3.0 * es.volumes[self.pairs[:, 0]] * gn
+        g /= -gn[:, None]
+        return g, 3.0 * np.take(es.volumes, minus) * gn
 
     @property
     def normals(self) -> np.ndarray:

@@ -6,7 +6,9 @@ sorting integer keys.  A :class:`StructuredBox` is a tetrahedral mesh of an axis
 of cubes (cuboids), each split into the six Kuhn tetrahedra that share the main diagonal; the split
 is the same in every cube, so the mesh is conforming.  A structured box never needs to store its
 whole point or tet arrays: the cut (:mod:`cutfem.cut`) asks it only for the cells near the
-surface.  ``points``/``tets`` are built lazily if a user wants the whole mesh.
+surface.  ``points``/``tets`` are built lazily if a user wants the whole mesh.  Its edges and faces
+have an arithmetic numbering (lowest node and lattice direction: :data:`KUHN_EDGE_CODES`,
+:func:`kuhn_face_keys`) in the order of their sorted node ids, which the cut uses instead of sorting.
 
 Mesh size: the global value ``h = N**(-1/3)`` (N = number of background nodes), as in docs/math.md §2.
 """
@@ -132,10 +134,13 @@ def kuhn_face_keys(tets: np.ndarray, kuhn: np.ndarray) -> np.ndarray:
     faces in the same order, with keys below 12 n (n nodes) instead of three columns.
     """
     tets = np.asarray(tets)
-    kind = np.asarray(kuhn).astype(np.int64).reshape(-1, 1)
-    low = np.take_along_axis(tets, _KUHN_FACE_LOW[kind.reshape(-1)], axis=1).astype(np.int64)
+    kind = np.asarray(kuhn).reshape(-1)
+    flat = _KUHN_FACE_LOW[kind].astype(np.int64)  # (m, 4) entries of the lowest nodes in tets.reshape(-1)
+    flat += np.arange(0, 4 * len(tets), 4)[:, None]
+    low = np.take(tets.reshape(-1), flat).astype(np.int64, copy=False)
+    del flat
     low *= 12
-    low += _KUHN_FACE_TYPE[kind.reshape(-1)]
+    low += _KUHN_FACE_TYPE[kind]
     return low.reshape(-1)
 
 
@@ -579,7 +584,7 @@ class StructuredBox(TetMesh):
         A point of a cell is ``x = corner + xi * spacing`` (componentwise), so the gradients are
         those of the reference Kuhn tet ``tet_id % 6`` (:data:`KUHN_GRADIENTS`, entries -1, 0, 1)
         divided by the spacing, axis by axis; no vertex coordinates are needed."""
-        return KUHN_GRADIENTS[np.asarray(tet_ids) % 6] / self.spacing
+        return (KUHN_GRADIENTS / self.spacing)[np.asarray(tet_ids) % 6]  # scale the (6, 4, 3) table, then gather
 
     @property
     def tet_volume(self) -> float:
