@@ -75,6 +75,7 @@ from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet, interior_facets
 from .measures import ElementVolume, FacetMeasure, SideVolume, SurfacePieces
 from .mesh import (
     CUBE_CORNERS,
+    KUHN_EDGE_CODES,
     KUHN_TETS,
     StructuredBox,
     TetMesh,
@@ -151,6 +152,10 @@ def _flip_table():
 
 
 _FLIP = _flip_table()
+
+# (6 * 16, 4) the lattice code c(S) (mesh.KUHN_EDGE_CODES) of the edge of each polygon slot, by
+# Kuhn type l and sign code: row 16 l + code
+_SLOT_EDGE_CODES = KUHN_EDGE_CODES[np.arange(6)[:, None, None], _EDGE_I[None], _EDGE_J[None]].reshape(96, 4)
 
 
 def _as_values_function(levelset):
@@ -330,6 +335,17 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
     return blocks[:, 0] + cells[0] * (blocks[:, 1] + cells[1] * blocks[:, 2]), phi
 
 
+def _kuhn_mixed_table():
+    """(256, 6) bool: whether Kuhn tet l of a cell has nodal values of both signs, for each set of
+    cube corners with phi < 0 (bit c for corner c)."""
+    inside = (np.arange(256)[:, None] >> np.arange(8)) & 1  # (256, 8)
+    count = inside[:, KUHN_TETS].sum(axis=2)  # (256, 6)
+    return (count > 0) & (count < 4)
+
+
+_KUHN_MIXED = _kuhn_mixed_table()
+
+
 def _candidates_structured(box: StructuredBox, f, lipschitz):
     """Candidates of a structured box.  With a Lipschitz bound only the corners of the band cells
     are evaluated, each distinct node once (labels = their rank among those nodes); the corner
@@ -342,19 +358,31 @@ def _candidates_structured(box: StructuredBox, f, lipschitz):
         label_values = _snap_zeros(values, _zero_tolerance(box, None, values))
         corner = box.cell_corner_ids(cell_ids)
         label_ids = None
+        cv = label_values[corner]
     else:
         tol = _zero_tolerance(box, lipschitz)
         cell_ids, centre_phi = _band_cells(box, f, float(lipschitz), tol)
         label_ids, corner = dense_unique(box.cell_corner_ids(cell_ids), box.n_points)
         values = np.asarray(f(box.node_coordinates(label_ids)), dtype=float)
         _check_finite(values, "background nodes near the surface")
-        _lipschitz_check(values[corner] - centre_phi[:, None], 0.5 * np.linalg.norm(box.spacing), float(lipschitz), tol)
+        cv = values[corner]
+        _lipschitz_check(cv - centre_phi[:, None], 0.5 * np.linalg.norm(box.spacing), float(lipschitz), tol)
         label_values = _snap_zeros(values, tol)
-    tv = label_values[corner][:, KUHN_TETS].reshape(-1, 4)
-    mixed = np.flatnonzero(_mixed(tv))
-    nodes = corner[:, KUHN_TETS].reshape(-1, 4)[mixed]
-    tet_ids = 6 * cell_ids[mixed // 6] + mixed % 6
-    return tet_ids, nodes, tv[mixed], label_ids, label_values
+        cv[np.abs(cv) <= tol] = 0.0  # the snap, entry by entry: cv == label_values[corner]
+    # the cut tets from each cell's corner signs (8 bits) by a table: the (6k, 4) values and nodes
+    # of every band tet are never made
+    signs = np.zeros(len(cv), dtype=np.uint8)
+    for c in range(8):
+        signs |= (cv[:, c] < 0).view(np.uint8) << c
+    mixed = np.flatnonzero(_KUHN_MIXED[signs])  # index 6 * (cell position) + Kuhn type
+    del signs
+    cell = mixed // 6
+    kind = mixed - 6 * cell
+    flat = KUHN_TETS[kind]  # (n, 4) entries of the tets in the flattened (k, 8) corner arrays
+    flat += (8 * cell)[:, None]
+    nodes, vals = np.take(corner.reshape(-1), flat), np.take(cv.reshape(-1), flat)
+    tet_ids = 6 * cell_ids[cell] + kind
+    return tet_ids, nodes, vals, label_ids, label_values
 
 
 def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0):
@@ -459,7 +487,8 @@ class CutMesh:
         near = np.zeros(es.n_nodes, dtype=bool)
         near[es.tets[cut_mark]] = True
         band = np.flatnonzero(near[es.tets].any(axis=1))
-        pairs, opposite = interior_facets(es.tets[band], es.n_nodes)
+        kuhn = es.kuhn_types
+        pairs, opposite = interior_facets(es.tets[band], es.n_nodes, None if kuhn is None else kuhn[band])
         pairs = band[pairs]
         keep = cut_mark[pairs[:, 0]] | cut_mark[pairs[:, 1]]
         return FacetSet(es, pairs[keep], opposite[keep], name=f"ghost faces of {side}")
@@ -540,12 +569,25 @@ class CutMesh:
 
     @cached_property
     def _triangle_edge_counts(self):
+        """(E,) how many triangles hold each edge of S_h, edges in increasing key
+        ``min * V + max``: one plain sort of the 3T keys (no order is needed, only the runs)."""
         t = self.triangles
         V = len(self.vertices)
-        e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
-        keys = np.minimum(e[:, 0], e[:, 1]) * V + np.maximum(e[:, 0], e[:, 1])
-        _, _, counts = pair_up(keys)
-        return counts
+        T = len(t)
+        keys = np.empty(3 * T, dtype=np.int64)
+        for k, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
+            ta, tb = t[:, a], t[:, b]
+            np.minimum(ta, tb, out=keys[k * T : (k + 1) * T])
+            keys[k * T : (k + 1) * T] *= V
+            keys[k * T : (k + 1) * T] += np.maximum(ta, tb)
+        keys.sort()
+        new = np.empty(keys.size, dtype=bool)
+        if keys.size:
+            new[0] = True
+            np.not_equal(keys[1:], keys[:-1], out=new[1:])
+        del keys
+        starts = np.flatnonzero(new)
+        return np.diff(np.append(starts, new.size))
 
     @property
     def euler_characteristic(self) -> int:
@@ -677,6 +719,18 @@ class CutMesh:
         )
 
 
+# the polygon slots of the triangles (0, 1, 2) and (0, 2, 3) of a piece, and the same turned over
+_TRIANGLE_SLOTS = np.array([[0, 1, 2, 0, 2, 3], [0, 2, 1, 0, 3, 2]], dtype=np.int64)
+
+
+def _take_rows(a, cols):
+    """``a[t, cols[t, s]]`` for a (m, k) and cols (m, s): one 1-d take on the flattened array
+    (several times faster than ``np.take_along_axis``, which builds a fancy index)."""
+    k = a.shape[1]
+    flat = np.arange(0, k * len(a), k)[:, None] + cols
+    return np.take(a.reshape(-1), flat)
+
+
 def _marching(vals):
     """Marching tetrahedra on the candidate (cut) tets, tet by tet; see the module docstring.
 
@@ -686,15 +740,20 @@ def _marching(vals):
     point ``x_i + t (x_j - x_i)``, ``t = phi_i / (phi_i - phi_j)``, or the node j itself when
     phi_j == 0.  Two slots of a tet are the same vertex when they are the same node or the same
     edge, so the distinct vertices are counted on small per-tet keys (node j, or 4 + edge (i, j))."""
-    inside = vals < 0
-    code = inside[:, 0] + 2 * inside[:, 1] + 4 * inside[:, 2] + 8 * inside[:, 3]
+    code = np.packbits(vals < 0, axis=1, bitorder="little").reshape(-1)  # (m,) uint8
     # polygon vertices: up to 4 edges (i, j) per tet, i inside and j outside (table lookup)
     edge_i, edge_j = _EDGE_I[code], _EDGE_J[code]
-    pi, pj = np.take_along_axis(vals, edge_i, axis=1), np.take_along_axis(vals, edge_j, axis=1)
-    k4 = np.where(pj == 0, edge_j, 4 + 4 * edge_i + edge_j)
-    distinct = 1 + (k4[:, 1] != k4[:, 0]) + ((k4[:, 2] != k4[:, 0]) & (k4[:, 2] != k4[:, 1]))
-    distinct = distinct + ((k4[:, 3] != k4[:, 0]) & (k4[:, 3] != k4[:, 1]) & (k4[:, 3] != k4[:, 2]))
-    return code, distinct >= 3, (edge_i, edge_j, pi, pj)
+    pi, pj = _take_rows(vals, edge_i), _take_rows(vals, edge_j)
+    # without a zero value every slot is its own edge: 3 or 4 distinct vertices; count the others
+    active = np.ones(len(vals), dtype=bool)
+    rows = np.flatnonzero((pj == 0).any(axis=1))
+    if rows.size:
+        ei, ej = edge_i[rows].astype(np.int64), edge_j[rows].astype(np.int64)
+        k4 = np.where(pj[rows] == 0, ej, 4 + 4 * ei + ej)
+        distinct = 1 + (k4[:, 1] != k4[:, 0]) + ((k4[:, 2] != k4[:, 0]) & (k4[:, 2] != k4[:, 1]))
+        distinct = distinct + ((k4[:, 3] != k4[:, 0]) & (k4[:, 3] != k4[:, 1]) & (k4[:, 3] != k4[:, 2]))
+        active[rows] = distinct >= 3
+    return code, active, (edge_i, edge_j, pi, pj)
 
 
 def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> CutMesh:
@@ -772,10 +831,21 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     normals = g / np.linalg.norm(g, axis=1)[:, None]
 
     # surface vertices: key = active node (on-node vertex) or p + edge (min, max), numbered by key
-    li, lj = np.take_along_axis(tets, edge_i, axis=1), np.take_along_axis(tets, edge_j, axis=1)
+    li, lj = _take_rows(tets, edge_i), _take_rows(tets, edge_j)
     on_node = pj == 0
-    key = np.where(on_node, lj, p + np.minimum(li, lj) * p + np.maximum(li, lj))
-    vkeys, vinv = unique_keys(key.reshape(-1), return_inverse=True)
+    if structured:
+        # the lattice edge {v, v + e_S} (v = min(li, lj): the active nodes increase with the
+        # background ids) has the key p - 1 + 7 v + c(S) in [p, 8p), ordered as (v, max) (see
+        # mesh.KUHN_EDGE_CODES): the numbering below, with no sort
+        codes = _SLOT_EDGE_CODES[16 * (tet_ids % 6) + code]  # (m, 4) c(S) of each slot's edge
+        key = np.where(on_node, lj, (p - 1) + 7 * np.minimum(li, lj) + codes)
+        del codes
+        vkeys, vinv = dense_unique(key.reshape(-1), 8 * p)
+        vinv = vinv.astype(np.int64)
+    else:
+        key = np.where(on_node, lj, p + np.minimum(li, lj) * p + np.maximum(li, lj))
+        vkeys, vinv = unique_keys(key.reshape(-1), return_inverse=True)
+    del key
     vinv = vinv.reshape(m, 4)
     vfirst = np.empty(len(vkeys), dtype=np.int64)
     vfirst[vinv.reshape(-1)[::-1]] = np.arange(vinv.size)[::-1]
@@ -791,13 +861,12 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     # triangles (0,1,2) and, for quads, (0,2,3), tet by tet; drop triangles with repeated vertices.
     # Orientation by n_h from the sign code (see _flip_table).
     nvert = _NVERT[code]
-    tri = np.stack([vinv[:, [0, 1, 2]], vinv[:, [0, 2, 3]]], axis=1)  # (m, 2, 3)
+    flip = _FLIP[code] if negative is None else _FLIP[code] ^ negative
+    tri = _take_rows(vinv, _TRIANGLE_SLOTS[flip.view(np.uint8)]).reshape(m, 2, 3)  # flipped: (0, 2, 1), (0, 3, 2)
     ok = (tri[..., 0] != tri[..., 1]) & (tri[..., 1] != tri[..., 2]) & (tri[..., 0] != tri[..., 2])
     ok[:, 1] &= nvert == 4
-    flip = _FLIP[code] if negative is None else _FLIP[code] ^ negative
-    tri[flip, :, 1], tri[flip, :, 2] = tri[flip, :, 2], tri[flip, :, 1].copy()
     tri = tri[ok]
-    tri_tet = np.broadcast_to(np.arange(m)[:, None], (m, 2))[ok]
+    tri_tet = np.flatnonzero(ok) // 2
 
     cm = CutMesh(
         levelset=levelset,

@@ -34,7 +34,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .mesh import KUHN_TETS, TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, pair_up, tet_face_keys
+from .mesh import KUHN_TETS, TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, kuhn_face_keys, pair_up, tet_face_keys
 
 __all__ = ["NEG", "POS", "CUT", "SIDES", "ElementSet", "FacetSet", "interior_facets", "side_subtetrahedra", "longest_edges"]
 
@@ -54,14 +54,18 @@ def longest_edges(vertices: np.ndarray) -> np.ndarray:
     return longest
 
 
-def interior_facets(tets: np.ndarray, n_nodes: int):
+def interior_facets(tets: np.ndarray, n_nodes: int, kuhn=None):
     """The faces shared by two of the tets (m, 4) (node numbers below ``n_nodes``).
 
     Returns ``(pairs (F, 2), opposite (F, 2))``: the two tets of each face (first the one that comes
-    first in ``tets``) and, in each, the local index of the vertex opposite to the face.  One sort
-    of the face keys.
+    first in ``tets``) and, in each, the local index of the vertex opposite to the face; faces in
+    increasing order of their sorted node triples.  One sort of the face keys: the sorted node
+    triples (:func:`~cutfem.mesh.tet_face_keys`), or, for tets of a structured box given with
+    their Kuhn types ``kuhn`` (m,) (background tet id % 6), the lattice keys
+    :func:`~cutfem.mesh.kuhn_face_keys`, small enough for one radix pass; both give the same faces
+    in the same order when the node numbers increase with the background ids.
     """
-    keys = tet_face_keys(tets, n_nodes)
+    keys = tet_face_keys(tets, n_nodes) if kuhn is None else kuhn_face_keys(tets, kuhn)
     order, starts, counts = pair_up(keys)
     two = counts == 2
     first, second = order[starts[two]], order[starts[two] + 1]
@@ -191,8 +195,13 @@ class ElementSet:
     @cached_property
     def interior_facets(self) -> "FacetSet":
         """The faces shared by two tets of the set."""
-        pairs, opposite = interior_facets(self.tets, self.n_nodes)
+        pairs, opposite = interior_facets(self.tets, self.n_nodes, self.kuhn_types)
         return FacetSet(self, pairs, opposite, name=f"interior faces of {self.name}")
+
+    @property
+    def kuhn_types(self):
+        """(m,) the Kuhn type (background tet id % 6) of each tet on a structured box, else None."""
+        return self.tet_ids % 6 if isinstance(self.background, StructuredBox) else None
 
     @cached_property
     def boundary_nodes(self) -> np.ndarray:
@@ -232,11 +241,17 @@ class FacetSet:
     @cached_property
     def _normals_areas(self):
         es = self.elements
-        g = es.gradients[self.pairs[:, 0], self.opposite[:, 0]]
-        gn = np.linalg.norm(g, axis=1)
+        minus = self.pairs[:, 0]
+        g = np.take(es.gradients.reshape(-1, 3), 4 * minus + self.opposite[:, 0], axis=0)  # (F, 3)
+        gx, gy, gz = g[:, 0], g[:, 1], g[:, 2]
+        gn = gx * gx
+        gn += gy * gy
+        gn += gz * gz
+        np.sqrt(gn, out=gn)
         # the face opposite to vertex k has outward normal -grad(lambda_k)/|grad(lambda_k)|, and
         # |F| = 3 |T| |grad lambda_k| (volume = |F| height / 3, |grad lambda_k| = 1 / height)
-        return -g / gn[:, None], 3.0 * es.volumes[self.pairs[:, 0]] * gn
+        g /= -gn[:, None]
+        return g, 3.0 * np.take(es.volumes, minus) * gn
 
     @property
     def normals(self) -> np.ndarray:

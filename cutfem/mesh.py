@@ -6,7 +6,9 @@ sorting integer keys.  A :class:`StructuredBox` is a tetrahedral mesh of an axis
 of cubes (cuboids), each split into the six Kuhn tetrahedra that share the main diagonal; the split
 is the same in every cube, so the mesh is conforming.  A structured box never needs to store its
 whole point or tet arrays: the cut (:mod:`cutfem.cut`) asks it only for the cells near the
-surface.  ``points``/``tets`` are built lazily if a user wants the whole mesh.
+surface.  ``points``/``tets`` are built lazily if a user wants the whole mesh.  Its edges and faces
+have an arithmetic numbering (lowest node and lattice direction: :data:`KUHN_EDGE_CODES`,
+:func:`kuhn_face_keys`) in the order of their sorted node ids, which the cut uses instead of sorting.
 
 Mesh size: the global value ``h = N**(-1/3)`` (N = number of background nodes), as in docs/math.md §2.
 """
@@ -36,6 +38,8 @@ __all__ = [
     "stable_argsort",
     "sorted_row_keys",
     "tet_face_keys",
+    "KUHN_EDGE_CODES",
+    "kuhn_face_keys",
     "pair_up",
     "unique_keys",
 ]
@@ -85,6 +89,59 @@ KUHN_GRADIENTS = _kuhn_reference_gradients()
 # local faces of a tet (opposite to vertex k) and local edges
 TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], dtype=np.int64)
 TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
+
+# Lattice numbering of the edges and faces of a structured box.  The nodes of a Kuhn tet form a
+# chain for the componentwise order of their cube corners (a monotone path 000 -> 111), so an edge
+# of the lattice is {v, v + e_S} and a face {v, v + e_A, v + e_A + e_B}: v its lowest node, S, A, B
+# nonempty sets of axes (A and B disjoint), e_S the sum of their unit steps.  With the code
+# c(S) = sum of 2**axis over S (1..7), the node above v along S has the id v + o(c(S)),
+# o(c) = (c & 1) + (nx + 1) ((c >> 1) & 1) + (nx + 1)(ny + 1) (c >> 2), which increases with c
+# (nx, ny >= 1).  So (v, c(S)) numbers the edges, (v, c(A), c(A u B)) the faces, and ordering them
+# by these integers orders them by their sorted node ids: no sort of node triples is needed.
+KUHN_EDGE_CODES = (KUHN_TETS[:, :, None] ^ KUHN_TETS[:, None, :]).astype(np.int8)
+"""(6, 4, 4) c(S) of the edge between local nodes i and j of Kuhn tet l (0 on the diagonal)."""
+
+# the 12 face types (c(A), c(A u B)), in increasing order
+_FACE_TYPES = sorted((a, a | b) for a in range(1, 8) for b in range(1, 8) if a & b == 0)
+
+
+def _kuhn_face_tables():
+    """(6, 4) local node of the lowest corner of face k (opposite to node k) of Kuhn tet l, and
+    (6, 4) the rank of the face's type (c(A), c(A u B)) in :data:`_FACE_TYPES`."""
+    low = np.zeros((6, 4), dtype=np.int8)
+    kind = np.zeros((6, 4), dtype=np.int8)
+    for l, tet in enumerate(KUHN_TETS):
+        for k, face in enumerate(TET_FACES):
+            order = np.argsort(tet[face])
+            c0, c1, c2 = tet[face][order]
+            low[l, k] = face[order[0]]
+            kind[l, k] = _FACE_TYPES.index((c1 ^ c0, c2 ^ c0))
+    return low, kind
+
+
+_KUHN_FACE_LOW, _KUHN_FACE_TYPE = _kuhn_face_tables()
+
+
+def kuhn_face_keys(tets: np.ndarray, kuhn: np.ndarray) -> np.ndarray:
+    """Keys of the faces of tets of a structured box: ``12 v + type`` (4m,), with v the node
+    number (in ``tets``) of the face's lowest lattice node and type in 0..11 its (c(A), c(A u B))
+    rank (see :data:`KUHN_EDGE_CODES`).  Row 4t + k is the face opposite to local vertex k of tet t.
+
+    ``tets`` (m, 4) node numbers of Kuhn tets in their :data:`KUHN_TETS` vertex order (any node
+    numbering of the box's nodes), ``kuhn`` (m,) their Kuhn type (background tet id % 6).  Equal
+    faces have equal keys, and when the node numbers increase with the background ids the keys
+    increase with the sorted node triples of :func:`tet_face_keys`: grouping them gives the same
+    faces in the same order, with keys below 12 n (n nodes) instead of three columns.
+    """
+    tets = np.asarray(tets)
+    kind = np.asarray(kuhn).reshape(-1)
+    flat = _KUHN_FACE_LOW[kind].astype(np.int64)  # (m, 4) entries of the lowest nodes in tets.reshape(-1)
+    flat += np.arange(0, 4 * len(tets), 4)[:, None]
+    low = np.take(tets.reshape(-1), flat).astype(np.int64, copy=False)
+    del flat
+    low *= 12
+    low += _KUHN_FACE_TYPE[kind]
+    return low.reshape(-1)
 
 
 def sorted_row_keys(rows: np.ndarray, n: int) -> np.ndarray:
@@ -527,7 +584,7 @@ class StructuredBox(TetMesh):
         A point of a cell is ``x = corner + xi * spacing`` (componentwise), so the gradients are
         those of the reference Kuhn tet ``tet_id % 6`` (:data:`KUHN_GRADIENTS`, entries -1, 0, 1)
         divided by the spacing, axis by axis; no vertex coordinates are needed."""
-        return KUHN_GRADIENTS[np.asarray(tet_ids) % 6] / self.spacing
+        return (KUHN_GRADIENTS / self.spacing)[np.asarray(tet_ids) % 6]  # scale the (6, 4, 3) table, then gather
 
     @property
     def tet_volume(self) -> float:

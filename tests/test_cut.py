@@ -246,6 +246,31 @@ def test_band_search_and_plain_mesh_agree(box, levelset):
         np.testing.assert_allclose(band.normals[ob], other.normals[oo], rtol=0, atol=1e-14)
 
 
+@pytest.mark.parametrize(
+    "box, levelset",
+    [(SPHERE_BOX, Sphere(1.1, center=(0.07, -0.03, 0.11))), (TORUS_BOX, Torus(1.0, 0.5))],
+    ids=["sphere", "torus-zeros"],
+)
+def test_lattice_numbering_equals_the_sorted_numbering(box, levelset):
+    """On a structured box the surface vertices are numbered by lattice edges and the interior and
+    ghost faces by lattice faces, without sorting node pairs or triples; the plain mesh path sorts
+    them.  Both cut every tet in id order here: the arrays must be equal, entry for entry."""
+    f = PlainFunction(levelset.value)
+    structured, plain = cut_mesh(box, f, check_boundary=False), cut_mesh(TetMesh(box.points, box.tets), f)
+    np.testing.assert_array_equal(structured.tet_ids, plain.tet_ids)
+    np.testing.assert_array_equal(structured.vertices, plain.vertices)
+    np.testing.assert_array_equal(structured.triangles, plain.triangles)
+    assert structured.euler_characteristic == plain.euler_characteristic
+    for which in (CUT, NEG):
+        a, b = structured.interior_facets(which), plain.interior_facets(which)
+        assert a.n_facets > 0
+        np.testing.assert_array_equal(a.pairs, b.pairs)
+        np.testing.assert_array_equal(a.opposite, b.opposite)
+    a, b = structured.ghost_facets(NEG), plain.ghost_facets(NEG)
+    np.testing.assert_array_equal(a.pairs, b.pairs)
+    np.testing.assert_array_equal(a.opposite, b.opposite)
+
+
 # ----------------------------------------------------------------------------------------------
 # active mesh: interior faces; surface edges and conormals
 # ----------------------------------------------------------------------------------------------

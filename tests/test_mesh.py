@@ -468,3 +468,50 @@ def test_stable_argsort_of_columns_is_the_lexsort():
                 c -= 2 ** (bits - 1)
             cols.append(c.astype(np.int32) if bits < 31 and trial % 2 else c)
         np.testing.assert_array_equal(stable_argsort(tuple(cols)), np.lexsort(cols[::-1]))
+
+
+@pytest.mark.parametrize("cells", [(1, 1, 1), (3, 2, 4), (5, 1, 2)])
+def test_kuhn_face_keys_number_the_faces_in_sorted_triple_order(cells):
+    """The lattice face keys of a structured box name the same faces as the sorted node triples
+    (equal keys exactly for equal triples) and, with the box's own node ids, in the same order; with
+    the nodes renumbered at random they still group the faces exactly."""
+    from cutfem.mesh import kuhn_face_keys, tet_face_keys
+
+    box = structured_box([0, 0, 0], [1, 1, 1], cells=cells)
+    kuhn = np.arange(box.n_tets) % 6
+    triples = np.stack(tet_face_keys(box.tets, box.n_points), axis=1).astype(np.int64)  # (4M, 3)
+    triple_key = (triples[:, 0] * box.n_points + triples[:, 1]) * box.n_points + triples[:, 2]
+    keys = kuhn_face_keys(box.tets, kuhn)
+    assert keys.shape == (4 * box.n_tets,) and keys.min() >= 0 and keys.max() < 12 * box.n_points
+    # same partition of the face rows, and the same order of the groups
+    _, first_k, inv_k = np.unique(keys, return_index=True, return_inverse=True)
+    _, first_t, inv_t = np.unique(triple_key, return_index=True, return_inverse=True)
+    assert len(first_k) == len(box.faces)
+    np.testing.assert_array_equal(first_k, first_t)
+    np.testing.assert_array_equal(inv_k, inv_t)
+    # any numbering of the nodes: the same partition (orders may differ)
+    perm = np.random.default_rng(5).permutation(box.n_points)
+    renamed = kuhn_face_keys(perm[box.tets], kuhn)
+    _, inv_r = np.unique(renamed, return_inverse=True)
+    _, pair = np.unique(inv_r * len(first_k) + inv_k, return_inverse=True)
+    assert len(np.unique(inv_r)) == len(first_k) and pair.max() + 1 == len(first_k)
+
+
+def test_kuhn_edge_codes_are_the_lattice_steps():
+    """KUHN_EDGE_CODES[l, i, j] is the set of axes along which nodes i and j of Kuhn tet l differ,
+    and the lower of the two nodes is the one with the smaller id in every cell."""
+    from cutfem.mesh import KUHN_EDGE_CODES, KUHN_TETS
+
+    box = structured_box([0, 0, 0], [1, 1, 1], cells=(3, 2, 2))
+    ijk = box.node_index(box.tets)  # (M, 4, 3)
+    step = np.abs(ijk[:, :, None, :] - ijk[:, None, :, :])  # (M, 4, 4, 3) in {0, 1}
+    assert step.max() == 1
+    codes = step[..., 0] + 2 * step[..., 1] + 4 * step[..., 2]
+    np.testing.assert_array_equal(codes, KUHN_EDGE_CODES[np.arange(box.n_tets) % 6])
+    # node above the lower one along the code c has the id + o(c), increasing in c
+    nx1, ny1 = box.node_shape[0], box.node_shape[1]
+    offset = lambda c: (c & 1) + nx1 * ((c >> 1) & 1) + nx1 * ny1 * (c >> 2)
+    lo, hi = np.minimum(box.tets[:, :, None], box.tets[:, None, :]), np.maximum(box.tets[:, :, None], box.tets[:, None, :])
+    np.testing.assert_array_equal(hi - lo, offset(codes))
+    assert np.all(np.diff([offset(c) for c in range(8)]) > 0)
+    assert KUHN_TETS.shape == (6, 4)
