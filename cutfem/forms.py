@@ -645,9 +645,8 @@ def mass(measure: Measure, field=None) -> Form:
             el = space.local_elements(measure, c.triangle_tets)
             return _simplex_mass(space, c.triangle_points, el, c.triangle_areas)
         if isinstance(measure, SideVolume):
-            sub, parent, _ = measure.subtetrahedra
-            sizes = np.abs(signed_volumes(sub))
-            return _simplex_mass(space, sub, space.local_elements(measure, parent), sizes)
+            vertices = measure.cell_vertices()
+            return _simplex_mass(space, vertices, space.local_elements(measure, measure.cell_parent), np.abs(signed_volumes(vertices)))
         if isinstance(measure, ElementVolume):
             es = measure.elements
             return _simplex_mass(space, es.vertices, space.local_elements(measure, np.arange(es.n_elements)), es.volumes)

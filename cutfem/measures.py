@@ -140,39 +140,57 @@ class SideVolume(Measure):
         self.side = side
 
     @cached_property
-    def subtetrahedra(self):
-        """(vertices (s, 4, 3), parent (s,), w): the side's part of every element as tetrahedra, the
-        first w of them whole elements."""
+    def _parts(self):
+        """(whole (w,), sub (s, 4, 3), parent (s,)): the elements that lie in the side, and the side's
+        part of the cut elements as tetrahedra (:func:`~cutfem.markers.side_subtetrahedra`)."""
         es = self.elements
-        values = self.cut.background_values[es.node_ids][es.tets]
-        return side_subtetrahedra(es.vertices, values, self.side)
+        return side_subtetrahedra(es.points, es.tets, self.cut.background_values[es.node_ids], self.side)
 
     @property
     def whole_cells(self) -> int:
-        """The number of leading cells of the quadrature that are whole elements, in their own vertex
-        order (their basis values are the rule's barycentric coordinates)."""
-        return self.subtetrahedra[2]
+        """The number of leading cells that are whole elements, in their own vertex order (their
+        basis values are the rule's barycentric coordinates); the sub-tets of the cut elements follow."""
+        return len(self._parts[0])
+
+    @property
+    def n_cells(self) -> int:
+        return self.whole_cells + len(self._parts[1])
+
+    @cached_property
+    def cell_parent(self) -> np.ndarray:
+        """(n_cells,) the element of each cell."""
+        whole, _, parent = self._parts
+        return np.concatenate([whole, parent])
+
+    def cell_vertices(self, start: int = 0, stop: int | None = None) -> np.ndarray:
+        """(stop - start, 4, 3) vertices of the cells start..stop-1: the whole elements' are gathered
+        on demand (they are not stored twice), the sub-tets' sliced."""
+        whole, sub, _ = self._parts
+        w = len(whole)
+        stop = self.n_cells if stop is None else stop
+        es = self.elements
+        head = es.points[es.tets[whole[min(start, w) : min(stop, w)]]]
+        tail = sub[max(start - w, 0) : max(stop - w, 0)]
+        return tail if len(head) == 0 else head if len(tail) == 0 else np.concatenate([head, tail])
 
     @cached_property
     def part_volumes(self) -> np.ndarray:
         """(m,) |T ∩ side| per element: the whole element's volume for the whole cells, the sum of the
         sub-tets' volumes in the others."""
-        sub, parent, whole = self.subtetrahedra
+        whole, sub, parent = self._parts
         out = np.zeros(self.elements.n_elements)
-        out[parent[:whole]] = self.elements.volumes[parent[:whole]]
-        v = np.abs(signed_volumes(sub[whole:]))
-        return out + np.bincount(parent[whole:], weights=v, minlength=self.elements.n_elements)
+        out[whole] = self.elements.volumes[whole]
+        return out + np.bincount(parent, weights=np.abs(signed_volumes(sub)), minlength=self.elements.n_elements)
 
     def _build(self, degree):
-        sub, parent, whole = self.subtetrahedra
-        return map_tetrahedra(sub, degree, parent=parent, whole=whole)
+        return map_tetrahedra(self.cell_vertices(), degree, parent=self.cell_parent, whole=self.whole_cells)
 
     def blocks(self, degree: int = 2, size: int = BLOCK_CELLS):
-        sub, parent, whole = self.subtetrahedra
-        for start in range(0, len(sub), size):
-            stop = min(start + size, len(sub))
-            yield slice(start, stop), map_tetrahedra(sub[start:stop], degree, parent=parent[start:stop],
-                                                     whole=max(0, min(whole, stop) - start))
+        parent, w = self.cell_parent, self.whole_cells
+        for start in range(0, self.n_cells, size):
+            stop = min(start + size, self.n_cells)
+            yield slice(start, stop), map_tetrahedra(self.cell_vertices(start, stop), degree, parent=parent[start:stop],
+                                                     whole=max(0, min(w, stop) - start))
 
     @property
     def size(self) -> float:
