@@ -234,6 +234,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     out = Path(out)
     todo = cases(size)
     warm_up()
+    from cutfem.problems.mean_curvature import SOLVER_TOL
     from cutfem.solve import DEFAULT_TOL, DIRECT_LIMIT, DIRECT_LIMIT_NO_MG
 
     rows = []
@@ -241,7 +242,8 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
         "size": size,
         "limits": {"direct_bulk": DIRECT_BULK_LIMIT, "direct_surface": DIRECT_SURFACE_LIMIT, "jacobi": JACOBI_LIMIT,
                    "amg_surface": AMG_SURFACE_LIMIT,
-                   "auto_direct_limit": DIRECT_LIMIT, "auto_direct_limit_no_mg": DIRECT_LIMIT_NO_MG, "cg_tolerance": DEFAULT_TOL},
+                   "auto_direct_limit": DIRECT_LIMIT, "auto_direct_limit_no_mg": DIRECT_LIMIT_NO_MG, "cg_tolerance": DEFAULT_TOL,
+                   "cg_tolerance_mean_curvature": SOLVER_TOL},
         "cases": todo,
         "rows": rows,
         "complete": False,
@@ -340,7 +342,7 @@ def plot(out: Path, rows: list[dict], todo: list[dict]) -> list[Path]:
                          ms=3, lw=0.5, alpha=0.8, mfc="none")
     ax1.set_xscale("log")
     ax1.set_xlabel("unknowns")
-    ax1.set_ylabel("CG iterations (relative residual $10^{-8}$)")
+    ax1.set_ylabel("CG iterations (relative residual $10^{-8}$;\nmean curvature $10^{-6}$)")
     ax1.set_title("filled: auto (CG levels); open, dashed: cg-mg (tetwild: cg-amg)", loc="left", fontsize=7)
     top = max([max(line.get_ydata()) for line in ax1.get_lines()] + [1])
     ax1.set_ylim(0, 1.75 * top)  # room for the legend above the curves
