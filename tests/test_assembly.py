@@ -390,3 +390,24 @@ def test_gram_leaves_the_callers_arrays_alone():
         np.add.at(D, (np.repeat(np.arange(25), 4), d0.reshape(-1)), v0.reshape(-1))
         np.testing.assert_allclose(E.toarray(), D, atol=1e-15)
         np.testing.assert_allclose(G.toarray(), D.T @ D, atol=1e-13)
+
+
+def test_gram_in_blocks_of_rows(monkeypatch):
+    """Above GRAM_ROWS rows the Gram matrix is summed block by block: the same matrix, exactly
+    symmetric, and the caller's arrays untouched (the blocks are sorted in place)."""
+    import cutfem.assembly as assembly
+
+    rng = np.random.default_rng(7)
+    dofs = rng.integers(0, 40, (103, 4))
+    values = rng.standard_normal((103, 4))
+    d0, v0 = dofs.copy(), values.copy()
+    whole = assembly.gram(dofs, values, 40).toarray()
+    monkeypatch.setattr(assembly, "GRAM_ROWS", 10)
+    blocked = assembly.gram(dofs, values, 40)
+    np.testing.assert_array_equal(dofs, d0)
+    np.testing.assert_array_equal(values, v0)
+    np.testing.assert_allclose(blocked.toarray(), whole, rtol=0, atol=1e-12)
+    assert (blocked - blocked.T).nnz == 0 or np.abs((blocked - blocked.T).data).max() == 0.0
+    D = np.zeros((103, 40))
+    np.add.at(D, (np.repeat(np.arange(103), 4), d0.reshape(-1)), v0.reshape(-1))
+    np.testing.assert_allclose(blocked.toarray(), D.T @ D, atol=1e-12)

@@ -403,6 +403,20 @@ def test_stiffness_and_mass_on_a_side_match_reference(generic, side):
     _exactly_symmetric(M)
 
 
+def test_stiffness_in_blocks_of_elements_matches_reference(generic, monkeypatch):
+    """The stiffness Gram rows built and multiplied a block of elements at a time (blocks of 7
+    elements here) give the reference matrix, exactly symmetric."""
+    import cutfem.assembly as assembly
+
+    box, cut, values = generic
+    monkeypatch.setattr(assembly, "GRAM_ROWS", 21)
+    for side in (NEG, POS):
+        V = CutP1Space(cut, side)
+        K = assemble(stiffness(cut.dx(side)), V)
+        _close(K, _reference_bulk(box, values, V, side, "stiffness"))
+        _exactly_symmetric(K)
+
+
 def test_load_on_a_side_matches_an_independent_quadrature(generic):
     box, cut, values = generic
     V = CutP1Space(cut, NEG)
