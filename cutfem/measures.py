@@ -19,7 +19,9 @@ Every measure has ``elements`` (the element set, or the surface mesh, its cells 
 ``quadrature(degree)`` (a :class:`~cutfem.quadrature.Quadrature` whose ``parent`` indexes
 ``elements``; for a facet measure it indexes the facets), ``h`` (local size per element or facet),
 ``normals`` (per element or facet, or None) and ``surface`` (True for two-dimensional domains, where
-gradients in integrands have a tangential part ``tgrad``).
+gradients in integrands have a tangential part ``tgrad``).  ``blocks(degree)`` gives the same
+quadrature a block of cells at a time; the errors and the integrand forms use it, and the volume
+measures then map each block's tetrahedra on demand instead of storing the whole quadrature.
 """
 
 from __future__ import annotations
