@@ -210,10 +210,11 @@ class ElementVolume(Measure):
         return map_tetrahedra(self.elements.vertices, degree, whole=self.whole_cells)
 
     def blocks(self, degree: int = 2, size: int = BLOCK_CELLS):
-        v = self.elements.vertices
-        for start in range(0, len(v), size):
-            stop = min(start + size, len(v))
-            yield slice(start, stop), map_tetrahedra(v[start:stop], degree, parent=np.arange(start, stop), whole=stop - start)
+        es = self.elements
+        for start in range(0, es.n_elements, size):
+            stop = min(start + size, es.n_elements)
+            vertices = es.points[es.tets[start:stop]]  # one block's vertices at a time
+            yield slice(start, stop), map_tetrahedra(vertices, degree, parent=np.arange(start, stop), whole=stop - start)
 
     @property
     def normals(self):
