@@ -76,6 +76,7 @@ from .measures import ElementVolume, FacetMeasure, SideVolume, SurfacePieces
 from .mesh import (
     CUBE_CORNERS,
     KUHN_EDGE_CODES,
+    KUHN_CORNER_COUNTS,
     KUHN_TETS,
     StructuredBox,
     TetMesh,
@@ -335,15 +336,9 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
     return blocks[:, 0] + cells[0] * (blocks[:, 1] + cells[1] * blocks[:, 2]), phi
 
 
-def _kuhn_mixed_table():
-    """(256, 6) bool: whether Kuhn tet l of a cell has nodal values of both signs, for each set of
-    cube corners with phi < 0 (bit c for corner c)."""
-    inside = (np.arange(256)[:, None] >> np.arange(8)) & 1  # (256, 8)
-    count = inside[:, KUHN_TETS].sum(axis=2)  # (256, 6)
-    return (count > 0) & (count < 4)
-
-
-_KUHN_MIXED = _kuhn_mixed_table()
+_KUHN_MIXED = (KUHN_CORNER_COUNTS > 0) & (KUHN_CORNER_COUNTS < 4)
+"""(256, 6) bool: whether Kuhn tet l of a cell has nodal values of both signs, for each set of
+cube corners with phi < 0 (bit c for corner c)."""
 
 
 def _candidates_structured(box: StructuredBox, f, lipschitz):
@@ -464,8 +459,8 @@ class CutMesh:
                 sets[CUT] = ElementSet(self.background, self.tet_ids, name=CUT, cut=self, tets=self.tets, node_ids=self.node_ids,
                                        points=self.points, gradients=self.basis_gradients, volumes=self.tet_volumes, normals=self.normals)
             elif which in SIDES:
-                tv = self.background_values[self.background.tets]
-                mark = (tv < 0).any(axis=1) if which == NEG else (tv > 0).any(axis=1) | (tv == 0).all(axis=1)
+                v, bg = self.background_values, self.background
+                mark = bg.tet_node_counts(v < 0) > 0 if which == NEG else (bg.tet_node_counts(v > 0) > 0) | (bg.tet_node_counts(v == 0) == 4)
                 mark[self.tet_ids] = True
                 sets[which] = ElementSet(self.background, np.flatnonzero(mark), name=which, cut=self)
             else:

@@ -34,7 +34,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .mesh import KUHN_TETS, TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, kuhn_face_keys, pair_up, tet_face_keys
+from .mesh import TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, kuhn_face_keys, pair_up, tet_face_keys
 
 __all__ = ["NEG", "POS", "CUT", "SIDES", "ElementSet", "FacetSet", "interior_facets", "side_subtetrahedra", "longest_edges"]
 
@@ -93,7 +93,7 @@ class ElementSet:
         structured = isinstance(background, StructuredBox)
         if tets is None:
             if structured:
-                nodes = np.take_along_axis(background.cell_corner_ids(self.tet_ids // 6), KUHN_TETS[self.tet_ids % 6], axis=1)
+                nodes = background.kuhn_tet_nodes(self.tet_ids)
             else:
                 nodes = background.tets[self.tet_ids]
             node_ids, tets = dense_unique(nodes, background.n_points)

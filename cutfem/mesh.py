@@ -86,6 +86,9 @@ def _kuhn_reference_gradients() -> np.ndarray:
 
 KUHN_GRADIENTS = _kuhn_reference_gradients()
 
+KUHN_CORNER_COUNTS = ((np.arange(256)[:, None] >> np.arange(8)) & 1)[:, KUHN_TETS].sum(axis=2).astype(np.int8)
+"""(256, 6) how many nodes of Kuhn tet l are among the cube corners of a set (bit c for corner c)."""
+
 # local faces of a tet (opposite to vertex k) and local edges
 TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], dtype=np.int64)
 TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
@@ -413,6 +416,10 @@ class TetMesh:
         v = points[tets]
         return np.einsum("ij,ij->i", np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0]), v[:, 3] - v[:, 0]) / 6.0
 
+    def tet_node_counts(self, node_mask) -> np.ndarray:
+        """(M,) int8: how many of the four nodes of each tet have ``node_mask`` (N,) true."""
+        return np.asarray(node_mask, dtype=bool)[self.tets].sum(axis=1, dtype=np.int8)
+
     # -- sizes ---------------------------------------------------------------------------
     @property
     def n_points(self) -> int:
@@ -590,6 +597,27 @@ class StructuredBox(TetMesh):
     def tet_volume(self) -> float:
         """Volume of every tet: the cell volume / 6."""
         return float(np.prod(self.spacing)) / 6.0
+
+    def tet_node_counts(self, node_mask) -> np.ndarray:
+        """(6 n_cells,) int8: how many of the four nodes of each tet have ``node_mask`` (N,) true.
+
+        Each cell's eight corners give one byte (bit c for corner c, from eight shifted views of the
+        mask on the node grid) and :data:`KUHN_CORNER_COUNTS` the counts of its six tets: no
+        (6 n_cells, 4) array of nodes is made (the whole-box node gather took 0.85 s at 4 million tets)."""
+        nx, ny, nz = (int(c) for c in self.cells)
+        mask = np.asarray(node_mask, dtype=bool).reshape(nz + 1, ny + 1, nx + 1)  # node id i + (nx+1)(j + (ny+1)k)
+        bits = np.zeros((nz, ny, nx), dtype=np.uint8)
+        for c, (i, j, k) in enumerate(CUBE_CORNERS):
+            bits |= mask[k : k + nz, j : j + ny, i : i + nx].view(np.uint8) << np.uint8(c)
+        return KUHN_CORNER_COUNTS[bits.reshape(-1)].reshape(-1)  # cell id i + nx(j + ny k): tet 6 cell + l
+
+    def kuhn_tet_nodes(self, tet_ids) -> np.ndarray:
+        """(k, 4) node ids of tets ``tet_ids`` (in :data:`KUHN_TETS` order): the lowest corner of each
+        cell plus a (6, 4) table of node offsets, one gather of k rows."""
+        tet_ids = np.asarray(tet_ids, dtype=np.int64)
+        cell = tet_ids // 6
+        offsets = self.node_id(CUBE_CORNERS)[KUHN_TETS]  # (6, 4)
+        return self.node_id(self.cell_index(cell))[:, None] + offsets[tet_ids - 6 * cell]
 
     def cell_tets(self, cell_ids) -> np.ndarray:
         """(6k, 4) node ids of the Kuhn tets of the given cells, tet ``6*c + l`` order."""

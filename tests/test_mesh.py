@@ -149,6 +149,20 @@ def test_structured_box_subsets_agree_with_full_arrays():
     t6 = box.cell_tets(cells[:1])
     diag = [corners[0, 0], corners[0, 7]]
     assert all(set(diag) <= set(t.tolist()) for t in t6)
+    tets = rng.choice(box.n_tets, size=40, replace=False)
+    np.testing.assert_array_equal(box.kuhn_tet_nodes(tets), box.tets[tets])
+
+
+def test_structured_box_node_counts_per_tet_match_the_node_gather():
+    """The corner-byte route of StructuredBox.tet_node_counts against the gather of the generic mesh."""
+    box = structured_box([0.0, -1.0, 0.0], [1.0, 2.0, 1.5], cells=(3, 5, 4))
+    plain = TetMesh(box.points, box.tets)
+    rng = np.random.default_rng(5)
+    for p in (0.0, 0.3, 0.7, 1.0):
+        mask = rng.random(box.n_points) < p
+        counts = box.tet_node_counts(mask)
+        np.testing.assert_array_equal(counts, mask[box.tets].sum(axis=1))
+        np.testing.assert_array_equal(counts, plain.tet_node_counts(mask))
 
 
 def test_structured_box_plain_tetmesh_has_same_topology():
