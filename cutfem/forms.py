@@ -56,7 +56,6 @@ from . import assembly as _assembly
 from .assembly import assemble_vector, gram, gram_sum
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from .mesh import cross, vertex_columns
-from .quadrature import signed_volumes
 from .spaces import ProductSpace
 
 __all__ = [
@@ -656,7 +655,7 @@ def mass(measure: Measure, field=None) -> Form:
             return _simplex_mass(space, c.triangle_points, el, c.triangle_areas)
         if isinstance(measure, SideVolume):
             vertices = measure.cell_vertices()
-            return _simplex_mass(space, vertices, space.local_elements(measure, measure.cell_parent), np.abs(signed_volumes(vertices)))
+            return _simplex_mass(space, vertices, space.local_elements(measure, measure.cell_parent), measure.cell_volumes)
         if isinstance(measure, ElementVolume):
             es = measure.elements
             return _simplex_mass(space, es.vertices, space.local_elements(measure, np.arange(es.n_elements)), es.volumes)

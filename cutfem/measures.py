@@ -176,23 +176,27 @@ class SideVolume(Measure):
         return tail if len(head) == 0 else head if len(tail) == 0 else np.concatenate([head, tail])
 
     @cached_property
+    def cell_volumes(self) -> np.ndarray:
+        """(n_cells,) the volume of each cell: the element's own for the whole cells, the triple
+        products of the sub-tets (computed once for every quadrature of the measure)."""
+        whole, sub, _ = self._parts
+        return np.concatenate([self.elements.volumes[whole], np.abs(signed_volumes(sub))])
+
+    @cached_property
     def part_volumes(self) -> np.ndarray:
         """(m,) |T ∩ side| per element: the whole element's volume for the whole cells, the sum of the
         sub-tets' volumes in the others."""
-        whole, sub, parent = self._parts
-        out = np.zeros(self.elements.n_elements)
-        out[whole] = self.elements.volumes[whole]
-        return out + np.bincount(parent, weights=np.abs(signed_volumes(sub)), minlength=self.elements.n_elements)
+        return np.bincount(self.cell_parent, weights=self.cell_volumes, minlength=self.elements.n_elements)
 
     def _build(self, degree):
-        return map_tetrahedra(self.cell_vertices(), degree, parent=self.cell_parent, whole=self.whole_cells)
+        return map_tetrahedra(self.cell_vertices(), degree, parent=self.cell_parent, whole=self.whole_cells, volumes=self.cell_volumes)
 
     def blocks(self, degree: int = 2, size: int = BLOCK_CELLS):
-        parent, w = self.cell_parent, self.whole_cells
+        parent, w, volumes = self.cell_parent, self.whole_cells, self.cell_volumes
         for start in range(0, self.n_cells, size):
             stop = min(start + size, self.n_cells)
             yield slice(start, stop), map_tetrahedra(self.cell_vertices(start, stop), degree, parent=parent[start:stop],
-                                                     whole=max(0, min(w, stop) - start))
+                                                     whole=max(0, min(w, stop) - start), volumes=volumes[start:stop])
 
     @property
     def size(self) -> float:
@@ -207,14 +211,15 @@ class ElementVolume(Measure):
         self.whole_cells = elements.n_elements
 
     def _build(self, degree):
-        return map_tetrahedra(self.elements.vertices, degree, whole=self.whole_cells)
+        return map_tetrahedra(self.elements.vertices, degree, whole=self.whole_cells, volumes=self.elements.volumes)
 
     def blocks(self, degree: int = 2, size: int = BLOCK_CELLS):
         es = self.elements
         for start in range(0, es.n_elements, size):
             stop = min(start + size, es.n_elements)
             vertices = es.points[es.tets[start:stop]]  # one block's vertices at a time
-            yield slice(start, stop), map_tetrahedra(vertices, degree, parent=np.arange(start, stop), whole=stop - start)
+            yield slice(start, stop), map_tetrahedra(vertices, degree, parent=np.arange(start, stop), whole=stop - start,
+                                                     volumes=es.volumes[start:stop])
 
     @property
     def normals(self):

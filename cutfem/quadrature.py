@@ -479,6 +479,16 @@ def _as_vertices(vertices, k: int, name: str) -> np.ndarray:
     return vertices
 
 
+def mapped_points(bary, vertices) -> np.ndarray:
+    """(m, q, 3) points ``bary @ vertices[e]`` of a reference rule (q, k) on simplices (m, k, 3), as one
+    matrix product (m, 3k) @ kron(bary^T, I_3) (3k, 3q): [3v + d, 3i + d] = bary[i, v].  numpy's
+    batched product of m small matrices costs three to five times more CPU (measured on blocks of
+    512 to 8192 tets with the 14-point rule: 190-300 against 70-90 microseconds per thousand tets)."""
+    m, k = vertices.shape[:2]
+    q = bary.shape[0]
+    return (vertices.reshape(m, 3 * k) @ np.kron(bary.T, np.eye(3))).reshape(m, q, 3)
+
+
 def map_segments(vertices, degree: int, parent=None) -> Quadrature:
     """Gauss-Legendre quadrature on ``m`` straight segments in R^3.
 
@@ -500,7 +510,7 @@ def map_segments(vertices, degree: int, parent=None) -> Quadrature:
     bary = np.stack([1.0 - t, t], axis=1)
     bary.flags.writeable = False
     length = np.linalg.norm(vertices[:, 1] - vertices[:, 0], axis=1)
-    points = bary @ vertices
+    points = mapped_points(bary, vertices)
     weights = length[:, None] * w[None, :]
     return Quadrature(points, weights, parent=parent, normal=None, bary=bary)
 
@@ -552,7 +562,7 @@ def map_triangles(vertices, degree: int, parent=None, normal=None) -> Quadrature
                 f"{np.flatnonzero(bad)[0]}); pass a nonzero normal for every triangle"
             )
         unit_normal = normal / length[:, None]
-    points = bary @ vertices
+    points = mapped_points(bary, vertices)
     weights = (0.5 * twice_area)[:, None] * w[None, :]
     return Quadrature(points, weights, parent=parent, normal=unit_normal, bary=bary)
 
@@ -567,7 +577,7 @@ def signed_volumes(vertices) -> np.ndarray:
             + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])) / 6.0
 
 
-def map_tetrahedra(vertices, degree: int, parent=None, whole: int = 0) -> Quadrature:
+def map_tetrahedra(vertices, degree: int, parent=None, whole: int = 0, volumes=None) -> Quadrature:
     """Quadrature on ``m`` tetrahedra.
 
     ``points[e] = bary @ vertices[e]``, ``weights[e] = w * |det[x_1 - x_0, x_2 - x_0, x_3 - x_0]| / 6``
@@ -580,6 +590,8 @@ def map_tetrahedra(vertices, degree: int, parent=None, whole: int = 0) -> Quadra
     parent : (m,) int or None (default ``arange(m)``)
     whole : int, the number of leading tets that are whole elements of the parent set in their
         own vertex order (see :class:`Quadrature`)
+    volumes : (m,) float or None, the volumes |T| when the caller knows them (a measure keeps its
+        cells' volumes); otherwise computed from the vertices
 
     Returns
     -------
@@ -587,8 +599,13 @@ def map_tetrahedra(vertices, degree: int, parent=None, whole: int = 0) -> Quadra
     """
     vertices = _as_vertices(vertices, 4, "tetrahedron")
     bary, w = tetrahedron_rule(degree)
-    volume = np.abs(signed_volumes(vertices))
-    points = bary @ vertices
+    if volumes is None:
+        volume = np.abs(signed_volumes(vertices))
+    else:
+        volume = np.asarray(volumes, dtype=float)
+        if volume.shape != (len(vertices),):
+            raise ValueError(f"volumes must have shape ({len(vertices)},), got {volume.shape}")
+    points = mapped_points(bary, vertices)
     weights = volume[:, None] * w[None, :]
     return Quadrature(points, weights, parent=parent, normal=None, bary=bary, whole=whole)
 

@@ -11,8 +11,9 @@ import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from cutfem.cut import cut_mesh
-from cutfem.errors import discrete_error, fitted_rate, h1_error, l2_error, rates, surface_integral
+from cutfem.errors import discrete_error, fitted_rate, h1_error, l2_error, l2_h1_errors, rates, surface_integral
 from cutfem.levelset import Sphere, Torus
+from cutfem.markers import NEG
 from cutfem.mesh import structured_box
 from cutfem.solve import DirectSolver, SolverError, cg_solve, condition_number, solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
@@ -247,6 +248,30 @@ def test_linear_functions_have_zero_error(small_cut_sphere):
     assert l2_error(V, u, lambda x: x @ g) == pytest.approx(np.sqrt(V.cut.area), rel=1e-12)  # off by 1
     with pytest.raises(ValueError, match="degree >= 4"):
         l2_error(V, u, lambda x: x @ g, degree=2)
+
+
+def test_one_pass_errors_equal_the_separate_ones():
+    """l2_h1_errors against l2_error and h1_error: on a bulk field over the cut volume of a side
+    (whole and cut tets, several blocks), and on a trace over S_h; zero for a linear function."""
+    cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=10), Sphere(0.7, [0.03, -0.01, 0.02]))
+    V = CutP1Space(cut, NEG)
+    dx = cut.dx(NEG)
+    u = V.interpolate(lambda x: np.cos(x[..., 0]) * x[..., 2])
+    pair = l2_h1_errors(V, u, lambda x: (smooth(x), smooth_gradient(x)), dx, chunk=500)
+    assert pair[0] == pytest.approx(l2_error(V, u, smooth, dx), rel=1e-13)
+    assert pair[1] == pytest.approx(h1_error(V, u, smooth_gradient, dx), rel=1e-13)
+    assert pair[0] > 0.1 and pair[1] > 0.1
+    T = CutP1Space(cut)
+    w = T.interpolate(smooth)
+    l2, h1 = l2_h1_errors(T, w, lambda x: (smooth(x), smooth_gradient(x)))
+    assert l2 == pytest.approx(l2_error(T, w, smooth), rel=1e-12)
+    assert h1 == pytest.approx(h1_error(T, w, smooth_gradient), rel=1e-13)
+    g = np.array([0.5, -1.0, 2.0])
+    lin = V.interpolate(lambda x: x @ g + 1.0)
+    zero = l2_h1_errors(V, lin, lambda x: (x @ g + 1.0, np.broadcast_to(g, x.shape)), dx)
+    assert zero[0] < 1e-13 and zero[1] < 1e-12
+    with pytest.raises(ValueError, match="scalar field"):
+        l2_h1_errors(V, np.stack([u, u], axis=1), lambda x: (np.stack([smooth(x)] * 2, axis=-1), smooth_gradient(x)), dx)
 
 
 def test_discrete_error_and_surface_integral():
