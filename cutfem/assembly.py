@@ -5,6 +5,8 @@
   symmetric by construction.
 * :class:`SymmetricPattern`: a diagonal plus one value per pair of nodes written straight into a
   cached CSR structure (the closed-form matrices of a triangulated surface).
+* :func:`kuhn_symmetric`: symmetric element matrices of Kuhn tets of a structured box, summed per
+  lattice edge by one counting pass (no sort, no sparse product).
 * :func:`assemble_vector`: local vectors scattered by their dof numbers.
 
 The general route of user integrands (:func:`cutfem.forms.assemble`) sums its local blocks through
@@ -16,9 +18,9 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from .mesh import pair_up
+from .mesh import KUHN_EDGE_CODES, KUHN_TETS, TET_EDGES, pair_up
 
-__all__ = ["SymmetricPattern", "assemble_vector", "gram", "gram_sum", "row_operator"]
+__all__ = ["SymmetricPattern", "assemble_vector", "gram", "gram_sum", "kuhn_symmetric", "row_operator"]
 
 
 class SymmetricPattern:
@@ -88,6 +90,55 @@ class SymmetricPattern:
         out.has_sorted_indices = True
         out.has_canonical_format = True
         return out
+
+
+#: tets per pass of :func:`kuhn_symmetric`
+KUHN_BLOCK = 1 << 19
+
+_I, _J = TET_EDGES[:, 0], TET_EDGES[:, 1]
+_LOW_FIRST = KUHN_TETS[:, _I] < KUHN_TETS[:, _J]  # (6, 6): local vertex i of edge e is its lower lattice node
+_EDGE_CODE = KUHN_EDGE_CODES[:, _I, _J].astype(np.int64) - 1  # (6, 6): c(S) - 1 in 0..6
+
+
+def kuhn_symmetric(tets: np.ndarray, kuhn: np.ndarray, edge_values, diagonal_values, n: int) -> sp.csr_matrix:
+    """The n x n symmetric matrix sum_T A_T of element matrices of Kuhn tets of a structured box,
+    given by their six off-diagonal entries ``edge_values(start, stop)`` -> (b, 6) (A_T[i, j] for
+    the local edges (i, j) of :data:`~cutfem.mesh.TET_EDGES`) and their diagonals
+    ``diagonal_values(start, stop)`` -> (b, 4), block by block of :data:`KUHN_BLOCK` tets.
+
+    ``tets`` (m, 4) node numbers in :data:`~cutfem.mesh.KUHN_TETS` vertex order, increasing with
+    the background ids (an :class:`~cutfem.markers.ElementSet`'s), ``kuhn`` (m,) their Kuhn types.
+    An edge of the lattice is (v, c): its lower node v and the code c of its direction
+    (:data:`~cutfem.mesh.KUHN_EDGE_CODES`, 1..7), so the key 7 v + c - 1 numbers the edges of the
+    n nodes without a sort; one ``bincount`` sums the entries of every edge, and the keys in
+    increasing order are the node pairs in lexicographic order (the upper node's id v + o(c)
+    increases with c), ready for :class:`SymmetricPattern`.  Edges whose sum is exactly zero are
+    left out of the pattern, as a sparse product leaves them out (on a uniform lattice the P1
+    stiffness of the diagonal edges cancels exactly); the diagonal is always stored.  Exactly
+    symmetric.  At 1.6 million tets the stiffness takes a third of the time of the Gram product.
+    """
+    m = len(tets)
+    sums = np.zeros(7 * n)
+    upper = np.zeros(7 * n, dtype=np.int32 if n < 2**31 else np.int64)
+    diagonal = np.zeros(n)
+    for start in range(0, m, KUHN_BLOCK):
+        stop = min(start + KUHN_BLOCK, m)
+        t, k = tets[start:stop], kuhn[start:stop]
+        keys, uppers = [], []
+        for e, (i, j) in enumerate(TET_EDGES):  # the six local edges, each over the whole block
+            first = np.take(_LOW_FIRST[:, e], k)
+            keys.append(7 * np.where(first, t[:, i], t[:, j]) + np.take(_EDGE_CODE[:, e], k))
+            uppers.append(np.where(first, t[:, j], t[:, i]))
+        key = np.concatenate(keys)
+        del keys
+        values = np.asarray(edge_values(start, stop), dtype=float)  # (b, 6): edge-major order below
+        sums += np.bincount(key, weights=values.T.reshape(-1), minlength=7 * n)
+        upper[key] = np.concatenate(uppers)
+        del key, uppers
+        diagonal += np.bincount(t.reshape(-1), weights=np.asarray(diagonal_values(start, stop), dtype=float).reshape(-1), minlength=n)
+    keep = np.flatnonzero(sums)
+    pairs = np.stack([keep // 7, upper[keep]], axis=1)
+    return SymmetricPattern(pairs, n, presorted=True).matrix(diagonal, sums[keep])
 
 
 def assemble_vector(dofs: np.ndarray, local: np.ndarray, n: int) -> np.ndarray:

@@ -53,9 +53,9 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import assembly as _assembly
-from .assembly import assemble_vector, gram, gram_sum
+from .assembly import assemble_vector, gram, gram_sum, kuhn_symmetric
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
-from .mesh import cross, vertex_columns
+from .mesh import KUHN_GRADIENTS, TET_EDGES, cross, vertex_columns
 from .spaces import ProductSpace
 
 __all__ = [
@@ -610,11 +610,11 @@ def _compact(dofs, n):
     return dofs.astype(np.int32) if n < 2**31 else dofs
 
 
-def _gradient_rows(space, grads, weights, elements=None):
+def _gradient_matrix(space, grads, weights, elements=None):
     """The Gram matrix of the rows sqrt(weights) * grads[:, :, d], d = 0, 1, 2 (grads (m, k, 3) on the
-    field's ``elements``, all of them by default), built and multiplied a block of elements at a
-    time (:func:`~cutfem.assembly.gram_sum`): the rows of 1.6 million tets, with their transpose,
-    took 0.6 GB at once."""
+    field's ``elements``, all of them by default): sum_T weights_T G_T G_T^T, built and multiplied a
+    block of elements at a time (:func:`~cutfem.assembly.gram_sum`: the rows of 1.6 million tets,
+    with their transpose, took 0.6 GB at once)."""
     k, m = grads.shape[1], len(weights)
     step = max(_assembly.GRAM_ROWS // 3, 1)
 
@@ -626,6 +626,18 @@ def _gradient_rows(space, grads, weights, elements=None):
             yield np.repeat(_compact(dofs, space.n_dofs), 3, axis=0), rows
 
     return gram_sum(blocks(), space.n_dofs)
+
+
+def _kuhn_stiffness(space, kuhn, volumes):
+    """sum_T |T ∩ side| G_T G_T^T over all the tets of a structured box's element set: the gradients
+    of Kuhn tet l are KUHN_GRADIENTS[l] / spacing (:meth:`~cutfem.mesh.StructuredBox.tet_gradients`),
+    so the products G_i . G_j form a (6, 4, 4) table and each tet's entries are a row of it times
+    its volume, summed per lattice edge by :func:`~cutfem.assembly.kuhn_symmetric`."""
+    G = KUHN_GRADIENTS / space.elements.background.spacing
+    D = np.einsum("lid,ljd->lij", G, G)
+    edges, diagonal = D[:, TET_EDGES[:, 0], TET_EDGES[:, 1]], D[:, np.arange(4), np.arange(4)]
+    return kuhn_symmetric(space.element_dofs, kuhn, lambda a, b: edges[kuhn[a:b]] * volumes[a:b, None],
+                          lambda a, b: diagonal[kuhn[a:b]] * volumes[a:b, None], space.n_dofs)
 
 
 def _same_elements(space, measure) -> bool:
@@ -730,15 +742,19 @@ def _plane_axes(normals):
 
 def stiffness(measure: Measure, field=None) -> Form:
     """(grad u, grad v) over a volume measure: |T ∩ side| G G^T per tet (the P1 gradients are
-    constant), for a side of the cut (:class:`~cutfem.measures.SideVolume`) or whole tets."""
+    constant), for a side of the cut (:class:`~cutfem.measures.SideVolume`) or whole tets; summed
+    per lattice edge on a structured box (:func:`_kuhn_stiffness`), as a Gram product otherwise."""
     _require(measure, (SideVolume, ElementVolume), "stiffness")
 
     def build(space):
         es = measure.elements
         if _same_elements(space, measure):  # no gathered copy of the gradients
-            return _gradient_rows(space, space.element_gradients, measure.part_volumes)
+            kuhn = getattr(space.elements, "kuhn_types", None)
+            if kuhn is not None:
+                return _kuhn_stiffness(space, kuhn, measure.part_volumes)
+            return _gradient_matrix(space, space.element_gradients, measure.part_volumes)
         el = space.local_elements(measure, np.arange(es.n_elements))
-        return _gradient_rows(space, space.element_gradients[el], measure.part_volumes, el)
+        return _gradient_matrix(space, space.element_gradients[el], measure.part_volumes, el)
 
     return Form([(1.0, _GramTerm(build, field))], False)
 
@@ -752,11 +768,13 @@ def tangential_stiffness(measure: Measure, field=None) -> Form:
     def build(space):
         if isinstance(measure, MeshedSurface):
             return _meshed_stiffness(space)
+        if _same_elements(space, measure):
+            return _gradient_matrix(space, space.tangential_gradients, measure.piece_areas)
         es = measure.elements
         el = space.local_elements(measure, np.arange(es.n_elements))
         G, n = space.element_gradients[el], measure.normals
         tG = G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
-        return _gradient_rows(space, tG, measure.piece_areas, el)
+        return _gradient_matrix(space, tG, measure.piece_areas, el)
 
     return Form([(1.0, _GramTerm(build, field))], False)
 
@@ -790,18 +808,36 @@ def position_load(measure: Measure, field=None) -> Form:
 
 
 def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -> Form:
-    """(f, v) over ``measure`` by quadrature of the given degree.
+    """(f, v) over ``measure`` (a cell measure: a side's volume, whole tets, S_h or a triangulated
+    surface) by quadrature of the given degree.
 
     ``f(x)`` takes points (m, q, 3) and returns (m, q) or (m, q, c) (then the vector is (n, c)); with
-    ``closest_point`` (a map x -> p(x)) it is evaluated as f o p, the extension f^e of docs/math.md §4."""
+    ``closest_point`` (a map x -> p(x)) it is evaluated as f o p, the extension f^e of docs/math.md §4.
+    Block by block of cells, b_{K,k} = sum_q w_q f(x_q) phi_k(x_q): one product of the weighted
+    values with the basis values (the rule's own barycentric coordinates on whole elements)."""
     g = f if closest_point is None else (lambda x: f(closest_point(x)))
+    if isinstance(measure, FacetMeasure):
+        raise TypeError("load integrates over cells (a volume or a surface); for a facet term write a linear_form integrand")
+    _require(measure, Measure, "load")
 
-    @linear_form(degree=degree)
-    def source(v, w):
-        fx = w.at(g)
-        return fx * v.value[..., None] if fx.ndim == 3 else fx * v
+    def build(space):
+        out = None
+        for _, quad in measure.blocks(degree):
+            fx = np.asarray(g(quad.points), dtype=float)
+            if fx.shape[:2] != quad.weights.shape:
+                raise ValueError(f"the load f(x) must return shape (m, q) or (m, q, c) for points {quad.points.shape}; got {fx.shape}")
+            fw = fx * (quad.weights if fx.ndim == 2 else quad.weights[..., None])
+            el = space.local_elements(measure, quad.parent)
+            phi = space.basis_on(measure, quad, el)
+            if phi.strides[0] == 0 and fw.ndim == 2:  # every cell whole: one basis table
+                local = fw @ phi[0]
+            else:
+                local = np.einsum("mqk,mq...->mk...", phi, fw)
+            part = assemble_vector(space.element_dofs[el], local, space.n_dofs)
+            out = part if out is None else out + part
+        return np.zeros(space.n_dofs) if out is None else out
 
-    return source.on(measure, field) if field is not None else source * measure
+    return Form([(1.0, _VectorTerm(build, field))], True)
 
 
 def _jump_gram(space, pairs, normals_pair, scale):
