@@ -42,7 +42,8 @@ an import.
 Levels: ``tiny`` two small levels per problem (Poisson at 0.2 and 0.1: at 0.2 its multigrid
 hierarchy is a single grid; one tetwild level: meshing costs about 1 s);
 ``quick`` up to about 50k unknowns per problem; ``full`` four levels per problem, for the bulk
-problems up to 360k-570k unknowns (peak memory measured with the automatic solver: 0.67 GB for
+problems up to 360k-570k unknowns, for the meshed ones n = 128 to 1024 (the torus 1024 x 512:
+524k nodes) (peak memory measured with the automatic solver: 0.67 GB for
 Poisson at spacing 0.05 (40k unknowns), 4.2 GB at 0.025 (292k); 1.9 GB for the interface problem
 at 0.05 (125k)).
 
@@ -94,7 +95,7 @@ def cases(size: str) -> list[dict]:
     tetwild = pick(size, [0.4], [0.2, 0.1], [0.2, 0.1, 0.05])
     cut_surface = pick(size, [0.4, 0.2], [0.1, 0.05, 0.025], [0.1, 0.05, 0.025, 0.0125])
     mc_cut = pick(size, [0.4, 0.2], [0.2, 0.1, 0.05, 0.025], [0.1, 0.05, 0.025, 0.0125])
-    meshed = pick(size, [8, 16], [64, 128, 256], [64, 128, 256, 512])
+    meshed = pick(size, [8, 16], [64, 128, 256], [128, 256, 512, 1024])
     spec = [
         ("poisson-cut", "poisson-cut", {}, bulk, 3),
         ("poisson-cut tetwild", "poisson-cut", {"background": "tetwild"}, tetwild, 3),
