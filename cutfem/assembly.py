@@ -115,7 +115,8 @@ def kuhn_symmetric(tets: np.ndarray, kuhn: np.ndarray, edge_values, diagonal_val
     increases with c), ready for :class:`SymmetricPattern`.  Edges whose sum is exactly zero are
     left out of the pattern, as a sparse product leaves them out (on a uniform lattice the P1
     stiffness of the diagonal edges cancels exactly); the diagonal is always stored.  Exactly
-    symmetric.  At 1.6 million tets the stiffness takes a third of the time of the Gram product.
+    symmetric.  At 1.7 million tets the stiffness takes about half the time of the Gram product
+    (0.57-0.73 s against 1.15-1.43 s).
     """
     m = len(tets)
     sums = np.zeros(7 * n)
