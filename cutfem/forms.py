@@ -654,8 +654,10 @@ def _require(measure, kinds, what):
 def mass(measure: Measure, field=None) -> Form:
     """(u, v) over ``measure``, exact for P1: on S_h of a cut from the moments of each piece
     (:func:`_piece_mass`, three Gram rows per cut tet), on a triangulated surface in closed form,
-    otherwise on each simplex T of the measure (triangles of S_h, sub-tets of a side, whole tets) with
-    the basis values Lambda at its vertices, M_T = Lambda^T |T|/((k)(k+1)) (I + 1 1^T) Lambda."""
+    over a volume of a structured box's element set per lattice edge for the whole tets
+    (:func:`_kuhn_volume_mass`), otherwise on each simplex T of the measure (triangles of S_h,
+    sub-tets of a side, whole tets) with the basis values Lambda at its vertices,
+    M_T = Lambda^T |T|/((k)(k+1)) (I + 1 1^T) Lambda."""
 
     def build(space):
         if isinstance(measure, MeshedSurface):
@@ -666,6 +668,10 @@ def mass(measure: Measure, field=None) -> Form:
             c = measure.cut
             el = space.local_elements(measure, c.triangle_tets)
             return _simplex_mass(space, c.triangle_points, el, c.triangle_areas)
+        if isinstance(measure, (SideVolume, ElementVolume)):
+            kuhn = getattr(space.elements, "kuhn_types", None)
+            if _same_elements(space, measure) and kuhn is not None:
+                return _kuhn_volume_mass(space, measure, kuhn)
         if isinstance(measure, SideVolume):
             vertices = measure.cell_vertices()
             return _simplex_mass(space, vertices, space.local_elements(measure, measure.cell_parent), measure.cell_volumes)
@@ -675,6 +681,20 @@ def mass(measure: Measure, field=None) -> Form:
         raise TypeError(f"mass integrates over cells (a surface or a volume), not over {measure!r}")
 
     return Form([(1.0, _GramTerm(build, field))], False)
+
+
+def _kuhn_volume_mass(space, measure, kuhn):
+    """The volume mass matrix over the cells of a side (or of whole tets) of a structured box's
+    element set: the whole elements' M_T = |T|/20 (1 + delta_ij) summed per lattice edge
+    (:func:`~cutfem.assembly.kuhn_symmetric`: no basis values, no Gram product), plus the sub-tets
+    of the cut elements by :func:`_simplex_mass`."""
+    w = measure.whole_cells
+    whole, volumes = measure.cell_parent[:w], measure.cell_volumes[:w]
+    M = kuhn_symmetric(space.element_dofs[whole], kuhn[whole], lambda a, b: np.repeat(volumes[a:b, None] / 20.0, 6, axis=1),
+                       lambda a, b: np.repeat(volumes[a:b, None] / 10.0, 4, axis=1), space.n_dofs)
+    if measure.n_cells > w:
+        M = M + _simplex_mass(space, measure.cell_vertices(w, measure.n_cells), measure.cell_parent[w:], measure.cell_volumes[w:])
+    return M
 
 
 def _piece_mass(space) -> sp.csr_matrix:

@@ -229,6 +229,11 @@ class ElementVolume(Measure):
     def part_volumes(self) -> np.ndarray:
         return self.elements.volumes
 
+    # the cells are the elements themselves (the same names as a side's volume)
+    n_cells = property(lambda self: self.whole_cells)
+    cell_volumes = part_volumes
+    cell_parent = property(lambda self: np.arange(self.whole_cells))
+
 
 class FacetMeasure(Measure):
     """dF over a facet set: each face with its minus and plus tets and the unit normal n_F from the

@@ -352,7 +352,7 @@ def test_volume_mass_and_stiffness_match_reference(perturbed):
 
 @pytest.mark.parametrize("cells", [5, (5, 4, 6)], ids=["cubes", "anisotropic"])
 def test_volume_stiffness_on_a_structured_box_matches_reference(cells, monkeypatch):
-    """The lattice-edge route of the stiffness (StructuredBox element sets, summed per lattice
+    """The lattice-edge route of the mass and the stiffness (StructuredBox element sets, summed per lattice
     edge in blocks of KUHN_BLOCK tets) against the element loop: the same matrix, exactly
     symmetric, with zero row sums (the gradients of the basis sum to zero), and the entries that
     cancel exactly on a uniform lattice left out of the pattern as the Gram product leaves them."""
@@ -365,8 +365,9 @@ def test_volume_stiffness_on_a_structured_box_matches_reference(cells, monkeypat
     cut = cut_mesh(bg, ls)
     V = CutP1Space(cut, NEG)
     assert V.elements.kuhn_types is not None
-    _, K = reference_volume(bg, ls.value(bg.points))
+    M, K = reference_volume(bg, ls.value(bg.points))
     ids = V.node_ids
+    assert_matrix_equal(assemble(mass(cut.dx(NEG)), V), M[np.ix_(ids, ids)])
     A = assemble(stiffness(cut.dx(NEG)), V)
     assert_matrix_equal(A, K[np.ix_(ids, ids)])
     assert abs(A - A.T).max() == 0.0
@@ -374,6 +375,13 @@ def test_volume_stiffness_on_a_structured_box_matches_reference(cells, monkeypat
     G = _gradient_matrix(V, V.element_gradients, cut.dx(NEG).part_volumes)
     assert A.nnz == G.nnz
     np.testing.assert_allclose(A.toarray(), G.toarray(), rtol=0, atol=1e-14)
+    # whole tets of an element set (ElementVolume): against the simplex route of the same tets as a TetMesh
+    plain = cut_mesh(TetMesh(np.array(bg.points), np.array(bg.tets)), ls)
+    Vp = CutP1Space(plain, NEG)
+    np.testing.assert_array_equal(Vp.node_ids, ids)
+    whole = assemble(mass(cut.dx(cut.elements(NEG))), V)
+    assert_matrix_equal(whole, assemble(mass(plain.dx(plain.elements(NEG))), Vp).toarray())
+    assert whole.sum() == pytest.approx(V.elements.volumes.sum(), rel=1e-13)
 
 
 # ----------------------------------------------------------------------------------------------
