@@ -16,7 +16,7 @@ from __future__ import annotations
 import numpy as np
 
 from .measures import surface_measure
-from .mesh import triangle_areas
+from .mesh import cross, triangle_areas
 from .quadrature import mapped_points, triangle_rule
 
 __all__ = ["l2_error", "h1_error", "l2_h1_errors", "discrete_error", "rates", "fitted_rate", "surface_integral"]
@@ -52,15 +52,16 @@ def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1
         bary, w = triangle_rule(degree)
         q, c = len(w), values.shape[1]
         to_values = np.kron(bary.T, np.eye(c))  # (3c, qc)
-        area = triangle_areas(points, triangles)
         total = 0.0
         for start in range(0, len(triangles), chunk):  # blocks of triangles, not single elements
             t = triangles[start : start + chunk]
-            x = mapped_points(bary, np.take(points, t, axis=0))
+            X = np.take(points, t, axis=0)  # (b, 3, 3)
+            area = 0.5 * np.linalg.norm(cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
+            x = mapped_points(bary, X)
             ue = np.asarray(exact(x), dtype=float).reshape(len(t), q, -1)
             d = ue - (np.take(values, t, axis=0).reshape(-1, 3 * c) @ to_values).reshape(-1, q, c)
             d *= d
-            total += float(area[start : start + chunk] @ (d.reshape(len(t), -1) @ np.repeat(w, d.shape[2])))
+            total += float(area @ (d.reshape(len(t), -1) @ np.repeat(w, d.shape[2])))
         return float(np.sqrt(total))
     return _cell_errors(space, coeffs, lambda x: (exact(x), None), measure, degree, 8 * chunk)[0]
 

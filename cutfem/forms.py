@@ -879,13 +879,22 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
 
 def _jump_gram(space, pairs, normals_pair, scale):
     """Gram matrix of the jumps c = (t1 . G_{K1}, t2 . G_{K2}) weighted by ``scale`` (>= 0): one row
-    per facet on the dofs of K1 and K2 (shared dofs summed); ``pairs`` index the field's elements."""
+    per facet on the dofs of K1 and K2 (shared dofs summed); ``pairs`` index the field's elements.
+    The rows are built and multiplied a block of facets at a time (:func:`~cutfem.assembly.gram_sum`:
+    the rows of the 5.6 million interior faces of the cut torus at spacing 0.00625, with their dofs,
+    took 0.5 GB at once)."""
     G = space.element_gradients
-    c = np.concatenate([np.einsum("fkd,fd->fk", G[pairs[:, s]], normals_pair[:, s]) for s in (0, 1)], axis=1)
-    c *= np.sqrt(scale)[:, None]
     dofs = _compact(space.element_dofs, space.n_dofs)
-    dofs = np.concatenate([dofs[pairs[:, 0]], dofs[pairs[:, 1]]], axis=1)
-    return gram(dofs, c, space.n_dofs, overwrite=True)
+
+    def blocks():
+        for start in range(0, len(pairs), _assembly.GRAM_ROWS):
+            f = slice(start, start + _assembly.GRAM_ROWS)
+            p, t = pairs[f], normals_pair[f]
+            c = np.concatenate([np.einsum("fkd,fd->fk", G[p[:, s]], t[:, s]) for s in (0, 1)], axis=1)
+            c *= np.sqrt(scale[f])[:, None]
+            yield np.concatenate([dofs[p[:, 0]], dofs[p[:, 1]]], axis=1), c
+
+    return gram_sum(blocks(), space.n_dofs)
 
 
 def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -> Form:

@@ -224,7 +224,7 @@ class FacetSet:
     def __init__(self, elements: ElementSet, pairs, opposite, name="facets"):
         self.elements = elements
         self.pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
-        self.opposite = np.asarray(opposite, dtype=np.int64).reshape(-1, 2)
+        self.opposite = np.asarray(opposite, dtype=np.int8).reshape(-1, 2)  # 0..3: one byte, not eight
         self.name = name
 
     def __repr__(self) -> str:

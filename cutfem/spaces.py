@@ -66,9 +66,10 @@ class _P1Space:
         """(m, j, k) P1 basis values of element ``parent[i]`` at ``points[i]`` (m, j, 3)."""
         return barycentric_at(points, self.element_origin[parent], self.element_gradients[parent])
 
-    @cached_property
+    @property
     def tangential_gradients(self) -> np.ndarray:
-        """(n_el, k, 3) P_h grad of the basis functions, P_h = I - n_h n_h^T per element."""
+        """(n_el, k, 3) P_h grad of the basis functions, P_h = I - n_h n_h^T per element; computed on
+        each access, not kept (it is used once per assembly and is as large as the gradients)."""
         G, n = self.element_gradients, self.element_normals
         return G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
 
