@@ -124,7 +124,7 @@ def _case_arrays():
     (m, 4) slot arrays gathered from them are then 8 times smaller than in int64."""
     ei = np.zeros((16, 4), dtype=np.int8)
     ej = np.zeros((16, 4), dtype=np.int8)
-    nv = np.zeros(16, dtype=np.int64)
+    nv = np.zeros(16, dtype=np.int8)
     for code, edges in _CASES.items():
         e = np.array(edges + edges[-1:] * (4 - len(edges)))
         ei[code], ej[code], nv[code] = e[:, 0], e[:, 1], len(edges)
@@ -582,7 +582,7 @@ class CutMesh:
             np.not_equal(keys[1:], keys[:-1], out=new[1:])
         del keys
         starts = np.flatnonzero(new)
-        return np.diff(np.append(starts, new.size))
+        return np.diff(np.append(starts, new.size)).astype(np.int32)
 
     @property
     def euler_characteristic(self) -> int:
@@ -627,7 +627,7 @@ class CutMesh:
         valid = np.ones((m, 4), bool)
         valid[nvert == 3, 3] = False
         valid &= vinv != nxt
-        pairs = np.stack([vinv[valid], nxt[valid]], axis=1)
+        pairs = np.stack([vinv[valid], nxt[valid]], axis=1).astype(np.int64)  # keys min * V + max below
         piece = np.broadcast_to(np.arange(m)[:, None], (m, 4))[valid]
         return pairs, piece
 
@@ -836,12 +836,12 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
         key = np.where(on_node, lj, (p - 1) + 7 * np.minimum(li, lj) + codes)
         del codes
         vkeys, vinv = dense_unique(key.reshape(-1), 8 * p)
-        vinv = vinv.astype(np.int64)
     else:
         key = np.where(on_node, lj, p + np.minimum(li, lj) * p + np.maximum(li, lj))
         vkeys, vinv = unique_keys(key.reshape(-1), return_inverse=True)
     del key
-    vinv = vinv.reshape(m, 4)
+    # vertex numbers (and so the triangles) as int32 while they fit: 12 bytes a triangle, 16 a tet less
+    vinv = vinv.astype(np.int32 if len(vkeys) < 2**31 else np.int64, copy=False).reshape(m, 4)
     vfirst = np.empty(len(vkeys), dtype=np.int64)
     vfirst[vinv.reshape(-1)[::-1]] = np.arange(vinv.size)[::-1]
     # each vertex computed once, from its first slot (every slot of it gives the same point)
@@ -898,7 +898,7 @@ def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
         return
     t = cut.triangles
     V = len(cut.vertices)
-    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]])
+    e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]).astype(np.int64)
     keys = np.minimum(e[:, 0], e[:, 1]) * V + np.maximum(e[:, 0], e[:, 1])
     order, starts, counts = pair_up(keys)
     edges = e[order[starts]]

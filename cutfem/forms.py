@@ -911,8 +911,9 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
     def build(space):
         f = measure.facets
         pairs = np.stack([space.local_elements(measure, f.pairs[:, s]) for s in (0, 1)], axis=1)
-        n = f.normals
-        scale = f.areas if h_power == 0 else f.h**h_power * f.areas
+        n, scale = f.normals_areas()
+        if h_power != 0:
+            scale *= f.h**h_power
         return _jump_gram(space, pairs, np.stack([n, -n], axis=1), scale)
 
     return Form([(1.0, _GramTerm(build, field))], False)
