@@ -15,9 +15,15 @@ imports; spacings 0.05, 0.025, 0.0125), rounded up by about 10 %:
   per cell of the final band: 610 MB for 219,912 cells at 0.0125, 152 MB for 55,120 at 0.025
   (2.77 and 2.75 KB);
 * :data:`BYTES_PER_BOX_NODE`: the structured box's node-marker arrays (bool + int32 per node);
-* :data:`BYTES_PER_ACTIVE_TET`: everything after the cut (space, faces, mass, penalty, solve,
-  errors) per active tet: 1.07 GiB for 853,240 tets at 0.0125 (1.25 KB), 280 MB for 212,060 at
-  0.025 (1.32 KB);
+* :data:`BYTES_PER_ACTIVE_TET`: what the stages after the cut (space, faces, mass, penalty, solve,
+  errors) add to the resident memory at the check, per active tet (the peak minus the resident
+  bytes when :func:`cutfem.problems.common.check_cut_memory` runs: the cut's freed temporaries stay
+  in the allocator's heap and are reused): the mean curvature problem 236, 222, 191 and 279 bytes
+  at spacings 0.025-0.003125 (3.6 GiB on top of 6.4 GiB for 13.7 million tets), the cut
+  Laplace-Beltrami problem on the sphere 649 and 544 bytes at 0.025 and 0.0125 (its augmented
+  multigrid and three matrices).  The constant, 800 bytes, is the largest of these plus a quarter:
+  the whole peak per tet (1.2-1.8 KB at 0.025, 0.8 KB at 0.003125) counted the cut twice and
+  refused spacing 0.003125 on a 24 GiB machine that runs it in 10 GiB;
 * :data:`BYTES_PER_SURFACE_NODE`: a meshed surface problem per node (0.6 GiB for the meshed torus
   with 295 thousand nodes: 2.2 KB).
 
@@ -101,8 +107,8 @@ __all__ = [
 BYTES_PER_BAND_CELL = 3_000
 #: bytes per node of a structured box for the node markers of the band (bool + int32)
 BYTES_PER_BOX_NODE = 5
-#: peak bytes after the cut per active tet (measured 1.25-1.32 KB)
-BYTES_PER_ACTIVE_TET = 1_450
+#: bytes the stages after the cut add per active tet (measured 191-649 B, see the module docstring)
+BYTES_PER_ACTIVE_TET = 800
 #: peak bytes of a meshed surface problem per surface node (measured 2.2 KB)
 BYTES_PER_SURFACE_NODE = 2_500
 

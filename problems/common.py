@@ -174,8 +174,9 @@ def check_resolution(cut, levelset, spacing) -> None:
 
 def check_cut_memory(cut) -> None:
     """Refuse, before the space and the matrices are built, a cut whose later stages cannot fit:
-    :data:`cutfem.memory.BYTES_PER_ACTIVE_TET` bytes per active tet (the measured peak of the
-    space, faces, matrices, solve and errors), against :func:`cutfem.memory.available_memory`."""
+    :data:`cutfem.memory.BYTES_PER_ACTIVE_TET` bytes per active tet (what the space, faces,
+    matrices, solve and errors add to the memory in use after the cut, measured), against
+    :func:`cutfem.memory.available_memory`."""
     from cutfem.memory import BYTES_PER_ACTIVE_TET, check_memory
 
     check_memory(
