@@ -457,7 +457,7 @@ class CutMesh:
         if which not in sets:
             if which == CUT:
                 sets[CUT] = ElementSet(self.background, self.tet_ids, name=CUT, cut=self, tets=self.tets, node_ids=self.node_ids,
-                                       points=self.points, gradients=self.basis_gradients, volumes=self.tet_volumes, normals=self.normals)
+                                       points=self.points, gradients=self._grads_volumes[0], volumes=self.tet_volumes, normals=self.normals)
             elif which in SIDES:
                 v, bg = self.background_values, self.background
                 mark = bg.tet_node_counts(v < 0) > 0 if which == NEG else (bg.tet_node_counts(v > 0) > 0) | (bg.tet_node_counts(v == 0) == 4)
@@ -609,8 +609,9 @@ class CutMesh:
 
     @property
     def basis_gradients(self) -> np.ndarray:
-        """(n, 4, 3) gradients of the P1 basis functions on each active tet."""
-        return self._grads_volumes[0]
+        """(n, 4, 3) gradients of the P1 basis functions on each active tet (on a structured box read
+        off the Kuhn table on each access, not kept: see :attr:`cutfem.markers.ElementSet.gradients`)."""
+        return self.elements(CUT).gradients
 
     @property
     def tet_volumes(self) -> np.ndarray:
@@ -876,7 +877,7 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
         triangles=tri,
         triangle_tets=tri_tet,
         _polygons=(vinv, nvert),
-        _gradients=(grads, volumes),
+        _gradients=(None if structured else grads, volumes),  # the Kuhn table serves a structured box
     )
     _check_closed(cm, check_boundary, band)
     return cm

@@ -125,7 +125,7 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
                 raise ValueError(f"the exact gradient must have shape {x.shape}, got {ge.shape}")
             if local.ndim != 2:
                 raise ValueError("the H1 error is for a scalar field: coeffs must have shape (n,)")
-            gh = np.einsum("bk,bkd->bd", local, space.element_gradients[e])  # constant per cell
+            gh = np.einsum("bk,bkd->bd", local, space.gradients_of(e))  # constant per cell
             # component by component: numpy broadcasts (b, q, 3) - (b, 1, 3) several times slower
             d = [ge[..., k] - gh[:, k, None] for k in range(3)]
             if measure.surface:

@@ -300,7 +300,7 @@ def _field_basis(space, measure: Measure, quad):
         for s in (0, 1):
             el = space.local_elements(measure, pairs[:, s])
             phi = space.basis_at(quad.points, el)
-            G = space.element_gradients[el]
+            G = space.gradients_of(el)
             dofs.append(space.element_dofs[el])
             for a in range(G.shape[1]):
                 b = BasisField(phi[..., a], G[:, None, a], G[:, None, a])
@@ -308,7 +308,7 @@ def _field_basis(space, measure: Measure, quad):
         return np.concatenate(dofs, axis=1), fields
     el = space.local_elements(measure, quad.parent)
     phi = space.basis_on(measure, quad, el)
-    G = space.element_gradients[el]
+    G = space.gradients_of(el)
     if measure.surface:
         n = quad.normal
         tG = G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
@@ -619,18 +619,19 @@ def _compact(dofs, n):
     return dofs.astype(np.int32) if n < 2**31 else dofs
 
 
-def _gradient_matrix(space, grads, weights, elements=None):
-    """The Gram matrix of the rows sqrt(weights) * grads[:, :, d], d = 0, 1, 2 (grads (m, k, 3) on the
-    field's ``elements``, all of them by default): sum_T weights_T G_T G_T^T, built and multiplied a
-    block of elements at a time (:func:`~cutfem.assembly.gram_sum`: the rows of 1.6 million tets,
-    with their transpose, took 0.6 GB at once)."""
-    k, m = grads.shape[1], len(weights)
+def _gradient_matrix(space, grads_of, weights, elements=None):
+    """The Gram matrix of the rows sqrt(weights) * G[:, :, d], d = 0, 1, 2, with G = grads_of(cells)
+    (b, k, 3) for a slice of the m = len(weights) cells, on the field's ``elements`` (all of them by
+    default): sum_T weights_T G_T G_T^T, built and multiplied a block of elements at a time
+    (:func:`~cutfem.assembly.gram_sum`: the rows of 1.6 million tets, with their transpose, took
+    0.6 GB at once; the gradients themselves are asked for one block at a time)."""
+    k, m = space.element_dofs.shape[1], len(weights)
     step = max(_assembly.GRAM_ROWS // 3, 1)
 
     def blocks():
         for start in range(0, m, step):
             cells = slice(start, start + step)
-            rows = (grads[cells] * np.sqrt(weights[cells])[:, None, None]).transpose(0, 2, 1).reshape(-1, k)  # (3 b, k)
+            rows = (grads_of(cells) * np.sqrt(weights[cells])[:, None, None]).transpose(0, 2, 1).reshape(-1, k)  # (3 b, k)
             dofs = space.element_dofs[cells] if elements is None else space.element_dofs[elements[cells]]
             yield np.repeat(_compact(dofs, space.n_dofs), 3, axis=0), rows
 
@@ -756,13 +757,15 @@ def _piece_rows(cut):
     L11 = np.sqrt(Jss)
     L21 = np.divide(Jst, L11, out=np.zeros(m), where=L11 > 0)
     L22 = np.sqrt(np.maximum(Jtt - L21 * L21, 0.0))  # the Schur complement, >= 0 up to round-off
-    G = es.gradients
-    a = np.einsum("mkd,md->mk", G, e1)
-    b = np.einsum("mkd,md->mk", G, e2)
-    rows = np.empty((m, 3, G.shape[1]))
-    rows[:, 0] = barycentric_at(centre[:, None, :], es.points[es.tets[:, 0]], G)[:, 0] * np.sqrt(piece)[:, None]
-    rows[:, 1] = L11[:, None] * a + L21[:, None] * b
-    rows[:, 2] = L22[:, None] * b
+    rows = np.empty((m, 3, 4))
+    for start in range(0, m, _assembly.GRAM_ROWS):  # the gradients a block of tets at a time
+        c = slice(start, start + _assembly.GRAM_ROWS)
+        G = es.gradients_of(c)
+        a = np.einsum("mkd,md->mk", G, e1[c])
+        b = np.einsum("mkd,md->mk", G, e2[c])
+        rows[c, 0] = barycentric_at(centre[c, None, :], es.points[es.tets[c, 0]], G)[:, 0] * np.sqrt(piece[c])[:, None]
+        rows[c, 1] = L11[c, None] * a + L21[c, None] * b
+        rows[c, 2] = L22[c, None] * b
     return rows, piece
 
 
@@ -789,9 +792,9 @@ def stiffness(measure: Measure, field=None) -> Form:
             kuhn = getattr(space.elements, "kuhn_types", None)
             if kuhn is not None:
                 return _kuhn_stiffness(space, kuhn, measure.part_volumes)
-            return _gradient_matrix(space, space.element_gradients, measure.part_volumes)
+            return _gradient_matrix(space, space.gradients_of, measure.part_volumes)
         el = space.local_elements(measure, np.arange(es.n_elements))
-        return _gradient_matrix(space, space.element_gradients[el], measure.part_volumes, el)
+        return _gradient_matrix(space, lambda cells: space.gradients_of(el[cells]), measure.part_volumes, el)
 
     return Form([(1.0, _GramTerm(build, field))], False)
 
@@ -806,12 +809,12 @@ def tangential_stiffness(measure: Measure, field=None) -> Form:
         if isinstance(measure, MeshedSurface):
             return _meshed_stiffness(space)
         if _same_elements(space, measure):
-            return _gradient_matrix(space, space.tangential_gradients, measure.piece_areas)
+            return _gradient_matrix(space, space.tangential_gradients_of, measure.piece_areas)
         es = measure.elements
         el = space.local_elements(measure, np.arange(es.n_elements))
-        G, n = space.element_gradients[el], measure.normals
+        G, n = space.gradients_of(el), measure.normals
         tG = G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
-        return _gradient_matrix(space, tG, measure.piece_areas, el)
+        return _gradient_matrix(space, lambda cells: tG[cells], measure.piece_areas, el)
 
     return Form([(1.0, _GramTerm(build, field))], False)
 
@@ -839,7 +842,11 @@ def position_load(measure: Measure, field=None) -> Form:
             return _meshed_stiffness(space) @ space.dof_points
         if not _same_elements(space, measure):
             raise ValueError("position_load needs the field on the cut tets, CutP1Space(cut, CUT)")
-        return assemble_vector(space.element_dofs, space.tangential_gradients * measure.piece_areas[:, None, None], space.n_dofs)
+        out = np.zeros((space.n_dofs, 3))
+        for start in range(0, space.n_elements, _assembly.GRAM_ROWS):  # blocks: no (m, 4, 3) array of the whole set
+            cells = slice(start, start + _assembly.GRAM_ROWS)
+            out += assemble_vector(space.element_dofs[cells], space.tangential_gradients_of(cells) * measure.piece_areas[cells, None, None], space.n_dofs)
+        return out
 
     return Form([(1.0, _VectorTerm(build, field))], True)
 
@@ -883,14 +890,13 @@ def _jump_gram(space, pairs, normals_pair, scale):
     The rows are built and multiplied a block of facets at a time (:func:`~cutfem.assembly.gram_sum`:
     the rows of the 5.6 million interior faces of the cut torus at spacing 0.00625, with their dofs,
     took 0.5 GB at once)."""
-    G = space.element_gradients
     dofs = _compact(space.element_dofs, space.n_dofs)
 
     def blocks():
         for start in range(0, len(pairs), _assembly.GRAM_ROWS):
             f = slice(start, start + _assembly.GRAM_ROWS)
             p, t = pairs[f], normals_pair[f]
-            c = np.concatenate([np.einsum("fkd,fd->fk", G[p[:, s]], t[:, s]) for s in (0, 1)], axis=1)
+            c = np.concatenate([np.einsum("fkd,fd->fk", space.gradients_of(p[:, s]), t[:, s]) for s in (0, 1)], axis=1)
             c *= np.sqrt(scale[f])[:, None]
             yield np.concatenate([dofs[p[:, 0]], dofs[p[:, 1]]], axis=1), c
 
@@ -950,7 +956,7 @@ def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=
     def build(space):
         es = measure.elements
         el = space.local_elements(measure, np.arange(es.n_elements))
-        c = np.einsum("mkd,md->mk", space.element_gradients[el], measure.normals)
+        c = np.einsum("mkd,md->mk", space.gradients_of(el), measure.normals)
         rows = c * np.sqrt(es.h**h_power * es.volumes)[:, None]
         return gram(space.element_dofs[el], rows, space.n_dofs)
 
@@ -983,7 +989,7 @@ def nitsche(measure: SurfacePieces, gamma: float = 10.0, field=None) -> Form:
         rows, area = _piece_rows(cut)
         es = cut.elements(CUT)
         el = space.local_elements(measure, np.arange(es.n_elements))
-        g = np.einsum("mkd,md->mk", space.element_gradients[el], es.normals)
+        g = np.einsum("mkd,md->mk", space.gradients_of(el), es.normals)
         p = np.sqrt(area)[:, None] * rows[:, 0]
         local = np.einsum("mri,mrj->mij", rows, rows) * (gamma / es.h)[:, None, None]
         local -= p[:, :, None] * g[:, None, :] + g[:, :, None] * p[:, None, :]

@@ -62,15 +62,24 @@ class _P1Space:
             self.__dict__["_pattern_cache"] = {}
         return self.__dict__["_pattern_cache"]
 
+    def gradients_of(self, elements) -> np.ndarray:
+        """The basis gradients of the given elements, ``element_gradients[elements]``."""
+        return self.element_gradients[elements]
+
     def basis_at(self, points: np.ndarray, parent: np.ndarray) -> np.ndarray:
         """(m, j, k) P1 basis values of element ``parent[i]`` at ``points[i]`` (m, j, 3)."""
-        return barycentric_at(points, self.element_origin[parent], self.element_gradients[parent])
+        return barycentric_at(points, self.element_origin[parent], self.gradients_of(parent))
 
     @property
     def tangential_gradients(self) -> np.ndarray:
         """(n_el, k, 3) P_h grad of the basis functions, P_h = I - n_h n_h^T per element; computed on
-        each access, not kept (it is used once per assembly and is as large as the gradients)."""
-        G, n = self.element_gradients, self.element_normals
+        each access, not kept (as large as the gradients); :meth:`tangential_gradients_of` for a
+        block of elements."""
+        return self.tangential_gradients_of(slice(None))
+
+    def tangential_gradients_of(self, elements) -> np.ndarray:
+        """P_h grad of the basis functions on the given elements: (b, k, 3)."""
+        G, n = self.gradients_of(elements), self.element_normals[elements]
         return G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
 
     @cached_property
@@ -163,11 +172,14 @@ class SurfaceP1Space(_P1Space):
         """(M,) triangle areas (those of the mesh)."""
         return self.mesh.areas
 
-    @cached_property
+    @property
     def tangential_gradients(self) -> np.ndarray:
         """The basis gradients themselves: on a flat triangle they are already tangent,
         grad lambda_i = n x (x_{i+2} - x_{i+1}) / (2|T|)."""
         return self.element_gradients
+
+    def tangential_gradients_of(self, elements) -> np.ndarray:
+        return self.element_gradients[elements]
 
     def node_pattern(self):
         """:class:`~cutfem.assembly.SymmetricPattern` of the nodes and the mesh edges (cached):
@@ -223,7 +235,6 @@ class CutP1Space(_P1Space):
         self.n_dofs = es.n_nodes
         self.element_dofs = es.tets
         self.dof_points = es.points
-        self.element_gradients = es.gradients
         self.element_normals = es.normals
         self.element_volumes = es.volumes
         self.node_ids = es.node_ids
@@ -231,6 +242,15 @@ class CutP1Space(_P1Space):
 
     def __repr__(self) -> str:
         return f"CutP1Space(on={self.elements.name!r}, dofs={self.n_dofs})"
+
+    @property
+    def element_gradients(self) -> np.ndarray:
+        """(n_el, 4, 3) the basis gradients (:attr:`cutfem.markers.ElementSet.gradients`: on a
+        structured box built on each access; :meth:`gradients_of` for a subset)."""
+        return self.elements.gradients
+
+    def gradients_of(self, elements) -> np.ndarray:
+        return self.elements.gradients_of(elements)
 
     @property
     def n_elements(self) -> int:
@@ -273,7 +293,7 @@ class CutP1Space(_P1Space):
         c = self.cut
         tet_of = np.empty(len(c.vertices), dtype=np.int64)
         tet_of[c.triangles.reshape(-1)] = np.repeat(c.triangle_tets, 3)
-        lam = barycentric_at(c.vertices[:, None, :], self.element_origin[tet_of], self.element_gradients[tet_of])[:, 0]
+        lam = barycentric_at(c.vertices[:, None, :], self.element_origin[tet_of], self.gradients_of(tet_of))[:, 0]
         return self.element_dofs[tet_of], lam
 
     def surface_vertex_values(self, coeffs) -> np.ndarray:

@@ -372,7 +372,7 @@ def test_volume_stiffness_on_a_structured_box_matches_reference(cells, monkeypat
     assert_matrix_equal(A, K[np.ix_(ids, ids)])
     assert abs(A - A.T).max() == 0.0
     np.testing.assert_allclose(np.asarray(A.sum(axis=1)).ravel(), 0.0, atol=1e-13)
-    G = _gradient_matrix(V, V.element_gradients, cut.dx(NEG).part_volumes)
+    G = _gradient_matrix(V, V.gradients_of, cut.dx(NEG).part_volumes)
     assert A.nnz == G.nnz
     np.testing.assert_allclose(A.toarray(), G.toarray(), rtol=0, atol=1e-14)
     # whole tets of an element set (ElementVolume): against the simplex route of the same tets as a TetMesh

@@ -170,7 +170,7 @@ def test_closed_form_stiffness_is_the_gradient_form(name):
     space = SPACES[name]()
     ds = space.mesh.ds()
     A = assemble(tangential_stiffness(ds), space)
-    _close(A, _gradient_matrix(space, space.tangential_gradients, space.element_areas))
+    _close(A, _gradient_matrix(space, space.tangential_gradients_of, space.element_areas))
     stiffness = assemble(bilinear_form(lambda u, v, w: (u.tgrad * v.tgrad).sum(-1), symmetric=True, degree=0) * ds, space)
     _close(A, stiffness)
     assert np.abs(A @ np.ones(space.n_dofs)).max() < 1e-12 * abs(A).max()  # constants in the kernel
