@@ -18,12 +18,12 @@ imports; spacings 0.05, 0.025, 0.0125), rounded up by about 10 %:
 * :data:`BYTES_PER_ACTIVE_TET`: what the stages after the cut (space, faces, mass, penalty, solve,
   errors) add to the resident memory at the check, per active tet (the peak minus the resident
   bytes when :func:`cutfem.problems.common.check_cut_memory` runs: the cut's freed temporaries stay
-  in the allocator's heap and are reused): the mean curvature problem 236, 222, 191 and 279 bytes
-  at spacings 0.025-0.003125 (3.6 GiB on top of 6.4 GiB for 13.7 million tets), the cut
-  Laplace-Beltrami problem on the sphere 649 and 544 bytes at 0.025 and 0.0125 (its augmented
-  multigrid and three matrices).  The constant, 800 bytes, is the largest of these plus a quarter:
-  the whole peak per tet (1.2-1.8 KB at 0.025, 0.8 KB at 0.003125) counted the cut twice and
-  refused spacing 0.003125 on a 24 GiB machine that runs it in 10 GiB;
+  in the allocator's heap and are reused): the mean curvature problem 191-295 bytes at spacings
+  0.025-0.003125 (2.5 GiB on top of 5.1 GiB for 13.7 million tets), the cut Laplace-Beltrami
+  problem on the sphere 649 and 544 bytes at 0.025 and 0.0125 (its augmented multigrid and three
+  matrices).  The constant, 800 bytes, is the largest of these plus a quarter: the whole peak per
+  tet (1.2-1.8 KB at 0.025, 0.6-0.8 KB at 0.003125) counted the cut twice and refused spacing
+  0.003125 on a 24 GiB machine that runs it in 7.6-10 GiB;
 * :data:`BYTES_PER_SURFACE_NODE`: a meshed surface problem per node (0.6 GiB for the meshed torus
   with 295 thousand nodes: 2.2 KB).
 
