@@ -55,7 +55,7 @@ import scipy.sparse as sp
 from . import assembly as _assembly
 from .assembly import assemble_vector, gram, gram_sum, kuhn_symmetric
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
-from .mesh import KUHN_GRADIENTS, TET_EDGES, cross, vertex_columns
+from .mesh import TET_EDGES, cross, vertex_columns
 from .markers import CUT
 from .spaces import ProductSpace, barycentric_at
 
@@ -640,10 +640,10 @@ def _gradient_matrix(space, grads_of, weights, elements=None):
 
 def _kuhn_stiffness(space, kuhn, volumes):
     """sum_T |T ∩ side| G_T G_T^T over all the tets of a structured box's element set: the gradients
-    of Kuhn tet l are KUHN_GRADIENTS[l] / spacing (:meth:`~cutfem.mesh.StructuredBox.tet_gradients`),
+    of Kuhn tet l are KUHN_GRADIENTS[l] / spacing (:attr:`~cutfem.mesh.StructuredBox.gradient_table`),
     so the products G_i . G_j form a (6, 4, 4) table and each tet's entries are a row of it times
     its volume, summed per lattice edge by :func:`~cutfem.assembly.kuhn_symmetric`."""
-    G = KUHN_GRADIENTS / space.elements.background.spacing
+    G = space.elements.background.gradient_table
     D = np.einsum("lid,ljd->lij", G, G)
     edges, diagonal = D[:, TET_EDGES[:, 0], TET_EDGES[:, 1]], D[:, np.arange(4), np.arange(4)]
     return kuhn_symmetric(space.element_dofs, kuhn, lambda a, b: edges[kuhn[a:b]] * volumes[a:b, None],

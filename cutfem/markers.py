@@ -34,7 +34,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .mesh import KUHN_GRADIENTS, TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, kuhn_face_keys, pair_up, tet_face_keys
+from .mesh import TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, kuhn_face_keys, pair_up, tet_face_keys
 
 __all__ = ["NEG", "POS", "CUT", "SIDES", "ElementSet", "FacetSet", "interior_facets", "side_subtetrahedra", "longest_edges"]
 
@@ -123,14 +123,14 @@ class ElementSet:
     def gradients_of(self, idx) -> np.ndarray:
         """The gradients of the tets ``idx`` (local indices): (..., 4, 3)."""
         if self._gradients is None:
-            return (KUHN_GRADIENTS / self.background.spacing)[self.kuhn_types[idx]]
+            return self.background.gradient_table[self.kuhn_types[idx]]
         return self._gradients[idx]
 
     def vertex_gradients(self, idx, k) -> np.ndarray:
         """grad lambda_k of tet ``idx[i]`` for its local vertex ``k[i]``: (len(idx), 3), without the
         other three vertices' gradients."""
         if self._gradients is None:
-            return (KUHN_GRADIENTS / self.background.spacing)[self.kuhn_types[idx], k]
+            return self.background.gradient_table[self.kuhn_types[idx], k]
         return self._gradients[idx, k]
 
     def __repr__(self) -> str:

@@ -591,7 +591,13 @@ class StructuredBox(TetMesh):
         A point of a cell is ``x = corner + xi * spacing`` (componentwise), so the gradients are
         those of the reference Kuhn tet ``tet_id % 6`` (:data:`KUHN_GRADIENTS`, entries -1, 0, 1)
         divided by the spacing, axis by axis; no vertex coordinates are needed."""
-        return (KUHN_GRADIENTS / self.spacing)[np.asarray(tet_ids) % 6]  # scale the (6, 4, 3) table, then gather
+        return self.gradient_table[np.asarray(tet_ids) % 6]
+
+    @property
+    def gradient_table(self) -> np.ndarray:
+        """(6, 4, 3) the barycentric gradients of the six Kuhn tet types of this box:
+        :data:`KUHN_GRADIENTS` divided by the spacing, axis by axis (index it by Kuhn type)."""
+        return KUHN_GRADIENTS / self.spacing
 
     @property
     def tet_volume(self) -> float:
