@@ -242,8 +242,8 @@ class FacetSet:
 
     def __init__(self, elements: ElementSet, pairs, opposite, name="facets"):
         self.elements = elements
-        # element indices as int32 while 4 m fits (the face gathers index 4 m gradient rows): half the bytes
-        self.pairs = np.asarray(pairs, dtype=np.int32 if 4 * elements.n_elements < 2**31 else np.int64).reshape(-1, 2)
+        # element indices as int32 while they fit: half the bytes
+        self.pairs = np.asarray(pairs, dtype=np.int32 if elements.n_elements < 2**31 else np.int64).reshape(-1, 2)
         self.opposite = np.asarray(opposite, dtype=np.int8).reshape(-1, 2)  # 0..3: one byte, not eight
         self.name = name
 
