@@ -704,15 +704,20 @@ def _one_blas_thread():
 
 
 def _columns_dot(a, b):
-    """Column-wise dot products of (c, n) arrays without BLAS (see the module docstring)."""
-    return np.einsum("ij,ij->i", a, b)
+    """Column-wise dot products of (n, c) arrays without BLAS (see the module docstring)."""
+    return np.einsum("ij,ij->j", a, b)
 
 
 def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
     """Preconditioned CG on the columns of B (n, c) at once: independent recurrences, one
     preconditioner, each iteration one product with A and one preconditioner application for the
     block of the columns that have not converged (a column stops updating once its relative
-    residual is <= tol; :func:`_rowwise` and ``precond`` act on (k, n) blocks).
+    residual is <= tol; the product (:func:`cutfem.kernels.matmul`, one pass over A for the block)
+    and ``precond`` act on (n, k) blocks).  The columns are independent recurrences: each gives,
+    bitwise, what it gives alone.  Why not a block CG, whose search directions the columns share:
+    it needed as many iterations (28 at spacing 0.025, tolerance 1e-8, on the cut torus) as three
+    independent recurrences, as the multigrid leaves no isolated small eigenvalues for the shared
+    space to remove.
 
     Stops when every column has a true relative residual <= tol (the recursive residual is checked
     against the true one, and CG restarted from the current iterate when they disagree).  A
@@ -722,9 +727,9 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
     correction on the constants (:func:`_constant_correction`).  Returns (X (n, c), iterations,
     residuals (c,)).
     """
-    matvec = _rowwise(A)
+    matvec = _matvec(A)
     d = A.diagonal()
-    b = np.ascontiguousarray(np.asarray(B, dtype=float).T)
+    b = np.ascontiguousarray(B, dtype=float)
     nb = np.sqrt(_columns_dot(b, b))
     nb = np.where(nb > 0, nb, 1.0)
     x = np.zeros_like(b)
@@ -733,7 +738,7 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
     rel = np.sqrt(_columns_dot(r, r)) / nb
     while it < maxiter and np.any(rel > tol):
         act = np.flatnonzero(rel > tol)
-        ra = r[act]
+        ra = r[:, act]
         z = precond(ra)
         rz = _columns_dot(ra, z)
         p = z
@@ -741,19 +746,19 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
             q = matvec(p)
             pq = _columns_dot(p, q)
             if np.any(pq <= 0) or np.any(rz <= 0):
-                curvature = pq / np.maximum(_columns_dot(p * d, p), 1e-300)
-                raise diagnose(A, vectors=list(p), smallest=float(curvature.min()),
+                curvature = pq / np.maximum(_columns_dot(p * d[:, None], p), 1e-300)
+                raise diagnose(A, vectors=list(p.T), smallest=float(curvature.min()),
                                where=f"{name} (breakdown at iteration {it}: p^T A p / p^T D p = {curvature.min():.3e}, "
                                f"r^T M r = {rz.min():.3e})", _checks=checks)
             alpha = rz / pq
-            if act.size == len(r):  # all columns active: update in place, no gathered copies
-                x += alpha[:, None] * p
-                r -= alpha[:, None] * q
+            if act.size == r.shape[1]:  # all columns active: update in place, no gathered copies
+                x += alpha * p
+                r -= alpha * q
                 ra = r
             else:
-                x[act] += alpha[:, None] * p
-                ra = r[act] - alpha[:, None] * q
-                r[act] = ra
+                x[:, act] += alpha * p
+                ra = r[:, act] - alpha * q
+                r[:, act] = ra
             it += 1
             rel_a = np.sqrt(_columns_dot(ra, ra)) / nb[act]
             rel[act] = rel_a
@@ -761,10 +766,10 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
             if not np.any(keep):
                 break
             if not np.all(keep):  # freeze the converged columns
-                act, ra, p, rz = act[keep], ra[keep], p[keep], rz[keep]
+                act, ra, p, rz = act[keep], ra[:, keep], p[:, keep], rz[keep]
             z = precond(ra)
             rz_new = _columns_dot(ra, z)
-            p = z + (rz_new / rz)[:, None] * p
+            p = z + (rz_new / rz) * p
             rz = rz_new
         # true residual: restart from x if the recursion drifted
         r = b - matvec(x)
@@ -783,11 +788,11 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
             f"{name} did not converge in {maxiter} iterations (relative residual {rel.max():.2e} > {tol}); the system "
             "may be (nearly) singular or ill-conditioned: check the stabilization, or try the direct solver"
         )
-    return x.T, it, rel
+    return x, it, rel
 
 
 def _constant_correction(A, x, r, nb, tol):
-    """The Galerkin correction of the iterates ``x`` (c, n) on the constants, in place, where it keeps
+    """The Galerkin correction of the iterates ``x`` (n, c) on the constants, in place, where it keeps
     the relative residual within ``tol``: x += alpha 1, alpha = 1^T r / 1^T A 1 (r = b - A x).
 
     This is the A-orthogonal projection of the error onto span{1}, so it never increases the error in
@@ -800,30 +805,23 @@ def _constant_correction(A, x, r, nb, tol):
     denom = float(a1.sum())  # 1^T A 1 > 0 for SPD A
     if not denom > 0:
         return r, np.sqrt(_columns_dot(r, r)) / nb
-    alpha = r.sum(axis=1) / denom
-    r_new = r - alpha[:, None] * a1[None, :]
+    alpha = r.sum(axis=0) / denom
+    r_new = r - alpha[None, :] * a1[:, None]
     rel_new = np.sqrt(_columns_dot(r_new, r_new)) / nb
     keep = rel_new <= tol
-    x[keep] += alpha[keep, None]
-    r[keep] = r_new[keep]
+    x[:, keep] += alpha[keep]
+    r[:, keep] = r_new[:, keep]
     return r, np.where(keep, rel_new, np.sqrt(_columns_dot(r, r)) / nb)
 
 
-def _rowwise(A):
-    """(c, n) -> (c, n) product with a sparse matrix, column by column.
+def _matvec(A):
+    """(n, c) -> (n, c) product with the sparse matrix A, one pass over A for up to three columns
+    (:func:`cutfem.kernels.matmul`; the CG products of the cut torus at spacing 0.0125, three
+    columns in double precision: 9.5 ms against 29-31 ms for scipy's three products)."""
+    from . import kernels
 
-    Why not one product with the (n, c) block (and the multigrid cycle on blocks): measured on
-    the cut torus at spacing 0.0125 (293 244 unknowns, 17 nonzeros a row, c = 3), scipy's
-    multi-vector product takes as long as three single ones (31.8 against 30.8 ms, best of 30);
-    the whole CG with the products, transfers and coarse solves on (n, 3) blocks took 3.47 s of
-    CPU against 3.34 s column by column (best of 4, alternating), as Gauss-Seidel, the largest
-    part, has no block kernel (pyamg's BSR Gauss-Seidel on the 3 x 3 blocks A_ij I: 79 ms a
-    sweep against 19.5 ms for three scalar sweeps).  A true block CG (search directions shared
-    by the columns, rank-revealing orthonormalization) needed as many iterations (28 at spacing
-    0.025, tolerance 1e-8) as three independent recurrences: the multigrid leaves no isolated
-    small eigenvalues for the shared space to remove.  So :func:`_pcg` runs the columns as
-    independent recurrences side by side, freezing each as it converges."""
-    return lambda X: np.stack([A @ X[k] for k in range(X.shape[0])])
+    A = sp.csr_matrix(A)
+    return lambda X: kernels.matmul(A, np.ascontiguousarray(X, dtype=A.dtype))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1051,9 +1049,6 @@ class GeometricMultigrid:
 
     def __init__(self, A, lattice=None, coarse_size: int = 1500, visits=(1, 2), max_levels: int = 20, prolongations=None,
                  augment=None, _checks=None):
-        from pyamg.amg_core import gauss_seidel
-
-        self._gs = gauss_seidel
         A = sp.csr_matrix(A, dtype=float)
         self._finest = A  # in double precision, for the null-vector checks
         n = A.shape[0]
@@ -1149,30 +1144,35 @@ class GeometricMultigrid:
         kind, f = self._coarse
         return f.solve(b) if kind == "lu" else f @ b
 
-    def cycle(self, b, level: int = 0):
-        """One cycle for A_level x = b from x = 0 (b a 1-d array; single precision, see the class)."""
+    def cycle(self, B, level: int = 0):
+        """One cycle for A_level X = B from X = 0 on a block B (n, c) of columns (single precision,
+        see the class; the sweeps and products pass over each matrix once for all columns,
+        :mod:`cutfem.kernels`)."""
         if level == len(self.levels):
-            return self._coarse_solve(np.asarray(b, dtype=float)).astype(np.float32)
+            return np.ascontiguousarray(self._coarse_solve(B.astype(float)), dtype=np.float32)
+        from . import kernels
+
         lv = self.levels[level]
         A = lv["A"]
-        n = A.shape[0]
-        b = np.asarray(b, dtype=np.float32)
-        x = np.zeros(n, dtype=np.float32)
-        self._gs(A.indptr, A.indices, A.data, x, b, 0, n, 1)
-        r = -(lv["U"] @ x)  # residual after a forward sweep from zero: b - (L + D + U) x = -U x
-        rc = lv["R"] @ r
+        X = np.zeros_like(B)
+        kernels.gauss_seidel(A, X, B, forward=True)
+        r = kernels.matmul(lv["U"], X, alpha=-1.0)  # residual after a forward sweep from zero: B - (L + D + U) X = -U X
+        rc = kernels.matmul(lv["R"], r)
         xc = self.cycle(rc, level + 1)
         for _ in range(1, self.visits[level]):
             if level + 1 == len(self.levels):
                 break  # the coarsest solve is exact
-            xc += self.cycle(rc - self.levels[level + 1]["A"] @ xc, level + 1)
-        x += lv["P"] @ xc
-        self._gs(A.indptr, A.indices, A.data, x, b, n - 1, -1, -1)
-        return x
+            xc += self.cycle(kernels.matmul(self.levels[level + 1]["A"], xc, out=rc.copy(), alpha=-1.0, accumulate=True),
+                             level + 1)
+        kernels.matmul(lv["P"], xc, out=X, accumulate=True)
+        kernels.gauss_seidel(A, X, B, forward=False)
+        return X
 
     def apply(self, R):
-        """The preconditioner on the rows of R (c, n), returned in double precision."""
-        return np.stack([self.cycle(np.ascontiguousarray(R[k], dtype=np.float32)) for k in range(R.shape[0])]).astype(float)
+        """The preconditioner on the columns of R (n, c), returned in double precision (n, c)."""
+        R = np.asarray(R)
+        block = np.ascontiguousarray(R.reshape(R.shape[0], -1), dtype=np.float32)
+        return self.cycle(block).astype(float).reshape(R.shape)
 
 
 def multigrid_hierarchy(space):
@@ -1267,7 +1267,7 @@ def _amg(A, points=None):
         P = np.asarray(points, dtype=float)
         kw["B"] = np.column_stack([np.ones(len(P)), P - P.mean(axis=0)])
     M = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), **kw).aspreconditioner(cycle="V")
-    return lambda R: np.stack([M @ R[k] for k in range(R.shape[0])])
+    return lambda R: np.column_stack([M @ R[:, k] for k in range(R.shape[1])])
 
 
 def cg_solve(A, B, preconditioner: str = "amg", tol: float = 1e-10, maxiter: int = 5000, points=None, lattice=None,
@@ -1298,7 +1298,7 @@ def cg_solve(A, B, preconditioner: str = "amg", tol: float = 1e-10, maxiter: int
         M = _amg(A, points)
     elif preconditioner == "jacobi":
         inv = 1.0 / d
-        M = lambda R: R * inv  # noqa: E731
+        M = lambda R: R * inv[:, None]  # noqa: E731
     else:
         M = lambda R: R.copy()  # noqa: E731
     t1 = time.perf_counter()
