@@ -55,9 +55,9 @@ import scipy.sparse as sp
 from . import assembly as _assembly
 from .assembly import assemble_vector, gram, gram_sum, kuhn_symmetric
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
-from .mesh import TET_EDGES, cross, vertex_columns
+from .mesh import TET_EDGES
 from .markers import CUT
-from .spaces import ProductSpace, barycentric_at
+from .spaces import ProductSpace
 
 __all__ = [
     "ZERO",
@@ -661,8 +661,7 @@ def _require(measure, kinds, what):
 
 
 def mass(measure: Measure, field=None) -> Form:
-    """(u, v) over ``measure``, exact for P1: on S_h of a cut from the moments of each piece
-    (:func:`_piece_mass`, three Gram rows per cut tet), on a triangulated surface in closed form,
+    """(u, v) over ``measure``, exact for P1: on S_h of a cut per piece (:func:`_piece_mass`), on a triangulated surface in closed form,
     over a volume of a structured box's element set per lattice edge for the whole tets
     (:func:`_kuhn_volume_mass`), otherwise on each simplex T of the measure (triangles of S_h,
     sub-tets of a side, whole tets) with the basis values Lambda at its vertices,
@@ -707,77 +706,43 @@ def _kuhn_volume_mass(space, measure, kuhn):
 
 
 def _piece_mass(space) -> sp.csr_matrix:
-    """The exact surface mass matrix of a cut space by the moments of the pieces: three Gram rows
-    per active tet instead of three per triangle of S_h.
-
-    The piece S_K of tet K is a plane polygon with area |S|, centroid c and in-plane orthonormal
-    axes e1, e2 (orthogonal to n_h).  A P1 basis function is affine, lambda_i(x) = lambda_i(c) +
-    g_i . (x - c) with g_i = grad lambda_i, and x - c = s e1 + t e2 on S_K; since the integral of
-    x - c over S_K vanishes,
-
-        int_{S_K} lambda_i lambda_j = |S| lambda_i(c) lambda_j(c) + a_i^T J a_j,
-        a_i = (g_i . e1, g_i . e2),   J = int_{S_K} (s, t)^T (s, t)   (2 x 2).
-
-    J is summed over the triangles T of the piece, each exactly:
-    int_T q q^T = |T|/12 (sum_v q_v q_v^T + 9 qbar qbar^T) with q_v the in-plane coordinates of the
-    vertices relative to c and qbar their mean.  With the Cholesky factor J = L L^T the rows
-    sqrt|S| lambda(c) and L^T a give M_K = R^T R (3 x 4).  The same matrix as the triangle route
-    (:func:`_simplex_mass`) to round-off (tested); at 853k active tets it builds 2.6M rows instead
-    of 3.4M and needs no basis values at the 3.4M triangle vertices.
-    """
-    rows, _ = _piece_rows(space.cut)
-    dofs = np.repeat(_compact(space.element_dofs, space.n_dofs), 3, axis=0)
-    return gram(dofs, rows.reshape(-1, rows.shape[2]), space.n_dofs, overwrite=True)
+    """The exact surface mass matrix of a cut space on its own cut tets: the element matrices
+    M_K = int_{S_K} lambda_i lambda_j of :func:`_piece_moments`, summed by
+    :func:`_element_symmetric`.  The same matrix as the triangle route (:func:`_simplex_mass`) to
+    round-off (tested)."""
+    edges, diagonal, _ = _piece_moments(space.cut)
+    return _element_symmetric(space, slice(None), edges, diagonal)
 
 
-def _piece_rows(cut):
-    """(R (m, 3, 4), |S| (m,)) for the m cut tets (the element set CUT, in its order): the rows of
-    the exact piece mass matrices M_K = R^T R of :func:`_piece_mass`, R[:, 0] = sqrt|S| lambda(c);
-    so int_{S_K} lambda_i = sqrt|S| R[:, 0, i]."""
+def _piece_moments(cut):
+    """(edges (m, 6), diagonal (m, 4), integrals (m, 4)) for the m cut tets (the element set CUT, in
+    its order): the exact piece mass matrices M_K by their entries on the local edges
+    (:data:`~cutfem.mesh.TET_EDGES`) and diagonal, and int_{S_K} lambda_i; one compiled pass over
+    the triangles of S_h (:func:`cutfem.kernels.piece_moments`)."""
+    from . import kernels
+
     es = cut.elements(CUT)
-    tt, area = cut.triangle_tets, cut.triangle_areas
-    m = es.n_elements
-    piece = np.bincount(tt, weights=area, minlength=m)
-    x = vertex_columns(cut.vertices, cut.triangles)  # x[v][d]: (T,), no (T, 3, 3) array
-    centre = np.stack([np.bincount(tt, weights=area * (x[0][d] + x[1][d] + x[2][d]), minlength=m) for d in range(3)], axis=1)
-    # a piece of zero area (collinear vertices) gets zero rows; its centre only has to be finite
-    np.divide(centre, 3.0 * piece[:, None], out=centre, where=piece[:, None] > 0)
-    e1, e2 = _plane_axes(es.normals)
-    E1, E2, C = e1[tt], e2[tt], centre[tt]
-    # in-plane coordinates of the triangle vertices relative to the piece centroid
-    s = [sum((x[v][d] - C[:, d]) * E1[:, d] for d in range(3)) for v in range(3)]
-    t = [sum((x[v][d] - C[:, d]) * E2[:, d] for d in range(3)) for v in range(3)]
-    del x, E1, E2, C
-    sbar, tbar = (s[0] + s[1] + s[2]) / 3.0, (t[0] + t[1] + t[2]) / 3.0
-    w = area / 12.0
-    Jss = np.bincount(tt, weights=w * (s[0] * s[0] + s[1] * s[1] + s[2] * s[2] + 9.0 * sbar * sbar), minlength=m)
-    Jst = np.bincount(tt, weights=w * (s[0] * t[0] + s[1] * t[1] + s[2] * t[2] + 9.0 * sbar * tbar), minlength=m)
-    Jtt = np.bincount(tt, weights=w * (t[0] * t[0] + t[1] * t[1] + t[2] * t[2] + 9.0 * tbar * tbar), minlength=m)
-    del s, t, sbar, tbar
-    L11 = np.sqrt(Jss)
-    L21 = np.divide(Jst, L11, out=np.zeros(m), where=L11 > 0)
-    L22 = np.sqrt(np.maximum(Jtt - L21 * L21, 0.0))  # the Schur complement, >= 0 up to round-off
-    rows = np.empty((m, 3, 4))
-    for start in range(0, m, _assembly.GRAM_ROWS):  # the gradients a block of tets at a time
-        c = slice(start, start + _assembly.GRAM_ROWS)
-        G = es.gradients_of(c)
-        a = np.einsum("mkd,md->mk", G, e1[c])
-        b = np.einsum("mkd,md->mk", G, e2[c])
-        rows[c, 0] = barycentric_at(centre[c, None, :], es.points[es.tets[c, 0]], G)[:, 0] * np.sqrt(piece[c])[:, None]
-        rows[c, 1] = L11[c, None] * a + L21[c, None] * b
-        rows[c, 2] = L22[c, None] * b
-    return rows, piece
+    table, types = es.gradient_lookup()
+    return kernels.piece_moments(cut.vertices, cut.triangles, cut.triangle_tets, cut.triangle_areas,
+                                 es.points[es.tets[:, 0]], table, types, es.n_elements)
 
 
-def _plane_axes(normals):
-    """Unit vectors e1, e2 (m, 3) with (e1, e2, n) orthonormal: e1 from n crossed with the
-    coordinate axis least aligned with n."""
-    k = np.argmin(np.abs(normals), axis=1)
-    axis = np.zeros_like(normals)
-    axis[np.arange(len(k)), k] = 1.0
-    e1 = cross(normals, axis)
-    e1 /= np.linalg.norm(e1, axis=1)[:, None]
-    return e1, cross(normals, e1)
+def _element_symmetric(space, el, edges, diagonal) -> sp.csr_matrix:
+    """sum_K A_K of symmetric 4 x 4 element matrices on the field's elements ``el`` (an index or a
+    slice), given by their entries on the local edges ``edges`` (m, 6) (:data:`~cutfem.mesh.TET_EDGES`
+    order) and their ``diagonal`` (m, 4): per lattice edge on a structured box
+    (:func:`~cutfem.assembly.kuhn_symmetric`: no sort), through one COO matrix otherwise.  Exactly
+    symmetric either way."""
+    dofs = space.element_dofs[el]
+    kuhn = getattr(space.elements, "kuhn_types", None)
+    if kuhn is not None:
+        return kuhn_symmetric(dofs, kuhn[el], lambda a, b: edges[a:b], lambda a, b: diagonal[a:b], space.n_dofs)
+    i, j = TET_EDGES[:, 0], TET_EDGES[:, 1]
+    rows = np.concatenate([dofs[:, i].ravel(), dofs[:, j].ravel(), dofs.ravel()])
+    cols = np.concatenate([dofs[:, j].ravel(), dofs[:, i].ravel(), dofs.ravel()])
+    values = np.concatenate([edges.ravel(), edges.ravel(), diagonal.ravel()])
+    A = sp.coo_matrix((values, (rows, cols)), shape=(space.n_dofs, space.n_dofs)).tocsr()
+    return (0.5 * (A + A.T)).tocsr()  # the sums of duplicates run in different orders for (i, j) and (j, i)
 
 
 def stiffness(measure: Measure, field=None) -> Form:
@@ -977,31 +942,23 @@ def nitsche(measure: SurfacePieces, gamma: float = 10.0, field=None) -> Form:
 
         N_K = -(p g^T + g p^T) + (gamma / h_T) M_K,   p_i = |S| lambda_i(c),  g_j = n . grad lambda_j,
 
-    with M_K the exact piece mass matrix (:func:`_piece_rows`).  Summed per lattice edge on a
-    structured box (:func:`~cutfem.assembly.kuhn_symmetric`), through one COO matrix otherwise;
-    exactly symmetric either way.  The same matrix as the integrand with quadrature of degree 2 to
+    with M_K the exact piece mass matrix and p from :func:`_piece_moments`, summed by
+    :func:`_element_symmetric` (exactly symmetric).  The same matrix as the integrand with quadrature of degree 2 to
     round-off (tested)."""
     _positive(gamma=gamma)
     _require(measure, SurfacePieces, "nitsche")
 
     def build(space):
         cut = measure.cut
-        rows, area = _piece_rows(cut)
+        edges, diagonal, p = _piece_moments(cut)
         es = cut.elements(CUT)
         el = space.local_elements(measure, np.arange(es.n_elements))
         g = np.einsum("mkd,md->mk", space.gradients_of(el), es.normals)
-        p = np.sqrt(area)[:, None] * rows[:, 0]
-        local = np.einsum("mri,mrj->mij", rows, rows) * (gamma / es.h)[:, None, None]
-        local -= p[:, :, None] * g[:, None, :] + g[:, :, None] * p[:, None, :]
-        dofs = space.element_dofs[el]
-        kuhn = getattr(space.elements, "kuhn_types", None)
-        if kuhn is not None and dofs.shape[1] == 4:
-            edges, diagonal = local[:, TET_EDGES[:, 0], TET_EDGES[:, 1]], local[:, np.arange(4), np.arange(4)]
-            return kuhn_symmetric(dofs, kuhn[el], lambda a, b: edges[a:b], lambda a, b: diagonal[a:b], space.n_dofs)
-        k = dofs.shape[1]
-        A = sp.coo_matrix((local.reshape(-1), (np.repeat(dofs, k, axis=1).reshape(-1), np.tile(dofs, (1, k)).reshape(-1))),
-                          shape=(space.n_dofs, space.n_dofs)).tocsr()
-        return (0.5 * (A + A.T)).tocsr()  # the sums of duplicates run in different orders for (i, j) and (j, i)
+        scale = (gamma / es.h)[:, None]
+        i, j = TET_EDGES[:, 0], TET_EDGES[:, 1]
+        edges = edges * scale - (p[:, i] * g[:, j] + g[:, i] * p[:, j])
+        diagonal = diagonal * scale - 2.0 * p * g
+        return _element_symmetric(space, el, edges, diagonal)
 
     return Form([(1.0, _GramTerm(build, field))], False)
 

@@ -1,6 +1,8 @@
-"""Compiled sparse kernels of the iterative solvers: products and Gauss-Seidel sweeps on blocks of
-columns (numba).
+"""Compiled kernels (numba): the sparse block kernels of the iterative solvers and the element
+kernels of the assembly that numpy cannot vectorize without large temporaries.
 
+Sparse blocks
+-------------
 Several right-hand sides share one matrix: the mean curvature problems solve for the three
 components of H at once, and CG with multigrid is one recurrence per column.  scipy and pyamg
 have only single-vector kernels here (scipy's multi-vector CSR product is no faster than one
@@ -26,6 +28,15 @@ the error model is numpy's: with Python's negative-index and division-by-zero ch
 loop the one-column sweep took 11-15 ms.  The sums run row by row in the matrix's order, as in
 scipy and pyamg, so a column's result does not depend on the columns beside it (bitwise).
 
+Element kernels
+---------------
+:func:`piece_moments`: the exact surface mass matrix and basis integrals of each piece of S_h in its
+cut tet, summed over the piece's triangles in one pass (numpy needed the basis values at every
+triangle vertex, or three Gram rows per tet and a sparse product: 2.1 s for the mass matrix of the
+cut torus at spacing 0.0125, 853k cut tets).
+
+Compilation
+-----------
 A kernel is compiled on its first call for each width c (1, 2 or 3) and array type, and cached on
 disk by numba (``cache=True``, in ``__pycache__`` beside this file): the first run after an
 install spends a few seconds compiling, later runs load the machine code (0.4 s for the first
@@ -39,7 +50,11 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit, prange
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel"]
+from .mesh import TET_EDGES
+
+_TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
+
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "piece_moments"]
 
 #: columns served by one pass over the matrix (one register accumulator each)
 WIDTH = 3
@@ -161,3 +176,50 @@ def gauss_seidel(A, X, B, forward: bool = True):
         _kernels(g.stop - g.start)[1](indptr, indices, data, Y, np.ascontiguousarray(B[:, g]), forward)
         X[:, g] = Y
     return X
+
+
+@njit(cache=True, error_model="numpy")
+def _piece_moments(vertices, triangles, tets_of, areas, origin, table, types, edges, diagonal, integrals):
+    lam = np.empty((3, 4))
+    for t in range(triangles.shape[0]):
+        k = tets_of[t]
+        g = table[types[k]]
+        for v in range(3):
+            x = vertices[triangles[t, v]]
+            d0, d1, d2 = x[0] - origin[k, 0], x[1] - origin[k, 1], x[2] - origin[k, 2]
+            for i in range(4):
+                lam[v, i] = g[i, 0] * d0 + g[i, 1] * d1 + g[i, 2] * d2
+            lam[v, 0] += 1.0
+        w = areas[t] / 12.0
+        for i in range(4):
+            si = lam[0, i] + lam[1, i] + lam[2, i]
+            integrals[k, i] += areas[t] * si / 3.0
+            diagonal[k, i] += w * (lam[0, i] * lam[0, i] + lam[1, i] * lam[1, i] + lam[2, i] * lam[2, i] + si * si)
+        for e in range(6):
+            i, j = _TET_EDGES[e, 0], _TET_EDGES[e, 1]
+            si = lam[0, i] + lam[1, i] + lam[2, i]
+            sj = lam[0, j] + lam[1, j] + lam[2, j]
+            edges[k, e] += w * (lam[0, i] * lam[0, j] + lam[1, i] * lam[1, j] + lam[2, i] * lam[2, j] + si * sj)
+
+
+def piece_moments(vertices, triangles, tets_of, areas, origin, table, types, m: int):
+    """The exact P1 moments of the pieces of S_h over their m cut tets: ``(edges (m, 6), diagonal
+    (m, 4), integrals (m, 4))`` with M_K[i, j] = int_{S_K} lambda_i lambda_j for the local edges
+    (i, j) of :data:`~cutfem.mesh.TET_EDGES` and on the diagonal, and int_{S_K} lambda_i.
+
+    The piece S_K is the union of its triangles T (``triangles`` (T, 3) into ``vertices``, in tet
+    ``tets_of`` (T,), area ``areas``); the basis functions are affine on T, so with their values
+    lambda_v at the three vertices and s = lambda_1 + lambda_2 + lambda_3,
+
+        int_T lambda_i lambda_j = |T| / 12 (sum_v lambda_{v,i} lambda_{v,j} + s_i s_j),
+        int_T lambda_i = |T| s_i / 3.
+
+    The values come from the tet's first vertex ``origin`` (m, 3) and its basis gradients
+    ``table[types[k]]`` (:meth:`~cutfem.markers.ElementSet.gradient_lookup`):
+    lambda_i(x) = delta_i0 + grad lambda_i . (x - x_0)."""
+    edges, diagonal, integrals = np.zeros((m, 6)), np.zeros((m, 4)), np.zeros((m, 4))
+    _piece_moments(np.ascontiguousarray(vertices, dtype=float), np.ascontiguousarray(triangles),
+                   np.ascontiguousarray(tets_of), np.ascontiguousarray(areas, dtype=float),
+                   np.ascontiguousarray(origin, dtype=float), np.ascontiguousarray(table, dtype=float),
+                   np.ascontiguousarray(types), edges, diagonal, integrals)
+    return edges, diagonal, integrals

@@ -126,6 +126,14 @@ class ElementSet:
             return self.background.gradient_table[self.kuhn_types[idx]]
         return self._gradients[idx]
 
+    def gradient_lookup(self):
+        """(table, types) with ``gradients_of(i) = table[types[i]]``: the Kuhn table (6, 4, 3) and
+        the Kuhn types on a structured box, the stored gradients (m, 4, 3) and 0..m-1 otherwise
+        (for compiled kernels, which then need no gathered copy)."""
+        if self._gradients is None:
+            return self.background.gradient_table, self.kuhn_types
+        return self._gradients, np.arange(len(self.tet_ids))
+
     def vertex_gradients(self, idx, k) -> np.ndarray:
         """grad lambda_k of tet ``idx[i]`` for its local vertex ``k[i]``: (len(idx), 3), without the
         other three vertices' gradients."""

@@ -87,7 +87,9 @@ def test_unstabilized_cut_mass_is_reported_singular(small_cut_sphere):
     M = mass_matrix(V)
     with pytest.raises(SolverError, match="numerically singular") as err:
         DirectSolver(M)
-    assert 0.0 <= err.value.smallest < 1e-12  # relative to a largest pivot of order one
+    # relative to a largest pivot of order one: a round-off zero, of either sign (the element matrices are
+    # positive semidefinite only up to rounding); a negative one below -1e-10 would be called indefinite
+    assert abs(err.value.smallest) < 1e-12 and err.value.cause == "singular"
     DirectSolver(M + 0.1 * face_matrix(V))  # stabilized: no error
 
 
