@@ -53,7 +53,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import assembly as _assembly
-from .assembly import assemble_vector, gram, gram_sum, kuhn_symmetric
+from .assembly import LatticeSum, assemble_vector, gram, gram_sum
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from .mesh import TET_EDGES
 from .markers import CUT
@@ -642,12 +642,30 @@ def _kuhn_stiffness(space, kuhn, volumes):
     """sum_T |T ∩ side| G_T G_T^T over all the tets of a structured box's element set: the gradients
     of Kuhn tet l are KUHN_GRADIENTS[l] / spacing (:attr:`~cutfem.mesh.StructuredBox.gradient_table`),
     so the products G_i . G_j form a (6, 4, 4) table and each tet's entries are a row of it times
-    its volume, summed per lattice edge by :func:`~cutfem.assembly.kuhn_symmetric`."""
+    its volume, summed by :class:`~cutfem.assembly.LatticeSum`."""
     G = space.elements.background.gradient_table
     D = np.einsum("lid,ljd->lij", G, G)
     edges, diagonal = D[:, TET_EDGES[:, 0], TET_EDGES[:, 1]], D[:, np.arange(4), np.arange(4)]
-    return kuhn_symmetric(space.element_dofs, kuhn, lambda a, b: edges[kuhn[a:b]] * volumes[a:b, None],
-                          lambda a, b: diagonal[kuhn[a:b]] * volumes[a:b, None], space.n_dofs)
+    total = _lattice(space)
+    for c in _blocks(len(kuhn)):
+        total.add_elements(space.element_dofs[c], edges[kuhn[c]] * volumes[c, None], diagonal[kuhn[c]] * volumes[c, None])
+    return total.matrix()
+
+
+def _lattice(space):
+    """A :class:`~cutfem.assembly.LatticeSum` for the dofs of ``space`` when they are nodes of a
+    structured box (a cut space on a :class:`~cutfem.mesh.StructuredBox`), else None."""
+    es = getattr(space, "elements", None)
+    if getattr(es, "kuhn_types", None) is None or getattr(space, "node_ids", None) is None:
+        return None
+    return LatticeSum(space.node_ids, es.background)
+
+
+def _blocks(m: int):
+    """Slices of :data:`~cutfem.assembly.GRAM_ROWS` // 4 elements: the per-element arrays of a sum
+    exist one block at a time."""
+    step = max(_assembly.GRAM_ROWS // 4, 1)
+    return [slice(a, min(a + step, m)) for a in range(0, m, step)]
 
 
 def _same_elements(space, measure) -> bool:
@@ -694,12 +712,15 @@ def mass(measure: Measure, field=None) -> Form:
 def _kuhn_volume_mass(space, measure, kuhn):
     """The volume mass matrix over the cells of a side (or of whole tets) of a structured box's
     element set: the whole elements' M_T = |T|/20 (1 + delta_ij) summed per lattice edge
-    (:func:`~cutfem.assembly.kuhn_symmetric`: no basis values, no Gram product), plus the sub-tets
+    (:class:`~cutfem.assembly.LatticeSum`: no basis values, no Gram product), plus the sub-tets
     of the cut elements by :func:`_simplex_mass`."""
     w = measure.whole_cells
     whole, volumes = measure.cell_parent[:w], measure.cell_volumes[:w]
-    M = kuhn_symmetric(space.element_dofs[whole], kuhn[whole], lambda a, b: np.repeat(volumes[a:b, None] / 20.0, 6, axis=1),
-                       lambda a, b: np.repeat(volumes[a:b, None] / 10.0, 4, axis=1), space.n_dofs)
+    total = _lattice(space)
+    for c in _blocks(w):
+        v = volumes[c, None]
+        total.add_elements(space.element_dofs[whole[c]], np.repeat(v / 20.0, 6, axis=1), np.repeat(v / 10.0, 4, axis=1))
+    M = total.matrix()
     if measure.n_cells > w:
         M = M + _simplex_mass(space, measure.cell_vertices(w, measure.n_cells), measure.cell_parent[w:], measure.cell_volumes[w:])
     return M
@@ -730,13 +751,13 @@ def _piece_moments(cut):
 def _element_symmetric(space, el, edges, diagonal) -> sp.csr_matrix:
     """sum_K A_K of symmetric 4 x 4 element matrices on the field's elements ``el`` (an index or a
     slice), given by their entries on the local edges ``edges`` (m, 6) (:data:`~cutfem.mesh.TET_EDGES`
-    order) and their ``diagonal`` (m, 4): per lattice edge on a structured box
-    (:func:`~cutfem.assembly.kuhn_symmetric`: no sort), through one COO matrix otherwise.  Exactly
+    order) and their ``diagonal`` (m, 4): by :class:`~cutfem.assembly.LatticeSum` on a structured
+    box (no sort), through one COO matrix otherwise.  Exactly
     symmetric either way."""
     dofs = space.element_dofs[el]
-    kuhn = getattr(space.elements, "kuhn_types", None)
-    if kuhn is not None:
-        return kuhn_symmetric(dofs, kuhn[el], lambda a, b: edges[a:b], lambda a, b: diagonal[a:b], space.n_dofs)
+    total = _lattice(space)
+    if total is not None:
+        return total.add_elements(dofs, edges, diagonal).matrix()
     i, j = TET_EDGES[:, 0], TET_EDGES[:, 1]
     rows = np.concatenate([dofs[:, i].ravel(), dofs[:, j].ravel(), dofs.ravel()])
     cols = np.concatenate([dofs[:, j].ravel(), dofs[:, i].ravel(), dofs.ravel()])
@@ -849,23 +870,34 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
     return Form([(1.0, _VectorTerm(build, field))], True)
 
 
-def _jump_gram(space, pairs, normals_pair, scale):
-    """Gram matrix of the jumps c = (t1 . G_{K1}, t2 . G_{K2}) weighted by ``scale`` (>= 0): one row
-    per facet on the dofs of K1 and K2 (shared dofs summed); ``pairs`` index the field's elements.
-    The rows are built and multiplied a block of facets at a time (:func:`~cutfem.assembly.gram_sum`:
-    the rows of the 5.6 million interior faces of the cut torus at spacing 0.00625, with their dofs,
-    took 0.5 GB at once)."""
+def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale, lattice=None):
+    """Gram matrix of the jumps c = (t_a . G_{K_a}, t_b . G_{K_b}), t_a = ``normals_a``, t_b = ``sign_b``
+    ``normals_b`` (F, 3), weighted by ``scale`` (>= 0): one row per pair (K_a, K_b) = ``pairs`` of the
+    field's elements on their dofs (shared dofs summed), built by :func:`cutfem.kernels.jump_rows` a
+    block of pairs at a time and summed into ``lattice`` (a :class:`~cutfem.assembly.LatticeSum`:
+    face-adjacent tets of a structured box) or by sparse Gram products
+    (:func:`~cutfem.assembly.gram_sum`; the rows of the 5.6 million interior faces of the cut torus
+    at spacing 0.00625, with their dofs, took 0.5 GB at once)."""
+    from . import kernels
+
     dofs = _compact(space.element_dofs, space.n_dofs)
+    table, types = space.gradient_lookup()
+    k = dofs.shape[1]
 
     def blocks():
         for start in range(0, len(pairs), _assembly.GRAM_ROWS):
             f = slice(start, start + _assembly.GRAM_ROWS)
-            p, t = pairs[f], normals_pair[f]
-            c = np.concatenate([np.einsum("fkd,fd->fk", space.gradients_of(p[:, s]), t[:, s]) for s in (0, 1)], axis=1)
-            c *= np.sqrt(scale[f])[:, None]
-            yield np.concatenate([dofs[p[:, 0]], dofs[p[:, 1]]], axis=1), c
+            p = np.ascontiguousarray(pairs[f])
+            rows_dofs, rows = np.empty((len(p), 2 * k), dtype=dofs.dtype), np.empty((len(p), 2 * k))
+            kernels.jump_rows(p, normals_a[f], normals_b[f], float(sign_b), np.ascontiguousarray(scale[f], dtype=float), dofs,
+                              table, types, rows_dofs, rows)
+            yield rows_dofs, rows
 
-    return gram_sum(blocks(), space.n_dofs)
+    if lattice is None:
+        return gram_sum(blocks(), space.n_dofs)
+    for rows_dofs, rows in blocks():
+        lattice.add_rows(rows_dofs, rows)
+    return lattice.matrix()
 
 
 def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -> Form:
@@ -885,7 +917,7 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
         n, scale = f.normals_areas()
         if h_power != 0:
             scale *= f.h**h_power
-        return _jump_gram(space, pairs, np.stack([n, -n], axis=1), scale)
+        return _jump_gram(space, pairs, n, n, -1.0, scale, lattice=_lattice(space))
 
     return Form([(1.0, _GramTerm(build, field))], False)
 
@@ -906,7 +938,9 @@ def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> F
         if not _same_elements(space, measure):
             raise ValueError("edge_jump_penalty needs the field on the cut tets, CutP1Space(cut, CUT)")
         c = measure.cut
-        return _jump_gram(space, c.surface_edge_tets, c.surface_edge_conormals, hh * c.surface_edge_lengths)
+        t = c.surface_edge_conormals
+        # the pieces along an edge of S_h need not lie in face-adjacent tets: Gram products, not lattice slots
+        return _jump_gram(space, c.surface_edge_tets, t[:, 0], t[:, 1], 1.0, hh * c.surface_edge_lengths)
 
     return Form([(1.0, _GramTerm(build, field))], False)
 

@@ -35,6 +35,19 @@ cut tet, summed over the piece's triangles in one pass (numpy needed the basis v
 triangle vertex, or three Gram rows per tet and a sparse product: 2.1 s for the mass matrix of the
 cut torus at spacing 0.0125, 853k cut tets).
 
+:func:`jump_rows`: the rows of the jump of normal derivatives across pairs of tets (face and edge
+penalties), a block of pairs at a time.
+
+Lattice sums
+------------
+On a structured box the nodes of two tets that share a face differ by one of 13 lattice vectors
+(:func:`~cutfem.mesh.kuhn_neighbour_offsets`), so a symmetric matrix assembled from tets and
+faces has at most 13 entries right of the diagonal in each row.  :func:`lattice_add_elements` and
+:func:`lattice_add_rows` add element matrices and Gram rows into 13 slots a node (the slot of the
+pair (a, b), a < b, is 13 a + the rank of the node-id difference), and :func:`lattice_csr` writes
+the CSR arrays from them in one pass: no sort, no sparse product, exactly symmetric.  This is what
+:class:`cutfem.assembly.LatticeSum` does.
+
 Compilation
 -----------
 A kernel is compiled on its first call for each width c (1, 2 or 3) and array type, and cached on
@@ -54,7 +67,8 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "piece_moments"]
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "piece_moments", "jump_rows", "lattice_add_elements", "lattice_add_rows",
+           "lattice_csr"]
 
 #: columns served by one pass over the matrix (one register accumulator each)
 WIDTH = 3
@@ -159,6 +173,31 @@ def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False):
     return out
 
 
+@njit(cache=True, error_model="numpy")
+def _column_dots(a, b, out):
+    n, c = a.shape
+    part = np.zeros(c)
+    for start in range(0, n, 256):
+        part[:] = 0.0
+        for i in range(start, min(start + 256, n)):
+            for l in range(c):
+                part[l] += a[i, l] * b[i, l]
+        for l in range(c):
+            out[l] += part[l]
+
+
+def column_dots(a, b):
+    """The dot products of the columns of a and b (n, c): in blocks of 256 rows, in row order, so a
+    column's result does not depend on the columns beside it (numpy's strided reductions change
+    their order with c; CG's scalars, and so its iterates, would differ in the last bits between a
+    column solved alone and in a block)."""
+    a = np.ascontiguousarray(a, dtype=float)
+    b = np.ascontiguousarray(b, dtype=float)
+    out = np.zeros(a.shape[1])
+    _column_dots(a, b, out)
+    return out
+
+
 def gauss_seidel(A, X, B, forward: bool = True):
     """One Gauss-Seidel sweep for ``A X = B`` in place on X (n, c), C-contiguous, of A's dtype: rows in
     increasing order (``forward``) or decreasing.  A is CSR with its diagonal stored (nonzero)."""
@@ -223,3 +262,139 @@ def piece_moments(vertices, triangles, tets_of, areas, origin, table, types, m: 
                    np.ascontiguousarray(origin, dtype=float), np.ascontiguousarray(table, dtype=float),
                    np.ascontiguousarray(types), edges, diagonal, integrals)
     return edges, diagonal, integrals
+
+
+@njit(cache=True, error_model="numpy")
+def jump_rows(pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, out_dofs, out_values):
+    """Rows of the jumps c = sqrt(w) (t_a . G_{K_a}, t_b . G_{K_b}) for the pairs (K_a, K_b) =
+    ``pairs`` (F, 2) of elements with k dofs, t_a = ``normals_a`` (F, 3), t_b = ``sign_b``
+    ``normals_b``, w = ``weights`` (F,): ``out_dofs`` (F, 2k) the dofs of K_a then K_b (``dofs``
+    (m, k)), ``out_values`` (F, 2k); the gradients are ``table[types[K]]`` (k, 3)
+    (:meth:`~cutfem.spaces.CutP1Space.gradient_lookup`)."""
+    k = dofs.shape[1]
+    for f in range(pairs.shape[0]):
+        w = np.sqrt(weights[f])
+        for side in range(2):
+            el = pairs[f, side]
+            g = table[types[el]]
+            t = normals_a[f] if side == 0 else normals_b[f]
+            scale = w if side == 0 else w * sign_b
+            for i in range(k):
+                out_dofs[f, k * side + i] = dofs[el, i]
+                out_values[f, k * side + i] = scale * (g[i, 0] * t[0] + g[i, 1] * t[1] + g[i, 2] * t[2])
+
+
+@njit(cache=True, error_model="numpy")
+def _slot(ids, code, a, b):
+    """The slot of the pair a < b, or -1 when their node ids differ by no lattice offset
+    (``code`` (d_max + 1,) int8: the rank of each node-id difference d among the offsets, or -1)."""
+    d = ids[b] - ids[a]
+    if d >= code.shape[0]:
+        return -1
+    c = code[d]
+    return -1 if c < 0 else a * 13 + c
+
+
+@njit(cache=True, error_model="numpy")
+def lattice_add_elements(ids, code, dofs, edges, diagonal, sums, partner, diag):
+    """Add symmetric element matrices (entries ``edges`` (m, 6) on the local edges, ``diagonal`` (m, 4))
+    of the elements ``dofs`` (m, 4) into the slots; returns the number of pairs outside the lattice
+    offsets (then the caller must not use the sums)."""
+    outside = 0
+    for t in range(dofs.shape[0]):
+        for e in range(6):
+            a, b = dofs[t, _TET_EDGES[e, 0]], dofs[t, _TET_EDGES[e, 1]]
+            if a > b:
+                a, b = b, a
+            s = _slot(ids, code, a, b)
+            if s < 0:
+                outside += 1
+                continue
+            sums[s] += edges[t, e]
+            partner[s] = b
+        for i in range(4):
+            diag[dofs[t, i]] += diagonal[t, i]
+    return outside
+
+
+@njit(cache=True, error_model="numpy")
+def lattice_add_rows(ids, code, dofs, values, sums, partner, diag):
+    """Add the Gram matrix sum_r c_r c_r^T of rows c_r (``values`` (r, k) on ``dofs`` (r, k); a dof
+    repeated in a row counts with the sum of its values) into the slots; returns the number of
+    pairs outside the lattice offsets.  Each row's repeated dofs are merged first (a face row has
+    8 entries on 5 nodes: 10 pairs instead of 28)."""
+    outside = 0
+    k = dofs.shape[1]
+    u = np.empty(k, dtype=dofs.dtype)
+    v = np.empty(k)
+    for r in range(dofs.shape[0]):
+        nu = 0
+        for p in range(k):
+            a = dofs[r, p]
+            for q in range(nu + 1):
+                if q == nu:
+                    u[nu] = a
+                    v[nu] = values[r, p]
+                    nu += 1
+                elif u[q] == a:
+                    v[q] += values[r, p]
+                    break
+        for p in range(nu):
+            a, vp = u[p], v[p]
+            diag[a] += vp * vp
+            for q in range(p + 1, nu):
+                b = u[q]
+                lo, hi = (a, b) if a < b else (b, a)
+                s = _slot(ids, code, lo, hi)
+                if s < 0:
+                    outside += 1
+                    continue
+                sums[s] += vp * v[q]
+                partner[s] = hi
+    return outside
+
+
+@njit(cache=True, error_model="numpy")
+def lattice_csr(sums, partner, diag, indptr, indices, data):
+    """The CSR arrays of the symmetric matrix held by the slots (``indptr`` (n + 1,) filled here,
+    ``indices`` and ``data`` of length ``indptr[n]``, see :func:`lattice_nnz`): in row a the
+    mirrors (a, c) of the slots (c, a), c < a, in increasing c, the diagonal, then the slots of a
+    in increasing partner.  Slots whose sum is exactly zero are left out."""
+    n = diag.shape[0]
+    S = 13
+    lower = np.zeros(n, dtype=indptr.dtype)
+    upper = np.zeros(n, dtype=indptr.dtype)
+    for a in range(n):
+        for c in range(S):
+            if sums[a * S + c] != 0.0:
+                upper[a] += 1
+                lower[partner[a * S + c]] += 1
+    indptr[0] = 0
+    for a in range(n):
+        indptr[a + 1] = indptr[a] + lower[a] + 1 + upper[a]
+    nxt = indptr[:-1].copy()  # next free mirror position of each row
+    for a in range(n):
+        pos = indptr[a] + lower[a]
+        indices[pos] = a
+        data[pos] = diag[a]
+        pos += 1
+        for c in range(S):
+            v = sums[a * S + c]
+            if v != 0.0:
+                b = partner[a * S + c]
+                indices[pos] = b
+                data[pos] = v
+                pos += 1
+                indices[nxt[b]] = a
+                data[nxt[b]] = v
+                nxt[b] += 1
+
+
+@njit(cache=True, error_model="numpy")
+def lattice_nnz(sums, n):
+    """Stored entries of the matrix of :func:`lattice_csr`: n + 2 (nonzero slots)."""
+    nz = 0
+    for s in range(sums.shape[0]):
+        if sums[s] != 0.0:
+            nz += 1
+    return n + 2 * nz

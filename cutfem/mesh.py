@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from functools import cached_property
+from functools import cached_property, lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -40,6 +40,7 @@ __all__ = [
     "tet_face_keys",
     "KUHN_EDGE_CODES",
     "kuhn_face_keys",
+    "kuhn_neighbour_offsets",
     "pair_up",
     "unique_keys",
 ]
@@ -123,6 +124,29 @@ def _kuhn_face_tables():
 
 
 _KUHN_FACE_LOW, _KUHN_FACE_TYPE = _kuhn_face_tables()
+
+
+@lru_cache(maxsize=1)
+def kuhn_neighbour_offsets() -> np.ndarray:
+    """(13, 3) the lattice vectors q - p between two nodes p != q of one Kuhn tet or of two Kuhn tets
+    sharing a face, oriented with (dz, dy, dx) lexicographically positive (q after p in the node
+    numbering of a box), in that order: the 7 edge directions of the Kuhn lattice and the 6 vectors
+    between the opposite vertices of face-adjacent tets.  Enumerated from the tets of the 27 cells
+    around the cell at the origin and each tet of that cell (every pair of face-adjacent tets is one
+    of those up to translation)."""
+    cells = np.array([(x, y, z) for z in (-1, 0, 1) for y in (-1, 0, 1) for x in (-1, 0, 1)])
+    tets = (cells[:, None, None, :] + CUBE_CORNERS[KUHN_TETS][None]).reshape(-1, 4, 3)
+    as_sets = [frozenset(map(tuple, t)) for t in tets]
+    found = set()
+    for a in as_sets[13 * 6 : 14 * 6]:  # the six tets of cell (0, 0, 0)
+        for b in as_sets:
+            if len(a & b) >= 3:  # the same tet or a shared face
+                for p in a | b:
+                    for q in a | b:
+                        d = tuple(int(v) for v in np.subtract(q, p))
+                        if d[::-1] > (0, 0, 0):
+                            found.add(d)
+    return np.array(sorted(found, key=lambda d: d[::-1]), dtype=np.int64)
 
 
 def kuhn_face_keys(tets: np.ndarray, kuhn: np.ndarray) -> np.ndarray:
@@ -572,6 +596,12 @@ class StructuredBox(TetMesh):
     def coordinates(self, ijk) -> np.ndarray:
         """Coordinates of integer node indices ``ijk`` (..., 3): ``lower + ijk * spacing``."""
         return self.lower + np.asarray(ijk) * self.spacing
+
+    @cached_property
+    def neighbour_id_offsets(self) -> np.ndarray:
+        """(13,) increasing node-id differences of :func:`kuhn_neighbour_offsets` on this box: two
+        nodes of one tet or of two face-adjacent tets differ in id by one of them."""
+        return np.sort(self.node_id(kuhn_neighbour_offsets()))
 
     def node_coordinates(self, ids) -> np.ndarray:
         return self.coordinates(self.node_index(ids))

@@ -704,8 +704,11 @@ def _one_blas_thread():
 
 
 def _columns_dot(a, b):
-    """Column-wise dot products of (n, c) arrays without BLAS (see the module docstring)."""
-    return np.einsum("ij,ij->j", a, b)
+    """Column-wise dot products of (n, c) arrays, without BLAS (see the module docstring) and in an
+    order independent of c (:func:`cutfem.kernels.column_dots`)."""
+    from . import kernels
+
+    return kernels.column_dots(a, b)
 
 
 def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
@@ -805,7 +808,7 @@ def _constant_correction(A, x, r, nb, tol):
     denom = float(a1.sum())  # 1^T A 1 > 0 for SPD A
     if not denom > 0:
         return r, np.sqrt(_columns_dot(r, r)) / nb
-    alpha = r.sum(axis=0) / denom
+    alpha = _columns_dot(r, np.ones_like(r)) / denom  # 1^T r per column, in an order independent of c
     r_new = r - alpha[None, :] * a1[:, None]
     rel_new = np.sqrt(_columns_dot(r_new, r_new)) / nb
     keep = rel_new <= tol
@@ -1141,8 +1144,11 @@ class GeometricMultigrid:
         return f"GeometricMultigrid(levels={self.sizes}, operator_complexity={self.operator_complexity:.2f})"
 
     def _coarse_solve(self, b):
+        # column by column: SuperLU's solve with several right-hand sides, and a matrix product, sum in
+        # another order than with one, and a column would not give what it gives alone
         kind, f = self._coarse
-        return f.solve(b) if kind == "lu" else f @ b
+        apply = f.solve if kind == "lu" else f.__matmul__
+        return np.column_stack([apply(np.ascontiguousarray(b[:, k])) for k in range(b.shape[1])])
 
     def cycle(self, B, level: int = 0):
         """One cycle for A_level X = B from X = 0 on a block B (n, c) of columns (single precision,

@@ -66,6 +66,11 @@ class _P1Space:
         """The basis gradients of the given elements, ``element_gradients[elements]``."""
         return self.element_gradients[elements]
 
+    def gradient_lookup(self):
+        """(table, types) with ``gradients_of(i) = table[types[i]]``, for compiled kernels: here the
+        element gradients and 0..n_el-1."""
+        return self.element_gradients, np.arange(self.n_elements)
+
     def basis_at(self, points: np.ndarray, parent: np.ndarray) -> np.ndarray:
         """(m, j, k) P1 basis values of element ``parent[i]`` at ``points[i]`` (m, j, 3)."""
         return barycentric_at(points, self.element_origin[parent], self.gradients_of(parent))
@@ -251,6 +256,11 @@ class CutP1Space(_P1Space):
 
     def gradients_of(self, elements) -> np.ndarray:
         return self.elements.gradients_of(elements)
+
+    def gradient_lookup(self):
+        """(table, types) of the element set (:meth:`~cutfem.markers.ElementSet.gradient_lookup`):
+        on a structured box the Kuhn table and the Kuhn types, no gathered gradients."""
+        return self.elements.gradient_lookup()
 
     @property
     def n_elements(self) -> int:

@@ -352,14 +352,14 @@ def test_volume_mass_and_stiffness_match_reference(perturbed):
 
 @pytest.mark.parametrize("cells", [5, (5, 4, 6)], ids=["cubes", "anisotropic"])
 def test_volume_stiffness_on_a_structured_box_matches_reference(cells, monkeypatch):
-    """The lattice-edge route of the mass and the stiffness (StructuredBox element sets, summed per lattice
-    edge in blocks of KUHN_BLOCK tets) against the element loop: the same matrix, exactly
+    """The lattice route of the mass and the stiffness (StructuredBox element sets, summed in lattice
+    slots by LatticeSum in blocks of GRAM_ROWS // 4 tets) against the element loop: the same matrix, exactly
     symmetric, with zero row sums (the gradients of the basis sum to zero), and the entries that
     cancel exactly on a uniform lattice left out of the pattern as the Gram product leaves them."""
     import cutfem.assembly as assembly
     from cutfem.forms import _gradient_matrix
 
-    monkeypatch.setattr(assembly, "KUHN_BLOCK", 37)
+    monkeypatch.setattr(assembly, "GRAM_ROWS", 4 * 37)
     bg = structured_box([-1, -1, -1], [1, 1, 1], cells=cells)
     ls = Sphere(0.71, [0.05, -0.03, 0.02])
     cut = cut_mesh(bg, ls)
@@ -445,3 +445,33 @@ def test_gram_in_blocks_of_rows(monkeypatch):
     D = np.zeros((103, 40))
     np.add.at(D, (np.repeat(np.arange(103), 4), d0.reshape(-1)), v0.reshape(-1))
     np.testing.assert_allclose(blocked.toarray(), D.T @ D, atol=1e-12)
+
+
+def test_lattice_sum_refuses_pairs_that_are_not_lattice_neighbours():
+    """LatticeSum keeps 13 slots a node: a pair of nodes further apart than two face-adjacent Kuhn
+    tets has no slot, and is reported instead of dropped; the Gram rows it sums otherwise equal the
+    sparse product's, exactly symmetric, with the 13 offsets those of the box's node ids."""
+    from cutfem.assembly import LatticeSum, gram
+    from cutfem.mesh import kuhn_neighbour_offsets
+
+    box = structured_box([0, 0, 0], [1, 1, 1], cells=4)
+    offsets = kuhn_neighbour_offsets()
+    assert len(offsets) == 13 and len({tuple(o) for o in offsets}) == 13
+    assert np.all(np.diff(box.neighbour_id_offsets) > 0)
+    ids = np.arange(box.n_points)
+    lattice = LatticeSum(ids, box)
+    with pytest.raises(ValueError, match="not nodes of one Kuhn tet or of two face-adjacent tets"):
+        lattice.add_rows(np.array([[0, 3]]), np.array([[1.0, 2.0]]))  # (3, 0, 0) apart
+    # rows on the node pairs of the 13 offsets from an interior node, and a repeated dof
+    centre = int(box.node_id(np.array([2, 2, 2])))
+    partners = centre + box.neighbour_id_offsets
+    dofs = np.stack([np.full(13, centre), partners, partners], axis=1)
+    values = np.random.default_rng(3).standard_normal((13, 3))
+    A = LatticeSum(ids, box).add_rows(dofs, values).matrix()
+    np.testing.assert_allclose(A.toarray(), gram(dofs, values, box.n_points).toarray(), rtol=0, atol=1e-14)
+    assert abs(A - A.T).max() == 0.0
+    S = sp.csr_matrix((A.data.copy(), A.indices.copy(), A.indptr.copy()), shape=A.shape)
+    S.has_sorted_indices = False
+    S.sort_indices()  # the CSR arrays were written sorted, without duplicates
+    np.testing.assert_array_equal(S.indices, A.indices)
+    assert np.all(np.diff(A.indices.reshape(-1)[A.indptr[1]:A.indptr[2]]) > 0)
