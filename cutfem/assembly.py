@@ -148,6 +148,16 @@ class LatticeSum:
                                              self.diagonal), "rows")
         return self
 
+    def add_jumps(self, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types) -> "LatticeSum":
+        """Add the Gram matrix of the jump rows of :func:`cutfem.kernels.jump_rows` (same arguments),
+        each row built and added in turn."""
+        from . import kernels
+
+        self._check(kernels.lattice_add_jumps(self.ids, self.code, pairs, normals_a, normals_b, float(sign_b),
+                                              np.ascontiguousarray(weights, dtype=float), dofs, table, types, self.sums,
+                                              self.partner, self.diagonal), "jump rows")
+        return self
+
     def matrix(self) -> sp.csr_matrix:
         """The CSR matrix of the sums (canonical: sorted, no duplicates)."""
         from . import kernels

@@ -873,15 +873,17 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
 def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale, lattice=None):
     """Gram matrix of the jumps c = (t_a . G_{K_a}, t_b . G_{K_b}), t_a = ``normals_a``, t_b = ``sign_b``
     ``normals_b`` (F, 3), weighted by ``scale`` (>= 0): one row per pair (K_a, K_b) = ``pairs`` of the
-    field's elements on their dofs (shared dofs summed), built by :func:`cutfem.kernels.jump_rows` a
-    block of pairs at a time and summed into ``lattice`` (a :class:`~cutfem.assembly.LatticeSum`:
-    face-adjacent tets of a structured box) or by sparse Gram products
+    field's elements on their dofs (shared dofs summed), by :func:`cutfem.kernels.jump_rows`: summed
+    into ``lattice`` (a :class:`~cutfem.assembly.LatticeSum`: face-adjacent tets of a structured box)
+    row by row as they are built, or a block of pairs at a time by sparse Gram products
     (:func:`~cutfem.assembly.gram_sum`; the rows of the 5.6 million interior faces of the cut torus
     at spacing 0.00625, with their dofs, took 0.5 GB at once)."""
     from . import kernels
 
     dofs = _compact(space.element_dofs, space.n_dofs)
     table, types = space.gradient_lookup()
+    if lattice is not None:
+        return lattice.add_jumps(np.ascontiguousarray(pairs), normals_a, normals_b, sign_b, scale, dofs, table, types).matrix()
     k = dofs.shape[1]
 
     def blocks():
@@ -893,11 +895,7 @@ def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale, lattice=None):
                               table, types, rows_dofs, rows)
             yield rows_dofs, rows
 
-    if lattice is None:
-        return gram_sum(blocks(), space.n_dofs)
-    for rows_dofs, rows in blocks():
-        lattice.add_rows(rows_dofs, rows)
-    return lattice.matrix()
+    return gram_sum(blocks(), space.n_dofs)
 
 
 def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -> Form:

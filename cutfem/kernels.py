@@ -11,21 +11,24 @@ again.  These kernels read a row of the matrix once for up to :data:`WIDTH` colu
 side, (n, c) in row-major order, with one accumulator per column in registers.
 
 Measured on the 2-core machine (cut torus at spacing 0.0125: 293 244 unknowns, 4.9 million
-nonzeros, single-precision matrix as in the multigrid cycle; medians of 15-30 calls, ms):
+nonzeros; medians of 21 calls in two runs, ms):
 
-==========================  ============================  ==============
-kernel                      one column at a time          one pass
-==========================  ============================  ==============
-product, 3 columns          15-21 (scipy, 3 products)     6.5-7.5
-product, 1 column           5.7-6.4 (scipy)               5.3-5.7
-Gauss-Seidel, 3 columns     16-21 (pyamg, 3 sweeps)       8.7-10.5
-Gauss-Seidel, 1 column      6.9-7.4 (pyamg)               7.4-7.7
-==========================  ============================  ==============
+=================================  ============================  ==========
+kernel                             one column at a time          one pass
+=================================  ============================  ==========
+product, 3 columns, float32        13-15 (scipy, 3 products)     5.8-5.9
+product, 3 columns, float64 (CG)   19-21 (scipy, 3 products)     9.2-9.4
+product, 1 column, float32         4.4-5.9 (scipy)               4.4-6.0
+Gauss-Seidel, 3 columns, float32   15-21 (pyamg, 3 sweeps)       6.6-10.7
+Gauss-Seidel, 1 column, float32    5.4-6.7 (pyamg)               5.0-7.3
+=================================  ============================  ==========
 
-The products split the rows between the cores (``prange``; 15.8 ms on one thread against 8.4 ms
-on two for three columns), the sweeps are sequential by nature.  Indices are read as unsigned and
-the error model is numpy's: with Python's negative-index and division-by-zero checks in the inner
-loop the one-column sweep took 11-15 ms.  The sums run row by row in the matrix's order, as in
+Everything runs on the calling thread.  Splitting the products' rows between the two cores
+(numba's ``prange`` on OpenMP) gained 7 % on the whole solve (1.83-1.99 s against 1.99-2.15 s for
+the three columns) and, with the other core busy, once made it take 7 s instead of 2.4 s; it
+would also start a thread pool in the user's process.  Indices are read as unsigned and the error
+model is numpy's: with Python's negative-index and division-by-zero checks in the inner loop the
+one-column sweep took 11-15 ms.  The sums run row by row in the matrix's order, as in
 scipy and pyamg, so a column's result does not depend on the columns beside it (bitwise).
 
 Element kernels
@@ -61,13 +64,14 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit, prange
+from numba import njit
 
 from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
 __all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "piece_moments", "jump_rows", "lattice_add_elements", "lattice_add_rows",
+           "lattice_add_jumps",
            "lattice_csr"]
 
 #: columns served by one pass over the matrix (one register accumulator each)
@@ -82,10 +86,10 @@ def _kernels(c: int):
     if c in _COMPILED:
         return _COMPILED[c]
 
-    @njit(cache=True, parallel=True, error_model="numpy")
+    @njit(cache=True, error_model="numpy")
     def product(indptr, indices, data, X, Y, alpha, accumulate):
         """Y = alpha A X (accumulate: Y += alpha A X), X (n_in, c), Y (n_out, c)."""
-        for i in prange(Y.shape[0]):
+        for i in range(Y.shape[0]):
             s0 = s1 = s2 = Y.dtype.type(0)
             for k in range(np.uint64(indptr[i]), np.uint64(indptr[i + 1])):
                 j = np.uint64(indices[k])
@@ -153,7 +157,7 @@ def _groups(c: int):
 def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False):
     """``out = alpha A X`` (``accumulate``: ``out += alpha A X``) for a CSR matrix A and a block X
     (n, c) of the matrix's dtype, C-contiguous; returns ``out`` (allocated when None).  One pass
-    over A for each :data:`WIDTH` columns, the rows split between threads."""
+    over A for each :data:`WIDTH` columns."""
     indptr, indices, data = _csr(A)
     if X.ndim != 2 or X.shape[0] != A.shape[1] or X.dtype != data.dtype or not X.flags.c_contiguous:
         raise ValueError(f"X must be a C-contiguous ({A.shape[1]}, c) block of {data.dtype}, got {X.shape} {X.dtype}")
@@ -265,23 +269,29 @@ def piece_moments(vertices, triangles, tets_of, areas, origin, table, types, m: 
 
 
 @njit(cache=True, error_model="numpy")
+def _jump_row(f, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, row_dofs, row_values):
+    """Row f of :func:`jump_rows` into ``row_dofs``, ``row_values`` (2k,)."""
+    k = dofs.shape[1]
+    w = np.sqrt(weights[f])
+    for side in range(2):
+        el = pairs[f, side]
+        g = table[types[el]]
+        t = normals_a[f] if side == 0 else normals_b[f]
+        scale = w if side == 0 else w * sign_b
+        for i in range(k):
+            row_dofs[k * side + i] = dofs[el, i]
+            row_values[k * side + i] = scale * (g[i, 0] * t[0] + g[i, 1] * t[1] + g[i, 2] * t[2])
+
+
+@njit(cache=True, error_model="numpy")
 def jump_rows(pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, out_dofs, out_values):
     """Rows of the jumps c = sqrt(w) (t_a . G_{K_a}, t_b . G_{K_b}) for the pairs (K_a, K_b) =
     ``pairs`` (F, 2) of elements with k dofs, t_a = ``normals_a`` (F, 3), t_b = ``sign_b``
     ``normals_b``, w = ``weights`` (F,): ``out_dofs`` (F, 2k) the dofs of K_a then K_b (``dofs``
     (m, k)), ``out_values`` (F, 2k); the gradients are ``table[types[K]]`` (k, 3)
     (:meth:`~cutfem.spaces.CutP1Space.gradient_lookup`)."""
-    k = dofs.shape[1]
     for f in range(pairs.shape[0]):
-        w = np.sqrt(weights[f])
-        for side in range(2):
-            el = pairs[f, side]
-            g = table[types[el]]
-            t = normals_a[f] if side == 0 else normals_b[f]
-            scale = w if side == 0 else w * sign_b
-            for i in range(k):
-                out_dofs[f, k * side + i] = dofs[el, i]
-                out_values[f, k * side + i] = scale * (g[i, 0] * t[0] + g[i, 1] * t[1] + g[i, 2] * t[2])
+        _jump_row(f, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, out_dofs[f], out_values[f])
 
 
 @njit(cache=True, error_model="numpy")
@@ -318,39 +328,61 @@ def lattice_add_elements(ids, code, dofs, edges, diagonal, sums, partner, diag):
 
 
 @njit(cache=True, error_model="numpy")
+def _add_gram_row(ids, code, row_dofs, row_values, u, v, sums, partner, diag):
+    """Add c c^T for one row c (``row_values`` on ``row_dofs``), its repeated dofs merged first (a
+    face row has 8 entries on 5 nodes: 10 pairs instead of 28), ``u``, ``v`` scratch of the row's
+    length; returns the number of pairs outside the lattice offsets."""
+    nu = 0
+    for p in range(row_dofs.shape[0]):
+        a = row_dofs[p]
+        for q in range(nu + 1):
+            if q == nu:
+                u[nu] = a
+                v[nu] = row_values[p]
+                nu += 1
+            elif u[q] == a:
+                v[q] += row_values[p]
+                break
+    outside = 0
+    for p in range(nu):
+        a, vp = u[p], v[p]
+        diag[a] += vp * vp
+        for q in range(p + 1, nu):
+            b = u[q]
+            lo, hi = (a, b) if a < b else (b, a)
+            s = _slot(ids, code, lo, hi)
+            if s < 0:
+                outside += 1
+                continue
+            sums[s] += vp * v[q]
+            partner[s] = hi
+    return outside
+
+
+@njit(cache=True, error_model="numpy")
 def lattice_add_rows(ids, code, dofs, values, sums, partner, diag):
     """Add the Gram matrix sum_r c_r c_r^T of rows c_r (``values`` (r, k) on ``dofs`` (r, k); a dof
     repeated in a row counts with the sum of its values) into the slots; returns the number of
-    pairs outside the lattice offsets.  Each row's repeated dofs are merged first (a face row has
-    8 entries on 5 nodes: 10 pairs instead of 28)."""
+    pairs outside the lattice offsets."""
+    u = np.empty(dofs.shape[1], dtype=dofs.dtype)
+    v = np.empty(dofs.shape[1])
     outside = 0
-    k = dofs.shape[1]
-    u = np.empty(k, dtype=dofs.dtype)
-    v = np.empty(k)
     for r in range(dofs.shape[0]):
-        nu = 0
-        for p in range(k):
-            a = dofs[r, p]
-            for q in range(nu + 1):
-                if q == nu:
-                    u[nu] = a
-                    v[nu] = values[r, p]
-                    nu += 1
-                elif u[q] == a:
-                    v[q] += values[r, p]
-                    break
-        for p in range(nu):
-            a, vp = u[p], v[p]
-            diag[a] += vp * vp
-            for q in range(p + 1, nu):
-                b = u[q]
-                lo, hi = (a, b) if a < b else (b, a)
-                s = _slot(ids, code, lo, hi)
-                if s < 0:
-                    outside += 1
-                    continue
-                sums[s] += vp * v[q]
-                partner[s] = hi
+        outside += _add_gram_row(ids, code, dofs[r], values[r], u, v, sums, partner, diag)
+    return outside
+
+
+@njit(cache=True, error_model="numpy")
+def lattice_add_jumps(ids, code, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, sums, partner, diag):
+    """Add the Gram matrix of the jump rows of :func:`jump_rows` into the slots, one row at a time
+    (no (F, 2k) arrays); returns the number of pairs outside the lattice offsets."""
+    k2 = 2 * dofs.shape[1]
+    row_dofs, row_values = np.empty(k2, dtype=dofs.dtype), np.empty(k2)
+    u, v = np.empty(k2, dtype=dofs.dtype), np.empty(k2)
+    outside = 0
+    for f in range(pairs.shape[0]):
+        _jump_row(f, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, row_dofs, row_values)
+        outside += _add_gram_row(ids, code, row_dofs, row_values, u, v, sums, partner, diag)
     return outside
 
 

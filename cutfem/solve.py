@@ -139,8 +139,8 @@ The banded factorization runs with BLAS on one thread (threadpoolctl): OpenBLAS'
 little on these small level-3 blocks, and whenever the other core was busy their synchronization
 made a 2 ms factorization take up to 0.5 s.
 
-BLAS threads: the iteration loops use no BLAS calls (column dot products by ``einsum``): on this
-machine's 2 virtual cores, OpenBLAS' threaded level-1 calls on vectors of 10^5 entries are up to
+BLAS threads: the iteration loops use no BLAS calls (column dot products by a compiled kernel,
+:func:`cutfem.kernels.column_dots`): on this machine's 2 virtual cores, OpenBLAS' threaded level-1 calls on vectors of 10^5 entries are up to
 20 times slower than serial ones, which made scipy's ``cg`` erratic (0.2 s to 3.7 s for the same
 300 iterations).
 
