@@ -16,13 +16,13 @@ from __future__ import annotations
 import numpy as np
 
 from .measures import surface_measure
-from .mesh import cross, triangle_areas
-from .quadrature import mapped_points, triangle_rule
+from .mesh import triangle_areas
+from .quadrature import triangle_rule
 
 __all__ = ["l2_error", "h1_error", "l2_h1_errors", "discrete_error", "rates", "fitted_rate", "surface_integral"]
 
 
-def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1 << 10) -> float:
+def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1 << 14) -> float:
     """L2 error of the discrete function ``coeffs`` (n,) or (n, c) against ``exact(x)`` over ``measure``
     (any cell measure of :mod:`cutfem.measures`; ``None``: S_h of a trace or meshed field).
 
@@ -34,39 +34,42 @@ def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1
         x_q = sum_v b_qv x_v,  u_h(x_q) = sum_v b_qv u_v,
         error^2 = sum_T |T| sum_q w_q |u^e(x_q) - u_h(x_q)|^2,
 
-    (b, w) the reference rule of the given degree, |T| = |(x_1 - x_0) x (x_2 - x_0)| / 2.  Both
-    interpolations are one matrix product of the (m, 3 c) vertex data with kron(b^T, I_c).  The
-    triangles are processed in blocks of ``chunk``: small enough that the temporaries stay in
-    cache and that BLAS runs these thin products on one thread (threads cost more than they save
-    here, several times more on a loaded machine).
+    (b, w) the reference rule of the given degree, |T| = |(x_1 - x_0) x (x_2 - x_0)| / 2.  The
+    triangles go in blocks of ``chunk``: per block one call of ``exact`` on all its points, the
+    points and the sum by compiled kernels (:func:`cutfem.kernels.triangle_points`,
+    :func:`cutfem.kernels.squared_error`).  Over a ``measure``: the cells in blocks of
+    :data:`CELL_CHUNK`, as :func:`l2_h1_errors`.
     """
     if degree < 4:
         raise ValueError("docs/math.md §5 asks for quadrature of degree >= 4 in error norms")
     if measure is None:
+        from . import kernels
+
         surface_measure(space)  # a clear error for a bulk field
         points, triangles, values = space.surface_vertex_data(coeffs)
         points = np.ascontiguousarray(points, dtype=float)
-        # C order: a solver may return the coefficients in Fortran order, and the row gathers
-        # below are several times slower on that layout than one copy of the array
         values = np.ascontiguousarray(np.asarray(values, dtype=float).reshape(len(values), -1))
         bary, w = triangle_rule(degree)
+        bary, w = np.ascontiguousarray(bary, dtype=float), np.ascontiguousarray(w, dtype=float)
         q, c = len(w), values.shape[1]
-        to_values = np.kron(bary.T, np.eye(c))  # (3c, qc)
         total = 0.0
         for start in range(0, len(triangles), chunk):  # blocks of triangles, not single elements
-            t = triangles[start : start + chunk]
-            X = np.take(points, t, axis=0)  # (b, 3, 3)
-            area = 0.5 * np.linalg.norm(cross(X[:, 1] - X[:, 0], X[:, 2] - X[:, 0]), axis=1)
-            x = mapped_points(bary, X)
-            ue = np.asarray(exact(x), dtype=float).reshape(len(t), q, -1)
-            d = ue - (np.take(values, t, axis=0).reshape(-1, 3 * c) @ to_values).reshape(-1, q, c)
-            d *= d
-            total += float(area @ (d.reshape(len(t), -1) @ np.repeat(w, d.shape[2])))
+            t = np.ascontiguousarray(triangles[start : start + chunk])
+            x, area = np.empty((len(t), q, 3)), np.empty(len(t))
+            kernels.triangle_points(points, t, bary, x, area)
+            ue = np.asarray(exact(x), dtype=float)
+            if ue.size != len(t) * q * c:
+                raise ValueError(f"the exact solution must give {c} value(s) per point at points {x.shape}, got shape {ue.shape}")
+            total += kernels.squared_error(values, t, bary, w, area, np.ascontiguousarray(ue.reshape(len(t), q, c)))
         return float(np.sqrt(total))
-    return _cell_errors(space, coeffs, lambda x: (exact(x), None), measure, degree, 8 * chunk)[0]
+    return _cell_errors(space, coeffs, lambda x: (exact(x), None), measure, degree, CELL_CHUNK)[0]
 
 
-def h1_error(space, coeffs, exact_gradient, measure=None, degree: int = 4, chunk: int = 1 << 13) -> float:
+#: cells per block of the volume and cut-cell error sums
+CELL_CHUNK = 1 << 13
+
+
+def h1_error(space, coeffs, exact_gradient, measure=None, degree: int = 4, chunk: int = CELL_CHUNK) -> float:
     """H1 seminorm error of a scalar discrete function: ``|| grad u^e - grad u_h ||`` over a volume
     measure, ``|| P_h (grad u^e - grad u_h) ||`` over a surface (``measure=None``: S_h of a trace or
     meshed field).  ``exact_gradient(x)`` maps (m, q, 3) to (m, q, 3).  Cells in blocks of ``chunk``
@@ -74,7 +77,7 @@ def h1_error(space, coeffs, exact_gradient, measure=None, degree: int = 4, chunk
     return _cell_errors(space, coeffs, lambda x: (None, exact_gradient(x)), measure, degree, chunk)[1]
 
 
-def l2_h1_errors(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1 << 13) -> tuple[float, float]:
+def l2_h1_errors(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = CELL_CHUNK) -> tuple[float, float]:
     """(L2 error, H1 seminorm error) of a scalar discrete function in one pass over the cells:
     the values of :func:`l2_error` and :func:`h1_error` (the same quadrature, the same sums), with
     ``exact(x)`` returning the pair ``(u(x) (m, q), grad u(x) (m, q, 3))`` at points (m, q, 3).
