@@ -816,8 +816,8 @@ def position_load(measure: Measure, field=None) -> Form:
         b_i = sum_K |S_K| grad_{S_h} phi_i|_K,
 
     the area-weighted tangential gradients summed per dof: the same vector as A x_k with A the
-    tangential stiffness (to round-off; tested), at the cost of one scatter instead of a sparse
-    matrix product.  Each element's contributions sum to |S_K| P_h grad(1) = 0, so sum_i b_i = 0 up
+    tangential stiffness (to round-off; tested), at the cost of one compiled pass over the elements
+    (:func:`cutfem.kernels.tangential_gradient_sums`) instead of a sparse matrix product.  Each element's contributions sum to |S_K| P_h grad(1) = 0, so sum_i b_i = 0 up
     to round-off (the zero integral of H_h).  On a triangulated surface the closed-form stiffness
     (no gradients) times x is cheaper and is used instead.
     """
@@ -828,10 +828,12 @@ def position_load(measure: Measure, field=None) -> Form:
             return _meshed_stiffness(space) @ space.dof_points
         if not _same_elements(space, measure):
             raise ValueError("position_load needs the field on the cut tets, CutP1Space(cut, CUT)")
+        from . import kernels
+
         out = np.zeros((space.n_dofs, 3))
-        for start in range(0, space.n_elements, _assembly.GRAM_ROWS):  # blocks: no (m, 4, 3) array of the whole set
-            cells = slice(start, start + _assembly.GRAM_ROWS)
-            out += assemble_vector(space.element_dofs[cells], space.tangential_gradients_of(cells) * measure.piece_areas[cells, None, None], space.n_dofs)
+        table, types = space.gradient_lookup()
+        kernels.tangential_gradient_sums(space.element_dofs, table, types, np.ascontiguousarray(space.element_normals, dtype=float),
+                                         np.ascontiguousarray(measure.piece_areas, dtype=float), out)
         return out
 
     return Form([(1.0, _VectorTerm(build, field))], True)
