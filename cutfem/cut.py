@@ -715,9 +715,6 @@ class CutMesh:
         )
 
 
-#: tets per block where cut_mesh reads the Kuhn gradients
-_BLOCK = 1 << 19
-
 # the polygon slots of the triangles (0, 1, 2) and (0, 2, 3) of a piece, and the same turned over
 _TRIANGLE_SLOTS = np.array([[0, 1, 2, 0, 2, 3], [0, 2, 1, 0, 3, 2]], dtype=np.int64)
 
@@ -816,23 +813,23 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     values = label_values[uniq]
     p = len(node_ids)
 
-    # basis gradients: the Kuhn table on a structured box (read a block at a time, never kept:
-    # see ElementSet.gradients), else from the vertices; normals n_h = grad phi_h / |grad phi_h|
+    # basis gradients: the Kuhn table on a structured box (never kept: see ElementSet.gradients),
+    # else from the vertices; normals n_h = grad phi_h / |grad phi_h| by a compiled pass
+    from . import kernels
+
     if structured:
         grads = None
         volumes = np.full(m, background.tet_volume)
         negative = None
-        g = np.empty((m, 3))
-        for start in range(0, m, _BLOCK):
-            block = slice(start, start + _BLOCK)
-            g[block] = np.einsum("tk,tkd->td", vals[block], background.tet_gradients(tet_ids[block]))
+        table, types = background.gradient_table, (tet_ids % 6).astype(np.int8)
     else:
         grads, volumes = barycentric_gradients(points[tets])
         negative = volumes < 0
         volumes = np.abs(volumes)
-        g = np.einsum("tk,tkd->td", vals, grads)
-    normals = g / np.linalg.norm(g, axis=1)[:, None]
-    del g, vals
+        table, types = grads, np.arange(m)
+    normals = np.empty((m, 3))
+    kernels.level_set_normals(np.ascontiguousarray(vals, dtype=float), table, types, normals)
+    del vals, types
 
     # surface vertices: key = active node (on-node vertex) or p + edge (min, max), numbered by key
     li, lj = _take_rows(tets, edge_i), _take_rows(tets, edge_j)

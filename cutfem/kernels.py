@@ -38,6 +38,9 @@ cut tet, summed over the piece's triangles in one pass (numpy needed the basis v
 triangle vertex, or three Gram rows per tet and a sparse product: 2.1 s for the mass matrix of the
 cut torus at spacing 0.0125, 853k cut tets).
 
+:func:`level_set_normals`: n_h = grad phi_h / |grad phi_h| of each cut tet from its nodal values
+(numpy: an (m, 4, 3) gradient block and an einsum, 0.18 s at 853k tets).
+
 :func:`tangential_gradient_sums`: sum_K w_K P_h grad lambda_i per dof, the right-hand sides of the
 mean curvature problem (numpy built the (m, 4, 3) tangential gradients first: 0.55 s at 853k
 cut tets).
@@ -78,7 +81,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "piece_moments", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "piece_moments", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "jump_rows", "lattice_add_elements", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -487,3 +490,22 @@ def tangential_gradient_sums(dofs, table, types, normals, weights, out):
             out[a, 0] += w * (g[i, 0] - gn * n0)
             out[a, 1] += w * (g[i, 1] - gn * n1)
             out[a, 2] += w * (g[i, 2] - gn * n2)
+
+
+@njit(cache=True, error_model="numpy")
+def level_set_normals(values, table, types, out):
+    """out[t] = g / |g|, g = sum_k values[t, k] grad lambda_k with the gradients ``table[types[t]]``
+    (4, 3): the unit normals n_h of the zero level set of the P1 interpolant in each tet.  A tet
+    with g = 0 gets NaN (the caller checks)."""
+    for t in range(values.shape[0]):
+        G = table[types[t]]
+        g0 = g1 = g2 = 0.0
+        for k in range(4):
+            v = values[t, k]
+            g0 += v * G[k, 0]
+            g1 += v * G[k, 1]
+            g2 += v * G[k, 2]
+        norm = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        out[t, 0] = g0 / norm
+        out[t, 1] = g1 / norm
+        out[t, 2] = g2 / norm
