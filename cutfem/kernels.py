@@ -81,7 +81,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "piece_moments", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "jump_rows", "lattice_add_elements", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -212,6 +212,47 @@ def column_dots(a, b):
     out = np.zeros(a.shape[1])
     _column_dots(a, b, out)
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def _cg_step(x, r, p, q, alpha, act, out):
+    n, k = p.shape
+    part = np.zeros(k)
+    for start in range(0, n, 256):
+        part[:] = 0.0
+        for i in range(start, min(start + 256, n)):
+            for l in range(k):
+                c = act[l]
+                x[i, c] += alpha[l] * p[i, l]
+                ri = r[i, c] - alpha[l] * q[i, l]
+                r[i, c] = ri
+                part[l] += ri * ri
+        for l in range(k):
+            out[l] += part[l]
+
+
+def cg_step(x, r, p, q, alpha, act):
+    """The CG update of the active columns ``act`` (k,) of x and r (n, c) in place:
+    x[:, act] += alpha p, r[:, act] -= alpha q (p, q (n, k)); returns ||r[:, act]||^2 (k,), summed as
+    :func:`column_dots` sums (one pass instead of five numpy operations on (n, c) arrays)."""
+    out = np.zeros(len(act))
+    _cg_step(x, r, np.ascontiguousarray(p), np.ascontiguousarray(q), np.asarray(alpha, dtype=float),
+             np.asarray(act, dtype=np.int64), out)
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _cg_direction(p, z, beta):
+    n, k = p.shape
+    for i in range(n):
+        for l in range(k):
+            p[i, l] = z[i, l] + beta[l] * p[i, l]
+
+
+def cg_direction(p, z, beta):
+    """p = z + beta p in place (the next CG search directions, (n, k), C-contiguous)."""
+    _cg_direction(p, np.ascontiguousarray(z, dtype=float), np.asarray(beta, dtype=float))
+    return p
 
 
 def gauss_seidel(A, X, B, forward: bool = True):

@@ -730,6 +730,8 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
     correction on the constants (:func:`_constant_correction`).  Returns (X (n, c), iterations,
     residuals (c,)).
     """
+    from . import kernels
+
     matvec = _matvec(A)
     d = A.diagonal()
     b = np.ascontiguousarray(B, dtype=float)
@@ -744,7 +746,7 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
         ra = r[:, act]
         z = precond(ra)
         rz = _columns_dot(ra, z)
-        p = z
+        p = np.ascontiguousarray(z, dtype=float)
         while it < maxiter:
             q = matvec(p)
             pq = _columns_dot(p, q)
@@ -753,26 +755,18 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
                 raise diagnose(A, vectors=list(p.T), smallest=float(curvature.min()),
                                where=f"{name} (breakdown at iteration {it}: p^T A p / p^T D p = {curvature.min():.3e}, "
                                f"r^T M r = {rz.min():.3e})", _checks=checks)
-            alpha = rz / pq
-            if act.size == r.shape[1]:  # all columns active: update in place, no gathered copies
-                x += alpha * p
-                r -= alpha * q
-                ra = r
-            else:
-                x[:, act] += alpha * p
-                ra = r[:, act] - alpha * q
-                r[:, act] = ra
+            rel_a = np.sqrt(kernels.cg_step(x, r, p, q, rz / pq, act)) / nb[act]  # x, r updated in place
             it += 1
-            rel_a = np.sqrt(_columns_dot(ra, ra)) / nb[act]
             rel[act] = rel_a
             keep = rel_a > tol
             if not np.any(keep):
                 break
             if not np.all(keep):  # freeze the converged columns
-                act, ra, p, rz = act[keep], ra[:, keep], p[:, keep], rz[keep]
+                act, p, rz = act[keep], p[:, keep], rz[keep]
+            ra = r if act.size == r.shape[1] else r[:, act]
             z = precond(ra)
             rz_new = _columns_dot(ra, z)
-            p = z + (rz_new / rz) * p
+            kernels.cg_direction(p, z, rz_new / rz)
             rz = rz_new
         # true residual: restart from x if the recursion drifted
         r = b - matvec(x)
