@@ -720,11 +720,10 @@ _TRIANGLE_SLOTS = np.array([[0, 1, 2, 0, 2, 3], [0, 2, 1, 0, 3, 2]], dtype=np.in
 
 
 def _take_rows(a, cols):
-    """``a[t, cols[t, s]]`` for a (m, k) and cols (m, s): one 1-d take on the flattened array
-    (several times faster than ``np.take_along_axis``, which builds a fancy index)."""
-    k = a.shape[1]
-    flat = np.arange(0, k * len(a), k)[:, None] + cols
-    return np.take(a.reshape(-1), flat)
+    """``a[t, cols[t, s]]`` for a (m, k) and cols (m, s) (:func:`cutfem.kernels.take_rows`)."""
+    from . import kernels
+
+    return kernels.take_rows(a, cols)
 
 
 def _marching(vals):

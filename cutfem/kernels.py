@@ -38,6 +38,9 @@ cut tet, summed over the piece's triangles in one pass (numpy needed the basis v
 triangle vertex, or three Gram rows per tet and a sparse product: 2.1 s for the mass matrix of the
 cut torus at spacing 0.0125, 853k cut tets).
 
+:func:`take_rows`: ``a[t, cols[t, s]]``, the per-tet gathers of the marching tetrahedra (numpy built
+an (m, s) flat index first: 150 ms a call at 3.4 million tets).
+
 :func:`level_set_normals`: n_h = grad phi_h / |grad phi_h| of each cut tet from its nodal values
 (numpy: an (m, 4, 3) gradient block and an einsum, 0.18 s at 853k tets).
 
@@ -81,7 +84,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "take_rows", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "jump_rows", "lattice_add_elements", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -550,3 +553,19 @@ def level_set_normals(values, table, types, out):
         out[t, 0] = g0 / norm
         out[t, 1] = g1 / norm
         out[t, 2] = g2 / norm
+
+
+@njit(cache=True, error_model="numpy")
+def _take_rows(a, cols, out):
+    for t in range(cols.shape[0]):
+        for s in range(cols.shape[1]):
+            out[t, s] = a[t, cols[t, s]]
+
+
+def take_rows(a, cols):
+    """``a[t, cols[t, s]]`` (m, s) for a (m, k) and column indices cols (m, s) in 0..k-1."""
+    a = np.ascontiguousarray(a)
+    cols = np.ascontiguousarray(cols)
+    out = np.empty(cols.shape, dtype=a.dtype)
+    _take_rows(a, cols, out)
+    return out
