@@ -734,21 +734,11 @@ def _marching(vals):
     ends ``(i, j)`` (i inside, j outside) and the values there ``(phi_i, phi_j)``.  A slot is the
     point ``x_i + t (x_j - x_i)``, ``t = phi_i / (phi_i - phi_j)``, or the node j itself when
     phi_j == 0.  Two slots of a tet are the same vertex when they are the same node or the same
-    edge, so the distinct vertices are counted on small per-tet keys (node j, or 4 + edge (i, j))."""
-    code = np.packbits(vals < 0, axis=1, bitorder="little").reshape(-1)  # (m,) uint8
-    # polygon vertices: up to 4 edges (i, j) per tet, i inside and j outside (table lookup)
-    edge_i, edge_j = _EDGE_I[code], _EDGE_J[code]
-    pi, pj = _take_rows(vals, edge_i), _take_rows(vals, edge_j)
-    # without a zero value every slot is its own edge: 3 or 4 distinct vertices; count the others
-    active = np.ones(len(vals), dtype=bool)
-    rows = np.flatnonzero((pj == 0).any(axis=1))
-    if rows.size:
-        ei, ej = edge_i[rows].astype(np.int64), edge_j[rows].astype(np.int64)
-        k4 = np.where(pj[rows] == 0, ej, 4 + 4 * ei + ej)
-        distinct = 1 + (k4[:, 1] != k4[:, 0]) + ((k4[:, 2] != k4[:, 0]) & (k4[:, 2] != k4[:, 1]))
-        distinct = distinct + ((k4[:, 3] != k4[:, 0]) & (k4[:, 3] != k4[:, 1]) & (k4[:, 3] != k4[:, 2]))
-        active[rows] = distinct >= 3
-    return code, active, (edge_i, edge_j, pi, pj)
+    edge, so the distinct vertices are counted on small per-tet keys (node j, or 4 + edge (i, j)).
+    One compiled pass over the tets (:func:`cutfem.kernels.marching`)."""
+    from . import kernels
+
+    return kernels.marching(vals, _EDGE_I, _EDGE_J)
 
 
 def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> CutMesh:

@@ -38,6 +38,10 @@ cut tet, summed over the piece's triangles in one pass (numpy needed the basis v
 triangle vertex, or three Gram rows per tet and a sparse product: 2.1 s for the mass matrix of the
 cut torus at spacing 0.0125, 853k cut tets).
 
+:func:`marching`: the sign code, the polygon slots and whether the piece has three distinct vertices,
+tet by tet (numpy: a packbits, four gathers and a pass over the tets with zero values, 0.64 s at
+3.4 million tets).
+
 :func:`take_rows`: ``a[t, cols[t, s]]``, the per-tet gathers of the marching tetrahedra (numpy built
 an (m, s) flat index first: 150 ms a call at 3.4 million tets).
 
@@ -84,7 +88,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "take_rows", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "marching", "take_rows", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "jump_rows", "lattice_add_elements", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -569,3 +573,49 @@ def take_rows(a, cols):
     out = np.empty(cols.shape, dtype=a.dtype)
     _take_rows(a, cols, out)
     return out
+
+
+@njit(cache=True, error_model="numpy")
+def _marching(vals, edge_i_table, edge_j_table, code, edge_i, edge_j, pi, pj, active):
+    k4 = np.empty(4, dtype=np.int64)
+    for t in range(vals.shape[0]):
+        c = 0
+        for k in range(4):
+            if vals[t, k] < 0:
+                c |= 1 << k
+        code[t] = c
+        zero = False
+        for s in range(4):
+            i, j = edge_i_table[c, s], edge_j_table[c, s]
+            edge_i[t, s], edge_j[t, s] = i, j
+            pi[t, s], pj[t, s] = vals[t, i], vals[t, j]
+            if vals[t, j] == 0.0:
+                zero = True
+            k4[s] = j if vals[t, j] == 0.0 else 4 + 4 * i + j
+        if not zero:
+            active[t] = True
+            continue
+        distinct = 1
+        for s in range(1, 4):
+            new = True
+            for r in range(s):
+                if k4[s] == k4[r]:
+                    new = False
+            if new:
+                distinct += 1
+        active[t] = distinct >= 3
+
+
+def marching(vals, edge_i_table, edge_j_table):
+    """Marching tetrahedra on the tets with nodal values ``vals`` (m, 4): ``(code (m,) uint8, active
+    (m,) bool, (edge_i, edge_j (m, 4) int8, pi, pj (m, 4)))`` with the sign code (bit k: vals[k] < 0),
+    the polygon slots' local edge ends from the case tables (16, 4) and their values, and whether
+    the piece has at least three distinct vertices: a slot is the node j when pj == 0, else its edge
+    (i, j) (see :func:`cutfem.cut._marching`)."""
+    vals = np.ascontiguousarray(vals, dtype=float)
+    m = len(vals)
+    code, active = np.empty(m, dtype=np.uint8), np.empty(m, dtype=np.bool_)
+    edge_i, edge_j = np.empty((m, 4), dtype=np.int8), np.empty((m, 4), dtype=np.int8)
+    pi, pj = np.empty((m, 4)), np.empty((m, 4))
+    _marching(vals, edge_i_table, edge_j_table, code, edge_i, edge_j, pi, pj, active)
+    return code, active, (edge_i, edge_j, pi, pj)

@@ -476,3 +476,25 @@ def test_sign_table_orientation_equals_the_determinant(seed):
     clear = np.abs(det) > 1e-10 * scale
     assert clear.sum() > 0.99 * len(det) and len(det) > 100
     assert np.all(det[clear] > 0)
+
+
+def test_marching_slots_and_collapsed_pieces_against_the_case_table():
+    """The compiled marching pass against a plain reading of the case table: sign code, slot
+    edges and values, and 'active' = at least three distinct vertices, a slot being the node j when
+    phi_j == 0 and its edge (i, j) otherwise; values drawn with many exact zeros."""
+    from cutfem.cut import _CASES, _marching
+
+    rng = np.random.default_rng(11)
+    vals = rng.choice([-1.0, 0.0, 0.5, -0.25, 2.0], size=(3000, 4))
+    vals = vals[np.any(vals < 0, axis=1) & np.any(vals >= 0, axis=1)]  # tets with both signs
+    code, active, (ei, ej, pi, pj) = _marching(vals)
+    for t, v in enumerate(vals):
+        c = sum(1 << k for k in range(4) if v[k] < 0)
+        edges = _CASES[c] + _CASES[c][-1:] * (4 - len(_CASES[c]))
+        assert code[t] == c
+        assert [(int(a), int(b)) for a, b in zip(ei[t], ej[t])] == [tuple(e) for e in edges]
+        np.testing.assert_array_equal(pi[t], [v[i] for i, _ in edges])
+        np.testing.assert_array_equal(pj[t], [v[j] for _, j in edges])
+        vertices = {("node", j) if v[j] == 0 else ("edge", i, j) for i, j in edges}
+        assert active[t] == (len(vertices) >= 3)
+    assert 0 < np.count_nonzero(~active) < len(vals)  # both kinds occur
