@@ -364,19 +364,11 @@ def _candidates_structured(box: StructuredBox, f, lipschitz):
         _lipschitz_check(cv - centre_phi[:, None], 0.5 * np.linalg.norm(box.spacing), float(lipschitz), tol)
         label_values = _snap_zeros(values, tol)
         cv[np.abs(cv) <= tol] = 0.0  # the snap, entry by entry: cv == label_values[corner]
-    # the cut tets from each cell's corner signs (8 bits) by a table: the (6k, 4) values and nodes
-    # of every band tet are never made
-    signs = np.zeros(len(cv), dtype=np.uint8)
-    for c in range(8):
-        signs |= (cv[:, c] < 0).view(np.uint8) << c
-    mixed = np.flatnonzero(_KUHN_MIXED[signs])  # index 6 * (cell position) + Kuhn type
-    del signs
-    cell = mixed // 6
-    kind = mixed - 6 * cell
-    flat = KUHN_TETS[kind]  # (n, 4) entries of the tets in the flattened (k, 8) corner arrays
-    flat += (8 * cell)[:, None]
-    nodes, vals = np.take(corner.reshape(-1), flat), np.take(cv.reshape(-1), flat)
-    tet_ids = 6 * cell_ids[cell] + kind
+    # the cut tets from each cell's corner signs (8 bits) by a table, in one compiled pass: the
+    # (6k, 4) values and nodes of every band tet are never made
+    from . import kernels
+
+    tet_ids, nodes, vals = kernels.mixed_kuhn_tets(cv, corner, cell_ids, _KUHN_MIXED, KUHN_TETS)
     return tet_ids, nodes, vals, label_ids, label_values
 
 

@@ -38,6 +38,10 @@ cut tet, summed over the piece's triangles in one pass (numpy needed the basis v
 triangle vertex, or three Gram rows per tet and a sparse product: 2.1 s for the mass matrix of the
 cut torus at spacing 0.0125, 853k cut tets).
 
+:func:`mixed_kuhn_tets`: the Kuhn tets with nodal values of both signs in the band cells of a
+structured box, with their nodes and values (numpy: sign bytes, a table, and two (n, 4) gathers
+through a flat index, 0.6 s at 3.4 million tets).
+
 :func:`marching`: the sign code, the polygon slots and whether the piece has three distinct vertices,
 tet by tet (numpy: a packbits, four gathers and a pass over the tets with zero values, 0.64 s at
 3.4 million tets).
@@ -88,7 +92,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "marching", "take_rows", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "mixed_kuhn_tets", "marching", "take_rows", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "jump_rows", "lattice_add_elements", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -619,3 +623,38 @@ def marching(vals, edge_i_table, edge_j_table):
     pi, pj = np.empty((m, 4)), np.empty((m, 4))
     _marching(vals, edge_i_table, edge_j_table, code, edge_i, edge_j, pi, pj, active)
     return code, active, (edge_i, edge_j, pi, pj)
+
+
+@njit(cache=True, error_model="numpy")
+def _mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets, tet_ids, nodes, vals):
+    n = 0
+    for c in range(cv.shape[0]):
+        signs = 0
+        for b in range(8):
+            if cv[c, b] < 0:
+                signs |= 1 << b
+        for l in range(6):
+            if mixed_table[signs, l]:
+                if tet_ids.shape[0] > 0:  # second pass: fill
+                    tet_ids[n] = 6 * cell_ids[c] + l
+                    for k in range(4):
+                        nodes[n, k] = corner[c, kuhn_tets[l, k]]
+                        vals[n, k] = cv[c, kuhn_tets[l, k]]
+                n += 1
+    return n
+
+
+def mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets):
+    """The Kuhn tets of the cells ``cell_ids`` (k,) whose corner values ``cv`` (k, 8) (corner labels
+    ``corner`` (k, 8)) have both signs by ``mixed_table`` (256, 6) (bit c of the row: corner c has
+    phi < 0): ``(tet_ids (n,), nodes (n, 4), vals (n, 4))`` in cell order, then Kuhn type, the
+    nodes in :data:`~cutfem.mesh.KUHN_TETS` order.  Two passes: count, then fill."""
+    cv, corner = np.ascontiguousarray(cv, dtype=float), np.ascontiguousarray(corner)
+    cell_ids = np.ascontiguousarray(cell_ids, dtype=np.int64)
+    table = np.ascontiguousarray(mixed_table, dtype=np.bool_)
+    kt = np.ascontiguousarray(kuhn_tets, dtype=np.int64)
+    empty = np.empty(0, dtype=np.int64)
+    n = _mixed_kuhn_tets(cv, corner, cell_ids, table, kt, empty, np.empty((0, 4), dtype=corner.dtype), np.empty((0, 4)))
+    tet_ids, nodes, vals = np.empty(n, dtype=np.int64), np.empty((n, 4), dtype=corner.dtype), np.empty((n, 4))
+    _mixed_kuhn_tets(cv, corner, cell_ids, table, kt, tet_ids, nodes, vals)
+    return tet_ids, nodes, vals
