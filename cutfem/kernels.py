@@ -200,13 +200,17 @@ def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False):
     return out
 
 
+#: rows per partial sum of the column reductions: the order every column is summed in
+SUM_BLOCK = 256
+
+
 @njit(cache=True, error_model="numpy")
 def _column_dots(a, b, out):
     n, c = a.shape
     part = np.zeros(c)
-    for start in range(0, n, 256):
+    for start in range(0, n, SUM_BLOCK):
         part[:] = 0.0
-        for i in range(start, min(start + 256, n)):
+        for i in range(start, min(start + SUM_BLOCK, n)):
             for l in range(c):
                 part[l] += a[i, l] * b[i, l]
         for l in range(c):
@@ -214,10 +218,10 @@ def _column_dots(a, b, out):
 
 
 def column_dots(a, b):
-    """The dot products of the columns of a and b (n, c): in blocks of 256 rows, in row order, so a
-    column's result does not depend on the columns beside it (numpy's strided reductions change
-    their order with c; CG's scalars, and so its iterates, would differ in the last bits between a
-    column solved alone and in a block)."""
+    """The dot products of the columns of a and b (n, c): in blocks of :data:`SUM_BLOCK` rows, in row
+    order, so a column's result does not depend on the columns beside it (numpy's strided
+    reductions change their order with c; CG's scalars, and so its iterates, would differ in the
+    last bits between a column solved alone and in a block)."""
     a = np.ascontiguousarray(a, dtype=float)
     b = np.ascontiguousarray(b, dtype=float)
     out = np.zeros(a.shape[1])
@@ -229,9 +233,9 @@ def column_dots(a, b):
 def _cg_step(x, r, p, q, alpha, act, out):
     n, k = p.shape
     part = np.zeros(k)
-    for start in range(0, n, 256):
+    for start in range(0, n, SUM_BLOCK):
         part[:] = 0.0
-        for i in range(start, min(start + 256, n)):
+        for i in range(start, min(start + SUM_BLOCK, n)):
             for l in range(k):
                 c = act[l]
                 x[i, c] += alpha[l] * p[i, l]

@@ -115,7 +115,7 @@ class ElementSet:
     @property
     def gradients(self) -> np.ndarray:
         """(m, 4, 3) gradients of the barycentric coordinates.  On a structured box they are the
-        Kuhn table of each tet's type over the spacing (:meth:`~cutfem.mesh.StructuredBox.tet_gradients`),
+        Kuhn table of each tet's type over the spacing (:attr:`~cutfem.mesh.StructuredBox.gradient_table`),
         built on each access and not kept (96 bytes a tet: 1.25 GiB for the 13.7 million cut tets of
         the torus at spacing 0.003125); for a subset use :meth:`gradients_of`."""
         return self.gradients_of(slice(None))

@@ -615,18 +615,12 @@ class StructuredBox(TetMesh):
         """(k, 8) node ids of the cube corners (corner c has offset bits (c&1, c>>1&1, c>>2&1))."""
         return self.node_id(self.cell_index(cell_ids))[:, None] + self.node_id(CUBE_CORNERS)[None, :]
 
-    def tet_gradients(self, tet_ids) -> np.ndarray:
-        """(k, 4, 3) gradients of the barycentric coordinates of tets ``tet_ids``.
-
-        A point of a cell is ``x = corner + xi * spacing`` (componentwise), so the gradients are
-        those of the reference Kuhn tet ``tet_id % 6`` (:data:`KUHN_GRADIENTS`, entries -1, 0, 1)
-        divided by the spacing, axis by axis; no vertex coordinates are needed."""
-        return self.gradient_table[np.asarray(tet_ids) % 6]
-
     @property
     def gradient_table(self) -> np.ndarray:
-        """(6, 4, 3) the barycentric gradients of the six Kuhn tet types of this box:
-        :data:`KUHN_GRADIENTS` divided by the spacing, axis by axis (index it by Kuhn type)."""
+        """(6, 4, 3) the barycentric gradients of the six Kuhn tet types of this box, indexed by
+        Kuhn type (tet id % 6).  A point of a cell is ``x = corner + xi * spacing``
+        (componentwise), so they are those of the reference Kuhn tets (:data:`KUHN_GRADIENTS`,
+        entries -1, 0, 1) divided by the spacing, axis by axis; no vertex coordinates are needed."""
         return KUHN_GRADIENTS / self.spacing
 
     @property
