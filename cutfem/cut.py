@@ -154,10 +154,6 @@ def _flip_table():
 
 _FLIP = _flip_table()
 
-# (6 * 16, 4) the lattice code c(S) (mesh.KUHN_EDGE_CODES) of the edge of each polygon slot, by
-# Kuhn type l and sign code: row 16 l + code
-_SLOT_EDGE_CODES = KUHN_EDGE_CODES[np.arange(6)[:, None, None], _EDGE_I[None], _EDGE_J[None]].reshape(96, 4)
-
 
 def _as_values_function(levelset):
     """A callable x (..., 3) -> (...) from a LevelSet-like object or a plain callable; a plain
@@ -711,26 +707,20 @@ class CutMesh:
 _TRIANGLE_SLOTS = np.array([[0, 1, 2, 0, 2, 3], [0, 2, 1, 0, 3, 2]], dtype=np.int64)
 
 
-def _take_rows(a, cols):
-    """``a[t, cols[t, s]]`` for a (m, k) and cols (m, s) (:func:`cutfem.kernels.take_rows`)."""
-    from . import kernels
-
-    return kernels.take_rows(a, cols)
-
-
-def _marching(vals):
+def _marching(tet_ids, labels, vals):
     """Marching tetrahedra on the candidate (cut) tets, tet by tet; see the module docstring.
 
-    Returns ``(code, active, slots)``: the sign code of each tet (bit k: node k inside), whether its
-    piece has at least three distinct vertices, and for the polygon slots (m, 4) the local edge
-    ends ``(i, j)`` (i inside, j outside) and the values there ``(phi_i, phi_j)``.  A slot is the
-    point ``x_i + t (x_j - x_i)``, ``t = phi_i / (phi_i - phi_j)``, or the node j itself when
-    phi_j == 0.  Two slots of a tet are the same vertex when they are the same node or the same
-    edge, so the distinct vertices are counted on small per-tet keys (node j, or 4 + edge (i, j)).
-    One compiled pass over the tets (:func:`cutfem.kernels.marching`)."""
+    The polygon slots of a tet are the edges (i, j) (i inside, j outside) of the case table of its
+    sign code (bit k: node k inside); a slot is the point ``x_i + t (x_j - x_i)``,
+    ``t = phi_i / (phi_i - phi_j)``, or the node j itself when phi_j == 0.  Two slots of a tet are
+    the same vertex when they are the same node or the same edge; a tet whose piece has fewer than
+    three distinct vertices (it collapsed to a point or a segment) is dropped.  One compiled pass
+    (:func:`cutfem.kernels.marching`) that compacts the three arrays in place; returns
+    ``(tet_ids, labels, vals, code)`` of the kept tets."""
     from . import kernels
 
-    return kernels.marching(vals, _EDGE_I, _EDGE_J)
+    n, code = kernels.marching(tet_ids, labels, vals, _EDGE_I, _EDGE_J)
+    return tet_ids[:n], labels[:n], vals[:n], code
 
 
 def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> CutMesh:
@@ -776,18 +766,15 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
             + (" With the band search, also check that the declared Lipschitz bound (levelset.lipschitz) is "
                "a true bound." if band else "")
         )
-    code, active, slots = _marching(vals)
-    if not np.any(active):
+    tet_ids, labels, vals, code = _marching(tet_ids, labels, np.ascontiguousarray(vals, dtype=float))
+    del cand
+    if len(tet_ids) == 0:
         raise CutError("every piece of the cut collapsed to a point or segment; refine the background mesh")
-    edge_i, edge_j, pi, pj = slots
-    del cand, slots
-    if not active.all():  # collapsed pieces are rare: no copies when there are none
-        tet_ids, labels, vals, code = tet_ids[active], labels[active], vals[active], code[active]
-        edge_i, edge_j, pi, pj = edge_i[active], edge_j[active], pi[active], pj[active]
     m = len(tet_ids)
 
     # active nodes, numbered by increasing background id (labels increase with it)
     uniq, tets = dense_unique(labels, len(label_values))
+    del labels
     tets = tets.astype(np.int64)
     node_ids = uniq if label_ids is None else label_ids[uniq]
     points = background.node_coordinates(node_ids) if structured else background.points[node_ids]
@@ -809,47 +796,31 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
         volumes = np.abs(volumes)
         table, types = grads, np.arange(m)
     normals = np.empty((m, 3))
-    kernels.level_set_normals(np.ascontiguousarray(vals, dtype=float), table, types, normals)
-    del vals, types
+    kernels.level_set_normals(vals, table, types, normals)
 
-    # surface vertices: key = active node (on-node vertex) or p + edge (min, max), numbered by key
-    li, lj = _take_rows(tets, edge_i), _take_rows(tets, edge_j)
-    on_node = pj == 0
+    # surface vertices: key = active node (on-node vertex) or an edge key, numbered by key.  On a
+    # structured box the lattice edge {v, v + e_S} (v = min: the active nodes increase with the
+    # background ids) has the key p - 1 + 7 v + c(S) in [p, 8p), ordered as (v, max) (see
+    # mesh.KUHN_EDGE_CODES): numbered by a marker array, with no sort
+    key = kernels.slot_keys(tets, code, vals, _EDGE_I, _EDGE_J, p, lattice=(KUHN_EDGE_CODES, types) if structured else None)
+    del types
     if structured:
-        # the lattice edge {v, v + e_S} (v = min(li, lj): the active nodes increase with the
-        # background ids) has the key p - 1 + 7 v + c(S) in [p, 8p), ordered as (v, max) (see
-        # mesh.KUHN_EDGE_CODES): the numbering below, with no sort
-        codes = _SLOT_EDGE_CODES[16 * (tet_ids % 6) + code]  # (m, 4) c(S) of each slot's edge
-        key = np.where(on_node, lj, (p - 1) + 7 * np.minimum(li, lj) + codes)
-        del codes
-        vkeys, vinv = dense_unique(key.reshape(-1), 8 * p)
+        n_vertices, vinv = dense_unique(key, 8 * p)
+        n_vertices = len(n_vertices)
     else:
-        key = np.where(on_node, lj, p + np.minimum(li, lj) * p + np.maximum(li, lj))
         vkeys, vinv = unique_keys(key.reshape(-1), return_inverse=True)
+        n_vertices = len(vkeys)
+        del vkeys
     del key
     # vertex numbers (and so the triangles) as int32 while they fit: 12 bytes a triangle, 16 a tet less
-    vinv = vinv.astype(np.int32 if len(vkeys) < 2**31 else np.int64, copy=False).reshape(m, 4)
-    vfirst = np.empty(len(vkeys), dtype=np.int64)
-    vfirst[vinv.reshape(-1)[::-1]] = np.arange(vinv.size)[::-1]
-    # each vertex computed once, from its first slot (every slot of it gives the same point)
-    a, b = li.reshape(-1)[vfirst], lj.reshape(-1)[vfirst]
-    pa, pb = pi.reshape(-1)[vfirst], pj.reshape(-1)[vfirst]
-    xa, xb = points[a], points[b]
-    t = pa / (pa - pb)
-    vertices = xa + t[:, None] * (xb - xa)
-    at_node = pb == 0
-    vertices[at_node] = xb[at_node]
-    del li, lj, pi, pj, on_node, labels, vfirst, a, b, pa, pb, xa, xb, t, at_node  # (m, 4) arrays: 1.7 GB at 13.7 million tets
-
-    # triangles (0,1,2) and, for quads, (0,2,3), tet by tet; drop triangles with repeated vertices.
-    # Orientation by n_h from the sign code (see _flip_table).
+    vinv = vinv.astype(np.int32 if n_vertices < 2**31 else np.int64, copy=False).reshape(m, 4)
+    # each vertex computed once, from its first slot; triangles (0,1,2) and, for quads, (0,2,3),
+    # tet by tet, without those with repeated vertices; orientation by n_h from the sign code (see
+    # _flip_table)
+    vertices, tri, tri_tet = kernels.surface(vinv, n_vertices, tets, code, vals, points, _EDGE_I, _EDGE_J, _NVERT, _FLIP,
+                                             _TRIANGLE_SLOTS, negative=negative)
     nvert = _NVERT[code]
-    flip = _FLIP[code] if negative is None else _FLIP[code] ^ negative
-    tri = _take_rows(vinv, _TRIANGLE_SLOTS[flip.view(np.uint8)]).reshape(m, 2, 3)  # flipped: (0, 2, 1), (0, 3, 2)
-    ok = (tri[..., 0] != tri[..., 1]) & (tri[..., 1] != tri[..., 2]) & (tri[..., 0] != tri[..., 2])
-    ok[:, 1] &= nvert == 4
-    tri = tri[ok]
-    tri_tet = np.flatnonzero(ok) // 2
+    del vals
 
     cm = CutMesh(
         levelset=levelset,

@@ -59,19 +59,23 @@ def interior_facets(tets: np.ndarray, n_nodes: int, kuhn=None):
 
     Returns ``(pairs (F, 2), opposite (F, 2))``: the two tets of each face (first the one that comes
     first in ``tets``) and, in each, the local index of the vertex opposite to the face; faces in
-    increasing order of their sorted node triples.  One sort of the face keys: the sorted node
-    triples (:func:`~cutfem.mesh.tet_face_keys`), or, for tets of a structured box given with
-    their Kuhn types ``kuhn`` (m,) (background tet id % 6), the lattice keys
-    :func:`~cutfem.mesh.kuhn_face_keys`, small enough for one radix pass; both give the same faces
-    in the same order when the node numbers increase with the background ids.
+    increasing order of their sorted node triples.  The face keys: the sorted node triples
+    (:func:`~cutfem.mesh.tet_face_keys`, grouped by one sort), or, for tets of a structured box
+    given with their Kuhn types ``kuhn`` (m,) (background tet id % 6), the lattice keys
+    :func:`~cutfem.mesh.kuhn_face_keys`, below 12 ``n_nodes``, paired by two marker arrays
+    (:func:`cutfem.kernels.dense_pairs`, no sort); both give the same faces in the same order when
+    the node numbers increase with the background ids.
     """
-    keys = tet_face_keys(tets, n_nodes) if kuhn is None else kuhn_face_keys(tets, kuhn)
-    order, starts, counts = pair_up(keys)
-    two = counts == 2
-    first, second = order[starts[two]], order[starts[two] + 1]
-    pairs = np.stack([first // 4, second // 4], axis=1)
-    opposite = np.stack([first % 4, second % 4], axis=1)
-    return pairs, opposite
+    if kuhn is None:
+        order, starts, counts = pair_up(tet_face_keys(tets, n_nodes))
+        two = counts == 2
+        rows = np.stack([order[starts[two]], order[starts[two] + 1]], axis=1)
+    else:
+        from . import kernels
+
+        rows = kernels.dense_pairs(kuhn_face_keys(tets, kuhn), 12 * n_nodes)
+    # row 4 t + k of the keys: the face opposite to local vertex k of tet t
+    return rows >> 2, (rows & 3).astype(np.int8)
 
 
 class ElementSet:

@@ -478,23 +478,36 @@ def test_sign_table_orientation_equals_the_determinant(seed):
     assert np.all(det[clear] > 0)
 
 
-def test_marching_slots_and_collapsed_pieces_against_the_case_table():
-    """The compiled marching pass against a plain reading of the case table: sign code, slot
-    edges and values, and 'active' = at least three distinct vertices, a slot being the node j when
-    phi_j == 0 and its edge (i, j) otherwise; values drawn with many exact zeros."""
-    from cutfem.cut import _CASES, _marching
+def test_marching_codes_collapsed_pieces_and_slot_keys_against_the_case_table():
+    """The compiled marching pass and slot keys against a plain reading of the case table: sign
+    code, the tets kept (at least three distinct vertices, a slot being the node j when
+    phi_j == 0 and its edge (i, j) otherwise) compacted in order, and the slot keys (node j, or
+    p + min p + max of the edge's nodes); values drawn with many exact zeros."""
+    from cutfem.cut import _CASES, _EDGE_I, _EDGE_J, _marching
+    from cutfem.kernels import slot_keys
 
     rng = np.random.default_rng(11)
     vals = rng.choice([-1.0, 0.0, 0.5, -0.25, 2.0], size=(3000, 4))
     vals = vals[np.any(vals < 0, axis=1) & np.any(vals >= 0, axis=1)]  # tets with both signs
-    code, active, (ei, ej, pi, pj) = _marching(vals)
+    p = 50
+    labels = rng.integers(0, p, size=(len(vals), 4))
+    ids = np.arange(len(vals)) * 7
+    kept, expected_codes, expected_keys = [], [], []
     for t, v in enumerate(vals):
         c = sum(1 << k for k in range(4) if v[k] < 0)
         edges = _CASES[c] + _CASES[c][-1:] * (4 - len(_CASES[c]))
-        assert code[t] == c
-        assert [(int(a), int(b)) for a, b in zip(ei[t], ej[t])] == [tuple(e) for e in edges]
-        np.testing.assert_array_equal(pi[t], [v[i] for i, _ in edges])
-        np.testing.assert_array_equal(pj[t], [v[j] for _, j in edges])
         vertices = {("node", j) if v[j] == 0 else ("edge", i, j) for i, j in edges}
-        assert active[t] == (len(vertices) >= 3)
-    assert 0 < np.count_nonzero(~active) < len(vals)  # both kinds occur
+        if len(vertices) >= 3:
+            kept.append(t)
+            expected_codes.append(c)
+            a, b = labels[t, [i for i, _ in edges]], labels[t, [j for _, j in edges]]
+            zero = v[[j for _, j in edges]] == 0
+            expected_keys.append(np.where(zero, b, p + np.minimum(a, b) * p + np.maximum(a, b)))
+    orig_vals, orig_labels = vals.copy(), labels.copy()
+    tet_ids, lab, val, code = _marching(ids.copy(), labels.copy(), vals.copy())
+    assert 0 < len(kept) < len(vals)  # both kinds occur
+    np.testing.assert_array_equal(tet_ids, ids[kept])
+    np.testing.assert_array_equal(lab, orig_labels[kept])
+    np.testing.assert_array_equal(val, orig_vals[kept])
+    np.testing.assert_array_equal(code, expected_codes)
+    np.testing.assert_array_equal(slot_keys(lab, code, val, _EDGE_I, _EDGE_J, p), expected_keys)
