@@ -97,7 +97,7 @@ from .mesh import TET_EDGES
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
 __all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "level_set_normals", "tangential_gradient_sums", "triangle_points",
-           "squared_error", "jump_rows", "lattice_add_elements", "lattice_add_rows",
+           "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
 
@@ -513,10 +513,31 @@ def triangle_points(points, triangles, bary, x, area):
         for i in range(bary.shape[0]):
             for d in range(3):
                 x[t, i, d] = bary[i, 0] * p0[d] + bary[i, 1] * p1[d] + bary[i, 2] * p2[d]
-        e0, e1, e2 = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
-        f0, f1, f2 = p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]
-        c0, c1, c2 = e1 * f2 - e2 * f1, e2 * f0 - e0 * f2, e0 * f1 - e1 * f0
-        area[t] = 0.5 * np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        area[t] = _area(p0, p1, p2)
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _area(p0, p1, p2):
+    """|(p1 - p0) x (p2 - p0)| / 2."""
+    e0, e1, e2 = p1[0] - p0[0], p1[1] - p0[1], p1[2] - p0[2]
+    f0, f1, f2 = p2[0] - p0[0], p2[1] - p0[1], p2[2] - p0[2]
+    c0, c1, c2 = e1 * f2 - e2 * f1, e2 * f0 - e0 * f2, e0 * f1 - e1 * f0
+    return 0.5 * np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+
+
+@njit(cache=True, error_model="numpy")
+def _triangle_areas(points, triangles, area):
+    for t in range(triangles.shape[0]):
+        area[t] = _area(points[triangles[t, 0]], points[triangles[t, 1]], points[triangles[t, 2]])
+
+
+def triangle_areas(points, triangles):
+    """(m,) |T| = |(x_1 - x_0) x (x_2 - x_0)| / 2 of the triangles (m, 3) of ``points`` (p, 3)."""
+    points = np.ascontiguousarray(points, dtype=float)
+    triangles = np.ascontiguousarray(triangles)
+    area = np.empty(len(triangles))
+    _triangle_areas(points, triangles, area)
+    return area
 
 
 @njit(cache=True, error_model="numpy")

@@ -351,15 +351,12 @@ def vertex_columns(points: np.ndarray, triangles: np.ndarray) -> list:
 
 
 def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:
-    """|T| = |(x_1 - x_0) x (x_2 - x_0)| / 2 of triangles (m, 3) of ``points`` (p, 3), on coordinate
-    columns (:func:`vertex_columns`)."""
-    x0, x1, x2 = vertex_columns(points, triangles)
-    u = [b - a for a, b in zip(x0, x1)]
-    v = [b - a for a, b in zip(x0, x2)]
-    cx = u[1] * v[2] - u[2] * v[1]
-    cy = u[2] * v[0] - u[0] * v[2]
-    cz = u[0] * v[1] - u[1] * v[0]
-    return 0.5 * np.sqrt(cx * cx + cy * cy + cz * cz)
+    """|T| = |(x_1 - x_0) x (x_2 - x_0)| / 2 of triangles (m, 3) of ``points`` (p, 3), one compiled
+    pass (:func:`cutfem.kernels.triangle_areas`; numpy's nine gathers and twenty array operations
+    took 1.4 s for the 4.5 million triangles of the torus at spacing 0.00625)."""
+    from . import kernels
+
+    return kernels.triangle_areas(points, triangles)
 
 
 def barycentric_gradients(vertices: np.ndarray):
