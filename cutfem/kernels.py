@@ -67,6 +67,13 @@ array operations a block, so blocks of 1024 triangles and a millisecond of overh
 :func:`jump_rows`: the rows of the jump of normal derivatives across pairs of tets (face and edge
 penalties), a block of pairs at a time.
 
+:func:`galerkin` and :func:`strict_upper`: the setup of the geometric multigrid.  The coarse
+matrix P^T A P row by row with a dense accumulator, only its upper triangle, then mirrored
+(scipy: A P, then P^T (A P), then (G + G^T) / 2 for exact symmetry), and the strict upper part
+of A without COO.  Multigrid setup on the cut torus at spacing 0.00625 (1.18 million unknowns):
+1.8 s before, 1.1-1.25 s after; scipy's ``triu`` alone took 0.5-0.67 s, the first Galerkin product
+1.2-1.6 s against 0.64 s.
+
 Lattice sums
 ------------
 On a structured box the nodes of two tets that share a face differ by one of 13 lattice vectors
@@ -96,7 +103,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "galerkin", "strict_upper", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -808,3 +815,126 @@ def dense_pairs(keys, n: int):
     dtype = np.int32 if keys.size < 2**31 else np.int64
     first, second = np.full(n, -1, dtype=dtype), np.full(n, -1, dtype=dtype)
     return _dense_pairs(keys, first, second)
+
+
+@njit(cache=True, error_model="numpy")
+def _galerkin_upper(r_ptr, r_idx, r_val, a_ptr, a_idx, a_val, p_ptr, p_idx, p_val, nc, cap):
+    acc = np.zeros(nc)
+    mark = np.full(nc, -1, dtype=np.int64)
+    cols = np.empty(nc, dtype=np.int64)
+    ptr = np.zeros(nc + 1, dtype=np.int64)
+    idx = np.empty(cap, dtype=np.int64)
+    val = np.empty(cap)
+    nnz = 0
+    strict = 0  # entries right of the diagonal
+    for I in range(nc):
+        ncols = 0
+        for ii in range(r_ptr[I], r_ptr[I + 1]):
+            i, ri = r_idx[ii], r_val[ii]
+            for jj in range(a_ptr[i], a_ptr[i + 1]):
+                j, ra = a_idx[jj], ri * a_val[jj]
+                for kk in range(p_ptr[j], p_ptr[j + 1]):
+                    J = p_idx[kk]
+                    if J < I:
+                        continue
+                    if mark[J] != I:
+                        mark[J] = I
+                        cols[ncols] = J
+                        ncols += 1
+                        acc[J] = 0.0
+                    acc[J] += ra * p_val[kk]
+        for x in range(1, ncols):  # insertion sort of the row's columns (a few dozen)
+            c = cols[x]
+            y = x - 1
+            while y >= 0 and cols[y] > c:
+                cols[y + 1] = cols[y]
+                y -= 1
+            cols[y + 1] = c
+        if nnz + ncols > idx.shape[0]:
+            grow = max(2 * idx.shape[0], nnz + ncols)
+            idx2, val2 = np.empty(grow, dtype=np.int64), np.empty(grow)
+            idx2[:nnz], val2[:nnz] = idx[:nnz], val[:nnz]
+            idx, val = idx2, val2
+        for x in range(ncols):
+            idx[nnz + x] = cols[x]
+            val[nnz + x] = acc[cols[x]]
+            if cols[x] > I:
+                strict += 1
+        nnz += ncols
+        ptr[I + 1] = nnz
+    return ptr, idx[:nnz], val[:nnz], strict
+
+
+@njit(cache=True, error_model="numpy")
+def _mirror_upper(ptr, idx, val, indptr, indices, data):
+    n = ptr.shape[0] - 1
+    lower = np.zeros(n, dtype=np.int64)
+    for I in range(n):
+        for x in range(ptr[I], ptr[I + 1]):
+            if idx[x] > I:
+                lower[idx[x]] += 1
+    indptr[0] = 0
+    for I in range(n):
+        indptr[I + 1] = indptr[I] + lower[I] + ptr[I + 1] - ptr[I]
+    nxt = indptr[:-1].copy()
+    for I in range(n):
+        pos = indptr[I] + lower[I]
+        for x in range(ptr[I], ptr[I + 1]):
+            J = idx[x]
+            indices[pos], data[pos] = J, val[x]
+            pos += 1
+            if J > I:
+                indices[nxt[J]], data[nxt[J]] = I, val[x]
+                nxt[J] += 1
+
+
+def galerkin(A, P, R=None):
+    """The Galerkin product P^T A P of a symmetric CSR matrix A (n, n) and a CSR prolongation P
+    (n, m), as a CSR matrix with sorted indices, exactly symmetric: each coarse row I sums only its
+    columns J >= I (sum over i, j of R[I, i] A[i, j] P[j, J], R = P^T, with a dense accumulator
+    and a marker per coarse column), and the lower triangle is their mirror.  ``R``: P^T in CSR,
+    when the caller has it.  One pass over the products, where scipy's two sparse products build
+    A P first (and their result still needs symmetrizing)."""
+    R = sp.csr_matrix(P.T) if R is None else R
+    R, A, P = (sp.csr_matrix(M) for M in (R, A, P))
+    m = P.shape[1]
+    args = []
+    for M in (R, A, P):
+        args += [M.indptr, M.indices, M.data.astype(float, copy=False)]
+    ptr, idx, val, strict = _galerkin_upper(*args, np.int64(m), np.int64(max(16, 8 * m)))
+    nnz = len(idx) + strict
+    indptr, indices, data = np.empty(m + 1, dtype=np.int64), np.empty(nnz, dtype=np.int64), np.empty(nnz)
+    _mirror_upper(ptr, idx, val, indptr, indices, data)
+    out = sp.csr_matrix((data, indices, indptr), shape=(m, m))
+    out.has_sorted_indices = True
+    return out
+
+
+@njit(cache=True, error_model="numpy")
+def _strict_upper(indptr, indices, data, out_ptr, out_idx, out_val, fill):
+    n = indptr.shape[0] - 1
+    nnz = 0
+    for i in range(n):
+        for x in range(indptr[i], indptr[i + 1]):
+            if indices[x] > i:
+                if fill:
+                    out_idx[nnz], out_val[nnz] = indices[x], data[x]
+                nnz += 1
+        if fill:
+            out_ptr[i + 1] = nnz
+    return nnz
+
+
+def strict_upper(A):
+    """The strictly upper triangular part of a square CSR matrix (CSR, same index and value types,
+    the row order of A's entries kept), in two passes over A (scipy's ``triu`` goes through COO:
+    0.67 s against 0.05 s for the 30 million entries of the cut torus at spacing 0.00625)."""
+    A = sp.csr_matrix(A)
+    indptr, indices, data = A.indptr, A.indices, A.data
+    nnz = _strict_upper(indptr, indices, data, indptr[:1], indices[:0], data[:0], False)
+    out_ptr = np.zeros_like(indptr)
+    out_idx, out_val = np.empty(nnz, dtype=indices.dtype), np.empty(nnz, dtype=data.dtype)
+    _strict_upper(indptr, indices, data, out_ptr, out_idx, out_val, True)
+    out = sp.csr_matrix((out_val, out_idx, out_ptr), shape=A.shape)
+    out.has_sorted_indices = A.has_sorted_indices
+    return out

@@ -79,6 +79,34 @@ def test_coarse_space_is_nested(torus_space):
     np.testing.assert_allclose(interp[ok], u[V.element_dofs].mean(axis=1)[ok], rtol=0, atol=1e-12)
 
 
+def test_galerkin_product_and_strict_upper_against_scipy(torus_space):
+    """The compiled Galerkin product P^T A P: equal to scipy's two products up to round-off, exactly
+    symmetric with sorted indices, also when coarse functions see no fine row (an empty column
+    of P, so no diagonal entry); the strict upper triangle equals scipy's triu entry for entry."""
+    from cutfem.kernels import galerkin, strict_upper
+
+    V = torus_space
+    K = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
+    P = next(multigrid_hierarchy(V)).tocsr()
+    rng = np.random.default_rng(3)
+    Q = sp.random(300, 40, density=0.05, random_state=4, format="csr")
+    Q = sp.hstack([Q, sp.csr_matrix((300, 5))]).tocsr()  # five coarse functions with no fine rows
+    B = sp.random(300, 300, density=0.03, random_state=5)
+    S = (B + B.T + sp.diags(rng.random(300) + 1.0)).tocsr()
+    for A, P in ((K, P), (S, Q)):
+        G = galerkin(A, P)
+        ref = (P.T @ A @ P).toarray()
+        inner = np.ones(max(G.nnz - 1, 0), dtype=bool)  # consecutive entries of one row
+        inner[G.indptr[1:-1][(G.indptr[1:-1] > 0) & (G.indptr[1:-1] < G.nnz)] - 1] = False
+        assert np.all(np.diff(G.indices)[inner] > 0)  # sorted, no duplicates
+        assert (G != G.T).nnz == 0
+        np.testing.assert_allclose(G.toarray(), ref, rtol=0, atol=1e-13 * np.abs(ref).max())
+        U, T = strict_upper(A), sp.triu(A, 1, format="csr")
+        np.testing.assert_array_equal(U.indptr, T.indptr)
+        np.testing.assert_array_equal(U.indices, T.indices)
+        np.testing.assert_array_equal(U.data, T.data)
+
+
 @pytest.mark.parametrize("system", ["mean-curvature", "laplace-beltrami"])
 def test_mg_solve_agrees_with_direct(torus_space, system):
     V = torus_space
