@@ -747,9 +747,12 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
         ra = r[:, act]
         z = precond(ra)
         rz = _columns_dot(ra, z)
-        p = np.ascontiguousarray(z, dtype=float)
+        p = np.array(z, dtype=float)  # a copy: the preconditioner may hand out its own array again
+        q = np.empty_like(p)
         while it < maxiter:
-            q = matvec(p)
+            if q.shape != p.shape:
+                q = np.empty_like(p)
+            q = matvec(p, q)
             pq = _columns_dot(p, q)
             if np.any(pq <= 0) or np.any(rz <= 0):
                 curvature = pq / np.maximum(_columns_dot(p * d[:, None], p), 1e-300)
@@ -819,7 +822,7 @@ def _matvec(A):
     from . import kernels
 
     A = sp.csr_matrix(A)
-    return lambda X: kernels.matmul(A, np.ascontiguousarray(X, dtype=A.dtype))
+    return lambda X, out=None: kernels.matmul(A, np.ascontiguousarray(X, dtype=A.dtype), out=out)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1091,6 +1094,7 @@ class GeometricMultigrid:
                 raise
             self._coarse = ("pinv", self._coarse_pseudo_inverse(A, exc))
         self.visits = [visits[min(k, len(visits) - 1)] for k in range(len(self.levels))]
+        self._work = {}
         self.sizes = [lv["A"].shape[0] for lv in self.levels] + [self.coarse_n]
         self.nnz = [lv["A"].nnz for lv in self.levels] + [A.nnz]
 
@@ -1147,35 +1151,66 @@ class GeometricMultigrid:
         apply = f.solve if kind == "lu" else f.__matmul__
         return np.column_stack([apply(np.ascontiguousarray(b[:, k])) for k in range(b.shape[1])])
 
+    def _buffers(self, level: int, c: int) -> dict:
+        """The work arrays of a cycle on ``level`` for blocks of c columns, made on first use and
+        kept: at 4.7 million unknowns a block is 56 MB, and arrays that large come fresh from the
+        system on every allocation (page faults and zeroing each time, not reuse)."""
+        key = (level, c)
+        if key not in self._work:
+            n = self.sizes[level]
+            w = {"X": np.empty((n, c), np.float32), "r": np.empty((n, c), np.float32)}
+            nc = self.sizes[level + 1]
+            w["rc"] = np.empty((nc, c), np.float32)
+            if self.visits[level] > 1 and level + 1 < len(self.levels):
+                w["acc"], w["res"] = np.empty((nc, c), np.float32), np.empty((nc, c), np.float32)
+            self._work[key] = w
+        return self._work[key]
+
     def cycle(self, B, level: int = 0):
         """One cycle for A_level X = B from X = 0 on a block B (n, c) of columns (single precision,
         see the class; the sweeps and products pass over each matrix once for all columns,
-        :mod:`cutfem.kernels`)."""
+        :mod:`cutfem.kernels`).  Returns the level's work array X (:meth:`_buffers`): valid until
+        the next cycle on that level."""
         if level == len(self.levels):
             return np.ascontiguousarray(self._coarse_solve(B.astype(float)), dtype=np.float32)
         from . import kernels
 
         lv = self.levels[level]
         A = lv["A"]
-        X = np.zeros_like(B)
+        w = self._buffers(level, B.shape[1])
+        X = w["X"]
+        X.fill(0.0)
         kernels.gauss_seidel(A, X, B, forward=True)
-        r = kernels.matmul(lv["U"], X, alpha=-1.0)  # residual after a forward sweep from zero: B - (L + D + U) X = -U X
-        rc = kernels.matmul(lv["R"], r)
+        r = kernels.matmul(lv["U"], X, out=w["r"], alpha=-1.0)  # residual after a forward sweep from zero: B - (L + D + U) X = -U X
+        rc = kernels.matmul(lv["R"], r, out=w["rc"])
         xc = self.cycle(rc, level + 1)
-        for _ in range(1, self.visits[level]):
-            if level + 1 == len(self.levels):
-                break  # the coarsest solve is exact
-            xc += self.cycle(kernels.matmul(self.levels[level + 1]["A"], xc, out=rc.copy(), alpha=-1.0, accumulate=True),
-                             level + 1)
+        if "acc" in w:  # further visits of the coarser level: its X is overwritten, so sum in acc
+            acc, res = w["acc"], w["res"]
+            np.copyto(acc, xc)
+            for _ in range(1, self.visits[level]):
+                np.copyto(res, rc)
+                acc += self.cycle(kernels.matmul(self.levels[level + 1]["A"], acc, out=res, alpha=-1.0, accumulate=True), level + 1)
+            xc = acc
         kernels.matmul(lv["P"], xc, out=X, accumulate=True)
         kernels.gauss_seidel(A, X, B, forward=False)
         return X
 
-    def apply(self, R):
-        """The preconditioner on the columns of R (n, c), returned in double precision (n, c)."""
+    def apply(self, R, out=None):
+        """The preconditioner on the columns of R (n, c), returned in double precision (n, c), in
+        ``out`` when given (an (n, c) float64 array)."""
         R = np.asarray(R)
-        block = np.ascontiguousarray(R.reshape(R.shape[0], -1), dtype=np.float32)
-        return self.cycle(block).astype(float).reshape(R.shape)
+        shape = R.shape
+        R = R.reshape(shape[0], -1)
+        key = ("B", R.shape[1])
+        if key not in self._work:
+            self._work[key] = np.empty(R.shape, np.float32)
+        block = self._work[key]
+        np.copyto(block, R, casting="same_kind")
+        X = self.cycle(block)
+        if out is None:
+            return X.astype(float).reshape(shape)
+        np.copyto(out.reshape(X.shape), X)
+        return out
 
 
 def multigrid_hierarchy(space):
@@ -1241,7 +1276,14 @@ def mg_solve(A, B, lattice=None, tol: float = DEFAULT_TOL, maxiter: int = 300, p
     t1 = time.perf_counter()
     B = np.asarray(B, dtype=float)
     cols = B.reshape(B.shape[0], -1)
-    X, it, rel = _pcg(A, mg.apply, cols, tol, maxiter, "CG with geometric multigrid", checks, warn_after=MG_WARN_ITERATIONS)
+    outs = {}  # the preconditioned residuals, one array per block width
+
+    def precond(R):
+        if R.shape[1] not in outs:
+            outs[R.shape[1]] = np.empty(R.shape)
+        return mg.apply(R, out=outs[R.shape[1]])
+
+    X, it, rel = _pcg(A, precond, cols, tol, maxiter, "CG with geometric multigrid", checks, warn_after=MG_WARN_ITERATIONS)
     return X.reshape(B.shape), SolveInfo("cg-mg", it, float(rel.max()), time.perf_counter() - t0, t1 - t0)
 
 
