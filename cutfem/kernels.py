@@ -103,7 +103,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "galerkin", "strict_upper", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "galerkin", "strict_upper", "dense_unique", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -938,3 +938,66 @@ def strict_upper(A):
     out = sp.csr_matrix((out_val, out_idx, out_ptr), shape=A.shape)
     out.has_sorted_indices = A.has_sorted_indices
     return out
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _popcount(x):
+    """Set bits of a 64-bit word (SWAR)."""
+    x = x - ((x >> np.uint64(1)) & np.uint64(0x5555555555555555))
+    x = (x & np.uint64(0x3333333333333333)) + ((x >> np.uint64(2)) & np.uint64(0x3333333333333333))
+    x = (x + (x >> np.uint64(4))) & np.uint64(0x0F0F0F0F0F0F0F0F)
+    return (x * np.uint64(0x0101010101010101)) >> np.uint64(56)
+
+
+@njit(cache=True, error_model="numpy")
+def _mark_bits(ids, words):
+    for r in range(ids.shape[0]):
+        i = np.uint64(ids[r])
+        words[i >> np.uint64(6)] |= np.uint64(1) << (i & np.uint64(63))
+
+
+@njit(cache=True, error_model="numpy")
+def _rank_bits(words, prefix, unique):
+    total = 0
+    for w in range(words.shape[0]):
+        prefix[w] = total
+        x = words[w]
+        while x:
+            b = _trailing_bit(x)
+            unique[total] = 64 * w + b
+            total += 1
+            x &= x - np.uint64(1)
+    return total
+
+
+@njit(cache=True, error_model="numpy", inline="always")
+def _trailing_bit(x):
+    """Position of the lowest set bit of a nonzero 64-bit word."""
+    return _popcount((x & (~x + np.uint64(1))) - np.uint64(1))
+
+
+@njit(cache=True, error_model="numpy")
+def _bit_ranks(ids, words, prefix, inverse):
+    for r in range(ids.shape[0]):
+        i = np.uint64(ids[r])
+        w = i >> np.uint64(6)
+        below = words[w] & ((np.uint64(1) << (i & np.uint64(63))) - np.uint64(1))
+        inverse[r] = prefix[w] + _popcount(below)
+
+
+def dense_unique(ids, n: int):
+    """Sorted distinct values of integer ids in [0, n) and the inverse map: ``(unique (u,) int64,
+    inverse)`` with ``unique[inverse] == ids`` (inverse of the shape of ids, int32 when u < 2**31).
+    A bitmap of n bits and a running count of its set bits per 64-bit word (n / 4 bytes in all)
+    instead of a marker and a lookup array of length n (5 n bytes: 2 GB for the 404 million nodes of
+    the box at spacing 0.003125, of which the band touches a few), and no sort."""
+    ids = np.asarray(ids)
+    flat = np.ascontiguousarray(ids.reshape(-1))
+    words = np.zeros((int(n) + 63) // 64, dtype=np.uint64)
+    _mark_bits(flat, words)
+    prefix = np.empty(len(words), dtype=np.int64)
+    unique = np.empty(min(int(n), flat.size), dtype=np.int64)
+    u = _rank_bits(words, prefix, unique)
+    inverse = np.empty(flat.size, dtype=np.int32 if u < 2**31 else np.int64)
+    _bit_ranks(flat, words, prefix, inverse)
+    return unique[:u].copy(), inverse.reshape(ids.shape)
