@@ -60,6 +60,12 @@ cut tets took 2.5 s, now 0.7 s, the same pairs).
 mean curvature problem (numpy built the (m, 4, 3) tangential gradients first: 0.55 s at 853k
 cut tets).
 
+:func:`dense_unique`: the distinct values of ids in a known range [0, n) and their ranks, from a
+bitmap of n bits and the counts of set bits per 64-bit word.  numpy marked a boolean array of
+length n and looked the ranks up in an int32 array of length n: for the band of the box at spacing
+0.003125 (404 million nodes, 28 million corner ids) 0.9-2.3 s and 2 GB of address space, most of
+the time in page faults, against 0.18-0.22 s and 100 MB.
+
 :func:`triangle_points` and :func:`squared_error`: the quadrature points of a block of triangles
 of S_h and the weighted squared error there (the L2 error of a trace; numpy needed a dozen small
 array operations a block, so blocks of 1024 triangles and a millisecond of overhead each).
