@@ -312,23 +312,23 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
     blocks = blocks * size  # lower cell index of each block
     half_diag = 0.5 * np.linalg.norm(box.spacing)
     parent_phi = None
+    centre = box.coordinates(blocks + 0.5 * size)
+    from . import kernels
+
     while True:
-        centre = box.coordinates(blocks + 0.5 * size)
         phi = np.asarray(f(centre), dtype=float)
         _check_finite(phi, "block centres of the band search")
         if parent_phi is not None:
             _lipschitz_check(phi - parent_phi, half_diag * size, lipschitz, tol)
         keep = np.abs(phi) <= lipschitz * half_diag * size * (1 + 1e-9) + 1e-14 + tol
-        blocks, phi = blocks[keep], phi[keep]
-        predicted = 1.3 * len(blocks) * float(size) ** 2
+        predicted = 1.3 * np.count_nonzero(keep) * float(size) ** 2
         _refuse_if_too_big(box, box_bytes + BYTES_PER_BAND_CELL * predicted, f"about {predicted:.3g} cells near the surface", 2.0)
         if size == 1:
+            blocks, phi = blocks[keep], phi[keep]
             break
         size //= 2
-        children = blocks[:, None, :] + size * CUBE_CORNERS[None, :, :]
-        inside = np.all(children < cells, axis=2)
-        blocks = children[inside]
-        parent_phi = np.broadcast_to(phi[:, None], inside.shape)[inside]
+        # the children of the kept blocks inside the box, their centres and their parent's value
+        blocks, centre, parent_phi = kernels.refine_blocks(blocks, phi, keep, size, cells, box.lower, box.spacing, CUBE_CORNERS)
     return blocks[:, 0] + cells[0] * (blocks[:, 1] + cells[1] * blocks[:, 2]), phi
 
 

@@ -60,6 +60,11 @@ cut tets took 2.5 s, now 0.7 s, the same pairs).
 mean curvature problem (numpy built the (m, 4, 3) tangential gradients first: 0.55 s at 853k
 cut tets).
 
+:func:`refine_blocks`: the band search's next level, the children of the kept blocks inside the
+box with their centres and their parent's value (numpy: an (k, 8, 3) array of children, a mask,
+the centres by three array operations; the band of the torus at spacing 0.00625 took 0.87 s, now
+0.43 s, the same cells and values).
+
 :func:`dense_unique`: the distinct values of ids in a known range [0, n) and their ranks, from a
 bitmap of n bits and the counts of set bits per 64-bit word.  numpy marked a boolean array of
 length n and looked the ranks up in an int32 array of length n: for the band of the box at spacing
@@ -109,7 +114,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "galerkin", "strict_upper", "dense_unique", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "galerkin", "strict_upper", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -1007,3 +1012,40 @@ def dense_unique(ids, n: int):
     inverse = np.empty(flat.size, dtype=np.int32 if u < 2**31 else np.int64)
     _bit_ranks(flat, words, prefix, inverse)
     return unique[:u].copy(), inverse.reshape(ids.shape)
+
+
+@njit(cache=True, error_model="numpy")
+def _refine_blocks(blocks, phi, keep, size, cells, lower, spacing, corners, children, centres, parent_phi, fill):
+    n = 0
+    for b in range(blocks.shape[0]):
+        if not keep[b]:
+            continue
+        for c in range(8):
+            i0 = blocks[b, 0] + size * corners[c, 0]
+            i1 = blocks[b, 1] + size * corners[c, 1]
+            i2 = blocks[b, 2] + size * corners[c, 2]
+            if i0 < cells[0] and i1 < cells[1] and i2 < cells[2]:
+                if fill:
+                    children[n, 0], children[n, 1], children[n, 2] = i0, i1, i2
+                    centres[n, 0] = lower[0] + (i0 + 0.5 * size) * spacing[0]
+                    centres[n, 1] = lower[1] + (i1 + 0.5 * size) * spacing[1]
+                    centres[n, 2] = lower[2] + (i2 + 0.5 * size) * spacing[2]
+                    parent_phi[n] = phi[b]
+                n += 1
+    return n
+
+
+def refine_blocks(blocks, phi, keep, size: int, cells, lower, spacing, corners):
+    """The children of the kept blocks of the band search: for each block ``blocks`` (k, 3) (lower
+    cell index) with ``keep``, its 8 sub-blocks of ``size`` cells at ``corners`` (8, 3) that start
+    inside the box of ``cells`` (3,), in block order then corner order: ``(children (k', 3), their
+    centres lower + (child + size / 2) spacing (k', 3), the parent's phi (k',))``.  Two passes
+    (count, fill); no (k, 8, 3) arrays."""
+    args = (np.ascontiguousarray(blocks, dtype=np.int64), np.ascontiguousarray(phi, dtype=float),
+            np.ascontiguousarray(keep, dtype=np.bool_), np.int64(size), np.ascontiguousarray(cells, dtype=np.int64),
+            np.ascontiguousarray(lower, dtype=float), np.ascontiguousarray(spacing, dtype=float),
+            np.ascontiguousarray(corners, dtype=np.int64))
+    n = _refine_blocks(*args, np.empty((0, 3), dtype=np.int64), np.empty((0, 3)), np.empty(0), False)
+    children, centres, parent_phi = np.empty((n, 3), dtype=np.int64), np.empty((n, 3)), np.empty(n)
+    _refine_blocks(*args, children, centres, parent_phi, True)
+    return children, centres, parent_phi
