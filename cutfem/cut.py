@@ -804,14 +804,9 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     # mesh.KUHN_EDGE_CODES): numbered by a marker array, with no sort
     key = kernels.slot_keys(tets, code, vals, _EDGE_I, _EDGE_J, p, lattice=(KUHN_EDGE_CODES, types) if structured else None)
     del types
-    if structured:
-        n_vertices, vinv = dense_unique(key, 8 * p)
-        n_vertices = len(n_vertices)
-    else:
-        vkeys, vinv = unique_keys(key.reshape(-1), return_inverse=True)
-        n_vertices = len(vkeys)
-        del vkeys
-    del key
+    vkeys, vinv = dense_unique(key, 8 * p) if structured else unique_keys(key.reshape(-1), return_inverse=True)
+    n_vertices = len(vkeys)
+    del key, vkeys
     # vertex numbers (and so the triangles) as int32 while they fit: 12 bytes a triangle, 16 a tet less
     vinv = vinv.astype(np.int32 if n_vertices < 2**31 else np.int64, copy=False).reshape(m, 4)
     # each vertex computed once, from its first slot; triangles (0,1,2) and, for quads, (0,2,3),
