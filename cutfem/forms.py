@@ -744,8 +744,8 @@ def _piece_moments(cut):
 
     es = cut.elements(CUT)
     table, types = es.gradient_lookup()
-    return kernels.piece_moments(cut.vertices, cut.triangles, cut.triangle_tets, cut.triangle_areas,
-                                 es.points[es.tets[:, 0]], table, types, es.n_elements)
+    return kernels.piece_moments(cut.vertices, cut.triangles, cut.triangle_tets, cut.triangle_areas, es.points, es.tets,
+                                 table, types)
 
 
 def _element_symmetric(space, el, edges, diagonal) -> sp.csr_matrix:

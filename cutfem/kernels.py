@@ -311,18 +311,25 @@ def gauss_seidel(A, X, B, forward: bool = True):
     return X
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _barycentric(x, points, tets, g, k, lam):
+    """lam (4,) = the P1 basis values of tet k (vertices ``tets[k]`` into ``points``, basis gradients
+    g (4, 3)) at x: delta_i0 + grad lambda_i . (x - x_0)."""
+    o = tets[k, 0]
+    d0, d1, d2 = x[0] - points[o, 0], x[1] - points[o, 1], x[2] - points[o, 2]
+    for i in range(4):
+        lam[i] = g[i, 0] * d0 + g[i, 1] * d1 + g[i, 2] * d2
+    lam[0] += 1.0
+
+
 @njit(cache=True, error_model="numpy")
-def _piece_moments(vertices, triangles, tets_of, areas, origin, table, types, edges, diagonal, integrals):
+def _piece_moments(vertices, triangles, tets_of, areas, points, tets, table, types, edges, diagonal, integrals):
     lam = np.empty((3, 4))
     for t in range(triangles.shape[0]):
         k = tets_of[t]
         g = table[types[k]]
         for v in range(3):
-            x = vertices[triangles[t, v]]
-            d0, d1, d2 = x[0] - origin[k, 0], x[1] - origin[k, 1], x[2] - origin[k, 2]
-            for i in range(4):
-                lam[v, i] = g[i, 0] * d0 + g[i, 1] * d1 + g[i, 2] * d2
-            lam[v, 0] += 1.0
+            _barycentric(vertices[triangles[t, v]], points, tets, g, k, lam[v])
         w = areas[t] / 12.0
         for i in range(4):
             si = lam[0, i] + lam[1, i] + lam[2, i]
@@ -335,10 +342,11 @@ def _piece_moments(vertices, triangles, tets_of, areas, origin, table, types, ed
             edges[k, e] += w * (lam[0, i] * lam[0, j] + lam[1, i] * lam[1, j] + lam[2, i] * lam[2, j] + si * sj)
 
 
-def piece_moments(vertices, triangles, tets_of, areas, origin, table, types, m: int):
-    """The exact P1 moments of the pieces of S_h over their m cut tets: ``(edges (m, 6), diagonal
-    (m, 4), integrals (m, 4))`` with M_K[i, j] = int_{S_K} lambda_i lambda_j for the local edges
-    (i, j) of :data:`~cutfem.mesh.TET_EDGES` and on the diagonal, and int_{S_K} lambda_i.
+def piece_moments(vertices, triangles, tets_of, areas, points, tets, table, types):
+    """The exact P1 moments of the pieces of S_h over their m cut tets ``tets`` (m, 4) (vertex ids into
+    ``points``): ``(edges (m, 6), diagonal (m, 4), integrals (m, 4))`` with
+    M_K[i, j] = int_{S_K} lambda_i lambda_j for the local edges (i, j) of
+    :data:`~cutfem.mesh.TET_EDGES` and on the diagonal, and int_{S_K} lambda_i.
 
     The piece S_K is the union of its triangles T (``triangles`` (T, 3) into ``vertices``, in tet
     ``tets_of`` (T,), area ``areas``); the basis functions are affine on T, so with their values
@@ -347,15 +355,49 @@ def piece_moments(vertices, triangles, tets_of, areas, origin, table, types, m: 
         int_T lambda_i lambda_j = |T| / 12 (sum_v lambda_{v,i} lambda_{v,j} + s_i s_j),
         int_T lambda_i = |T| s_i / 3.
 
-    The values come from the tet's first vertex ``origin`` (m, 3) and its basis gradients
-    ``table[types[k]]`` (:meth:`~cutfem.markers.ElementSet.gradient_lookup`):
-    lambda_i(x) = delta_i0 + grad lambda_i . (x - x_0)."""
+    The values come from the tet's first vertex and its basis gradients ``table[types[k]]``
+    (:meth:`~cutfem.markers.ElementSet.gradient_lookup`): lambda_i(x) = delta_i0 + grad lambda_i . (x - x_0)."""
+    m = len(tets)
     edges, diagonal, integrals = np.zeros((m, 6)), np.zeros((m, 4)), np.zeros((m, 4))
     _piece_moments(np.ascontiguousarray(vertices, dtype=float), np.ascontiguousarray(triangles),
                    np.ascontiguousarray(tets_of), np.ascontiguousarray(areas, dtype=float),
-                   np.ascontiguousarray(origin, dtype=float), np.ascontiguousarray(table, dtype=float),
-                   np.ascontiguousarray(types), edges, diagonal, integrals)
+                   np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(tets),
+                   np.ascontiguousarray(table, dtype=float), np.ascontiguousarray(types), edges, diagonal, integrals)
     return edges, diagonal, integrals
+
+
+@njit(cache=True, error_model="numpy")
+def _vertex_values(vertices, triangles, tets_of, points, tets, table, types, dofs, coeffs, out):
+    done = np.zeros(vertices.shape[0], dtype=np.bool_)
+    lam = np.empty(4)
+    for t in range(triangles.shape[0] - 1, -1, -1):
+        k = tets_of[t]
+        for v in range(3):
+            p = triangles[t, v]
+            if done[p]:
+                continue
+            done[p] = True
+            _barycentric(vertices[p], points, tets, table[types[k]], k, lam)
+            for c in range(coeffs.shape[1]):
+                s = 0.0
+                for i in range(4):
+                    s += lam[i] * coeffs[dofs[k, i], c]
+                out[p, c] = s
+
+
+def vertex_values(vertices, triangles, tets_of, points, tets, table, types, dofs, coeffs):
+    """A P1 function on the tets ``tets`` (m, 4) (vertex ids into ``points``, basis gradients
+    ``table[types[k]]``, dofs ``dofs`` (m, 4), coefficients ``coeffs`` (n, c)) at the vertices of the
+    triangles ``triangles`` (T, 3) lying in the tets ``tets_of`` (T,): (V, c), each vertex valued in
+    the tet of the last triangle that has it (the trace is continuous: any of them would do).  One
+    pass over the triangles, last to first, each vertex once; no per-vertex basis arrays."""
+    coeffs = np.ascontiguousarray(coeffs, dtype=float)
+    out = np.zeros((len(vertices), coeffs.shape[1]))
+    _vertex_values(np.ascontiguousarray(vertices, dtype=float), np.ascontiguousarray(triangles),
+                   np.ascontiguousarray(tets_of), np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(tets),
+                   np.ascontiguousarray(table, dtype=float), np.ascontiguousarray(types), np.ascontiguousarray(dofs),
+                   coeffs, out)
+    return out
 
 
 @njit(cache=True, error_model="numpy")

@@ -66,6 +66,13 @@ class _P1Space:
         """The basis gradients of the given elements, ``element_gradients[elements]``."""
         return self.element_gradients[elements]
 
+    def _coefficients(self, coeffs) -> np.ndarray:
+        """``coeffs`` as an array of shape (n_dofs,) or (n_dofs, c), or a ValueError naming the shapes."""
+        coeffs = np.asarray(coeffs)
+        if coeffs.ndim not in (1, 2) or len(coeffs) != self.n_dofs:
+            raise ValueError(f"coefficients of this space have shape ({self.n_dofs},) or ({self.n_dofs}, c), got {coeffs.shape}")
+        return coeffs
+
     def gradient_lookup(self):
         """(table, types) with ``gradients_of(i) = table[types[i]]``, for compiled kernels: here the
         element gradients and 0..n_el-1."""
@@ -218,7 +225,7 @@ class SurfaceP1Space(_P1Space):
 
     def surface_vertex_data(self, coeffs):
         """(points (V, 3), triangles (T, 3), values at the points) of a discrete function on S_h."""
-        return self.dof_points, self.element_dofs, np.asarray(coeffs)
+        return self.dof_points, self.element_dofs, self._coefficients(coeffs)
 
     def edges(self):
         """Edges for the edge stabilization: (element pairs (E, 2), conormals (E, 2, 3), lengths (E,))."""
@@ -296,21 +303,19 @@ class CutP1Space(_P1Space):
         self._require_trace("surface_vertex_data")
         return self.cut.vertices, self.cut.triangles, self.surface_vertex_values(coeffs)
 
-    @cached_property
-    def _vertex_basis(self):
-        """(dofs (V, 4), basis values (V, 4)) at each vertex of S_h, in the last tet (in triangle
-        order) whose piece has that vertex: the trace is continuous, any of them would do."""
-        c = self.cut
-        tet_of = np.empty(len(c.vertices), dtype=np.int64)
-        tet_of[c.triangles.reshape(-1)] = np.repeat(c.triangle_tets, 3)
-        lam = barycentric_at(c.vertices[:, None, :], self.element_origin[tet_of], self.gradients_of(tet_of))[:, 0]
-        return self.element_dofs[tet_of], lam
-
     def surface_vertex_values(self, coeffs) -> np.ndarray:
-        """Trace of a discrete function at the vertices of S_h: (V,) or (V, c) (for plots and VTK)."""
-        dofs, lam = self._vertex_basis
-        local = np.asarray(coeffs)[dofs]
-        return np.einsum("vk,vk...->v...", lam, local)
+        """Trace of a discrete function at the vertices of S_h: (V,) or (V, c) (for plots, VTK and the
+        errors on S_h).  Each vertex is valued in the tet of the last triangle (in triangle order)
+        that has it: the trace is continuous, any of them would do (one compiled pass,
+        :func:`cutfem.kernels.vertex_values`)."""
+        from . import kernels
+
+        c = self.cut
+        coeffs = self._coefficients(coeffs)
+        table, types = self.gradient_lookup()
+        values = kernels.vertex_values(c.vertices, c.triangles, c.triangle_tets, self.dof_points, self.element_dofs, table,
+                                       types, self.element_dofs, coeffs.reshape(len(coeffs), -1))
+        return values.reshape((len(values),) + coeffs.shape[1:])
 
     def edges(self):
         """Edges of S_h between pieces: (element pairs (E, 2), conormals (E, 2, 3), lengths (E,))."""

@@ -232,6 +232,12 @@ def test_linear_functions_are_reproduced(which, meshed_torus, cut_sphere):
     np.testing.assert_allclose(V.evaluate(X, ds, 4), q.points, atol=1e-12)
     phi = V.basis_at(q.points, q.parent)
     np.testing.assert_allclose(phi.sum(axis=2), 1.0, atol=1e-12)
+    points, triangles, values = V.surface_vertex_data(u)  # the trace at the vertices of S_h
+    assert values.shape == (len(points),) and triangles.max() == len(points) - 1
+    np.testing.assert_allclose(values, points @ g + c, atol=1e-12)
+    np.testing.assert_allclose(V.surface_vertex_data(X)[2], points, atol=1e-12)
+    with pytest.raises(ValueError, match="shape"):
+        V.surface_vertex_data(u[:-1])
     grad = V.element_gradient_of(u)
     gradX = V.element_gradient_of(X)  # (n_el, 3, 3): row c is the gradient of x_c
     if which == "cut":  # full 3-d gradients on the tets
