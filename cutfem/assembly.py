@@ -15,6 +15,8 @@ one COO matrix per form.
 
 from __future__ import annotations
 
+import copy
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -120,6 +122,15 @@ class LatticeSum:
         self.sums = np.zeros(S * n)
         self.partner = np.zeros(S * n, dtype=np.int32 if n < 2**31 else np.int64)
         self.diagonal = np.zeros(n)
+        self.scale = 1.0
+
+    def scaled(self, scale: float) -> "LatticeSum":
+        """The same sums (shared arrays), with every term added through the result multiplied by
+        ``scale``: several forms c_1 a_1 + c_2 a_2 summed into one set of slots (one CSR pass, no
+        sparse sum of matrices)."""
+        out = copy.copy(self)
+        out.scale = float(scale)
+        return out
 
     def _check(self, outside, what):
         if outside:
@@ -134,8 +145,8 @@ class LatticeSum:
 
         self._check(kernels.lattice_add_elements(self.ids, self.code, np.ascontiguousarray(dofs),
                                                  np.ascontiguousarray(edges, dtype=float),
-                                                 np.ascontiguousarray(diagonal, dtype=float), self.sums, self.partner,
-                                                 self.diagonal), "element matrices")
+                                                 np.ascontiguousarray(diagonal, dtype=float), self.scale, self.sums,
+                                                 self.partner, self.diagonal), "element matrices")
         return self
 
     def add_rows(self, dofs, values) -> "LatticeSum":
@@ -144,8 +155,8 @@ class LatticeSum:
         from . import kernels
 
         self._check(kernels.lattice_add_rows(self.ids, self.code, np.ascontiguousarray(dofs),
-                                             np.ascontiguousarray(values, dtype=float), self.sums, self.partner,
-                                             self.diagonal), "rows")
+                                             np.ascontiguousarray(values, dtype=float), self.scale, self.sums,
+                                             self.partner, self.diagonal), "rows")
         return self
 
     def add_jumps(self, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types) -> "LatticeSum":
@@ -154,8 +165,8 @@ class LatticeSum:
         from . import kernels
 
         self._check(kernels.lattice_add_jumps(self.ids, self.code, pairs, normals_a, normals_b, float(sign_b),
-                                              np.ascontiguousarray(weights, dtype=float), dofs, table, types, self.sums,
-                                              self.partner, self.diagonal), "jump rows")
+                                              np.ascontiguousarray(weights, dtype=float), dofs, table, types, self.scale,
+                                              self.sums, self.partner, self.diagonal), "jump rows")
         return self
 
     def matrix(self) -> sp.csr_matrix:

@@ -69,6 +69,7 @@ __all__ = [
     "bilinear_form",
     "linear_form",
     "assemble",
+    "basis_integrals",
     "dot",
     "jump",
     "avg",
@@ -494,10 +495,13 @@ class _IntegrandTerm:
 
 
 class _GramTerm:
-    """A built-in bilinear term assembled on one field by ``build(space) -> CSR``."""
+    """A built-in bilinear term assembled on one field by ``build(space) -> CSR``; with
+    ``lattice=True`` by ``build(space, into)``, ``into`` a :class:`~cutfem.assembly.LatticeSum` of
+    the field (None when its dofs are not nodes of a structured box) that the build adds what it
+    can into, returning the rest as CSR (or None)."""
 
-    def __init__(self, build, field=None):
-        self.build, self.field = build, field
+    def __init__(self, build, field=None, lattice=False):
+        self.build, self.field, self.lattice = build, field, lattice
 
 
 class _VectorTerm:
@@ -562,15 +566,26 @@ def assemble(form: Form, space, **params):
     rows, cols, data = [], [], []
     total = None
     symmetric = True
+    lattices = {}  # field -> the LatticeSum its lattice terms share (c_1 a_1 + c_2 a_2: one set of slots)
+
+    def add(A, k):
+        nonlocal total
+        if len(offsets) > 2:
+            A = _diagonal_block(A, int(offsets[k]), n)
+        total = A if total is None else total + A
+
     for c, term in form.terms:
         if isinstance(term, _GramTerm):
             k = _field_index(space, term.field)
-            A = term.build(_field(space, k))
-            if c != 1.0:
-                A = c * A
-            if len(offsets) > 2:
-                A = _diagonal_block(A, int(offsets[k]), n)
-            total = A if total is None else total + A
+            V = _field(space, k)
+            if term.lattice:
+                if k not in lattices:
+                    lattices[k] = _lattice(V)
+                A = term.build(V, None if lattices[k] is None else lattices[k].scaled(c))
+            else:
+                A = term.build(V)
+            if A is not None:
+                add(c * A if c != 1.0 else A, k)
             continue
         symmetric = symmetric and term.integrand.symmetric
         for i, j, dofs_u, dofs_v, blocks in term.contributions(space, params):
@@ -578,6 +593,9 @@ def assemble(form: Form, space, **params):
             rows.append(np.broadcast_to((dofs_v + offsets[j])[:, :, None], blocks.shape).reshape(-1))
             cols.append(np.broadcast_to((dofs_u + offsets[i])[:, None, :], blocks.shape).reshape(-1))
             data.append(c * blocks.reshape(-1))
+    for k, lattice in lattices.items():
+        if lattice is not None:
+            add(lattice.matrix(), k)
     if rows:
         A = sp.coo_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
         if symmetric:  # the sums of duplicates run in different orders for (i, j) and (j, i)
@@ -638,18 +656,17 @@ def _gradient_matrix(space, grads_of, weights, elements=None):
     return gram_sum(blocks(), space.n_dofs)
 
 
-def _kuhn_stiffness(space, kuhn, volumes):
-    """sum_T |T ∩ side| G_T G_T^T over all the tets of a structured box's element set: the gradients
-    of Kuhn tet l are KUHN_GRADIENTS[l] / spacing (:attr:`~cutfem.mesh.StructuredBox.gradient_table`),
-    so the products G_i . G_j form a (6, 4, 4) table and each tet's entries are a row of it times
-    its volume, summed by :class:`~cutfem.assembly.LatticeSum`."""
+def _kuhn_stiffness(space, volumes, into):
+    """sum_T |T ∩ side| G_T G_T^T over all the tets of a structured box's element set, into ``into``
+    (:class:`~cutfem.assembly.LatticeSum`): the gradients of Kuhn tet l are KUHN_GRADIENTS[l] /
+    spacing (:attr:`~cutfem.mesh.StructuredBox.gradient_table`), so the products G_i . G_j form a
+    (6, 4, 4) table and each tet's entries are a row of it times its volume."""
+    kuhn = space.elements.kuhn_types
     G = space.elements.background.gradient_table
     D = np.einsum("lid,ljd->lij", G, G)
     edges, diagonal = D[:, TET_EDGES[:, 0], TET_EDGES[:, 1]], D[:, np.arange(4), np.arange(4)]
-    total = _lattice(space)
     for c in _blocks(len(kuhn)):
-        total.add_elements(space.element_dofs[c], edges[kuhn[c]] * volumes[c, None], diagonal[kuhn[c]] * volumes[c, None])
-    return total.matrix()
+        into.add_elements(space.element_dofs[c], edges[kuhn[c]] * volumes[c, None], diagonal[kuhn[c]] * volumes[c, None])
 
 
 def _lattice(space):
@@ -685,19 +702,18 @@ def mass(measure: Measure, field=None) -> Form:
     sub-tets of a side, whole tets) with the basis values Lambda at its vertices,
     M_T = Lambda^T |T|/((k)(k+1)) (I + 1 1^T) Lambda."""
 
-    def build(space):
+    def build(space, into):
         if isinstance(measure, MeshedSurface):
             return _meshed_mass(space)
         if isinstance(measure, SurfacePieces):
             if _same_elements(space, measure):
-                return _piece_mass(space)
+                return _piece_mass(space, into)
             c = measure.cut
             el = space.local_elements(measure, c.triangle_tets)
             return _simplex_mass(space, c.triangle_points, el, c.triangle_areas)
         if isinstance(measure, (SideVolume, ElementVolume)):
-            kuhn = getattr(space.elements, "kuhn_types", None)
-            if _same_elements(space, measure) and kuhn is not None:
-                return _kuhn_volume_mass(space, measure, kuhn)
+            if _same_elements(space, measure) and into is not None:
+                return _kuhn_volume_mass(space, measure, into)
         if isinstance(measure, SideVolume):
             vertices = measure.cell_vertices()
             return _simplex_mass(space, vertices, space.local_elements(measure, measure.cell_parent), measure.cell_volumes)
@@ -706,33 +722,31 @@ def mass(measure: Measure, field=None) -> Form:
             return _simplex_mass(space, es.vertices, space.local_elements(measure, np.arange(es.n_elements)), es.volumes)
         raise TypeError(f"mass integrates over cells (a surface or a volume), not over {measure!r}")
 
-    return Form([(1.0, _GramTerm(build, field))], False)
+    return Form([(1.0, _GramTerm(build, field, lattice=True))], False)
 
 
-def _kuhn_volume_mass(space, measure, kuhn):
+def _kuhn_volume_mass(space, measure, into):
     """The volume mass matrix over the cells of a side (or of whole tets) of a structured box's
-    element set: the whole elements' M_T = |T|/20 (1 + delta_ij) summed per lattice edge
-    (:class:`~cutfem.assembly.LatticeSum`: no basis values, no Gram product), plus the sub-tets
-    of the cut elements by :func:`_simplex_mass`."""
+    element set: the whole elements' M_T = |T|/20 (1 + delta_ij) summed per lattice edge into
+    ``into`` (:class:`~cutfem.assembly.LatticeSum`: no basis values, no Gram product); returns the
+    sub-tets of the cut elements by :func:`_simplex_mass` (None if there are none)."""
     w = measure.whole_cells
     whole, volumes = measure.cell_parent[:w], measure.cell_volumes[:w]
-    total = _lattice(space)
     for c in _blocks(w):
         v = volumes[c, None]
-        total.add_elements(space.element_dofs[whole[c]], np.repeat(v / 20.0, 6, axis=1), np.repeat(v / 10.0, 4, axis=1))
-    M = total.matrix()
+        into.add_elements(space.element_dofs[whole[c]], np.repeat(v / 20.0, 6, axis=1), np.repeat(v / 10.0, 4, axis=1))
     if measure.n_cells > w:
-        M = M + _simplex_mass(space, measure.cell_vertices(w, measure.n_cells), measure.cell_parent[w:], measure.cell_volumes[w:])
-    return M
+        return _simplex_mass(space, measure.cell_vertices(w, measure.n_cells), measure.cell_parent[w:], measure.cell_volumes[w:])
+    return None
 
 
-def _piece_mass(space) -> sp.csr_matrix:
+def _piece_mass(space, into=None):
     """The exact surface mass matrix of a cut space on its own cut tets: the element matrices
     M_K = int_{S_K} lambda_i lambda_j of :func:`_piece_moments`, summed by
-    :func:`_element_symmetric`.  The same matrix as the triangle route (:func:`_simplex_mass`) to
-    round-off (tested)."""
+    :func:`_element_symmetric` (into ``into``).  The same matrix as the triangle route
+    (:func:`_simplex_mass`) to round-off (tested)."""
     edges, diagonal, _ = _piece_moments(space.cut)
-    return _element_symmetric(space, slice(None), edges, diagonal)
+    return _element_symmetric(space, slice(None), edges, diagonal, into)
 
 
 def _piece_moments(cut):
@@ -748,16 +762,16 @@ def _piece_moments(cut):
                                  table, types)
 
 
-def _element_symmetric(space, el, edges, diagonal) -> sp.csr_matrix:
+def _element_symmetric(space, el, edges, diagonal, into=None):
     """sum_K A_K of symmetric 4 x 4 element matrices on the field's elements ``el`` (an index or a
     slice), given by their entries on the local edges ``edges`` (m, 6) (:data:`~cutfem.mesh.TET_EDGES`
-    order) and their ``diagonal`` (m, 4): by :class:`~cutfem.assembly.LatticeSum` on a structured
-    box (no sort), through one COO matrix otherwise.  Exactly
-    symmetric either way."""
+    order) and their ``diagonal`` (m, 4): added into ``into`` (a :class:`~cutfem.assembly.LatticeSum`
+    of a structured box: no sort; returns None), or as one COO matrix when ``into`` is None.
+    Exactly symmetric either way."""
     dofs = space.element_dofs[el]
-    total = _lattice(space)
-    if total is not None:
-        return total.add_elements(dofs, edges, diagonal).matrix()
+    if into is not None:
+        into.add_elements(dofs, edges, diagonal)
+        return None
     i, j = TET_EDGES[:, 0], TET_EDGES[:, 1]
     rows = np.concatenate([dofs[:, i].ravel(), dofs[:, j].ravel(), dofs.ravel()])
     cols = np.concatenate([dofs[:, j].ravel(), dofs[:, i].ravel(), dofs.ravel()])
@@ -772,17 +786,16 @@ def stiffness(measure: Measure, field=None) -> Form:
     per lattice edge on a structured box (:func:`_kuhn_stiffness`), as a Gram product otherwise."""
     _require(measure, (SideVolume, ElementVolume), "stiffness")
 
-    def build(space):
+    def build(space, into):
         es = measure.elements
         if _same_elements(space, measure):  # no gathered copy of the gradients
-            kuhn = getattr(space.elements, "kuhn_types", None)
-            if kuhn is not None:
-                return _kuhn_stiffness(space, kuhn, measure.part_volumes)
+            if into is not None:
+                return _kuhn_stiffness(space, measure.part_volumes, into)
             return _gradient_matrix(space, space.gradients_of, measure.part_volumes)
         el = space.local_elements(measure, np.arange(es.n_elements))
         return _gradient_matrix(space, lambda cells: space.gradients_of(el[cells]), measure.part_volumes, el)
 
-    return Form([(1.0, _GramTerm(build, field))], False)
+    return Form([(1.0, _GramTerm(build, field, lattice=True))], False)
 
 
 def tangential_stiffness(measure: Measure, field=None) -> Form:
@@ -839,6 +852,33 @@ def position_load(measure: Measure, field=None) -> Form:
     return Form([(1.0, _VectorTerm(build, field))], True)
 
 
+def basis_integrals(measure: Measure, field=None) -> Form:
+    """The vector (int phi_i)_i over a cell measure, i.e. (1, v): on S_h of a cut per triangle of the
+    pieces, |T| lambda_i(centroid) (:func:`cutfem.kernels.piece_integrals`, one compiled pass); on a
+    triangulated surface |T|/3 per vertex; otherwise :func:`load` of 1 at degree 1 (exact for P1).
+    Its sum is the measure's size; it is 1^T M for the mass matrix M over the same measure (to
+    round-off), without assembling M."""
+    if isinstance(measure, FacetMeasure):
+        raise TypeError("basis_integrals integrates over cells (a volume or a surface), not over facets")
+    _require(measure, Measure, "basis_integrals")
+
+    def build(space):
+        if isinstance(measure, MeshedSurface):
+            return np.bincount(space.element_dofs.reshape(-1), weights=np.repeat(space.element_areas / 3.0, 3),
+                               minlength=space.n_dofs)
+        if isinstance(measure, SurfacePieces) and _same_elements(space, measure):
+            from . import kernels
+
+            cut, out = measure.cut, np.zeros(space.n_dofs)
+            table, types = space.gradient_lookup()
+            kernels.piece_integrals(cut.vertices, cut.triangles, cut.triangle_tets, cut.triangle_areas, space.dof_points,
+                                    space.element_dofs, table, types, space.element_dofs, out)
+            return out
+        return assemble(load(lambda x: np.ones(x.shape[:2]), measure, degree=1), space)
+
+    return Form([(1.0, _VectorTerm(build, field))], True)
+
+
 def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -> Form:
     """(f, v) over ``measure`` (a cell measure: a side's volume, whole tets, S_h or a triangulated
     surface) by quadrature of the given degree.
@@ -872,20 +912,21 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
     return Form([(1.0, _VectorTerm(build, field))], True)
 
 
-def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale, lattice=None):
+def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale, into=None):
     """Gram matrix of the jumps c = (t_a . G_{K_a}, t_b . G_{K_b}), t_a = ``normals_a``, t_b = ``sign_b``
     ``normals_b`` (F, 3), weighted by ``scale`` (>= 0): one row per pair (K_a, K_b) = ``pairs`` of the
     field's elements on their dofs (shared dofs summed), by :func:`cutfem.kernels.jump_rows`: summed
-    into ``lattice`` (a :class:`~cutfem.assembly.LatticeSum`: face-adjacent tets of a structured box)
-    row by row as they are built, or a block of pairs at a time by sparse Gram products
+    into ``into`` (a :class:`~cutfem.assembly.LatticeSum`: face-adjacent tets of a structured box;
+    returns None) row by row as they are built, or a block of pairs at a time by sparse Gram products
     (:func:`~cutfem.assembly.gram_sum`; the rows of the 5.6 million interior faces of the cut torus
     at spacing 0.00625, with their dofs, took 0.5 GB at once)."""
     from . import kernels
 
     dofs = _compact(space.element_dofs, space.n_dofs)
     table, types = space.gradient_lookup()
-    if lattice is not None:
-        return lattice.add_jumps(np.ascontiguousarray(pairs), normals_a, normals_b, sign_b, scale, dofs, table, types).matrix()
+    if into is not None:
+        into.add_jumps(np.ascontiguousarray(pairs), normals_a, normals_b, sign_b, scale, dofs, table, types)
+        return None
     k = dofs.shape[1]
 
     def blocks():
@@ -911,15 +952,15 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
     penalty of a bulk field (§7), to be multiplied by gamma_g."""
     _require(measure, FacetMeasure, "face_jump_penalty")
 
-    def build(space):
+    def build(space, into):
         f = measure.facets
         pairs = np.stack([space.local_elements(measure, f.pairs[:, s]) for s in (0, 1)], axis=1)
         n, scale = f.normals_areas()
         if h_power != 0:
             scale *= f.h**h_power
-        return _jump_gram(space, pairs, n, n, -1.0, scale, lattice=_lattice(space))
+        return _jump_gram(space, pairs, n, n, -1.0, scale, into)
 
-    return Form([(1.0, _GramTerm(build, field))], False)
+    return Form([(1.0, _GramTerm(build, field, lattice=True))], False)
 
 
 def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> Form:
@@ -982,7 +1023,7 @@ def nitsche(measure: SurfacePieces, gamma: float = 10.0, field=None) -> Form:
     _positive(gamma=gamma)
     _require(measure, SurfacePieces, "nitsche")
 
-    def build(space):
+    def build(space, into):
         cut = measure.cut
         edges, diagonal, p = _piece_moments(cut)
         es = cut.elements(CUT)
@@ -992,9 +1033,9 @@ def nitsche(measure: SurfacePieces, gamma: float = 10.0, field=None) -> Form:
         i, j = TET_EDGES[:, 0], TET_EDGES[:, 1]
         edges = edges * scale - (p[:, i] * g[:, j] + g[:, i] * p[:, j])
         diagonal = diagonal * scale - 2.0 * p * g
-        return _element_symmetric(space, el, edges, diagonal)
+        return _element_symmetric(space, el, edges, diagonal, into)
 
-    return Form([(1.0, _GramTerm(build, field))], False)
+    return Form([(1.0, _GramTerm(build, field, lattice=True))], False)
 
 
 def nitsche_load(g, measure: Measure, gamma: float = 10.0, field=None) -> Form:

@@ -114,7 +114,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "galerkin", "strict_upper", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "galerkin", "strict_upper", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -367,6 +367,23 @@ def piece_moments(vertices, triangles, tets_of, areas, points, tets, table, type
 
 
 @njit(cache=True, error_model="numpy")
+def piece_integrals(vertices, triangles, tets_of, areas, points, tets, table, types, dofs, out):
+    """out[dofs[k, i]] += int_T lambda_i = |T| lambda_i(centroid of T) for the triangles ``triangles``
+    (T, 3) into ``vertices``, of areas ``areas``, lying in the tets ``tets_of`` (T,) (vertex ids
+    ``tets`` (m, 4) into ``points``, basis gradients ``table[types[k]]``, dofs ``dofs`` (m, 4)):
+    the integrals of the P1 basis functions over the pieces of S_h, exact (lambda_i is affine on T)."""
+    lam = np.empty(4)
+    x = np.empty(3)
+    for t in range(triangles.shape[0]):
+        k = tets_of[t]
+        for d in range(3):
+            x[d] = (vertices[triangles[t, 0], d] + vertices[triangles[t, 1], d] + vertices[triangles[t, 2], d]) / 3.0
+        _barycentric(x, points, tets, table[types[k]], k, lam)
+        for i in range(4):
+            out[dofs[k, i]] += areas[t] * lam[i]
+
+
+@njit(cache=True, error_model="numpy")
 def _vertex_values(vertices, triangles, tets_of, points, tets, table, types, dofs, coeffs, out):
     done = np.zeros(vertices.shape[0], dtype=np.bool_)
     lam = np.empty(4)
@@ -438,10 +455,10 @@ def _slot(ids, code, a, b):
 
 
 @njit(cache=True, error_model="numpy")
-def lattice_add_elements(ids, code, dofs, edges, diagonal, sums, partner, diag):
-    """Add symmetric element matrices (entries ``edges`` (m, 6) on the local edges, ``diagonal`` (m, 4))
-    of the elements ``dofs`` (m, 4) into the slots; returns the number of pairs outside the lattice
-    offsets (then the caller must not use the sums)."""
+def lattice_add_elements(ids, code, dofs, edges, diagonal, scale, sums, partner, diag):
+    """Add ``scale`` times symmetric element matrices (entries ``edges`` (m, 6) on the local edges,
+    ``diagonal`` (m, 4)) of the elements ``dofs`` (m, 4) into the slots; returns the number of pairs
+    outside the lattice offsets (then the caller must not use the sums)."""
     outside = 0
     for t in range(dofs.shape[0]):
         for e in range(6):
@@ -452,16 +469,16 @@ def lattice_add_elements(ids, code, dofs, edges, diagonal, sums, partner, diag):
             if s < 0:
                 outside += 1
                 continue
-            sums[s] += edges[t, e]
+            sums[s] += scale * edges[t, e]
             partner[s] = b
         for i in range(4):
-            diag[dofs[t, i]] += diagonal[t, i]
+            diag[dofs[t, i]] += scale * diagonal[t, i]
     return outside
 
 
 @njit(cache=True, error_model="numpy")
-def _add_gram_row(ids, code, row_dofs, row_values, u, v, sums, partner, diag):
-    """Add c c^T for one row c (``row_values`` on ``row_dofs``), its repeated dofs merged first (a
+def _add_gram_row(ids, code, row_dofs, row_values, u, v, scale, sums, partner, diag):
+    """Add scale c c^T for one row c (``row_values`` on ``row_dofs``), its repeated dofs merged first (a
     face row has 8 entries on 5 nodes: 10 pairs instead of 28), ``u``, ``v`` scratch of the row's
     length; returns the number of pairs outside the lattice offsets."""
     nu = 0
@@ -478,7 +495,7 @@ def _add_gram_row(ids, code, row_dofs, row_values, u, v, sums, partner, diag):
     outside = 0
     for p in range(nu):
         a, vp = u[p], v[p]
-        diag[a] += vp * vp
+        diag[a] += scale * (vp * vp)
         for q in range(p + 1, nu):
             b = u[q]
             lo, hi = (a, b) if a < b else (b, a)
@@ -486,27 +503,28 @@ def _add_gram_row(ids, code, row_dofs, row_values, u, v, sums, partner, diag):
             if s < 0:
                 outside += 1
                 continue
-            sums[s] += vp * v[q]
+            sums[s] += scale * (vp * v[q])
             partner[s] = hi
     return outside
 
 
 @njit(cache=True, error_model="numpy")
-def lattice_add_rows(ids, code, dofs, values, sums, partner, diag):
-    """Add the Gram matrix sum_r c_r c_r^T of rows c_r (``values`` (r, k) on ``dofs`` (r, k); a dof
+def lattice_add_rows(ids, code, dofs, values, scale, sums, partner, diag):
+    """Add ``scale`` times the Gram matrix sum_r c_r c_r^T of rows c_r (``values`` (r, k) on ``dofs`` (r, k); a dof
     repeated in a row counts with the sum of its values) into the slots; returns the number of
     pairs outside the lattice offsets."""
     u = np.empty(dofs.shape[1], dtype=dofs.dtype)
     v = np.empty(dofs.shape[1])
     outside = 0
     for r in range(dofs.shape[0]):
-        outside += _add_gram_row(ids, code, dofs[r], values[r], u, v, sums, partner, diag)
+        outside += _add_gram_row(ids, code, dofs[r], values[r], u, v, scale, sums, partner, diag)
     return outside
 
 
 @njit(cache=True, error_model="numpy")
-def lattice_add_jumps(ids, code, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, sums, partner, diag):
-    """Add the Gram matrix of the jump rows of :func:`jump_rows` into the slots, one row at a time
+def lattice_add_jumps(ids, code, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, scale, sums, partner,
+                      diag):
+    """Add ``scale`` times the Gram matrix of the jump rows of :func:`jump_rows` into the slots, one row at a time
     (no (F, 2k) arrays); returns the number of pairs outside the lattice offsets."""
     k2 = 2 * dofs.shape[1]
     row_dofs, row_values = np.empty(k2, dtype=dofs.dtype), np.empty(k2)
@@ -514,7 +532,7 @@ def lattice_add_jumps(ids, code, pairs, normals_a, normals_b, sign_b, weights, d
     outside = 0
     for f in range(pairs.shape[0]):
         _jump_row(f, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, row_dofs, row_values)
-        outside += _add_gram_row(ids, code, row_dofs, row_values, u, v, sums, partner, diag)
+        outside += _add_gram_row(ids, code, row_dofs, row_values, u, v, scale, sums, partner, diag)
     return outside
 
 

@@ -18,7 +18,7 @@ import numpy as np
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import discrete_error, l2_error
-from cutfem.forms import assemble, edge_jump_penalty, face_jump_penalty, mass, position_load
+from cutfem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, mass, position_load
 from cutfem.registry import LazyFields, Param, Problem, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
@@ -46,25 +46,21 @@ DEFINITIONS = {
 
 
 def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0):
-    """(M, K = M + tau_E J_E + tau_F J_F, B): the matrices of the mean curvature problem on the
-    measure ``surface`` (S_h) and its right-hand sides B = A X, (n, 3), computed without A
-    (:func:`cutfem.forms.position_load`); J_F over the facet measure ``faces`` (cut case)."""
-    M = assemble(mass(surface), space)
-    K = M
+    """(K = M + tau_E J_E + tau_F J_F, B): the matrix of the mean curvature problem on the measure
+    ``surface`` (S_h), assembled as one form (on a structured box the mass and the face penalty
+    sum into one set of lattice slots), and its right-hand sides B = A X, (n, 3), computed without
+    A (:func:`cutfem.forms.position_load`); J_F over the facet measure ``faces`` (cut case)."""
+    form = mass(surface)
     if tau_e > 0:
-        K = K + tau_e * assemble(edge_jump_penalty(surface), space)
+        form = form + tau_e * edge_jump_penalty(surface)
     if tau_f > 0:
-        K = K + tau_f * assemble(face_jump_penalty(faces, h_power=face_h_power), space)
-    return M, K.tocsr(), assemble(position_load(surface), space)
-
-
-def _basis_integrals(M):
-    """1^T M: the integrals of the basis functions over S_h."""
-    return np.asarray(M.sum(axis=0)).ravel()
+        form = form + tau_f * face_jump_penalty(faces, h_power=face_h_power)
+    return assemble(form, space), assemble(position_load(surface), space)
 
 
 def _common_record(space, ones_M, H, levelset, solve_info):
-    """The record entries of both kinds; ``ones_M`` = 1^T M (:func:`_basis_integrals`)."""
+    """The record entries of both kinds; ``ones_M`` = 1^T M, the integrals of the basis functions
+    over S_h (:func:`cutfem.forms.basis_integrals`)."""
     rec = {
         "h": space.h,
         "dofs": int(space.n_dofs),
@@ -103,11 +99,12 @@ class MeanCurvatureMeshed(Problem):
             mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
             space = SurfaceP1Space(mesh)
         with t("assembly"):
-            M, K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e)
+            K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e)
+            M = assemble(mass(mesh.ds()), space)  # for the discrete error
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL)
         with t("errors"):
-            rec = _common_record(space, _basis_integrals(M), H, exact, info)
+            rec = _common_record(space, assemble(basis_integrals(mesh.ds()), space), H, exact, info)
             rec.update(triangles=int(mesh.n_triangles), edges=int(mesh.n_edges))
             if exact is not None:
                 He = exact.exact_mean_curvature_vector
@@ -150,9 +147,8 @@ class MeanCurvatureCut(Problem):
             check_cut_memory(cut)
             space = CutP1Space(cut)
         with t("assembly"):
-            M, K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)), face_h_power=face_h_power)
-            ones_M = _basis_integrals(M)
-            del M  # not needed by the errors of the cut kind: its memory is free for the solve
+            K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)), face_h_power=face_h_power)
+            ones_M = assemble(basis_integrals(cut.ds()), space)
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL)
         exact = phi if has_exact(phi) else None

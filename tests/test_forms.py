@@ -20,12 +20,14 @@ import scipy.sparse as sp
 from cutfem.cut import cut_mesh
 from cutfem.forms import (
     assemble,
+    basis_integrals,
     bilinear_form,
     dot,
     face_jump_penalty,
     linear_form,
     mass,
     position_load,
+    stiffness,
 )
 from cutfem.levelset import Sphere, Torus
 from cutfem.markers import NEG
@@ -95,6 +97,43 @@ def test_mass_sums_to_area(space):
     assert mass_matrix(space).sum() == pytest.approx(area, rel=1e-12)
     one = np.ones(space.n_dofs)
     assert one @ M @ one == pytest.approx(area, rel=1e-12)
+
+
+def test_basis_integrals_are_the_column_sums_of_the_mass(space):
+    """int phi_i = (1^T M)_i on S_h (per piece on a cut, closed form on a mesh), without M."""
+    ones = assemble(basis_integrals(ds(space)), space)
+    M = mass_matrix(space)
+    assert ones.shape == (space.n_dofs,)
+    np.testing.assert_allclose(ones, np.asarray(M.sum(axis=0)).ravel(), rtol=0, atol=1e-13 * ones.max())
+    assert ones.sum() == pytest.approx(triangles_area(surface_triangles(space)), rel=1e-12)
+
+
+def test_basis_integrals_over_a_side_and_refusals():
+    cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02]))
+    V = CutP1Space(cut, NEG)
+    ones = assemble(basis_integrals(cut.dx(NEG)), V)  # quadrature of degree 1: exact for P1
+    np.testing.assert_allclose(ones, np.asarray(assemble(mass(cut.dx(NEG)), V).sum(axis=0)).ravel(), rtol=0, atol=1e-14)
+    with pytest.raises(TypeError, match="facets"):
+        basis_integrals(cut.dF(cut.ghost_facets(NEG)))
+
+
+def test_lattice_terms_of_a_form_sum_into_one_matrix():
+    """The terms of a form that sum into lattice slots (piece mass, face penalty, volume mass and
+    stiffness of whole tets) go into one set of slots, each times its coefficient (negative ones
+    too): the matrix of the sum is the sum of the matrices, to round-off, and exactly symmetric."""
+    cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1), Torus())
+    V = CutP1Space(cut)
+    J = face_jump_penalty(dF(V))
+    A = assemble(mass(cut.ds()) + 0.3 * J, V)
+    B = assemble(mass(cut.ds()), V) + 0.3 * assemble(J, V)
+    assert abs(A - B).max() <= 1e-15 * abs(B).max()
+    assert (A - A.T).nnz == 0
+    W = CutP1Space(cut, NEG)
+    G = face_jump_penalty(cut.dF(cut.ghost_facets(NEG)), h_power=1)
+    A = assemble(stiffness(cut.dx(NEG)) - 2.0 * mass(cut.dx(NEG)) + 0.1 * G, W)
+    B = assemble(stiffness(cut.dx(NEG)), W) - 2.0 * assemble(mass(cut.dx(NEG)), W) + 0.1 * assemble(G, W)
+    assert abs(A - B).max() <= 1e-14 * abs(B).max()
+    assert abs(A - A.T).max() <= 1e-15 * abs(B).max()  # the cut cells' mass is a Gram product
 
 
 @pytest.mark.parametrize("which", ["cut-sphere", "cut-torus"])
