@@ -149,6 +149,18 @@ class LatticeSum:
                                                  self.partner, self.diagonal), "element matrices")
         return self
 
+    def add_pieces(self, vertices, triangles, tets_of, areas, points, tets, table, types, dofs) -> "LatticeSum":
+        """Add the exact P1 mass matrices of triangles lying in tets (the pieces of S_h), triangle by
+        triangle (:func:`cutfem.kernels.lattice_add_pieces`, same arguments)."""
+        from . import kernels
+
+        c = np.ascontiguousarray
+        self._check(kernels.lattice_add_pieces(self.ids, self.code, c(vertices, dtype=float), c(triangles), c(tets_of),
+                                               c(areas, dtype=float), c(points, dtype=float), c(tets), c(table, dtype=float),
+                                               c(types), c(dofs), self.scale, self.sums, self.partner, self.diagonal),
+                    "pieces")
+        return self
+
     def add_rows(self, dofs, values) -> "LatticeSum":
         """Add the Gram matrix sum_r c_r c_r^T of the rows ``values`` (r, k) on ``dofs`` (r, k) (a dof
         repeated in a row counts with the sum of its values), as :func:`gram` does."""

@@ -741,10 +741,18 @@ def _kuhn_volume_mass(space, measure, into):
 
 
 def _piece_mass(space, into=None):
-    """The exact surface mass matrix of a cut space on its own cut tets: the element matrices
-    M_K = int_{S_K} lambda_i lambda_j of :func:`_piece_moments`, summed by
-    :func:`_element_symmetric` (into ``into``).  The same matrix as the triangle route
-    (:func:`_simplex_mass`) to round-off (tested)."""
+    """The exact surface mass matrix of a cut space on its own cut tets: into ``into`` (a
+    :class:`~cutfem.assembly.LatticeSum`) triangle by triangle of S_h
+    (:meth:`~cutfem.assembly.LatticeSum.add_pieces`: no per-tet arrays, 112 bytes a cut tet), else
+    the element matrices M_K = int_{S_K} lambda_i lambda_j of :func:`_piece_moments` summed by
+    :func:`_element_symmetric`.  The same matrix as the triangle route (:func:`_simplex_mass`) to
+    round-off either way (tested)."""
+    if into is not None:
+        c = space.cut
+        table, types = space.gradient_lookup()
+        into.add_pieces(c.vertices, c.triangles, c.triangle_tets, c.triangle_areas, space.dof_points, space.element_dofs,
+                        table, types, space.element_dofs)
+        return None
     edges, diagonal, _ = _piece_moments(space.cut)
     return _element_symmetric(space, slice(None), edges, diagonal, into)
 

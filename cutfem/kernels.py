@@ -115,7 +115,7 @@ from .mesh import TET_EDGES
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
 __all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "galerkin", "strict_upper", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
-           "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_rows",
+           "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
 
@@ -473,6 +473,42 @@ def lattice_add_elements(ids, code, dofs, edges, diagonal, scale, sums, partner,
             partner[s] = b
         for i in range(4):
             diag[dofs[t, i]] += scale * diagonal[t, i]
+    return outside
+
+
+@njit(cache=True, error_model="numpy")
+def lattice_add_pieces(ids, code, vertices, triangles, tets_of, areas, points, tets, table, types, dofs, scale, sums,
+                       partner, diag):
+    """Add ``scale`` times the exact P1 mass matrices of the triangles ``triangles`` (T, 3) into
+    ``vertices``, of areas ``areas``, lying in the tets ``tets_of`` (T,) (vertex ids ``tets`` into
+    ``points``, basis gradients ``table[types[k]]``, dofs ``dofs`` (m, 4)) into the slots, triangle
+    by triangle: int_T lambda_i lambda_j = |T| / 12 (sum_v lambda_vi lambda_vj + s_i s_j) as in
+    :func:`piece_moments`, without its per-tet arrays; returns the number of pairs outside the
+    lattice offsets."""
+    lam = np.empty((3, 4))
+    outside = 0
+    for t in range(triangles.shape[0]):
+        k = tets_of[t]
+        g = table[types[k]]
+        for v in range(3):
+            _barycentric(vertices[triangles[t, v]], points, tets, g, k, lam[v])
+        w = scale * areas[t] / 12.0
+        for i in range(4):
+            si = lam[0, i] + lam[1, i] + lam[2, i]
+            diag[dofs[k, i]] += w * (lam[0, i] * lam[0, i] + lam[1, i] * lam[1, i] + lam[2, i] * lam[2, i] + si * si)
+        for e in range(6):
+            i, j = _TET_EDGES[e, 0], _TET_EDGES[e, 1]
+            a, b = dofs[k, i], dofs[k, j]
+            if a > b:
+                a, b = b, a
+            s = _slot(ids, code, a, b)
+            if s < 0:
+                outside += 1
+                continue
+            si = lam[0, i] + lam[1, i] + lam[2, i]
+            sj = lam[0, j] + lam[1, j] + lam[2, j]
+            sums[s] += w * (lam[0, i] * lam[0, j] + lam[1, i] * lam[1, j] + lam[2, i] * lam[2, j] + si * sj)
+            partner[s] = b
     return outside
 
 
