@@ -45,17 +45,22 @@ DEFINITIONS = {
 }
 
 
-def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0):
+def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, mass_matrix=None):
     """(K = M + tau_E J_E + tau_F J_F, B): the matrix of the mean curvature problem on the measure
     ``surface`` (S_h), assembled as one form (on a structured box the mass and the face penalty
     sum into one set of lattice slots), and its right-hand sides B = A X, (n, 3), computed without
-    A (:func:`cutfem.forms.position_load`); J_F over the facet measure ``faces`` (cut case)."""
-    form = mass(surface)
+    A (:func:`cutfem.forms.position_load`); J_F over the facet measure ``faces`` (cut case).
+    ``mass_matrix``: M when the caller has it already (the meshed kind keeps it for the discrete
+    error), added to the assembled penalties instead of assembling M again."""
+    terms = [] if mass_matrix is not None else [mass(surface)]
     if tau_e > 0:
-        form = form + tau_e * edge_jump_penalty(surface)
+        terms.append(tau_e * edge_jump_penalty(surface))
     if tau_f > 0:
-        form = form + tau_f * face_jump_penalty(faces, h_power=face_h_power)
-    return assemble(form, space), assemble(position_load(surface), space)
+        terms.append(tau_f * face_jump_penalty(faces, h_power=face_h_power))
+    K = assemble(sum(terms[1:], terms[0]), space) if terms else None
+    if mass_matrix is not None:
+        K = mass_matrix if K is None else (mass_matrix + K).tocsr()
+    return K, assemble(position_load(surface), space)
 
 
 def _common_record(space, ones_M, H, levelset, solve_info):
@@ -99,8 +104,8 @@ class MeanCurvatureMeshed(Problem):
             mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
             space = SurfaceP1Space(mesh)
         with t("assembly"):
-            K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e)
-            M = assemble(mass(mesh.ds()), space)  # for the discrete error
+            M = assemble(mass(mesh.ds()), space)  # kept for the discrete error
+            K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e, mass_matrix=M)
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL)
         with t("errors"):
