@@ -45,19 +45,26 @@ DEFINITIONS = {
 }
 
 
-def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, mass_matrix=None):
-    """(K = M + tau_E J_E + tau_F J_F, B): the matrix of the mean curvature problem on the measure
-    ``surface`` (S_h), assembled as one form (on a structured box the mass and the face penalty
-    sum into one set of lattice slots), and its right-hand sides B = A X, (n, 3), computed without
-    A (:func:`cutfem.forms.position_load`); J_F over the facet measure ``faces`` (cut case).
-    ``mass_matrix``: M when the caller has it already (the meshed kind keeps it for the discrete
-    error), added to the assembled penalties instead of assembling M again."""
-    terms = [] if mass_matrix is not None else [mass(surface)]
+def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, mass_term=True):
+    """The bilinear form of K = M + tau_E J_E + tau_F J_F on the measure ``surface`` (S_h), J_F over
+    the facet measure ``faces`` (cut case, times h^a, a = ``face_h_power``); without M when
+    ``mass_term`` is False (None if nothing is left).  Assembled as one form: on a structured box
+    the mass and the face penalty sum into one set of lattice slots."""
+    terms = [mass(surface)] if mass_term else []
     if tau_e > 0:
         terms.append(tau_e * edge_jump_penalty(surface))
     if tau_f > 0:
         terms.append(tau_f * face_jump_penalty(faces, h_power=face_h_power))
-    K = assemble(sum(terms[1:], terms[0]), space) if terms else None
+    return sum(terms[1:], terms[0]) if terms else None
+
+
+def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, mass_matrix=None):
+    """(K, B): the matrix of :func:`mean_curvature_form` on ``space`` and the right-hand sides
+    B = A X, (n, 3), computed without A (:func:`cutfem.forms.position_load`).  ``mass_matrix``: M
+    when the caller has it already (the meshed kind keeps it for the discrete error), added to the
+    assembled penalties instead of assembling M again."""
+    form = mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power, mass_term=mass_matrix is None)
+    K = None if form is None else assemble(form, space)
     if mass_matrix is not None:
         K = mass_matrix if K is None else (mass_matrix + K).tocsr()
     return K, assemble(position_load(surface), space)

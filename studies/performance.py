@@ -9,8 +9,10 @@ that its peak resident memory (VmHWM) is its own; the stages are timed with ``pe
 
 * cut: background mesh (a :class:`~cutfem.mesh.StructuredBox`, nothing stored), cut (band search,
   level-set values near the surface, marching tets), topology (interior faces of the active mesh);
-* assembly: mass, the right-hand sides A x_k (``rhs``, :func:`~cutfem.forms.position_load`, without
-  A), face (or edge) penalty, the sum K = M + tau J (``system``);
+* assembly: the matrix K = M + tau J (``matrix``: one form,
+  :func:`~cutfem.problems.mean_curvature.mean_curvature_form`, as ``cutfem run`` assembles it; on
+  the structured box the piece mass and the face penalty sum into one set of lattice slots) and the
+  right-hand sides A x_k (``rhs``, :func:`~cutfem.forms.position_load`, without A);
 * solve: :func:`cutfem.solve.solve` with the automatic choice (setup and iterations together,
   with the method and iteration count recorded);
 * errors: the L2 error on S_h (degree-4 quadrature).
@@ -31,9 +33,9 @@ once per run (:func:`memory_bandwidth`: numpy copy ``a[:] = b`` and triad ``a = 
 arrays of 200 MiB, best of 5 each; the copy moves 2, the triad, two numpy passes, 5 array sizes;
 B is the larger of the two rates).  The ratio measured / bound says how far a stage is from
 streaming its data once; the flop counts are not modelled.  With N unknowns (per component), T active
-tets (one surface piece each), S triangles of S_h, F interior faces, nnz(M), nnz(J), nnz(K) the
-nonzeros of the mass, the penalty and K = M + tau J (CSR: 8-byte value + 4-byte column, 12 bytes a
-nonzero; row pointers neglected), c = 3 right-hand sides and ``it`` CG iterations (the most over
+tets (one surface piece each), S triangles of S_h, F interior faces, nnz(K) the nonzeros of
+K = M + tau J (CSR: 8-byte value + 4-byte column, 12 bytes a nonzero; row pointers neglected),
+c = 3 right-hand sides and ``it`` CG iterations (the most over
 the columns, so the solve bound may count a few iterations too many), the bytes of
 :func:`stage_bytes` are:
 
@@ -45,12 +47,13 @@ cut            16 N (level-set value and node id of each band node written) + 72
                ids of each triangle written)
 topology       96 T (the tets read; four face keys a tet written and read) + 32 F (the pair of
                tets and the two opposite vertices of each interior face written)
-mass           288 T (three Gram rows of four 12-byte entries a tet, written then read by the
-               product E^T E) + 12 nnz(M) (the CSR written)
-rhs            192 T (four local values x 3 components a tet, written then read by the scatter)
-               + 24 N (the N x 3 result written)
-face_penalty   192 F (one Gram row of eight 12-byte entries a face, written then read) + 12 nnz(J)
-system         12 (nnz(M) + nnz(J) + nnz(K)) (M and J read, K written)
+matrix         52 S (three vertex ids, tet id and area of each triangle of S_h read, 40 bytes, and
+               its share of the vertices, about half a 24-byte vertex) + 48 F (the pair of tets,
+               normal and weight of each interior face read) + 328 N (13 lattice slots of
+               12 bytes a node zeroed, summed into and read by the CSR pass, and the diagonal)
+               + 12 nnz(K) (the CSR written)
+rhs            56 T (four dof numbers, type, normal and piece area of each tet read) + 24 N (the
+               N x 3 result written)
 solve          it c (3.5 x 12 nnz(K) + 24 N): per CG iteration and column, the fine matrix is read
                by one product, two Gauss-Seidel sweeps (forward and backward) and the residual
                -U x after the forward sweep (the strictly upper part: half a pass); the transfers
@@ -116,7 +119,7 @@ OUTPUTS = ["performance", "performance_scaling", "performance_bounds"]
 BOX = ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6])
 
 #: the timed stages of a cut level, in order
-CUT_STAGES = ("background", "cut", "topology", "mass", "rhs", "face_penalty", "system", "solve", "errors")
+CUT_STAGES = ("background", "cut", "topology", "matrix", "rhs", "solve", "errors")
 
 #: right-hand sides of the mean curvature system (one per coordinate)
 COLUMNS = 3
@@ -133,26 +136,20 @@ PEERS_DOWN_TO = 0.025
 LIMIT_START = 0.1
 
 
-def _timed_system_solve_error(t, space, surface, penalty_name, penalty, tau, torus):
-    """The stages shared by both kinds: mass over the measure ``surface`` (S_h), the right-hand
-    sides B = A x (``rhs``), the penalty form (timed as ``penalty_name``), K = M + tau J, the
-    automatic solve and the L2 error; returns (error, SolveInfo, nonzeros) with nonzeros the dict
-    {"M", "J", "K"} of the three matrices' stored entries."""
+def _timed_system_solve_error(t, space, surface, form, torus):
+    """The stages shared by both kinds: the matrix K of ``form`` (one assembly, as ``cutfem run``),
+    the right-hand sides B = A x over the measure ``surface`` (S_h) (``rhs``), the automatic solve
+    and the L2 error; returns (error, SolveInfo, nonzeros) with nonzeros {"K": stored entries}."""
     from cutfem.errors import l2_error
-    from cutfem.forms import assemble, mass, position_load
+    from cutfem.forms import assemble, position_load
     from cutfem.problems.mean_curvature import SOLVER_TOL
     from cutfem.solve import solve
 
-    with t("mass"):
-        M = assemble(mass(surface), space)
+    with t("matrix"):
+        K = assemble(form, space)
     with t("rhs"):
         B = assemble(position_load(surface), space)
-    with t(penalty_name):
-        J = assemble(penalty, space)
-    with t("system"):
-        K = (M + tau * J).tocsr()
-    nnz = {"M": int(M.nnz), "J": int(J.nnz), "K": int(K.nnz)}
-    del M, J  # only K and B are needed through the solve (the cut problem of `cutfem run` holds no more)
+    nnz = {"K": int(K.nnz)}
     with t("solve"):
         H, info = solve(K, B, space=space, tol=SOLVER_TOL)  # as `cutfem run` does
     with t("errors"):
@@ -163,10 +160,10 @@ def _timed_system_solve_error(t, space, surface, penalty_name, penalty, tau, tor
 def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     """One cut-torus level, timed stage by stage (runs in the calling process).  The record has
     the sizes the bounds need: ``dofs`` (N), ``active_tets`` (T), ``surface_triangles`` (S),
-    ``interior_faces`` (F), ``iterations`` and ``nnz`` ({"M", "J", "K"})."""
+    ``interior_faces`` (F), ``iterations`` and ``nnz`` ({"K"})."""
     from cutfem.cut import CUT, cut_mesh
-    from cutfem.forms import face_jump_penalty
     from cutfem.levelset import Torus
+    from cutfem.problems.mean_curvature import mean_curvature_form
     from cutfem.mesh import structured_box
     from cutfem.spaces import CutP1Space
 
@@ -179,7 +176,7 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     with t("topology"):
         space = CutP1Space(cut)
         faces = cut.interior_facets(CUT)
-    err, info, nnz = _timed_system_solve_error(t, space, cut.ds(), "face_penalty", face_jump_penalty(cut.dF(faces)), tau_f, torus)
+    err, info, nnz = _timed_system_solve_error(t, space, cut.ds(), mean_curvature_form(cut.ds(), tau_f=tau_f, faces=cut.dF(faces)), torus)
     return {
         "kind": "cut",
         "level": spacing,
@@ -201,8 +198,8 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
 
 def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     """One meshed-torus level, timed stage by stage."""
-    from cutfem.forms import edge_jump_penalty
     from cutfem.levelset import Torus
+    from cutfem.problems.mean_curvature import mean_curvature_form
     from cutfem.spaces import SurfaceP1Space
     from cutfem.surface import torus_mesh
 
@@ -210,7 +207,7 @@ def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     with t("mesh"):
         mesh = torus_mesh(n, family, seed=1)
         space = SurfaceP1Space(mesh)
-    err, info, nnz = _timed_system_solve_error(t, space, mesh.ds(), "edge_penalty", edge_jump_penalty(mesh.ds()), tau_e, Torus())
+    err, info, nnz = _timed_system_solve_error(t, space, mesh.ds(), mean_curvature_form(mesh.ds(), tau_e=tau_e), Torus())
     return {
         "kind": f"meshed-{family}",
         "level": n,
@@ -340,11 +337,11 @@ def memory_bandwidth(mebibytes: int = 200, repeat: int = 5) -> dict:
 def stage_bytes(rec: dict) -> dict:
     """The bytes each stage of a cut level must at least move, {stage: (bytes, how)}, from the
     sizes in ``rec``: ``dofs`` N, ``active_tets`` T, ``surface_triangles`` S, ``interior_faces`` F,
-    ``iterations`` it and ``nnz`` {"M", "J", "K"}; the model is the table of the module docstring
+    ``iterations`` it and ``nnz`` {"K"}; the model is the table of the module docstring
     (c = :data:`COLUMNS` right-hand sides, 12 bytes a CSR nonzero, Q = :data:`ERROR_POINTS`)."""
     N, T, S, F = rec["dofs"], rec["active_tets"], rec["surface_triangles"], rec["interior_faces"]
     it, nnz = rec["iterations"], rec["nnz"]
-    nM, nJ, nK = nnz["M"], nnz["J"], nnz["K"]
+    nK = nnz["K"]
     c, q = COLUMNS, ERROR_POINTS
     return {
         "background": (0.0, "0 bytes: the box is lazy (nodes and tets computed on demand), O(1) work; no bandwidth bound"),
@@ -352,13 +349,11 @@ def stage_bytes(rec: dict) -> dict:
                 "read, 4 vertex ids and the id of each active tet written; 3 vertex ids of each triangle of S_h written"),
         "topology": (96 * T + 32 * F, "96 T + 32 F: the tets read, 4 face keys a tet written and read; the 2 tets and 2 "
                      "opposite vertices of each interior face written"),
-        "mass": (288 * T + CSR_BYTES * nM, "288 T + 12 nnz(M): 3 Gram rows of 4 entries (8-byte value, 4-byte index) a "
-                 "tet written and read by E^T E; the CSR of M written"),
-        "rhs": (192 * T + 24 * N, "192 T + 24 N: 4 local values x 3 components a tet written and read by the scatter; "
-                "the N x 3 result written"),
-        "face_penalty": (192 * F + CSR_BYTES * nJ, "192 F + 12 nnz(J): one Gram row of 8 entries (12 bytes) a face "
-                         "written and read by E^T E; the CSR of J written"),
-        "system": (CSR_BYTES * (nM + nJ + nK), "12 (nnz(M) + nnz(J) + nnz(K)): M and J read, K written"),
+        "matrix": (52 * S + 48 * F + 328 * N + CSR_BYTES * nK, "52 S + 48 F + 328 N + 12 nnz(K): each triangle of "
+                   "S_h (ids, tet, area, its share of the vertices) and each interior face (tets, normal, weight) read; "
+                   "13 lattice slots of 12 bytes and the diagonal a node zeroed, summed into and read; the CSR of K written"),
+        "rhs": (56 * T + 24 * N, "56 T + 24 N: 4 dof numbers, type, normal and piece area of each tet read; the N x 3 "
+                "result written"),
         "solve": (it * c * (SOLVE_PASSES * CSR_BYTES * nK + 24 * N), f"it x {c} x (3.5 x 12 nnz(K) + 24 N): per CG "
                   "iteration and column, one product, two Gauss-Seidel sweeps and the half-product residual -U x over "
                   "the fine matrix, the transfers reading the fine residual and updating the fine correction; coarse "
