@@ -161,7 +161,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .mesh import unique_keys
+from .mesh import dense_unique, unique_keys
 
 __all__ = [
     "SolverError",
@@ -852,34 +852,41 @@ def kuhn_prolongation(ijk):
     Row i interpolates the coarse P1 function at fine node ijk[i]: weight 1 on the coarse node
     ijk/2 when every index is even, otherwise 1/2 on each end (ijk -/+ o)/2, o = ijk mod 2, of the
     coarse Kuhn edge whose midpoint it is.  Returns (P (m, mc) CSR, coarse indices (mc, 3)); the
-    coarse nodes are those the rows use, in lexicographic (z, y, x) order.
+    coarse nodes are those the rows use, in lexicographic (z, y, x) order.  The CSR arrays are
+    written directly (one or two entries a row, the lower end first: its lexicographic number is
+    the smaller), with no sort of coordinate triples.
     """
     ijk = np.asarray(ijk, dtype=np.int64)
     o = ijk & 1
     lo = (ijk - o) >> 1
-    hi = lo + o
     m = len(ijk)
-    cols, cijk = _number_lattice_nodes(np.concatenate([lo, hi]))
-    rows = np.concatenate([np.arange(m), np.arange(m)])
-    P = sp.csr_matrix((np.full(2 * m, 0.5), (rows, cols)), shape=(m, len(cijk)))
-    P.sum_duplicates()
+    cols, cijk = _number_lattice_nodes(np.concatenate([lo, lo + o]))
+    two = o.any(axis=1)
+    index = np.int32 if 2 * m < 2**31 else np.int64
+    indptr = np.zeros(m + 1, dtype=index)
+    np.cumsum(1 + two, out=indptr[1:])
+    first = indptr[:-1]
+    indices = np.empty(int(indptr[-1]), dtype=index)
+    data = np.empty(int(indptr[-1]))
+    indices[first], data[first] = cols[:m], np.where(two, 0.5, 1.0)
+    indices[first[two] + 1], data[first[two] + 1] = cols[m:][two], 0.5
+    P = sp.csr_matrix((data, indices, indptr), shape=(m, len(cijk)))
+    P.has_sorted_indices = True
+    P.has_canonical_format = True
     return P, cijk
 
 
 def _number_lattice_nodes(ijk):
     """Number the distinct lattice nodes among ``ijk`` (m, 3) in lexicographic (z, y, x) order:
-    returns (number of each row (m,), the distinct nodes (mc, 3)).  A dense marker array over the
-    bounding box when it is not much larger than the input, else one sort (:func:`unique_keys`)."""
+    returns (number of each row (m,), the distinct nodes (mc, 3)).  A bitmap over the bounding box
+    (:func:`~cutfem.mesh.dense_unique`, a bit a lattice point) when it is not much larger than the
+    input, else one sort (:func:`unique_keys`)."""
     base = ijk.min(axis=0)
     rel = ijk - base
     dims = rel.max(axis=0) + 1
     code = rel[:, 0] + dims[0] * (rel[:, 1] + dims[1] * rel[:, 2])
-    if int(np.prod(dims)) <= 8 * code.size + 1_000_000:
-        mark = np.zeros(int(np.prod(dims)), dtype=np.int64)
-        mark[code] = 1
-        keys = np.flatnonzero(mark)
-        mark[keys] = np.arange(keys.size)
-        cols = mark[code]
+    if int(np.prod(dims)) <= 64 * code.size + 10_000_000:
+        keys, cols = dense_unique(code, int(np.prod(dims)))
     else:
         keys, cols = unique_keys(code, return_inverse=True)
     nodes = np.stack([keys % dims[0], (keys // dims[0]) % dims[1], keys // (dims[0] * dims[1])], axis=1) + base

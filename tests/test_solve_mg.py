@@ -45,6 +45,16 @@ def test_kuhn_prolongation_reproduces_linear_functions(torus_space):
     g = np.array([0.3, -1.2, 2.0])
     np.testing.assert_allclose(P @ (2 * cijk @ g + 1.5), ijk @ g + 1.5, rtol=0, atol=1e-12)
     np.testing.assert_allclose(np.asarray(P.sum(axis=1)).ravel(), 1.0)  # partition of unity
+    # coarse nodes in lexicographic (z, y, x) order, each used; the CSR arrays written directly are canonical
+    rel = cijk - cijk.min(axis=0)
+    d = rel.max(axis=0) + 1
+    assert np.all(np.diff(rel[:, 0] + d[0] * (rel[:, 1] + d[1] * rel[:, 2])) > 0)
+    assert np.all(np.bincount(P.indices, minlength=P.shape[1]) > 0)
+    Q = sp.coo_matrix(P).tocsr()
+    Q.sum_duplicates()
+    np.testing.assert_array_equal(Q.indptr, P.indptr)
+    np.testing.assert_array_equal(Q.indices, P.indices)
+    np.testing.assert_array_equal(Q.data, P.data)
 
 
 def test_coarse_space_is_nested(torus_space):
