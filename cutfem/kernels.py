@@ -49,9 +49,10 @@ S_h, tet by tet.  numpy needed (m, 4) slot arrays of local edge ends and values,
 compaction of seven arrays, per-slot gathers and a first-slot search: about 3 s for these steps at
 3.4 million cut tets (torus, spacing 0.00625, line profile), against 0.8 s now.
 
-:func:`dense_pairs`: the interior faces of the active mesh of a structured box from their lattice
-face keys, by two marker arrays (numpy grouped them by a radix sort: the faces of the 3.4 million
-cut tets took 2.5 s, now 0.7 s, the same pairs).
+:func:`kuhn_face_pairs`: the interior faces of the active mesh of a structured box from their
+lattice face keys, computed on the fly and paired by two marker arrays (numpy grouped them by a
+radix sort: the faces of the 3.4 million cut tets took 2.5 s, then 0.7 s with the keys made by
+numpy and paired here; the same pairs).
 
 :func:`level_set_normals`: n_h = grad phi_h / |grad phi_h| of each cut tet from its nodal values
 (numpy: an (m, 4, 3) gradient block and an einsum, 0.18 s at 853k tets).
@@ -114,7 +115,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "dense_pairs", "galerkin", "strict_upper", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "galerkin", "strict_upper", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -889,39 +890,66 @@ def mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets):
 
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _kuhn_face_key(tets, kinds, low, ftype, r):
+    """The lattice key 12 v + type of face row r = 4 t + k (the face opposite to local vertex k of
+    tet t), see :func:`cutfem.mesh.kuhn_face_keys`."""
+    t, k = r >> 2, r & 3
+    l = kinds[t]
+    return 12 * np.int64(tets[t, low[l, k]]) + ftype[l, k]
+
+
 @njit(cache=True, error_model="numpy")
-def _dense_pairs(keys, first, second):
-    for r in range(keys.shape[0]):
-        k = keys[r]
-        if first[k] < 0:
-            first[k] = r
-        elif second[k] == -1:
-            second[k] = r
+def kuhn_face_keys(tets, kinds, low, ftype, out):
+    """out[4 t + k] = the lattice key of the face opposite to local vertex k of Kuhn tet t."""
+    for r in range(out.shape[0]):
+        out[r] = _kuhn_face_key(tets, kinds, low, ftype, r)
+
+
+@njit(cache=True, error_model="numpy")
+def _mark_kuhn_faces(tets, kinds, low, ftype, first, second):
+    for r in range(4 * tets.shape[0]):
+        key = _kuhn_face_key(tets, kinds, low, ftype, r)
+        if first[key] < 0:
+            first[key] = r
+        elif second[key] == -1:
+            second[key] = r
         else:
-            second[k] = -2  # a third row: not a pair
+            second[key] = -2  # a third row: not a pair
     n = 0
-    for k in range(first.shape[0]):
-        if second[k] >= 0:
+    for key in range(first.shape[0]):
+        if second[key] >= 0:
             n += 1
-    out = np.empty((n, 2), dtype=np.int64)
-    n = 0
-    for k in range(first.shape[0]):
-        if second[k] >= 0:
-            out[n, 0], out[n, 1] = first[k], second[k]
-            n += 1
-    return out
+    return n
 
 
-def dense_pairs(keys, n: int):
-    """The pairs of rows with equal keys: ``(g, 2)`` int64, the first and second row of each key
-    in [0, n) that occurs exactly twice in ``keys`` (1-d), in increasing key order.  What grouping
-    the keys by a stable sort gives (:func:`cutfem.mesh.pair_up`, the groups of two), by two
-    marker arrays of length n instead: for keys that fill a good part of their range (the lattice
-    face keys of the active tets, 12 per node)."""
-    keys = np.ascontiguousarray(keys).reshape(-1)
-    dtype = np.int32 if keys.size < 2**31 else np.int64
-    first, second = np.full(n, -1, dtype=dtype), np.full(n, -1, dtype=dtype)
-    return _dense_pairs(keys, first, second)
+@njit(cache=True, error_model="numpy")
+def _collect_pairs(first, second, pairs, opposite):
+    n = 0
+    for key in range(first.shape[0]):
+        if second[key] >= 0:
+            a, b = first[key], second[key]
+            pairs[n, 0], pairs[n, 1] = a >> 2, b >> 2
+            opposite[n, 0], opposite[n, 1] = a & 3, b & 3
+            n += 1
+
+
+def kuhn_face_pairs(tets, kinds, low, ftype, n_keys: int):
+    """The interior faces of Kuhn tets ``tets`` (m, 4) (node numbers below n_keys / 12, types
+    ``kinds`` (m,), key tables ``low``, ``ftype`` (6, 4) of :func:`cutfem.mesh.kuhn_face_keys`):
+    ``(pairs (F, 2), opposite (F, 2) int8)``, the two tets of each face whose key occurs exactly
+    twice (first the earlier row) and the local vertex opposite to it in each, in increasing key
+    order.  The keys are computed on the fly and paired by two marker arrays of length n_keys: no
+    (4m,) key array and no sort.  ``pairs`` is int32 when m < 2**31."""
+    tets = np.ascontiguousarray(tets)
+    kinds = np.ascontiguousarray(kinds)
+    rows = 4 * len(tets)
+    dtype = np.int32 if rows < 2**31 else np.int64
+    first, second = np.full(n_keys, -1, dtype=dtype), np.full(n_keys, -1, dtype=dtype)
+    n = _mark_kuhn_faces(tets, kinds, low, ftype, first, second)
+    pairs, opposite = np.empty((n, 2), dtype=dtype), np.empty((n, 2), dtype=np.int8)
+    _collect_pairs(first, second, pairs, opposite)
+    return pairs, opposite
 
 
 @njit(cache=True, error_model="numpy")

@@ -34,7 +34,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .mesh import TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, kuhn_face_keys, pair_up, tet_face_keys
+from .mesh import TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, kuhn_face_pairs, pair_up, tet_face_keys
 
 __all__ = ["NEG", "POS", "CUT", "SIDES", "ElementSet", "FacetSet", "interior_facets", "side_subtetrahedra", "longest_edges"]
 
@@ -62,18 +62,16 @@ def interior_facets(tets: np.ndarray, n_nodes: int, kuhn=None):
     increasing order of their sorted node triples.  The face keys: the sorted node triples
     (:func:`~cutfem.mesh.tet_face_keys`, grouped by one sort), or, for tets of a structured box
     given with their Kuhn types ``kuhn`` (m,) (background tet id % 6), the lattice keys
-    :func:`~cutfem.mesh.kuhn_face_keys`, below 12 ``n_nodes``, paired by two marker arrays
-    (:func:`cutfem.kernels.dense_pairs`, no sort); both give the same faces in the same order when
+    :func:`~cutfem.mesh.kuhn_face_keys`, below 12 ``n_nodes``, computed on the fly and paired by two
+    marker arrays (:func:`~cutfem.mesh.kuhn_face_pairs`, no sort); both give the same faces in the
+    same order when
     the node numbers increase with the background ids.
     """
-    if kuhn is None:
-        order, starts, counts = pair_up(tet_face_keys(tets, n_nodes))
-        two = counts == 2
-        rows = np.stack([order[starts[two]], order[starts[two] + 1]], axis=1)
-    else:
-        from . import kernels
-
-        rows = kernels.dense_pairs(kuhn_face_keys(tets, kuhn), 12 * n_nodes)
+    if kuhn is not None:
+        return kuhn_face_pairs(tets, kuhn, n_nodes)
+    order, starts, counts = pair_up(tet_face_keys(tets, n_nodes))
+    two = counts == 2
+    rows = np.stack([order[starts[two]], order[starts[two] + 1]], axis=1)
     # row 4 t + k of the keys: the face opposite to local vertex k of tet t
     return rows >> 2, (rows & 3).astype(np.int8)
 

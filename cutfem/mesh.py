@@ -40,6 +40,7 @@ __all__ = [
     "tet_face_keys",
     "KUHN_EDGE_CODES",
     "kuhn_face_keys",
+    "kuhn_face_pairs",
     "kuhn_neighbour_offsets",
     "pair_up",
     "unique_keys",
@@ -160,15 +161,22 @@ def kuhn_face_keys(tets: np.ndarray, kuhn: np.ndarray) -> np.ndarray:
     increase with the sorted node triples of :func:`tet_face_keys`: grouping them gives the same
     faces in the same order, with keys below 12 n (n nodes) instead of three columns.
     """
-    tets = np.asarray(tets)
-    kind = np.asarray(kuhn).reshape(-1)
-    flat = _KUHN_FACE_LOW[kind].astype(np.int64)  # (m, 4) entries of the lowest nodes in tets.reshape(-1)
-    flat += np.arange(0, 4 * len(tets), 4)[:, None]
-    low = np.take(tets.reshape(-1), flat).astype(np.int64, copy=False)
-    del flat
-    low *= 12
-    low += _KUHN_FACE_TYPE[kind]
-    return low.reshape(-1)
+    from . import kernels
+
+    tets = np.ascontiguousarray(tets)
+    out = np.empty(4 * len(tets), dtype=np.int64)
+    kernels.kuhn_face_keys(tets, np.ascontiguousarray(kuhn).reshape(-1), _KUHN_FACE_LOW, _KUHN_FACE_TYPE, out)
+    return out
+
+
+def kuhn_face_pairs(tets: np.ndarray, kuhn: np.ndarray, n_nodes: int):
+    """The faces shared by two of the Kuhn tets ``tets`` (m, 4) (node numbers below ``n_nodes``,
+    types ``kuhn``): ``(pairs (F, 2), opposite (F, 2) int8)`` as :func:`cutfem.markers.interior_facets`
+    returns them, the keys of :func:`kuhn_face_keys` grouped without making them
+    (:func:`cutfem.kernels.kuhn_face_pairs`)."""
+    from . import kernels
+
+    return kernels.kuhn_face_pairs(tets, np.asarray(kuhn).reshape(-1), _KUHN_FACE_LOW, _KUHN_FACE_TYPE, 12 * int(n_nodes))
 
 
 def sorted_row_keys(rows: np.ndarray, n: int) -> np.ndarray:
