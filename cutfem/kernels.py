@@ -115,7 +115,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "galerkin", "strict_upper", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "galerkin", "strict_upper", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -888,6 +888,25 @@ def mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets):
     _mixed_kuhn_tets(cv, corner, cell_ids, table, kt, tet_ids, nodes, vals)
     return tet_ids, nodes, vals
 
+
+
+@njit(cache=True, error_model="numpy")
+def face_normals_areas(pairs, opposite, table, types, volumes, normals, areas):
+    """For each face f between tets ``pairs[f]``: ``normals[f]`` = -g / |g| and ``areas[f]`` =
+    3 |T| |g|, with g = grad lambda_k of the first tet T for the vertex k = ``opposite[f, 0]``
+    opposite to the face (``table[types[T], k]``, volumes ``volumes``): the unit normal out of T and
+    the face area (|T| = |F| height / 3, |g| = 1 / height)."""
+    for f in range(pairs.shape[0]):
+        t = pairs[f, 0]
+        k = opposite[f, 0]
+        l = types[t]
+        gx, gy, gz = table[l, k, 0], table[l, k, 1], table[l, k, 2]
+        gn = gx * gx
+        gn += gy * gy
+        gn += gz * gz
+        gn = np.sqrt(gn)
+        normals[f, 0], normals[f, 1], normals[f, 2] = gx / -gn, gy / -gn, gz / -gn
+        areas[f] = 3.0 * volumes[t] * gn
 
 
 @njit(cache=True, error_model="numpy", inline="always")

@@ -136,13 +136,6 @@ class ElementSet:
             return self.background.gradient_table, self.kuhn_types
         return self._gradients, np.arange(len(self.tet_ids))
 
-    def vertex_gradients(self, idx, k) -> np.ndarray:
-        """grad lambda_k of tet ``idx[i]`` for its local vertex ``k[i]``: (len(idx), 3), without the
-        other three vertices' gradients."""
-        if self._gradients is None:
-            return self.background.gradient_table[self.kuhn_types[idx], k]
-        return self._gradients[idx, k]
-
     def __repr__(self) -> str:
         return f"ElementSet({self.name!r}, tets={self.n_elements}, nodes={self.n_nodes})"
 
@@ -275,17 +268,16 @@ class FacetSet:
         of the cut torus at spacing 0.003125, where they are used once).
 
         The face opposite to vertex k has the outward normal -grad(lambda_k) / |grad(lambda_k)|, and
-        |F| = 3 |T| |grad lambda_k| (volume = |F| height / 3, |grad lambda_k| = 1 / height)."""
+        |F| = 3 |T| |grad lambda_k| (volume = |F| height / 3, |grad lambda_k| = 1 / height); one
+        compiled pass (:func:`cutfem.kernels.face_normals_areas`) from the gradient table."""
+        from . import kernels
+
         es = self.elements
-        minus = self.pairs[:, 0]
-        g = es.vertex_gradients(minus, self.opposite[:, 0])  # (F, 3)
-        gx, gy, gz = g[:, 0], g[:, 1], g[:, 2]
-        gn = gx * gx
-        gn += gy * gy
-        gn += gz * gz
-        np.sqrt(gn, out=gn)
-        g /= -gn[:, None]
-        return g, 3.0 * np.take(es.volumes, minus) * gn
+        table, types = es.gradient_lookup()
+        normals, areas = np.empty((self.n_facets, 3)), np.empty(self.n_facets)
+        kernels.face_normals_areas(self.pairs, self.opposite, np.ascontiguousarray(table, dtype=float), types,
+                                   np.ascontiguousarray(es.volumes, dtype=float), normals, areas)
+        return normals, areas
 
     @property
     def normals(self) -> np.ndarray:
