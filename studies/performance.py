@@ -54,11 +54,13 @@ matrix         52 S (three vertex ids, tet id and area of each triangle of S_h r
                + 12 nnz(K) (the CSR written)
 rhs            56 T (four dof numbers, type, normal and piece area of each tet read) + 24 N (the
                N x 3 result written)
-solve          it c (3.5 x 12 nnz(K) + 24 N): per CG iteration and column, the fine matrix is read
-               by one product, two Gauss-Seidel sweeps (forward and backward) and the residual
-               -U x after the forward sweep (the strictly upper part: half a pass); the transfers
-               read the fine residual and read and write the fine correction (3 x 8 N).  The
-               coarse levels, the multigrid setup and the CG vector updates are left out.  A direct
+solve          it (32 nnz(K) + 80 c N): per CG iteration, all c columns in one pass over each
+               matrix: the double-precision product (12 bytes a nonzero) and the single-precision
+               cycle on the finest level, two Gauss-Seidel sweeps and the residual -U x after the
+               forward sweep (2.5 passes of 8 bytes a nonzero: float32 value, int32 index); per
+               column the CG vectors x, r, p read and written and q, z read (64 N) and the
+               single-precision right-hand side and correction of the cycle (16 N).  The coarse
+               levels and the multigrid setup are left out.  A direct
                solve (it = 0): 12 nnz(K) + 24 N (K read once, the solution written; the factor
                not counted)
 errors         80 Q S: Q = 6 points of the degree-4 triangle rule, each with its coordinates (24),
@@ -125,8 +127,12 @@ CUT_STAGES = ("background", "cut", "topology", "matrix", "rhs", "solve", "errors
 COLUMNS = 3
 #: bytes of one CSR nonzero: float64 value and int32 column index
 CSR_BYTES = 12
-#: passes over the fine matrix per CG iteration and column: product, two Gauss-Seidel sweeps, half-product residual
-SOLVE_PASSES = 3.5
+#: bytes a fine-matrix nonzero moves per CG iteration (all columns at once): the double-precision
+#: product (12) and 2.5 single-precision passes of the cycle (two sweeps, half-product residual; 8 each)
+SOLVE_MATRIX_BYTES = 12 + 2.5 * 8
+#: bytes a fine unknown moves per CG iteration and column: x, r, p read and written, q, z read (64),
+#: the cycle's single-precision right-hand side and correction (16)
+SOLVE_VECTOR_BYTES = 80
 #: points of the degree-4 triangle rule the L2 error uses
 ERROR_POINTS = 6
 
@@ -354,10 +360,11 @@ def stage_bytes(rec: dict) -> dict:
                    "13 lattice slots of 12 bytes and the diagonal a node zeroed, summed into and read; the CSR of K written"),
         "rhs": (56 * T + 24 * N, "56 T + 24 N: 4 dof numbers, type, normal and piece area of each tet read; the N x 3 "
                 "result written"),
-        "solve": (it * c * (SOLVE_PASSES * CSR_BYTES * nK + 24 * N), f"it x {c} x (3.5 x 12 nnz(K) + 24 N): per CG "
-                  "iteration and column, one product, two Gauss-Seidel sweeps and the half-product residual -U x over "
-                  "the fine matrix, the transfers reading the fine residual and updating the fine correction; coarse "
-                  "levels, setup and vector updates left out; it = the most iterations over the columns")
+        "solve": (it * (SOLVE_MATRIX_BYTES * nK + SOLVE_VECTOR_BYTES * c * N), f"it x (32 nnz(K) + 80 x {c} N): per CG "
+                  "iteration one pass over the fine matrix for all columns in double precision (12 bytes a nonzero) "
+                  "and 2.5 in single precision (8 bytes: two Gauss-Seidel sweeps and the half-product residual -U x), "
+                  "and per column the CG vectors (x, r, p read and written, q, z read) and the cycle's right-hand "
+                  "side and correction; coarse levels and setup left out; it = the most iterations over the columns")
         if it > 0 else (CSR_BYTES * nK + 8 * c * N, f"12 nnz(K) + {8 * c} N (direct solve): K read once, the N x {c} "
                         "solution written; the factor not counted"),
         "errors": (80 * q * S, f"80 x {q} S: coordinates, weight, discrete and exact field (80 bytes) of each point of "
