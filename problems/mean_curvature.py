@@ -34,7 +34,8 @@ SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 #: correction on the constants, which makes it hold to round-off (3e-13 on the cut torus at spacing
 #: 0.0125).  Against 1e-8, measured at spacing 0.05 (cut) and n = 128 (meshed): the L2 errors
 #: differ by 5e-8 and 1.5e-7 relative, the energy-norm algebraic error is 1e-8 relative (spacing
-#: 0.0125), and CG needs 23 iterations instead of 31 at spacing 0.0125 (18 instead of 24 at 0.05).
+#: 0.0125), and CG needs 23 iterations instead of 31 at spacing 0.0125 (18 instead of 24 at 0.05;
+#: both with the library's default cycle, before :data:`MULTIGRID`).
 SOLVER_TOL = 1e-6
 
 #: the multigrid of the mean curvature solves: W-cycles on every level, where the library's default
