@@ -552,25 +552,11 @@ class CutMesh:
 
     @cached_property
     def _triangle_edge_counts(self):
-        """(E,) how many triangles hold each edge of S_h, edges in increasing key
-        ``min * V + max``: one plain sort of the 3T keys (no order is needed, only the runs)."""
-        t = self.triangles
-        V = len(self.vertices)
-        T = len(t)
-        keys = np.empty(3 * T, dtype=np.int64)
-        for k, (a, b) in enumerate(((0, 1), (1, 2), (2, 0))):
-            ta, tb = t[:, a], t[:, b]
-            np.minimum(ta, tb, out=keys[k * T : (k + 1) * T])
-            keys[k * T : (k + 1) * T] *= V
-            keys[k * T : (k + 1) * T] += np.maximum(ta, tb)
-        keys.sort()
-        new = np.empty(keys.size, dtype=bool)
-        if keys.size:
-            new[0] = True
-            np.not_equal(keys[1:], keys[:-1], out=new[1:])
-        del keys
-        starts = np.flatnonzero(new)
-        return np.diff(np.append(starts, new.size)).astype(np.int32)
+        """(E,) how many triangles hold each edge of S_h, edges in increasing (lower, upper) vertex
+        order (:func:`cutfem.kernels.edge_counts`: half-edges bucketed by their lower vertex)."""
+        from . import kernels
+
+        return kernels.edge_counts(self.triangles, len(self.vertices))
 
     @property
     def euler_characteristic(self) -> int:
@@ -840,8 +826,8 @@ def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
     """Raise CutError unless S_h is closed and edge-manifold: every edge of its triangles in
     exactly two triangles.
 
-    Uses the edge counts of :attr:`CutMesh._triangle_edge_counts` (one sort, cached: the Euler
-    characteristic and ``is_closed`` reuse it).  With ``check_boundary=False`` the surface may
+    Uses the edge counts of :attr:`CutMesh._triangle_edge_counts` (one compiled pass, cached: the
+    Euler characteristic and ``is_closed`` reuse it).  With ``check_boundary=False`` the surface may
     leave the box: an edge in one triangle is then accepted when both its ends lie on the faces of
     the background's bounding box (within 1e-9 of its diagonal).  The P1 zero set of values at
     every node is always closed inside the mesh, so an open S_h means that the band search

@@ -128,7 +128,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "galerkin", "strict_upper", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "strict_upper", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_jumps",
            "lattice_csr"]
@@ -901,6 +901,57 @@ def mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets):
     _mixed_kuhn_tets(cv, corner, cell_ids, table, kt, tet_ids, nodes, vals)
     return tet_ids, nodes, vals
 
+
+
+@njit(cache=True, error_model="numpy")
+def _edge_counts(triangles, n_vertices, start, upper, counts):
+    T = triangles.shape[0]
+    for t in range(T):  # half-edges bucketed by their lower end: how many in each bucket
+        for k in range(3):
+            a, b = triangles[t, k], triangles[t, (k + 1) % 3]
+            start[min(a, b) + 1] += 1
+    for v in range(n_vertices):
+        start[v + 1] += start[v]
+    fill = start[:-1].copy()
+    for t in range(T):
+        for k in range(3):
+            a, b = triangles[t, k], triangles[t, (k + 1) % 3]
+            lo = min(a, b)
+            upper[fill[lo]] = max(a, b)
+            fill[lo] += 1
+    n = 0
+    for v in range(n_vertices):  # each bucket (a few entries) sorted in place, its runs counted
+        s, e = start[v], start[v + 1]
+        for i in range(s + 1, e):
+            x = upper[i]
+            j = i - 1
+            while j >= s and upper[j] > x:
+                upper[j + 1] = upper[j]
+                j -= 1
+            upper[j + 1] = x
+        i = s
+        while i < e:
+            j = i + 1
+            while j < e and upper[j] == upper[i]:
+                j += 1
+            counts[n] = j - i
+            n += 1
+            i = j
+    return n
+
+
+def edge_counts(triangles, n_vertices: int):
+    """(E,) int32: how many of the ``triangles`` (T, 3) (vertex numbers below ``n_vertices``) hold each
+    of their distinct edges, edges in increasing (lower end, upper end) order.  The 3T half-edges
+    are bucketed by their lower end (a counting pass and a scatter) and each bucket, a few entries,
+    is sorted in place: no sort of 3T keys (numpy's sort of the int64 keys min V + max took 1.3 s of
+    2.5 s at 27 million half-edges, the surface of the torus at spacing 0.003125)."""
+    triangles = np.ascontiguousarray(triangles)
+    start = np.zeros(n_vertices + 1, dtype=np.int64)
+    upper = np.empty(3 * len(triangles), dtype=triangles.dtype)
+    counts = np.empty(3 * len(triangles), dtype=np.int32)
+    n = _edge_counts(triangles, n_vertices, start, upper, counts)
+    return counts[:n].copy()
 
 
 @njit(cache=True, error_model="numpy")
