@@ -594,7 +594,7 @@ def assemble(form: Form, space, **params):
             cols.append(np.broadcast_to((dofs_u + offsets[i])[:, None, :], blocks.shape).reshape(-1))
             data.append(c * blocks.reshape(-1))
     for k, lattice in lattices.items():
-        if lattice is not None:
+        if lattice is not None and lattice.used:
             add(lattice.matrix(), k)
     if rows:
         A = sp.coo_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()

@@ -458,3 +458,20 @@ def test_user_linear_forms_match_load():
     V = SMALL["cut-sphere"]()
     np.testing.assert_allclose(assemble(weighted * ds(V), V, a=2.0), 2.0 * load_vector(V, lambda x: x[..., 0]), rtol=1e-13, atol=1e-16)
     np.testing.assert_allclose(assemble(components * ds(V), V), load_vector(V, lambda x: x, degree=2), rtol=1e-13, atol=1e-16)
+
+
+def test_lattice_terms_that_go_elsewhere_allocate_nothing(monkeypatch):
+    """The surface mass of a bulk field lives on other tets than the field's lattice: the form's
+    LatticeSum gets no term, makes no slots and no matrix, and the result is the triangle route."""
+    from cutfem.assembly import LatticeSum
+    from cutfem.forms import _simplex_mass
+
+    cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02]))
+    W = CutP1Space(cut, NEG)
+    made = []
+    monkeypatch.setattr(LatticeSum, "matrix", lambda self: made.append(self) or pytest.fail("an empty LatticeSum was turned into a matrix"))
+    M = assemble(mass(cut.ds()), W)
+    reference = _simplex_mass(W, cut.triangle_points, W.local_elements(cut.ds(), cut.triangle_tets), cut.triangle_areas)
+    assert not made and abs(M - reference).max() == 0
+    one = np.ones(W.n_dofs)
+    assert one @ M @ one == pytest.approx(cut.area, rel=1e-12)
