@@ -34,19 +34,8 @@ SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 #: correction on the constants, which makes it hold to round-off (3e-13 on the cut torus at spacing
 #: 0.0125).  Against 1e-8, measured at spacing 0.05 (cut) and n = 128 (meshed): the L2 errors
 #: differ by 5e-8 and 1.5e-7 relative, the energy-norm algebraic error is 1e-8 relative (spacing
-#: 0.0125), and CG needs 23 iterations instead of 31 at spacing 0.0125 (18 instead of 24 at 0.05;
-#: both with the library's default cycle, before :data:`MULTIGRID`).
+#: 0.0125), and CG needs 23 iterations instead of 31 at spacing 0.0125 (18 instead of 24 at 0.05).
 SOLVER_TOL = 1e-6
-
-#: the multigrid of the mean curvature solves: W-cycles on every level, where the library's default
-#: is a V-cycle on the finest level and W below.  Bands of cut tets and surface grids coarsen by
-#: about 4 per level, not 8 as a volume does, and the second visit of the level below the finest
-#: pays for itself.  Measured on the cut torus: 23 -> 18 CG iterations at spacing 0.0125 (solve
-#: 2.49 -> 2.38 s, medians of 3), 25 -> 20 at 0.00625 (9.58 -> 8.99 s), 28 -> 21 at 0.003125
-#: (42.4 -> 37.0 s, one run each); on the meshed torus at n = 768 17 -> 14 (2.15 -> 1.84-2.04 s).
-#: Fictitious-domain Poisson and the cut Laplace-Beltrami problem need the same iterations either
-#: way (14 and 12), so the library's default stays.
-MULTIGRID = {"visits": (2, 2)}
 
 #: the record entries of the mean curvature problems (saved in the JSON of a run)
 DEFINITIONS = {
@@ -125,7 +114,7 @@ class MeanCurvatureMeshed(Problem):
             M = assemble(mass(mesh.ds()), space)  # kept for the discrete error
             K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e, mass_matrix=M)
         with t("solve"):
-            H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL, multigrid=MULTIGRID)
+            H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL)
         with t("errors"):
             rec = _common_record(space, assemble(basis_integrals(mesh.ds()), space), H, exact, info)
             rec.update(triangles=int(mesh.n_triangles), edges=int(mesh.n_edges))
@@ -173,7 +162,7 @@ class MeanCurvatureCut(Problem):
             K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)), face_h_power=face_h_power)
             ones_M = assemble(basis_integrals(cut.ds()), space)
         with t("solve"):
-            H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL, multigrid=MULTIGRID)
+            H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL)
         exact = phi if has_exact(phi) else None
         with t("errors"):
             rec = _common_record(space, ones_M, H, exact, info)

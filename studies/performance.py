@@ -148,7 +148,7 @@ def _timed_system_solve_error(t, space, surface, form, torus):
     and the L2 error; returns (error, SolveInfo, nonzeros) with nonzeros {"K": stored entries}."""
     from cutfem.errors import l2_error
     from cutfem.forms import assemble, position_load
-    from cutfem.problems.mean_curvature import MULTIGRID, SOLVER_TOL
+    from cutfem.problems.mean_curvature import SOLVER_TOL
     from cutfem.solve import solve
 
     with t("matrix"):
@@ -157,7 +157,7 @@ def _timed_system_solve_error(t, space, surface, form, torus):
         B = assemble(position_load(surface), space)
     nnz = {"K": int(K.nnz)}
     with t("solve"):
-        H, info = solve(K, B, space=space, tol=SOLVER_TOL, multigrid=MULTIGRID)  # as `cutfem run` does
+        H, info = solve(K, B, space=space, tol=SOLVER_TOL)  # as `cutfem run` does
     with t("errors"):
         err = l2_error(space, H, torus.exact_mean_curvature_vector)
     return err, info, nnz
