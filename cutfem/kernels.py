@@ -468,6 +468,20 @@ def _slot(ids, code, a, b):
     return -1 if c < 0 else a * 13 + c
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _add_pair(ids, code, a, b, value, sums, partner):
+    """Add ``value`` at the slot of the pair {a, b}; returns 1 when the pair is outside the lattice
+    offsets (nothing added), else 0."""
+    if a > b:
+        a, b = b, a
+    s = _slot(ids, code, a, b)
+    if s < 0:
+        return 1
+    sums[s] += value
+    partner[s] = b
+    return 0
+
+
 @njit(cache=True, error_model="numpy")
 def lattice_add_elements(ids, code, dofs, edges, diagonal, scale, sums, partner, diag):
     """Add ``scale`` times symmetric element matrices (entries ``edges`` (m, 6) on the local edges,
@@ -476,15 +490,8 @@ def lattice_add_elements(ids, code, dofs, edges, diagonal, scale, sums, partner,
     outside = 0
     for t in range(dofs.shape[0]):
         for e in range(6):
-            a, b = dofs[t, _TET_EDGES[e, 0]], dofs[t, _TET_EDGES[e, 1]]
-            if a > b:
-                a, b = b, a
-            s = _slot(ids, code, a, b)
-            if s < 0:
-                outside += 1
-                continue
-            sums[s] += scale * edges[t, e]
-            partner[s] = b
+            outside += _add_pair(ids, code, dofs[t, _TET_EDGES[e, 0]], dofs[t, _TET_EDGES[e, 1]], scale * edges[t, e], sums,
+                                 partner)
         for i in range(4):
             diag[dofs[t, i]] += scale * diagonal[t, i]
     return outside
@@ -512,17 +519,10 @@ def lattice_add_pieces(ids, code, vertices, triangles, tets_of, areas, points, t
             diag[dofs[k, i]] += w * (lam[0, i] * lam[0, i] + lam[1, i] * lam[1, i] + lam[2, i] * lam[2, i] + si * si)
         for e in range(6):
             i, j = _TET_EDGES[e, 0], _TET_EDGES[e, 1]
-            a, b = dofs[k, i], dofs[k, j]
-            if a > b:
-                a, b = b, a
-            s = _slot(ids, code, a, b)
-            if s < 0:
-                outside += 1
-                continue
             si = lam[0, i] + lam[1, i] + lam[2, i]
             sj = lam[0, j] + lam[1, j] + lam[2, j]
-            sums[s] += w * (lam[0, i] * lam[0, j] + lam[1, i] * lam[1, j] + lam[2, i] * lam[2, j] + si * sj)
-            partner[s] = b
+            value = w * (lam[0, i] * lam[0, j] + lam[1, i] * lam[1, j] + lam[2, i] * lam[2, j] + si * sj)
+            outside += _add_pair(ids, code, dofs[k, i], dofs[k, j], value, sums, partner)
     return outside
 
 
@@ -547,14 +547,7 @@ def _add_gram_row(ids, code, row_dofs, row_values, u, v, scale, sums, partner, d
         a, vp = u[p], v[p]
         diag[a] += scale * (vp * vp)
         for q in range(p + 1, nu):
-            b = u[q]
-            lo, hi = (a, b) if a < b else (b, a)
-            s = _slot(ids, code, lo, hi)
-            if s < 0:
-                outside += 1
-                continue
-            sums[s] += scale * (vp * v[q])
-            partner[s] = hi
+            outside += _add_pair(ids, code, a, u[q], scale * (vp * v[q]), sums, partner)
     return outside
 
 
