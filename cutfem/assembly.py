@@ -187,14 +187,16 @@ class LatticeSum:
                     "rows")
         return self
 
-    def add_jumps(self, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types) -> "LatticeSum":
-        """Add the Gram matrix of the jump rows of :func:`cutfem.kernels.jump_rows` (same arguments),
-        each row built and added in turn."""
+    def add_face_jumps(self, pairs, opposite, factors, volumes, dofs, table, types) -> "LatticeSum":
+        """Add the Gram matrix of the normal-gradient jumps across the faces between the tets ``pairs``
+        (F, 2) with the opposite vertices ``opposite`` (F, 2), face by face
+        (:func:`cutfem.kernels.lattice_add_face_jumps`, same arguments)."""
         from . import kernels
 
-        self._check(kernels.lattice_add_jumps(self.ids, self.code, pairs, normals_a, normals_b, float(sign_b),
-                                              np.ascontiguousarray(weights, dtype=float), dofs, table, types, self.scale,
-                                              *self._slots()), "jump rows")
+        self._check(kernels.lattice_add_face_jumps(self.ids, self.code, np.ascontiguousarray(pairs),
+                                                   np.ascontiguousarray(opposite), np.ascontiguousarray(factors, dtype=float),
+                                                   np.ascontiguousarray(volumes, dtype=float), dofs, table, types, self.scale,
+                                                   *self._slots()), "face jump rows")
         return self
 
     def matrix(self) -> sp.csr_matrix:

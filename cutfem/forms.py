@@ -920,21 +920,17 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
     return Form([(1.0, _VectorTerm(build, field))], True)
 
 
-def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale, into=None):
+def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale):
     """Gram matrix of the jumps c = (t_a . G_{K_a}, t_b . G_{K_b}), t_a = ``normals_a``, t_b = ``sign_b``
     ``normals_b`` (F, 3), weighted by ``scale`` (>= 0): one row per pair (K_a, K_b) = ``pairs`` of the
-    field's elements on their dofs (shared dofs summed), by :func:`cutfem.kernels.jump_rows`: summed
-    into ``into`` (a :class:`~cutfem.assembly.LatticeSum`: face-adjacent tets of a structured box;
-    returns None) row by row as they are built, or a block of pairs at a time by sparse Gram products
-    (:func:`~cutfem.assembly.gram_sum`; the rows of the 5.6 million interior faces of the cut torus
-    at spacing 0.00625, with their dofs, took 0.5 GB at once)."""
+    field's elements on their dofs (shared dofs summed), by :func:`cutfem.kernels.jump_rows`, a block
+    of pairs at a time by sparse Gram products (:func:`~cutfem.assembly.gram_sum`; the rows of the
+    5.6 million interior faces of the cut torus at spacing 0.00625, with their dofs, took 0.5 GB at
+    once).  Faces of a structured box go into lattice slots instead (:func:`face_jump_penalty`)."""
     from . import kernels
 
     dofs = _compact(space.element_dofs, space.n_dofs)
     table, types = space.gradient_lookup()
-    if into is not None:
-        into.add_jumps(np.ascontiguousarray(pairs), normals_a, normals_b, sign_b, scale, dofs, table, types)
-        return None
     k = dofs.shape[1]
 
     def blocks():
@@ -962,11 +958,19 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
 
     def build(space, into):
         f = measure.facets
-        pairs = np.stack([space.local_elements(measure, f.pairs[:, s]) for s in (0, 1)], axis=1)
+        if measure.elements is space.elements:
+            pairs = f.pairs
+        else:
+            pairs = np.stack([space.local_elements(measure, f.pairs[:, s]) for s in (0, 1)], axis=1)
+        if into is not None:  # face-adjacent tets of a structured box: normals and areas computed face by face
+            table, types = space.gradient_lookup()
+            into.add_face_jumps(pairs, f.opposite, np.ones(1) if h_power == 0 else f.h**h_power,
+                                space.elements.volumes, _compact(space.element_dofs, space.n_dofs), table, types)
+            return None
         n, scale = f.normals_areas()
         if h_power != 0:
             scale *= f.h**h_power
-        return _jump_gram(space, pairs, n, n, -1.0, scale, into)
+        return _jump_gram(space, pairs, n, n, -1.0, scale)
 
     return Form([(1.0, _GramTerm(build, field, lattice=True))], False)
 
