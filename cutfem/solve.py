@@ -1026,7 +1026,9 @@ def augmented_hierarchy(prolongations, w):
 def _single(M):
     """M as a CSR matrix of float32 values, sharing M's index arrays."""
     M = sp.csr_matrix(M)
-    return sp.csr_matrix((M.data.astype(np.float32), M.indices, M.indptr), shape=M.shape)
+    out = sp.csr_matrix((M.data.astype(np.float32), M.indices, M.indptr), shape=M.shape)
+    out.has_sorted_indices = M.has_sorted_indices
+    return out
 
 
 class GeometricMultigrid:
@@ -1090,7 +1092,7 @@ class GeometricMultigrid:
             P = sp.csr_matrix(P)
             R = sp.csr_matrix(P.T)
             Ac = kernels.galerkin(A, P, R)  # exactly symmetric
-            self.levels.append(dict(A=_single(A), U=_single(kernels.strict_upper(A)), P=_single(P), R=_single(R)))
+            self.levels.append(dict(A=_single(A), P=_single(P), R=_single(R)))
             A = Ac
         self.coarse_n = A.shape[0]
         where = "the coarsest multigrid level (a Galerkin product P^T A P: a negative direction there is one of A)"
@@ -1186,9 +1188,7 @@ class GeometricMultigrid:
         A = lv["A"]
         w = self._buffers(level, B.shape[1])
         X = w["X"]
-        X.fill(0.0)
-        kernels.gauss_seidel(A, X, B, forward=True)
-        r = kernels.matmul(lv["U"], X, out=w["r"], alpha=-1.0)  # residual after a forward sweep from zero: B - (L + D + U) X = -U X
+        r = kernels.presmooth(A, X, B, w["r"])  # forward sweep from zero and its residual, one pass
         rc = kernels.matmul(lv["R"], r, out=w["rc"])
         xc = self.cycle(rc, level + 1)
         if "acc" in w:  # further visits of the coarser level: its X is overwritten, so sum in acc

@@ -6,6 +6,7 @@ References: the direct solver (SuperLU) computed in the test, exact linear funct
 import numpy as np
 import pytest
 import scipy.sparse as sp
+from scipy.sparse.linalg import spsolve_triangular
 
 import cutfem.solve as solve_module
 from cutfem.cut import cut_mesh
@@ -90,11 +91,11 @@ def test_coarse_space_is_nested(torus_space):
     np.testing.assert_allclose(interp[ok], u[V.element_dofs].mean(axis=1)[ok], rtol=0, atol=1e-12)
 
 
-def test_galerkin_product_and_strict_upper_against_scipy(torus_space):
+def test_galerkin_product_against_scipy(torus_space):
     """The compiled Galerkin product P^T A P: equal to scipy's two products up to round-off, exactly
     symmetric with sorted indices, also when coarse functions see no fine row (an empty column
-    of P, so no diagonal entry); the strict upper triangle equals scipy's triu entry for entry."""
-    from cutfem.kernels import galerkin, strict_upper
+    of P, so no diagonal entry)."""
+    from cutfem.kernels import galerkin
 
     V = torus_space
     K = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
@@ -112,10 +113,36 @@ def test_galerkin_product_and_strict_upper_against_scipy(torus_space):
         assert np.all(np.diff(G.indices)[inner] > 0)  # sorted, no duplicates
         assert (G != G.T).nnz == 0
         np.testing.assert_allclose(G.toarray(), ref, rtol=0, atol=1e-13 * np.abs(ref).max())
-        U, T = strict_upper(A), sp.triu(A, 1, format="csr")
-        np.testing.assert_array_equal(U.indptr, T.indptr)
-        np.testing.assert_array_equal(U.indices, T.indices)
-        np.testing.assert_array_equal(U.data, T.data)
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("c", [1, 2, 3, 5])
+def test_presmooth_is_a_forward_sweep_from_zero_and_its_residual(torus_space, dtype, c):
+    """presmooth gives, bitwise, the forward Gauss-Seidel sweep from X = 0 of the block kernels and
+    the residual as the product -U X with scipy's strict upper triangle (the columns of a row in
+    the order they are summed there); in exact terms X = (L + D)^{-1} B and R = B - A X."""
+    from cutfem.kernels import gauss_seidel, matmul, presmooth
+
+    V = torus_space
+    A = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr().astype(dtype)
+    A.sort_indices()
+    n = A.shape[0]
+    B = np.random.default_rng(c).standard_normal((n, c)).astype(dtype)
+    X, R = np.full((n, c), np.nan, dtype), np.full((n, c), np.nan, dtype)  # X is written, not read
+    presmooth(A, X, B, R)
+    X0 = gauss_seidel(A, np.zeros((n, c), dtype), B, forward=True)
+    np.testing.assert_array_equal(X, X0)
+    np.testing.assert_array_equal(R, matmul(sp.triu(A, 1, format="csr"), X0, alpha=-1.0))
+    Xd = spsolve_triangular(sp.tril(A, format="csr").astype(float), B.astype(float), lower=True)
+    scale = np.abs(Xd).max()
+    assert np.abs(X - Xd).max() <= (1e-4 if dtype == np.float32 else 1e-12) * scale
+    Rd = B.astype(float) - A.astype(float) @ X.astype(float)
+    assert np.abs(R - Rd).max() <= (1e-4 if dtype == np.float32 else 1e-12) * np.abs(B).max()
+    U = A.copy()
+    U.has_sorted_indices = False
+    U.indices[A.indptr[0]:A.indptr[1]] = U.indices[A.indptr[0]:A.indptr[1]][::-1]
+    with pytest.raises(ValueError, match="sorted indices"):
+        presmooth(U, X, B, R)
 
 
 @pytest.mark.parametrize("system", ["mean-curvature", "laplace-beltrami"])
