@@ -133,7 +133,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr"]
@@ -1139,6 +1139,64 @@ def kuhn_face_pairs(tets, kinds, low, ftype, n_keys: int):
     pairs, opposite = np.empty((n, 2), dtype=dtype), np.empty((n, 2), dtype=np.int8)
     _collect_pairs(first, second, pairs, opposite)
     return pairs, opposite
+
+
+@njit(cache=True, error_model="numpy")
+def kuhn_ends_bounds(ijk, bounds):
+    """``bounds`` (2, 3) = the smallest and largest indices of the ends (ijk - o) / 2 and
+    (ijk + o) / 2, o = ijk mod 2, of the coarse Kuhn edges of the fine nodes ``ijk`` (m, 3)
+    (:func:`cutfem.solve.kuhn_prolongation`)."""
+    for a in range(3):
+        bounds[0, a] = (ijk[0, a] - (ijk[0, a] & 1)) >> 1
+        bounds[1, a] = bounds[0, a]
+    for i in range(ijk.shape[0]):
+        for a in range(3):
+            o = ijk[i, a] & 1
+            lo = (ijk[i, a] - o) >> 1
+            if lo < bounds[0, a]:
+                bounds[0, a] = lo
+            if lo + o > bounds[1, a]:
+                bounds[1, a] = lo + o
+
+
+@njit(cache=True, error_model="numpy")
+def kuhn_ends_codes(ijk, base, dims, codes):
+    """``codes`` (2m,): the lexicographic numbers x + dims_0 (y + dims_1 z) relative to ``base`` of
+    the lower ends of the coarse Kuhn edges of the fine nodes ``ijk`` (m, 3), then of the upper
+    ends (the node itself twice where every index is even)."""
+    m = ijk.shape[0]
+    for i in range(m):
+        lo = 0
+        hi = 0
+        for a in range(2, -1, -1):
+            o = ijk[i, a] & 1
+            x = ((ijk[i, a] - o) >> 1) - base[a]
+            lo = lo * dims[a] + x
+            hi = hi * dims[a] + x + o
+        codes[i] = lo
+        codes[m + i] = hi
+
+
+@njit(cache=True, error_model="numpy")
+def kuhn_prolongation_csr(ijk, cols, indptr, indices, data):
+    """The CSR arrays of the Kuhn prolongation (:func:`cutfem.solve.kuhn_prolongation`): row i is 1
+    at column ``cols[i]`` when every index of ``ijk[i]`` is even, else 1/2 at ``cols[i]`` and at
+    ``cols[m + i]`` (the two ends of its coarse edge, the lower first); ``indptr`` (m + 1,)."""
+    m = ijk.shape[0]
+    indptr[0] = 0
+    n = 0
+    for i in range(m):
+        two = ((ijk[i, 0] | ijk[i, 1] | ijk[i, 2]) & 1) != 0
+        indices[n] = cols[i]
+        if two:
+            data[n] = 0.5
+            indices[n + 1] = cols[m + i]
+            data[n + 1] = 0.5
+            n += 2
+        else:
+            data[n] = 1.0
+            n += 1
+        indptr[i + 1] = n
 
 
 @njit(cache=True, error_model="numpy")
