@@ -54,10 +54,11 @@ matrix         52 S (three vertex ids, tet id and area of each triangle of S_h r
                + 12 nnz(K) (the CSR written)
 rhs            56 T (four dof numbers, type, normal and piece area of each tet read) + 24 N (the
                N x 3 result written)
-solve          it (32 nnz(K) + 80 c N): per CG iteration, all c columns in one pass over each
+solve          it (24 nnz(K) + 80 c N): per CG iteration, all c columns in one pass over each
                matrix: the double-precision product (12 bytes a nonzero) and the single-precision
-               cycle on the finest level, two Gauss-Seidel sweeps and the residual -U x after the
-               forward sweep (2.5 passes of 8 bytes a nonzero: float32 value, int32 index); per
+               cycle on the finest level, the forward sweep from zero with its residual (the lower
+               half of each row) and the backward sweep (1.5 passes of 8 bytes a nonzero: float32
+               value, int32 index); per
                column the CG vectors x, r, p read and written and q, z read (64 N) and the
                single-precision right-hand side and correction of the cycle (16 N).  The coarse
                levels and the multigrid setup are left out.  A direct
@@ -128,8 +129,9 @@ COLUMNS = 3
 #: bytes of one CSR nonzero: float64 value and int32 column index
 CSR_BYTES = 12
 #: bytes a fine-matrix nonzero moves per CG iteration (all columns at once): the double-precision
-#: product (12) and 2.5 single-precision passes of the cycle (two sweeps, half-product residual; 8 each)
-SOLVE_MATRIX_BYTES = 12 + 2.5 * 8
+#: product (12) and 1.5 single-precision passes of the cycle (the forward sweep from zero with its residual reads
+#: the lower half of each row, the backward sweep all of it; 8 each)
+SOLVE_MATRIX_BYTES = 12 + 1.5 * 8
 #: bytes a fine unknown moves per CG iteration and column: x, r, p read and written, q, z read (64),
 #: the cycle's single-precision right-hand side and correction (16)
 SOLVE_VECTOR_BYTES = 80
@@ -362,9 +364,10 @@ def stage_bytes(rec: dict) -> dict:
                    "13 lattice slots of 12 bytes and the diagonal a node zeroed, summed into and read; the CSR of K written"),
         "rhs": (56 * T + 24 * N, "56 T + 24 N: 4 dof numbers, type, normal and piece area of each tet read; the N x 3 "
                 "result written"),
-        "solve": (it * (SOLVE_MATRIX_BYTES * nK + SOLVE_VECTOR_BYTES * c * N), f"it x (32 nnz(K) + 80 x {c} N): per CG "
+        "solve": (it * (SOLVE_MATRIX_BYTES * nK + SOLVE_VECTOR_BYTES * c * N), f"it x (24 nnz(K) + 80 x {c} N): per CG "
                   "iteration one pass over the fine matrix for all columns in double precision (12 bytes a nonzero) "
-                  "and 2.5 in single precision (8 bytes: two Gauss-Seidel sweeps and the half-product residual -U x), "
+                  "and 1.5 in single precision (8 bytes: the forward sweep from zero with its residual, half of each row, "
+                  "and the backward sweep), "
                   "and per column the CG vectors (x, r, p read and written, q, z read) and the cycle's right-hand "
                   "side and correction; coarse levels and setup left out; it = the most iterations over the columns")
         if it > 0 else (CSR_BYTES * nK + 8 * c * N, f"12 nnz(K) + {8 * c} N (direct solve): K read once, the N x {c} "
