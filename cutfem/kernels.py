@@ -355,14 +355,19 @@ def cg_direction(p, z, beta):
     return p
 
 
+def _check_blocks(A, names, X, *others):
+    """ValueError unless X and ``others`` are C-contiguous (n, c) blocks of A's dtype, all of X's shape."""
+    for Z in (X, *others):
+        if Z.shape != X.shape or Z.ndim != 2 or Z.shape[0] != A.shape[0] or Z.dtype != A.dtype \
+                or not Z.flags.c_contiguous:
+            raise ValueError(f"{names} must be C-contiguous ({A.shape[0]}, c) blocks of {A.dtype}, got {Z.shape} {Z.dtype}")
+
+
 def gauss_seidel(A, X, B, forward: bool = True):
     """One Gauss-Seidel sweep for ``A X = B`` in place on X (n, c), C-contiguous, of A's dtype: rows in
     increasing order (``forward``) or decreasing.  A is CSR with its diagonal stored (nonzero)."""
     indptr, indices, data = _csr(A)
-    for Z in (X, B):
-        if Z.shape != X.shape or Z.ndim != 2 or Z.shape[0] != A.shape[0] or Z.dtype != data.dtype \
-                or not Z.flags.c_contiguous:
-            raise ValueError(f"X and B must be C-contiguous ({A.shape[0]}, c) blocks of {data.dtype}, got {Z.shape} {Z.dtype}")
+    _check_blocks(A, "X and B", X, B)
     c = X.shape[1]
     if c <= WIDTH:
         _kernels(c)[1](indptr, indices, data, X, B, forward)
@@ -388,10 +393,7 @@ def presmooth(A, X, B, R):
     indptr, indices, data = _csr(A)
     if not A.has_sorted_indices:
         raise ValueError("presmooth needs a CSR matrix with sorted indices (A.sort_indices())")
-    for Z in (X, B, R):
-        if Z.shape != X.shape or Z.ndim != 2 or Z.shape[0] != A.shape[0] or Z.dtype != data.dtype \
-                or not Z.flags.c_contiguous:
-            raise ValueError(f"X, B and R must be C-contiguous ({A.shape[0]}, c) blocks of {data.dtype}, got {Z.shape} {Z.dtype}")
+    _check_blocks(A, "X, B and R", X, B, R)
     c = X.shape[1]
     if c <= WIDTH:
         _kernels(c)[2](indptr, indices, data, X, B, R)
