@@ -864,6 +864,8 @@ def kuhn_prolongation(ijk):
 
     ijk = np.ascontiguousarray(ijk, dtype=np.int64)
     m = len(ijk)
+    if ijk.ndim != 2 or ijk.shape[1] != 3 or m == 0:
+        raise ValueError(f"kuhn_prolongation needs lattice indices of shape (m, 3), m >= 1; got {ijk.shape}")
     bounds = np.empty((2, 3), dtype=np.int64)
     kernels.kuhn_ends_bounds(ijk, bounds)
     base, dims = bounds[0], bounds[1] - bounds[0] + 1

@@ -58,6 +58,12 @@ def test_kuhn_prolongation_reproduces_linear_functions(torus_space):
     np.testing.assert_array_equal(Q.data, P.data)
 
 
+def test_kuhn_prolongation_refuses_empty_or_misshapen_indices():
+    for bad in (np.zeros((0, 3), dtype=np.int64), np.zeros((4, 2), dtype=np.int64)):
+        with pytest.raises(ValueError, match=r"shape \(m, 3\)"):
+            kuhn_prolongation(bad)
+
+
 def test_coarse_space_is_nested(torus_space):
     """A coarse Kuhn P1 function is P1 on every fine tet: its prolongation has zero face jumps
     wherever all its coarse values are linear... checked by the stronger statement that the
