@@ -1287,7 +1287,8 @@ def galerkin(A, P, R=None):
         args += [M.indptr, M.indices, M.data.astype(float, copy=False)]
     ptr, idx, val, strict = _galerkin_upper(*args, np.int64(m), np.int64(max(16, 8 * m)))
     nnz = len(idx) + strict
-    indptr, indices, data = np.empty(m + 1, dtype=np.int64), np.empty(nnz, dtype=np.int64), np.empty(nnz)
+    index = np.int32 if nnz < 2**31 else np.int64  # int32 written here: scipy checks int64 contents min/max to narrow them
+    indptr, indices, data = np.empty(m + 1, dtype=index), np.empty(nnz, dtype=index), np.empty(nnz)
     _mirror_upper(ptr, idx, val, indptr, indices, data)
     out = sp.csr_matrix((data, indices, indptr), shape=(m, m))
     out.has_sorted_indices = True
