@@ -512,29 +512,23 @@ def vertex_values(vertices, triangles, tets_of, points, tets, table, types, dofs
 
 
 @njit(cache=True, error_model="numpy")
-def _jump_row(f, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, row_dofs, row_values):
-    """Row f of :func:`jump_rows` into ``row_dofs``, ``row_values`` (2k,)."""
-    k = dofs.shape[1]
-    w = np.sqrt(weights[f])
-    for side in range(2):
-        el = pairs[f, side]
-        g = table[types[el]]
-        t = normals_a[f] if side == 0 else normals_b[f]
-        scale = w if side == 0 else w * sign_b
-        for i in range(k):
-            row_dofs[k * side + i] = dofs[el, i]
-            row_values[k * side + i] = scale * (g[i, 0] * t[0] + g[i, 1] * t[1] + g[i, 2] * t[2])
-
-
-@njit(cache=True, error_model="numpy")
 def jump_rows(pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, out_dofs, out_values):
     """Rows of the jumps c = sqrt(w) (t_a . G_{K_a}, t_b . G_{K_b}) for the pairs (K_a, K_b) =
     ``pairs`` (F, 2) of elements with k dofs, t_a = ``normals_a`` (F, 3), t_b = ``sign_b``
     ``normals_b``, w = ``weights`` (F,): ``out_dofs`` (F, 2k) the dofs of K_a then K_b (``dofs``
     (m, k)), ``out_values`` (F, 2k); the gradients are ``table[types[K]]`` (k, 3)
     (:meth:`~cutfem.spaces.CutP1Space.gradient_lookup`)."""
+    k = dofs.shape[1]
     for f in range(pairs.shape[0]):
-        _jump_row(f, pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, out_dofs[f], out_values[f])
+        w = np.sqrt(weights[f])
+        for side in range(2):
+            el = pairs[f, side]
+            g = table[types[el]]
+            t = normals_a[f] if side == 0 else normals_b[f]
+            scale = w if side == 0 else w * sign_b
+            for i in range(k):
+                out_dofs[f, k * side + i] = dofs[el, i]
+                out_values[f, k * side + i] = scale * (g[i, 0] * t[0] + g[i, 1] * t[1] + g[i, 2] * t[2])
 
 
 @njit(cache=True, error_model="numpy")
@@ -669,10 +663,8 @@ def lattice_add_face_jumps(ids, code, pairs, opposite, factors, volumes, dofs, t
         ea, eb = pairs[f, 0], pairs[f, 1]
         oa, ob = opposite[f, 0], opposite[f, 1]
         ta, tb = types[ea], types[eb]
-        gx, gy, gz = table[ta, oa, 0], table[ta, oa, 1], table[ta, oa, 2]
-        gn = np.sqrt(gx * gx + gy * gy + gz * gz)
-        nx, ny, nz = gx / -gn, gy / -gn, gz / -gn
-        w = np.sqrt(3.0 * volumes[ea] * gn * factors[0 if one else f])
+        nx, ny, nz, area = _face_normal_area(table, ta, oa, volumes[ea])
+        w = np.sqrt(area * factors[0 if one else f])
         for i in range(4):
             u[i] = dofs[ea, i]
             v[i] = w * (table[ta, i, 0] * nx + table[ta, i, 1] * ny + table[ta, i, 2] * nz)
@@ -1062,6 +1054,19 @@ def edge_counts(triangles, n_vertices: int):
     return counts[:n].copy()
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _face_normal_area(table, l, k, volume):
+    """(n_x, n_y, n_z, |F|) of the face opposite to vertex k of a tet of gradient type l and volume
+    ``volume``: n = -g / |g| out of the tet and |F| = 3 |T| |g|, g = grad lambda_k = ``table[l, k]``
+    (|T| = |F| height / 3, |g| = 1 / height)."""
+    gx, gy, gz = table[l, k, 0], table[l, k, 1], table[l, k, 2]
+    gn = gx * gx
+    gn += gy * gy
+    gn += gz * gz
+    gn = np.sqrt(gn)
+    return gx / -gn, gy / -gn, gz / -gn, 3.0 * volume * gn
+
+
 @njit(cache=True, error_model="numpy")
 def face_normals_areas(pairs, opposite, table, types, volumes, normals, areas):
     """For each face f between tets ``pairs[f]``: ``normals[f]`` = -g / |g| and ``areas[f]`` =
@@ -1070,15 +1075,7 @@ def face_normals_areas(pairs, opposite, table, types, volumes, normals, areas):
     the face area (|T| = |F| height / 3, |g| = 1 / height)."""
     for f in range(pairs.shape[0]):
         t = pairs[f, 0]
-        k = opposite[f, 0]
-        l = types[t]
-        gx, gy, gz = table[l, k, 0], table[l, k, 1], table[l, k, 2]
-        gn = gx * gx
-        gn += gy * gy
-        gn += gz * gz
-        gn = np.sqrt(gn)
-        normals[f, 0], normals[f, 1], normals[f, 2] = gx / -gn, gy / -gn, gz / -gn
-        areas[f] = 3.0 * volumes[t] * gn
+        normals[f, 0], normals[f, 1], normals[f, 2], areas[f] = _face_normal_area(table, types[t], opposite[f, 0], volumes[t])
 
 
 @njit(cache=True, error_model="numpy", inline="always")
