@@ -21,7 +21,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-__all__ = ["main"]
+__all__ = ["main", "entry"]
 
 
 class _Parser(argparse.ArgumentParser):
@@ -240,5 +240,23 @@ def main(argv=None) -> int:
         return _fail(str(exc))
 
 
+def entry() -> None:
+    """The ``cutfem`` console command: :func:`main` on the process's arguments, then exit.
+
+    Before the interpreter's teardown, every object still alive is moved out of the cyclic
+    collector's reach (``gc.freeze``): the final collections of the teardown would otherwise
+    traverse numba's type registries and the run's objects once more, for nothing (the process's
+    memory goes back to the system as a whole).  That collection took 0.09-0.25 s of each run of
+    ``cutfem run mean-curvature-cut --spacing 0.0125`` (0.14-0.31 s from the end of the run to
+    the end of the process, against 0.05-0.06 s with the freeze).  :func:`main` itself, called
+    in-process (tests, scripts), does not do this: a live process keeps collecting.
+    """
+    import gc
+
+    status = main()
+    gc.freeze()
+    sys.exit(status)
+
+
 if __name__ == "__main__":  # pragma: no cover
-    sys.exit(main())
+    entry()

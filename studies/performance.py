@@ -502,17 +502,17 @@ def _available_gib():
 
 
 _BULK_CODE = _PEAK_CODE + """\
-import sys
-from cutfem.cli import main
-rc = main(sys.argv[1:])
-print(f'PEAK {_peak()!r}')
-sys.exit(rc)
+import atexit
+from cutfem.cli import entry
+atexit.register(lambda: print(f'PEAK {_peak()!r}', flush=True))
+entry()
 """
 
 
 def bulk_level(spacing: float) -> dict:
     """``cutfem run poisson-cut --surface torus --spacing S --json F`` in a fresh process (the
-    command's ``main``, followed by a print of the process's own peak resident memory, VmHWM):
+    command's own entry, :func:`cutfem.cli.entry`, and at exit a print of the process's peak
+    resident memory, VmHWM):
     the level's unknowns, stage times and wall time from its JSON record, the peak, the CPU times
     from ``os.wait4``, the process wall time (start-up included), and the time (s) and memory
     (GiB) per million unknowns."""

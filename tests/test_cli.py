@@ -123,6 +123,18 @@ def test_console_script_is_installed():
     assert "mean-curvature-cut" in out
 
 
+def test_console_entry_exits_with_the_command_status():
+    """The console script's entry passes main's status to the process: 0 for a run, 2 for bad input
+    (one line, no traceback)."""
+    run = subprocess.run([sys.executable, "-m", "cutfem.cli", "run", "mean-curvature-cut", "--spacing", "0.2", "--quiet"],
+                         capture_output=True, text=True)
+    assert run.returncode == 0, run.stderr
+    assert "0.2" in run.stdout and "Traceback" not in run.stderr
+    bad = subprocess.run([sys.executable, "-m", "cutfem.cli", "run", "no-such-problem"], capture_output=True, text=True)
+    assert bad.returncode == 2
+    assert "no-such-problem" in bad.stderr and "Traceback" not in bad.stderr
+
+
 def test_register_function_problem_and_run():
     @register("test-quadratic", levels=[0.5, 0.25], level_name="step", params=[Param("c", float, 2.0, "constant", minimum=0)])
     def quad(step, c):
