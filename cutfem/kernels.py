@@ -141,6 +141,9 @@ __all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_st
 #: columns served by one pass over the matrix (one register accumulator each)
 WIDTH = 3
 
+#: rows per partial sum of the column reductions: the order every column is summed in
+SUM_BLOCK = 256
+
 _COMPILED: dict = {}
 
 
@@ -151,9 +154,14 @@ def _kernels(c: int):
         return _COMPILED[c]
 
     @njit(cache=True, error_model="numpy")
-    def product(indptr, indices, data, X, Y, alpha, accumulate):
-        """Y = alpha A X (accumulate: Y += alpha A X), X (n_in, c), Y (n_out, c)."""
-        for i in range(Y.shape[0]):
+    def product(indptr, indices, data, X, Y, alpha, accumulate, dots):
+        """Y = alpha A X (accumulate: Y += alpha A X), X (n_in, c), Y (n_out, c); with ``dots`` (c,)
+        not empty (A square), also dots += the column dot products of X and the new Y in double
+        precision, summed as :func:`column_dots` sums."""
+        n = Y.shape[0]
+        with_dots = dots.shape[0] > 0
+        d0 = d1 = d2 = 0.0
+        for i in range(n):
             s0 = s1 = s2 = Y.dtype.type(0)
             for k in range(np.uint64(indptr[i]), np.uint64(indptr[i + 1])):
                 j = np.uint64(indices[k])
@@ -175,6 +183,19 @@ def _kernels(c: int):
                     Y[i, 1] = alpha * s1
                 if c > 2:
                     Y[i, 2] = alpha * s2
+            if with_dots:
+                d0 += np.float64(X[i, 0]) * np.float64(Y[i, 0])
+                if c > 1:
+                    d1 += np.float64(X[i, 1]) * np.float64(Y[i, 1])
+                if c > 2:
+                    d2 += np.float64(X[i, 2]) * np.float64(Y[i, 2])
+                if (i + 1) % SUM_BLOCK == 0 or i + 1 == n:  # a block's partial sums, as column_dots
+                    dots[0] += d0
+                    if c > 1:
+                        dots[1] += d1
+                    if c > 2:
+                        dots[2] += d2
+                    d0 = d1 = d2 = 0.0
 
     @njit(cache=True, error_model="numpy")
     def sweep(indptr, indices, data, X, B, forward):
@@ -262,10 +283,19 @@ def _groups(c: int):
     return [slice(g, min(g + WIDTH, c)) for g in range(0, c, WIDTH)]
 
 
-def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False):
+_NO_DOTS = np.zeros(0)
+
+
+def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False, dots=None):
     """``out = alpha A X`` (``accumulate``: ``out += alpha A X``) for a CSR matrix A and a block X
     (n, c) of the matrix's dtype, C-contiguous; returns ``out`` (allocated when None).  One pass
-    over A for each :data:`WIDTH` columns."""
+    over A for each :data:`WIDTH` columns.
+
+    ``dots``: a float64 array (c,) for a square A, overwritten with the column dot products of X
+    and ``out`` computed in the same pass, bitwise :func:`column_dots` (X, out) (in double
+    precision whatever the blocks' dtype; CG's p^T A p
+    without reading p and A p again: at 4.7 million unknowns and three columns, 0.23 GB an
+    iteration)."""
     indptr, indices, data = _csr(A)
     if X.ndim != 2 or X.shape[0] != A.shape[1] or X.dtype != data.dtype or not X.flags.c_contiguous:
         raise ValueError(f"X must be a C-contiguous ({A.shape[1]}, c) block of {data.dtype}, got {X.shape} {X.dtype}")
@@ -274,19 +304,23 @@ def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False):
         if accumulate:
             raise ValueError("accumulate=True needs out=")
         out = np.empty((A.shape[0], c), dtype=data.dtype)
+    if dots is None:
+        dots = _NO_DOTS
+    elif dots.shape != (c,) or dots.dtype != np.float64 or A.shape[0] != A.shape[1]:
+        raise ValueError(f"dots must be a float64 array ({c},) and A square, got {dots.shape} {dots.dtype} and A {A.shape}")
+    else:
+        dots[:] = 0.0
     alpha = data.dtype.type(alpha)
     if c <= WIDTH:
-        _kernels(c)[0](indptr, indices, data, X, out, alpha, accumulate)
+        _kernels(c)[0](indptr, indices, data, X, out, alpha, accumulate, dots)
         return out
     for g in _groups(c):
         Y = np.ascontiguousarray(out[:, g]) if accumulate else np.empty((A.shape[0], g.stop - g.start), data.dtype)
-        _kernels(g.stop - g.start)[0](indptr, indices, data, np.ascontiguousarray(X[:, g]), Y, alpha, accumulate)
+        part = dots[g] if dots.shape[0] else _NO_DOTS
+        _kernels(g.stop - g.start)[0](indptr, indices, data, np.ascontiguousarray(X[:, g]), Y, alpha, accumulate, part)
         out[:, g] = Y
     return out
 
-
-#: rows per partial sum of the column reductions: the order every column is summed in
-SUM_BLOCK = 256
 
 
 @njit(cache=True, error_model="numpy")

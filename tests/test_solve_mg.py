@@ -151,6 +151,29 @@ def test_presmooth_is_a_forward_sweep_from_zero_and_its_residual(torus_space, dt
         presmooth(U, X, B, R)
 
 
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("c", [1, 2, 3, 5])
+def test_product_with_dots_is_the_product_and_its_column_dots(torus_space, dtype, c):
+    """matmul with dots= gives, bitwise, the same product and column_dots(X, A X) (in double
+    precision), and agrees with numpy's X^T A X to round-off; wrong dots are refused."""
+    from cutfem.kernels import column_dots, matmul
+
+    V = torus_space
+    A = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr().astype(dtype)
+    n = A.shape[0]
+    X = np.random.default_rng(c).standard_normal((n, c)).astype(dtype)
+    dots = np.full(c, np.nan)
+    Y = matmul(A, X, dots=dots)
+    np.testing.assert_array_equal(Y, matmul(A, X))
+    np.testing.assert_array_equal(dots, column_dots(X.astype(float), Y.astype(float)))
+    ref = np.einsum("ij,ij->j", X.astype(float), A.astype(float) @ X.astype(float))
+    np.testing.assert_allclose(dots, ref, rtol=1e-5 if dtype == np.float32 else 1e-12)
+    with pytest.raises(ValueError, match="dots must be"):
+        matmul(A, X, dots=np.zeros(c + 1))
+    with pytest.raises(ValueError, match="dots must be"):
+        matmul(A[:, : n - 1], X[: n - 1], dots=np.zeros(c))
+
 @pytest.mark.parametrize("system", ["mean-curvature", "laplace-beltrami"])
 def test_mg_solve_agrees_with_direct(torus_space, system):
     V = torus_space
@@ -329,7 +352,7 @@ def test_simultaneous_cg_equals_column_by_column_and_direct(torus_space, monkeyp
     B = np.column_stack([stiffness_matrix(V) @ V.dof_points, np.zeros(V.n_dofs)])  # (n, 4)
     products = []
     matvec = solve_module._matvec
-    monkeypatch.setattr(solve_module, "_matvec", lambda A: (lambda X, out=None: (products.append(X.shape[1]), matvec(A)(X, out))[1]))
+    monkeypatch.setattr(solve_module, "_matvec", lambda A: (lambda X, out=None, dots=None: (products.append(X.shape[1]), matvec(A)(X, out, dots=dots))[1]))
     X, info = mg_solve(K, B, lattice_indices(V))
     block_products = sum(products)
     its = []
