@@ -52,9 +52,9 @@ Two defaults of a Linux process make the first touch of that memory the dominant
   pages (interleaved runs, three each; the cut stage alone 2.0-2.8 s against 0.9-1.1 s).
 
 The effect of :func:`configure` is to set glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` to
-:data:`MMAP_THRESHOLD` (256 MB: smaller arrays come from the heap, and freed memory stays with
-the process until 256 MB are free at its top) and to turn numpy's huge-page advice off when the
-defrag mode would stall.  Measured end to end when the settings were introduced
+:data:`MMAP_THRESHOLD` (2047 MiB, the largest whole MiB that ``mallopt``'s int parameter
+takes: smaller arrays come from the heap, and freed memory stays with the process until that much
+is free at its top) and to turn numpy's huge-page advice off when the defrag mode would stall.  Measured end to end when the settings were introduced
 (``studies/performance.py`` stages, seconds; runs interleaved, several each):
 
 ==============================  ===========  ==============  =========
@@ -73,6 +73,17 @@ against 0.88-0.93 s configured, user time 9.9-10.2 s against 9.7-10.9 s (unchang
 noise), peak resident memory 1.01 GiB against 1.08-1.09 GiB, minor page faults 52-54 thousand
 against 263-266 thousand (4 KB pages instead of huge pages).  So the gain is the system time of
 first touches of memory, about 1-1.4 s a run here, paid for by about 7 % more peak memory.
+
+The threshold was 256 MB until arrays of 0.3-1.3 GB became common (spacing 0.003125: 4.7 million
+unknowns, 13.7 million active tets).  Those were mapped fresh and unmapped on free, so each stage
+faulted the pages the previous one had just given back; on the heap the cut's freed arrays serve
+the matrix and the solve.  Measured with ``cutfem run`` in pairs, the two thresholds in turn
+(``/usr/bin/time``, 2026-12-02): the cut torus at spacing 0.003125, seven pairs, 1.56 million page
+faults against 2.10 million in every run, system time median 9.2 s against 11.1 s, wall median
+40.7 s against 44.9 s (pair ratios 0.75-1.11, median 0.96), peak 5.62 GiB both; fictitious-domain
+Poisson on the solid torus at spacing 0.0125 (2.7 million unknowns), three pairs, 0.96-1.03
+million faults against 1.73 million, wall 38.3, 38.7 and 46.9 s against 44.4, 42.5 and 44.9 s,
+peak 3.95-3.99 GiB against 3.96-3.98.  Below 256 MB nothing changes.
 
 The settings are a trade: memory freed by the program stays with the process (up to the
 threshold) instead of returning to the system, which suits a run that allocates and frees large
@@ -179,7 +190,7 @@ def check_memory(estimate: float, what: str, fix: str) -> None:
         )
 
 #: glibc mmap and trim thresholds set by :func:`configure` (bytes)
-MMAP_THRESHOLD = 256 * 2**20
+MMAP_THRESHOLD = 2047 * 2**20
 
 #: what :func:`configure` applied: {"malloc": bool, "numpy_hugepage": bool | None, "thp_defrag": str | None}
 SETTINGS: dict = {}
