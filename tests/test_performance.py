@@ -27,6 +27,30 @@ def test_levels_record_stages_sizes_and_errors():
     assert set(m["time"]) == {"mesh", "matrix", "rhs", "solve", "errors"}
 
 
+def test_stage_timer_keeps_cpu_and_faults_per_stage():
+    """Per stage: the wall time, and user and system CPU time and minor page faults from getrusage.
+    A stage that writes 64 MiB of a fresh anonymous mapping faults at least once per 2 MiB (once
+    per 4 KiB page without transparent huge pages); a stage that only sleeps spends no CPU time."""
+    import mmap
+    import time
+
+    t = performance.StageTimer()
+    region = mmap.mmap(-1, 64 * 2**20)  # fresh pages, not the allocator's reused heap
+    with t("touch"):
+        np.frombuffer(region, dtype=np.float64)[:] = 1.0
+    with t("sleep"):
+        time.sleep(0.05)
+    with t("touch"):
+        np.frombuffer(region, dtype=np.float64)[::512] += 1.0  # pages already there: no new faults needed
+    assert set(t) == set(t.cpu) == {"touch", "sleep"}
+    assert t["sleep"] >= 0.05 and t.cpu["sleep"]["user"] + t.cpu["sleep"]["system"] < 0.04
+    assert t.cpu["touch"]["faults"] >= 64 // 2
+    assert t.cpu["touch"]["user"] + t.cpu["touch"]["system"] <= 2 * t["touch"] + 0.02  # two cores at most
+    assert np.frombuffer(region, dtype=np.float64)[512] == 2.0
+    rec = performance.cut_level(0.2)
+    assert set(rec["stage_cpu"]) == set(rec["time"])
+
+
 def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
     """Tiny run with the bulk table and --peers where ngsxfem is reported missing: a note, no failure."""
     monkeypatch.setattr(performance, "_peer_missing", lambda: "ngsolve/xfem are not importable (test)")
