@@ -83,7 +83,10 @@ faults against 2.10 million in every run, system time median 9.2 s against 11.1 
 40.7 s against 44.9 s (pair ratios 0.75-1.11, median 0.96), peak 5.62 GiB both; fictitious-domain
 Poisson on the solid torus at spacing 0.0125 (2.7 million unknowns), three pairs, 0.96-1.03
 million faults against 1.73 million, wall 38.3, 38.7 and 46.9 s against 44.4, 42.5 and 44.9 s,
-peak 3.95-3.99 GiB against 3.96-3.98.  Below 256 MB nothing changes.
+peak 3.95-3.99 GiB against 3.96-3.98.  Below 256 MB nothing changes.  The fault count drops in
+every run, the wall time less surely: a fault costs 1.4-10 us of system time here, varying from
+run to run, and two later pairs of the whole command at 0.003125 (with other changes) gave 43.2
+and 49.4 s against 42.9 and 44.6 s.
 
 The settings are a trade: memory freed by the program stays with the process (up to the
 threshold) instead of returning to the system, which suits a run that allocates and frees large
