@@ -292,10 +292,9 @@ def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False, dots=No
     over A for each :data:`WIDTH` columns.
 
     ``dots``: a float64 array (c,) for a square A, overwritten with the column dot products of X
-    and ``out`` computed in the same pass, bitwise :func:`column_dots` (X, out) (in double
-    precision whatever the blocks' dtype; CG's p^T A p
-    without reading p and A p again: at 4.7 million unknowns and three columns, 0.23 GB an
-    iteration)."""
+    and ``out`` computed in the same pass, bitwise :func:`column_dots` (X, out), in double
+    precision whatever the blocks' dtype (CG's p^T A p without reading p and A p again: at 4.7
+    million unknowns and three columns, 0.23 GB an iteration)."""
     indptr, indices, data = _csr(A)
     if X.ndim != 2 or X.shape[0] != A.shape[1] or X.dtype != data.dtype or not X.flags.c_contiguous:
         raise ValueError(f"X must be a C-contiguous ({A.shape[1]}, c) block of {data.dtype}, got {X.shape} {X.dtype}")
@@ -320,7 +319,6 @@ def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False, dots=No
         _kernels(g.stop - g.start)[0](indptr, indices, data, np.ascontiguousarray(X[:, g]), Y, alpha, accumulate, part)
         out[:, g] = Y
     return out
-
 
 
 @njit(cache=True, error_model="numpy")

@@ -54,8 +54,9 @@ Two defaults of a Linux process make the first touch of that memory the dominant
 The effect of :func:`configure` is to set glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` to
 :data:`MMAP_THRESHOLD` (2047 MiB, the largest whole MiB that ``mallopt``'s int parameter
 takes: smaller arrays come from the heap, and freed memory stays with the process until that much
-is free at its top) and to turn numpy's huge-page advice off when the defrag mode would stall.  Measured end to end when the settings were introduced
-(``studies/performance.py`` stages, seconds; runs interleaved, several each):
+is free at its top) and to turn numpy's huge-page advice off when the defrag mode would stall.
+Measured end to end when the settings were introduced (with a 256 MB threshold;
+``studies/performance.py`` stages, seconds; runs interleaved, several each):
 
 ==============================  ===========  ==============  =========
 case                            default      configured      peak
