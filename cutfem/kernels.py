@@ -329,18 +329,20 @@ def _column_dots(a, b, out):
         part[:] = 0.0
         for i in range(start, min(start + SUM_BLOCK, n)):
             for l in range(c):
-                part[l] += a[i, l] * b[i, l]
+                part[l] += np.float64(a[i, l]) * np.float64(b[i, l])
         for l in range(c):
             out[l] += part[l]
 
 
 def column_dots(a, b):
-    """The dot products of the columns of a and b (n, c): in blocks of :data:`SUM_BLOCK` rows, in row
-    order, so a column's result does not depend on the columns beside it (numpy's strided
-    reductions change their order with c; CG's scalars, and so its iterates, would differ in the
-    last bits between a column solved alone and in a block)."""
-    a = np.ascontiguousarray(a, dtype=float)
-    b = np.ascontiguousarray(b, dtype=float)
+    """The dot products of the columns of a and b (n, c), in double precision: in blocks of
+    :data:`SUM_BLOCK` rows, in row order, so a column's result does not depend on the columns
+    beside it (numpy's strided reductions change their order with c; CG's scalars, and so its
+    iterates, would differ in the last bits between a column solved alone and in a block).  Two
+    float32 blocks are read as they are (the multigrid's K-cycle), anything else as float64."""
+    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
+    if not (a.dtype == b.dtype and a.dtype in (np.float32, np.float64)):
+        a, b = a.astype(float), b.astype(float)
     out = np.zeros(a.shape[1])
     _column_dots(a, b, out)
     return out

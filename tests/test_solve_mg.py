@@ -231,11 +231,19 @@ def test_multigrid_hierarchy_shape(torus_space):
     assert mg.operator_complexity < 1.5
     R = np.random.default_rng(1).normal(size=(V.n_dofs, 2))
     Z = mg.apply(R)
-    # symmetric positive definite preconditioner, up to the rounding of its single-precision cycle
-    assert R[:, 0] @ Z[:, 1] == pytest.approx(R[:, 1] @ Z[:, 0], rel=1e-5)
-    assert R[:, 0] @ Z[:, 0] > 0
+    # the K-cycle below the finest level: positive, not linear (its coarse steps depend on the input)
+    assert R[:, 0] @ Z[:, 0] > 0 and R[:, 1] @ Z[:, 1] > 0
+    assert not np.allclose(mg.apply(2.0 * R[:, 0] + R[:, 1]), 2.0 * Z[:, 0] + Z[:, 1], rtol=1e-4, atol=0)
     # the columns are independent: the block gives, bitwise, what each column gives alone
     np.testing.assert_array_equal(Z[:, 1], mg.apply(R[:, 1]))
+    # V-cycles: a symmetric positive definite operator, up to the rounding of its single-precision cycle
+    v = GeometricMultigrid(K, lattice_indices(V), coarse_size=500, visits=(1,))
+    Zv = v.apply(R)
+    assert R[:, 0] @ Zv[:, 1] == pytest.approx(R[:, 1] @ Zv[:, 0], rel=1e-5)
+    assert R[:, 0] @ Zv[:, 0] > 0
+    np.testing.assert_allclose(v.apply(2.0 * R[:, 0] + R[:, 1]), 2.0 * Zv[:, 0] + Zv[:, 1], rtol=0, atol=1e-5 * np.abs(Zv).max())
+    with pytest.raises(ValueError, match="visits must be"):
+        GeometricMultigrid(K, lattice_indices(V), visits=(1, 3))
 
 
 def test_multigrid_reports_zero_diagonal_and_bad_lattice(torus_space):
