@@ -65,11 +65,14 @@ takes the value of the coarse node i/2 (all indices even) or the mean of the two
 reproduces linear functions, the near-kernel of J_F, on every level.  The coarse matrices are
 Galerkin products P^T A P (each level has about 4 times fewer unknowns and nonzeros, the band
 being two-dimensional: operator complexity 1.33), built by one compiled pass that sums the upper
-triangle and mirrors it, so they are exactly symmetric (:func:`cutfem.kernels.galerkin`).  Cycle: one forward Gauss-Seidel sweep, coarse
-correction, one backward sweep (so the preconditioner is symmetric); V-cycle on the finest level,
-W-cycles below (iterations 18 / 21 / 23 at 1e-6, nearly independent of h, where a V-cycle
-everywhere needs 19 / 27 / 37 at 1e-8); :class:`DirectSolver` on the coarsest level (<= 1500 unknowns).  The
-residual after the forward sweep from zero is -U x (U the strictly upper part): half a product.
+triangle and mirrors it, so they are exactly symmetric (:func:`cutfem.kernels.galerkin`).  Cycle:
+one forward Gauss-Seidel sweep, coarse correction, one backward sweep; V-cycle on the finest
+level, K-cycles below (two coarse cycles combined by two steps of flexible CG, see
+:class:`GeometricMultigrid`; CG then takes flexible directions).  Iterations at 1e-6 on the cut
+torus: 18 / 20 / 20 / 21 / 21 at spacings 0.05 / 0.025 / 0.0125 / 0.00625 / 0.003125, nearly
+independent of h (with W-cycles below the finest level 18 / 21 / 23 / 25 / 28, with V-cycles
+everywhere 34 at 0.0125 and 48 at 0.00625); :class:`DirectSolver` on the coarsest level (<= 1500 unknowns).  The residual
+after the forward sweep from zero is -U x (U the strictly upper part): half a product.
 
 Measured on this machine (2 cores), cut torus of docs/math.md §6, K = M + 0.1 J_F, the three
 right-hand sides A @ x_k; times in s (wall; the machine is noisy, +-30 %), "its" per column:
@@ -81,6 +84,8 @@ spacing  n        cg-mg, tol 1e-6 (1e-8)             SuperLU (previous default)
 0.025    72 928   0.16 + 0.51 s, 21 its (0.52, 28)   2.0 + 0.24 s
 0.0125   293 244  0.3 + 1.7-2.3 s, 23 its (2.6, 31)  25 + 6 s, 3 GiB
 =======  =======  =================================  =============================
+
+(measured with W-cycles below the finest level, when the multigrid path was introduced)
 
 cg-mg needs 0.16 GiB besides the matrix at spacing 0.0125.  Its solutions differ from the direct
 ones by about 3e-3 times the tolerance (relative 2-norm: 3e-9 at 1e-6, 3e-11 at 1e-8); the L2
@@ -1067,9 +1072,9 @@ class GeometricMultigrid:
     two steps of flexible CG on level l+1 (:meth:`_krylov_correction`), where a W-cycle would add
     them as stationary iterations.  Default: V on the finest level, K below.  A K-cycle is not a
     linear operator, so the CG it preconditions takes flexible directions (:func:`_pcg`).  On the
-    cut torus (tolerance 1e-6) the K-cycle needs 20 and 21 CG iterations at spacings 0.0125 and
-    0.00625 where the W-cycle needed 23 and 25, at about the W-cycle's cost per iteration (one
-    coarse product more per visit).  ``apply(R)`` acts on (n, c).
+    cut torus (tolerance 1e-6) the K-cycle needs 20, 21 and 21 CG iterations at spacings 0.0125,
+    0.00625 and 0.003125 where the W-cycle needed 23, 25 and 28, at about the W-cycle's cost per
+    iteration (one coarse product more per visit).  ``apply(R)`` acts on (n, c).
 
     ``augment`` (n,), a nodal vector w: every coarse space holds, beside the prolongated coarse
     functions v, their products w v (:func:`augmented_hierarchy`).  For a surface operator on a cut
