@@ -71,8 +71,9 @@ level, K-cycles below (two coarse cycles combined by two steps of flexible CG, s
 :class:`GeometricMultigrid`; CG then takes flexible directions).  Iterations at 1e-6 on the cut
 torus: 18 / 20 / 20 / 21 / 21 at spacings 0.05 / 0.025 / 0.0125 / 0.00625 / 0.003125, nearly
 independent of h (with W-cycles below the finest level 18 / 21 / 23 / 25 / 28, with V-cycles
-everywhere 34 at 0.0125 and 48 at 0.00625); :class:`DirectSolver` on the coarsest level (<= 1500 unknowns).  The residual
-after the forward sweep from zero is -U x (U the strictly upper part): half a product.
+everywhere 34 at 0.0125 and 48 at 0.00625); :class:`DirectSolver` on the coarsest level (<= 1500
+unknowns).  The residual after the forward sweep from zero is -U x (U the strictly upper part):
+half a product.
 
 Measured on this machine (2 cores), cut torus of docs/math.md §6, K = M + 0.1 J_F, the three
 right-hand sides A @ x_k; times in s (wall; the machine is noisy, +-30 %), "its" per column:
@@ -726,8 +727,8 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
     beta = z_new^T (r_new - r_old) / z_old^T r_old = -z_new^T q / p^T q with q = A p, which is
     the usual z_new^T r_new / z_old^T r_old for a fixed SPD preconditioner in exact arithmetic
     and keeps each direction A-orthogonal to the previous one when the preconditioner varies
-    from one application to the next (the multigrid's K-cycle); it costs one column dot more.  The columns are independent recurrences: each gives,
-    bitwise, what it gives alone.  Why not a block CG, whose search directions the columns share:
+    from one application to the next (the multigrid's K-cycle); it costs one column dot more.
+    The columns are independent recurrences: each gives, bitwise, what it gives alone.  Why not a block CG, whose search directions the columns share:
     it needed as many iterations (28 at spacing 0.025, tolerance 1e-8, on the cut torus) as three
     independent recurrences, as the multigrid leaves no isolated small eigenvalues for the shared
     space to remove.
@@ -1090,6 +1091,8 @@ class GeometricMultigrid:
 
     def __init__(self, A, lattice=None, coarse_size: int = 1500, visits=(1, 2), max_levels: int = 20, prolongations=None,
                  augment=None, _checks=None):
+        if not len(visits) or any(v not in (1, 2) for v in visits):
+            raise ValueError(f"visits must be a non-empty sequence of 1 (V-cycle) and 2 (K-cycle) per level, got {visits!r}")
         A = sp.csr_matrix(A, dtype=float)
         self._finest = A  # in double precision, for the null-vector checks
         n = A.shape[0]
@@ -1133,8 +1136,6 @@ class GeometricMultigrid:
             if exc.cause == "indefinite":
                 raise
             self._coarse = ("pinv", self._coarse_pseudo_inverse(A, exc))
-        if any(v not in (1, 2) for v in visits) or not len(visits):
-            raise ValueError(f"visits must be a non-empty sequence of 1 (V-cycle) and 2 (K-cycle) per level, got {visits!r}")
         self.visits = [visits[min(k, len(visits) - 1)] for k in range(len(self.levels))]
         self._work = {}
         self.sizes = [lv["A"].shape[0] for lv in self.levels] + [self.coarse_n]
@@ -1251,17 +1252,18 @@ class GeometricMultigrid:
         rho1 = np.empty(rc.shape[1])
         kernels.matmul(Ac, c1, out=v1, dots=rho1)
         ok1 = rho1 > 0
-        s1 = np.where(ok1, kernels.column_dots(c1, rc) / np.where(ok1, rho1, 1.0), 0.0)
+        rho1 = np.where(ok1, rho1, 1.0)  # a zero column: its terms vanish below
+        s1 = np.where(ok1, kernels.column_dots(c1, rc) / rho1, 0.0)
         np.multiply(v1, (-s1).astype(np.float32), out=rt)
         rt += rc
         c2 = self.cycle(rt, level + 1)
         b = np.empty(rc.shape[1])
         kernels.matmul(Ac, c2, out=v2, dots=b)
         g = np.where(ok1, kernels.column_dots(c2, v1), 0.0)
-        rho2 = b - g * g / np.where(ok1, rho1, 1.0)
+        rho2 = b - g * g / rho1
         ok2 = rho2 > 0
         s2 = np.where(ok2, kernels.column_dots(c2, rt) / np.where(ok2, rho2, 1.0), 0.0)
-        s1 = s1 - g * s2 / np.where(ok1, rho1, 1.0)
+        s1 = s1 - g * s2 / rho1
         c1 *= s1.astype(np.float32)
         np.multiply(c2, s2.astype(np.float32), out=v2)
         c1 += v2
