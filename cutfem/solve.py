@@ -1058,7 +1058,7 @@ def _single(M):
 
 
 class GeometricMultigrid:
-    """Galerkin multigrid for an SPD matrix with a geometric hierarchy of prolongations.
+    """Galerkin multigrid for an SPD matrix with a geometric hierarchy of prolongations (docs/math.md §12).
 
     The hierarchy is either ``lattice`` (n, 3), integer indices of unknowns that are nodes of a Kuhn
     lattice (see :func:`lattice_indices`; levels by :func:`kuhn_prolongation`), or
