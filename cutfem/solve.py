@@ -710,14 +710,6 @@ def _one_blas_thread():
 # ---------------------------------------------------------------------------------------------
 
 
-def _columns_dot(a, b):
-    """Column-wise dot products of (n, c) arrays, without BLAS (see the module docstring) and in an
-    order independent of c (:func:`cutfem.kernels.column_dots`)."""
-    from . import kernels
-
-    return kernels.column_dots(a, b)
-
-
 def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
     """Preconditioned CG on the columns of B (n, c) at once: independent recurrences, one
     preconditioner, each iteration one product with A and one preconditioner application for the
@@ -745,26 +737,26 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
 
     matvec = _matvec(A)
     b = np.ascontiguousarray(B, dtype=float)
-    nb = np.sqrt(_columns_dot(b, b))
+    nb = np.sqrt(kernels.column_dots(b, b))
     nb = np.where(nb > 0, nb, 1.0)
     x = np.zeros_like(b)
     r = b.copy()
     it = 0
-    rel = np.sqrt(_columns_dot(r, r)) / nb
+    rel = np.sqrt(kernels.column_dots(r, r)) / nb
     while it < maxiter and np.any(rel > tol):
         act = np.flatnonzero(rel > tol)
         ra = r[:, act]
         z = precond(ra)
-        rz = _columns_dot(ra, z)
+        rz = kernels.column_dots(ra, z)
         p = np.array(z, dtype=float)  # a copy: the preconditioner may hand out its own array again
         q = np.empty_like(p)
         while it < maxiter:
             if q.shape != p.shape:
                 q = np.empty_like(p)
             pq = np.empty(p.shape[1])
-            q = matvec(p, q, dots=pq)  # and pq = p^T q in the same pass, bitwise _columns_dot(p, q)
+            q = matvec(p, q, dots=pq)  # and pq = p^T q in the same pass, bitwise kernels.column_dots(p, q)
             if np.any(pq <= 0) or np.any(rz <= 0):
-                curvature = pq / np.maximum(_columns_dot(p * A.diagonal()[:, None], p), 1e-300)
+                curvature = pq / np.maximum(kernels.column_dots(p * A.diagonal()[:, None], p), 1e-300)
                 raise diagnose(A, vectors=list(p.T), smallest=float(curvature.min()),
                                where=f"{name} (breakdown at iteration {it}: p^T A p / p^T D p = {curvature.min():.3e}, "
                                f"r^T M r = {rz.min():.3e})", _checks=checks)
@@ -778,11 +770,11 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
                 act, p, q, pq = act[keep], p[:, keep], np.ascontiguousarray(q[:, keep]), pq[keep]
             ra = r if act.size == r.shape[1] else r[:, act]
             z = precond(ra)
-            rz = _columns_dot(ra, z)
-            kernels.cg_direction(p, z, -_columns_dot(z, q) / pq)  # flexible: beta = -z^T q / p^T q
+            rz = kernels.column_dots(ra, z)
+            kernels.cg_direction(p, z, -kernels.column_dots(z, q) / pq)  # flexible: beta = -z^T q / p^T q
         # true residual: restart from x if the recursion drifted
         r = b - matvec(x)
-        rel = np.sqrt(_columns_dot(r, r)) / nb
+        rel = np.sqrt(kernels.column_dots(r, r)) / nb
         if np.all(rel <= tol):
             r, rel = _constant_correction(A, x, r, nb, tol)
     if it > warn_after and np.all(rel <= tol):
@@ -815,17 +807,17 @@ def _constant_correction(A, x, r, nb, tol):
     a1 = kernels.matmul(A, np.ones((A.shape[0], 1), dtype=A.dtype)).ravel()  # A 1 (a third of A.sum's time)
     denom = float(a1.sum())  # 1^T A 1 > 0 for SPD A
     if not denom > 0:
-        return r, np.sqrt(_columns_dot(r, r)) / nb
-    alpha = _columns_dot(r, np.ones_like(r)) / denom  # 1^T r per column, in an order independent of c
+        return r, np.sqrt(kernels.column_dots(r, r)) / nb
+    alpha = kernels.column_dots(r, np.ones_like(r)) / denom  # 1^T r per column, in an order independent of c
     r_new = r - alpha[None, :] * a1[:, None]
-    rel_new = np.sqrt(_columns_dot(r_new, r_new)) / nb
+    rel_new = np.sqrt(kernels.column_dots(r_new, r_new)) / nb
     keep = rel_new <= tol
     if keep.all():  # the usual case: no column selections (each a copy of the block)
         x += alpha
         return r_new, rel_new
     x[:, keep] += alpha[keep]
     r[:, keep] = r_new[:, keep]
-    return r, np.where(keep, rel_new, np.sqrt(_columns_dot(r, r)) / nb)
+    return r, np.where(keep, rel_new, np.sqrt(kernels.column_dots(r, r)) / nb)
 
 
 def _matvec(A):
