@@ -322,30 +322,53 @@ def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False, dots=No
 
 
 @njit(cache=True, error_model="numpy")
-def _column_dots(a, b, out):
-    n, c = a.shape
-    part = np.zeros(c)
+def _column_dots(a, b, c, out, out_c):
+    n, k = a.shape
+    with_c = c.shape[0] > 0
+    part = np.zeros(k)
+    part_c = np.zeros(k)
     for start in range(0, n, SUM_BLOCK):
         part[:] = 0.0
+        part_c[:] = 0.0
         for i in range(start, min(start + SUM_BLOCK, n)):
-            for l in range(c):
-                part[l] += np.float64(a[i, l]) * np.float64(b[i, l])
-        for l in range(c):
+            for l in range(k):
+                bi = np.float64(b[i, l])
+                part[l] += np.float64(a[i, l]) * bi
+                if with_c:
+                    part_c[l] += bi * np.float64(c[i, l])
+        for l in range(k):
             out[l] += part[l]
+            if with_c:
+                out_c[l] += part_c[l]
 
 
-def column_dots(a, b):
-    """The dot products of the columns of a and b (n, c), in double precision: in blocks of
+_NO_BLOCK = np.zeros((0, 0))
+
+
+def _float_block(a):
+    a = np.ascontiguousarray(a)
+    return a if a.dtype in (np.float32, np.float64) else a.astype(float)
+
+
+def column_dots(a, b, c=None):
+    """The dot products of the columns of a and b (n, k), in double precision: in blocks of
     :data:`SUM_BLOCK` rows, in row order, so a column's result does not depend on the columns
-    beside it (numpy's strided reductions change their order with c; CG's scalars, and so its
-    iterates, would differ in the last bits between a column solved alone and in a block).  Two
-    float32 blocks are read as they are (the multigrid's K-cycle), anything else as float64."""
-    a, b = np.ascontiguousarray(a), np.ascontiguousarray(b)
-    if not (a.dtype == b.dtype and a.dtype in (np.float32, np.float64)):
-        a, b = a.astype(float), b.astype(float)
+    beside it (numpy's strided reductions change their order with k; CG's scalars, and so its
+    iterates, would differ in the last bits between a column solved alone and in a block).
+    float32 and float64 blocks are read as they are (the products are formed in double precision,
+    so the result is that of the blocks converted to float64), anything else as float64.
+
+    With ``c`` (n, k): returns ``(a^T b, b^T c)`` column by column, both from one pass over the
+    three blocks and each bitwise what it is alone (CG's r^T z and z^T q: one read of z)."""
+    a, b = _float_block(a), _float_block(b)
     out = np.zeros(a.shape[1])
-    _column_dots(a, b, out)
-    return out
+    if c is None:
+        _column_dots(a, b, _NO_BLOCK, out, out)
+        return out
+    c = _float_block(c)
+    out_c = np.zeros(a.shape[1])
+    _column_dots(a, b, c, out, out_c)
+    return out, out_c
 
 
 @njit(cache=True, error_model="numpy")
@@ -380,12 +403,13 @@ def _cg_direction(p, z, beta):
     n, k = p.shape
     for i in range(n):
         for l in range(k):
-            p[i, l] = z[i, l] + beta[l] * p[i, l]
+            p[i, l] = np.float64(z[i, l]) + beta[l] * p[i, l]
 
 
 def cg_direction(p, z, beta):
-    """p = z + beta p in place (the next CG search directions, (n, k), C-contiguous)."""
-    _cg_direction(p, np.ascontiguousarray(z, dtype=float), np.asarray(beta, dtype=float))
+    """p = z + beta p in place (the next CG search directions, (n, k), C-contiguous, float64; z of
+    float64 or float32, read as it is)."""
+    _cg_direction(p, _float_block(z), np.asarray(beta, dtype=float))
     return p
 
 

@@ -429,3 +429,36 @@ def test_augmented_hierarchy_doubles_the_coarse_spaces(torus_space):
     np.testing.assert_allclose(Q[0] @ (Q[1] @ np.concatenate([v, v2])), P0 @ (P1 @ v) + w * (P0 @ (P1 @ v2)), atol=1e-12)
     with pytest.raises(ValueError, match="augment must be .* shape"):
         GeometricMultigrid(sp.eye(V.n_dofs, format="csr"), ijk, augment=w[:-1])
+
+
+@pytest.mark.parametrize("c", [1, 3])
+def test_column_dots_of_three_blocks_and_mixed_precision(c):
+    """column_dots(a, b, c) is, bitwise, (column_dots(a, b), column_dots(b, c)); a float32 block is
+    read as the float64 block of the same values (no copy needed for the same result); the sums
+    agree with numpy's to round-off and do not depend on the columns beside a column."""
+    from cutfem.kernels import SUM_BLOCK, column_dots
+
+    rng = np.random.default_rng(7)
+    n = 3 * SUM_BLOCK + 17
+    a, b, q = (rng.standard_normal((n, c)) for _ in range(3))
+    b32 = b.astype(np.float32)
+    ab, bq = column_dots(a, b32, q)
+    np.testing.assert_array_equal(ab, column_dots(a, b32.astype(float)))
+    np.testing.assert_array_equal(bq, column_dots(b32.astype(float), q))
+    np.testing.assert_allclose(ab, np.einsum("ij,ij->j", a, b32.astype(float)), rtol=1e-12)
+    np.testing.assert_array_equal(column_dots(a[:, :1], b32[:, :1], q[:, :1])[1], bq[:1])
+
+
+def test_single_precision_application_is_the_cycle_output(torus_space):
+    """GeometricMultigrid.apply(R, single=True) (what mg_solve's CG uses) returns the float32
+    values whose float64 copy apply(R) returns."""
+    from cutfem.solve import GeometricMultigrid, lattice_indices
+
+    V = torus_space
+    A = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
+    mg = GeometricMultigrid(A, lattice_indices(V), coarse_size=50)
+    R = np.random.default_rng(3).standard_normal((A.shape[0], 3))
+    Z = mg.apply(R)
+    Z32 = mg.apply(R, single=True)
+    assert Z32.dtype == np.float32 and Z.dtype == np.float64
+    np.testing.assert_array_equal(Z32.astype(float), Z)
