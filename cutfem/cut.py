@@ -299,10 +299,11 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
     estimated from the band cells to come: a surface's band at block size s has about
     ``final / s**2`` blocks (measured ratio final / (kept s**2) of 0.9-1.3 on the torus and the
     sphere), so ``1.3 * kept * s**2`` cells at :data:`~cutfem.memory.BYTES_PER_BAND_CELL` bytes,
-    plus the box's node markers; a cut that cannot fit is refused (:func:`cutfem.memory.check_memory`)."""
-    from .memory import BYTES_PER_BAND_CELL, BYTES_PER_BOX_NODE
+    plus :data:`~cutfem.memory.CUT_BASE_BYTES` and the box's node markers; a cut that cannot fit is
+    refused (:func:`cutfem.memory.check_memory`)."""
+    from .memory import BYTES_PER_BAND_CELL, BYTES_PER_BOX_NODE, CUT_BASE_BYTES
 
-    box_bytes = BYTES_PER_BOX_NODE * float(np.prod(box.node_shape.astype(float)))
+    box_bytes = CUT_BASE_BYTES + BYTES_PER_BOX_NODE * float(np.prod(box.node_shape.astype(float)))
     cells = box.cells
     size = 1
     while size * 4 <= cells.min():

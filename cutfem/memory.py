@@ -7,23 +7,31 @@ A run that cannot fit is refused before its large arrays exist, with a
 and the fix.  :func:`available_memory` is the kernel's ``MemAvailable`` (/proc/meminfo; else
 ``os.sysconf`` available, then physical pages), or the limit set by the environment variable
 ``CUTFEM_MEMORY_LIMIT`` (bytes, or a number with K, M, G, T, KiB, MiB, GiB, TiB; for tests and
-shared machines).  :func:`check_memory` compares.  The per-item costs below are peak resident bytes
-measured on the cut torus of the benchmark (``ru_maxrss`` of a fresh process minus that of the
-imports; spacings 0.05, 0.025, 0.0125), rounded up by about 10 %:
+shared machines).  :func:`check_memory` compares.  The estimates are a fixed part plus a cost per
+item, fitted to the peak resident memory of fresh ``cutfem run`` processes (``/proc`` and
+``ru_maxrss``, 2026-12-02) and rounded up so that every measured size stays below its estimate by
+15-50 % (the margin is largest where the fixed part dominates):
 
-* :data:`BYTES_PER_BAND_CELL`: the cut (band search, level-set values, marching tets, surface)
-  per cell of the final band: 610 MB for 219,912 cells at 0.0125, 152 MB for 55,120 at 0.025
-  (2.77 and 2.75 KB);
+* :data:`CUT_BASE_BYTES` + :data:`BYTES_PER_BAND_CELL` per cell of the band: the cut (band search,
+  level-set values, marching tets, surface; the compiled kernels' runtime is loaded during it).
+  Measured on the cut torus, the resident memory the cut adds: 116, 150, 279, 828 and 3062 MB for
+  14,024, 55,120, 219,912, 879,968 and about 3.5 million band cells (spacings 0.05 to 0.003125):
+  about 100 MB and 831-846 bytes a cell from spacing 0.0125 on.  The estimate, 150 MiB and 1000
+  bytes a cell, is checked at every level of the band search on the predicted cells (between 1 and
+  1.44 times the final ones).  It was 3000 bytes a cell with no fixed part, fitted at spacing 0.0125
+  and coarser, where the fixed part is most of the cut: that refused spacing 0.002 on a 24 GiB
+  machine as needing 34.8 GiB, where the whole run is predicted at about 14 GiB;
 * :data:`BYTES_PER_BOX_NODE`: the structured box's node-marker arrays (bool + int32 per node);
-* :data:`BYTES_PER_ACTIVE_TET`: what the stages after the cut (space, faces, mass, penalty, solve,
-  errors) add to the resident memory at the check, per active tet (the peak minus the resident
-  bytes when :func:`cutfem.problems.common.check_cut_memory` runs: the cut's freed temporaries stay
-  in the allocator's heap and are reused): the mean curvature problem 191-295 bytes at spacings
-  0.025-0.003125 (2.5 GiB on top of 5.1 GiB for 13.7 million tets), the cut Laplace-Beltrami
-  problem on the sphere 649 and 544 bytes at 0.025 and 0.0125 (its augmented multigrid and three
-  matrices).  The constant, 800 bytes, is the largest of these plus a quarter: the whole peak per
-  tet (1.2-1.8 KB at 0.025, 0.6-0.8 KB at 0.003125) counted the cut twice and refused spacing
-  0.003125 on a 24 GiB machine that runs it in 7.6-10 GiB;
+* :data:`SOLVE_BASE_BYTES` + bytes per active tet: what the stages after the cut (space, faces,
+  mass, penalty, solve, errors) add to the resident memory at the check
+  (:func:`cutfem.problems.common.check_cut_memory`; the cut's freed temporaries stay in the
+  allocator's heap and are reused).  Measured, the peak minus the resident memory at the check:
+  the mean curvature problem on the torus 857, 274, 225, 218 and 209 bytes a tet at spacings 0.05
+  to 0.003125 (52 thousand to 13.7 million tets; 2.7 GiB on top of 2.9 GiB at 0.003125), the cut
+  Laplace-Beltrami problem on the sphere (its augmented multigrid and three matrices) 969, 772 and
+  751 bytes at 0.025, 0.0125 and 0.00625: fits of about 16 MB plus 208 and 745 bytes a tet.  The
+  estimates: 64 MiB plus 250 bytes a tet for the mean curvature problem (its own constant) and plus
+  :data:`BYTES_PER_ACTIVE_TET`, 850 bytes, for the others;
 * :data:`BYTES_PER_SURFACE_NODE`: a meshed surface problem per node (0.6 GiB for the meshed torus
   with 295 thousand nodes: 2.2 KB).
 
@@ -112,18 +120,24 @@ __all__ = [
     "available_memory",
     "check_memory",
     "format_bytes",
+    "CUT_BASE_BYTES",
     "BYTES_PER_BAND_CELL",
+    "SOLVE_BASE_BYTES",
     "BYTES_PER_BOX_NODE",
     "BYTES_PER_ACTIVE_TET",
     "BYTES_PER_SURFACE_NODE",
 ]
 
-#: peak bytes of the cut per cell of the final band (measured 2.75-2.77 KB, see the module docstring)
-BYTES_PER_BAND_CELL = 3_000
+#: the fixed part of the cut's memory (measured about 100 MB, see the module docstring)
+CUT_BASE_BYTES = 150 * 2**20
+#: bytes of the cut per predicted cell of the band (measured 831-846 B at scale, see the module docstring)
+BYTES_PER_BAND_CELL = 1_000
 #: bytes per node of a structured box for the node markers of the band (bool + int32)
 BYTES_PER_BOX_NODE = 5
-#: bytes the stages after the cut add per active tet (measured 191-649 B, see the module docstring)
-BYTES_PER_ACTIVE_TET = 800
+#: the fixed part of what the stages after the cut add (measured about 16 MB, see the module docstring)
+SOLVE_BASE_BYTES = 64 * 2**20
+#: bytes the stages after the cut add per active tet, by default (measured up to 969 B, see the module docstring)
+BYTES_PER_ACTIVE_TET = 850
 #: peak bytes of a meshed surface problem per surface node (measured 2.2 KB)
 BYTES_PER_SURFACE_NODE = 2_500
 

@@ -172,15 +172,17 @@ def check_resolution(cut, levelset, spacing) -> None:
         )
 
 
-def check_cut_memory(cut) -> None:
+def check_cut_memory(cut, bytes_per_tet: float | None = None) -> None:
     """Refuse, before the space and the matrices are built, a cut whose later stages cannot fit:
-    :data:`cutfem.memory.BYTES_PER_ACTIVE_TET` bytes per active tet (what the space, faces,
-    matrices, solve and errors add to the memory in use after the cut, measured), against
+    :data:`cutfem.memory.SOLVE_BASE_BYTES` plus ``bytes_per_tet`` per active tet (the problem's
+    measured cost; default :data:`cutfem.memory.BYTES_PER_ACTIVE_TET`): what the space, faces,
+    matrices, solve and errors add to the memory in use after the cut, against
     :func:`cutfem.memory.available_memory`."""
-    from cutfem.memory import BYTES_PER_ACTIVE_TET, check_memory
+    from cutfem import memory
 
-    check_memory(
-        BYTES_PER_ACTIVE_TET * float(cut.n_tets),
+    per_tet = memory.BYTES_PER_ACTIVE_TET if bytes_per_tet is None else bytes_per_tet
+    memory.check_memory(
+        memory.SOLVE_BASE_BYTES + per_tet * float(cut.n_tets),
         f"the matrices and the solve of {cut.n_tets} active tets",
         "use a coarser spacing (the memory grows like spacing**-2)",
     )

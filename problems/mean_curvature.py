@@ -36,6 +36,10 @@ SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 #: differ by 5e-8 and 1.5e-7 relative, the energy-norm algebraic error is 1e-8 relative (spacing
 #: 0.0125), and CG needs 23 iterations instead of 31 at spacing 0.0125 (18 instead of 24 at 0.05).
 SOLVER_TOL = 1e-6
+#: what the stages after the cut add to the resident memory per active tet, for the memory check
+#: before the space is built (:func:`~cutfem.problems.common.check_cut_memory`; measured 209-274
+#: bytes from spacing 0.025 to 0.003125, see :mod:`cutfem.memory`)
+BYTES_PER_ACTIVE_TET = 250
 
 #: the record entries of the mean curvature problems (saved in the JSON of a run)
 DEFINITIONS = {
@@ -156,7 +160,7 @@ class MeanCurvatureCut(Problem):
             bg = background_for(phi, level, background, box)
             cut = cut_mesh(bg, phi)
             check_resolution(cut, phi, level)
-            check_cut_memory(cut)
+            check_cut_memory(cut, BYTES_PER_ACTIVE_TET)
             space = CutP1Space(cut)
         with t("assembly"):
             K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)), face_h_power=face_h_power)

@@ -240,12 +240,13 @@ def test_memory_limit_refuses_the_band_and_the_matrices(monkeypatch):
     monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "20MiB")
     with pytest.raises(InsufficientMemoryError, match=r"cells near the surface\) needs about .* more than the 20 MiB available \(CUTFEM_MEMORY_LIMIT\)"):
         cutfem.run("mean-curvature-cut", levels=[0.025])
-    # spacing 0.05: the cut (14,024 band cells, estimated at most 1.44 x 14,024 x 3000 bytes = 61 MB)
-    # fits in 70 MiB (73.4 MB); its 52,252 active tets at 1500 bytes each (78.4 MB) do not.  (The
-    # library's 800 bytes a tet, what the later stages add to the resident memory, never exceed the
-    # band estimate of the same cut; the per-tet cost is raised here to reach the second check.)
-    monkeypatch.setattr("cutfem.memory.BYTES_PER_ACTIVE_TET", 1500)
-    monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "70MiB")
+    # spacing 0.05: the cut (14,024 band cells, estimated at most 150 MiB + 1.44 x 14,024 x 1000
+    # bytes = 178 MB) fits in 200 MiB (210 MB); its 52,252 active tets at 5000 bytes each on top
+    # of 64 MiB (328 MB) do not.  (The mean curvature problem's 250 bytes a tet, what the later
+    # stages add to the resident memory, never exceed the band estimate of the same cut; the
+    # per-tet cost is raised here to reach the second check.)
+    monkeypatch.setattr("cutfem.problems.mean_curvature.BYTES_PER_ACTIVE_TET", 5000)
+    monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "200MiB")
     with pytest.raises(InsufficientMemoryError, match=r"matrices and the solve of 52252 active tets"):
         cutfem.run("mean-curvature-cut", levels=[0.05])
     with pytest.raises(InsufficientMemoryError, match=r"meshed torus at n = 4096"):

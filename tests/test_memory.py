@@ -177,7 +177,7 @@ def test_cut_torus_beyond_two_million_active_nodes():
     from cutfem.mesh import structured_box
 
     if available_memory()[0] < 12 * 2**30:
-        pytest.skip("needs about 8 GiB free (the cut estimate at this spacing is 5.7 GiB)")
+        pytest.skip("needs about 12 GiB free")
     cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.0042), Torus(1.0, 0.5))
     assert cut.n_nodes > 2**21
     from cutfem.markers import CUT
