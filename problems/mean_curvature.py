@@ -34,7 +34,8 @@ SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 #: correction on the constants, which makes it hold to round-off (3e-13 on the cut torus at spacing
 #: 0.0125).  Against 1e-8, measured at spacing 0.05 (cut) and n = 128 (meshed): the L2 errors
 #: differ by 5e-8 and 1.5e-7 relative, the energy-norm algebraic error is 1e-8 relative (spacing
-#: 0.0125), and CG needs 23 iterations instead of 31 at spacing 0.0125 (18 instead of 24 at 0.05).
+#: 0.0125), and CG needs 20 iterations instead of 27 at spacing 0.0125 (with the multigrid's
+#: K-cycles; 23 instead of 31 with W-cycles).
 SOLVER_TOL = 1e-6
 #: what the stages after the cut add to the resident memory per active tet, for the memory check
 #: before the space is built (:func:`~cutfem.problems.common.check_cut_memory`; measured 209-274
