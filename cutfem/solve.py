@@ -773,7 +773,7 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
             rz, zq = kernels.column_dots(ra, z, q)  # one pass over the three blocks
             kernels.cg_direction(p, z, -zq / pq)  # flexible: beta = -z^T q / p^T q
         # true residual: restart from x if the recursion drifted
-        r = b - matvec(x)
+        np.subtract(b, matvec(x, r), out=r)  # r = b - A x in place (A x written into r first)
         rel = np.sqrt(kernels.column_dots(r, r)) / nb
         if np.all(rel <= tol):
             r, rel = _constant_correction(A, x, r, nb, tol)
