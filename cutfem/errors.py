@@ -96,31 +96,33 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
 
     Per block: u_h(x_q) = sum_k phi_k(x_q) u_k with the basis values of the block
     (:meth:`~cutfem.spaces.CutP1Space.basis_on`: the rule's barycentric coordinates on whole
-    elements), grad u_h = sum_k u_k grad phi_k (constant per element)."""
+    elements), grad u_h = sum_k u_k grad phi_k (constant per element); the sums over a block by
+    compiled kernels (:func:`cutfem.kernels.cell_value_error`, :func:`cutfem.kernels.cell_gradient_error`:
+    on the fictitious-domain Poisson problem at spacing 0.025, 352 thousand unknowns and 31.8
+    million points, they replace numpy work of about 0.6 s)."""
     if degree < 4:
         raise ValueError("docs/math.md §5 asks for quadrature of degree >= 4 in error norms")
     if measure is None:
         measure = surface_measure(space)
+    from . import kernels
+
     coeffs = np.asarray(coeffs)
     sums = [0.0, 0.0]
+    no_normals = np.zeros((0, 3))
     for _, quad in measure.blocks(degree, chunk):  # blocks of cells, not single elements
         ue, ge = exact(quad.points)
         e = space.local_elements(measure, quad.parent)
         local = coeffs[space.element_dofs[e]]  # (b, k) or (b, k, c)
+        weights = np.ascontiguousarray(quad.weights, dtype=float)
         if ue is not None:
             phi = space.basis_on(measure, quad, e)
-            if phi.strides[0] == 0 and local.ndim == 2:  # all cells whole: one basis table for the block
-                uh = local @ phi[0].T
-            else:
-                uh = np.einsum("bqk,bk...->bq...", phi, local)
+            shape = phi.shape[:2] + local.shape[2:]
             ue = np.asarray(ue, dtype=float)
-            if ue.shape != uh.shape:
-                raise ValueError(f"the exact solution must have shape {uh.shape} at points {quad.points.shape}, got {ue.shape}")
-            d = ue - uh
-            d *= d
-            if d.ndim == 3:
-                d = d.sum(axis=2)
-            sums[0] += float(np.einsum("bq,bq->", d, quad.weights))  # not vdot: OpenBLAS threads a dot this long, and its threads spin
+            if ue.shape != shape:
+                raise ValueError(f"the exact solution must have shape {shape} at points {quad.points.shape}, got {ue.shape}")
+            local3 = np.ascontiguousarray(local, dtype=float).reshape(local.shape[:2] + (-1,))
+            phi = np.ascontiguousarray(phi[:1] if phi.strides[0] == 0 else phi, dtype=float)  # whole cells: one table
+            sums[0] += kernels.cell_value_error(phi, local3, np.ascontiguousarray(ue.reshape(shape[:2] + (-1,))), weights)
         if ge is not None:
             x = quad.points
             ge = np.asarray(ge, dtype=float)
@@ -128,14 +130,9 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
                 raise ValueError(f"the exact gradient must have shape {x.shape}, got {ge.shape}")
             if local.ndim != 2:
                 raise ValueError("the H1 error is for a scalar field: coeffs must have shape (n,)")
-            gh = np.einsum("bk,bkd->bd", local, space.gradients_of(e))  # constant per cell
-            # component by component: numpy broadcasts (b, q, 3) - (b, 1, 3) several times slower
-            d = [ge[..., k] - gh[:, k, None] for k in range(3)]
-            if measure.surface:
-                n = quad.normal
-                dn = d[0] * n[:, 0, None] + d[1] * n[:, 1, None] + d[2] * n[:, 2, None]
-                d = [d[k] - dn * n[:, k, None] for k in range(3)]
-            sums[1] += float(np.einsum("bq,bq->", d[0] * d[0] + d[1] * d[1] + d[2] * d[2], quad.weights))
+            normals = np.ascontiguousarray(quad.normal, dtype=float) if measure.surface else no_normals
+            sums[1] += kernels.cell_gradient_error(np.ascontiguousarray(space.gradients_of(e), dtype=float),
+                                                   np.asarray(local, dtype=float), np.ascontiguousarray(ge), weights, normals)
     return float(np.sqrt(sums[0])), float(np.sqrt(sums[1]))
 
 

@@ -133,7 +133,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr"]
@@ -841,6 +841,61 @@ def squared_error(values, triangles, bary, weights, area, exact):
                 s += weights[i] * d * d
         total += area[t] * s
     return total
+
+
+@njit(cache=True, error_model="numpy")
+def cell_value_error(phi, local, exact, weights):
+    """sum_K sum_q w_Kq |u^e(x_Kq) - u_h(x_Kq)|^2 over the cells K of a block, u_h(x_Kq) =
+    sum_a phi[K, q, a] local[K, a, :]: basis values ``phi`` (b, q, k), or (1, q, k) when every
+    cell shares them (whole cells: the rule's barycentric coordinates), the cells' coefficients
+    ``local`` (b, k, c), ``exact`` (b, q, c), ``weights`` (b, q).  The sums run per point q across
+    the cells (independent accumulators, so the loops pipeline) and are added at the end."""
+    b, nq = weights.shape
+    k, c = local.shape[1], local.shape[2]
+    shared = phi.shape[0] == 1
+    uh = np.empty(nq)
+    acc = np.zeros(nq)
+    for e in range(b):
+        p = phi[0] if shared else phi[e]
+        for l in range(c):
+            uh[:] = 0.0
+            for a in range(k):
+                la = local[e, a, l]
+                for i in range(nq):
+                    uh[i] += p[i, a] * la
+            for i in range(nq):
+                d = exact[e, i, l] - uh[i]
+                acc[i] += weights[e, i] * (d * d)
+    return acc.sum()
+
+
+@njit(cache=True, error_model="numpy")
+def cell_gradient_error(grads, local, exact, weights, normals):
+    """sum_K sum_q w_Kq |P (grad u^e(x_Kq) - grad u_h|_K)|^2 over the cells K of a block, grad u_h
+    = sum_a local[K, a] grads[K, a] constant on K (``grads`` (b, k, 3), ``local`` (b, k)),
+    ``exact`` (b, q, 3), ``weights`` (b, q); P = I - n n^T with the cells' unit ``normals`` (b, 3)
+    on a surface, P = I when ``normals`` is empty.  Summed per point q as :func:`cell_value_error`."""
+    b, nq = weights.shape
+    surface = normals.shape[0] > 0
+    acc = np.zeros(nq)
+    for e in range(b):
+        g0 = g1 = g2 = 0.0
+        for a in range(grads.shape[1]):
+            g0 += local[e, a] * grads[e, a, 0]
+            g1 += local[e, a] * grads[e, a, 1]
+            g2 += local[e, a] * grads[e, a, 2]
+        if surface:
+            n0, n1, n2 = normals[e, 0], normals[e, 1], normals[e, 2]
+            for i in range(nq):
+                d0, d1, d2 = exact[e, i, 0] - g0, exact[e, i, 1] - g1, exact[e, i, 2] - g2
+                dn = d0 * n0 + d1 * n1 + d2 * n2
+                d0, d1, d2 = d0 - dn * n0, d1 - dn * n1, d2 - dn * n2
+                acc[i] += weights[e, i] * (d0 * d0 + d1 * d1 + d2 * d2)
+        else:
+            for i in range(nq):
+                d0, d1, d2 = exact[e, i, 0] - g0, exact[e, i, 1] - g1, exact[e, i, 2] - g2
+                acc[i] += weights[e, i] * (d0 * d0 + d1 * d1 + d2 * d2)
+    return acc.sum()
 
 
 @njit(cache=True, error_model="numpy")

@@ -276,6 +276,30 @@ def test_one_pass_errors_equal_the_separate_ones():
         l2_h1_errors(V, np.stack([u, u], axis=1), lambda x: (np.stack([smooth(x)] * 2, axis=-1), smooth_gradient(x)), dx)
 
 
+@pytest.mark.parametrize("c", [1, 3])
+def test_cell_error_kernels_are_the_weighted_sums(c):
+    """kernels.cell_value_error and cell_gradient_error against the sums written out in numpy:
+    per-cell basis values and one shared table, scalar and vector fields, with and without the
+    tangential projection."""
+    from cutfem.kernels import cell_gradient_error, cell_value_error
+
+    rng = np.random.default_rng(c)
+    b, q, k = 37, 14, 4
+    phi, local, exact, w = rng.random((b, q, k)), rng.normal(size=(b, k, c)), rng.normal(size=(b, q, c)), rng.random((b, q))
+    ref = np.sum(w[..., None] * (exact - np.einsum("bqk,bkc->bqc", phi, local)) ** 2)
+    assert cell_value_error(phi, local, exact, w) == pytest.approx(ref, rel=1e-13)
+    table = phi[:1]
+    ref = np.sum(w[..., None] * (exact - np.einsum("qk,bkc->bqc", table[0], local)) ** 2)
+    assert cell_value_error(table, local, exact, w) == pytest.approx(ref, rel=1e-13)
+    grads, u, ge = rng.normal(size=(b, k, 3)), rng.normal(size=(b, k)), rng.normal(size=(b, q, 3))
+    d = ge - np.einsum("bk,bkd->bd", u, grads)[:, None, :]
+    assert cell_gradient_error(grads, u, ge, w, np.zeros((0, 3))) == pytest.approx(np.sum(w * np.sum(d * d, axis=2)), rel=1e-13)
+    n = rng.normal(size=(b, 3))
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    dt = d - np.sum(d * n[:, None, :], axis=2, keepdims=True) * n[:, None, :]
+    assert cell_gradient_error(grads, u, ge, w, n) == pytest.approx(np.sum(w * np.sum(dt * dt, axis=2)), rel=1e-13)
+
+
 def test_discrete_error_and_surface_integral():
     V = SurfaceP1Space(sphere_mesh(2))
     P = np.asarray(V.dof_points)[V.element_dofs]
