@@ -133,7 +133,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr"]
@@ -841,6 +841,42 @@ def squared_error(values, triangles, bary, weights, area, exact):
                 s += weights[i] * d * d
         total += area[t] * s
     return total
+
+
+@njit(cache=True, error_model="numpy")
+def rule_points(bary, nodes, simplices, out):
+    """out[e, i] = sum_v bary[i, v] x_ev, the points of a reference rule (q, k) on b simplices: x_ev
+    = nodes[simplices[e, v]] (node coordinates (N, 3) and node numbers (b, k), gathered in the same
+    pass), or x_ev = nodes[k e + v] when ``simplices`` is empty (the vertices (b, k, 3) as (b k, 3))."""
+    q, k = bary.shape
+    gather = simplices.shape[0] > 0
+    x = np.empty((k, 3))
+    for e in range(out.shape[0]):
+        for v in range(k):
+            n = simplices[e, v] if gather else k * e + v
+            x[v, 0], x[v, 1], x[v, 2] = nodes[n, 0], nodes[n, 1], nodes[n, 2]
+        for i in range(q):
+            p0 = p1 = p2 = 0.0
+            for v in range(k):
+                b = bary[i, v]
+                p0 += b * x[v, 0]
+                p1 += b * x[v, 1]
+                p2 += b * x[v, 2]
+            out[e, i, 0], out[e, i, 1], out[e, i, 2] = p0, p1, p2
+
+
+@njit(cache=True, error_model="numpy")
+def barycentric_values(points, origin, grads, out):
+    """out[e, i, a] = delta_a0 + grads[e, a] . (points[e, i] - origin[e]): the P1 basis values at
+    ``points`` (m, q, 3) of elements with first vertex ``origin`` (m, 3) and basis gradients
+    ``grads`` (m, k, 3)."""
+    for e in range(points.shape[0]):
+        o0, o1, o2 = origin[e, 0], origin[e, 1], origin[e, 2]
+        for i in range(points.shape[1]):
+            y0, y1, y2 = points[e, i, 0] - o0, points[e, i, 1] - o1, points[e, i, 2] - o2
+            for a in range(grads.shape[1]):
+                out[e, i, a] = grads[e, a, 0] * y0 + grads[e, a, 1] * y1 + grads[e, a, 2] * y2
+            out[e, i, 0] += 1.0
 
 
 @njit(cache=True, error_model="numpy")

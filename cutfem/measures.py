@@ -192,11 +192,20 @@ class SideVolume(Measure):
         return map_tetrahedra(self.cell_vertices(), degree, parent=self.cell_parent, whole=self.whole_cells, volumes=self.cell_volumes)
 
     def blocks(self, degree: int = 2, size: int = BLOCK_CELLS):
-        parent, w, volumes = self.cell_parent, self.whole_cells, self.cell_volumes
-        for start in range(0, self.n_cells, size):
+        """Blocks of at most ``size`` cells, the whole elements first (their points mapped from the
+        element set's nodes, :func:`~cutfem.quadrature.mapped_points`), then the sub-tets: a block
+        never mixes the two."""
+        parent, volumes = self.cell_parent, self.cell_volumes
+        whole, sub, _ = self._parts
+        es, w = self.elements, len(whole)
+        for start in range(0, w, size):
+            stop = min(start + size, w)
+            yield slice(start, stop), map_tetrahedra(es.points, degree, parent=parent[start:stop], whole=stop - start,
+                                                     volumes=volumes[start:stop], tets=es.tets[whole[start:stop]])
+        for start in range(w, self.n_cells, size):
             stop = min(start + size, self.n_cells)
-            yield slice(start, stop), map_tetrahedra(self.cell_vertices(start, stop), degree, parent=parent[start:stop],
-                                                     whole=max(0, min(w, stop) - start), volumes=volumes[start:stop])
+            yield slice(start, stop), map_tetrahedra(sub[start - w : stop - w], degree, parent=parent[start:stop], whole=0,
+                                                     volumes=volumes[start:stop])
 
     @property
     def size(self) -> float:
@@ -217,9 +226,8 @@ class ElementVolume(Measure):
         es = self.elements
         for start in range(0, es.n_elements, size):
             stop = min(start + size, es.n_elements)
-            vertices = es.points[es.tets[start:stop]]  # one block's vertices at a time
-            yield slice(start, stop), map_tetrahedra(vertices, degree, parent=np.arange(start, stop), whole=stop - start,
-                                                     volumes=es.volumes[start:stop])
+            yield slice(start, stop), map_tetrahedra(es.points, degree, parent=np.arange(start, stop), whole=stop - start,
+                                                     volumes=es.volumes[start:stop], tets=es.tets[start:stop])
 
     @property
     def normals(self):

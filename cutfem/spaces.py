@@ -46,8 +46,14 @@ def triangle_gradients(vertices: np.ndarray):
 def barycentric_at(points: np.ndarray, origin: np.ndarray, grads: np.ndarray) -> np.ndarray:
     """P1 basis values at ``points`` (m, q, 3) of elements with first vertex ``origin`` (m, 3) and
     basis gradients ``grads`` (m, k, 3): ``lambda_k(x) = delta_k0 + grad lambda_k . (x - x_0)``."""
-    lam = (points - origin[:, None, :]) @ grads.transpose(0, 2, 1)  # batched matmul: einsum is slower
-    lam[..., 0] += 1.0
+    from . import kernels
+
+    points = np.ascontiguousarray(points, dtype=float)
+    grads = np.ascontiguousarray(grads, dtype=float)
+    lam = np.empty(points.shape[:2] + grads.shape[1:2])
+    # compiled: numpy's batched matmul took 0.27 s against 0.05 s for the 73 cut-cell blocks of the
+    # fictitious-domain Poisson problem's load and errors at spacing 0.025
+    kernels.barycentric_values(points, np.ascontiguousarray(origin, dtype=float), grads, lam)
     return lam
 
 
