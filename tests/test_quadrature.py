@@ -342,3 +342,22 @@ def test_concatenate():
         concatenate(a, seg_with_normal)
     with pytest.raises(ValueError):
         concatenate()
+
+
+def test_mapped_points_gather_and_barycentric_values():
+    """mapped_points on gathered vertices and on (nodes, simplices) give the same points, equal to
+    bary @ vertices; the P1 basis values at mapped points are the rule's barycentric coordinates."""
+    from cutfem.quadrature import mapped_points, tetrahedron_rule
+    from cutfem.mesh import barycentric_gradients
+    from cutfem.spaces import barycentric_at
+
+    rng = np.random.default_rng(5)
+    nodes = rng.normal(size=(30, 3))
+    tets = np.array([rng.choice(30, 4, replace=False) for _ in range(50)])
+    bary, _ = tetrahedron_rule(4)
+    ref = np.einsum("qv,mvd->mqd", bary, nodes[tets])
+    np.testing.assert_allclose(mapped_points(bary, nodes[tets]), ref, rtol=0, atol=1e-14)
+    np.testing.assert_array_equal(mapped_points(bary, nodes, tets), mapped_points(bary, nodes[tets]))
+    grads, _ = barycentric_gradients(nodes[tets])
+    lam = barycentric_at(ref, nodes[tets[:, 0]], grads)
+    np.testing.assert_allclose(lam, np.broadcast_to(bary, lam.shape), atol=1e-9)
