@@ -731,12 +731,13 @@ def _kuhn_volume_mass(space, measure, into):
     ``into`` (:class:`~cutfem.assembly.LatticeSum`: no basis values, no Gram product); returns the
     sub-tets of the cut elements by :func:`_simplex_mass` (None if there are none)."""
     w = measure.whole_cells
-    whole, volumes = measure.cell_parent[:w], measure.cell_volumes[:w]
+    whole, volumes = measure.whole_elements, space.elements.volumes
     for c in _blocks(w):
-        v = volumes[c, None]
+        v = volumes[whole[c], None]
         into.add_elements(space.element_dofs[whole[c]], np.repeat(v / 20.0, 6, axis=1), np.repeat(v / 10.0, 4, axis=1))
     if measure.n_cells > w:
-        return _simplex_mass(space, measure.cell_vertices(w, measure.n_cells), measure.cell_parent[w:], measure.cell_volumes[w:])
+        sub, parent = measure.sub_tets
+        return _simplex_mass(space, sub, parent, measure.sub_volumes)
     return None
 
 
@@ -929,7 +930,8 @@ def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale):
     once).  Faces of a structured box go into lattice slots instead (:func:`face_jump_penalty`)."""
     from . import kernels
 
-    dofs = _compact(space.element_dofs, space.n_dofs)
+    dofs = space.element_dofs  # read as they are; the rows' copies are int32 when the numbers fit
+    index = np.int32 if space.n_dofs < 2**31 else np.int64
     table, types = space.gradient_lookup()
     k = dofs.shape[1]
 
@@ -937,7 +939,7 @@ def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale):
         for start in range(0, len(pairs), _assembly.GRAM_ROWS):
             f = slice(start, start + _assembly.GRAM_ROWS)
             p = np.ascontiguousarray(pairs[f])
-            rows_dofs, rows = np.empty((len(p), 2 * k), dtype=dofs.dtype), np.empty((len(p), 2 * k))
+            rows_dofs, rows = np.empty((len(p), 2 * k), dtype=index), np.empty((len(p), 2 * k))
             kernels.jump_rows(p, normals_a[f], normals_b[f], float(sign_b), np.ascontiguousarray(scale[f], dtype=float), dofs,
                               table, types, rows_dofs, rows)
             yield rows_dofs, rows
@@ -965,7 +967,7 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
         if into is not None:  # face-adjacent tets of a structured box: normals and areas computed face by face
             table, types = space.gradient_lookup()
             into.add_face_jumps(pairs, f.opposite, np.ones(1) if h_power == 0 else f.h**h_power,
-                                space.elements.volumes, _compact(space.element_dofs, space.n_dofs), table, types)
+                                space.elements.volumes, space.element_dofs, table, types)
             return None
         n, scale = f.normals_areas()
         if h_power != 0:

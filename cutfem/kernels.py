@@ -133,7 +133,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr"]
@@ -841,6 +841,33 @@ def squared_error(values, triangles, bary, weights, area, exact):
                 s += weights[i] * d * d
         total += area[t] * s
     return total
+
+
+@njit(cache=True, error_model="numpy")
+def side_split(tets, values, neg, whole, partial, counts):
+    """Split the tets (m, 4) by the sign of the nodal ``values`` on one side (``neg``: phi < 0, else
+    phi > 0): writes the tets wholly on the side (NEG: all values < 0; POS: all >= 0) into ``whole``
+    and those with 1-3 nodes on it (and not whole) into ``partial``, with those counts into
+    ``counts``, both in increasing order; returns (number whole, number partial)."""
+    nw = 0
+    npart = 0
+    for e in range(tets.shape[0]):
+        k = 0
+        ge = 0
+        for v in range(4):
+            x = values[tets[e, v]]
+            if (x < 0.0) if neg else (x > 0.0):
+                k += 1
+            if x >= 0.0:
+                ge += 1
+        if k == 4 or (not neg and ge == 4):
+            whole[nw] = e
+            nw += 1
+        elif k > 0:
+            partial[npart] = e
+            counts[npart] = k
+            npart += 1
+    return nw, npart
 
 
 @njit(cache=True, error_model="numpy")

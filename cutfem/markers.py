@@ -317,24 +317,26 @@ def side_subtetrahedra(points: np.ndarray, tets: np.ndarray, values: np.ndarray,
     Returns ``(whole (w,), sub (s, 4, 3), parent (s,))``: the indices of the whole tets (their
     vertices are not copied) and the sub-tets of the others with the tet each lies in.
     """
-    v = np.asarray(values, dtype=float)[tets]
-    if side == NEG:
-        inside = v < 0
-        whole = inside.all(axis=1)
-    elif side == POS:
-        inside = v > 0
-        whole = (v >= 0).all(axis=1)
-    else:
+    from . import kernels
+
+    if side not in (NEG, POS):
         raise ValueError(f"side must be NEG or POS, got {side!r}")
-    k = inside.sum(axis=1)
+    tets = np.ascontiguousarray(tets)
+    values = np.ascontiguousarray(values, dtype=float)
+    m = len(tets)
+    whole, partial, k = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int8)
+    nw, npart = kernels.side_split(tets, values, side == NEG, whole, partial, k)  # one pass over the tets
+    whole, partial, k = whole[:nw], partial[:npart], k[:npart]
     pieces, parents = [np.empty((0, 4, 3))], [np.empty(0, dtype=np.int64)]
     for count in (1, 2, 3):
-        sel = np.flatnonzero((k == count) & ~whole)
+        sel = partial[k == count]
         if sel.size == 0:
             continue
-        order = np.argsort(~inside[sel], axis=1, kind="stable")  # the side's nodes first
+        v = values[tets[sel]]
+        inside = v < 0 if side == NEG else v > 0
+        order = np.argsort(~inside, axis=1, kind="stable")  # the side's nodes first
         x = np.take_along_axis(points[tets[sel]], order[..., None], axis=1)
-        w = np.take_along_axis(v[sel], order, axis=1)
+        w = np.take_along_axis(v, order, axis=1)
 
         def at(i, j):
             t = (w[:, i] / (w[:, i] - w[:, j]))[:, None]
@@ -348,7 +350,7 @@ def side_subtetrahedra(points: np.ndarray, tets: np.ndarray, values: np.ndarray,
             sub = _prism(x[:, 0], x[:, 1], x[:, 2], at(0, 3), at(1, 3), at(2, 3))
         pieces.extend(sub)
         parents.extend([sel] * len(sub))
-    return np.flatnonzero(whole), np.concatenate(pieces), np.concatenate(parents)
+    return whole, np.concatenate(pieces), np.concatenate(parents)
 
 
 def _prism(a, b, c, a2, b2, c2):

@@ -175,18 +175,40 @@ class SideVolume(Measure):
         tail = sub[max(start - w, 0) : max(stop - w, 0)]
         return tail if len(head) == 0 else head if len(tail) == 0 else np.concatenate([head, tail])
 
+    @property
+    def whole_elements(self) -> np.ndarray:
+        """(w,) the elements that lie wholly in the side: the first w cells, in this order."""
+        return self._parts[0]
+
+    @property
+    def sub_tets(self):
+        """(vertices (s, 4, 3), parent (s,)): the side's parts of the cut elements as sub-tets, the
+        cells after the whole ones, with their :attr:`sub_volumes`."""
+        return self._parts[1], self._parts[2]
+
+    @cached_property
+    def sub_volumes(self) -> np.ndarray:
+        """(s,) the volumes of the sub-tets of the cut elements (the cells after the whole ones)."""
+        return np.abs(signed_volumes(self._parts[1]))
+
     @cached_property
     def cell_volumes(self) -> np.ndarray:
         """(n_cells,) the volume of each cell: the element's own for the whole cells, the triple
         products of the sub-tets (computed once for every quadrature of the measure)."""
-        whole, sub, _ = self._parts
-        return np.concatenate([self.elements.volumes[whole], np.abs(signed_volumes(sub))])
+        return np.concatenate([self.elements.volumes[self._parts[0]], self.sub_volumes])
 
     @cached_property
     def part_volumes(self) -> np.ndarray:
         """(m,) |T ∩ side| per element: the whole element's volume for the whole cells, the sum of the
-        sub-tets' volumes in the others."""
-        return np.bincount(self.cell_parent, weights=self.cell_volumes, minlength=self.elements.n_elements)
+        sub-tets' volumes in the others (0 for an element with no part on the side).  Formed from
+        the whole cells and the sub-tets apart, without the per-cell arrays (at 2.7 million unknowns
+        their concatenations took more than a second, most of it first touches of memory)."""
+        whole, _, parent = self._parts
+        es = self.elements
+        out = np.zeros(es.n_elements)
+        out[whole] = es.volumes[whole]
+        out += np.bincount(parent, weights=self.sub_volumes, minlength=es.n_elements) if len(parent) else 0.0
+        return out
 
     def _build(self, degree):
         return map_tetrahedra(self.cell_vertices(), degree, parent=self.cell_parent, whole=self.whole_cells, volumes=self.cell_volumes)
@@ -194,18 +216,18 @@ class SideVolume(Measure):
     def blocks(self, degree: int = 2, size: int = BLOCK_CELLS):
         """Blocks of at most ``size`` cells, the whole elements first (their points mapped from the
         element set's nodes, :func:`~cutfem.quadrature.mapped_points`), then the sub-tets: a block
-        never mixes the two."""
-        parent, volumes = self.cell_parent, self.cell_volumes
-        whole, sub, _ = self._parts
+        never mixes the two, and neither needs the per-cell arrays."""
+        whole, sub, parent = self._parts
         es, w = self.elements, len(whole)
         for start in range(0, w, size):
-            stop = min(start + size, w)
-            yield slice(start, stop), map_tetrahedra(es.points, degree, parent=parent[start:stop], whole=stop - start,
-                                                     volumes=volumes[start:stop], tets=es.tets[whole[start:stop]])
-        for start in range(w, self.n_cells, size):
-            stop = min(start + size, self.n_cells)
-            yield slice(start, stop), map_tetrahedra(sub[start - w : stop - w], degree, parent=parent[start:stop], whole=0,
-                                                     volumes=volumes[start:stop])
+            cells = whole[start : start + size]
+            yield slice(start, start + len(cells)), map_tetrahedra(es.points, degree, parent=cells, whole=len(cells),
+                                                                   volumes=es.volumes[cells], tets=es.tets[cells])
+        volumes = self.sub_volumes
+        for start in range(0, len(sub), size):
+            stop = min(start + size, len(sub))
+            yield slice(w + start, w + stop), map_tetrahedra(sub[start:stop], degree, parent=parent[start:stop], whole=0,
+                                                             volumes=volumes[start:stop])
 
     @property
     def size(self) -> float:
@@ -241,6 +263,7 @@ class ElementVolume(Measure):
     n_cells = property(lambda self: self.whole_cells)
     cell_volumes = part_volumes
     cell_parent = property(lambda self: np.arange(self.whole_cells))
+    whole_elements = cell_parent
 
 
 class FacetMeasure(Measure):

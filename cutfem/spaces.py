@@ -86,7 +86,7 @@ class _P1Space:
 
     def basis_at(self, points: np.ndarray, parent: np.ndarray) -> np.ndarray:
         """(m, j, k) P1 basis values of element ``parent[i]`` at ``points[i]`` (m, j, 3)."""
-        return barycentric_at(points, self.element_origin[parent], self.gradients_of(parent))
+        return barycentric_at(points, self.dof_points[self.element_dofs[parent, 0]], self.gradients_of(parent))
 
     @property
     def tangential_gradients(self) -> np.ndarray:
@@ -99,10 +99,6 @@ class _P1Space:
         """P_h grad of the basis functions on the given elements: (b, k, 3)."""
         G, n = self.gradients_of(elements), self.element_normals[elements]
         return G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
-
-    @cached_property
-    def element_origin(self) -> np.ndarray:
-        return self.dof_points[self.element_dofs[:, 0]]
 
     def local_elements(self, measure, parent=None) -> np.ndarray:
         """The field's element of each cell of ``measure`` (its ``quadrature().parent``, or the given
