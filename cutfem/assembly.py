@@ -153,16 +153,23 @@ class LatticeSum:
             raise ValueError(f"LatticeSum: {outside} pairs of dofs in the {what} are not nodes of one Kuhn tet or of two "
                              "face-adjacent tets; sum these terms as a Gram product (cutfem.assembly.gram) instead")
 
-    def add_elements(self, dofs, edges, diagonal) -> "LatticeSum":
-        """Add symmetric 4 x 4 element matrices given by their entries on the local edges ``edges``
-        (m, 6) (:data:`~cutfem.mesh.TET_EDGES` order) and their ``diagonal`` (m, 4), on the tets' dofs
-        ``dofs`` (m, 4)."""
+    def add_elements(self, dofs, edges, diagonal, types=None, weights=None, elements=None) -> "LatticeSum":
+        """Add symmetric 4 x 4 element matrices on the tets' dofs ``dofs`` (m, 4), given by their
+        entries on the local edges (:data:`~cutfem.mesh.TET_EDGES` order) and on the diagonal: rows
+        of the tables ``edges`` (L, 6) and ``diagonal`` (L, 4), row ``types[k]`` for element k, or
+        with ``types`` None row k (L = m), or the one row of a one-row table; times ``weights[k]``
+        when given; for the elements ``elements`` only when given
+        (:func:`cutfem.kernels.lattice_add_elements`: no per-element arrays of the entries)."""
         from . import kernels
 
-        self._check(kernels.lattice_add_elements(self.ids, self.code, np.ascontiguousarray(dofs),
-                                                 np.ascontiguousarray(edges, dtype=float),
-                                                 np.ascontiguousarray(diagonal, dtype=float), self.scale, *self._slots()),
-                    "element matrices")
+        none_i, none_f = np.zeros(0, np.int64), np.zeros(0)
+        edges, diagonal = np.ascontiguousarray(edges, dtype=float), np.ascontiguousarray(diagonal, dtype=float)
+        self._check(kernels.lattice_add_elements(
+            self.ids, self.code, np.ascontiguousarray(dofs),
+            none_i if elements is None else np.ascontiguousarray(elements), edges.reshape(-1, 6), diagonal.reshape(-1, 4),
+            none_i if types is None else np.ascontiguousarray(types),
+            none_f if weights is None else np.ascontiguousarray(weights, dtype=float), self.scale, *self._slots()),
+            "element matrices")
         return self
 
     def add_pieces(self, vertices, triangles, tets_of, areas, points, tets, table, types, dofs) -> "LatticeSum":

@@ -661,12 +661,10 @@ def _kuhn_stiffness(space, volumes, into):
     (:class:`~cutfem.assembly.LatticeSum`): the gradients of Kuhn tet l are KUHN_GRADIENTS[l] /
     spacing (:attr:`~cutfem.mesh.StructuredBox.gradient_table`), so the products G_i . G_j form a
     (6, 4, 4) table and each tet's entries are a row of it times its volume."""
-    kuhn = space.elements.kuhn_types
     G = space.elements.background.gradient_table
     D = np.einsum("lid,ljd->lij", G, G)
     edges, diagonal = D[:, TET_EDGES[:, 0], TET_EDGES[:, 1]], D[:, np.arange(4), np.arange(4)]
-    for c in _blocks(len(kuhn)):
-        into.add_elements(space.element_dofs[c], edges[kuhn[c]] * volumes[c, None], diagonal[kuhn[c]] * volumes[c, None])
+    into.add_elements(space.element_dofs, edges, diagonal, types=space.elements.kuhn_types, weights=volumes)
 
 
 def _lattice(space):
@@ -676,13 +674,6 @@ def _lattice(space):
     if getattr(es, "kuhn_types", None) is None or getattr(space, "node_ids", None) is None:
         return None
     return LatticeSum(space.node_ids, es.background)
-
-
-def _blocks(m: int):
-    """Slices of :data:`~cutfem.assembly.GRAM_ROWS` // 4 elements: the per-element arrays of a sum
-    exist one block at a time."""
-    step = max(_assembly.GRAM_ROWS // 4, 1)
-    return [slice(a, min(a + step, m)) for a in range(0, m, step)]
 
 
 def _same_elements(space, measure) -> bool:
@@ -731,10 +722,8 @@ def _kuhn_volume_mass(space, measure, into):
     ``into`` (:class:`~cutfem.assembly.LatticeSum`: no basis values, no Gram product); returns the
     sub-tets of the cut elements by :func:`_simplex_mass` (None if there are none)."""
     w = measure.whole_cells
-    whole, volumes = measure.whole_elements, space.elements.volumes
-    for c in _blocks(w):
-        v = volumes[whole[c], None]
-        into.add_elements(space.element_dofs[whole[c]], np.repeat(v / 20.0, 6, axis=1), np.repeat(v / 10.0, 4, axis=1))
+    into.add_elements(space.element_dofs, np.full(6, 1.0 / 20.0), np.full(4, 1.0 / 10.0), weights=space.elements.volumes,
+                      elements=measure.whole_elements)
     if measure.n_cells > w:
         sub, parent = measure.sub_tets
         return _simplex_mass(space, sub, parent, measure.sub_volumes)

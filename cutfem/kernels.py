@@ -615,17 +615,24 @@ def _add_pair(ids, code, a, b, value, sums, partner):
 
 
 @njit(cache=True, error_model="numpy")
-def lattice_add_elements(ids, code, dofs, edges, diagonal, scale, sums, partner, diag):
-    """Add ``scale`` times symmetric element matrices (entries ``edges`` (m, 6) on the local edges,
-    ``diagonal`` (m, 4)) of the elements ``dofs`` (m, 4) into the slots; returns the number of pairs
+def lattice_add_elements(ids, code, dofs, elements, edges, diagonal, types, weights, scale, sums, partner, diag):
+    """Add ``scale`` times symmetric 4 x 4 element matrices into the slots: for each element k
+    (``elements`` (n,), or every row of ``dofs`` (m, 4) when empty) the matrix with entries
+    ``weights[k] edges[r]`` on the local edges and ``weights[k] diagonal[r]`` on the diagonal
+    (tables ``edges`` (L, 6), ``diagonal`` (L, 4)), r = ``types[k]``, or r = 0 for a one-row table
+    and r = k otherwise when ``types`` is empty; ``weights`` empty: 1.  Returns the number of pairs
     outside the lattice offsets (then the caller must not use the sums)."""
     outside = 0
-    for t in range(dofs.shape[0]):
+    n = elements.shape[0] if elements.shape[0] > 0 else dofs.shape[0]
+    for t in range(n):
+        k = elements[t] if elements.shape[0] > 0 else t
+        r = types[k] if types.shape[0] > 0 else (0 if edges.shape[0] == 1 else k)
+        w = scale * weights[k] if weights.shape[0] > 0 else scale
         for e in range(6):
-            outside += _add_pair(ids, code, dofs[t, _TET_EDGES[e, 0]], dofs[t, _TET_EDGES[e, 1]], scale * edges[t, e], sums,
+            outside += _add_pair(ids, code, dofs[k, _TET_EDGES[e, 0]], dofs[k, _TET_EDGES[e, 1]], w * edges[r, e], sums,
                                  partner)
         for i in range(4):
-            diag[dofs[t, i]] += scale * diagonal[t, i]
+            diag[dofs[k, i]] += w * diagonal[r, i]
     return outside
 
 
