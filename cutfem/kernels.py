@@ -133,7 +133,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr"]
@@ -848,6 +848,23 @@ def squared_error(values, triangles, bary, weights, area, exact):
                 s += weights[i] * d * d
         total += area[t] * s
     return total
+
+
+@njit(cache=True, error_model="numpy")
+def kuhn_tet_nodes(tet_ids, cells_x, cells_y, nodes_x, nodes_y, offsets, out):
+    """out[t] = the node ids of the Kuhn tet ``tet_ids[t]`` of a structured box: cell c = id // 6
+    with indices (i, j, k) on a grid of ``cells_x`` x ``cells_y`` cells, lowest corner node id
+    i + nodes_x (j + nodes_y k), plus the row id % 6 of the node offsets ``offsets`` (6, 4)."""
+    for t in range(tet_ids.shape[0]):
+        c = tet_ids[t] // 6
+        l = tet_ids[t] - 6 * c
+        i = c % cells_x
+        r = c // cells_x
+        j = r % cells_y
+        k = r // cells_y
+        base = i + nodes_x * (j + nodes_y * k)
+        for v in range(4):
+            out[t, v] = base + offsets[l, v]
 
 
 @njit(cache=True, error_model="numpy")

