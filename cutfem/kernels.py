@@ -84,6 +84,16 @@ the time in page faults, against 0.18-0.22 s and 100 MB.
 of S_h and the weighted squared error there (the L2 error of a trace; numpy needed a dozen small
 array operations a block, so blocks of 1024 triangles and a millisecond of overhead each).
 
+:func:`rule_points`, :func:`barycentric_values`, :func:`cell_value_error` and
+:func:`cell_gradient_error`: the volume (and cell) quadrature of the bulk fields: the points of a
+reference rule on a block of simplices (gathered from the mesh's nodes in the same pass), the P1
+basis values at points of cut cells, and the weighted squared errors of values and gradients over a
+block (per-point accumulators, so the loops pipeline without reassociating a sum).  With
+:func:`kuhn_tet_nodes` (the node ids of Kuhn tets from their ids) and :func:`side_split` (the tets
+wholly or partly on one side of the level set) they replaced numpy passes and temporaries over
+every element of a side: the fictitious-domain Poisson problem at 2.7 million unknowns took 36 s
+instead of 44 s and 3.2 instead of 3.8 GiB.
+
 :func:`jump_rows`: the rows of the jump of normal derivatives across pairs of tets (face and edge
 penalties), a block of pairs at a time.
 
