@@ -143,7 +143,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr"]
@@ -858,6 +858,59 @@ def squared_error(values, triangles, bary, weights, area, exact):
                 s += weights[i] * d * d
         total += area[t] * s
     return total
+
+
+RADIX_BITS = 8
+"""Bits of the digit of each pass of :func:`radix_argsort`: 256 buckets, so the scattered writes of
+a pass go to few enough places to stay in cache (8 bits sorted 1.77 million 37-bit keys in 87-94 ms,
+10 bits in 118 ms, 11 bits in 131 ms on the 2-core machine)."""
+
+
+@njit(cache=True, error_model="numpy")
+def radix_argsort(keys, bits, order):
+    """The stable sorting order of the non-negative int64 ``keys`` (n,) below 2**bits, by LSD radix
+    passes of :data:`RADIX_BITS` bits (a counting sort each, stable; the digit counts of all the
+    passes from one read of the keys, and a pass whose digit is the same for every key skipped);
+    ``order`` (n,) int64 is overwritten with the result.  O(n) a pass: no comparisons."""
+    n = keys.shape[0]
+    nb = 1 << RADIX_BITS
+    mask = np.int64(nb - 1)
+    passes = max((bits + RADIX_BITS - 1) // RADIX_BITS, 1)
+    count = np.zeros((passes, nb), dtype=np.int64)
+    for i in range(n):
+        x = keys[i]
+        for q in range(passes):
+            count[q, (x >> (q * RADIX_BITS)) & mask] += 1
+    k, k2 = keys, np.empty(n, dtype=np.int64)
+    idx, idx2 = np.arange(n), np.empty(n, dtype=np.int64)
+    first = True
+    for q in range(passes):
+        c = count[q]
+        constant = False
+        for b in range(nb):
+            if c[b] == n:
+                constant = True
+        if constant:
+            continue
+        total = 0
+        for b in range(nb):  # exclusive prefix sums: the first slot of each digit
+            t = c[b]
+            c[b] = total
+            total += t
+        shift = q * RADIX_BITS
+        for i in range(n):
+            d = (k[i] >> shift) & mask
+            p = c[d]
+            c[d] = p + 1
+            k2[p] = k[i]
+            idx2[p] = idx[i]
+        if first:  # the input keys are never written
+            k, k2 = k2, np.empty(n, dtype=np.int64)
+            first = False
+        else:
+            k, k2 = k2, k
+        idx, idx2 = idx2, idx
+    order[:] = idx
 
 
 @njit(cache=True, error_model="numpy")

@@ -228,28 +228,29 @@ def _as_columns(keys) -> list:
 
 
 def stable_argsort(keys) -> np.ndarray:
-    """The stable sorting order of integer keys, by plain (SIMD) sorts of packed keys.
+    """The stable sorting order of integer keys, by compiled radix passes over packed keys.
 
     ``keys``: a 1-d integer array, or a tuple of 1-d integer arrays of one length (columns, the most
     significant first), sorted lexicographically: the order of ``np.lexsort(keys[::-1])``.
 
     A row is the bit string of its columns, each shifted to start at 0 and given
-    ``w_j = bit_length(max_j - min_j)`` bits, so a row has B = sum w_j bits.  With b bits for the
-    positions (b = bit_length(n - 1)), a digit of up to 63 - b bits is packed into one int64
-    ``digit << b | position`` and sorted by ``np.sort``, which is many times faster than an argsort
-    on this numpy; the low b bits of the result are the order.  The B bits are sorted digit by digit
-    from the least significant one (LSD radix sort), each pass stable because the position breaks
-    the ties: ceil(B / (63 - b)) passes, whatever the number or widths of the columns.  Same result
-    as the stable argsort for every input; unsigned 64-bit and non-integer keys fall back to it.
+    ``w_j = bit_length(max_j - min_j)`` bits, so a row has B = sum w_j bits.  These are cut into
+    words of up to 63 bits, sorted word by word from the least significant one, each by the stable
+    LSD radix sort :func:`cutfem.kernels.radix_argsort` (counting sorts of 8-bit digits), so the
+    whole sort is stable and takes at most ceil(B / 8) linear passes, whatever the number or widths
+    of the columns.  Same result as the stable argsort for every input; unsigned 64-bit and
+    non-integer keys fall back to it.  numpy's sorts ran at about 60 ns a key on the 2-core machine
+    (no SIMD sort dispatched there), and the packed keys needed one sort per 63 - log2(n) bits:
+    1.77 million random keys of 37 bits took 109-134 ms that way and 87-94 ms by radix passes, 60
+    bits 302 against 110 ms, and 3.5 million face-like keys of three 19-bit columns 655 against
+    243 ms.
     """
+    from . import kernels
+
     cols = _as_columns(keys)
     n = cols[0].size
     if n < 2 or any(c.dtype.kind not in "iu" or c.dtype == np.uint64 for c in cols):
         return np.lexsort(cols[::-1]) if len(cols) > 1 else np.argsort(cols[0], kind="stable")
-    pos_bits = (n - 1).bit_length()
-    digit = 63 - pos_bits
-    if digit < 8:  # absurdly many keys: no room for a digit
-        return np.lexsort(cols[::-1])
     # (column, its offset (subtracted), its width, its first bit in the row), least significant first
     layout, first_bit = [], 0
     for col in reversed(cols):
@@ -259,11 +260,9 @@ def stable_argsort(keys) -> np.ndarray:
         layout.append((col, offset, width, first_bit))
         first_bit += width
     total_bits = first_bit
-    positions = np.arange(n, dtype=np.int64)
-    low_mask = (1 << pos_bits) - 1
     order = None
-    for start in range(0, total_bits, digit):
-        stop = min(start + digit, total_bits)
+    for start in range(0, total_bits, 63):
+        stop = min(start + 63, total_bits)
         d = None
         for col, offset, width, at in layout:
             lo, hi = max(start, at), min(stop, at + width)
@@ -279,8 +278,8 @@ def stable_argsort(keys) -> np.ndarray:
             if lo > start:
                 part = part << (lo - start)
             d = part if d is None else d | part
-        packed = np.sort((d << pos_bits) | positions)
-        step = packed & low_mask
+        step = np.empty(n, dtype=np.int64)
+        kernels.radix_argsort(np.ascontiguousarray(d, dtype=np.int64), stop - start, step)
         order = step if order is None else order[step]
     return order
 

@@ -365,7 +365,7 @@ def test_structured_box_bad_arguments():
 
 
 def test_stable_argsort_is_the_stable_argsort():
-    """The packed-sort argsort equals np.argsort(kind="stable") for narrow and wide keys (one and
+    """The radix argsort equals np.argsort(kind="stable") for narrow and wide keys (one and
     several radix passes), negative keys, many ties, and other integer dtypes."""
     from cutfem.mesh import stable_argsort
 
