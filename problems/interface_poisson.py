@@ -44,25 +44,38 @@ class InterfaceSolution:
     def __init__(self, radius, a_neg, a_pos):
         self.R, self.a = float(radius), {NEG: float(a_neg), POS: float(a_pos)}
 
-    def _parts(self, x):
-        psi = np.einsum("...d,...d->...", x, x) - self.R**2
-        e = np.sin(x[..., 0]) * np.exp(0.5 * x[..., 1])
-        grad_w = np.stack([np.cos(x[..., 0]) * np.exp(0.5 * x[..., 1]), 0.5 * e, np.zeros_like(e)], axis=-1)
+    def _parts(self, x, gradient=True):
+        """psi, w, grad w (None unless ``gradient``) and Lap w at the points x (..., 3): each
+        factor (sin x, cos x, exp(y / 2)) evaluated once, the gradient written in place."""
+        x0, x1, x2 = x[..., 0], x[..., 1], x[..., 2]
+        psi = x0 * x0 + x1 * x1 + x2 * x2 - self.R**2
+        ey = np.exp(0.5 * x1)
+        e = np.sin(x0) * ey
+        grad_w = None
+        if gradient:
+            grad_w = np.empty(np.shape(x))
+            np.multiply(np.cos(x0), ey, out=grad_w[..., 0])
+            np.multiply(0.5, e, out=grad_w[..., 1])
+            grad_w[..., 2] = 0.0
         return psi, e + 2.0, grad_w, -0.75 * e
 
     def u(self, side):
         def value(x):
-            psi, w, _, _ = self._parts(x)
+            psi, w, _, _ = self._parts(x, gradient=False)
             return psi * w / self.a[side]
 
         return value
 
     def solution(self, side):
-        """(u, grad u) of a side at the points x, from one evaluation of the parts."""
+        """(u, grad u) of a side at the points x, from one evaluation of the parts:
+        grad u = (2 x w + psi grad w) / a."""
 
         def value(x):
-            psi, w, grad_w, _ = self._parts(x)
-            return psi * w / self.a[side], (2.0 * x * w[..., None] + psi[..., None] * grad_w) / self.a[side]
+            psi, w, grad, _ = self._parts(x)
+            grad *= psi[..., None]
+            grad += 2.0 * x * w[..., None]
+            grad /= self.a[side]
+            return psi * w / self.a[side], grad
 
         return value
 
