@@ -561,7 +561,7 @@ def assemble(form: Form, space, **params):
                 if dofs is None:
                     out[offsets[k] : offsets[k + 1]] += vals
                 else:
-                    out[offsets[k] : offsets[k + 1]] += assemble_vector(dofs, vals, int(offsets[k + 1] - offsets[k]))
+                    assemble_vector(dofs, vals, int(offsets[k + 1] - offsets[k]), out=out[offsets[k] : offsets[k + 1]])
         return np.zeros(n) if out is None else out
     rows, cols, data = [], [], []
     total = None
@@ -903,8 +903,9 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
                 local = fw @ phi[0]
             else:
                 local = np.einsum("mqk,mq...->mk...", phi, fw)
-            part = assemble_vector(space.element_dofs[el], local, space.n_dofs)
-            out = part if out is None else out + part
+            if out is None:
+                out = np.zeros((space.n_dofs,) + local.shape[2:])
+            assemble_vector(space.element_dofs[el], local, space.n_dofs, out=out)
         return np.zeros(space.n_dofs) if out is None else out
 
     return Form([(1.0, _VectorTerm(build, field))], True)

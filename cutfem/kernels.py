@@ -143,7 +143,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr"]
@@ -858,6 +858,16 @@ def squared_error(values, triangles, bary, weights, area, exact):
                 s += weights[i] * d * d
         total += area[t] * s
     return total
+
+
+@njit(cache=True, error_model="numpy")
+def scatter_add(dofs, local, out):
+    """out[dofs[e, a], l] += local[e, a, l] for the elements e (m, k), in element order."""
+    for e in range(dofs.shape[0]):
+        for a in range(dofs.shape[1]):
+            i = dofs[e, a]
+            for l in range(out.shape[1]):
+                out[i, l] += local[e, a, l]
 
 
 RADIX_BITS = 8
