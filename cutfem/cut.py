@@ -760,9 +760,8 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     m = len(tet_ids)
 
     # active nodes, numbered by increasing background id (labels increase with it)
-    uniq, tets = dense_unique(labels, len(label_values))
+    uniq, tets = dense_unique(labels, len(label_values), np.int64)
     del labels
-    tets = tets.astype(np.int64)
     node_ids = uniq if label_ids is None else label_ids[uniq]
     points = background.node_coordinates(node_ids) if structured else background.points[node_ids]
     values = label_values[uniq]

@@ -1610,9 +1610,11 @@ def _bit_ranks(ids, words, prefix, inverse):
         inverse[r] = prefix[w] + _popcount(below)
 
 
-def dense_unique(ids, n: int):
+def dense_unique(ids, n: int, inverse_dtype=None):
     """Sorted distinct values of integer ids in [0, n) and the inverse map: ``(unique (u,) int64,
-    inverse)`` with ``unique[inverse] == ids`` (inverse of the shape of ids, int32 when u < 2**31).
+    inverse)`` with ``unique[inverse] == ids`` (inverse of the shape of ids, of ``inverse_dtype`` when
+    given (it must hold u - 1), else int32 when u < 2**31: a caller that keeps int64 numbers gets
+    them written directly, not converted from an int32 copy).
     A bitmap of n bits and a running count of its set bits per 64-bit word (n / 4 bytes in all)
     instead of a marker and a lookup array of length n (5 n bytes: 2 GB for the 404 million nodes of
     the box at spacing 0.003125, of which the band touches a few), and no sort."""
@@ -1623,7 +1625,10 @@ def dense_unique(ids, n: int):
     prefix = np.empty(len(words), dtype=np.int64)
     unique = np.empty(min(int(n), flat.size), dtype=np.int64)
     u = _rank_bits(words, prefix, unique)
-    inverse = np.empty(flat.size, dtype=np.int32 if u < 2**31 else np.int64)
+    dtype = np.dtype(inverse_dtype) if inverse_dtype is not None else np.dtype(np.int32 if u < 2**31 else np.int64)
+    if u > 0 and np.iinfo(dtype).max < u - 1:
+        raise ValueError(f"inverse_dtype {dtype} cannot hold {u} distinct values")
+    inverse = np.empty(flat.size, dtype=dtype)
     _bit_ranks(flat, words, prefix, inverse)
     return unique[:u].copy(), inverse.reshape(ids.shape)
 

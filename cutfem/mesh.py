@@ -324,14 +324,15 @@ def unique_keys(keys: np.ndarray, return_inverse: bool = False):
     return uniq, inverse
 
 
-def dense_unique(ids: np.ndarray, n: int):
+def dense_unique(ids: np.ndarray, n: int, inverse_dtype=None):
     """Sorted distinct values of integer ids in [0, n) and the inverse map: ``(unique (u,),
-    inverse)`` with ``unique[inverse] == ids`` (same shape as ids).  Costs O(n / 64 + ids.size), no
-    sort, n / 4 bytes of bitmap and counts (:func:`cutfem.kernels.dense_unique`); meant for ids that
-    are a sizeable part of a known range, or a band of a box's nodes."""
+    inverse)`` with ``unique[inverse] == ids`` (same shape as ids; of ``inverse_dtype`` when given).
+    Costs O(n / 64 + ids.size), no sort, n / 4 bytes of bitmap and counts
+    (:func:`cutfem.kernels.dense_unique`); meant for ids that are a sizeable part of a known range,
+    or a band of a box's nodes."""
     from . import kernels
 
-    return kernels.dense_unique(ids, n)
+    return kernels.dense_unique(ids, n, inverse_dtype)
 
 
 def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -392,6 +392,13 @@ def test_dense_unique_is_unique():
     eu, einv = np.unique(ids, return_inverse=True)
     np.testing.assert_array_equal(u, eu)
     np.testing.assert_array_equal(inv, einv.reshape(ids.shape))
+    assert inv.dtype == np.int32
+    u64, inv64 = dense_unique(ids, 1000, np.int64)
+    assert inv64.dtype == np.int64
+    np.testing.assert_array_equal(u64, u)
+    np.testing.assert_array_equal(inv64, inv)
+    with pytest.raises(ValueError, match="cannot hold"):
+        dense_unique(ids, 1000, np.int8)
 
 
 @pytest.mark.parametrize("lower, upper, cells", [([0, 0, 0], [1, 1, 1], 3), ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], (16, 16, 6)), ([0.3, -2, 5], [0.9, 1, 5.5], (5, 7, 4))])
