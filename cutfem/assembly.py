@@ -236,12 +236,10 @@ def assemble_vector(dofs: np.ndarray, local: np.ndarray, n: int, out: np.ndarray
     shape = (n,) + local.shape[2:]
     if out is None:
         out = np.zeros(shape)
-    elif out.shape != shape or out.dtype != np.float64:
-        raise ValueError(f"out must be a float64 array of shape {shape}, got {out.shape} {out.dtype}")
-    target = out.reshape(n, -1)  # a view for a contiguous out (the kernel then writes into out)
-    if not np.shares_memory(target, out):
-        raise ValueError("out must be C-contiguous")
-    kernels.scatter_add(np.ascontiguousarray(dofs).reshape(m, k), np.ascontiguousarray(local).reshape(m, k, -1), target)
+    elif out.shape != shape or out.dtype != np.float64 or not out.flags.c_contiguous:
+        raise ValueError(f"out must be a C-contiguous float64 array of shape {shape}, got {out.shape} {out.dtype}")
+    # out.reshape is a view of the contiguous out: the kernel writes into out
+    kernels.scatter_add(np.ascontiguousarray(dofs).reshape(m, k), np.ascontiguousarray(local).reshape(m, k, -1), out.reshape(n, -1))
     return out
 
 

@@ -331,10 +331,11 @@ def side_subtetrahedra(points: np.ndarray, tets: np.ndarray, values: np.ndarray,
         sel = partial[k == count]
         if sel.size == 0:
             continue
-        v = values[tets[sel]]
+        t = tets[sel]
+        v = values[t]
         inside = v < 0 if side == NEG else v > 0
         order = np.argsort(~inside, axis=1, kind="stable")  # the side's nodes first
-        x = np.take_along_axis(points[tets[sel]], order[..., None], axis=1)
+        x = np.take_along_axis(points[t], order[..., None], axis=1)
         w = np.take_along_axis(v, order, axis=1)
 
         def at(i, j):

@@ -616,21 +616,18 @@ def map_tetrahedra(vertices, degree: int, parent=None, whole: int = 0, volumes=N
         tets = np.asarray(tets)
         if volumes is None or tets.ndim != 2 or tets.shape[1] != 4:
             raise ValueError(f"tets must have shape (m, 4) and come with volumes, got {tets.shape}")
-        volume = np.asarray(volumes, dtype=float)
-        if volume.shape != (len(tets),):
-            raise ValueError(f"volumes must have shape ({len(tets)},), got {volume.shape}")
-        return Quadrature(mapped_points(bary, vertices, tets), volume[:, None] * w[None, :], parent=parent, normal=None,
-                          bary=bary, whole=whole)
-    vertices = _as_vertices(vertices, 4, "tetrahedron")
+        points = mapped_points(bary, vertices, tets)
+    else:
+        vertices = _as_vertices(vertices, 4, "tetrahedron")
+        points = mapped_points(bary, vertices)
+    m = len(points)
     if volumes is None:
         volume = np.abs(signed_volumes(vertices))
     else:
         volume = np.asarray(volumes, dtype=float)
-        if volume.shape != (len(vertices),):
-            raise ValueError(f"volumes must have shape ({len(vertices)},), got {volume.shape}")
-    points = mapped_points(bary, vertices)
-    weights = volume[:, None] * w[None, :]
-    return Quadrature(points, weights, parent=parent, normal=None, bary=bary, whole=whole)
+        if volume.shape != (m,):
+            raise ValueError(f"volumes must have shape ({m},), got {volume.shape}")
+    return Quadrature(points, volume[:, None] * w[None, :], parent=parent, normal=None, bary=bary, whole=whole)
 
 
 def concatenate(*quads: Quadrature) -> Quadrature:
