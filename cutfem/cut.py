@@ -418,7 +418,6 @@ class CutMesh:
     vertices: np.ndarray
     triangles: np.ndarray
     triangle_tets: np.ndarray
-    _polygons: tuple = field(repr=False)  # (vertex of each polygon slot (n, 4), polygon sizes (n,))
     _gradients: tuple | None = field(default=None, repr=False)  # (basis gradients, volumes) if known
     levelset: object = field(default=None, repr=False)  # what was cut: for the sides' nodal values
 
@@ -552,22 +551,23 @@ class CutMesh:
         return float(np.einsum("ij,ij->", p[:, 0], np.cross(p[:, 1], p[:, 2])) / 6.0)
 
     @cached_property
-    def _triangle_edge_counts(self):
-        """(E,) how many triangles hold each edge of S_h, edges in increasing (lower, upper) vertex
-        order (:func:`cutfem.kernels.edge_counts`: half-edges bucketed by their lower vertex)."""
+    def _edge_census(self) -> tuple:
+        """(E, B): the number of distinct edges of the triangles of S_h and how many of them are not
+        in exactly two triangles (:func:`cutfem.kernels.edge_census`, one compiled pass; two
+        numbers are kept, not a count per edge)."""
         from . import kernels
 
-        return kernels.edge_counts(self.triangles, len(self.vertices))
+        return kernels.edge_census(self.triangles, len(self.vertices))
 
     @property
     def euler_characteristic(self) -> int:
         """V - E + F of the triangulated S_h."""
-        return len(self.vertices) - len(self._triangle_edge_counts) + self.n_triangles
+        return len(self.vertices) - self._edge_census[0] + self.n_triangles
 
     @property
     def is_closed(self) -> bool:
         """Every triangle edge of S_h is shared by exactly two triangles."""
-        return bool(np.all(self._triangle_edge_counts == 2))
+        return self._edge_census[1] == 0
 
     # -- active mesh -------------------------------------------------------------------------
     @cached_property
@@ -594,25 +594,16 @@ class CutMesh:
         return self._grads_volumes[1]
 
     # -- edges of S_h shared by pieces of neighbouring tets -----------------------------------
-    def _polygon_edges(self):
-        """(vertex pairs (P, 2), piece (P,)): the edges of the polygons, consecutive distinct
-        vertices in cyclic order."""
-        vinv, nvert = self._polygons
-        m = len(vinv)
-        nxt = np.where(nvert[:, None] == 4, vinv[:, [1, 2, 3, 0]], vinv[:, [1, 2, 0, 0]])
-        valid = np.ones((m, 4), bool)
-        valid[nvert == 3, 3] = False
-        valid &= vinv != nxt
-        pairs = np.stack([vinv[valid], nxt[valid]], axis=1).astype(np.int64)  # keys min * V + max below
-        piece = np.broadcast_to(np.arange(m)[:, None], (m, 4))[valid]
-        return pairs, piece
-
     @cached_property
     def _surface_edges(self):
-        pairs, piece = self._polygon_edges()
-        V = len(self.vertices)
-        keys = np.minimum(pairs[:, 0], pairs[:, 1]) * V + np.maximum(pairs[:, 0], pairs[:, 1])
-        order, starts, counts = pair_up(keys)
+        """The edges of the pieces' polygons from the triangles: an edge held by two triangles of
+        different tets (a quadrilateral's diagonal is held by two triangles of one tet and is left
+        out).  Edges in increasing (lower, upper) vertex order, the two tets in increasing order
+        (the triangles are in tet order)."""
+        t = self.triangles
+        lo = np.minimum(t, np.roll(t, -1, axis=1)).reshape(-1).astype(np.int64)  # half-edge k of triangle T at 3T + k
+        hi = np.maximum(t, np.roll(t, -1, axis=1)).reshape(-1).astype(np.int64)
+        order, starts, counts = pair_up(lo * len(self.vertices) + hi)
         if np.any(counts != 2):
             bad = int(np.sum(counts != 2))
             warnings.warn(
@@ -621,9 +612,12 @@ class CutMesh:
                 RuntimeWarning,
                 stacklevel=3,
             )
-        two = counts == 2
-        a, b = order[starts[two]], order[starts[two] + 1]
-        return np.sort(pairs[a], axis=1), np.stack([piece[a], piece[b]], axis=1)
+        two = starts[counts == 2]
+        a, b = order[two], order[two + 1]
+        tets = np.stack([self.triangle_tets[a // 3], self.triangle_tets[b // 3]], axis=1)
+        between = tets[:, 0] != tets[:, 1]
+        a = a[between]
+        return np.stack([lo[a], hi[a]], axis=1), tets[between]
 
     @property
     def surface_edges(self) -> np.ndarray:
@@ -800,8 +794,7 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     # _flip_table)
     vertices, tri, tri_tet = kernels.surface(vinv, n_vertices, tets, code, vals, points, _EDGE_I, _EDGE_J, _NVERT, _FLIP,
                                              _TRIANGLE_SLOTS, negative=negative)
-    nvert = _NVERT[code]
-    del vals
+    del vals, vinv
 
     cm = CutMesh(
         levelset=levelset,
@@ -815,7 +808,6 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
         vertices=vertices,
         triangles=tri,
         triangle_tets=tri_tet,
-        _polygons=(vinv, nvert),
         _gradients=(grads, volumes),  # grads None on a structured box: the Kuhn table serves it
     )
     _check_closed(cm, check_boundary, band)
@@ -826,15 +818,14 @@ def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
     """Raise CutError unless S_h is closed and edge-manifold: every edge of its triangles in
     exactly two triangles.
 
-    Uses the edge counts of :attr:`CutMesh._triangle_edge_counts` (one compiled pass, cached: the
-    Euler characteristic and ``is_closed`` reuse it).  With ``check_boundary=False`` the surface may
+    Uses the edge census of :attr:`CutMesh._edge_census` (one compiled pass, cached: the Euler
+    characteristic and ``is_closed`` reuse it).  With ``check_boundary=False`` the surface may
     leave the box: an edge in one triangle is then accepted when both its ends lie on the faces of
     the background's bounding box (within 1e-9 of its diagonal).  The P1 zero set of values at
     every node is always closed inside the mesh, so an open S_h means that the band search
     (``band``) dropped cut cells: phi changes faster than its declared Lipschitz bound somewhere
     it was not sampled (see :func:`_band_cells`)."""
-    counts = cut._triangle_edge_counts
-    if np.all(counts == 2):
+    if cut.is_closed:
         return
     t = cut.triangles
     V = len(cut.vertices)

@@ -143,7 +143,7 @@ from .mesh import TET_EDGES
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_counts", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr"]
@@ -1277,7 +1277,7 @@ def mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets):
 
 
 @njit(cache=True, error_model="numpy")
-def _edge_counts(triangles, n_vertices, start, upper, counts):
+def _edge_census(triangles, n_vertices, start, upper):
     T = triangles.shape[0]
     for t in range(T):  # half-edges bucketed by their lower end: how many in each bucket
         for k in range(3):
@@ -1292,7 +1292,7 @@ def _edge_counts(triangles, n_vertices, start, upper, counts):
             lo = min(a, b)
             upper[fill[lo]] = max(a, b)
             fill[lo] += 1
-    n = 0
+    n = not_two = 0
     for v in range(n_vertices):  # each bucket (a few entries) sorted in place, its runs counted
         s, e = start[v], start[v + 1]
         for i in range(s + 1, e):
@@ -1307,24 +1307,25 @@ def _edge_counts(triangles, n_vertices, start, upper, counts):
             j = i + 1
             while j < e and upper[j] == upper[i]:
                 j += 1
-            counts[n] = j - i
             n += 1
+            if j - i != 2:
+                not_two += 1
             i = j
-    return n
+    return n, not_two
 
 
-def edge_counts(triangles, n_vertices: int):
-    """(E,) int32: how many of the ``triangles`` (T, 3) (vertex numbers below ``n_vertices``) hold each
-    of their distinct edges, edges in increasing (lower end, upper end) order.  The 3T half-edges
-    are bucketed by their lower end (a counting pass and a scatter) and each bucket, a few entries,
-    is sorted in place: no sort of 3T keys (numpy's sort of the int64 keys min V + max took 1.3 s of
-    2.5 s at 27 million half-edges, the surface of the torus at spacing 0.003125)."""
+def edge_census(triangles, n_vertices: int):
+    """``(E, B)`` of the ``triangles`` (T, 3) (vertex numbers below ``n_vertices``): how many distinct
+    edges they have, and how many of those are not held by exactly two triangles (B = 0: closed and
+    edge-manifold).  The 3T half-edges are bucketed by their lower end (a counting pass and a
+    scatter) and each bucket, a few entries, is sorted in place: no sort of 3T keys (numpy's sort of
+    the int64 keys min V + max took 1.3 s of 2.5 s at 27 million half-edges, the surface of the
+    torus at spacing 0.003125), and no array of counts is made (108 MB there)."""
     triangles = np.ascontiguousarray(triangles)
     start = np.zeros(n_vertices + 1, dtype=np.int64)
     upper = np.empty(3 * len(triangles), dtype=triangles.dtype)
-    counts = np.empty(3 * len(triangles), dtype=np.int32)
-    n = _edge_counts(triangles, n_vertices, start, upper, counts)
-    return counts[:n].copy()
+    n, not_two = _edge_census(triangles, n_vertices, start, upper)
+    return int(n), int(not_two)
 
 
 @njit(cache=True, error_model="numpy", inline="always")

@@ -513,18 +513,22 @@ def test_marching_codes_collapsed_pieces_and_slot_keys_against_the_case_table():
     np.testing.assert_array_equal(slot_keys(lab, code, val, _EDGE_I, _EDGE_J, p), expected_keys)
 
 
-def test_edge_counts_against_a_sort_of_the_edge_keys():
-    """kernels.edge_counts (half-edges bucketed by their lower vertex) against np.unique of the keys
-    min V + max: the same counts in the same order, on S_h of a cut torus and on a hand example."""
+def test_edge_census_against_a_sort_of_the_edge_keys():
+    """kernels.edge_census (half-edges bucketed by their lower vertex) against np.unique of the keys
+    min V + max: the same number of edges and of edges not in two triangles, on S_h of a cut torus
+    (closed: none) and on hand examples."""
     from cutfem import kernels
 
     cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1), Torus())
     t, V = cut.triangles, len(cut.vertices)
     e = np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]).astype(np.int64)
     _, reference = np.unique(np.minimum(e[:, 0], e[:, 1]) * V + np.maximum(e[:, 0], e[:, 1]), return_counts=True)
-    np.testing.assert_array_equal(kernels.edge_counts(t, V), reference)
+    assert kernels.edge_census(t, V) == (len(reference), int(np.sum(reference != 2))) == (len(reference), 0)
     assert cut.is_closed and cut.euler_characteristic == 0
-    # two triangles on the edge {1, 2} and a third on {2, 3} again: edges 01 02 12 13 23 24 34
+    # two triangles on the edge {1, 2} and a third on {2, 3} again: edges 01 02 12 13 23 24 34 with
+    # counts 1 1 2 1 2 1 1
     tri = np.array([[0, 1, 2], [3, 2, 1], [4, 3, 2]])
-    np.testing.assert_array_equal(kernels.edge_counts(tri, 5), [1, 1, 2, 1, 2, 1, 1])
-    assert kernels.edge_counts(np.empty((0, 3), dtype=np.int64), 0).size == 0
+    assert kernels.edge_census(tri, 5) == (7, 5)
+    # the surface of a tetrahedron: 6 edges, each in two triangles
+    assert kernels.edge_census(np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [0, 2, 3]], dtype=np.int32), 4) == (6, 0)
+    assert kernels.edge_census(np.empty((0, 3), dtype=np.int64), 0) == (0, 0)
