@@ -445,7 +445,7 @@ class CutMesh:
         if which not in sets:
             if which == CUT:
                 sets[CUT] = ElementSet(self.background, self.tet_ids, name=CUT, cut=self, tets=self.tets, node_ids=self.node_ids,
-                                       points=self.points, gradients=self._grads_volumes[0], volumes=self.tet_volumes, normals=self.normals)
+                                       points=self.points, gradients=self._grads_volumes[0], volumes=self._grads_volumes[1], normals=self.normals)
             elif which in SIDES:
                 v, bg = self.background_values, self.background
                 mark = bg.tet_node_counts(v < 0) > 0 if which == NEG else (bg.tet_node_counts(v > 0) > 0) | (bg.tet_node_counts(v == 0) == 4)
@@ -590,8 +590,9 @@ class CutMesh:
 
     @property
     def tet_volumes(self) -> np.ndarray:
-        """(n,) volumes of the active tets."""
-        return self._grads_volumes[1]
+        """(n,) volumes of the active tets (on a structured box built on each access, not kept: see
+        :attr:`cutfem.markers.ElementSet.volumes`)."""
+        return self.elements(CUT).volumes
 
     # -- edges of S_h shared by pieces of neighbouring tets -----------------------------------
     @cached_property
@@ -766,8 +767,7 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     from . import kernels
 
     if structured:
-        grads = None
-        volumes = np.full(m, background.tet_volume)
+        grads = volumes = None  # every tet has the box's volume (see ElementSet.volumes)
         negative = None
         table, types = background.gradient_table, (tet_ids % 6).astype(np.int8)
     else:
@@ -808,7 +808,7 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
         vertices=vertices,
         triangles=tri,
         triangle_tets=tri_tet,
-        _gradients=(grads, volumes),  # grads None on a structured box: the Kuhn table serves it
+        _gradients=(grads, volumes),  # None on a structured box: the Kuhn table and the box's tet volume serve them
     )
     _check_closed(cm, check_boundary, band)
     return cm

@@ -1227,7 +1227,8 @@ def surface(vinv, n_vertices, tets, code, vals, points, edge_i_table, edge_j_tab
     the node b itself when phi_b == 0.  The triangles of a piece are the slots ``tri_slots[f]``
     (f = flip[code], turned over where ``negative``), (0, 1, 2) and for quads (0, 2, 3); those with
     a repeated vertex are dropped.  Returns ``(vertices (V, 3), triangles (T, 3) of vinv's dtype,
-    triangle_tets (T,))``, in tet order; two passes (count, then fill)."""
+    triangle_tets (T,) int32 while the tets' count fits, else int64)``, in tet order; two passes
+    (count, then fill)."""
     vinv = np.ascontiguousarray(vinv)
     neg = np.zeros(0, dtype=np.bool_) if negative is None else np.ascontiguousarray(negative, dtype=np.bool_)
     tables = (np.ascontiguousarray(edge_i_table), np.ascontiguousarray(edge_j_table), np.ascontiguousarray(nvert),
@@ -1235,7 +1236,7 @@ def surface(vinv, n_vertices, tets, code, vals, points, edge_i_table, edge_j_tab
     vertices = np.empty((n_vertices, 3))
     args = (vinv, tets, code, vals, points) + tables[:4]
     n = _surface(*args, tables[4], tables[5], vertices, np.empty((0, 3), dtype=vinv.dtype), np.empty(0, dtype=np.int64), False)
-    tri, tri_tet = np.empty((n, 3), dtype=vinv.dtype), np.empty(n, dtype=np.int64)
+    tri, tri_tet = np.empty((n, 3), dtype=vinv.dtype), np.empty(n, dtype=np.int32 if len(vinv) < 2**31 else np.int64)
     _surface(*args, tables[4], tables[5], vertices, tri, tri_tet, True)
     return vertices, tri, tri_tet
 

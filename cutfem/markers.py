@@ -107,11 +107,22 @@ class ElementSet:
         if gradients is None and not structured:
             gradients, volumes = barycentric_gradients(points[tets])
             volumes = np.abs(volumes)
-        if volumes is None and structured:
-            volumes = np.full(len(self.tet_ids), background.tet_volume)
         self._gradients = gradients  # None on a structured box: read off the Kuhn table on access
-        self.volumes = volumes
+        self._volumes = None if structured else volumes  # on a structured box every tet has the box's volume
         self.normals = normals
+
+    @property
+    def volumes(self) -> np.ndarray:
+        """(m,) the volumes of the tets.  On a structured box every tet has the box's tet volume, and
+        the array is built on each access, not kept (8 bytes a tet: 105 MB for the 13.7 million cut
+        tets of the torus at spacing 0.003125); for a subset use :meth:`volumes_of`."""
+        return self.volumes_of(slice(None))
+
+    def volumes_of(self, idx) -> np.ndarray:
+        """The volumes of the tets ``idx`` (local indices: a slice, integers or a mask)."""
+        if self._volumes is None:
+            return np.array(np.broadcast_to(self.background.tet_volume, (len(self.tet_ids),))[idx])
+        return self._volumes[idx]
 
     @property
     def gradients(self) -> np.ndarray:

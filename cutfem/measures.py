@@ -195,7 +195,7 @@ class SideVolume(Measure):
     def cell_volumes(self) -> np.ndarray:
         """(n_cells,) the volume of each cell: the element's own for the whole cells, the triple
         products of the sub-tets (computed once for every quadrature of the measure)."""
-        return np.concatenate([self.elements.volumes[self._parts[0]], self.sub_volumes])
+        return np.concatenate([self.elements.volumes_of(self._parts[0]), self.sub_volumes])
 
     @cached_property
     def part_volumes(self) -> np.ndarray:
@@ -206,7 +206,7 @@ class SideVolume(Measure):
         whole, _, parent = self._parts
         es = self.elements
         out = np.zeros(es.n_elements)
-        out[whole] = es.volumes[whole]
+        out[whole] = es.volumes_of(whole)
         out += np.bincount(parent, weights=self.sub_volumes, minlength=es.n_elements) if len(parent) else 0.0
         return out
 
@@ -222,7 +222,7 @@ class SideVolume(Measure):
         for start in range(0, w, size):
             cells = whole[start : start + size]
             yield slice(start, start + len(cells)), map_tetrahedra(es.points, degree, parent=cells, whole=len(cells),
-                                                                   volumes=es.volumes[cells], tets=es.tets[cells])
+                                                                   volumes=es.volumes_of(cells), tets=es.tets[cells])
         volumes = self.sub_volumes
         for start in range(0, len(sub), size):
             stop = min(start + size, len(sub))
@@ -249,7 +249,7 @@ class ElementVolume(Measure):
         for start in range(0, es.n_elements, size):
             stop = min(start + size, es.n_elements)
             yield slice(start, stop), map_tetrahedra(es.points, degree, parent=np.arange(start, stop), whole=stop - start,
-                                                     volumes=es.volumes[start:stop], tets=es.tets[start:stop])
+                                                     volumes=es.volumes_of(slice(start, stop)), tets=es.tets[start:stop])
 
     @property
     def normals(self):

@@ -250,12 +250,17 @@ class CutP1Space(_P1Space):
         self.element_dofs = es.tets
         self.dof_points = es.points
         self.element_normals = es.normals
-        self.element_volumes = es.volumes
         self.node_ids = es.node_ids
         self.h = float(h) if h is not None else cut.h
 
     def __repr__(self) -> str:
         return f"CutP1Space(on={self.elements.name!r}, dofs={self.n_dofs})"
+
+    @property
+    def element_volumes(self) -> np.ndarray:
+        """(n_el,) the volumes of the elements (:attr:`cutfem.markers.ElementSet.volumes`: on a
+        structured box built on each access)."""
+        return self.elements.volumes
 
     @property
     def element_gradients(self) -> np.ndarray:
