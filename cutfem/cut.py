@@ -754,8 +754,9 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
         raise CutError("every piece of the cut collapsed to a point or segment; refine the background mesh")
     m = len(tet_ids)
 
-    # active nodes, numbered by increasing background id (labels increase with it)
-    uniq, tets = dense_unique(labels, len(label_values), np.int64)
+    # active nodes, numbered by increasing background id (labels increase with it); the tets' node
+    # numbers int32 while they fit (209 MB less for the 13.7 million cut tets at spacing 0.003125)
+    uniq, tets = dense_unique(labels, len(label_values))
     del labels
     node_ids = uniq if label_ids is None else label_ids[uniq]
     points = background.node_coordinates(node_ids) if structured else background.points[node_ids]

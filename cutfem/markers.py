@@ -98,7 +98,7 @@ class ElementSet:
                 nodes = background.kuhn_tet_nodes(self.tet_ids)
             else:
                 nodes = background.tets[self.tet_ids]
-            node_ids, tets = dense_unique(nodes, background.n_points, np.int64)
+            node_ids, tets = dense_unique(nodes, background.n_points)  # int32 numbers while they fit
         self.tets = tets
         self.node_ids = node_ids
         if points is None:
