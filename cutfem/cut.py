@@ -250,8 +250,8 @@ def _refuse_if_too_big(box: StructuredBox, estimate: float, what: str, scaling: 
 
 
 def _check_box_memory(box: StructuredBox, lipschitz) -> None:
-    """Refuse, before anything is allocated, a box whose node arrays cannot fit: the node markers
-    of the band (:data:`~cutfem.memory.BYTES_PER_BOX_NODE` per node) and the boundary nodes (80 bytes
+    """Refuse, before anything is allocated, a box whose node arrays cannot fit: the bitmap of the
+    band's nodes (:data:`~cutfem.memory.BYTES_PER_BOX_NODE` per node) and the boundary nodes (80 bytes
     each: index triples, ids and their sort); without a Lipschitz bound every node and cell is
     visited (coordinates, values, corner ids and the (6, 4) values of each cell's tets: 400 bytes
     per cell, counted from those arrays)."""
@@ -299,7 +299,7 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
     estimated from the band cells to come: a surface's band at block size s has about
     ``final / s**2`` blocks (measured ratio final / (kept s**2) of 0.9-1.3 on the torus and the
     sphere), so ``1.3 * kept * s**2`` cells at :data:`~cutfem.memory.BYTES_PER_BAND_CELL` bytes,
-    plus :data:`~cutfem.memory.CUT_BASE_BYTES` and the box's node markers; a cut that cannot fit is
+    plus :data:`~cutfem.memory.CUT_BASE_BYTES` and the box's node bitmap; a cut that cannot fit is
     refused (:func:`cutfem.memory.check_memory`)."""
     from .memory import BYTES_PER_BAND_CELL, BYTES_PER_BOX_NODE, CUT_BASE_BYTES
 

@@ -21,7 +21,11 @@ item, fitted to the peak resident memory of fresh ``cutfem run`` processes (``/p
   1.44 times the final ones).  It was 3000 bytes a cell with no fixed part, fitted at spacing 0.0125
   and coarser, where the fixed part is most of the cut: that refused spacing 0.002 on a 24 GiB
   machine as needing 34.8 GiB, where the whole run is predicted at about 14 GiB;
-* :data:`BYTES_PER_BOX_NODE`: the structured box's node-marker arrays (bool + int32 per node);
+* :data:`BYTES_PER_BOX_NODE`: what the band search keeps per node of the structured box: a bitmap
+  of the band's nodes and a running count per 64-bit word of it (:func:`cutfem.mesh.dense_unique`,
+  a quarter byte a node; 101 MB for the 404 million nodes of the box at spacing 0.003125).  It was
+  5 bytes, from the marker and lookup arrays the bitmap replaced, and refused spacing 0.0015625 on
+  a 24 GiB machine as needing 28.5 GiB, 16 of them for node markers that are no longer made;
 * :data:`SOLVE_BASE_BYTES` + bytes per active tet: what the stages after the cut (space, faces,
   mass, penalty, solve, errors) add to the resident memory at the check
   (:func:`cutfem.problems.common.check_cut_memory`; the cut's freed temporaries stay in the
@@ -132,8 +136,8 @@ __all__ = [
 CUT_BASE_BYTES = 150 * 2**20
 #: bytes of the cut per predicted cell of the band (measured 831-846 B at scale, see the module docstring)
 BYTES_PER_BAND_CELL = 1_000
-#: bytes per node of a structured box for the node markers of the band (bool + int32)
-BYTES_PER_BOX_NODE = 5
+#: bytes per node of a structured box for the band's node bitmap and its word counts (n / 4 bytes)
+BYTES_PER_BOX_NODE = 0.25
 #: the fixed part of what the stages after the cut add (measured about 16 MB, see the module docstring)
 SOLVE_BASE_BYTES = 64 * 2**20
 #: bytes the stages after the cut add per active tet, by default (measured up to 969 B, see the module docstring)
