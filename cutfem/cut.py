@@ -602,8 +602,9 @@ class CutMesh:
         out).  Edges in increasing (lower, upper) vertex order, the two tets in increasing order
         (the triangles are in tet order)."""
         t = self.triangles
-        lo = np.minimum(t, np.roll(t, -1, axis=1)).reshape(-1).astype(np.int64)  # half-edge k of triangle T at 3T + k
-        hi = np.maximum(t, np.roll(t, -1, axis=1)).reshape(-1).astype(np.int64)
+        nxt = np.roll(t, -1, axis=1)  # half-edge k of triangle T, from vertex k to k + 1, at 3T + k
+        lo = np.minimum(t, nxt).reshape(-1).astype(np.int64)
+        hi = np.maximum(t, nxt).reshape(-1).astype(np.int64)
         order, starts, counts = pair_up(lo * len(self.vertices) + hi)
         if np.any(counts != 2):
             bad = int(np.sum(counts != 2))

@@ -643,9 +643,9 @@ class Torus(LevelSet):
         This is evaluated at every quadrature point of the error norms (27 million at spacing
         0.00625), hence the lean form in one compiled pass
         (:func:`cutfem.kernels.torus_mean_curvature_vector`: plain square roots, and whether the
-        result is finite; 0.16 s there, where numpy's dozen passes took 0.35 s).  Where it is not finite (NaN or
-        infinite input, a point on the axis or on the core circle, overflow), the careful
-        evaluation (``hypot``, the checks of :meth:`_frame`) gives the value or the error.
+        result is finite; 0.16 s there, where numpy's dozen passes took 0.35 s).  Where it is not
+        finite (NaN or infinite input, a point on the axis or on the core circle, overflow), the
+        careful evaluation (``hypot``, the checks of :meth:`_frame`) gives the value or the error.
         """
         y = np.asarray(x, dtype=float)
         if y.ndim == 0 or y.shape[-1] != 3:
