@@ -532,3 +532,26 @@ def test_edge_census_against_a_sort_of_the_edge_keys():
     # the surface of a tetrahedron: 6 edges, each in two triangles
     assert kernels.edge_census(np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [0, 2, 3]], dtype=np.int32), 4) == (6, 0)
     assert kernels.edge_census(np.empty((0, 3), dtype=np.int64), 0) == (0, 0)
+
+
+def test_element_set_volumes_on_a_box_and_on_a_tet_mesh():
+    """On a structured box every tet has the box's tet volume, built on access (volumes_of for a
+    slice, indices or a mask gives the same as indexing the whole array); on a tet mesh the volumes
+    are the stored |det| / 6 of each tet; the cut tets' volumes agree with both."""
+    box = structured_box([-1.2] * 3, [1.2] * 3, spacing=0.2)
+    cut = cut_mesh(box, Sphere(1.0))
+    for which in (CUT, NEG):
+        es = cut.elements(which)
+        v = es.volumes
+        assert v.shape == (es.n_elements,) and v.flags.writeable and np.all(v == box.tet_volume)
+        mask = np.arange(es.n_elements) % 3 == 0
+        for idx in (slice(5, 40), np.array([7, 2, 7, es.n_elements - 1]), mask):
+            np.testing.assert_array_equal(es.volumes_of(idx), v[idx])
+    np.testing.assert_allclose(box.tet_volume, np.prod(box.spacing) / 6, rtol=1e-15)
+    mesh = TetMesh(box.points, box.tets)
+    plain = cut_mesh(mesh, Sphere(1.0))
+    es = plain.elements(CUT)
+    X = es.points[es.tets]
+    np.testing.assert_allclose(es.volumes, np.abs(np.linalg.det(X[:, 1:] - X[:, :1])) / 6, rtol=1e-12)
+    np.testing.assert_allclose(es.volumes_of(slice(3, 9)), es.volumes[3:9], rtol=0)
+    np.testing.assert_allclose(plain.tet_volumes.sum(), cut.tet_volumes.sum(), rtol=1e-12)
