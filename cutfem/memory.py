@@ -33,8 +33,12 @@ item, fitted to the peak resident memory of fresh ``cutfem run`` processes (``/p
   the mean curvature problem on the torus 857, 274, 225, 218 and 209 bytes a tet at spacings 0.05
   to 0.003125 (52 thousand to 13.7 million tets; 2.7 GiB on top of 2.9 GiB at 0.003125), the cut
   Laplace-Beltrami problem on the sphere (its augmented multigrid and three matrices) 969, 772 and
-  751 bytes at 0.025, 0.0125 and 0.00625: fits of about 16 MB plus 208 and 745 bytes a tet.  The
-  estimates: 64 MiB plus 250 bytes a tet for the mean curvature problem (its own constant) and plus
+  751 bytes at 0.025, 0.0125 and 0.00625: fits of about 16 MB plus 208 and 745 bytes a tet.  Since
+  the cut and the solve keep less (int32 node numbers, no volume arrays or polygon slots, a solve
+  that frees its directions before its last steps), the mean curvature problem adds 152, 155 and
+  162 bytes a tet at spacings 0.0125, 0.00625 and 0.003125, and about 157 at 0.0015625 (17.5 GiB
+  peak).  The estimates: 64 MiB plus 200 bytes a tet for the mean curvature problem (its own
+  constant; 250 before, which at 0.0015625 asked 13.8 GB where about 8.6 GB was needed) and plus
   :data:`BYTES_PER_ACTIVE_TET`, 850 bytes, for the others;
 * :data:`BYTES_PER_SURFACE_NODE`: a meshed surface problem per node (0.6 GiB for the meshed torus
   with 295 thousand nodes: 2.2 KB).

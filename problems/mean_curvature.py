@@ -38,9 +38,9 @@ SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 #: K-cycles; 23 instead of 31 with W-cycles).
 SOLVER_TOL = 1e-6
 #: what the stages after the cut add to the resident memory per active tet, for the memory check
-#: before the space is built (:func:`~cutfem.problems.common.check_cut_memory`; measured 209-274
-#: bytes from spacing 0.025 to 0.003125, see :mod:`cutfem.memory`)
-BYTES_PER_ACTIVE_TET = 250
+#: before the space is built (:func:`~cutfem.problems.common.check_cut_memory`; measured 152, 155,
+#: 162 and about 157 bytes at spacings 0.0125 to 0.0015625, see :mod:`cutfem.memory`)
+BYTES_PER_ACTIVE_TET = 200
 
 #: the record entries of the mean curvature problems (saved in the JSON of a run)
 DEFINITIONS = {
