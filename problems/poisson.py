@@ -14,7 +14,10 @@ Manufactured solution (smooth, not a polynomial): u = sin(pi x / 2) cos(pi y / 3
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import l2_h1_errors
@@ -29,24 +32,40 @@ from .common import SHAPE_PARAMS, Timer, background_for, cut_record, levelset_fo
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
 
+@njit(cache=True, error_model="numpy")
+def _u_and_gradient(x, u, grad):
+    for i in range(x.shape[0]):
+        ax, by = _A * x[i, 0], _B * x[i, 1]
+        s, e = math.sin(ax), math.exp(_C * x[i, 2])
+        ce = math.cos(by) * e
+        u[i] = s * ce
+        grad[i, 0] = _A * math.cos(ax) * ce
+        grad[i, 1] = -_B * s * math.sin(by) * e
+        grad[i, 2] = _C * u[i]
+
+
 def exact_u(x):
     """u = sin(a x) cos(b y) exp(c z), a = pi/2, b = pi/3, c = 1/2."""
     return np.sin(_A * x[..., 0]) * np.cos(_B * x[..., 1]) * np.exp(_C * x[..., 2])
 
 
 def exact_solution(x):
-    """(u, grad u) at the points x (m, q, 3): each of the five factors sin(a x), cos(a x),
-    cos(b y), sin(b y), exp(c z) evaluated once for both."""
-    ax, by = _A * x[..., 0], _B * x[..., 1]
-    s, e = np.sin(ax), np.exp(_C * x[..., 2])
-    c = np.cos(by)
-    ce = c * e
-    u = s * ce
-    grad = np.empty(x.shape)
-    grad[..., 0] = _A * np.cos(ax) * ce
-    grad[..., 1] = -_B * s * np.sin(by) * e
-    grad[..., 2] = _C * u
-    return u, grad
+    """(u, grad u) at the points x (..., 3) (see :func:`exact_u`): each of the five factors
+    sin(a x), cos(a x), cos(b y), sin(b y), exp(c z) evaluated once for both.
+
+    The errors evaluate it at every quadrature point (238 million at 2.7 million unknowns), so it
+    runs as one compiled loop over the points: the L2 and H1 errors took 10.2-11.6 s there against
+    15.2-16.9 s for the same expression in numpy (its passes over (m, q) temporaries and strided
+    coordinate views), most of what remains being libm's four sines and cosines a point.  Equal to
+    the numpy expression to an ulp or two (libm and numpy compute sin and cos by different
+    routines); u alone (:func:`exact_u`, for the loads) gained nothing compiled and stays numpy."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 0 or x.shape[-1] != 3:
+        raise ValueError(f"points must have shape (..., 3), got {x.shape}")
+    pts = np.ascontiguousarray(x.reshape(-1, 3))
+    u, grad = np.empty(len(pts)), np.empty((len(pts), 3))
+    _u_and_gradient(pts, u, grad)
+    return u.reshape(x.shape[:-1]), grad.reshape(x.shape)
 
 
 def source(x):
