@@ -24,7 +24,10 @@ f_i = -Lap(psi w) with Lap(psi w) = 6 w + 4 x . grad w + psi Lap w, Lap w = -3/4
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import njit
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import l2_h1_errors
@@ -36,6 +39,22 @@ from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
 from .common import Timer, background_for, cut_record
+
+
+@njit(cache=True, error_model="numpy")
+def _u_and_gradient(x, R2, a, u, grad):
+    """u = psi w / a and grad u = (psi grad w + 2 x w) / a at the points x (n, 3), in the operation
+    order of :meth:`InterfaceSolution.solution`'s numpy form."""
+    for i in range(x.shape[0]):
+        x0, x1, x2 = x[i, 0], x[i, 1], x[i, 2]
+        psi = x0 * x0 + x1 * x1 + x2 * x2 - R2
+        ey = math.exp(0.5 * x1)
+        e = math.sin(x0) * ey
+        w = e + 2.0
+        u[i] = psi * w / a
+        grad[i, 0] = (math.cos(x0) * ey * psi + 2.0 * x0 * w) / a
+        grad[i, 1] = (0.5 * e * psi + 2.0 * x1 * w) / a
+        grad[i, 2] = (2.0 * x2 * w) / a
 
 
 class InterfaceSolution:
@@ -67,15 +86,21 @@ class InterfaceSolution:
         return value
 
     def solution(self, side):
-        """(u, grad u) of a side at the points x, from one evaluation of the parts:
-        grad u = (2 x w + psi grad w) / a."""
+        """(u, grad u) of a side at the points x (..., 3): grad u = (psi grad w + 2 x w) / a, by one
+        compiled loop over the points (the errors evaluate it at every quadrature point: at 943
+        thousand unknowns numpy's passes over the parts took 3.8 s of the run's 9.1 s).  Equal to
+        the numpy expression to a few ulps (libm and numpy compute sin, cos and exp by different
+        routines)."""
+        R2, a = self.R**2, self.a[side]
 
         def value(x):
-            psi, w, grad, _ = self._parts(x)
-            grad *= psi[..., None]
-            grad += 2.0 * x * w[..., None]
-            grad /= self.a[side]
-            return psi * w / self.a[side], grad
+            x = np.asarray(x, dtype=float)
+            if x.ndim == 0 or x.shape[-1] != 3:
+                raise ValueError(f"points must have shape (..., 3), got {x.shape}")
+            pts = np.ascontiguousarray(x.reshape(-1, 3))
+            u, grad = np.empty(len(pts)), np.empty((len(pts), 3))
+            _u_and_gradient(pts, R2, a, u, grad)
+            return u.reshape(x.shape[:-1]), grad.reshape(x.shape)
 
         return value
 
