@@ -20,7 +20,7 @@ import copy
 import numpy as np
 import scipy.sparse as sp
 
-from .mesh import pair_up
+from .mesh import index_dtype, pair_up
 
 __all__ = ["LatticeSum", "SymmetricPattern", "assemble_vector", "gram", "gram_sum", "row_operator"]
 
@@ -56,7 +56,7 @@ class SymmetricPattern:
         self.n, self.n_pairs = n, p = n, len(lo)
         n_upper = np.bincount(lo, minlength=n)
         n_lower = np.bincount(hi, minlength=n)
-        index_type = np.int32 if n + 2 * p < 2**31 else np.int64
+        index_type = index_dtype(n + 2 * p)
         self.indptr = np.zeros(n + 1, dtype=index_type)
         np.cumsum(n_lower + 1 + n_upper, out=self.indptr[1:])
         self.diagonal_position = self.indptr[:-1] + n_lower
@@ -129,7 +129,7 @@ class LatticeSum:
         """(sums (13 n,), partner (13 n,), diagonal (n,)), allocated on first use."""
         if not self._store:
             n, S = len(self.ids), self._width
-            self._store.update(sums=np.zeros(S * n), partner=np.zeros(S * n, dtype=np.int32 if n < 2**31 else np.int64),
+            self._store.update(sums=np.zeros(S * n), partner=np.zeros(S * n, dtype=index_dtype(n)),
                                diagonal=np.zeros(n))
         st = self._store
         return st["sums"], st["partner"], st["diagonal"]
@@ -213,7 +213,7 @@ class LatticeSum:
         sums, partner, diagonal = self._slots()
         n = len(diagonal)
         nnz = kernels.lattice_nnz(sums, n)
-        index = np.int32 if nnz < 2**31 else np.int64
+        index = index_dtype(nnz)
         indptr, indices, data = np.empty(n + 1, dtype=index), np.empty(nnz, dtype=index), np.empty(nnz)
         kernels.lattice_csr(sums, partner, diagonal, indptr, indices, data)
         out = sp.csr_matrix((data, indices, indptr), shape=(n, n))
@@ -254,7 +254,7 @@ def row_operator(dofs: np.ndarray, values: np.ndarray, n: int, overwrite: bool =
     dofs = np.asarray(dofs)
     r, k = dofs.shape
     # int32 indices whenever they fit (scipy then stays in int32: less memory traffic in the products)
-    index = np.int32 if max(n, r * k) < 2**31 else np.int64
+    index = index_dtype(max(n, r * k))
     # sorting the rows below works in place: on the caller's arrays only when it allows it
     if overwrite:
         data = np.ascontiguousarray(values, dtype=float).reshape(-1)

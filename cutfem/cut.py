@@ -82,6 +82,7 @@ from .mesh import (
     TetMesh,
     barycentric_gradients,
     dense_unique,
+    index_dtype,
     pair_up,
     triangle_areas,
     unique_keys,
@@ -790,7 +791,7 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     n_vertices = len(vkeys)
     del key, vkeys
     # vertex numbers (and so the triangles) as int32 while they fit: 12 bytes a triangle, 16 a tet less
-    vinv = vinv.astype(np.int32 if n_vertices < 2**31 else np.int64, copy=False).reshape(m, 4)
+    vinv = vinv.astype(index_dtype(n_vertices), copy=False).reshape(m, 4)
     # each vertex computed once, from its first slot; triangles (0,1,2) and, for quads, (0,2,3),
     # tet by tet, without those with repeated vertices; orientation by n_h from the sign code (see
     # _flip_table)

@@ -55,7 +55,7 @@ import scipy.sparse as sp
 from . import assembly as _assembly
 from .assembly import LatticeSum, assemble_vector, gram, gram_sum
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
-from .mesh import TET_EDGES
+from .mesh import TET_EDGES, index_dtype
 from .markers import CUT
 from .spaces import ProductSpace
 
@@ -633,8 +633,9 @@ def _simplex_mass(space, vertices, elements, sizes):
 
 
 def _compact(dofs, n):
-    """dofs as int32 when the numbers fit: the Gram rows repeat them, int32 halves that copy."""
-    return dofs.astype(np.int32) if n < 2**31 else dofs
+    """dofs as int32 when the numbers fit (no copy when they already are): the Gram rows repeat
+    them, int32 halves that copy."""
+    return dofs.astype(index_dtype(n), copy=False)
 
 
 def _gradient_matrix(space, grads_of, weights, elements=None):
@@ -921,7 +922,7 @@ def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale):
     from . import kernels
 
     dofs = space.element_dofs  # read as they are; the rows' copies are int32 when the numbers fit
-    index = np.int32 if space.n_dofs < 2**31 else np.int64
+    index = index_dtype(space.n_dofs)
     table, types = space.gradient_lookup()
     k = dofs.shape[1]
 

@@ -139,7 +139,7 @@ import numpy as np
 import scipy.sparse as sp
 from numba import njit
 
-from .mesh import TET_EDGES
+from .mesh import TET_EDGES, index_dtype
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
@@ -1279,7 +1279,7 @@ def surface(vinv, n_vertices, tets, code, vals, points, edge_i_table, edge_j_tab
     vertices = np.empty((n_vertices, 3))
     args = (vinv, tets, code, vals, points) + tables[:4]
     n = _surface(*args, tables[4], tables[5], vertices, np.empty((0, 3), dtype=vinv.dtype), np.empty(0, dtype=np.int64), False)
-    tri, tri_tet = np.empty((n, 3), dtype=vinv.dtype), np.empty(n, dtype=np.int32 if len(vinv) < 2**31 else np.int64)
+    tri, tri_tet = np.empty((n, 3), dtype=vinv.dtype), np.empty(n, dtype=index_dtype(len(vinv)))
     _surface(*args, tables[4], tables[5], vertices, tri, tri_tet, True)
     return vertices, tri, tri_tet
 
@@ -1450,7 +1450,7 @@ def kuhn_face_pairs(tets, kinds, low, ftype, n_keys: int):
     tets = np.ascontiguousarray(tets)
     kinds = np.ascontiguousarray(kinds)
     rows = 4 * len(tets)
-    dtype = np.int32 if rows < 2**31 else np.int64
+    dtype = index_dtype(rows)
     first, second = np.full(n_keys, -1, dtype=dtype), np.full(n_keys, -1, dtype=dtype)
     n = _mark_kuhn_faces(tets, kinds, low, ftype, first, second)
     pairs, opposite = np.empty((n, 2), dtype=dtype), np.empty((n, 2), dtype=np.int8)
@@ -1602,7 +1602,7 @@ def galerkin(A, P, R=None):
         args += [M.indptr, M.indices, M.data.astype(float, copy=False)]
     ptr, idx, val, strict = _galerkin_upper(*args, np.int64(m), np.int64(max(16, 8 * m)))
     nnz = len(idx) + strict
-    index = np.int32 if nnz < 2**31 else np.int64  # int32 written here: scipy checks int64 contents min/max to narrow them
+    index = index_dtype(nnz)  # int32 written here: scipy checks int64 contents min/max to narrow them
     indptr, indices, data = np.empty(m + 1, dtype=index), np.empty(nnz, dtype=index), np.empty(nnz)
     _mirror_upper(ptr, idx, val, indptr, indices, data)
     out = sp.csr_matrix((data, indices, indptr), shape=(m, m))
@@ -1670,7 +1670,7 @@ def dense_unique(ids, n: int, inverse_dtype=None):
     prefix = np.empty(len(words), dtype=np.int64)
     unique = np.empty(min(int(n), flat.size), dtype=np.int64)
     u = _rank_bits(words, prefix, unique)
-    dtype = np.dtype(inverse_dtype) if inverse_dtype is not None else np.dtype(np.int32 if u < 2**31 else np.int64)
+    dtype = np.dtype(inverse_dtype) if inverse_dtype is not None else np.dtype(index_dtype(u))
     if u > 0 and np.iinfo(dtype).max < u - 1:
         raise ValueError(f"inverse_dtype {dtype} cannot hold {u} distinct values")
     inverse = np.empty(flat.size, dtype=dtype)

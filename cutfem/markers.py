@@ -34,7 +34,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .mesh import TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, kuhn_face_pairs, pair_up, tet_face_keys
+from .mesh import TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, index_dtype, kuhn_face_pairs, pair_up, tet_face_keys
 
 __all__ = ["NEG", "POS", "CUT", "SIDES", "ElementSet", "FacetSet", "interior_facets", "side_subtetrahedra", "longest_edges"]
 
@@ -256,7 +256,7 @@ class FacetSet:
     def __init__(self, elements: ElementSet, pairs, opposite, name="facets"):
         self.elements = elements
         # element indices as int32 while they fit: half the bytes
-        self.pairs = np.asarray(pairs, dtype=np.int32 if elements.n_elements < 2**31 else np.int64).reshape(-1, 2)
+        self.pairs = np.asarray(pairs, dtype=index_dtype(elements.n_elements)).reshape(-1, 2)
         self.opposite = np.asarray(opposite, dtype=np.int8).reshape(-1, 2)  # 0..3: one byte, not eight
         self.name = name
 

@@ -42,6 +42,7 @@ __all__ = [
     "kuhn_face_keys",
     "kuhn_face_pairs",
     "kuhn_neighbour_offsets",
+    "index_dtype",
     "pair_up",
     "unique_keys",
 ]
@@ -206,7 +207,7 @@ def tet_face_keys(tets: np.ndarray, n: int) -> tuple:
     bits of a row into as few radix passes as the key count allows, so there is no cap on n.
     """
     tets = np.asarray(tets, dtype=np.int64)
-    dtype = np.int32 if n <= 2**31 else np.int64
+    dtype = index_dtype(n - 1)
     m = len(tets)
     cols = [np.empty((m, 4), dtype=dtype) for _ in range(3)]
     for k, face in enumerate(TET_FACES):  # the four local faces, each over all tets at once
@@ -217,6 +218,13 @@ def tet_face_keys(tets: np.ndarray, n: int) -> tuple:
         cols[1][:, k] = a + b + c - lo - hi
         cols[2][:, k] = hi
     return tuple(col.reshape(-1) for col in cols)
+
+
+def index_dtype(largest) -> type:
+    """np.int32 when integers up to ``largest`` fit in it, else np.int64: the type of the index
+    arrays the library makes (node and element numbers, CSR indices, sort orders), which halves
+    their memory and traffic wherever the sizes allow."""
+    return np.int32 if largest < 2**31 else np.int64
 
 
 def _as_columns(keys) -> list:

@@ -167,7 +167,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .mesh import dense_unique, unique_keys
+from .mesh import dense_unique, index_dtype, unique_keys
 
 __all__ = [
     "SolverError",
@@ -885,7 +885,7 @@ def kuhn_prolongation(ijk):
     codes = np.empty(2 * m, dtype=np.int64)
     kernels.kuhn_ends_codes(ijk, base, dims, codes)
     cols, cijk = _number_lattice_codes(codes, base, dims)
-    index = np.int32 if 2 * m < 2**31 else np.int64
+    index = index_dtype(2 * m)
     indptr = np.empty(m + 1, dtype=index)
     indices, data = np.empty(2 * m, dtype=index), np.empty(2 * m)
     kernels.kuhn_prolongation_csr(ijk, cols, indptr, indices, data)
