@@ -20,7 +20,7 @@ import copy
 import numpy as np
 import scipy.sparse as sp
 
-from .mesh import index_dtype, pair_up
+from .mesh import index_dtype
 
 __all__ = ["LatticeSum", "SymmetricPattern", "assemble_vector", "gram", "gram_sum", "row_operator"]
 
@@ -32,47 +32,29 @@ class SymmetricPattern:
     closed-form P1 matrices of a triangulated surface are: :meth:`matrix` writes the diagonal and
     each pair's value at (i, j) and (j, i), so the matrix is exactly symmetric and needs neither
     a sort nor a sum of duplicates per assembly.  Repeated pairs are allowed (their values are
-    summed); ``presorted=True`` promises that the pairs are already unique with i < j in
-    lexicographic order (e.g. the edges of a :class:`~cutfem.surface.SurfaceMesh`), which skips
-    the one sort of the pair keys i N + j.
+    summed in the order given); ``presorted=True`` promises that the pairs are already unique
+    with i < j in lexicographic order (e.g. the edges of a :class:`~cutfem.surface.SurfaceMesh`),
+    which skips the sort.
 
     Row i holds, in increasing column order, the mirrors (i, j) of the pairs (j, i) with j < i,
-    the diagonal, then the pairs (i, j) with j > i; the order of the mirrors is that of the
-    transposed upper triangle, which scipy finds by a counting sort.
+    the diagonal, then the pairs (i, j) with j > i: one compiled pass over the pairs
+    (:func:`cutfem.kernels.symmetric_pattern`).
     """
 
     def __init__(self, pairs: np.ndarray, n: int, presorted: bool = False):
+        from . import kernels
+
         pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
         n = int(n)
-        lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
-        if np.any(lo == hi):
+        if np.any(pairs[:, 0] == pairs[:, 1]):
             raise ValueError("pairs must join two different dofs (the diagonal is always in the pattern)")
-        self._order = self._starts = None
-        if not presorted:
-            key = lo * n + hi
-            self._order, self._starts, _ = pair_up(key)
-            ukey = key[self._order[self._starts]]
-            lo, hi = ukey // n, ukey % n
-        self.n, self.n_pairs = n, p = n, len(lo)
-        n_upper = np.bincount(lo, minlength=n)
-        n_lower = np.bincount(hi, minlength=n)
-        index_type = index_dtype(n + 2 * p)
-        self.indptr = np.zeros(n + 1, dtype=index_type)
-        np.cumsum(n_lower + 1 + n_upper, out=self.indptr[1:])
-        self.diagonal_position = self.indptr[:-1] + n_lower
-        # pair u is the (u - #pairs in earlier rows)-th entry of row lo_u after the diagonal
-        pairs_before = np.cumsum(n_upper) - n_upper
-        self.upper_position = np.arange(p) + np.repeat(self.diagonal_position + 1 - pairs_before, n_upper)
-        # its mirror (hi_u, lo_u): the pairs in (hi, lo) order, by scipy's transpose (a counting sort)
-        upper = sp.csr_matrix((np.arange(p), hi, np.append(0, np.cumsum(n_upper))), shape=(n, n))
-        by_row = upper.tocsc().data
-        mirrors_before = np.cumsum(n_lower) - n_lower
-        self.lower_position = np.empty(p, dtype=np.int64)
-        self.lower_position[by_row] = np.arange(p) + np.repeat(self.indptr[:-1] - mirrors_before, n_lower)
-        self.indices = np.empty(n + 2 * p, dtype=index_type)
-        self.indices[self.diagonal_position] = np.arange(n)
-        self.indices[self.upper_position] = hi
-        self.indices[self.lower_position] = lo
+        if pairs.size and (pairs.min() < 0 or pairs.max() >= n):
+            raise ValueError(f"pairs must be dof numbers in [0, {n}), got values in [{pairs.min()}, {pairs.max()}]")
+        index_type = index_dtype(n + 2 * len(pairs))
+        self.indptr, self.indices, self.diagonal_position, self.upper_position, self.lower_position, slot = kernels.symmetric_pattern(
+            pairs[:, 0].astype(index_type), pairs[:, 1].astype(index_type), n, bool(presorted))
+        self.n, self.n_pairs = n, len(self.upper_position)
+        self._slot = None if presorted else slot
 
     @property
     def nnz(self) -> int:
@@ -82,8 +64,8 @@ class SymmetricPattern:
         """The CSR matrix with ``diagonal`` (n,) and ``values`` (one per pair given to the
         constructor, repeated pairs summed) at (i, j) and (j, i)."""
         values = np.asarray(values, dtype=float)
-        if self._order is not None:
-            values = np.add.reduceat(values[self._order], self._starts) if values.size else values
+        if self._slot is not None:  # repeated pairs summed in the order given
+            values = np.bincount(self._slot, weights=values, minlength=self.n_pairs)
         data = np.empty(self.nnz)
         data[self.diagonal_position] = diagonal
         data[self.upper_position] = values

@@ -204,6 +204,16 @@ def test_symmetric_pattern_sums_repeated_pairs():
     assert np.array_equal(B.indices, A.indices) and np.array_equal(B.indptr, A.indptr)
     with pytest.raises(ValueError, match="two different"):
         SymmetricPattern([[1, 1]], 3)
+    with pytest.raises(ValueError, match=r"in \[0, 3\)"):
+        SymmetricPattern([[0, 3]], 3)
+    # the distinct pairs in lexicographic order, given as presorted: the same structure, no sums
+    lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
+    unique = np.unique(np.column_stack([lo, hi]), axis=0)
+    C = SymmetricPattern(unique, n, presorted=True)
+    assert C.n_pairs == len(unique) < len(pairs)
+    assert np.array_equal(C.indices, A.indices) and np.array_equal(C.indptr, A.indptr)
+    summed = np.array([values[(lo == i) & (hi == j)].sum() for i, j in unique])
+    np.testing.assert_allclose(C.matrix(diagonal, summed).toarray(), expected, rtol=1e-15, atol=0)
 
 
 @pytest.mark.parametrize("family", ["structured", "flipped", "perturbed", "perturbed-flipped"])
