@@ -82,7 +82,8 @@ def _common_record(space, ones_M, H, levelset, solve_info):
         "h": space.h,
         "dofs": int(space.n_dofs),
         "area": float(ones_M.sum()),
-        "integral_H": (ones_M @ H).tolist(),  # exact for P1: int_{S_h} H_h = 1^T M H
+        # exact for P1: int_{S_h} H_h = 1^T M H (einsum, not BLAS: see cutfem.solve._dot)
+        "integral_H": np.einsum("i,ij->j", ones_M, H).tolist(),
         "solver": solve_info.method,
         "solver_iterations": solve_info.iterations,
         "solver_residual": solve_info.residual,
