@@ -1740,7 +1740,9 @@ def symmetric_pattern(a, b, n, presorted):
     dt = a.dtype
     if presorted:
         slot = np.empty(0, dt)
-        ulo, uhi, p = a, b, m
+        ulo, uhi, p = np.empty(m, dt), np.empty(m, dt), m
+        for k in range(m):
+            ulo[k], uhi[k] = min(a[k], b[k]), max(a[k], b[k])
     else:
         start = np.zeros(n + 1, dt)
         for k in range(m):
