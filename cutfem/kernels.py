@@ -86,6 +86,10 @@ int32 while it fits (numpy sorted the pair keys and built the mirrors by a spars
 edge-penalty stencil of the meshed torus 768 x 384, 1.77 million pairs, in 150 ms against 59 ms;
 the same arrays).
 
+:func:`grid_weights`: the corners and weights of the prolongation of a doubly periodic surface
+grid (the meshed torus's multigrid), one pass over the nodes (numpy: (n m, 4, 3) blocks of corner
+offsets; 100-146 ms at 768 x 384 against 14 ms, equal to 1e-14 relative).
+
 :func:`triangle_points` and :func:`squared_error`: the quadrature points of a block of triangles
 of S_h and the weighted squared error there (the L2 error of a trace; numpy needed a dozen small
 array operations a block, so blocks of 1024 triangles and a millisecond of overhead each).
@@ -1807,3 +1811,47 @@ def symmetric_pattern(a, b, n, presorted):
         next_lower[c] += 1
         indices[lower[u]] = r
     return indptr, indices, diagonal, upper, lower, slot
+
+
+@njit(cache=True, error_model="numpy")
+def grid_weights(X, n, m):
+    """The four coarse corners and weights of each node of a doubly periodic (n, m) surface grid,
+    for :func:`cutfem.solve.grid_prolongation` (which states the weights): node (i, j), index
+    i m + j, in the coarse cell (2a, 2b) + {0, 2}^2, corners (a, b), (a + 1, b), (a + 1, b + 1),
+    (a, b + 1) modulo (n/2, m/2).  Returns (cols (n m, 4), weights (n m, 4)); a coarse node gets
+    the weights (1, 0, 0, 0).  One pass over the nodes, where numpy made (n m, 4, 3) blocks."""
+    nc, mc = n // 2, m // 2
+    N = n * m
+    cols = np.empty((N, 4), np.int64)
+    w = np.empty((N, 4))
+    D = np.empty((4, 3))
+    u = np.empty(4)
+    v = np.empty(4)
+    for p in range(N):
+        i, j = p // m, p % m
+        a, b = i // 2, j // 2
+        a1, b1 = (a + 1) % nc, (b + 1) % mc
+        cols[p, 0], cols[p, 1], cols[p, 2], cols[p, 3] = a * mc + b, a1 * mc + b, a1 * mc + b1, a * mc + b1
+        if i % 2 == 0 and j % 2 == 0:
+            w[p, 0], w[p, 1], w[p, 2], w[p, 3] = 1.0, 0.0, 0.0, 0.0
+            continue
+        for k in range(4):
+            q = 2 * (cols[p, k] // mc) * m + 2 * (cols[p, k] % mc)
+            for c in range(3):
+                D[k, c] = X[q, c] - X[p, c]
+        su = sv = suu = svv = suv = 0.0
+        for k in range(4):
+            u[k] = D[k, 0] * (D[2, 0] - D[0, 0]) + D[k, 1] * (D[2, 1] - D[0, 1]) + D[k, 2] * (D[2, 2] - D[0, 2])
+            v[k] = D[k, 0] * (D[3, 0] - D[1, 0]) + D[k, 1] * (D[3, 1] - D[1, 1]) + D[k, 2] * (D[3, 2] - D[1, 2])
+            su += u[k]
+            sv += v[k]
+            suu += u[k] * u[k]
+            svv += v[k] * v[k]
+            suv += u[k] * v[k]
+        c0 = suu * svv - suv * suv
+        c1 = suv * sv - su * svv
+        c2 = su * suv - suu * sv
+        det = 4.0 * c0 + su * c1 + sv * c2
+        for k in range(4):
+            w[p, k] = (c0 + c1 * u[k] + c2 * v[k]) / det
+    return cols, w

@@ -978,23 +978,10 @@ def grid_prolongation(points, shape):
     X = np.asarray(points, dtype=float)
     if n % 2 or m % 2 or X.shape != (n * m, 3):
         raise ValueError(f"grid_prolongation needs an even grid shape matching the points; got {shape} and {X.shape}")
+    from . import kernels
+
     nc, mc = n // 2, m // 2
-    i, j = np.divmod(np.arange(n * m), m)
-    a, b = i // 2, j // 2
-    a1, b1 = (a + 1) % nc, (b + 1) % mc
-    cols = np.empty((n * m, 4), dtype=np.int64)
-    cols[:, 0], cols[:, 1], cols[:, 2], cols[:, 3] = a * mc + b, a1 * mc + b, a1 * mc + b1, a * mc + b1
-    D = X[2 * (cols // mc) * m + 2 * (cols % mc)] - X[:, None, :]  # the corners (2a, 2b) minus x
-    d, e = D[:, 2] - D[:, 0], D[:, 3] - D[:, 1]
-    u, v = np.einsum("nkc,nc->nk", D, d), np.einsum("nkc,nc->nk", D, e)
-    su, sv = u.sum(axis=1), v.sum(axis=1)
-    suu, svv, suv = (u * u).sum(axis=1), (v * v).sum(axis=1), (u * v).sum(axis=1)
-    c0 = suu * svv - suv * suv
-    c1 = suv * sv - su * svv
-    c2 = su * suv - suu * sv
-    det = 4.0 * c0 + su * c1 + sv * c2
-    w = (c0[:, None] + c1[:, None] * u + c2[:, None] * v) / det[:, None]
-    w[(i % 2 == 0) & (j % 2 == 0)] = (1.0, 0.0, 0.0, 0.0)
+    cols, w = kernels.grid_weights(np.array(X, order="C"), n, m)  # a writable copy: one compiled signature
     P = sp.csr_matrix((w.reshape(-1), cols.reshape(-1), np.arange(0, 4 * n * m + 1, 4)), shape=(n * m, nc * mc))
     P.eliminate_zeros()
     coarse_points = X[(2 * np.arange(nc))[:, None] * m + 2 * np.arange(mc)[None, :]].reshape(-1, 3)

@@ -316,6 +316,26 @@ def test_grid_prolongation_on_the_torus_is_second_order():
     assert errs[0] < 0.05 and 3.5 < errs[0] / errs[1] < 4.5 and 3.5 < errs[1] / errs[2] < 4.5
 
 
+def test_grid_prolongation_weights_are_the_minimum_norm_solution():
+    """Each fine node's weights against an independent reference: the minimum-norm solution of the
+    three constraints C w = (1, 0, 0) by numpy's least squares, on a perturbed torus."""
+    mesh = torus_mesh(24, "perturbed-flipped", seed=5)
+    n, m = mesh.grid
+    X = mesh.points
+    P, Xc, _ = grid_prolongation(X, (n, m))
+    nc, mc = n // 2, m // 2
+    for p in range(n * m):
+        i, j = divmod(p, m)
+        if i % 2 == 0 and j % 2 == 0:
+            continue
+        a, b = i // 2, j // 2
+        corners = [a * mc + b, (a + 1) % nc * mc + b, (a + 1) % nc * mc + (b + 1) % mc, a * mc + (b + 1) % mc]
+        D = Xc[corners] - X[p]
+        C = np.vstack([np.ones(4), D @ (D[2] - D[0]), D @ (D[3] - D[1])])
+        w = np.linalg.lstsq(C, np.array([1.0, 0.0, 0.0]), rcond=None)[0]
+        np.testing.assert_allclose(P[p, corners].toarray().ravel(), w, rtol=0, atol=1e-12)
+
+
 def test_surface_lattice_prolongation_is_exact_for_linear_functions():
     mesh = sphere_mesh(4)
     P, ijk = surface_lattice_prolongation(mesh.points, 0.2)
