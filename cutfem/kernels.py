@@ -1742,23 +1742,23 @@ def symmetric_pattern(a, b, n, presorted):
     n + 2 m (a fresh array is a first touch of its pages: int32 halves them)."""
     m = a.shape[0]
     dt = a.dtype
+    lo, hi = np.empty(m, dt), np.empty(m, dt)
+    for k in range(m):
+        lo[k], hi[k] = min(a[k], b[k]), max(a[k], b[k])
     if presorted:
         slot = np.empty(0, dt)
-        ulo, uhi, p = np.empty(m, dt), np.empty(m, dt), m
-        for k in range(m):
-            ulo[k], uhi[k] = min(a[k], b[k]), max(a[k], b[k])
+        ulo, uhi, p = lo, hi, m
     else:
         start = np.zeros(n + 1, dt)
         for k in range(m):
-            start[min(a[k], b[k]) + 1] += 1
+            start[lo[k] + 1] += 1
         for i in range(n):
             start[i + 1] += start[i]
         fill = start[:-1].copy()
         order = np.empty(m, dt)
         for k in range(m):  # stable: the pairs of a row in the order given
-            r = min(a[k], b[k])
-            order[fill[r]] = k
-            fill[r] += 1
+            order[fill[lo[k]]] = k
+            fill[lo[k]] += 1
         slot = np.empty(m, dt)
         ulo = np.empty(m, dt)
         uhi = np.empty(m, dt)
@@ -1767,19 +1767,15 @@ def symmetric_pattern(a, b, n, presorted):
             s, e = start[i], start[i + 1]
             for t in range(s + 1, e):  # stable insertion sort on hi within the row
                 k = order[t]
-                h = max(a[k], b[k])
                 u = t
-                while u > s and max(a[order[u - 1]], b[order[u - 1]]) > h:
+                while u > s and hi[order[u - 1]] > hi[k]:
                     order[u] = order[u - 1]
                     u -= 1
                 order[u] = k
-            prev = -1
             for t in range(s, e):
                 k = order[t]
-                h = max(a[k], b[k])
-                if h != prev:
-                    prev = h
-                    ulo[p], uhi[p] = i, h
+                if t == s or hi[k] != uhi[p - 1]:
+                    ulo[p], uhi[p] = i, hi[k]
                     p += 1
                 slot[k] = p - 1
     n_upper = np.zeros(n, dt)

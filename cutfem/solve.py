@@ -146,8 +146,8 @@ The banded factorization runs with BLAS on one thread (threadpoolctl): OpenBLAS'
 little on these small level-3 blocks, and whenever the other core was busy their synchronization
 made a 2 ms factorization take up to 0.5 s.
 
-BLAS threads: the iteration loops use no BLAS calls (column dot products by a compiled kernel,
-:func:`cutfem.kernels.column_dots`): on this machine's 2 virtual cores, OpenBLAS' threaded level-1 calls on vectors of 10^5 entries are up to
+BLAS threads: the iteration loops and the null-vector checks before them use no BLAS calls (column
+dot products by a compiled kernel, :func:`cutfem.kernels.column_dots`): on this machine's 2 virtual cores, OpenBLAS' threaded level-1 calls on vectors of 10^5 entries are up to
 20 times slower than serial ones, which made scipy's ``cg`` erratic (0.2 s to 3.7 s for the same
 300 iterations).
 
@@ -297,10 +297,13 @@ class _Checks:
 
 
 def _dot(u, v) -> float:
-    """u . v of two long vectors without BLAS: OpenBLAS hands a dot of this length to its threads,
-    which then spin on the other core for about 0.1 s after the call (measured: each of the two
-    dots of a solve at 293k unknowns cost 0.11-0.13 s of CPU beside the caller)."""
-    return float(np.einsum("i,i->", u, v))
+    """u . v of two long vectors by :func:`cutfem.kernels.column_dots`, not BLAS (see the module
+    docstring): OpenBLAS hands a dot of this length to its threads, which then spin on the other
+    core for about 0.1 s after the call (each of the two dots of a solve at 293k unknowns cost
+    0.11-0.13 s of CPU beside the caller)."""
+    from . import kernels
+
+    return float(kernels.column_dots(u[:, None], v[:, None])[0])
 
 
 def _scaled_rayleigh(A, d, v):

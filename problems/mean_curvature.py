@@ -82,7 +82,7 @@ def _common_record(space, ones_M, H, levelset, solve_info):
         "h": space.h,
         "dofs": int(space.n_dofs),
         "area": float(ones_M.sum()),
-        # exact for P1: int_{S_h} H_h = 1^T M H (einsum, not BLAS: see cutfem.solve._dot)
+        # exact for P1: int_{S_h} H_h = 1^T M H (einsum: a BLAS product would leave its threads spinning)
         "integral_H": np.einsum("i,ij->j", ones_M, H).tolist(),
         "solver": solve_info.method,
         "solver_iterations": solve_info.iterations,
