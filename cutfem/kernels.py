@@ -23,13 +23,26 @@ Gauss-Seidel, 3 columns, float32   15-21 (pyamg, 3 sweeps)       6.6-10.7
 Gauss-Seidel, 1 column, float32    5.4-6.7 (pyamg)               5.0-7.3
 =================================  ============================  ==========
 
-Everything runs on the calling thread.  Splitting the products' rows between the two cores
-(numba's ``prange`` on OpenMP) gained 7 % on the whole solve (1.83-1.99 s against 1.99-2.15 s for
-the three columns) and, with the other core busy, once made it take 7 s instead of 2.4 s; it
-would also start a thread pool in the user's process.  Indices are read as unsigned and the error
-model is numpy's: with Python's negative-index and division-by-zero checks in the inner loop the
-one-column sweep took 11-15 ms.  The sums run row by row in the matrix's order, as in
-scipy and pyamg, so a column's result does not depend on the columns beside it (bitwise).
+The sparse kernels share the rows between the cores (numba's ``prange``; the timings above are
+on one thread).  A product, a column reduction or a CG update splits its rows in blocks of
+:data:`SUM_BLOCK`; the sums are taken per block and the blocks' partial sums added in row order
+afterwards, so the result is bitwise the same on any number of threads.  A Gauss-Seidel sweep is
+sequential by nature; on a matrix whose rows follow a lattice or a grid (the levels of the
+geometric multigrid) :func:`sweep_chunks` cuts the rows into 8 or 4 chunks such that chunks of the
+same parity are not coupled, and the sweep takes the even chunks at the same time, then the odd
+ones: the Gauss-Seidel sweep of that reordering of the rows, again the same bits on any number of
+threads (the multigrid needed 20 CG iterations with it on the cut torus at spacing 0.0125, as
+with the rows in their order).  The whole solve there: 0.63-0.67 s on the two cores of the
+2-core machine against 0.96 s on one (``NUMBA_NUM_THREADS=1``), and ``cutfem run`` 1.85 s against
+2.13 s (medians of six interleaved pairs, 2026-12-03).  Splitting only the products had gained
+7 %.  numba starts its threads at the first parallel kernel; on OpenMP idle threads spin by
+default, which made the solve 3-4 times slower beside a busy process:
+:func:`cutfem.memory.configure` (run by the command line and the studies) makes them sleep.
+
+Indices are read as unsigned and the error model is numpy's: with Python's negative-index and
+division-by-zero checks in the inner loop the one-column sweep took 11-15 ms.  The sums run row by
+row in the matrix's order, as in scipy and pyamg, so a column's result does not depend on the
+columns beside it (bitwise).
 
 Element kernels
 ---------------
@@ -147,13 +160,13 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
+from numba import njit, prange
 
 from .mesh import TET_EDGES, index_dtype
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr"]
@@ -164,6 +177,9 @@ WIDTH = 3
 #: rows per partial sum of the column reductions: the order every column is summed in
 SUM_BLOCK = 256
 
+#: the chunk counts :func:`sweep_chunks` tries, in order
+SWEEP_CHUNKS = (8, 4)
+
 _COMPILED: dict = {}
 
 
@@ -173,121 +189,141 @@ def _kernels(c: int):
     if c in _COMPILED:
         return _COMPILED[c]
 
-    @njit(cache=True, error_model="numpy")
+    @njit(cache=True, error_model="numpy", parallel=True)
     def product(indptr, indices, data, X, Y, alpha, accumulate, dots):
         """Y = alpha A X (accumulate: Y += alpha A X), X (n_in, c), Y (n_out, c); with ``dots`` (c,)
         not empty (A square), also dots += the column dot products of X and the new Y in double
         precision, summed as :func:`column_dots` sums."""
         n = Y.shape[0]
         with_dots = dots.shape[0] > 0
-        d0 = d1 = d2 = 0.0
-        for i in range(n):
-            s0 = s1 = s2 = Y.dtype.type(0)
-            for k in range(np.uint64(indptr[i]), np.uint64(indptr[i + 1])):
-                j = np.uint64(indices[k])
-                a = data[k]
-                s0 += a * X[j, 0]
-                if c > 1:
-                    s1 += a * X[j, 1]
-                if c > 2:
-                    s2 += a * X[j, 2]
-            if accumulate:
-                Y[i, 0] += alpha * s0
-                if c > 1:
-                    Y[i, 1] += alpha * s1
-                if c > 2:
-                    Y[i, 2] += alpha * s2
-            else:
-                Y[i, 0] = alpha * s0
-                if c > 1:
-                    Y[i, 1] = alpha * s1
-                if c > 2:
-                    Y[i, 2] = alpha * s2
-            if with_dots:
-                d0 += np.float64(X[i, 0]) * np.float64(Y[i, 0])
-                if c > 1:
-                    d1 += np.float64(X[i, 1]) * np.float64(Y[i, 1])
-                if c > 2:
-                    d2 += np.float64(X[i, 2]) * np.float64(Y[i, 2])
-                if (i + 1) % SUM_BLOCK == 0 or i + 1 == n:  # a block's partial sums, as column_dots
-                    dots[0] += d0
+        nblocks = (n + SUM_BLOCK - 1) // SUM_BLOCK
+        part = np.zeros((nblocks if with_dots else 0, 3))
+        for b in prange(nblocks):
+            d0 = d1 = d2 = 0.0
+            for i in range(b * SUM_BLOCK, min((b + 1) * SUM_BLOCK, n)):
+                s0 = s1 = s2 = Y.dtype.type(0)
+                for k in range(np.uint64(indptr[i]), np.uint64(indptr[i + 1])):
+                    j = np.uint64(indices[k])
+                    a = data[k]
+                    s0 += a * X[j, 0]
                     if c > 1:
-                        dots[1] += d1
+                        s1 += a * X[j, 1]
                     if c > 2:
-                        dots[2] += d2
-                    d0 = d1 = d2 = 0.0
-
-    @njit(cache=True, error_model="numpy")
-    def sweep(indptr, indices, data, X, B, forward):
-        """One Gauss-Seidel sweep for A X = B in place, rows in increasing (forward) or decreasing
-        order; A must have its diagonal stored."""
-        n = X.shape[0]
-        for t in range(n):
-            i = np.uint64(t if forward else n - 1 - t)
-            d = data[0]
-            s0 = B[i, 0]
-            s1 = B[i, 1] if c > 1 else s0
-            s2 = B[i, 2] if c > 2 else s0
-            for k in range(np.uint64(indptr[i]), np.uint64(indptr[i + 1])):
-                j = np.uint64(indices[k])
-                a = data[k]
-                if j == i:
-                    d = a
+                        s2 += a * X[j, 2]
+                if accumulate:
+                    Y[i, 0] += alpha * s0
+                    if c > 1:
+                        Y[i, 1] += alpha * s1
+                    if c > 2:
+                        Y[i, 2] += alpha * s2
                 else:
-                    s0 -= a * X[j, 0]
+                    Y[i, 0] = alpha * s0
                     if c > 1:
-                        s1 -= a * X[j, 1]
+                        Y[i, 1] = alpha * s1
                     if c > 2:
-                        s2 -= a * X[j, 2]
-            X[i, 0] = s0 / d
-            if c > 1:
-                X[i, 1] = s1 / d
-            if c > 2:
-                X[i, 2] = s2 / d
+                        Y[i, 2] = alpha * s2
+                if with_dots:
+                    d0 += np.float64(X[i, 0]) * np.float64(Y[i, 0])
+                    if c > 1:
+                        d1 += np.float64(X[i, 1]) * np.float64(Y[i, 1])
+                    if c > 2:
+                        d2 += np.float64(X[i, 2]) * np.float64(Y[i, 2])
+            if with_dots:
+                part[b, 0] = d0
+                part[b, 1] = d1
+                part[b, 2] = d2
+        if with_dots:
+            for b in range(nblocks):
+                dots[0] += part[b, 0]
+                if c > 1:
+                    dots[1] += part[b, 1]
+                if c > 2:
+                    dots[2] += part[b, 2]
 
-    @njit(cache=True, error_model="numpy")
-    def presweep(indptr, indices, data, X, B, R):
-        """One forward Gauss-Seidel sweep for A X = B from X = 0 (X written, not read first) and the
-        residual R = B - A X; A exactly symmetric with sorted rows and its diagonal stored."""
-        n = X.shape[0]
+    @njit(cache=True, error_model="numpy", parallel=True)
+    def sweep(indptr, indices, data, X, B, forward, bounds):
+        """One Gauss-Seidel sweep for A X = B in place in the chunk order of ``bounds`` (see
+        :func:`sweep_chunks`): forward, the even chunks (in parallel, each in increasing row order),
+        then the odd ones; backward, the reverse.  A must have its diagonal stored."""
+        nch = bounds.shape[0] - 1
+        for phase in range(2):
+            color = phase if forward else 1 - phase
+            for h in prange((nch - color + 1) // 2):
+                ch = 2 * h + color
+                lo, hi = bounds[ch], bounds[ch + 1]
+                for t in range(hi - lo):
+                    i = np.uint64(lo + t if forward else hi - 1 - t)
+                    d = data[0]
+                    s0 = B[i, 0]
+                    s1 = B[i, 1] if c > 1 else s0
+                    s2 = B[i, 2] if c > 2 else s0
+                    for k in range(np.uint64(indptr[i]), np.uint64(indptr[i + 1])):
+                        j = np.uint64(indices[k])
+                        a = data[k]
+                        if j == i:
+                            d = a
+                        else:
+                            s0 -= a * X[j, 0]
+                            if c > 1:
+                                s1 -= a * X[j, 1]
+                            if c > 2:
+                                s2 -= a * X[j, 2]
+                    X[i, 0] = s0 / d
+                    if c > 1:
+                        X[i, 1] = s1 / d
+                    if c > 2:
+                        X[i, 2] = s2 / d
+
+    @njit(cache=True, error_model="numpy", parallel=True)
+    def presweep(indptr, indices, data, X, B, R, bounds):
+        """One forward Gauss-Seidel sweep (the chunk order of ``bounds``) for A X = B from X = 0
+        (X written, not read first) and the residual R = B - A X; A exactly symmetric with sorted
+        rows and its diagonal stored."""
+        nch = bounds.shape[0] - 1
         zero = R.dtype.type(0)
-        for t in range(n):
-            i = np.uint64(t)
-            d = data[0]
-            s0 = B[i, 0]
-            s1 = B[i, 1] if c > 1 else s0
-            s2 = B[i, 2] if c > 2 else s0
-            start, lower = np.uint64(indptr[i]), np.uint64(indptr[i + 1])
-            for k in range(start, lower):  # sorted rows: stop at the diagonal (right of it X is still zero)
-                j = np.uint64(indices[k])
-                a = data[k]
-                if j >= i:
-                    if j == i:
-                        d = a
-                    lower = k
-                    break
-                s0 -= a * X[j, 0]
-                if c > 1:
-                    s1 -= a * X[j, 1]
-                if c > 2:
-                    s2 -= a * X[j, 2]
-            x0, x1, x2 = s0 / d, s1 / d, s2 / d
-            X[i, 0] = x0
-            R[i, 0] = zero
-            if c > 1:
-                X[i, 1] = x1
-                R[i, 1] = zero
-            if c > 2:
-                X[i, 2] = x2
-                R[i, 2] = zero
-            for k in range(start, lower):  # x_i is final: its term in the rows j < i (A symmetric)
-                j = np.uint64(indices[k])
-                a = data[k]
-                R[j, 0] -= a * x0
-                if c > 1:
-                    R[j, 1] -= a * x1
-                if c > 2:
-                    R[j, 2] -= a * x2
+        for color in range(2):
+            for h in prange((nch - color + 1) // 2):
+                ch = 2 * h + color
+                lo, hi = np.uint64(bounds[ch]), np.uint64(bounds[ch + 1])
+                for i in range(lo, hi):
+                    d = data[0]
+                    s0 = B[i, 0]
+                    s1 = B[i, 1] if c > 1 else s0
+                    s2 = B[i, 2] if c > 2 else s0
+                    start, stop = np.uint64(indptr[i]), np.uint64(indptr[i + 1])
+                    for k in range(start, stop):
+                        j = np.uint64(indices[k])
+                        a = data[k]
+                        if j == i:
+                            d = a
+                        elif (lo <= j < i) or (color == 1 and (j < lo or j >= hi)):  # swept before row i
+                            s0 -= a * X[j, 0]
+                            if c > 1:
+                                s1 -= a * X[j, 1]
+                            if c > 2:
+                                s2 -= a * X[j, 2]
+                        elif color == 0 and j > i:
+                            break
+                    x0, x1, x2 = s0 / d, s1 / d, s2 / d
+                    X[i, 0] = x0
+                    R[i, 0] = zero
+                    if c > 1:
+                        X[i, 1] = x1
+                        R[i, 1] = zero
+                    if c > 2:
+                        X[i, 2] = x2
+                        R[i, 2] = zero
+                    for k in range(start, stop):  # x_i is final: its term in the rows swept before it
+                        j = np.uint64(indices[k])
+                        if (lo <= j < i) or (color == 1 and (j < lo or j >= hi)):
+                            a = data[k]
+                            R[j, 0] -= a * x0
+                            if c > 1:
+                                R[j, 1] -= a * x1
+                            if c > 2:
+                                R[j, 2] -= a * x2
+                        elif color == 0 and j > i:
+                            break
 
     _COMPILED[c] = (product, sweep, presweep)
     return product, sweep, presweep
@@ -341,25 +377,25 @@ def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False, dots=No
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def _column_dots(a, b, c, out, out_c):
     n, k = a.shape
     with_c = c.shape[0] > 0
-    part = np.zeros(k)
-    part_c = np.zeros(k)
-    for start in range(0, n, SUM_BLOCK):
-        part[:] = 0.0
-        part_c[:] = 0.0
-        for i in range(start, min(start + SUM_BLOCK, n)):
+    nblocks = (n + SUM_BLOCK - 1) // SUM_BLOCK
+    part = np.zeros((nblocks, k))
+    part_c = np.zeros((nblocks, k if with_c else 0))
+    for blk in prange(nblocks):
+        for i in range(blk * SUM_BLOCK, min((blk + 1) * SUM_BLOCK, n)):
             for l in range(k):
                 bi = np.float64(b[i, l])
-                part[l] += np.float64(a[i, l]) * bi
+                part[blk, l] += np.float64(a[i, l]) * bi
                 if with_c:
-                    part_c[l] += bi * np.float64(c[i, l])
+                    part_c[blk, l] += bi * np.float64(c[i, l])
+    for blk in range(nblocks):  # the blocks' partial sums in row order, whatever the threads
         for l in range(k):
-            out[l] += part[l]
+            out[l] += part[blk, l]
             if with_c:
-                out_c[l] += part_c[l]
+                out_c[l] += part_c[blk, l]
 
 
 _NO_BLOCK = np.zeros((0, 0))
@@ -391,21 +427,22 @@ def column_dots(a, b, c=None):
     return out, out_c
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def _cg_step(x, r, p, q, alpha, act, out):
     n, k = p.shape
-    part = np.zeros(k)
-    for start in range(0, n, SUM_BLOCK):
-        part[:] = 0.0
-        for i in range(start, min(start + SUM_BLOCK, n)):
+    nblocks = (n + SUM_BLOCK - 1) // SUM_BLOCK
+    part = np.zeros((nblocks, k))
+    for blk in prange(nblocks):
+        for i in range(blk * SUM_BLOCK, min((blk + 1) * SUM_BLOCK, n)):
             for l in range(k):
                 c = act[l]
                 x[i, c] += alpha[l] * p[i, l]
                 ri = r[i, c] - alpha[l] * q[i, l]
                 r[i, c] = ri
-                part[l] += ri * ri
+                part[blk, l] += ri * ri
+    for blk in range(nblocks):
         for l in range(k):
-            out[l] += part[l]
+            out[l] += part[blk, l]
 
 
 def cg_step(x, r, p, q, alpha, act):
@@ -418,10 +455,10 @@ def cg_step(x, r, p, q, alpha, act):
     return out
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def _cg_direction(p, z, beta):
     n, k = p.shape
-    for i in range(n):
+    for i in prange(n):
         for l in range(k):
             p[i, l] = np.float64(z[i, l]) + beta[l] * p[i, l]
 
@@ -441,46 +478,105 @@ def _check_blocks(A, names, X, *others):
             raise ValueError(f"{names} must be C-contiguous ({A.shape[0]}, c) blocks of {A.dtype}, got {Z.shape} {Z.dtype}")
 
 
-def gauss_seidel(A, X, B, forward: bool = True):
+def _bounds(A, chunks):
+    if chunks is None:
+        return np.array([0, A.shape[0]], dtype=np.int64)
+    chunks = np.asarray(chunks, dtype=np.int64)
+    if chunks.ndim != 1 or chunks.size < 2 or chunks[0] != 0 or chunks[-1] != A.shape[0] or np.any(np.diff(chunks) < 0) \
+            or (chunks.size > 2 and (chunks.size - 1) % 2):
+        raise ValueError(f"chunks must be the bounds 0 = b_0 <= ... <= b_k = {A.shape[0]} of 1 or an even number k of row "
+                         f"chunks (sweep_chunks(A)), got {chunks!r}")
+    return chunks
+
+
+def gauss_seidel(A, X, B, forward: bool = True, chunks=None):
     """One Gauss-Seidel sweep for ``A X = B`` in place on X (n, c), C-contiguous, of A's dtype: rows in
-    increasing order (``forward``) or decreasing.  A is CSR with its diagonal stored (nonzero)."""
+    increasing order (``forward``) or the reverse.  A is CSR with its diagonal stored (nonzero).
+
+    ``chunks``: the row-chunk bounds of :func:`sweep_chunks` (None: one chunk, the rows in their
+    order).  The sweep then takes the rows chunk by chunk, the even chunks first (at the same time on
+    the available cores: no two of them are coupled), then the odd ones, each chunk in increasing
+    row order; backward, the exact reverse.  It is the Gauss-Seidel sweep of that reordering of the
+    rows, whatever the number of threads (bitwise)."""
     indptr, indices, data = _csr(A)
     _check_blocks(A, "X and B", X, B)
+    bounds = _bounds(A, chunks)
     c = X.shape[1]
     if c <= WIDTH:
-        _kernels(c)[1](indptr, indices, data, X, B, forward)
+        _kernels(c)[1](indptr, indices, data, X, B, forward, bounds)
         return X
     for g in _groups(c):
         Y = np.ascontiguousarray(X[:, g])
-        _kernels(g.stop - g.start)[1](indptr, indices, data, Y, np.ascontiguousarray(B[:, g]), forward)
+        _kernels(g.stop - g.start)[1](indptr, indices, data, Y, np.ascontiguousarray(B[:, g]), forward, bounds)
         X[:, g] = Y
     return X
 
 
-def presmooth(A, X, B, R):
+def presmooth(A, X, B, R, chunks=None):
     """The first half of a multigrid cycle on one pass over A: X = one forward Gauss-Seidel sweep for
-    ``A X = B`` from X = 0, and R = B - A X, for an exactly symmetric CSR matrix A with its diagonal
-    stored (nonzero); X, B, R (n, c) C-contiguous blocks of A's dtype; returns R.
+    ``A X = B`` from X = 0 (in the order of ``chunks``, as :func:`gauss_seidel`), and R = B - A X,
+    for an exactly symmetric CSR matrix A with sorted rows and its diagonal stored (nonzero); X, B,
+    R (n, c) C-contiguous blocks of A's dtype; returns R.
 
-    Row i of the sweep meets only the entries left of the diagonal (right of it X is still zero),
-    and once x_i is known its terms a_ji x_i, j < i, are the only ones the rows above still miss:
-    B_j - (L + D) x vanishes row by row, so r_j = -sum_{i > j} a_ji x_i, added as the rows go.  In
-    the order of the columns of row j (sorted rows: bitwise the product -U X with the strict upper
-    triangle U that this replaces; the sweep read every entry of A, and the product read U again
-    and kept it, 0.3 GB at spacing 0.003125)."""
+    Row i of the sweep meets only the entries of the rows swept before it (the others' X is still
+    zero), and once x_i is known its terms a_ji x_i in those rows j are the only ones they still
+    miss: B_j - sum_{i swept up to j} a_ji x_i vanishes row by row, so r_j = -sum_{i swept after j}
+    a_ji x_i, added as the rows go (with one chunk, in the order of the columns of row j: bitwise
+    the product -U X with the strict upper triangle U that this replaces; the sweep read every
+    entry of A, and the product read U again and kept it, 0.3 GB at spacing 0.003125)."""
     indptr, indices, data = _csr(A)
     if not A.has_sorted_indices:
         raise ValueError("presmooth needs a CSR matrix with sorted indices (A.sort_indices())")
     _check_blocks(A, "X, B and R", X, B, R)
+    bounds = _bounds(A, chunks)
     c = X.shape[1]
     if c <= WIDTH:
-        _kernels(c)[2](indptr, indices, data, X, B, R)
+        _kernels(c)[2](indptr, indices, data, X, B, R, bounds)
         return R
     for g in _groups(c):
         Y, Q = np.empty((X.shape[0], g.stop - g.start), X.dtype), np.empty((X.shape[0], g.stop - g.start), X.dtype)
-        _kernels(g.stop - g.start)[2](indptr, indices, data, Y, np.ascontiguousarray(B[:, g]), Q)
+        _kernels(g.stop - g.start)[2](indptr, indices, data, Y, np.ascontiguousarray(B[:, g]), Q, bounds)
         X[:, g], R[:, g] = Y, Q
     return R
+
+
+@njit(cache=True, error_model="numpy")
+def _chunks_apart(indptr, indices, bounds):
+    """Whether no row couples two chunks of the same parity, nor more than one chunk besides its own."""
+    nch = bounds.shape[0] - 1
+    owner = np.empty(indptr.shape[0] - 1, dtype=np.int32)
+    for ch in range(nch):
+        owner[bounds[ch]:bounds[ch + 1]] = ch
+    for i in range(owner.shape[0]):
+        own, other = owner[i], -1
+        for k in range(indptr[i], indptr[i + 1]):
+            cj = owner[indices[k]]
+            if cj == own:
+                continue
+            if (cj - own) % 2 == 0 or (other >= 0 and cj != other):
+                return False
+            other = cj
+    return True
+
+
+def sweep_chunks(A, counts=SWEEP_CHUNKS):
+    """Row-chunk bounds (k + 1,) for the Gauss-Seidel kernels (:func:`gauss_seidel`,
+    :func:`presmooth`): the first k of ``counts`` for which k contiguous chunks of about equal
+    nonzeros leave no row coupled to another chunk of its parity, nor to two other chunks (so that
+    the even chunks can be swept at the same time, then the odd ones, and the residual of
+    :func:`presmooth` gets each row's terms from one chunk); [0, n] (the rows in their order) when
+    none does.  Rows ordered along a lattice or a grid, as the levels of the geometric multigrid,
+    have their couplings within a band of neighbouring rows: chunks wider than the band pass."""
+    indptr, indices, _ = _csr(A)
+    n = A.shape[0]
+    for k in counts:
+        if k < 2 or k % 2 or n < 2 * k:
+            continue
+        bounds = np.searchsorted(indptr, np.arange(k + 1) * (indptr[-1] / k)).astype(np.int64)
+        bounds[0], bounds[-1] = 0, n
+        if np.all(np.diff(bounds) > 0) and _chunks_apart(indptr, indices, bounds):
+            return bounds
+    return np.array([0, n], dtype=np.int64)
 
 
 @njit(cache=True, error_model="numpy", inline="always")

@@ -1064,7 +1064,9 @@ class GeometricMultigrid:
     until at most ``coarse_size`` unknowns remain, the hierarchy ends, or coarsening stalls; the
     coarsest system is solved by :class:`DirectSolver` (a pseudo-inverse if that level is singular
     only because of the coarse space).
-    The cycle: one forward Gauss-Seidel sweep, coarse correction on level l+1, one backward sweep.
+    The cycle: one forward Gauss-Seidel sweep, coarse correction on level l+1, one backward sweep
+    (the rows of each level in the chunk order of :func:`cutfem.kernels.sweep_chunks`, so that both
+    cores sweep: the same iterations as in the natural order, the same bits on any number of threads).
     The coarse correction is ``visits[l]`` recursive cycles: 1 is a V-cycle; 2 is a K-cycle
     (Notay and Vassilevski, Numer. Linear Algebra Appl. 15, 2008): the two cycles are combined by
     two steps of flexible CG on level l+1 (:meth:`_krylov_correction`), where a W-cycle would add
@@ -1123,7 +1125,7 @@ class GeometricMultigrid:
             P = sp.csr_matrix(P)
             R = sp.csr_matrix(P.T)
             Ac = kernels.galerkin(A, P, R)  # exactly symmetric
-            self.levels.append(dict(A=_single(A), P=_single(P), R=_single(R)))
+            self.levels.append(dict(A=_single(A), P=_single(P), R=_single(R), chunks=kernels.sweep_chunks(A)))
             A = Ac
         close = getattr(prolongations, "close", None)
         if close is not None:  # a generator: its frame holds the lattice of a level (108 MB at 4.7 million unknowns)
@@ -1223,13 +1225,13 @@ class GeometricMultigrid:
         A = lv["A"]
         w = self._buffers(level, B.shape[1])
         X = w["X"]
-        r = kernels.presmooth(A, X, B, w["r"])  # forward sweep from zero and its residual, one pass
+        r = kernels.presmooth(A, X, B, w["r"], lv["chunks"])  # forward sweep from zero and its residual, one pass
         rc = kernels.matmul(lv["R"], r, out=w["rc"])
         xc = self.cycle(rc, level + 1)
         if "c1" in w:
             xc = self._krylov_correction(level, rc, xc, w)
         kernels.matmul(lv["P"], xc, out=X, accumulate=True)
-        kernels.gauss_seidel(A, X, B, forward=False)
+        kernels.gauss_seidel(A, X, B, forward=False, chunks=lv["chunks"])
         return X
 
     def _krylov_correction(self, level, rc, first, w):

@@ -20,7 +20,7 @@ STALLING = ("always", "madvise", "defer+madvise")
 def _fresh_process(code: str, **env) -> dict:
     """Run ``code`` in a new interpreter (the user's allocator and matplotlib variables removed,
     ``env`` added) and return the JSON object it prints last."""
-    full = {k: v for k, v in os.environ.items() if k not in ("CUTFEM_ALLOCATOR", "NUMPY_MADVISE_HUGEPAGE", "MPLBACKEND")}
+    full = {k: v for k, v in os.environ.items() if k not in ("CUTFEM_ALLOCATOR", "NUMPY_MADVISE_HUGEPAGE", "MPLBACKEND", "OMP_WAIT_POLICY")}
     full.update(env)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=full)
     assert out.returncode == 0, out.stderr[-3000:]
@@ -54,14 +54,19 @@ def test_import_changes_nothing_process_wide(tmp_path):
         "fig, ax = new_figure(3, 2)\n"
         "ax.plot([0, 1], [1, 0])\n"
         f"save_figure(fig, {str(tmp_path)!r}, 'study')\n"
+        "import cutfem.kernels, numpy as np, scipy.sparse as sp\n"
+        "A = sp.identity(600, format='csr') * 2.0\n"
+        "cutfem.kernels.matmul(A, np.ones((600, 3)))\n"  # a parallel kernel: numba's threads start
         "after = {'hugepage': bool(get_hp()), 'backend': matplotlib.get_backend()}\n"
+        "import os\n"
         "print(json.dumps({'before': before, 'after': after, 'settings': cutfem.memory.SETTINGS, 'problems': problems,\n"
-        "                  'pyplot': 'matplotlib.pyplot' in sys.modules}))\n"
+        "                  'pyplot': 'matplotlib.pyplot' in sys.modules, 'omp': os.environ.get('OMP_WAIT_POLICY')}))\n"
     )
     s = _fresh_process(code)
     assert s["after"] == s["before"] and s["before"]["backend"] == "svg"
     assert s["settings"] == {}, "importing cutfem must not apply cutfem.memory.configure()"
     assert not s["pyplot"], "the library draws without pyplot"
+    assert s["omp"] is None, "importing cutfem and running its kernels must not set OpenMP's wait policy"
     assert "mean-curvature-cut" in s["problems"]
     assert (tmp_path / "conv.png").stat().st_size > 1000
     assert (tmp_path / "study.png").stat().st_size > 1000 and (tmp_path / "study.pdf").stat().st_size > 1000
@@ -87,6 +92,20 @@ def test_the_command_line_configures():
         assert s["numpy_hugepage"] is False and s["numpy_now"] is False
     else:
         assert s["numpy_hugepage"] == s["numpy_now"]
+
+
+def test_the_command_line_makes_idle_threads_sleep():
+    """The command sets OpenMP's passive wait policy before numba's threads start, keeps a policy
+    the user set, and a late configure() says that it came too late."""
+    assert _after_command(["list"])["threads"] == "PASSIVE"
+    assert _after_command(["list"], OMP_WAIT_POLICY="active")["threads"] == "active"
+    code = (
+        "import json, numpy as np, scipy.sparse as sp\n"
+        "import cutfem.kernels, cutfem.memory\n"
+        "cutfem.kernels.matmul(sp.identity(600, format='csr') * 2.0, np.ones((600, 3)))\n"
+        "print(json.dumps(cutfem.memory.configure()))\n"
+    )
+    assert _fresh_process(code)["threads"] == "too late"
 
 
 def test_the_command_line_respects_the_opt_out():

@@ -152,6 +152,116 @@ def test_presmooth_is_a_forward_sweep_from_zero_and_its_residual(torus_space, dt
 
 
 
+def _chunk_order(bounds):
+    """The rows in the order of the chunked sweeps: the even chunks, then the odd ones."""
+    k = len(bounds) - 1
+    return np.concatenate([np.arange(bounds[ch], bounds[ch + 1]) for ch in [*range(0, k, 2), *range(1, k, 2)]])
+
+
+def test_sweep_chunks_split_lattice_rows_and_refuse_scattered_ones(torus_space):
+    """On a lattice-ordered matrix the chunks are 8 or 4 with about equal nonzeros, and no row
+    couples two chunks of one parity or two chunks besides its own; rows in random order get one
+    chunk (the natural sweep); a wrong chunking is refused."""
+    from cutfem.kernels import gauss_seidel, sweep_chunks
+
+    V = torus_space
+    A = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
+    A.sort_indices()
+    n = A.shape[0]
+    b = sweep_chunks(A)
+    k = len(b) - 1
+    assert k in (4, 8) and b[0] == 0 and b[-1] == n
+    nnz = np.diff(A.indptr[b])
+    assert nnz.max() <= 1.1 * nnz.min()
+    owner = np.repeat(np.arange(k), np.diff(b))
+    C = sp.coo_matrix(A)
+    oi, oj = owner[C.row], owner[C.col]
+    other = oi != oj
+    assert np.all((oi[other] - oj[other]) % 2 == 1)  # never a chunk of the same parity
+    pairs = np.unique(np.column_stack([C.row[other], oj[other]]), axis=0)
+    assert np.all(np.bincount(pairs[:, 0], minlength=n) <= 1)  # at most one other chunk a row
+    perm = np.random.default_rng(0).permutation(n)
+    np.testing.assert_array_equal(sweep_chunks(A[perm][:, perm].tocsr()), [0, n])
+    X, B = np.zeros((n, 1)), np.ones((n, 1))
+    for bad in ([0, n // 3, 2 * n // 3, n], [0, 5, 3, n], [1, n]):
+        with pytest.raises(ValueError, match="chunks must be"):
+            gauss_seidel(A, X, B, chunks=bad)
+
+
+@pytest.mark.parametrize("c", [1, 3])
+def test_chunked_sweeps_are_gauss_seidel_in_the_chunk_order(torus_space, c):
+    """The chunked forward and backward sweeps are the Gauss-Seidel sweeps of the rows taken in the
+    chunk order (checked against the natural sweeps of the permuted matrix, to round-off), and
+    presmooth with chunks gives, bitwise, the chunked forward sweep from zero, and R = B - A X."""
+    from cutfem.kernels import gauss_seidel, presmooth, sweep_chunks
+
+    V = torus_space
+    A = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
+    A.sort_indices()
+    n = A.shape[0]
+    b = sweep_chunks(A)
+    assert len(b) > 2
+    order = _chunk_order(b)
+    Ap = A[order][:, order].tocsr()
+    Ap.sort_indices()
+    rng = np.random.default_rng(c)
+    B, X0 = rng.standard_normal((n, c)), rng.standard_normal((n, c))
+    for forward in (True, False):
+        X = gauss_seidel(A, X0.copy(), B, forward=forward, chunks=b)
+        Xp = gauss_seidel(Ap, X0[order].copy(), B[order], forward=forward)
+        np.testing.assert_allclose(X[order], Xp, rtol=0, atol=1e-12 * np.abs(Xp).max())
+        assert np.abs(X - gauss_seidel(A, X0.copy(), B, forward=forward)).max() > 1e-6  # another order indeed
+    X, R = np.full((n, c), np.nan), np.full((n, c), np.nan)
+    presmooth(A, X, B, R, chunks=b)
+    np.testing.assert_array_equal(X, gauss_seidel(A, np.zeros((n, c)), B, forward=True, chunks=b))
+    np.testing.assert_allclose(R, B - A @ X, rtol=0, atol=1e-12 * np.abs(B).max())
+
+
+def test_kernels_give_the_same_bits_on_any_number_of_threads(torus_space):
+    """Products with dots, column dots, CG updates, chunked sweeps and a whole multigrid solve give
+    bitwise the same on one thread as on all of them (rows are split between threads, sums are
+    taken in blocks of rows and added in row order)."""
+    import numba
+
+    from cutfem import kernels
+
+    V = torus_space
+    A = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
+    A.sort_indices()
+    n = A.shape[0]
+    b = kernels.sweep_chunks(A)
+    rng = np.random.default_rng(1)
+    B, P, Q = (rng.standard_normal((n, 3)) for _ in range(3))
+    A32 = A.astype(np.float32)
+
+    def run():
+        out = {}
+        dots = np.empty(3)
+        out["product"] = kernels.matmul(A, P, dots=dots)
+        out["dots"] = dots.copy()
+        out["column_dots"] = np.concatenate(kernels.column_dots(B, P, Q))
+        x, r = P.copy(), B.copy()
+        out["cg"] = kernels.cg_step(x, r, Q[:, :2], P[:, 1:], np.array([0.3, -0.2]), np.array([0, 2]))
+        out["x"], out["r"] = x, r
+        out["direction"] = kernels.cg_direction(P.copy(), B.astype(np.float32), np.array([0.5, 2.0, -1.0]))
+        X, R = np.empty((n, 3), np.float32), np.empty((n, 3), np.float32)
+        kernels.presmooth(A32, X, B.astype(np.float32), R, chunks=b)
+        out["presmooth"], out["residual"] = X, R
+        out["backward"] = kernels.gauss_seidel(A32, X.copy(), B.astype(np.float32), forward=False, chunks=b)
+        out["solve"] = mg_solve(A, B, prolongations=multigrid_hierarchy(V), tol=1e-8)[0]
+        return out
+
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        one = run()
+    finally:
+        numba.set_num_threads(threads)
+    every = run()
+    for key in one:
+        np.testing.assert_array_equal(one[key], every[key], err_msg=key)
+
+
 @pytest.mark.parametrize("dtype", [np.float32, np.float64])
 @pytest.mark.parametrize("c", [1, 2, 3, 5])
 def test_product_with_dots_is_the_product_and_its_column_dots(torus_space, dtype, c):
