@@ -278,32 +278,51 @@ def _kernels(c: int):
     def presweep(indptr, indices, data, X, B, R, bounds):
         """One forward Gauss-Seidel sweep (the chunk order of ``bounds``) for A X = B from X = 0
         (X written, not read first) and the residual R = B - A X; A exactly symmetric with sorted
-        rows and its diagonal stored."""
+        rows and its diagonal stored.  The entries of row i swept before it: in an even chunk
+        [lo, hi), those with lo <= j < i; in an odd one, those with j < i or j >= hi."""
         nch = bounds.shape[0] - 1
         zero = R.dtype.type(0)
+        one = np.uint64(1)
         for color in range(2):
             for h in prange((nch - color + 1) // 2):
                 ch = 2 * h + color
                 lo, hi = np.uint64(bounds[ch]), np.uint64(bounds[ch + 1])
                 for i in range(lo, hi):
-                    d = data[0]
+                    start, stop = np.uint64(indptr[i]), np.uint64(indptr[i + 1])
+                    first = start
+                    if color == 0:
+                        while first < stop and np.uint64(indices[first]) < lo:  # another chunk, not swept yet
+                            first += one
                     s0 = B[i, 0]
                     s1 = B[i, 1] if c > 1 else s0
                     s2 = B[i, 2] if c > 2 else s0
-                    start, stop = np.uint64(indptr[i]), np.uint64(indptr[i + 1])
-                    for k in range(start, stop):
-                        j = np.uint64(indices[k])
-                        a = data[k]
-                        if j == i:
-                            d = a
-                        elif (lo <= j < i) or (color == 1 and (j < lo or j >= hi)):  # swept before row i
+                    if color == 1:
+                        first = start
+                    diag = first
+                    while diag < stop:
+                        j = np.uint64(indices[diag])
+                        if j >= i:
+                            break
+                        a = data[diag]
+                        s0 -= a * X[j, 0]
+                        if c > 1:
+                            s1 -= a * X[j, 1]
+                        if c > 2:
+                            s2 -= a * X[j, 2]
+                        diag += one
+                    d = data[diag] if diag < stop and np.uint64(indices[diag]) == i else data[0]
+                    above = stop  # the entries in the chunk after, swept before row i when it is odd
+                    if color == 1:
+                        while above > diag and np.uint64(indices[above - one]) >= hi:
+                            above -= one
+                        for k in range(above, stop):
+                            j = np.uint64(indices[k])
+                            a = data[k]
                             s0 -= a * X[j, 0]
                             if c > 1:
                                 s1 -= a * X[j, 1]
                             if c > 2:
                                 s2 -= a * X[j, 2]
-                        elif color == 0 and j > i:
-                            break
                     x0, x1, x2 = s0 / d, s1 / d, s2 / d
                     X[i, 0] = x0
                     R[i, 0] = zero
@@ -313,17 +332,22 @@ def _kernels(c: int):
                     if c > 2:
                         X[i, 2] = x2
                         R[i, 2] = zero
-                    for k in range(start, stop):  # x_i is final: its term in the rows swept before it
+                    for k in range(first, diag):  # x_i is final: its term in the rows swept before it
                         j = np.uint64(indices[k])
-                        if (lo <= j < i) or (color == 1 and (j < lo or j >= hi)):
-                            a = data[k]
-                            R[j, 0] -= a * x0
-                            if c > 1:
-                                R[j, 1] -= a * x1
-                            if c > 2:
-                                R[j, 2] -= a * x2
-                        elif color == 0 and j > i:
-                            break
+                        a = data[k]
+                        R[j, 0] -= a * x0
+                        if c > 1:
+                            R[j, 1] -= a * x1
+                        if c > 2:
+                            R[j, 2] -= a * x2
+                    for k in range(above, stop):
+                        j = np.uint64(indices[k])
+                        a = data[k]
+                        R[j, 0] -= a * x0
+                        if c > 1:
+                            R[j, 1] -= a * x1
+                        if c > 2:
+                            R[j, 2] -= a * x2
 
     _COMPILED[c] = (product, sweep, presweep)
     return product, sweep, presweep
@@ -913,11 +937,11 @@ def lattice_nnz(sums, n):
     return n + 2 * nz
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def triangle_points(points, triangles, bary, x, area):
     """The quadrature points x (b, q, 3) = sum_v bary[q, v] x_v and the areas ``area`` (b,) of the
     triangles ``triangles`` (b, 3) into ``points``."""
-    for t in range(triangles.shape[0]):
+    for t in prange(triangles.shape[0]):
         p0, p1, p2 = points[triangles[t, 0]], points[triangles[t, 1]], points[triangles[t, 2]]
         for i in range(bary.shape[0]):
             for d in range(3):
@@ -949,20 +973,28 @@ def triangle_areas(points, triangles):
     return area
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def squared_error(values, triangles, bary, weights, area, exact):
     """sum_T |T| sum_q w_q |u^e(x_q) - u_h(x_q)|^2 over the triangles (b, 3), u_h linear on each with
-    ``values`` (V, c) at the vertices, u_h(x_q) = sum_v bary[q, v] u_v; ``exact`` (b, q, c)."""
-    total = 0.0
+    ``values`` (V, c) at the vertices, u_h(x_q) = sum_v bary[q, v] u_v; ``exact`` (b, q, c).  Summed
+    per block of :data:`SUM_BLOCK` triangles, the blocks in order (the same bits on any number of
+    threads)."""
     c = values.shape[1]
-    for t in range(triangles.shape[0]):
-        v0, v1, v2 = values[triangles[t, 0]], values[triangles[t, 1]], values[triangles[t, 2]]
-        s = 0.0
-        for i in range(bary.shape[0]):
-            for l in range(c):
-                d = exact[t, i, l] - (bary[i, 0] * v0[l] + bary[i, 1] * v1[l] + bary[i, 2] * v2[l])
-                s += weights[i] * d * d
-        total += area[t] * s
+    n = triangles.shape[0]
+    nblocks = (n + SUM_BLOCK - 1) // SUM_BLOCK
+    part = np.zeros(nblocks)
+    for b in prange(nblocks):
+        for t in range(b * SUM_BLOCK, min((b + 1) * SUM_BLOCK, n)):
+            v0, v1, v2 = values[triangles[t, 0]], values[triangles[t, 1]], values[triangles[t, 2]]
+            s = 0.0
+            for i in range(bary.shape[0]):
+                for l in range(c):
+                    d = exact[t, i, l] - (bary[i, 0] * v0[l] + bary[i, 1] * v1[l] + bary[i, 2] * v2[l])
+                    s += weights[i] * d * d
+            part[b] += area[t] * s
+    total = 0.0
+    for b in range(nblocks):
+        total += part[b]
     return total
 
 
@@ -1180,7 +1212,7 @@ def tangential_gradient_sums(dofs, table, types, normals, weights, out):
             out[a, 2] += w * (g[i, 2] - gn * n2)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def torus_mean_curvature_vector(x, center, R, r, out):
     """out[i] = kappa / d ((1 - R/s) y_0, (1 - R/s) y_1, y_2), y = x[i] - center, s = |(y_0, y_1)|,
     d = |(s - R, y_2)|, kappa = (R + 2 r cos p) / (r (R + r cos p)), cos p = (s - R) / d: the
@@ -1195,11 +1227,12 @@ def torus_mean_curvature_vector(x, center, R, r, out):
     c0, c1, c2 = center[0], center[1], center[2]
     two_r = 2.0 * r
     B = 512
-    y0, y1, y2 = np.empty(B), np.empty(B), np.empty(B)
-    check = 0.0  # v - v is 0 for a finite v and NaN otherwise
+    check = 0.0  # v - v is 0 for a finite v and NaN otherwise (in any order of the sum)
     n = x.shape[0]
-    for start in range(0, n, B):
+    for blk in prange((n + B - 1) // B):
+        start = blk * B
         m = min(B, n - start)
+        y0, y1, y2 = np.empty(B), np.empty(B), np.empty(B)
         for j in range(m):
             y0[j] = x[start + j, 0] - c0
             y1[j] = x[start + j, 1] - c1
@@ -1622,69 +1655,78 @@ def kuhn_prolongation_csr(ijk, cols, indptr, indices, data):
         indptr[i + 1] = n
 
 
-@njit(cache=True, error_model="numpy")
-def _galerkin_upper(r_ptr, r_idx, r_val, a_ptr, a_idx, a_val, p_ptr, p_idx, p_val, nc, cap):
-    acc = np.zeros(nc)
-    mark = np.full(nc, -1, dtype=np.int64)
-    cols = np.empty(nc, dtype=np.int64)
-    ptr = np.zeros(nc + 1, dtype=np.int64)
-    idx = np.empty(cap, dtype=np.int64)
-    val = np.empty(cap)
-    nnz = 0
-    strict = 0  # entries right of the diagonal
-    for I in range(nc):
-        ncols = 0
-        for ii in range(r_ptr[I], r_ptr[I + 1]):
-            i, ri = r_idx[ii], r_val[ii]
-            for jj in range(a_ptr[i], a_ptr[i + 1]):
-                j, ra = a_idx[jj], ri * a_val[jj]
-                for kk in range(p_ptr[j], p_ptr[j + 1]):
-                    J = p_idx[kk]
-                    if J < I:
-                        continue
-                    if mark[J] != I:
-                        mark[J] = I
-                        cols[ncols] = J
-                        ncols += 1
-                        acc[J] = 0.0
-                    acc[J] += ra * p_val[kk]
-        for x in range(1, ncols):  # insertion sort of the row's columns (a few dozen)
-            c = cols[x]
-            y = x - 1
-            while y >= 0 and cols[y] > c:
-                cols[y + 1] = cols[y]
-                y -= 1
-            cols[y + 1] = c
-        if nnz + ncols > idx.shape[0]:
-            grow = max(2 * idx.shape[0], nnz + ncols)
-            idx2, val2 = np.empty(grow, dtype=np.int64), np.empty(grow)
-            idx2[:nnz], val2[:nnz] = idx[:nnz], val[:nnz]
-            idx, val = idx2, val2
-        for x in range(ncols):
-            idx[nnz + x] = cols[x]
-            val[nnz + x] = acc[cols[x]]
-            if cols[x] > I:
-                strict += 1
-        nnz += ncols
-        ptr[I + 1] = nnz
-    return ptr, idx[:nnz], val[:nnz], strict
+@njit(cache=True, error_model="numpy", parallel=True)
+def _galerkin_upper(r_ptr, r_idx, r_val, a_ptr, a_idx, a_val, p_ptr, p_idx, p_val, nc, bounds, per_row, count, idx, val):
+    """The upper triangles of the rows of P^T A P, chunk by chunk of ``bounds`` (in parallel): row I
+    at idx/val[per_row * bounds[ch] + ...], its length in count[I].  Returns, per chunk, -1 if its
+    rows overflowed their room, else the number of entries right of the diagonal."""
+    nch = bounds.shape[0] - 1
+    strict = np.zeros(nch, dtype=np.int64)
+    for ch in prange(nch):
+        acc = np.zeros(nc)
+        mark = np.full(nc, -1, dtype=np.int64)
+        cols = np.empty(nc, dtype=np.int64)
+        nnz = per_row * bounds[ch]
+        room = per_row * bounds[ch + 1]
+        for I in range(bounds[ch], bounds[ch + 1]):
+            ncols = 0
+            for ii in range(r_ptr[I], r_ptr[I + 1]):
+                i, ri = r_idx[ii], r_val[ii]
+                for jj in range(a_ptr[i], a_ptr[i + 1]):
+                    j, ra = a_idx[jj], ri * a_val[jj]
+                    for kk in range(p_ptr[j], p_ptr[j + 1]):
+                        J = p_idx[kk]
+                        if J < I:
+                            continue
+                        if mark[J] != I:
+                            mark[J] = I
+                            cols[ncols] = J
+                            ncols += 1
+                            acc[J] = 0.0
+                        acc[J] += ra * p_val[kk]
+            if nnz + ncols > room:
+                strict[ch] = -1
+                break
+            for x in range(1, ncols):  # insertion sort of the row's columns (a few dozen)
+                c = cols[x]
+                y = x - 1
+                while y >= 0 and cols[y] > c:
+                    cols[y + 1] = cols[y]
+                    y -= 1
+                cols[y + 1] = c
+            for x in range(ncols):
+                idx[nnz + x] = cols[x]
+                val[nnz + x] = acc[cols[x]]
+                if cols[x] > I:
+                    strict[ch] += 1
+            nnz += ncols
+            count[I] = ncols
+    return strict
 
 
 @njit(cache=True, error_model="numpy")
-def _mirror_upper(ptr, idx, val, indptr, indices, data):
-    n = ptr.shape[0] - 1
+def _mirror_upper(bounds, per_row, count, idx, val, indptr, indices, data):
+    """The full CSR arrays of the symmetric matrix whose upper triangles :func:`_galerkin_upper`
+    wrote (row I of chunk ch after the rows before it, from per_row * bounds[ch])."""
+    n = count.shape[0]
+    start = np.empty(n, dtype=np.int64)
+    for ch in range(bounds.shape[0] - 1):
+        pos = per_row * bounds[ch]
+        for I in range(bounds[ch], bounds[ch + 1]):
+            start[I] = pos
+            pos += count[I]
     lower = np.zeros(n, dtype=np.int64)
     for I in range(n):
-        for x in range(ptr[I], ptr[I + 1]):
+        for x in range(start[I], start[I] + count[I]):
             if idx[x] > I:
                 lower[idx[x]] += 1
     indptr[0] = 0
     for I in range(n):
-        indptr[I + 1] = indptr[I] + lower[I] + ptr[I + 1] - ptr[I]
+        indptr[I + 1] = indptr[I] + lower[I] + count[I]
     nxt = indptr[:-1].copy()
     for I in range(n):
         pos = indptr[I] + lower[I]
-        for x in range(ptr[I], ptr[I + 1]):
+        for x in range(start[I], start[I] + count[I]):
             J = idx[x]
             indices[pos], data[pos] = J, val[x]
             pos += 1
@@ -1693,24 +1735,39 @@ def _mirror_upper(ptr, idx, val, indptr, indices, data):
                 nxt[J] += 1
 
 
+#: coarse rows of the Galerkin product per parallel chunk (about; at most 64 chunks)
+GALERKIN_ROWS = 4096
+
+
 def galerkin(A, P, R=None):
     """The Galerkin product P^T A P of a symmetric CSR matrix A (n, n) and a CSR prolongation P
     (n, m), as a CSR matrix with sorted indices, exactly symmetric: each coarse row I sums only its
     columns J >= I (sum over i, j of R[I, i] A[i, j] P[j, J], R = P^T, with a dense accumulator
     and a marker per coarse column), and the lower triangle is their mirror.  ``R``: P^T in CSR,
     when the caller has it.  One pass over the products, where scipy's two sparse products build
-    A P first (and their result still needs symmetrizing)."""
+    A P first (and their result still needs symmetrizing).  The coarse rows go in chunks on the
+    available cores, each into room for 12 entries a row (again with twice the room where that
+    was short); the values do not depend on the number of threads."""
     R = sp.csr_matrix(P.T) if R is None else R
     R, A, P = (sp.csr_matrix(M) for M in (R, A, P))
     m = P.shape[1]
     args = []
     for M in (R, A, P):
         args += [M.indptr, M.indices, M.data.astype(float, copy=False)]
-    ptr, idx, val, strict = _galerkin_upper(*args, np.int64(m), np.int64(max(16, 8 * m)))
-    nnz = len(idx) + strict
+    nch = int(min(64, max(1, m // GALERKIN_ROWS)))
+    bounds = (np.arange(nch + 1, dtype=np.int64) * m) // nch
+    count = np.zeros(m, dtype=np.int64)
+    per_row = 12
+    while True:
+        idx, val = np.empty(per_row * m, dtype=index_dtype(m)), np.empty(per_row * m)
+        strict = _galerkin_upper(*args, np.int64(m), bounds, np.int64(per_row), count, idx, val)
+        if np.all(strict >= 0):
+            break
+        per_row *= 2
+    nnz = int(count.sum() + strict.sum())
     index = index_dtype(nnz)  # int32 written here: scipy checks int64 contents min/max to narrow them
     indptr, indices, data = np.empty(m + 1, dtype=index), np.empty(nnz, dtype=index), np.empty(nnz)
-    _mirror_upper(ptr, idx, val, indptr, indices, data)
+    _mirror_upper(bounds, np.int64(per_row), count, idx, val, indptr, indices, data)
     out = sp.csr_matrix((data, indices, indptr), shape=(m, m))
     out.has_sorted_indices = True
     return out

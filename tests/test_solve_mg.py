@@ -97,12 +97,16 @@ def test_coarse_space_is_nested(torus_space):
     np.testing.assert_allclose(interp[ok], u[V.element_dofs].mean(axis=1)[ok], rtol=0, atol=1e-12)
 
 
-def test_galerkin_product_against_scipy(torus_space):
+@pytest.mark.parametrize("rows_per_chunk", [4096, 7])
+def test_galerkin_product_against_scipy(torus_space, monkeypatch, rows_per_chunk):
     """The compiled Galerkin product P^T A P: equal to scipy's two products up to round-off, exactly
     symmetric with sorted indices, also when coarse functions see no fine row (an empty column
-    of P, so no diagonal entry)."""
+    of P, so no diagonal entry), when the coarse rows are denser than the room first given to
+    them (a dense coarse block), and bitwise the same whether the rows go in one chunk or many."""
+    from cutfem import kernels
     from cutfem.kernels import galerkin
 
+    monkeypatch.setattr(kernels, "GALERKIN_ROWS", rows_per_chunk)
     V = torus_space
     K = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
     P = next(multigrid_hierarchy(V)).tocsr()
@@ -111,8 +115,14 @@ def test_galerkin_product_against_scipy(torus_space):
     Q = sp.hstack([Q, sp.csr_matrix((300, 5))]).tocsr()  # five coarse functions with no fine rows
     B = sp.random(300, 300, density=0.03, random_state=5)
     S = (B + B.T + sp.diags(rng.random(300) + 1.0)).tocsr()
-    for A, P in ((K, P), (S, Q)):
+    D = sp.csr_matrix(rng.random((300, 60)))  # every coarse row full: 30 entries a row right of the diagonal
+    for A, P in ((K, P), (S, Q), (S, D)):
         G = galerkin(A, P)
+        monkeypatch.setattr(kernels, "GALERKIN_ROWS", 10**9)
+        one = galerkin(A, P)  # one chunk
+        monkeypatch.setattr(kernels, "GALERKIN_ROWS", rows_per_chunk)
+        for a, b in ((G.indptr, one.indptr), (G.indices, one.indices), (G.data, one.data)):
+            np.testing.assert_array_equal(a, b)
         ref = (P.T @ A @ P).toarray()
         inner = np.ones(max(G.nnz - 1, 0), dtype=bool)  # consecutive entries of one row
         inner[G.indptr[1:-1][(G.indptr[1:-1] > 0) & (G.indptr[1:-1] < G.nnz)] - 1] = False
