@@ -137,6 +137,8 @@ def test_memory_bandwidth_is_a_plausible_rate():
     bw = performance.memory_bandwidth(16, repeat=2)
     assert 1e8 < bw["copy"] < 1e12 and 1e8 < bw["triad"] < 1e12
     assert bw["bandwidth"] == max(bw["copy"], bw["triad"]) and "best of 2" in bw["method"]
+    two = performance.memory_bandwidth(16, repeat=2, threads=2)
+    assert two["threads"] == 2 and "2 thread(s)" in two["method"] and 1e8 < two["copy"] < 1e12
 
 
 def test_scaling_exponents_over_the_three_finest_levels():
