@@ -156,13 +156,16 @@ class LatticeSum:
 
     def add_pieces(self, vertices, triangles, tets_of, areas, points, tets, table, types, dofs) -> "LatticeSum":
         """Add the exact P1 mass matrices of triangles lying in tets (the pieces of S_h), triangle by
-        triangle (:func:`cutfem.kernels.lattice_add_pieces`, same arguments)."""
+        triangle (:func:`cutfem.kernels.lattice_add_pieces`, same arguments; the triangles in the chunks of
+        :func:`cutfem.kernels.scatter_chunks`, on all cores)."""
         from . import kernels
 
         c = np.ascontiguousarray
-        self._check(kernels.lattice_add_pieces(self.ids, self.code, c(vertices, dtype=float), c(triangles), c(tets_of),
+        tets_of, dofs = c(tets_of), c(dofs)
+        self._check(kernels.lattice_add_pieces(self.ids, self.code, c(vertices, dtype=float), c(triangles), tets_of,
                                                c(areas, dtype=float), c(points, dtype=float), c(tets), c(table, dtype=float),
-                                               c(types), c(dofs), self.scale, *self._slots()),
+                                               c(types), dofs, self.scale, *self._slots(),
+                                               kernels.scatter_chunks(dofs, tets_of[:, None])),
                     "pieces")
         return self
 
@@ -179,13 +182,15 @@ class LatticeSum:
     def add_face_jumps(self, pairs, opposite, factors, volumes, dofs, table, types) -> "LatticeSum":
         """Add the Gram matrix of the normal-gradient jumps across the faces between the tets ``pairs``
         (F, 2) with the opposite vertices ``opposite`` (F, 2), face by face
-        (:func:`cutfem.kernels.lattice_add_face_jumps`, same arguments)."""
+        (:func:`cutfem.kernels.lattice_add_face_jumps`, same arguments; the faces in the chunks of
+        :func:`cutfem.kernels.scatter_chunks`, on all cores)."""
         from . import kernels
 
-        self._check(kernels.lattice_add_face_jumps(self.ids, self.code, np.ascontiguousarray(pairs),
+        pairs = np.ascontiguousarray(pairs)
+        self._check(kernels.lattice_add_face_jumps(self.ids, self.code, pairs,
                                                    np.ascontiguousarray(opposite), np.ascontiguousarray(factors, dtype=float),
                                                    np.ascontiguousarray(volumes, dtype=float), dofs, table, types, self.scale,
-                                                   *self._slots()), "face jump rows")
+                                                   *self._slots(), kernels.scatter_chunks(dofs, pairs)), "face jump rows")
         return self
 
     def matrix(self) -> sp.csr_matrix:

@@ -169,7 +169,7 @@ _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: 
 __all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
-           "lattice_csr"]
+           "lattice_csr", "scatter_chunks"]
 
 #: columns served by one pass over the matrix (one register accumulator each)
 WIDTH = 3
@@ -776,18 +776,32 @@ def lattice_add_elements(ids, code, dofs, elements, edges, diagonal, types, weig
     return outside
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def lattice_add_pieces(ids, code, vertices, triangles, tets_of, areas, points, tets, table, types, dofs, scale, sums,
-                       partner, diag):
+                       partner, diag, bounds):
     """Add ``scale`` times the exact P1 mass matrices of the triangles ``triangles`` (T, 3) into
     ``vertices``, of areas ``areas``, lying in the tets ``tets_of`` (T,) (vertex ids ``tets`` into
     ``points``, basis gradients ``table[types[k]]``, dofs ``dofs`` (m, 4)) into the slots, triangle
     by triangle: int_T lambda_i lambda_j = |T| / 12 (sum_v lambda_vi lambda_vj + s_i s_j) as in
     :func:`piece_moments`, without its per-tet arrays; returns the number of pairs outside the
-    lattice offsets."""
+    lattice offsets.  The triangles in the chunks ``bounds`` of :func:`scatter_chunks`: the even
+    chunks at once, then the odd ones."""
+    outside = 0
+    nch = bounds.shape[0] - 1
+    for color in range(2):
+        for h in prange((nch - color + 1) // 2):
+            ch = 2 * h + color
+            outside += _add_pieces(ids, code, vertices, triangles, tets_of, areas, points, tets, table, types, dofs, scale,
+                                   sums, partner, diag, bounds[ch], bounds[ch + 1])
+    return outside
+
+
+@njit(cache=True, error_model="numpy")
+def _add_pieces(ids, code, vertices, triangles, tets_of, areas, points, tets, table, types, dofs, scale, sums, partner,
+                diag, start, stop):
     lam = np.empty((3, 4))
     outside = 0
-    for t in range(triangles.shape[0]):
+    for t in range(start, stop):
         k = tets_of[t]
         g = table[types[k]]
         for v in range(3):
@@ -843,8 +857,9 @@ def lattice_add_rows(ids, code, dofs, values, scale, sums, partner, diag):
     return outside
 
 
-@njit(cache=True, error_model="numpy")
-def lattice_add_face_jumps(ids, code, pairs, opposite, factors, volumes, dofs, table, types, scale, sums, partner, diag):
+@njit(cache=True, error_model="numpy", parallel=True)
+def lattice_add_face_jumps(ids, code, pairs, opposite, factors, volumes, dofs, table, types, scale, sums, partner, diag,
+                           bounds):
     """Add ``scale`` times sum_F c_F c_F^T into the slots, c_F the jump row of the face F between the
     tets ``pairs[F]`` (K_a, K_b) (dofs ``dofs`` (m, 4), gradients ``table[types[K]]``):
     c_F = sqrt(w_F) (n . G_{K_a}, -n . G_{K_b}), n the unit normal out of K_a, w_F = |F| times
@@ -859,12 +874,26 @@ def lattice_add_face_jumps(ids, code, pairs, opposite, factors, volumes, dofs, t
     0.003125), and the five nodes known from the opposite vertices instead of merged by search:
     5.7 million faces at spacing 0.00625 in 0.78-0.81 s against 1.29-1.40 s for the generic rows of
     :func:`jump_rows` merged and added by :func:`lattice_add_rows`'s loop (the same sums, bitwise).
-    Returns the number of pairs outside the lattice offsets."""
+    Returns the number of pairs outside the lattice offsets.  The faces in the chunks ``bounds``
+    of :func:`scatter_chunks`: the even chunks at once, then the odd ones."""
+    outside = 0
+    nch = bounds.shape[0] - 1
+    for color in range(2):
+        for h in prange((nch - color + 1) // 2):
+            ch = 2 * h + color
+            outside += _add_face_jumps(ids, code, pairs, opposite, factors, volumes, dofs, table, types, scale, sums,
+                                       partner, diag, bounds[ch], bounds[ch + 1])
+    return outside
+
+
+@njit(cache=True, error_model="numpy")
+def _add_face_jumps(ids, code, pairs, opposite, factors, volumes, dofs, table, types, scale, sums, partner, diag, start,
+                    stop):
     u = np.empty(5, dtype=dofs.dtype)
     v = np.empty(5)
     one = factors.shape[0] == 1
     outside = 0
-    for f in range(pairs.shape[0]):
+    for f in range(start, stop):
         ea, eb = pairs[f, 0], pairs[f, 1]
         oa, ob = opposite[f, 0], opposite[f, 1]
         ta, tb = types[ea], types[eb]
@@ -889,6 +918,48 @@ def lattice_add_face_jumps(ids, code, pairs, opposite, factors, volumes, dofs, t
             for q in range(p + 1, 5):
                 outside += _add_pair(ids, code, a, u[q], scale * (vp * v[q]), sums, partner)
     return outside
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _chunk_spans(dofs, owners, bounds, lo, hi):
+    for ch in prange(bounds.shape[0] - 1):
+        a, b = np.int64(2**62), np.int64(-1)
+        for e in range(bounds[ch], bounds[ch + 1]):
+            for o in range(owners.shape[1]):
+                for i in range(dofs.shape[1]):
+                    d = np.int64(dofs[owners[e, o], i])
+                    a = min(a, d)
+                    b = max(b, d)
+        lo[ch], hi[ch] = a, b
+
+
+def scatter_chunks(dofs, owners, counts=SWEEP_CHUNKS):
+    """Chunk bounds (k + 1,) of the elements for the lattice sums (:func:`lattice_add_pieces`,
+    :func:`lattice_add_face_jumps`): element e adds into the nodes ``dofs[owners[e]]`` (``owners``
+    (E, r): the tets of each element, ``dofs`` (m, 4) their nodes).  The first k of ``counts`` for
+    which k contiguous chunks of about equal elements give chunks of one parity disjoint ranges of
+    nodes (so the even chunks can add at the same time, then the odd ones); [0, E] when none does.
+    Elements listed along the lattice pass, as the interior faces of a cut do; the cut's tets come
+    in the band search's order of blocks, whose chunks span most node numbers, so the triangles of
+    S_h get one chunk (the piece mass stays on one core).  The chunk order
+    changes the order of the sums at nodes shared by two chunks: the same bits on any number of
+    threads, not those of one pass in element order."""
+    owners = np.ascontiguousarray(owners).reshape(len(owners), -1)
+    E = owners.shape[0]
+    for k in counts:
+        if k < 2 or k % 2 or E < 64 * k:
+            continue
+        bounds = (np.arange(k + 1, dtype=np.int64) * E) // k
+        lo, hi = np.empty(k, dtype=np.int64), np.empty(k, dtype=np.int64)
+        _chunk_spans(dofs, owners, bounds, lo, hi)
+        ok = True
+        for parity in (0, 1):
+            order = np.argsort(lo[parity::2])
+            a, b = lo[parity::2][order], hi[parity::2][order]
+            ok &= bool(np.all(a[1:] > b[:-1]))
+        if ok:
+            return bounds
+    return np.array([0, E], dtype=np.int64)
 
 
 @njit(cache=True, error_model="numpy")

@@ -475,3 +475,42 @@ def test_lattice_sum_refuses_pairs_that_are_not_lattice_neighbours():
     S.sort_indices()  # the CSR arrays were written sorted, without duplicates
     np.testing.assert_array_equal(S.indices, A.indices)
     assert np.all(np.diff(A.indices.reshape(-1)[A.indptr[1]:A.indptr[2]]) > 0)
+
+
+def test_face_penalty_sums_on_all_cores(monkeypatch):
+    """The face penalty adds its faces in chunks (kernels.scatter_chunks): chunks of one parity
+    touch disjoint ranges of nodes, the matrix equals the one of a single pass in face order to
+    round-off and is bitwise the same on one thread as on all; faces in random order get one
+    chunk."""
+    import numba
+
+    from cutfem import kernels
+
+    cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.05), Torus())
+    V = CutP1Space(cut)
+    dF = cut.dF(cut.interior_facets(CUT))
+    seen = []
+    chunks = kernels.scatter_chunks
+    monkeypatch.setattr(kernels, "scatter_chunks", lambda dofs, owners, counts=kernels.SWEEP_CHUNKS: seen.append(
+        (dofs, np.asarray(owners).reshape(len(owners), -1), chunks(dofs, owners, counts))) or seen[-1][2])
+    J = assemble(face_jump_penalty(dF), V)
+    dofs, pairs, bounds = seen[-1]
+    k = len(bounds) - 1
+    assert k in (4, 8) and bounds[-1] == len(pairs)
+    ranges = [(dofs[pairs[a:b]].min(), dofs[pairs[a:b]].max()) for a, b in zip(bounds[:-1], bounds[1:])]
+    for c in range(k):
+        for d in range(c + 2, k, 2):
+            assert ranges[c][1] < ranges[d][0] or ranges[d][1] < ranges[c][0]
+    shuffled = pairs[np.random.default_rng(0).permutation(len(pairs))]
+    np.testing.assert_array_equal(chunks(dofs, shuffled), [0, len(pairs)])
+    threads = numba.get_num_threads()
+    try:
+        numba.set_num_threads(1)
+        J1 = assemble(face_jump_penalty(dF), V)
+    finally:
+        numba.set_num_threads(threads)
+    for a, b in ((J.indptr, J1.indptr), (J.indices, J1.indices), (J.data, J1.data)):
+        np.testing.assert_array_equal(a, b)
+    monkeypatch.setattr(kernels, "scatter_chunks", lambda dofs, owners, counts=None: np.array([0, len(owners)]))
+    J0 = assemble(face_jump_penalty(dF), V)
+    assert abs(J0 - J).max() <= 1e-14 * abs(J0).max()
