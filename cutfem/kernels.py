@@ -1132,12 +1132,12 @@ def radix_argsort(keys, bits, order):
     order[:] = idx
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def kuhn_tet_nodes(tet_ids, cells_x, cells_y, nodes_x, nodes_y, offsets, out):
     """out[t] = the node ids of the Kuhn tet ``tet_ids[t]`` of a structured box: cell c = id // 6
     with indices (i, j, k) on a grid of ``cells_x`` x ``cells_y`` cells, lowest corner node id
     i + nodes_x (j + nodes_y k), plus the row id % 6 of the node offsets ``offsets`` (6, 4)."""
-    for t in range(tet_ids.shape[0]):
+    for t in prange(tet_ids.shape[0]):
         c = tet_ids[t] // 6
         l = tet_ids[t] - 6 * c
         i = c % cells_x
@@ -1176,34 +1176,36 @@ def side_split(tets, values, neg, whole, partial, counts):
     return nw, npart
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def rule_points(bary, nodes, simplices, out):
     """out[e, i] = sum_v bary[i, v] x_ev, the points of a reference rule (q, k) on b simplices: x_ev
     = nodes[simplices[e, v]] (node coordinates (N, 3) and node numbers (b, k), gathered in the same
     pass), or x_ev = nodes[k e + v] when ``simplices`` is empty (the vertices (b, k, 3) as (b k, 3))."""
     q, k = bary.shape
     gather = simplices.shape[0] > 0
-    x = np.empty((k, 3))
-    for e in range(out.shape[0]):
-        for v in range(k):
-            n = simplices[e, v] if gather else k * e + v
-            x[v, 0], x[v, 1], x[v, 2] = nodes[n, 0], nodes[n, 1], nodes[n, 2]
-        for i in range(q):
-            p0 = p1 = p2 = 0.0
+    m = out.shape[0]
+    for blk in prange((m + SUM_BLOCK - 1) // SUM_BLOCK):
+        x = np.empty((k, 3))
+        for e in range(blk * SUM_BLOCK, min((blk + 1) * SUM_BLOCK, m)):
             for v in range(k):
-                b = bary[i, v]
-                p0 += b * x[v, 0]
-                p1 += b * x[v, 1]
-                p2 += b * x[v, 2]
-            out[e, i, 0], out[e, i, 1], out[e, i, 2] = p0, p1, p2
+                n = simplices[e, v] if gather else k * e + v
+                x[v, 0], x[v, 1], x[v, 2] = nodes[n, 0], nodes[n, 1], nodes[n, 2]
+            for i in range(q):
+                p0 = p1 = p2 = 0.0
+                for v in range(k):
+                    b = bary[i, v]
+                    p0 += b * x[v, 0]
+                    p1 += b * x[v, 1]
+                    p2 += b * x[v, 2]
+                out[e, i, 0], out[e, i, 1], out[e, i, 2] = p0, p1, p2
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def barycentric_values(points, origin, grads, out):
     """out[e, i, a] = delta_a0 + grads[e, a] . (points[e, i] - origin[e]): the P1 basis values at
     ``points`` (m, q, 3) of elements with first vertex ``origin`` (m, 3) and basis gradients
     ``grads`` (m, k, 3)."""
-    for e in range(points.shape[0]):
+    for e in prange(points.shape[0]):
         o0, o1, o2 = origin[e, 0], origin[e, 1], origin[e, 2]
         for i in range(points.shape[1]):
             y0, y1, y2 = points[e, i, 0] - o0, points[e, i, 1] - o1, points[e, i, 2] - o2
@@ -1212,33 +1214,45 @@ def barycentric_values(points, origin, grads, out):
             out[e, i, 0] += 1.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def cell_value_error(phi, local, exact, weights):
     """sum_K sum_q w_Kq |u^e(x_Kq) - u_h(x_Kq)|^2 over the cells K of a block, u_h(x_Kq) =
     sum_a phi[K, q, a] local[K, a, :]: basis values ``phi`` (b, q, k), or (1, q, k) when every
     cell shares them (whole cells: the rule's barycentric coordinates), the cells' coefficients
     ``local`` (b, k, c), ``exact`` (b, q, c), ``weights`` (b, q).  The sums run per point q across
-    the cells (independent accumulators, so the loops pipeline) and are added at the end."""
+    the cells of each block of :data:`SUM_BLOCK` (independent accumulators, so the loops pipeline),
+    the blocks on all cores and added in order at the end."""
     b, nq = weights.shape
     k, c = local.shape[1], local.shape[2]
     shared = phi.shape[0] == 1
-    uh = np.empty(nq)
-    acc = np.zeros(nq)
-    for e in range(b):
-        p = phi[0] if shared else phi[e]
-        for l in range(c):
-            uh[:] = 0.0
-            for a in range(k):
-                la = local[e, a, l]
+    nblocks = (b + SUM_BLOCK - 1) // SUM_BLOCK
+    acc = np.zeros((nblocks, nq))
+    for blk in prange(nblocks):
+        uh = np.empty(nq)
+        for e in range(blk * SUM_BLOCK, min((blk + 1) * SUM_BLOCK, b)):
+            p = phi[0] if shared else phi[e]
+            for l in range(c):
+                uh[:] = 0.0
+                for a in range(k):
+                    la = local[e, a, l]
+                    for i in range(nq):
+                        uh[i] += p[i, a] * la
                 for i in range(nq):
-                    uh[i] += p[i, a] * la
-            for i in range(nq):
-                d = exact[e, i, l] - uh[i]
-                acc[i] += weights[e, i] * (d * d)
-    return acc.sum()
+                    d = exact[e, i, l] - uh[i]
+                    acc[blk, i] += weights[e, i] * (d * d)
+    return _ordered_sum(acc)
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
+def _ordered_sum(acc):
+    total = 0.0
+    for blk in range(acc.shape[0]):
+        for i in range(acc.shape[1]):
+            total += acc[blk, i]
+    return total
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
 def cell_gradient_error(grads, local, exact, weights, normals):
     """sum_K sum_q w_Kq |P (grad u^e(x_Kq) - grad u_h|_K)|^2 over the cells K of a block, grad u_h
     = sum_a local[K, a] grads[K, a] constant on K (``grads`` (b, k, 3), ``local`` (b, k)),
@@ -1246,25 +1260,27 @@ def cell_gradient_error(grads, local, exact, weights, normals):
     on a surface, P = I when ``normals`` is empty.  Summed per point q as :func:`cell_value_error`."""
     b, nq = weights.shape
     surface = normals.shape[0] > 0
-    acc = np.zeros(nq)
-    for e in range(b):
-        g0 = g1 = g2 = 0.0
-        for a in range(grads.shape[1]):
-            g0 += local[e, a] * grads[e, a, 0]
-            g1 += local[e, a] * grads[e, a, 1]
-            g2 += local[e, a] * grads[e, a, 2]
-        if surface:
-            n0, n1, n2 = normals[e, 0], normals[e, 1], normals[e, 2]
-            for i in range(nq):
-                d0, d1, d2 = exact[e, i, 0] - g0, exact[e, i, 1] - g1, exact[e, i, 2] - g2
-                dn = d0 * n0 + d1 * n1 + d2 * n2
-                d0, d1, d2 = d0 - dn * n0, d1 - dn * n1, d2 - dn * n2
-                acc[i] += weights[e, i] * (d0 * d0 + d1 * d1 + d2 * d2)
-        else:
-            for i in range(nq):
-                d0, d1, d2 = exact[e, i, 0] - g0, exact[e, i, 1] - g1, exact[e, i, 2] - g2
-                acc[i] += weights[e, i] * (d0 * d0 + d1 * d1 + d2 * d2)
-    return acc.sum()
+    nblocks = (b + SUM_BLOCK - 1) // SUM_BLOCK
+    acc = np.zeros((nblocks, nq))
+    for blk in prange(nblocks):
+        for e in range(blk * SUM_BLOCK, min((blk + 1) * SUM_BLOCK, b)):
+            g0 = g1 = g2 = 0.0
+            for a in range(grads.shape[1]):
+                g0 += local[e, a] * grads[e, a, 0]
+                g1 += local[e, a] * grads[e, a, 1]
+                g2 += local[e, a] * grads[e, a, 2]
+            if surface:
+                n0, n1, n2 = normals[e, 0], normals[e, 1], normals[e, 2]
+                for i in range(nq):
+                    d0, d1, d2 = exact[e, i, 0] - g0, exact[e, i, 1] - g1, exact[e, i, 2] - g2
+                    dn = d0 * n0 + d1 * n1 + d2 * n2
+                    d0, d1, d2 = d0 - dn * n0, d1 - dn * n1, d2 - dn * n2
+                    acc[blk, i] += weights[e, i] * (d0 * d0 + d1 * d1 + d2 * d2)
+            else:
+                for i in range(nq):
+                    d0, d1, d2 = exact[e, i, 0] - g0, exact[e, i, 1] - g1, exact[e, i, 2] - g2
+                    acc[blk, i] += weights[e, i] * (d0 * d0 + d1 * d1 + d2 * d2)
+    return _ordered_sum(acc)
 
 
 @njit(cache=True, error_model="numpy")
