@@ -1343,12 +1343,12 @@ def torus_mean_curvature_vector(x, center, R, r, out):
     return check == 0.0
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def level_set_normals(values, table, types, out):
     """out[t] = g / |g|, g = sum_k values[t, k] grad lambda_k with the gradients ``table[types[t]]``
     (4, 3): the unit normals n_h of the zero level set of the P1 interpolant in each tet.  A tet
     with g = 0 gets NaN (the caller checks)."""
-    for t in range(values.shape[0]):
+    for t in prange(values.shape[0]):
         G = table[types[t]]
         g0 = g1 = g2 = 0.0
         for k in range(4):
@@ -1418,9 +1418,9 @@ def marching(tet_ids, labels, vals, edge_i_table, edge_j_table):
     return n, code[:n]
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def _slot_keys(tets, types, code, vals, edge_i_table, edge_j_table, edge_codes, p, lattice, key):
-    for t in range(tets.shape[0]):
+    for t in prange(tets.shape[0]):
         c = code[t]
         for s in range(4):
             i, j = edge_i_table[c, s], edge_j_table[c, s]
@@ -1562,8 +1562,13 @@ def _edge_census(triangles, n_vertices, start, upper):
             lo = min(a, b)
             upper[fill[lo]] = max(a, b)
             fill[lo] += 1
+    return _sorted_runs(start, upper, n_vertices)
+
+
+@njit(cache=True, error_model="numpy", parallel=True)
+def _sorted_runs(start, upper, n_vertices):
     n = not_two = 0
-    for v in range(n_vertices):  # each bucket (a few entries) sorted in place, its runs counted
+    for v in prange(n_vertices):  # each bucket (a few entries) sorted in place, its runs counted
         s, e = start[v], start[v + 1]
         for i in range(s + 1, e):
             x = upper[i]
@@ -1896,9 +1901,9 @@ def _trailing_bit(x):
     return _popcount((x & (~x + np.uint64(1))) - np.uint64(1))
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def _bit_ranks(ids, words, prefix, inverse):
-    for r in range(ids.shape[0]):
+    for r in prange(ids.shape[0]):
         i = np.uint64(ids[r])
         w = i >> np.uint64(6)
         below = words[w] & ((np.uint64(1) << (i & np.uint64(63))) - np.uint64(1))
