@@ -376,8 +376,20 @@ def _git_commit() -> str | None:
 
 
 def _thread_info() -> dict:
-    """CPU count and the native thread pools (BLAS, OpenMP) with their thread counts."""
-    info = {"cpu_count": __import__("os").cpu_count(), "pools": []}
+    """CPU count, the native thread pools (BLAS, OpenMP) with their thread counts, and numba's threads
+    (the compiled kernels': their number, threading layer once started, and OMP_WAIT_POLICY)."""
+    import os
+    import sys
+
+    info = {"cpu_count": os.cpu_count(), "pools": [], "numba": None}
+    if "numba" in sys.modules:  # asking numba for its threads would start them: read what is known
+        import numba
+
+        parallel = sys.modules.get("numba.np.ufunc.parallel")
+        started = bool(getattr(parallel, "_is_initialized", False))
+        info["numba"] = {"num_threads": numba.get_num_threads() if started else numba.config.NUMBA_NUM_THREADS,
+                         "threading_layer": numba.threading_layer() if started else None,
+                         "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")}
     try:
         from threadpoolctl import threadpool_info
 

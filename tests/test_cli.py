@@ -338,6 +338,9 @@ def test_json_record_describes_itself(capsys):
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", data["created_utc"])
     assert data["git_commit"] is None or re.fullmatch(r"[0-9a-f]{40}", data["git_commit"])
     assert data["threads"]["cpu_count"] >= 1 and isinstance(data["threads"]["pools"], list)
+    numba_threads = data["threads"]["numba"]
+    assert numba_threads["num_threads"] >= 1 and numba_threads["threading_layer"] in ("omp", "tbb", "workqueue")
+    assert "omp_wait_policy" in numba_threads
     v = data["versions"]
     assert v["numpy"] == np.__version__ and v["scipy"] == scipy.__version__ and v["cutfem"] == cutfem.__version__
     assert v["pyvista"] and v["vtk"]
