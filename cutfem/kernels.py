@@ -34,7 +34,8 @@ ones: the Gauss-Seidel sweep of that reordering of the rows, again the same bits
 threads (the multigrid needed 20 CG iterations with it on the cut torus at spacing 0.0125, as
 with the rows in their order).  The whole solve there: 0.63-0.67 s on the two cores of the
 2-core machine against 0.96 s on one (``NUMBA_NUM_THREADS=1``), and ``cutfem run`` 1.85 s against
-2.13 s (medians of six interleaved pairs, 2026-12-03).  Splitting only the products had gained
+2.13 s (medians of six interleaved pairs, 2026-12-03); with the Galerkin products, the error sums,
+the face penalty's lattice sums and the cut's maps on both cores as well, 1.75 s against 2.16 s.  Splitting only the products had gained
 7 %.  numba starts its threads at the first parallel kernel; on OpenMP idle threads spin by
 default, which made the solve 3-4 times slower beside a busy process:
 :func:`cutfem.memory.configure` (run by the command line and the studies) makes them sleep.
