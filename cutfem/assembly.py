@@ -146,11 +146,14 @@ class LatticeSum:
 
         none_i, none_f = np.zeros(0, np.int64), np.zeros(0)
         edges, diagonal = np.ascontiguousarray(edges, dtype=float), np.ascontiguousarray(diagonal, dtype=float)
+        dofs = np.ascontiguousarray(dofs)
+        elements = none_i if elements is None else np.ascontiguousarray(elements)
+        owners = elements if len(elements) else np.arange(len(dofs))
         self._check(kernels.lattice_add_elements(
-            self.ids, self.code, np.ascontiguousarray(dofs),
-            none_i if elements is None else np.ascontiguousarray(elements), edges.reshape(-1, 6), diagonal.reshape(-1, 4),
+            self.ids, self.code, dofs, elements, edges.reshape(-1, 6), diagonal.reshape(-1, 4),
             none_i if types is None else np.ascontiguousarray(types),
-            none_f if weights is None else np.ascontiguousarray(weights, dtype=float), self.scale, *self._slots()),
+            none_f if weights is None else np.ascontiguousarray(weights, dtype=float), self.scale, *self._slots(),
+            kernels.scatter_chunks(dofs, owners[:, None])),
             "element matrices")
         return self
 
@@ -174,8 +177,10 @@ class LatticeSum:
         repeated in a row counts with the sum of its values), as :func:`gram` does."""
         from . import kernels
 
-        self._check(kernels.lattice_add_rows(self.ids, self.code, np.ascontiguousarray(dofs),
-                                             np.ascontiguousarray(values, dtype=float), self.scale, *self._slots()),
+        dofs = np.ascontiguousarray(dofs)
+        self._check(kernels.lattice_add_rows(self.ids, self.code, dofs, np.ascontiguousarray(values, dtype=float),
+                                             self.scale, *self._slots(),
+                                             kernels.scatter_chunks(dofs, np.arange(len(dofs))[:, None])),
                     "rows")
         return self
 

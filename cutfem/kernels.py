@@ -755,17 +755,29 @@ def _add_pair(ids, code, a, b, value, sums, partner):
     return 0
 
 
-@njit(cache=True, error_model="numpy")
-def lattice_add_elements(ids, code, dofs, elements, edges, diagonal, types, weights, scale, sums, partner, diag):
+@njit(cache=True, error_model="numpy", parallel=True)
+def lattice_add_elements(ids, code, dofs, elements, edges, diagonal, types, weights, scale, sums, partner, diag, bounds):
     """Add ``scale`` times symmetric 4 x 4 element matrices into the slots: for each element k
     (``elements`` (n,), or every row of ``dofs`` (m, 4) when empty) the matrix with entries
     ``weights[k] edges[r]`` on the local edges and ``weights[k] diagonal[r]`` on the diagonal
     (tables ``edges`` (L, 6), ``diagonal`` (L, 4)), r = ``types[k]``, or r = 0 for a one-row table
     and r = k otherwise when ``types`` is empty; ``weights`` empty: 1.  Returns the number of pairs
-    outside the lattice offsets (then the caller must not use the sums)."""
+    outside the lattice offsets (then the caller must not use the sums).  The elements in the
+    chunks ``bounds`` of :func:`scatter_chunks`: the even chunks at once, then the odd ones."""
     outside = 0
-    n = elements.shape[0] if elements.shape[0] > 0 else dofs.shape[0]
-    for t in range(n):
+    nch = bounds.shape[0] - 1
+    for color in range(2):
+        for h in prange((nch - color + 1) // 2):
+            ch = 2 * h + color
+            outside += _add_elements(ids, code, dofs, elements, edges, diagonal, types, weights, scale, sums, partner,
+                                     diag, bounds[ch], bounds[ch + 1])
+    return outside
+
+
+@njit(cache=True, error_model="numpy")
+def _add_elements(ids, code, dofs, elements, edges, diagonal, types, weights, scale, sums, partner, diag, start, stop):
+    outside = 0
+    for t in range(start, stop):
         k = elements[t] if elements.shape[0] > 0 else t
         r = types[k] if types.shape[0] > 0 else (0 if edges.shape[0] == 1 else k)
         w = scale * weights[k] if weights.shape[0] > 0 else scale
@@ -845,16 +857,21 @@ def _add_gram_row(ids, code, row_dofs, row_values, u, v, scale, sums, partner, d
     return outside
 
 
-@njit(cache=True, error_model="numpy")
-def lattice_add_rows(ids, code, dofs, values, scale, sums, partner, diag):
+@njit(cache=True, error_model="numpy", parallel=True)
+def lattice_add_rows(ids, code, dofs, values, scale, sums, partner, diag, bounds):
     """Add ``scale`` times the Gram matrix sum_r c_r c_r^T of rows c_r (``values`` (r, k) on ``dofs`` (r, k); a dof
     repeated in a row counts with the sum of its values) into the slots; returns the number of
-    pairs outside the lattice offsets."""
-    u = np.empty(dofs.shape[1], dtype=dofs.dtype)
-    v = np.empty(dofs.shape[1])
+    pairs outside the lattice offsets.  The rows in the chunks ``bounds`` of
+    :func:`scatter_chunks`: the even chunks at once, then the odd ones."""
     outside = 0
-    for r in range(dofs.shape[0]):
-        outside += _add_gram_row(ids, code, dofs[r], values[r], u, v, scale, sums, partner, diag)
+    nch = bounds.shape[0] - 1
+    for color in range(2):
+        for h in prange((nch - color + 1) // 2):
+            ch = 2 * h + color
+            u = np.empty(dofs.shape[1], dtype=dofs.dtype)
+            v = np.empty(dofs.shape[1])
+            for r in range(bounds[ch], bounds[ch + 1]):
+                outside += _add_gram_row(ids, code, dofs[r], values[r], u, v, scale, sums, partner, diag)
     return outside
 
 
