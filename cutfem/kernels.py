@@ -565,23 +565,25 @@ def presmooth(A, X, B, R, chunks=None):
     return R
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", parallel=True)
 def _chunks_apart(indptr, indices, bounds):
     """Whether no row couples two chunks of the same parity, nor more than one chunk besides its own."""
     nch = bounds.shape[0] - 1
     owner = np.empty(indptr.shape[0] - 1, dtype=np.int32)
     for ch in range(nch):
         owner[bounds[ch]:bounds[ch + 1]] = ch
-    for i in range(owner.shape[0]):
+    bad = 0
+    for i in prange(owner.shape[0]):
         own, other = owner[i], -1
         for k in range(indptr[i], indptr[i + 1]):
             cj = owner[indices[k]]
             if cj == own:
                 continue
             if (cj - own) % 2 == 0 or (other >= 0 and cj != other):
-                return False
+                bad += 1
+                break
             other = cj
-    return True
+    return bad == 0
 
 
 def sweep_chunks(A, counts=SWEEP_CHUNKS):

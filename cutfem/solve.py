@@ -306,17 +306,24 @@ def _dot(u, v) -> float:
     return float(kernels.column_dots(u[:, None], v[:, None])[0])
 
 
+def _product(A, v):
+    """A v for a vector v, by :func:`cutfem.kernels.matmul` (on all cores) for a float64 CSR matrix."""
+    if sp.isspmatrix_csr(A) and A.dtype == np.float64:
+        return _matvec(A)(np.asarray(v, dtype=float)[:, None])[:, 0]
+    return A @ v
+
+
 def _scaled_rayleigh(A, d, v):
     """v^T A v / v^T D v (the Rayleigh quotient of D^{-1/2} A D^{-1/2} at D^{1/2} v)."""
     den = _dot(v, d * v)
-    return _dot(v, A @ v) / den if den > 0 else np.inf
+    return _dot(v, _product(A, v)) / den if den > 0 else np.inf
 
 
 def _kernel_residual(A, d, u):
     """||D^{-1/2} A u|| / ||D^{1/2} u||: zero exactly when u is a null vector."""
     s = 1.0 / np.sqrt(d)
     den = np.sqrt(_dot(u, d * u))
-    r = s * (A @ u)
+    r = s * _product(A, u)
     return float(np.sqrt(_dot(r, r))) / den if den > 0 else np.inf
 
 
