@@ -184,6 +184,15 @@ SWEEP_CHUNKS = (8, 4)
 _COMPILED: dict = {}
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _add_blocks(part, out):
+    """out[l] += part[b, l] over the blocks b in order: per-block partial sums (taken on any thread)
+    added as a sequential pass would add them, so a sum does not depend on the number of threads."""
+    for b in range(part.shape[0]):
+        for l in range(out.shape[0]):
+            out[l] += part[b, l]
+
+
 def _kernels(c: int):
     """The product and sweep kernels for blocks of exactly ``c`` columns (c <= WIDTH); ``c`` is a
     compile-time constant of the closures, so the unused accumulators vanish."""
@@ -234,12 +243,7 @@ def _kernels(c: int):
                 part[b, 1] = d1
                 part[b, 2] = d2
         if with_dots:
-            for b in range(nblocks):
-                dots[0] += part[b, 0]
-                if c > 1:
-                    dots[1] += part[b, 1]
-                if c > 2:
-                    dots[2] += part[b, 2]
+            _add_blocks(part, dots)
 
     @njit(cache=True, error_model="numpy", parallel=True)
     def sweep(indptr, indices, data, X, B, forward, bounds):
@@ -416,11 +420,9 @@ def _column_dots(a, b, c, out, out_c):
                 part[blk, l] += np.float64(a[i, l]) * bi
                 if with_c:
                     part_c[blk, l] += bi * np.float64(c[i, l])
-    for blk in range(nblocks):  # the blocks' partial sums in row order, whatever the threads
-        for l in range(k):
-            out[l] += part[blk, l]
-            if with_c:
-                out_c[l] += part_c[blk, l]
+    _add_blocks(part, out)
+    if with_c:
+        _add_blocks(part_c, out_c)
 
 
 _NO_BLOCK = np.zeros((0, 0))
@@ -465,9 +467,7 @@ def _cg_step(x, r, p, q, alpha, act, out):
                 ri = r[i, c] - alpha[l] * q[i, l]
                 r[i, c] = ri
                 part[blk, l] += ri * ri
-    for blk in range(nblocks):
-        for l in range(k):
-            out[l] += part[blk, l]
+    _add_blocks(part, out)
 
 
 def cg_step(x, r, p, q, alpha, act):
@@ -1073,7 +1073,7 @@ def squared_error(values, triangles, bary, weights, area, exact):
     c = values.shape[1]
     n = triangles.shape[0]
     nblocks = (n + SUM_BLOCK - 1) // SUM_BLOCK
-    part = np.zeros(nblocks)
+    part = np.zeros((nblocks, 1))
     for b in prange(nblocks):
         for t in range(b * SUM_BLOCK, min((b + 1) * SUM_BLOCK, n)):
             v0, v1, v2 = values[triangles[t, 0]], values[triangles[t, 1]], values[triangles[t, 2]]
@@ -1082,11 +1082,10 @@ def squared_error(values, triangles, bary, weights, area, exact):
                 for l in range(c):
                     d = exact[t, i, l] - (bary[i, 0] * v0[l] + bary[i, 1] * v1[l] + bary[i, 2] * v2[l])
                     s += weights[i] * d * d
-            part[b] += area[t] * s
-    total = 0.0
-    for b in range(nblocks):
-        total += part[b]
-    return total
+            part[b, 0] += area[t] * s
+    total = np.zeros(1)
+    _add_blocks(part, total)
+    return total[0]
 
 
 @njit(cache=True, error_model="numpy")
@@ -1260,16 +1259,9 @@ def cell_value_error(phi, local, exact, weights):
                 for i in range(nq):
                     d = exact[e, i, l] - uh[i]
                     acc[blk, i] += weights[e, i] * (d * d)
-    return _ordered_sum(acc)
-
-
-@njit(cache=True, error_model="numpy", inline="always")
-def _ordered_sum(acc):
-    total = 0.0
-    for blk in range(acc.shape[0]):
-        for i in range(acc.shape[1]):
-            total += acc[blk, i]
-    return total
+    total = np.zeros(nq)
+    _add_blocks(acc, total)
+    return total.sum()
 
 
 @njit(cache=True, error_model="numpy", parallel=True)
@@ -1300,7 +1292,9 @@ def cell_gradient_error(grads, local, exact, weights, normals):
                 for i in range(nq):
                     d0, d1, d2 = exact[e, i, 0] - g0, exact[e, i, 1] - g1, exact[e, i, 2] - g2
                     acc[blk, i] += weights[e, i] * (d0 * d0 + d1 * d1 + d2 * d2)
-    return _ordered_sum(acc)
+    total = np.zeros(nq)
+    _add_blocks(acc, total)
+    return total.sum()
 
 
 @njit(cache=True, error_model="numpy")
