@@ -954,16 +954,17 @@ def _chunk_spans(dofs, owners, bounds, lo, hi):
 
 
 def scatter_chunks(dofs, owners, counts=SWEEP_CHUNKS):
-    """Chunk bounds (k + 1,) of the elements for the lattice sums (:func:`lattice_add_pieces`,
-    :func:`lattice_add_face_jumps`): element e adds into the nodes ``dofs[owners[e]]`` (``owners``
-    (E, r): the tets of each element, ``dofs`` (m, 4) their nodes).  The first k of ``counts`` for
-    which k contiguous chunks of about equal elements give chunks of one parity disjoint ranges of
-    nodes (so the even chunks can add at the same time, then the odd ones); [0, E] when none does.
-    Elements listed along the lattice pass, as the interior faces of a cut do; the cut's tets come
-    in the band search's order of blocks, whose chunks span most node numbers, so the triangles of
-    S_h get one chunk (the piece mass stays on one core).  The chunk order
-    changes the order of the sums at nodes shared by two chunks: the same bits on any number of
-    threads, not those of one pass in element order."""
+    """Chunk bounds (k + 1,) of the elements of a lattice sum (:func:`lattice_add_elements`,
+    :func:`lattice_add_pieces`, :func:`lattice_add_rows`, :func:`lattice_add_face_jumps`): element e
+    adds into the nodes ``dofs[owners[e]]`` (``owners`` (E, r): the rows of ``dofs`` that element e
+    reads, e.g. its tet, the two tets of a face, or its own row of Gram dofs).  The first k of
+    ``counts`` for which k contiguous chunks of about equal elements give chunks of one parity
+    disjoint ranges of nodes (so the even chunks can add at the same time, then the odd ones);
+    [0, E] when none does.  Elements listed along the lattice pass, as the whole tets of a side and
+    the interior faces of a cut do; the cut's tets come in the band search's order of blocks, whose
+    chunks span most node numbers, so the triangles of S_h and the rows of cut cells get one chunk.
+    The chunk order changes the order of the sums at nodes shared by two chunks: the same bits on
+    any number of threads, not those of one pass in element order."""
     owners = np.ascontiguousarray(owners).reshape(len(owners), -1)
     E = owners.shape[0]
     for k in counts:
