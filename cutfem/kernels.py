@@ -1525,40 +1525,55 @@ def surface(vinv, n_vertices, tets, code, vals, points, edge_i_table, edge_j_tab
     return vertices, tri, tri_tet
 
 
-@njit(cache=True, error_model="numpy")
-def _mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets, tet_ids, nodes, vals):
-    n = 0
-    for c in range(cv.shape[0]):
-        signs = 0
-        for b in range(8):
-            if cv[c, b] < 0:
-                signs |= 1 << b
-        for l in range(6):
-            if mixed_table[signs, l]:
-                if tet_ids.shape[0] > 0:  # second pass: fill
-                    tet_ids[n] = 6 * cell_ids[c] + l
-                    for k in range(4):
-                        nodes[n, k] = corner[c, kuhn_tets[l, k]]
-                        vals[n, k] = cv[c, kuhn_tets[l, k]]
-                n += 1
-    return n
+@njit(cache=True, error_model="numpy", parallel=True)
+def _mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets, bounds, starts, tet_ids, nodes, vals):
+    fill = tet_ids.shape[0] > 0
+    for ch in prange(bounds.shape[0] - 1):
+        n = starts[ch] if fill else 0
+        for c in range(bounds[ch], bounds[ch + 1]):
+            signs = 0
+            for b in range(8):
+                if cv[c, b] < 0:
+                    signs |= 1 << b
+            for l in range(6):
+                if mixed_table[signs, l]:
+                    if fill:
+                        tet_ids[n] = 6 * cell_ids[c] + l
+                        for k in range(4):
+                            nodes[n, k] = corner[c, kuhn_tets[l, k]]
+                            vals[n, k] = cv[c, kuhn_tets[l, k]]
+                    n += 1
+        if not fill:
+            starts[ch] = n
+
+
+#: cells per chunk of :func:`mixed_kuhn_tets` (chunks counted, then filled, on all cores)
+MIXED_CELLS = 1 << 14
 
 
 def mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets):
     """The Kuhn tets of the cells ``cell_ids`` (k,) whose corner values ``cv`` (k, 8) (corner labels
     ``corner`` (k, 8)) have both signs by ``mixed_table`` (256, 6) (bit c of the row: corner c has
     phi < 0): ``(tet_ids (n,), nodes (n, 4), vals (n, 4))`` in cell order, then Kuhn type, the
-    nodes in :data:`~cutfem.mesh.KUHN_TETS` order.  Two passes: count, then fill."""
+    nodes in :data:`~cutfem.mesh.KUHN_TETS` order.  Two passes over chunks of :data:`MIXED_CELLS`
+    cells, each on any core: count per chunk, then fill from the chunk's offset (the same arrays as
+    one pass in cell order)."""
     cv, corner = np.ascontiguousarray(cv, dtype=float), np.ascontiguousarray(corner)
     cell_ids = np.ascontiguousarray(cell_ids, dtype=np.int64)
     table = np.ascontiguousarray(mixed_table, dtype=np.bool_)
     kt = np.ascontiguousarray(kuhn_tets, dtype=np.int64)
+    k = len(cell_ids)
+    bounds = np.append(np.arange(0, k, MIXED_CELLS, dtype=np.int64), np.int64(k))
+    counts = np.zeros(len(bounds) - 1, dtype=np.int64)
     empty = np.empty(0, dtype=np.int64)
-    n = _mixed_kuhn_tets(cv, corner, cell_ids, table, kt, empty, np.empty((0, 4), dtype=corner.dtype), np.empty((0, 4)))
+    _mixed_kuhn_tets(cv, corner, cell_ids, table, kt, bounds, counts, empty, np.empty((0, 4), dtype=corner.dtype),
+                     np.empty((0, 4)))
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    n = int(counts.sum())
     tet_ids, nodes, vals = np.empty(n, dtype=np.int64), np.empty((n, 4), dtype=corner.dtype), np.empty((n, 4))
-    _mixed_kuhn_tets(cv, corner, cell_ids, table, kt, tet_ids, nodes, vals)
+    if n:
+        _mixed_kuhn_tets(cv, corner, cell_ids, table, kt, bounds, starts, tet_ids, nodes, vals)
     return tet_ids, nodes, vals
-
 
 
 @njit(cache=True, error_model="numpy")

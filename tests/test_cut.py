@@ -555,3 +555,32 @@ def test_element_set_volumes_on_a_box_and_on_a_tet_mesh():
     np.testing.assert_allclose(es.volumes, np.abs(np.linalg.det(X[:, 1:] - X[:, :1])) / 6, rtol=1e-12)
     np.testing.assert_allclose(es.volumes_of(slice(3, 9)), es.volumes[3:9], rtol=0)
     np.testing.assert_allclose(plain.tet_volumes.sum(), cut.tet_volumes.sum(), rtol=1e-12)
+
+
+@pytest.mark.parametrize("cells_per_chunk", [7, 1 << 14])
+def test_mixed_kuhn_tets_in_chunks_against_numpy(monkeypatch, cells_per_chunk):
+    """The mixed Kuhn tets of cells, counted and filled chunk by chunk on all cores: exactly the
+    tets of a cell-order pass (a numpy reference: the table's mask of each cell, cell by cell, then
+    Kuhn type), also with no cell at all."""
+    from cutfem import kernels
+    from cutfem.mesh import KUHN_TETS
+
+    monkeypatch.setattr(kernels, "MIXED_CELLS", cells_per_chunk)
+    rng = np.random.default_rng(5)
+    k = 1000
+    cv = rng.standard_normal((k, 8))
+    cv[rng.random(k) < 0.3] = 1.0  # some cells without a sign change
+    corner = rng.integers(0, 10**6, size=(k, 8)).astype(np.int32)
+    cell_ids = np.sort(rng.choice(10**7, size=k, replace=False))
+    table = rng.random((256, 6)) < 0.5
+    table[0] = table[255] = False
+    tet_ids, nodes, vals = kernels.mixed_kuhn_tets(cv, corner, cell_ids, table, KUHN_TETS)
+    signs = ((cv < 0) * (1 << np.arange(8))).sum(axis=1)
+    mask = table[signs]
+    kt = np.asarray(KUHN_TETS)
+    np.testing.assert_array_equal(tet_ids, (6 * cell_ids[:, None] + np.arange(6))[mask])
+    np.testing.assert_array_equal(nodes, corner[:, kt][mask])
+    np.testing.assert_array_equal(vals, cv[:, kt][mask])
+    assert nodes.dtype == corner.dtype
+    none = kernels.mixed_kuhn_tets(cv[:0], corner[:0], cell_ids[:0], table, KUHN_TETS)
+    assert [len(a) for a in none] == [0, 0, 0]
