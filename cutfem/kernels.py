@@ -39,6 +39,13 @@ the face penalty's lattice sums and the cut's maps on both cores as well, 1.75 s
 7 %.  numba starts its threads at the first parallel kernel; on OpenMP idle threads spin by
 default, which made the solve 3-4 times slower beside a busy process:
 :func:`cutfem.memory.configure` (run by the command line and the studies) makes them sleep.
+GNU OpenMP (numba's layer on Linux) cannot serve a process forked after its threads started, and
+numba ends such a process at its first parallel loop: ``multiprocessing`` forks by default on
+Linux, so a parameter study in a pool of workers after a solve in the parent would have lost every
+worker.  Each kernel is a :class:`_Kernel`: in such a process it runs a compilation of the same
+source for the calling thread (the same bits, compiled on first use there, with one warning that
+names the fix, the 'spawn' or 'forkserver' start method; tested).  The module registers an at-fork
+callback for this (``os.register_at_fork``) that sets only its own flag.
 
 Indices are read as unsigned and the error model is numpy's: with Python's negative-index and
 division-by-zero checks in the inner loop the one-column sweep took 11-15 ms.  The sums run row by
@@ -161,6 +168,9 @@ from __future__ import annotations
 
 import numpy as np
 import scipy.sparse as sp
+import os
+import warnings
+
 from numba import njit, prange
 
 from .mesh import TET_EDGES, index_dtype
@@ -171,6 +181,64 @@ __all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "sweep_chunks", "colu
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr", "scatter_chunks"]
+
+#: True in a process forked from one whose numba threads run on GNU OpenMP: that runtime cannot
+#: serve a forked child (numba ends such a child with SIGTERM at its first parallel loop)
+_FORKED_FROM_THREADS = False
+_WARNED_FORK = False  # the warning of :class:`_Kernel`, once a process
+
+
+def _note_fork():
+    global _FORKED_FROM_THREADS
+    import sys
+
+    parallel = sys.modules.get("numba.np.ufunc.parallel")
+    if sys.platform.startswith("linux") and parallel is not None and getattr(parallel, "_is_initialized", False) \
+            and getattr(parallel, "_threading_layer", None) == "omp":  # numba ships GNU OpenMP on Linux
+        _FORKED_FROM_THREADS = True
+
+
+if hasattr(os, "register_at_fork"):  # only this module's flag: nothing else in the process changes
+    os.register_at_fork(after_in_child=_note_fork)
+
+
+class _Kernel:
+    """A kernel compiled for numba's threads (``prange``), called like the function it wraps.
+
+    In a process forked after its parent started numba's threads on GNU OpenMP (the default layer
+    on Linux; ``multiprocessing`` forks by default there), OpenMP cannot run, and numba would end
+    the process at its first parallel loop.  There the same source is compiled once for the calling
+    thread alone (``prange`` as ``range``; not cached on disk, so the first call of each kernel in
+    such a process compiles it, with a warning naming the fix), giving the same results: every
+    kernel's sums are by blocks in a fixed order, whatever the threads."""
+
+    def __init__(self, dispatcher):
+        self.parallel = dispatcher
+        self._serial = None
+        self.__name__ = dispatcher.py_func.__name__
+        self.__doc__ = dispatcher.py_func.__doc__
+        self.__wrapped__ = dispatcher.py_func
+
+    def __call__(self, *args):
+        if not _FORKED_FROM_THREADS:
+            return self.parallel(*args)
+        if self._serial is None:
+            global _WARNED_FORK
+            if not _WARNED_FORK:
+                _WARNED_FORK = True
+                warnings.warn(
+                    f"cutfem.kernels.{self.__name__}: this process was forked after numba's OpenMP threads had started "
+                    "in its parent, so cutfem's kernels run on one thread here and each is compiled on its first use; "
+                    "start worker processes with multiprocessing's 'spawn' or 'forkserver' method to keep the threads "
+                    "and the compiled cache", RuntimeWarning, stacklevel=2)
+            self._serial = njit(error_model="numpy")(self.parallel.py_func)
+        return self._serial(*args)
+
+
+def parallel_kernel(fn):
+    """``fn`` compiled with numba's threads and cached on disk (see :class:`_Kernel`)."""
+    return _Kernel(njit(cache=True, error_model="numpy", parallel=True)(fn))
+
 
 #: columns served by one pass over the matrix (one register accumulator each)
 WIDTH = 3
@@ -199,7 +267,7 @@ def _kernels(c: int):
     if c in _COMPILED:
         return _COMPILED[c]
 
-    @njit(cache=True, error_model="numpy", parallel=True)
+    @parallel_kernel
     def product(indptr, indices, data, X, Y, alpha, accumulate, dots):
         """Y = alpha A X (accumulate: Y += alpha A X), X (n_in, c), Y (n_out, c); with ``dots`` (c,)
         not empty (A square), also dots += the column dot products of X and the new Y in double
@@ -245,7 +313,7 @@ def _kernels(c: int):
         if with_dots:
             _add_blocks(part, dots)
 
-    @njit(cache=True, error_model="numpy", parallel=True)
+    @parallel_kernel
     def sweep(indptr, indices, data, X, B, forward, bounds):
         """One Gauss-Seidel sweep for A X = B in place in the chunk order of ``bounds`` (see
         :func:`sweep_chunks`): forward, the even chunks (in parallel, each in increasing row order),
@@ -279,7 +347,7 @@ def _kernels(c: int):
                     if c > 2:
                         X[i, 2] = s2 / d
 
-    @njit(cache=True, error_model="numpy", parallel=True)
+    @parallel_kernel
     def presweep(indptr, indices, data, X, B, R, bounds):
         """One forward Gauss-Seidel sweep (the chunk order of ``bounds``) for A X = B from X = 0
         (X written, not read first) and the residual R = B - A X; A exactly symmetric with sorted
@@ -406,7 +474,7 @@ def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False, dots=No
     return out
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _column_dots(a, b, c, out, out_c):
     n, k = a.shape
     with_c = c.shape[0] > 0
@@ -454,7 +522,7 @@ def column_dots(a, b, c=None):
     return out, out_c
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _cg_step(x, r, p, q, alpha, act, out):
     n, k = p.shape
     nblocks = (n + SUM_BLOCK - 1) // SUM_BLOCK
@@ -480,7 +548,7 @@ def cg_step(x, r, p, q, alpha, act):
     return out
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _cg_direction(p, z, beta):
     n, k = p.shape
     for i in prange(n):
@@ -565,7 +633,7 @@ def presmooth(A, X, B, R, chunks=None):
     return R
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _chunks_apart(indptr, indices, bounds):
     """Whether no row couples two chunks of the same parity, nor more than one chunk besides its own."""
     nch = bounds.shape[0] - 1
@@ -757,7 +825,7 @@ def _add_pair(ids, code, a, b, value, sums, partner):
     return 0
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def lattice_add_elements(ids, code, dofs, elements, edges, diagonal, types, weights, scale, sums, partner, diag, bounds):
     """Add ``scale`` times symmetric 4 x 4 element matrices into the slots: for each element k
     (``elements`` (n,), or every row of ``dofs`` (m, 4) when empty) the matrix with entries
@@ -791,7 +859,7 @@ def _add_elements(ids, code, dofs, elements, edges, diagonal, types, weights, sc
     return outside
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def lattice_add_pieces(ids, code, vertices, triangles, tets_of, areas, points, tets, table, types, dofs, scale, sums,
                        partner, diag, bounds):
     """Add ``scale`` times the exact P1 mass matrices of the triangles ``triangles`` (T, 3) into
@@ -859,7 +927,7 @@ def _add_gram_row(ids, code, row_dofs, row_values, u, v, scale, sums, partner, d
     return outside
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def lattice_add_rows(ids, code, dofs, values, scale, sums, partner, diag, bounds):
     """Add ``scale`` times the Gram matrix sum_r c_r c_r^T of rows c_r (``values`` (r, k) on ``dofs`` (r, k); a dof
     repeated in a row counts with the sum of its values) into the slots; returns the number of
@@ -877,7 +945,7 @@ def lattice_add_rows(ids, code, dofs, values, scale, sums, partner, diag, bounds
     return outside
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def lattice_add_face_jumps(ids, code, pairs, opposite, factors, volumes, dofs, table, types, scale, sums, partner, diag,
                            bounds):
     """Add ``scale`` times sum_F c_F c_F^T into the slots, c_F the jump row of the face F between the
@@ -940,7 +1008,7 @@ def _add_face_jumps(ids, code, pairs, opposite, factors, volumes, dofs, table, t
     return outside
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _chunk_spans(dofs, owners, bounds, lo, hi):
     for ch in prange(bounds.shape[0] - 1):
         a, b = np.int64(2**62), np.int64(-1)
@@ -1029,7 +1097,7 @@ def lattice_nnz(sums, n):
     return n + 2 * nz
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def triangle_points(points, triangles, bary, x, area):
     """The quadrature points x (b, q, 3) = sum_v bary[q, v] x_v and the areas ``area`` (b,) of the
     triangles ``triangles`` (b, 3) into ``points``."""
@@ -1065,7 +1133,7 @@ def triangle_areas(points, triangles):
     return area
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def squared_error(values, triangles, bary, weights, area, exact):
     """sum_T |T| sum_q w_q |u^e(x_q) - u_h(x_q)|^2 over the triangles (b, 3), u_h linear on each with
     ``values`` (V, c) at the vertices, u_h(x_q) = sum_v bary[q, v] u_v; ``exact`` (b, q, c).  Summed
@@ -1152,7 +1220,7 @@ def radix_argsort(keys, bits, order):
     order[:] = idx
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def kuhn_tet_nodes(tet_ids, cells_x, cells_y, nodes_x, nodes_y, offsets, out):
     """out[t] = the node ids of the Kuhn tet ``tet_ids[t]`` of a structured box: cell c = id // 6
     with indices (i, j, k) on a grid of ``cells_x`` x ``cells_y`` cells, lowest corner node id
@@ -1196,7 +1264,7 @@ def side_split(tets, values, neg, whole, partial, counts):
     return nw, npart
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def rule_points(bary, nodes, simplices, out):
     """out[e, i] = sum_v bary[i, v] x_ev, the points of a reference rule (q, k) on b simplices: x_ev
     = nodes[simplices[e, v]] (node coordinates (N, 3) and node numbers (b, k), gathered in the same
@@ -1220,7 +1288,7 @@ def rule_points(bary, nodes, simplices, out):
                 out[e, i, 0], out[e, i, 1], out[e, i, 2] = p0, p1, p2
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def barycentric_values(points, origin, grads, out):
     """out[e, i, a] = delta_a0 + grads[e, a] . (points[e, i] - origin[e]): the P1 basis values at
     ``points`` (m, q, 3) of elements with first vertex ``origin`` (m, 3) and basis gradients
@@ -1234,7 +1302,7 @@ def barycentric_values(points, origin, grads, out):
             out[e, i, 0] += 1.0
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def cell_value_error(phi, local, exact, weights):
     """sum_K sum_q w_Kq |u^e(x_Kq) - u_h(x_Kq)|^2 over the cells K of a block, u_h(x_Kq) =
     sum_a phi[K, q, a] local[K, a, :]: basis values ``phi`` (b, q, k), or (1, q, k) when every
@@ -1265,7 +1333,7 @@ def cell_value_error(phi, local, exact, weights):
     return total.sum()
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def cell_gradient_error(grads, local, exact, weights, normals):
     """sum_K sum_q w_Kq |P (grad u^e(x_Kq) - grad u_h|_K)|^2 over the cells K of a block, grad u_h
     = sum_a local[K, a] grads[K, a] constant on K (``grads`` (b, k, 3), ``local`` (b, k)),
@@ -1314,7 +1382,7 @@ def tangential_gradient_sums(dofs, table, types, normals, weights, out):
             out[a, 2] += w * (g[i, 2] - gn * n2)
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def torus_mean_curvature_vector(x, center, R, r, out):
     """out[i] = kappa / d ((1 - R/s) y_0, (1 - R/s) y_1, y_2), y = x[i] - center, s = |(y_0, y_1)|,
     d = |(s - R, y_2)|, kappa = (R + 2 r cos p) / (r (R + r cos p)), cos p = (s - R) / d: the
@@ -1358,7 +1426,7 @@ def torus_mean_curvature_vector(x, center, R, r, out):
     return check == 0.0
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def level_set_normals(values, table, types, out):
     """out[t] = g / |g|, g = sum_k values[t, k] grad lambda_k with the gradients ``table[types[t]]``
     (4, 3): the unit normals n_h of the zero level set of the P1 interpolant in each tet.  A tet
@@ -1433,7 +1501,7 @@ def marching(tet_ids, labels, vals, edge_i_table, edge_j_table):
     return n, code[:n]
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _slot_keys(tets, types, code, vals, edge_i_table, edge_j_table, edge_codes, p, lattice, key):
     for t in prange(tets.shape[0]):
         c = code[t]
@@ -1525,7 +1593,7 @@ def surface(vinv, n_vertices, tets, code, vals, points, edge_i_table, edge_j_tab
     return vertices, tri, tri_tet
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets, bounds, starts, tet_ids, nodes, vals):
     fill = tet_ids.shape[0] > 0
     for ch in prange(bounds.shape[0] - 1):
@@ -1592,10 +1660,9 @@ def _edge_census(triangles, n_vertices, start, upper):
             lo = min(a, b)
             upper[fill[lo]] = max(a, b)
             fill[lo] += 1
-    return _sorted_runs(start, upper, n_vertices)
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _sorted_runs(start, upper, n_vertices):
     n = not_two = 0
     for v in prange(n_vertices):  # each bucket (a few entries) sorted in place, its runs counted
@@ -1629,7 +1696,8 @@ def edge_census(triangles, n_vertices: int):
     triangles = np.ascontiguousarray(triangles)
     start = np.zeros(n_vertices + 1, dtype=np.int64)
     upper = np.empty(3 * len(triangles), dtype=triangles.dtype)
-    n, not_two = _edge_census(triangles, n_vertices, start, upper)
+    _edge_census(triangles, n_vertices, start, upper)
+    n, not_two = _sorted_runs(start, upper, n_vertices)
     return int(n), int(not_two)
 
 
@@ -1777,7 +1845,7 @@ def kuhn_prolongation_csr(ijk, cols, indptr, indices, data):
         indptr[i + 1] = n
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _galerkin_upper(r_ptr, r_idx, r_val, a_ptr, a_idx, a_val, p_ptr, p_idx, p_val, nc, bounds, per_row, count, idx, val):
     """The upper triangles of the rows of P^T A P, chunk by chunk of ``bounds`` (in parallel): row I
     at idx/val[per_row * bounds[ch] + ...], its length in count[I].  Returns, per chunk, -1 if its
@@ -1931,7 +1999,7 @@ def _trailing_bit(x):
     return _popcount((x & (~x + np.uint64(1))) - np.uint64(1))
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _bit_ranks(ids, words, prefix, inverse):
     for r in prange(ids.shape[0]):
         i = np.uint64(ids[r])

@@ -17,11 +17,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
-from numba import njit, prange
+from numba import prange
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import l2_h1_errors
 from cutfem.forms import assemble, face_jump_penalty, load, nitsche, nitsche_load, stiffness
+from cutfem.kernels import parallel_kernel
 from cutfem.markers import NEG
 from cutfem.registry import LazyFields, Param, register
 from cutfem.solve import solve
@@ -32,7 +33,7 @@ from .common import SHAPE_PARAMS, Timer, background_for, cut_record, levelset_fo
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
 
-@njit(cache=True, error_model="numpy", parallel=True)
+@parallel_kernel
 def _u_and_gradient(x, u, grad):
     for i in prange(x.shape[0]):
         ax, by = _A * x[i, 0], _B * x[i, 1]

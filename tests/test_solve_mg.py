@@ -602,3 +602,57 @@ def test_single_precision_application_is_the_cycle_output(torus_space):
     Z32 = mg.apply(R, single=True)
     assert Z32.dtype == np.float32 and Z.dtype == np.float64
     np.testing.assert_array_equal(Z32.astype(float), Z)
+
+
+@pytest.mark.skipif(not hasattr(__import__("os"), "fork"), reason="fork exists on POSIX systems only")
+def test_kernels_in_a_process_forked_after_the_threads_started(tmp_path):
+    """A process forked after its parent ran the threaded kernels (multiprocessing's default on
+    Linux) gets the same bits from the kernels, compiled there for one thread, with one warning
+    naming the fix; on GNU OpenMP the threaded kernels would end it with SIGTERM."""
+    import json
+    import subprocess
+    import sys
+
+    code = """
+import json, os, warnings
+import numpy as np, scipy.sparse as sp
+from cutfem import kernels
+n = 5000
+rng = np.random.default_rng(0)
+offsets = [-40, -3, -1, 0, 1, 3, 40]  # a band, as lattice rows: sweep_chunks finds chunks
+A = sp.diags([rng.random(n - abs(k)) + (10.0 if k == 0 else 0.0) for k in offsets], offsets, format="csr")
+A = (A + A.T).tocsr()
+A.sort_indices()
+chunks = kernels.sweep_chunks(A)
+assert len(chunks) == 9
+X = rng.standard_normal((n, 3))
+def run():
+    dots = np.empty(3)
+    Y = kernels.matmul(A, X, dots=dots)
+    Z = kernels.gauss_seidel(A, X.copy(), Y, forward=False, chunks=chunks)
+    return [Y.tobytes().hex(), dots.tobytes().hex(), Z.tobytes().hex()]
+parent = run()
+read, write = os.pipe()
+pid = os.fork()
+if pid == 0:
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        child = run()
+    os.write(write, json.dumps({"same": child == parent, "warnings": [str(w.message) for w in caught]}).encode())
+    os._exit(0)
+os.close(write)
+data = b""
+while chunk := os.read(read, 1 << 16):
+    data += chunk
+_, status = os.waitpid(pid, 0)
+import numba
+print(json.dumps({"status": status, "layer": numba.threading_layer(), **json.loads(data or b"{}")}))
+"""
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
+    assert out.returncode == 0, out.stderr[-2000:]
+    res = json.loads(out.stdout.strip().splitlines()[-1])
+    assert res["status"] == 0 and res["same"] is True
+    if res["layer"] == "omp" and sys.platform.startswith("linux"):  # GNU OpenMP: the child compiled its kernels for one thread, and said so once
+        assert len(res["warnings"]) == 1 and "'spawn' or 'forkserver'" in res["warnings"][0]
+    else:
+        assert res["warnings"] == []
