@@ -26,6 +26,7 @@ import json
 import math
 import platform
 import sys
+import threading
 import time
 from collections.abc import Mapping
 from contextlib import contextmanager
@@ -240,22 +241,36 @@ def register(name=None, *, summary: str = "", params=None, levels=None, level_na
     return wrap
 
 
-def _load_builtin_and_plugins():
-    global _LOADED
-    if _LOADED:
-        return
-    _LOADED = True
-    importlib.import_module("cutfem.problems")
-    try:
-        from importlib.metadata import entry_points
+_LOAD_LOCK = threading.RLock()
 
-        for ep in entry_points(group="cutfem.problems"):
+
+def _load_builtin_and_plugins():
+    """Import the built-in problems and the plug-ins once.  Other threads wait for a load in
+    progress (they saw an empty registry before: 'unknown problem' from two threads' first
+    cutfem.run at once); the loading thread itself, re-entering through a problem module, does not."""
+    global _LOADED
+    if _LOADED == "done":
+        return
+    with _LOAD_LOCK:
+        if _LOADED:  # done, or being done by this very thread
+            return
+        _LOADED = "loading"
+        try:
+            importlib.import_module("cutfem.problems")
             try:
-                ep.load()
-            except Exception as exc:  # a broken plug-in must not break the built-in problems
-                print(f"warning: could not load cutfem problem plug-in {ep.name!r}: {exc}", file=sys.stderr)
-    except Exception:  # pragma: no cover - metadata unavailable
-        pass
+                from importlib.metadata import entry_points
+
+                for ep in entry_points(group="cutfem.problems"):
+                    try:
+                        ep.load()
+                    except Exception as exc:  # a broken plug-in must not break the built-in problems
+                        print(f"warning: could not load cutfem problem plug-in {ep.name!r}: {exc}", file=sys.stderr)
+            except Exception:  # pragma: no cover - metadata unavailable
+                pass
+        except BaseException:
+            _LOADED = False
+            raise
+        _LOADED = "done"
 
 
 def available_problems() -> dict:

@@ -165,6 +165,28 @@ def test_entry_point_plugins_are_loaded(monkeypatch, tmp_path):
     assert "plugin-problem" in available_problems()
 
 
+def test_problems_load_once_for_threads_that_ask_at_once():
+    """Two threads' first look at the registry, at the same moment in a fresh interpreter, both see
+    the built-in problems (the second used to find the registry empty while the first imported)."""
+    import subprocess
+    import sys
+
+    code = (
+        "import threading, cutfem\n"
+        "barrier, seen = threading.Barrier(4), []\n"
+        "def look():\n"
+        "    barrier.wait()\n"
+        "    seen.append('mean-curvature-cut' in cutfem.available_problems())\n"
+        "threads = [threading.Thread(target=look) for _ in range(4)]\n"
+        "[t.start() for t in threads]\n"
+        "[t.join() for t in threads]\n"
+        "print(seen)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip() == "[True, True, True, True]"
+
+
 def test_readme_examples_run():
     """Every python block of the README runs (the worked Helmholtz example reaches rate ~2)."""
     blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
