@@ -405,22 +405,15 @@ def _kernels(c: int):
                     if c > 2:
                         X[i, 2] = x2
                         R[i, 2] = zero
-                    for k in range(first, diag):  # x_i is final: its term in the rows swept before it
-                        j = np.uint64(indices[k])
-                        a = data[k]
-                        R[j, 0] -= a * x0
-                        if c > 1:
-                            R[j, 1] -= a * x1
-                        if c > 2:
-                            R[j, 2] -= a * x2
-                    for k in range(above, stop):
-                        j = np.uint64(indices[k])
-                        a = data[k]
-                        R[j, 0] -= a * x0
-                        if c > 1:
-                            R[j, 1] -= a * x1
-                        if c > 2:
-                            R[j, 2] -= a * x2
+                    for seg in range(2):  # x_i is final: its term in the rows swept before it
+                        for k in range(first, diag) if seg == 0 else range(above, stop):
+                            j = np.uint64(indices[k])
+                            a = data[k]
+                            R[j, 0] -= a * x0
+                            if c > 1:
+                                R[j, 1] -= a * x1
+                            if c > 2:
+                                R[j, 2] -= a * x2
 
     _COMPILED[c] = (product, sweep, presweep)
     return product, sweep, presweep
