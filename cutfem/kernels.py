@@ -371,6 +371,8 @@ def _kernels(c: int):
                     s2 = B[i, 2] if c > 2 else s0
                     if color == 1:
                         first = start
+                    # the entries before the diagonal, summed while it is found (a search first, then one
+                    # loop over both segments as in the residual below, was 10 % slower: 6.2 against 5.5 ms)
                     diag = first
                     while diag < stop:
                         j = np.uint64(indices[diag])
