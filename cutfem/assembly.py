@@ -5,6 +5,8 @@
   symmetric by construction.
 * :class:`SymmetricPattern`: a diagonal plus one value per pair of nodes written straight into a
   cached CSR structure (the closed-form matrices of a triangulated surface).
+* :class:`PairSum`: the closed-form terms of a triangulated surface summed per node, edge and
+  pair of opposite vertices, one CSR at the end.
 * :class:`LatticeSum`: element matrices and Gram rows of Kuhn tets and face-adjacent pairs of them
   on a structured box, summed in 13 slots a node by compiled kernels (no sort, no sparse product).
 * :func:`assemble_vector`: local vectors scattered by their dof numbers.
@@ -22,7 +24,7 @@ import scipy.sparse as sp
 
 from .mesh import index_dtype
 
-__all__ = ["LatticeSum", "SymmetricPattern", "assemble_vector", "gram", "gram_sum", "row_operator"]
+__all__ = ["LatticeSum", "PairSum", "SymmetricPattern", "assemble_vector", "gram", "gram_sum", "row_operator"]
 
 
 class SymmetricPattern:
@@ -63,17 +65,75 @@ class SymmetricPattern:
     def matrix(self, diagonal: np.ndarray, values: np.ndarray) -> sp.csr_matrix:
         """The CSR matrix with ``diagonal`` (n,) and ``values`` (one per pair given to the
         constructor, repeated pairs summed) at (i, j) and (j, i)."""
-        values = np.asarray(values, dtype=float)
-        if self._slot is not None:  # repeated pairs summed in the order given
-            values = np.bincount(self._slot, weights=values, minlength=self.n_pairs)
-        data = np.empty(self.nnz)
-        data[self.diagonal_position] = diagonal
-        data[self.upper_position] = values
-        data[self.lower_position] = values
+        from . import kernels
+
+        diagonal = np.ascontiguousarray(diagonal, dtype=float)
+        values = np.ascontiguousarray(values, dtype=float)
+        slot = self.indices[:0] if self._slot is None else self._slot
+        if diagonal.shape != (self.n,) or values.shape != ((self.n_pairs,) if self._slot is None else self._slot.shape):
+            raise ValueError(f"SymmetricPattern.matrix needs a diagonal of shape ({self.n},) and one value per pair given "
+                             f"to the constructor, got {diagonal.shape} and {values.shape}")
+        data = kernels.symmetric_data(self.diagonal_position, self.upper_position, self.lower_position, slot, diagonal,
+                                      values, self.nnz)
         out = sp.csr_matrix((data, self.indices, self.indptr), shape=(self.n, self.n))
         out.has_sorted_indices = True
         out.has_canonical_format = True
         return out
+
+
+class PairSum:
+    """A symmetric matrix on the nodes of a triangulated surface, summed from terms given as a
+    diagonal (n,), one value per mesh edge (E,) and, for terms that reach across an edge (the edge
+    penalty), one value per pair of vertices opposite an edge (E,).
+
+    ``space`` a :class:`~cutfem.spaces.SurfaceP1Space`.  Terms are added times :attr:`scale` (1;
+    :meth:`scaled` gives a view of the same arrays with another), so :func:`cutfem.forms.assemble`
+    sums c_1 a_1 + c_2 a_2 + ... (mass, stiffness, edge penalty) into one set of arrays, and
+    :meth:`matrix` writes one CSR matrix: on the node graph (:meth:`~cutfem.spaces.SurfaceP1Space.node_pattern`)
+    or, when a term gave opposite pairs, on the edge stencil
+    (:meth:`~cutfem.spaces.SurfaceP1Space.edge_stencil_pattern`), whose first E pairs are the edges.
+    No sparse sum of matrices: at 768 x 384 the sum M + tau J_E of two CSR matrices cost 50 ms.
+    """
+
+    def __init__(self, space):
+        self.space = space
+        self._store = {}  # the arrays, made on the first add and shared with the scaled views
+        self.scale = 1.0
+
+    @property
+    def used(self) -> bool:
+        """Whether any term was added."""
+        return bool(self._store)
+
+    def scaled(self, scale: float) -> "PairSum":
+        """The same sums (shared arrays), with every term added through the result times ``scale``."""
+        out = copy.copy(self)
+        out.scale = float(scale)
+        return out
+
+    def add(self, diagonal, edges, opposite=None) -> "PairSum":
+        """Add scale * (``diagonal`` (n,), ``edges`` (E,), ``opposite`` (E,) or None)."""
+        st, space = self._store, self.space
+        n, E = space.n_dofs, space.mesh.n_edges
+        if not st:
+            st.update(diagonal=np.zeros(n), edges=np.zeros(E))
+        if opposite is not None and "opposite" not in st:
+            st["opposite"] = np.zeros(E)
+        for key, values, size in (("diagonal", diagonal, n), ("edges", edges, E), ("opposite", opposite, E)):
+            if values is None:
+                continue
+            values = np.asarray(values, dtype=float)
+            if values.shape != (size,):
+                raise ValueError(f"PairSum.add: {key} must have shape ({size},), got {values.shape}")
+            st[key] += values if self.scale == 1.0 else self.scale * values
+        return self
+
+    def matrix(self) -> sp.csr_matrix:
+        """The CSR matrix of the terms added, on the smallest of the two patterns that holds them."""
+        st, space = self._store, self.space
+        if "opposite" in st:
+            return space.edge_stencil_pattern().matrix(st["diagonal"], np.concatenate([st["edges"], st["opposite"]]))
+        return space.node_pattern().matrix(st["diagonal"], st["edges"])
 
 
 class LatticeSum:

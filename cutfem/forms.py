@@ -53,7 +53,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import assembly as _assembly
-from .assembly import LatticeSum, assemble_vector, gram, gram_sum
+from .assembly import LatticeSum, PairSum, assemble_vector, gram, gram_sum
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from .mesh import TET_EDGES, index_dtype
 from .markers import CUT
@@ -496,12 +496,13 @@ class _IntegrandTerm:
 
 class _GramTerm:
     """A built-in bilinear term assembled on one field by ``build(space) -> CSR``; with
-    ``lattice=True`` by ``build(space, into)``, ``into`` a :class:`~cutfem.assembly.LatticeSum` of
-    the field (None when its dofs are not nodes of a structured box) that the build adds what it
-    can into, returning the rest as CSR (or None)."""
+    ``summed=True`` by ``build(space, into)``, ``into`` the field's running sum (:func:`_sums`: a
+    :class:`~cutfem.assembly.LatticeSum` on a structured box, a :class:`~cutfem.assembly.PairSum`
+    on a triangulated surface, None otherwise) that the build adds what it can into, returning the
+    rest as CSR (or None)."""
 
-    def __init__(self, build, field=None, lattice=False):
-        self.build, self.field, self.lattice = build, field, lattice
+    def __init__(self, build, field=None, summed=False):
+        self.build, self.field, self.summed = build, field, summed
 
 
 class _VectorTerm:
@@ -566,7 +567,7 @@ def assemble(form: Form, space, **params):
     rows, cols, data = [], [], []
     total = None
     symmetric = True
-    lattices = {}  # field -> the LatticeSum its lattice terms share (c_1 a_1 + c_2 a_2: one set of slots)
+    sums = {}  # field -> the running sum its summed terms share (c_1 a_1 + c_2 a_2: one set of arrays)
 
     def add(A, k):
         nonlocal total
@@ -578,10 +579,10 @@ def assemble(form: Form, space, **params):
         if isinstance(term, _GramTerm):
             k = _field_index(space, term.field)
             V = _field(space, k)
-            if term.lattice:
-                if k not in lattices:
-                    lattices[k] = _lattice(V)
-                A = term.build(V, None if lattices[k] is None else lattices[k].scaled(c))
+            if term.summed:
+                if k not in sums:
+                    sums[k] = _sums(V)
+                A = term.build(V, None if sums[k] is None else sums[k].scaled(c))
             else:
                 A = term.build(V)
             if A is not None:
@@ -593,9 +594,9 @@ def assemble(form: Form, space, **params):
             rows.append(np.broadcast_to((dofs_v + offsets[j])[:, :, None], blocks.shape).reshape(-1))
             cols.append(np.broadcast_to((dofs_u + offsets[i])[:, None, :], blocks.shape).reshape(-1))
             data.append(c * blocks.reshape(-1))
-    for k, lattice in lattices.items():
-        if lattice is not None and lattice.used:
-            add(lattice.matrix(), k)
+    for k, into in sums.items():
+        if into is not None and into.used:
+            add(into.matrix(), k)
     if rows:
         A = sp.coo_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
         if symmetric:  # the sums of duplicates run in different orders for (i, j) and (j, i)
@@ -668,9 +669,13 @@ def _kuhn_stiffness(space, volumes, into):
     into.add_elements(space.element_dofs, edges, diagonal, types=space.elements.kuhn_types, weights=volumes)
 
 
-def _lattice(space):
-    """A :class:`~cutfem.assembly.LatticeSum` for the dofs of ``space`` when they are nodes of a
-    structured box (a cut space on a :class:`~cutfem.mesh.StructuredBox`), else None."""
+def _sums(space):
+    """The running sum of the summed terms on ``space``: a :class:`~cutfem.assembly.PairSum` on a
+    triangulated surface (:class:`~cutfem.spaces.SurfaceP1Space`), a
+    :class:`~cutfem.assembly.LatticeSum` when the dofs are nodes of a structured box (a cut space
+    on a :class:`~cutfem.mesh.StructuredBox`), else None."""
+    if hasattr(space, "edge_stencil_pattern"):
+        return PairSum(space)
     es = getattr(space, "elements", None)
     if getattr(es, "kuhn_types", None) is None or getattr(space, "node_ids", None) is None:
         return None
@@ -696,7 +701,7 @@ def mass(measure: Measure, field=None) -> Form:
 
     def build(space, into):
         if isinstance(measure, MeshedSurface):
-            return _meshed_mass(space)
+            return _meshed_mass(space, into)
         if isinstance(measure, SurfacePieces):
             if _same_elements(space, measure):
                 return _piece_mass(space, into)
@@ -714,7 +719,7 @@ def mass(measure: Measure, field=None) -> Form:
             return _simplex_mass(space, es.vertices, space.local_elements(measure, np.arange(es.n_elements)), es.volumes)
         raise TypeError(f"mass integrates over cells (a surface or a volume), not over {measure!r}")
 
-    return Form([(1.0, _GramTerm(build, field, lattice=True))], False)
+    return Form([(1.0, _GramTerm(build, field, summed=True))], False)
 
 
 def _kuhn_volume_mass(space, measure, into):
@@ -794,7 +799,7 @@ def stiffness(measure: Measure, field=None) -> Form:
         el = space.local_elements(measure, np.arange(es.n_elements))
         return _gradient_matrix(space, lambda cells: space.gradients_of(el[cells]), measure.part_volumes, el)
 
-    return Form([(1.0, _GramTerm(build, field, lattice=True))], False)
+    return Form([(1.0, _GramTerm(build, field, summed=True))], False)
 
 
 def tangential_stiffness(measure: Measure, field=None) -> Form:
@@ -803,9 +808,10 @@ def tangential_stiffness(measure: Measure, field=None) -> Form:
     (:func:`_meshed_stiffness`)."""
     _require(measure, (SurfacePieces, MeshedSurface), "tangential_stiffness")
 
-    def build(space):
+    def build(space, into):
         if isinstance(measure, MeshedSurface):
-            return _meshed_stiffness(space)
+            into.add(*_meshed_stiffness(space))
+            return None
         if _same_elements(space, measure):
             return _gradient_matrix(space, space.tangential_gradients_of, measure.piece_areas)
         es = measure.elements
@@ -814,7 +820,7 @@ def tangential_stiffness(measure: Measure, field=None) -> Form:
         tG = G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
         return _gradient_matrix(space, lambda cells: tG[cells], measure.piece_areas, el)
 
-    return Form([(1.0, _GramTerm(build, field))], False)
+    return Form([(1.0, _GramTerm(build, field, summed=True))], False)
 
 
 def position_load(measure: Measure, field=None) -> Form:
@@ -837,7 +843,7 @@ def position_load(measure: Measure, field=None) -> Form:
 
     def build(space):
         if isinstance(measure, MeshedSurface):
-            return _meshed_stiffness(space) @ space.dof_points
+            return space.node_pattern().matrix(*_meshed_stiffness(space)) @ space.dof_points
         if not _same_elements(space, measure):
             raise ValueError("position_load needs the field on the cut tets, CutP1Space(cut, CUT)")
         from . import kernels
@@ -965,7 +971,7 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
             scale *= f.h**h_power
         return _jump_gram(space, pairs, n, n, -1.0, scale)
 
-    return Form([(1.0, _GramTerm(build, field, lattice=True))], False)
+    return Form([(1.0, _GramTerm(build, field, summed=True))], False)
 
 
 def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> Form:
@@ -977,10 +983,11 @@ def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> F
     ``h`` defaults to the field's global mesh size (docs/math.md §3 asks for exactly that value)."""
     _require(measure, (SurfacePieces, MeshedSurface), "edge_jump_penalty")
 
-    def build(space):
+    def build(space, into):
         hh = space.h if h is None else h
         if isinstance(measure, MeshedSurface):
-            return _meshed_edge_penalty(space, hh)
+            into.add(*_meshed_edge_penalty(space, hh))
+            return None
         if not _same_elements(space, measure):
             raise ValueError("edge_jump_penalty needs the field on the cut tets, CutP1Space(cut, CUT)")
         c = measure.cut
@@ -988,7 +995,7 @@ def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> F
         # the pieces along an edge of S_h need not lie in face-adjacent tets: Gram products, not lattice slots
         return _jump_gram(space, c.surface_edge_tets, t[:, 0], t[:, 1], 1.0, hh * c.surface_edge_lengths)
 
-    return Form([(1.0, _GramTerm(build, field))], False)
+    return Form([(1.0, _GramTerm(build, field, summed=True))], False)
 
 
 def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=None) -> Form:
@@ -1040,7 +1047,7 @@ def nitsche(measure: SurfacePieces, gamma: float = 10.0, field=None) -> Form:
         diagonal = diagonal * scale - 2.0 * p * g
         return _element_symmetric(space, el, edges, diagonal, into)
 
-    return Form([(1.0, _GramTerm(build, field, lattice=True))], False)
+    return Form([(1.0, _GramTerm(build, field, summed=True))], False)
 
 
 def nitsche_load(g, measure: Measure, gamma: float = 10.0, field=None) -> Form:
@@ -1129,30 +1136,32 @@ def apply_dirichlet(K, b, dofs, values):
 # e_k = x_{k+1} - x_k (indices mod 3) every P1 integral is a rational function of |T| and the dot
 # products S_k = e_k . e_k, Q_k = e_k . e_{k+1} (SurfaceMesh.triangle_edge_dots).  Arrays of shape
 # (M, 3) are indexed by the half-edge 3 t + k (local edge k of triangle t, from vertex k to k + 1,
-# which is also the corner of vertex k); the half-edges after and before it in the triangle are
-# the columns rotated by one, X[:, _NEXT] and X[:, _PREV].  Each matrix is a diagonal plus one
-# value per pair of nodes, written straight into the cached CSR structure of the node graph
-# (cutfem.assembly.SymmetricPattern): no quadrature, no sort, exactly symmetric.  The general
+# which is also the corner of vertex k); the half-edge after it in the triangle is the column
+# rotated by one, X[:, _NEXT] (the edge penalty's passes are compiled).  Each matrix is a diagonal plus one
+# value per pair of nodes, summed by cutfem.assembly.PairSum and written straight into the cached
+# CSR structure of the node graph or the edge stencil (cutfem.assembly.SymmetricPattern): no
+# quadrature, no sort, no sparse sum, exactly symmetric.  The general
 # routes above give the same matrices to round-off (tested).
 # ---------------------------------------------------------------------------------------------
 
 _NEXT = [1, 2, 0]
-_PREV = [2, 0, 1]
 
 
-def _meshed_mass(space) -> sp.csr_matrix:
-    """Exact P1 mass matrix of S_h: M_T = |T|/12 (I + 1 1^T), i.e.
+def _meshed_mass(space, into) -> None:
+    """Exact P1 mass matrix of S_h, added into ``into`` (:class:`~cutfem.assembly.PairSum`):
+    M_T = |T|/12 (I + 1 1^T), i.e.
 
         M_ii = sum_{T at i} |T| / 6,   M_ij = sum_{T at edge ij} |T| / 12.
     """
     areas = space.element_areas
     diagonal = np.bincount(space.element_dofs.reshape(-1), weights=np.repeat(areas / 6.0, 3), minlength=space.n_dofs)
     et = space.mesh.edge_triangles
-    return space.node_pattern().matrix(diagonal, (areas[et[:, 0]] + areas[et[:, 1]]) / 12.0)
+    into.add(diagonal, (areas[et[:, 0]] + areas[et[:, 1]]) / 12.0)
 
 
-def _meshed_stiffness(space) -> sp.csr_matrix:
-    """P1 stiffness matrix of S_h (the cotangent formula in edge vectors):
+def _meshed_stiffness(space):
+    """P1 stiffness matrix of S_h (the cotangent formula in edge vectors), as (diagonal (n,), one
+    value per edge (E,)) on the node graph:
 
         |T| grad lambda_i . grad lambda_j = e_{i+1} . e_{j+1} / (4 |T|),
 
@@ -1164,11 +1173,13 @@ def _meshed_stiffness(space) -> sp.csr_matrix:
     diagonal = np.bincount(space.element_dofs.reshape(-1), weights=(S[:, _NEXT] * quarter).reshape(-1), minlength=space.n_dofs)
     per_halfedge = (Q[:, _NEXT] * quarter).reshape(-1)
     h = space.mesh.edge_halfedges
-    return space.node_pattern().matrix(diagonal, per_halfedge[h[:, 0]] + per_halfedge[h[:, 1]])
+    return diagonal, per_halfedge[h[:, 0]] + per_halfedge[h[:, 1]]
 
 
-def _meshed_edge_penalty(space, h: float) -> sp.csr_matrix:
-    """J_E of docs/math.md §3 on S_h in closed form: sum_E h |E| a a^T with a the jump coefficients.
+def _meshed_edge_penalty(space, h: float):
+    """J_E of docs/math.md §3 on S_h in closed form: sum_E h |E| a a^T with a the jump coefficients,
+    as (diagonal (n,), one value per edge (E,), one per pair of vertices opposite an edge (E,)),
+    the pairs of :meth:`SurfaceP1Space.edge_stencil_pattern`.
 
     The outward conormal of triangle K at its edge k is t = e_k / |e_k| x n_K, and
     t . grad lambda_m = -e_k . e_{m+1} / (2 |K| |E|): at the start, the end and the opposite vertex
@@ -1190,29 +1201,10 @@ def _meshed_edge_penalty(space, h: float) -> sp.csr_matrix:
     * the diagonal: corner g (vertex k of K, where half-edge g starts) gets b_start(g)^2 from the
       edge leaving it and b_opp^2 from the edge opposite to it, the half-edge after g.
     """
+    from . import kernels
+
     mesh = space.mesh
     S, Q = mesh.triangle_edge_dots
     h1, h2 = mesh.edge_halfedges.T
-    twin = np.empty(S.size, dtype=np.int64)
-    twin[h1], twin[h2] = h2, h1
-    # (M, 3) arrays, updated in place: at n = 768 each is 14 MB of fresh memory otherwise
-    length = np.sqrt(S)  # |E| per half-edge
-    cs = np.sqrt(length * h)  # sqrt(h |E|) ...
-    cs /= length * space.element_areas[:, None]
-    cs *= -0.5  # ... times -1 / (2 |K| |E|)
-    buffer = Q[:, _PREV] * cs  # sqrt(h|E|) c_end
-    b_start = buffer.reshape(-1)[twin]  # sqrt(h|E|) c_end of the twin ...
-    b_start += np.multiply(Q, cs, out=buffer).reshape(-1)  # ... plus sqrt(h|E|) c_start
-    b_end = b_start[twin]  # b at the end of h is b at the start of its twin
-    b_opp = np.multiply(S, cs, out=buffer).reshape(-1)
-    b_end *= b_opp  # what h gives to the half-edge after it
-    to_prev = b_opp * b_start  # what h gives to the half-edge before it
-    received = b_end.reshape(-1, 3)[:, _PREV]
-    received += to_prev.reshape(-1, 3)[:, _NEXT]
-    received = received.reshape(-1)
-    on_edges = b_start[h1] * b_start[h2] + received[h1] + received[h2]
-    opposite = b_opp.reshape(-1, 3)[:, _NEXT].reshape(-1)  # b_opp of the edge opposite each corner
-    opposite *= opposite
-    opposite += np.square(b_start, out=b_start)
-    diagonal = np.bincount(space.element_dofs.reshape(-1), weights=opposite, minlength=space.n_dofs)
-    return space.edge_stencil_pattern().matrix(diagonal, np.concatenate([on_edges, b_opp[h1] * b_opp[h2]]))
+    return kernels.meshed_edge_penalty(space.element_dofs, S, Q, space.element_areas, float(h), np.ascontiguousarray(h1),
+                                       np.ascontiguousarray(h2), space.n_dofs)

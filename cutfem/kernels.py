@@ -107,6 +107,14 @@ int32 while it fits (numpy sorted the pair keys and built the mirrors by a spars
 edge-penalty stencil of the meshed torus 768 x 384, 1.77 million pairs, in 150 ms against 59 ms;
 the same arrays).
 
+:func:`meshed_edge_penalty`, :func:`symmetric_data`, :func:`triangle_geometry` and
+:func:`closed_halfedges`: the meshed surface's edge penalty in closed form, the CSR values of a
+:class:`~cutfem.assembly.SymmetricPattern`, the triangles' cross products and edge dots, and the
+one-sort half-edge table of a closed mesh (a counting sort on the smaller node).  numpy took a dozen
+(M, 3) temporaries, a bincount and three scatters, two dozen column passes a block, and an argsort:
+at 768 x 384 the edge penalty 75-130 ms against 30 ms, the mesh checks 85 ms against 21 ms, the
+same bits.
+
 :func:`grid_weights`: the corners and weights of the prolongation of a doubly periodic surface
 grid (the meshed torus's multigrid), one pass over the nodes (numpy: (n m, 4, 3) blocks of corner
 offsets; 100-146 ms at 768 x 384 against 14 ms, equal to 1e-14 relative).
@@ -2061,6 +2069,144 @@ def refine_blocks(blocks, phi, keep, size: int, cells, lower, spacing, corners):
     children, centres, parent_phi = np.empty((n, 3), dtype=np.int64), np.empty((n, 3)), np.empty(n)
     _refine_blocks(*args, children, centres, parent_phi, True)
     return children, centres, parent_phi
+
+
+@parallel_kernel
+def triangle_geometry(points, tri):
+    """Cross products and edge-vector dot products of triangles, for
+    :func:`cutfem.surface._triangle_geometry` (which states them): ``(cross (M, 3), dots (2, M, 3),
+    longest (M,))``.  One pass over the triangles, where numpy gathered coordinate columns and
+    made two dozen temporaries a block."""
+    M = tri.shape[0]
+    cross, dots, longest = np.empty((M, 3)), np.empty((2, M, 3)), np.empty(M)
+    for t in prange(M):
+        e = np.empty((3, 3))
+        for k in range(3):
+            a, b = tri[t, k], tri[t, (k + 1) % 3]
+            for d in range(3):
+                e[k, d] = points[b, d] - points[a, d]
+        # (x_1 - x_0) x (x_2 - x_0), with x_2 - x_0 = -e_2
+        cross[t, 0] = e[0, 2] * e[2, 1] - e[0, 1] * e[2, 2]
+        cross[t, 1] = e[0, 0] * e[2, 2] - e[0, 2] * e[2, 0]
+        cross[t, 2] = e[0, 1] * e[2, 0] - e[0, 0] * e[2, 1]
+        top = 0.0
+        for k in range(3):
+            nx = (k + 1) % 3
+            sq = e[k, 0] * e[k, 0] + e[k, 1] * e[k, 1] + e[k, 2] * e[k, 2]
+            dots[0, t, k] = sq
+            dots[1, t, k] = e[k, 0] * e[nx, 0] + e[k, 1] * e[nx, 1] + e[k, 2] * e[nx, 2]
+            top = max(top, sq)
+        longest[t] = top
+    return cross, dots, longest
+
+
+@njit(cache=True, error_model="numpy")
+def closed_halfedges(tri, n):
+    """The half-edges of a triangle mesh with n nodes in the order of the key
+    2 (min(a, b) n + max(a, b)) + [a > b] of half-edge a -> b, for
+    :func:`cutfem.surface._closed_halfedge_table` (which states what it is for): a stable counting
+    sort on min(a, b), then an insertion sort on the rest of the key within each node's few
+    half-edges (numpy: an argsort of the keys).  Returns ``(closed, order (3 M,), edges (3 M / 2,
+    2), halfedge_edge (3 M,))``: ``closed`` is whether the sorted keys come in pairs
+    (2 k, 2 k + 1), i.e. every edge has one forward and one backward half-edge and nothing else;
+    the other arrays are meaningful only then."""
+    H = 3 * tri.shape[0]
+    lo, rest = np.empty(H, np.int64), np.empty(H, np.int64)
+    for t in range(tri.shape[0]):
+        for k in range(3):
+            a, b = tri[t, k], tri[t, (k + 1) % 3]
+            lo[3 * t + k] = min(a, b)
+            rest[3 * t + k] = 2 * max(a, b) + (1 if a > b else 0)
+    start = np.zeros(n + 1, np.int64)
+    for g in range(H):
+        start[lo[g] + 1] += 1
+    for i in range(n):
+        start[i + 1] += start[i]
+    fill = start[:-1].copy()
+    order = np.empty(H, np.int64)
+    for g in range(H):
+        order[fill[lo[g]]] = g
+        fill[lo[g]] += 1
+    for i in range(n):
+        s, e = start[i], start[i + 1]
+        for x in range(s + 1, e):
+            g = order[x]
+            y = x
+            while y > s and rest[order[y - 1]] > rest[g]:
+                order[y] = order[y - 1]
+                y -= 1
+            order[y] = g
+    edges = np.empty((H // 2, 2), np.int64)
+    halfedge_edge = np.empty(H, np.int64)
+    if H % 2:
+        return False, order, edges, halfedge_edge
+    for p in range(H // 2):
+        f, b = order[2 * p], order[2 * p + 1]
+        if lo[f] != lo[b] or rest[f] & 1 or rest[b] != rest[f] + 1:
+            return False, order, edges, halfedge_edge
+        edges[p, 0], edges[p, 1] = lo[f], rest[f] >> 1
+        halfedge_edge[f], halfedge_edge[b] = p, p
+    return True, order, edges, halfedge_edge
+
+
+@njit(cache=True, error_model="numpy")
+def symmetric_data(diagonal_position, upper, lower, slot, diagonal, values, nnz):
+    """The CSR values of :meth:`cutfem.assembly.SymmetricPattern.matrix`: ``diagonal`` at
+    ``diagonal_position``, and the value of each given pair k added at the positions of its
+    distinct pair ``slot[k]`` (k itself when ``slot`` is empty), in the upper triangle and its
+    mirror (repeated pairs summed in the order given).  One pass, where numpy summed the repeats by
+    ``bincount`` and scattered three times."""
+    data = np.zeros(nnz)
+    for i in range(diagonal.shape[0]):
+        data[diagonal_position[i]] = diagonal[i]
+    for k in range(values.shape[0]):
+        u = slot[k] if slot.shape[0] else k
+        data[upper[u]] += values[k]
+    for u in range(upper.shape[0]):
+        data[lower[u]] = data[upper[u]]
+    return data
+
+
+@njit(cache=True, error_model="numpy")
+def meshed_edge_penalty(tri, S, Q, areas, h, h1, h2, n):
+    """The edge penalty J_E of a closed triangulated surface in closed form, for
+    :func:`cutfem.forms._meshed_edge_penalty` (which derives it): per half-edge g = 3 t + k the
+    scaled jump coefficients b_start, b_end, b_opp, then ``(diagonal (n,), on_edges (E,),
+    opposite (E,))``: the values on the edges {i, j} and on the pairs {k, l} of vertices opposite
+    them (:meth:`cutfem.spaces.SurfaceP1Space.edge_stencil_pattern`).  ``S``, ``Q`` (M, 3) the edge-vector dot
+    products, ``areas`` (M,), ``h1``, ``h2`` (E,) the half-edges of each edge.  Two passes over
+    the half-edges and one over the edges, where numpy made a dozen (M, 3) temporaries."""
+    M = tri.shape[0]
+    E = h1.shape[0]
+    twin = np.empty(3 * M, np.int64)
+    for e in range(E):
+        twin[h1[e]], twin[h2[e]] = h2[e], h1[e]
+    c_end = np.empty(3 * M)  # sqrt(h |E|) c_end of each half-edge, then b_start
+    b_opp = np.empty(3 * M)
+    b_start = np.empty(3 * M)
+    for t in range(M):
+        for k in range(3):
+            length = np.sqrt(S[t, k])
+            cs = -0.5 * np.sqrt(length * h) / (length * areas[t])
+            c_end[3 * t + k] = Q[t, (k + 2) % 3] * cs
+            b_start[3 * t + k] = Q[t, k] * cs  # sqrt(h |E|) c_start, plus the twin's c_end below
+            b_opp[3 * t + k] = S[t, k] * cs
+    for g in range(3 * M):
+        b_start[g] += c_end[twin[g]]
+    received = c_end  # reused: what each half-edge receives from the two others of its triangle
+    diagonal = np.zeros(n)
+    for t in range(M):
+        for k in range(3):
+            g, nx, pv = 3 * t + k, 3 * t + (k + 1) % 3, 3 * t + (k + 2) % 3
+            # the half-edge before g gives b_end b_opp, the one after it b_opp b_start
+            received[g] = b_start[twin[pv]] * b_opp[pv] + b_opp[nx] * b_start[nx]
+            diagonal[tri[t, k]] += b_start[g] * b_start[g] + b_opp[nx] * b_opp[nx]
+    on_edges, opposite = np.empty(E), np.empty(E)
+    for e in range(E):
+        a, b = h1[e], h2[e]
+        on_edges[e] = b_start[a] * b_start[b] + received[a] + received[b]
+        opposite[e] = b_opp[a] * b_opp[b]
+    return diagonal, on_edges, opposite
 
 
 @njit(cache=True, error_model="numpy")

@@ -33,7 +33,6 @@ __all__ = [
     "barycentric_gradients",
     "cross",
     "triangle_areas",
-    "vertex_columns",
     "dense_unique",
     "stable_argsort",
     "sorted_row_keys",
@@ -352,13 +351,6 @@ def cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     out[..., 1] = a2 * b0 - a0 * b2
     out[..., 2] = a0 * b1 - a1 * b0
     return out
-
-
-def vertex_columns(points: np.ndarray, triangles: np.ndarray) -> list:
-    """x[k][d] (m,): coordinate d of vertex k of every triangle (m, 3), by one 1-d gather per vertex
-    and axis; several times faster than gathering (m, 3, 3) blocks, and no such array is made."""
-    cols = [np.ascontiguousarray(points[:, d]) for d in range(3)]
-    return [[np.take(col, triangles[:, k]) for col in cols] for k in range(3)]
 
 
 def triangle_areas(points: np.ndarray, triangles: np.ndarray) -> np.ndarray:

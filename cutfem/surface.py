@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .mesh import pair_up, vertex_columns
+from .mesh import pair_up
 
 __all__ = [
     "SurfaceMesh",
@@ -117,22 +117,17 @@ def _closed_halfedge_table(triangles: np.ndarray, n_points: int):
     (2 k, 2 k + 1): every edge k carries one forward and one backward half-edge and nothing else.
     Then the sort order, read in pairs, is :func:`_pair_halfedges` (forward half-edge first), the
     edges come out in lexicographic order, and ``(table, pairs)`` are returned with ``table`` as
-    :func:`_halfedge_table` gives it.
+    :func:`_halfedge_table` gives it.  The sort is a compiled counting sort on the smaller node
+    (:func:`cutfem.kernels.closed_halfedges`).
     """
-    start = triangles.reshape(-1)
-    end = triangles[:, _NEXT].reshape(-1)
-    n = np.int64(max(n_points, 1))
-    key = (np.minimum(start, end) * n + np.maximum(start, end)) * 2 + (start > end)
-    order = np.argsort(key, kind="stable")
-    sk = key[order]
-    if sk.size % 2 or (sk[0::2] & 1).any() or not np.array_equal(sk[1::2], sk[0::2] + 1):
+    from . import kernels
+
+    tri = np.ascontiguousarray(triangles, dtype=np.int64)
+    closed, order, edges, halfedge_edge = kernels.closed_halfedges(tri, np.int64(max(n_points, 1)))
+    if not closed:
         return None
-    edge_keys = sk[0::2] >> 1
-    edges = np.stack([edge_keys // n, edge_keys % n], axis=1)
-    halfedge_edge = np.empty(start.size, dtype=np.int64)
-    halfedge_edge[order] = np.arange(start.size) >> 1
     counts = np.full(len(edges), 2, dtype=np.int64)
-    return (edges, halfedge_edge, counts, start < end), order.reshape(-1, 2)
+    return (edges, halfedge_edge, counts, tri.reshape(-1) < tri[:, _NEXT].reshape(-1)), order.reshape(-1, 2)
 
 
 def _pair_halfedges(halfedge_edge: np.ndarray, forward: np.ndarray) -> np.ndarray:
@@ -189,7 +184,7 @@ def _as_triangles(triangles) -> np.ndarray:
     return np.ascontiguousarray(tri, dtype=np.int64)
 
 
-def _triangle_geometry(points: np.ndarray, tri: np.ndarray, block: int = 1 << 15):
+def _triangle_geometry(points: np.ndarray, tri: np.ndarray):
     """Cross products and edge-vector dot products of the triangles.
 
     With e_k = x_{k+1} - x_k (indices mod 3) the edge vectors of triangle (x_0, x_1, x_2), returns
@@ -198,28 +193,11 @@ def _triangle_geometry(points: np.ndarray, tri: np.ndarray, block: int = 1 << 15
     * ``dots`` (2, M, 3): S[t, k] = e_k . e_k and Q[t, k] = e_k . e_{k+1};
     * ``longest`` (M,): max_k S[t, k], the squared longest edge.
 
-    Computed on coordinate columns (one 1-d gather per vertex and axis), which is several times
-    faster than gathering (M, 3, 3) blocks and calling ``np.cross``, and in blocks of ``block``
-    triangles, whose two dozen temporaries stay in cache and reuse the same memory.
+    One compiled pass over the triangles (:func:`cutfem.kernels.triangle_geometry`).
     """
-    m = len(tri)
-    cross, dots, longest = np.empty((m, 3)), np.empty((2, m, 3)), np.empty(m)
-    for start in range(0, m, block):  # blocks of triangles, not single elements
-        part = slice(start, start + block)
-        x = vertex_columns(points, tri[part])  # x[k][d]
-        e = [[x[(k + 1) % 3][d] - x[k][d] for d in range(3)] for k in range(3)]  # e[k][d]
-        v = [x[2][d] - x[0][d] for d in range(3)]  # x_2 - x_0 = -e_2
-        u = e[0]
-        cross[part, 0] = u[1] * v[2] - u[2] * v[1]
-        cross[part, 1] = u[2] * v[0] - u[0] * v[2]
-        cross[part, 2] = u[0] * v[1] - u[1] * v[0]
-        squares = [a[0] * a[0] + a[1] * a[1] + a[2] * a[2] for a in e]
-        for k in range(3):  # the three edges
-            a, b = e[k], e[(k + 1) % 3]
-            dots[0, part, k] = squares[k]
-            dots[1, part, k] = a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
-        np.maximum(np.maximum(squares[0], squares[1]), squares[2], out=longest[part])
-    return cross, dots, longest
+    from . import kernels
+
+    return kernels.triangle_geometry(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(tri, dtype=np.int64))
 
 
 def _check_elements(points: np.ndarray, tri: np.ndarray):

@@ -50,28 +50,23 @@ DEFINITIONS = {
 }
 
 
-def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, mass_term=True):
+def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0):
     """The bilinear form of K = M + tau_E J_E + tau_F J_F on the measure ``surface`` (S_h), J_F over
-    the facet measure ``faces`` (cut case, times h^a, a = ``face_h_power``); without M when
-    ``mass_term`` is False (None if nothing is left).  Assembled as one form: on a structured box
-    the mass and the face penalty sum into one set of lattice slots."""
-    terms = [mass(surface)] if mass_term else []
+    the facet measure ``faces`` (cut case, times h^a, a = ``face_h_power``).  Assembled as one
+    form: on a structured box the mass and the face penalty sum into one set of lattice slots, on a
+    triangulated surface the mass and the edge penalty into one set of node and pair values."""
+    form = mass(surface)
     if tau_e > 0:
-        terms.append(tau_e * edge_jump_penalty(surface))
+        form = form + tau_e * edge_jump_penalty(surface)
     if tau_f > 0:
-        terms.append(tau_f * face_jump_penalty(faces, h_power=face_h_power))
-    return sum(terms[1:], terms[0]) if terms else None
+        form = form + tau_f * face_jump_penalty(faces, h_power=face_h_power)
+    return form
 
 
-def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, mass_matrix=None):
+def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0):
     """(K, B): the matrix of :func:`mean_curvature_form` on ``space`` and the right-hand sides
-    B = A X, (n, 3), computed without A (:func:`cutfem.forms.position_load`).  ``mass_matrix``: M
-    when the caller has it already (the meshed kind keeps it for the discrete error), added to the
-    assembled penalties instead of assembling M again."""
-    form = mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power, mass_term=mass_matrix is None)
-    K = None if form is None else assemble(form, space)
-    if mass_matrix is not None:
-        K = mass_matrix if K is None else (mass_matrix + K).tocsr()
+    B = A X, (n, 3), computed without A (:func:`cutfem.forms.position_load`)."""
+    K = assemble(mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power), space)
     return K, assemble(position_load(surface), space)
 
 
@@ -117,8 +112,9 @@ class MeanCurvatureMeshed(Problem):
             mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
             space = SurfaceP1Space(mesh)
         with t("assembly"):
-            M = assemble(mass(mesh.ds()), space)  # kept for the discrete error
-            K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e, mass_matrix=M)
+            # M for the discrete error; K sums its terms again, on the edge stencil (one CSR, no sparse sum)
+            M = assemble(mass(mesh.ds()), space)
+            K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e)
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL)
         with t("errors"):

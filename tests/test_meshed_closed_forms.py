@@ -187,6 +187,24 @@ def test_closed_form_edge_penalty_is_the_conormal_jump(name):
     assert np.abs(J @ np.ones(space.n_dofs)).max() < 1e-12 * abs(J).max()
 
 
+@pytest.mark.parametrize("name", sorted(SPACES))
+def test_closed_forms_of_one_form_sum_into_one_pattern(name):
+    """mass + c_1 stiffness + c_2 edge penalty assembled as one form (one PairSum, one CSR on the
+    edge stencil) equals the sum of the three matrices assembled alone; a form without the edge
+    penalty stays on the node graph (7 entries a row on a torus: n + 2 E with E = 3 n)."""
+    space = SPACES[name]()
+    ds = space.mesh.ds()
+    M, A, J = (assemble(f, space) for f in (mass(ds), tangential_stiffness(ds), edge_jump_penalty(ds)))
+    K = assemble(mass(ds) + 0.3 * tangential_stiffness(ds) + 0.1 * edge_jump_penalty(ds), space)
+    _close(K, (M + 0.3 * A + 0.1 * J).tocsr(), rel=1e-15)
+    assert K.nnz == space.edge_stencil_pattern().nnz and J.nnz == K.nnz
+    MA = assemble(mass(ds) + 0.3 * tangential_stiffness(ds), space)
+    _close(MA, (M + 0.3 * A).tocsr(), rel=1e-15)
+    assert MA.nnz == M.nnz == A.nnz == space.node_pattern().nnz < K.nnz
+    if name.startswith("torus"):
+        assert M.nnz == 7 * space.n_dofs
+
+
 def test_symmetric_pattern_sums_repeated_pairs():
     rng = np.random.default_rng(11)
     n = 40
@@ -214,6 +232,10 @@ def test_symmetric_pattern_sums_repeated_pairs():
     assert np.array_equal(C.indices, A.indices) and np.array_equal(C.indptr, A.indptr)
     summed = np.array([values[(lo == i) & (hi == j)].sum() for i, j in unique])
     np.testing.assert_allclose(C.matrix(diagonal, summed).toarray(), expected, rtol=1e-15, atol=0)
+    with pytest.raises(ValueError, match="one value per pair"):
+        SymmetricPattern(pairs, n).matrix(diagonal, values[:-1])
+    with pytest.raises(ValueError, match=r"diagonal of shape \(40,\)"):
+        C.matrix(diagonal[:-1], summed)
 
 
 @pytest.mark.parametrize("family", ["structured", "flipped", "perturbed", "perturbed-flipped"])
