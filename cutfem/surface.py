@@ -197,7 +197,10 @@ def _triangle_geometry(points: np.ndarray, tri: np.ndarray):
     """
     from . import kernels
 
-    return kernels.triangle_geometry(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(tri, dtype=np.int64))
+    tri = np.ascontiguousarray(tri, dtype=np.int64)
+    if tri.size and (tri.min() < 0 or tri.max() >= len(points)):  # the compiled pass does not check its reads
+        raise ValueError(f"triangles reference node indices outside [0, {len(points)}); indices must be 0-based rows of points")
+    return kernels.triangle_geometry(np.ascontiguousarray(points, dtype=float), tri)
 
 
 def _check_elements(points: np.ndarray, tri: np.ndarray):

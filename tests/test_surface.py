@@ -360,6 +360,11 @@ def test_check_false_skips_validation_but_not_topology():
     open_mesh = SurfaceMesh(SPHERE.points, SPHERE.triangles[1:], check=False)
     with pytest.raises(ValueError, match="exactly two triangles"):
         open_mesh.edge_triangles
+    # the geometry is a compiled pass: an index out of range is an error, not a read past the points
+    bad = SPHERE.triangles.copy()
+    bad[3, 1] = len(SPHERE.points)
+    with pytest.raises(ValueError, match=r"outside \[0, "):
+        SurfaceMesh(SPHERE.points, bad, check=False).areas
 
 
 def _with_nan():
