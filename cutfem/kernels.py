@@ -2294,12 +2294,15 @@ def symmetric_pattern(a, b, n, presorted):
 
 
 @njit(cache=True, error_model="numpy")
-def grid_weights(X, n, m):
+def grid_weights(X, n, m, drop):
     """The four coarse corners and weights of each node of a doubly periodic (n, m) surface grid,
     for :func:`cutfem.solve.grid_prolongation` (which states the weights): node (i, j), index
     i m + j, in the coarse cell (2a, 2b) + {0, 2}^2, corners (a, b), (a + 1, b), (a + 1, b + 1),
     (a, b + 1) modulo (n/2, m/2).  Returns (cols (n m, 4), weights (n m, 4)); a coarse node gets
-    the weights (1, 0, 0, 0).  One pass over the nodes, where numpy made (n m, 4, 3) blocks."""
+    the weights (1, 0, 0, 0).  A node on a coarse edge (one index odd) whose two weights off that
+    edge are both below ``drop`` in magnitude takes the weights (1 - s, s) of its projection
+    X_0 + s (X_1 - X_0) on the edge instead.  One pass over the nodes, where numpy made (n m, 4, 3)
+    blocks."""
     nc, mc = n // 2, m // 2
     N = n * m
     cols = np.empty((N, 4), np.int64)
@@ -2334,4 +2337,15 @@ def grid_weights(X, n, m):
         det = 4.0 * c0 + su * c1 + sv * c2
         for k in range(4):
             w[p, k] = (c0 + c1 * u[k] + c2 * v[k]) / det
+        if i % 2 == 1 and j % 2 == 1:
+            continue
+        e = 1 if j % 2 == 0 else 3  # the other end of the node's coarse edge, from corner 0
+        f, g = (2, 3) if e == 1 else (1, 2)  # the corners off it
+        if abs(w[p, f]) < drop and abs(w[p, g]) < drop:
+            se = sx = 0.0  # X_p - X_0 = -D_0, X_1 - X_0 = D_e - D_0
+            for c in range(3):
+                se += (D[e, c] - D[0, c]) * (D[e, c] - D[0, c])
+                sx += -D[0, c] * (D[e, c] - D[0, c])
+            s = sx / se
+            w[p, 0], w[p, e], w[p, f], w[p, g] = 1.0 - s, s, 0.0, 0.0
     return cols, w

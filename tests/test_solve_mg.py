@@ -411,7 +411,7 @@ def test_grid_prolongation_is_exact_for_linear_functions_on_a_planar_grid():
     rng = np.random.default_rng(3)
     i, j = np.divmod(np.arange(n * m), m)
     X = np.column_stack([i + rng.uniform(-0.25, 0.25, n * m), 0.5 * j + rng.uniform(-0.1, 0.1, n * m), np.zeros(n * m)])
-    P, Xc, shape = grid_prolongation(X, (n, m))
+    P, Xc, shape = grid_prolongation(X, (n, m), drop=0.0)
     assert P.shape == (n * m, n * m // 4) and shape == (n // 2, m // 2)
     np.testing.assert_array_equal(Xc, X.reshape(n, m, 3)[::2, ::2].reshape(-1, 3))
     g = np.array([0.7, -1.3, 5.0])
@@ -420,6 +420,46 @@ def test_grid_prolongation_is_exact_for_linear_functions_on_a_planar_grid():
     np.testing.assert_array_equal(P[np.flatnonzero(coarse)].toarray(), np.eye(n * m // 4))
     with pytest.raises(ValueError, match="even"):
         grid_prolongation(X[: 11 * m], (11, m))
+    with pytest.raises(ValueError, match="drop must be"):
+        grid_prolongation(X, (n, m), drop=0.5)
+
+
+def test_grid_prolongation_drops_small_weights_off_the_edge_of_a_node():
+    """A node on a coarse edge with both weights off that edge below ``drop`` takes the weights of
+    its projection on the edge: exact for linear functions on a planar grid whose edge nodes lie on
+    their coarse edges (a general quadrilateral grid, edge nodes anywhere along the edge); on the
+    structured torus every edge node of the finest level drops them, constants stay exact and the
+    linear functions are reproduced as well as by the four weights."""
+    n, m = 12, 8
+    rng = np.random.default_rng(4)
+    i, j = np.divmod(np.arange(n * m), m)
+    corner = np.column_stack([i + rng.uniform(-0.3, 0.3, n * m), 0.5 * j + rng.uniform(-0.1, 0.1, n * m), np.zeros(n * m)])
+    X = corner.copy()
+    base = (i - i % 2) * m + (j - j % 2)  # the corner (2a, 2b) of each node's coarse cell
+    for along, step in (((i % 2 == 1) & (j % 2 == 0), 2 * m), ((i % 2 == 0) & (j % 2 == 1), 2)):
+        p = np.flatnonzero(along & (i < n - 1) & (j < m - 1))  # edges inside the sheet: no seam
+        t = rng.uniform(0.3, 0.7, p.size)[:, None]
+        X[p] = (1 - t) * corner[base[p]] + t * corner[base[p] + step]
+    P, Xc, _ = grid_prolongation(X, (n, m))
+    P0, _, _ = grid_prolongation(X, (n, m), drop=0.0)
+    g = np.array([0.7, -1.3, 5.0])
+    inner = (i < n - 2) & (j < m - 2)  # cells away from the periodic seam, where the sheet is not closed
+    np.testing.assert_allclose((P @ (Xc @ g + 2.0))[inner], (X @ g + 2.0)[inner], rtol=0, atol=1e-12)
+    edge_rows = np.flatnonzero(inner & ((i % 2) != (j % 2)))
+    two = np.diff(P.indptr)[edge_rows] == 2
+    assert two.any() and np.all(np.diff(P0.indptr)[edge_rows] >= np.diff(P.indptr)[edge_rows])
+    # the structured torus: all edge nodes of the finest level drop the weights off their edge
+    mesh = torus_mesh(192)
+    P, Xc, _ = grid_prolongation(mesh.points, mesh.grid)
+    P0, _, _ = grid_prolongation(mesh.points, mesh.grid, drop=0.0)
+    n, m = mesh.grid
+    i, j = np.divmod(np.arange(n * m), m)
+    counts = np.diff(P.indptr)
+    assert np.all(counts[(i % 2) != (j % 2)] == 2) and np.all(counts[(i % 2 == 1) & (j % 2 == 1)] == 4)
+    np.testing.assert_allclose(np.asarray(P.sum(axis=1)).ravel(), 1.0, rtol=0, atol=1e-13)
+    g = np.array([0.3, -1.1, 0.8])
+    err, err0 = (np.abs(Q @ (Xc @ g) - mesh.points @ g).max() for Q in (P, P0))
+    assert err <= 1.5 * err0
 
 
 def test_grid_prolongation_on_the_torus_is_second_order():
@@ -442,7 +482,7 @@ def test_grid_prolongation_weights_are_the_minimum_norm_solution():
     mesh = torus_mesh(24, "perturbed-flipped", seed=5)
     n, m = mesh.grid
     X = mesh.points
-    P, Xc, _ = grid_prolongation(X, (n, m))
+    P, Xc, _ = grid_prolongation(X, (n, m), drop=0.0)
     nc, mc = n // 2, m // 2
     for p in range(n * m):
         i, j = divmod(p, m)
