@@ -46,15 +46,21 @@ class SymmetricPattern:
     def __init__(self, pairs: np.ndarray, n: int, presorted: bool = False):
         from . import kernels
 
-        pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+        pairs = np.asarray(pairs)
+        if pairs.size == 0:
+            pairs = pairs.reshape(0, 2)
+        if pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.dtype.kind not in "iu":
+            raise ValueError(f"pairs must be an (m, 2) array of integer dof numbers, got shape {pairs.shape} and dtype {pairs.dtype}")
+        pairs = np.ascontiguousarray(pairs, dtype=np.int32 if pairs.dtype.itemsize <= 4 and pairs.dtype.kind == "i" else np.int64)
         n = int(n)
-        if np.any(pairs[:, 0] == pairs[:, 1]):
-            raise ValueError("pairs must join two different dofs (the diagonal is always in the pattern)")
-        if pairs.size and (pairs.min() < 0 or pairs.max() >= n):
-            raise ValueError(f"pairs must be dof numbers in [0, {n}), got values in [{pairs.min()}, {pairs.max()}]")
-        index_type = index_dtype(n + 2 * len(pairs))
-        self.indptr, self.indices, self.diagonal_position, self.upper_position, self.lower_position, slot = kernels.symmetric_pattern(
-            pairs[:, 0].astype(index_type), pairs[:, 1].astype(index_type), n, bool(presorted))
+        like = np.empty(0, dtype=index_dtype(n + 2 * len(pairs)))
+        bad, why, *arrays = kernels.symmetric_pattern(pairs, np.int64(n), bool(presorted), like)
+        if bad >= 0:
+            if why == 0:
+                raise ValueError(f"pairs must join two different dofs (the diagonal is always in the pattern); pair {bad} is "
+                                 f"{tuple(int(v) for v in pairs[bad])}")
+            raise ValueError(f"pairs must be dof numbers in [0, {n}), got pair {bad} = {tuple(int(v) for v in pairs[bad])}")
+        self.indptr, self.indices, self.diagonal_position, self.upper_position, self.lower_position, slot = arrays
         self.n, self.n_pairs = n, len(self.upper_position)
         self._slot = None if presorted else slot
 

@@ -2210,9 +2210,9 @@ def meshed_edge_penalty(tri, S, Q, areas, h, h1, h2, n):
 
 
 @njit(cache=True, error_model="numpy")
-def symmetric_pattern(a, b, n, presorted):
+def symmetric_pattern(pairs, n, presorted, like):
     """The CSR structure of a symmetric n x n matrix with its full diagonal and the undirected pairs
-    {a_k, b_k} (a_k != b_k, both in [0, n)), for :class:`cutfem.assembly.SymmetricPattern`.
+    {a_k, b_k} = ``pairs[k]`` (a_k != b_k, both in [0, n)), for :class:`cutfem.assembly.SymmetricPattern`.
 
     The pairs (lo, hi) = (min, max) are put in lexicographic order by a stable counting sort on lo
     and an insertion sort on hi within each lo (rows of a surface mesh hold a handful of pairs), and
@@ -2222,13 +2222,20 @@ def symmetric_pattern(a, b, n, presorted):
     diagonal (n,), upper (p,), lower (p,), slot (m,)): the positions in ``indices`` of the diagonal,
     of each distinct pair (lo, hi) and of its mirror (hi, lo), the pairs in lexicographic order; and
     the distinct pair of each given pair (empty when ``presorted``), so that the values of repeated
-    pairs sum in the order given.  Every array has the integer type of ``a``, which must hold
-    n + 2 m (a fresh array is a first touch of its pages: int32 halves them)."""
-    m = a.shape[0]
-    dt = a.dtype
+    pairs sum in the order given; and first ``(k, why)``: -1 when the pairs are valid, else the
+    first invalid pair k and why (0: a_k == b_k, 1: outside [0, n)), with empty arrays.  Every
+    array has the integer type of the empty array ``like``, which must hold n + 2 m (a fresh array
+    is a first touch of its pages: int32 halves them); the pairs are checked before they are
+    narrowed to it."""
+    m = pairs.shape[0]
+    dt = like.dtype
     lo, hi = np.empty(m, dt), np.empty(m, dt)
     for k in range(m):
-        lo[k], hi[k] = min(a[k], b[k]), max(a[k], b[k])
+        a, b = pairs[k, 0], pairs[k, 1]
+        if a == b or min(a, b) < 0 or max(a, b) >= n:
+            e = np.empty(0, dt)
+            return k, 0 if a == b else 1, e, e, e, e, e, e
+        lo[k], hi[k] = min(a, b), max(a, b)
     if presorted:
         slot = np.empty(0, dt)
         ulo, uhi, p = lo, hi, m
@@ -2290,7 +2297,7 @@ def symmetric_pattern(a, b, n, presorted):
         lower[u] = next_lower[c]
         next_lower[c] += 1
         indices[lower[u]] = r
-    return indptr, indices, diagonal, upper, lower, slot
+    return -1, -1, indptr, indices, diagonal, upper, lower, slot
 
 
 @njit(cache=True, error_model="numpy")
