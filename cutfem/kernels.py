@@ -2100,6 +2100,28 @@ def triangle_geometry(points, tri):
     return cross, dots, longest
 
 
+@parallel_kernel
+def triangle_gradients(v, grads, normals, areas):
+    """Surface gradients of the barycentric coordinates of triangles ``v`` (m, 3, 3), for
+    :func:`cutfem.spaces.triangle_gradients` (which states them), into ``grads`` (m, 3, 3),
+    ``normals`` (m, 3) and ``areas`` (m,): one pass, where numpy made four cross products of
+    (m, 3) temporaries (0.13 s for the 590 thousand triangles of the torus 768 x 384)."""
+    for t in prange(v.shape[0]):
+        a0, a1, a2 = v[t, 1, 0] - v[t, 0, 0], v[t, 1, 1] - v[t, 0, 1], v[t, 1, 2] - v[t, 0, 2]
+        b0, b1, b2 = v[t, 2, 0] - v[t, 0, 0], v[t, 2, 1] - v[t, 0, 1], v[t, 2, 2] - v[t, 0, 2]
+        c0, c1, c2 = a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+        twice = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        n0, n1, n2 = c0 / twice, c1 / twice, c2 / twice
+        normals[t, 0], normals[t, 1], normals[t, 2] = n0, n1, n2
+        areas[t] = 0.5 * twice
+        for i in range(3):
+            p, q = (i + 2) % 3, (i + 1) % 3
+            e0, e1, e2 = v[t, p, 0] - v[t, q, 0], v[t, p, 1] - v[t, q, 1], v[t, p, 2] - v[t, q, 2]
+            grads[t, i, 0] = (n1 * e2 - n2 * e1) / twice
+            grads[t, i, 1] = (n2 * e0 - n0 * e2) / twice
+            grads[t, i, 2] = (n0 * e1 - n1 * e0) / twice
+
+
 @njit(cache=True, error_model="numpy")
 def closed_halfedges(tri, n):
     """The half-edges of a triangle mesh with n nodes in the order of the key

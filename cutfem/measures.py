@@ -299,7 +299,8 @@ class MeshedSurface(Measure):
 
     def _build(self, degree):
         m = self.mesh
-        return map_triangles(m.points[m.triangles], degree, normal=m.normals)
+        # the mesh's own triangles in their vertex order (whole): the basis values are the rule's bary
+        return map_triangles(m.points, degree, normal=m.normals, areas=m.areas, triangles=m.triangles, whole=m.n_triangles)
 
     @property
     def normals(self):

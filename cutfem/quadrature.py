@@ -526,7 +526,7 @@ def map_segments(vertices, degree: int, parent=None) -> Quadrature:
     return Quadrature(points, weights, parent=parent, normal=None, bary=bary)
 
 
-def map_triangles(vertices, degree: int, parent=None, normal=None) -> Quadrature:
+def map_triangles(vertices, degree: int, parent=None, normal=None, areas=None, triangles=None, whole: int = 0) -> Quadrature:
     """Quadrature on ``m`` flat triangles in R^3.
 
     ``points[e] = bary @ vertices[e]``, ``weights[e] = w * |T_e|`` with
@@ -534,9 +534,15 @@ def map_triangles(vertices, degree: int, parent=None, normal=None) -> Quadrature
 
     Parameters
     ----------
-    vertices : (m, 3, 3) float
+    vertices : (m, 3, 3) float, or (N, 3) node coordinates with ``triangles``
     degree : int, polynomial degree integrated exactly on each triangle
     parent : (m,) int or None (default ``arange(m)``)
+    areas : (m,) float or None, the areas |T_e| when the caller knows them (a surface mesh keeps
+        them); with ``normal`` nothing is computed from the vertices but the points
+    triangles : (m, 3) int or None, node numbers into ``vertices`` (N, 3) (then ``normal`` and
+        ``areas`` are required: the coordinates are a mesh's, already checked)
+    whole : int, the number of leading triangles that are whole elements of the parent set in
+        their own vertex order (see :class:`Quadrature`)
     normal : (m, 3) float or None
         Normal per triangle; rescaled to unit length (a zero or non-finite row raises).  When
         ``None`` it is the right-hand-rule normal ``(x_1 - x_0) x (x_2 - x_0) / (2 |T|)``, which
@@ -548,12 +554,26 @@ def map_triangles(vertices, degree: int, parent=None, normal=None) -> Quadrature
     -------
     Quadrature with ``bary (q, 3)`` and unit ``normal (m, 3)``.
     """
-    vertices = _as_vertices(vertices, 3, "triangle")
     bary, w = triangle_rule(degree)
-    cross = np.cross(vertices[:, 1] - vertices[:, 0], vertices[:, 2] - vertices[:, 0])
-    twice_area = np.linalg.norm(cross, axis=1)
-    m = vertices.shape[0]
+    if triangles is not None:
+        triangles = np.asarray(triangles)
+        if normal is None or areas is None or triangles.ndim != 2 or triangles.shape[1] != 3:
+            raise ValueError(f"triangles must have shape (m, 3) and come with normal and areas, got {triangles.shape}")
+        points = mapped_points(bary, vertices, triangles)
+    else:
+        vertices = _as_vertices(vertices, 3, "triangle")
+        points = mapped_points(bary, vertices)
+    m = len(points)
+    if areas is not None:
+        twice_area = 2.0 * np.asarray(areas, dtype=float)
+        if twice_area.shape != (m,):
+            raise ValueError(f"areas must have shape ({m},), got {twice_area.shape}")
+    else:
+        cross = np.cross(vertices[:, 1] - vertices[:, 0], vertices[:, 2] - vertices[:, 0])
+        twice_area = np.linalg.norm(cross, axis=1)
     if normal is None:
+        if areas is not None:
+            raise ValueError("map_triangles: give normal= with areas= (the normal is computed with the areas otherwise)")
         degenerate = np.flatnonzero(twice_area == 0.0)
         if degenerate.size:
             raise ValueError(
@@ -573,9 +593,8 @@ def map_triangles(vertices, degree: int, parent=None, normal=None) -> Quadrature
                 f"{np.flatnonzero(bad)[0]}); pass a nonzero normal for every triangle"
             )
         unit_normal = normal / length[:, None]
-    points = mapped_points(bary, vertices)
     weights = (0.5 * twice_area)[:, None] * w[None, :]
-    return Quadrature(points, weights, parent=parent, normal=unit_normal, bary=bary)
+    return Quadrature(points, weights, parent=parent, normal=unit_normal, bary=bary, whole=whole)
 
 
 def signed_volumes(vertices) -> np.ndarray:

@@ -31,16 +31,18 @@ def triangle_gradients(vertices: np.ndarray):
 
     ``vertices`` (m, 3, 3).  With unit normal n and area A, ``grad lambda_i = n x (x_{i+2} - x_{i+1}) / (2A)``
     (indices mod 3): tangent to the triangle, orthogonal to the opposite edge, of length 1/height.
-    Returns ``(grads (m, 3, 3), normals (m, 3), areas (m,))``.
+    Returns ``(grads (m, 3, 3), normals (m, 3), areas (m,))``; one compiled pass
+    (:func:`cutfem.kernels.triangle_gradients`).
     """
-    v = np.asarray(vertices, dtype=float)
-    c = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
-    twice_area = np.linalg.norm(c, axis=1)
-    n = c / twice_area[:, None]
-    grads = np.empty_like(v)
-    for i in range(3):
-        grads[:, i] = np.cross(n, v[:, (i + 2) % 3] - v[:, (i + 1) % 3]) / twice_area[:, None]
-    return grads, n, 0.5 * twice_area
+    from . import kernels
+
+    v = np.ascontiguousarray(vertices, dtype=float)
+    if v.ndim != 3 or v.shape[1:] != (3, 3):
+        raise ValueError(f"vertices must have shape (m, 3, 3), got {v.shape}")
+    m = len(v)
+    grads, normals, areas = np.empty((m, 3, 3)), np.empty((m, 3)), np.empty(m)
+    kernels.triangle_gradients(v, grads, normals, areas)
+    return grads, normals, areas
 
 
 def barycentric_at(points: np.ndarray, origin: np.ndarray, grads: np.ndarray) -> np.ndarray:

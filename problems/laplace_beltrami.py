@@ -17,11 +17,15 @@ Manufactured solutions (exact data derived by hand, checked in the tests against
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import prange
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import h1_error, l2_error
-from cutfem.forms import assemble, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
+from cutfem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
+from cutfem.kernels import parallel_kernel
 from cutfem.levelset import Sphere, Torus
 from cutfem.registry import LazyFields, Param, Problem, ProblemError, register
 from cutfem.solve import solve
@@ -40,77 +44,122 @@ DEFINITIONS = {
 
 
 class SphereSolution:
-    """u = x y + z on the sphere |x| = R (centred at 0); functions of points ON the sphere."""
+    """u = x y + z on the sphere |x| = R (centred at 0), extended constantly along the normals:
+    each function is evaluated at the closest point R x / |x| of its argument."""
 
     def __init__(self, R):
         self.R = R
 
+    def _on(self, x):
+        x = np.asarray(x, dtype=float)
+        return x * (self.R / np.linalg.norm(x, axis=-1, keepdims=True))
+
     def u(self, x):
-        return x[..., 0] * x[..., 1] + x[..., 2]
+        q = self._on(x)
+        return q[..., 0] * q[..., 1] + q[..., 2]
 
     def f(self, x):
-        R2 = self.R**2
-        return (6 / R2 + 1) * x[..., 0] * x[..., 1] + (2 / R2 + 1) * x[..., 2]
+        q, R2 = self._on(x), self.R**2
+        return (6 / R2 + 1) * q[..., 0] * q[..., 1] + (2 / R2 + 1) * q[..., 2]
 
     def grad(self, x):
-        g = np.stack([x[..., 1], x[..., 0], np.ones_like(x[..., 0])], axis=-1)
-        n = x / np.linalg.norm(x, axis=-1, keepdims=True)
+        q = self._on(x)
+        g = np.stack([q[..., 1], q[..., 0], np.ones_like(q[..., 0])], axis=-1)
+        n = q / self.R
         return g - np.einsum("...d,...d->...", g, n)[..., None] * n
 
 
+@parallel_kernel
+def _torus_solution(x, R, r, mode, values, grad):
+    """u (mode 0), f (mode 1) or grad_S u (mode 2) of :class:`TorusSolution` at the points x (n, 3),
+    into values (n,) or grad (n, 3); returns the number of points on the axis or the core circle
+    (or not finite), where the angles are undefined."""
+    bad = 0
+    for i in prange(x.shape[0]):
+        rho = math.sqrt(x[i, 0] * x[i, 0] + x[i, 1] * x[i, 1])
+        w = rho - R
+        d = math.sqrt(w * w + x[i, 2] * x[i, 2])
+        if not (rho > 0.0 and d > 0.0 and rho < math.inf and d < math.inf):
+            bad += 1
+            continue
+        ct, st = x[i, 0] / rho, x[i, 1] / rho  # cos t, sin t
+        cp, sp = w / d, x[i, 2] / d  # cos p, sin p
+        c3t = ct * (4.0 * ct * ct - 3.0)  # cos 3t
+        s = R + r * cp
+        if mode == 0:
+            values[i] = c3t * sp
+        elif mode == 1:
+            values[i] = c3t * sp * ((R + 2.0 * r * cp) / (r * r * s) + 9.0 / (s * s) + 1.0)
+        else:
+            s3t = st * (3.0 - 4.0 * st * st)  # sin 3t
+            a = -3.0 * s3t * sp / s  # d_t u / s, along e_t = (-sin t, cos t, 0)
+            b = c3t * cp / r  # d_p u / r, along e_p = (-sin p cos t, -sin p sin t, cos p)
+            grad[i, 0] = -a * st - b * sp * ct
+            grad[i, 1] = a * ct - b * sp * st
+            grad[i, 2] = b * cp
+    return bad
+
+
 class TorusSolution:
-    """u = cos(3t) sin(p) on the torus (R, r) about the z axis; functions of points ON the torus."""
+    """u = cos(3t) sin(p) on the torus (R, r) about the z axis, extended constantly along the normals.
+
+    The angles t (about the z axis) and p (about the core circle) of a point are those of its
+    closest point on the torus, so each function is evaluated from its argument's angles, without
+    a projection and without trigonometric calls: cos t, sin t = (x, y) / rho and
+    cos p, sin p = (rho - R, z) / d, rho = |(x, y)|, d = |(rho - R, z)|, and cos 3t, sin 3t by the
+    triple-angle formulas.  One compiled pass over the points (:func:`_torus_solution`): at the
+    torus 768 x 384 (3.5 million quadrature points) the load and the two errors took 1.24 s by the
+    closest point and numpy's angles."""
 
     def __init__(self, R, r):
-        self.R, self.r = R, r
+        self.R, self.r = float(R), float(r)
 
-    def _angles(self, x):
-        t = np.arctan2(x[..., 1], x[..., 0])
-        p = np.arctan2(x[..., 2], np.hypot(x[..., 0], x[..., 1]) - self.R)
-        return t, p
+    def _eval(self, x, mode):
+        x = np.asarray(x, dtype=float)
+        if x.ndim == 0 or x.shape[-1] != 3:
+            raise ValueError(f"points must have shape (..., 3), got {x.shape}")
+        pts = np.ascontiguousarray(x.reshape(-1, 3))
+        values = np.empty(len(pts) if mode < 2 else 0)
+        grad = np.empty((len(pts) if mode == 2 else 0, 3))
+        bad = _torus_solution(pts, self.R, self.r, np.int64(mode), values, grad)
+        if bad:
+            raise ValueError(f"{bad} point(s) lie on the torus axis or its core circle (or are not finite), where the "
+                             "manufactured solution's angles are undefined")
+        return values.reshape(x.shape[:-1]) if mode < 2 else grad.reshape(x.shape)
 
     def u(self, x):
-        t, p = self._angles(x)
-        return np.cos(3 * t) * np.sin(p)
+        return self._eval(x, 0)
 
     def f(self, x):
-        R, r = self.R, self.r
-        t, p = self._angles(x)
-        s = R + r * np.cos(p)
-        return np.cos(3 * t) * np.sin(p) * ((R + 2 * r * np.cos(p)) / (r**2 * s) + 9 / s**2 + 1)
+        return self._eval(x, 1)
 
     def grad(self, x):
-        R, r = self.R, self.r
-        t, p = self._angles(x)
-        s = R + r * np.cos(p)
-        et = np.stack([-np.sin(t), np.cos(t), np.zeros_like(t)], axis=-1)
-        ep = np.stack([-np.sin(p) * np.cos(t), -np.sin(p) * np.sin(t), np.cos(p)], axis=-1)
-        dt = -3 * np.sin(3 * t) * np.sin(p)
-        dp = np.cos(3 * t) * np.cos(p)
-        return (dt / s)[..., None] * et + (dp / r)[..., None] * ep
+        return self._eval(x, 2)
 
 
 def manufactured(levelset):
+    if isinstance(levelset, (Sphere, Torus)) and np.any(levelset.center != 0):
+        raise ProblemError(f"the manufactured solution on the {type(levelset).__name__.lower()} needs centre 0")
     if isinstance(levelset, Sphere):
-        if np.any(levelset.center != 0):
-            raise ProblemError("the manufactured solution on the sphere needs centre 0")
         return SphereSolution(levelset.radius)
     if isinstance(levelset, Torus):
         return TorusSolution(levelset.R, levelset.r)
     raise ProblemError("Laplace-Beltrami has manufactured solutions on the sphere and the torus only")
 
 
-def _solve_and_measure(space, surface, K, closest_point, sol, t, solver, multigrid=None):
+def _solve_and_measure(space, surface, K, sol, t, solver, multigrid=None):
+    """Load, solve and errors; ``sol``'s functions are extended along the normals (f^e = f o p
+    and so on), so they are evaluated at the quadrature points of S_h directly."""
     with t("assembly"):
-        b = assemble(load(sol.f, surface, degree=4, closest_point=closest_point), space)
+        b = assemble(load(sol.f, surface, degree=4), space)
     with t("solve"):
         u, info = solve(K, b, method=solver, space=space, multigrid=multigrid)
     with t("errors"):
         rec = {
             "h": space.h,
             "dofs": int(space.n_dofs),
-            "l2_error": l2_error(space, u, lambda x: sol.u(closest_point(x))),
-            "h1_error": h1_error(space, u, lambda x: sol.grad(closest_point(x))),
+            "l2_error": l2_error(space, u, sol.u),
+            "h1_error": h1_error(space, u, sol.grad),
             "solver": info.method,
             "solver_iterations": info.iterations,
         }
@@ -144,14 +193,12 @@ class LaplaceBeltramiMeshed(Problem):
             space = SurfaceP1Space(mesh)
         with t("assembly"):
             dS = mesh.ds()
-            M = assemble(mass(dS), space)
-            K = assemble(tangential_stiffness(dS), space) + M
-            if tau_e > 0:
-                K = K + tau_e * assemble(edge_jump_penalty(dS), space)
-        u, rec = _solve_and_measure(space, dS, K.tocsr(), exact.closest_point, sol, t, solver)
-        rec["area"] = float(M.sum())
+            form = tangential_stiffness(dS) + mass(dS)
+            K = assemble(form + tau_e * edge_jump_penalty(dS) if tau_e > 0 else form, space)  # one CSR, no sparse sums
+        u, rec = _solve_and_measure(space, dS, K, sol, t, solver)
+        rec["area"] = float(assemble(basis_integrals(dS), space).sum())
         rec["time"] = dict(t)
-        rec["fields"] = LazyFields(lambda: {"surface": with_point_data(mesh.to_pyvista(), u_h=u, u_exact=sol.u(exact.closest_point(space.dof_points)))})
+        rec["fields"] = LazyFields(lambda: {"surface": with_point_data(mesh.to_pyvista(), u_h=u, u_exact=sol.u(space.dof_points))})
         return rec
 
 
@@ -187,12 +234,12 @@ class LaplaceBeltramiCut(Problem):
             space = CutP1Space(cut)
         with t("assembly"):
             dS = cut.ds()
-            M = assemble(mass(dS), space)
-            K = assemble(tangential_stiffness(dS), space) + M
+            form = tangential_stiffness(dS) + mass(dS)
             if stabilization == "face" and tau_f > 0:
-                K = K + tau_f * assemble(face_jump_penalty(cut.dF(cut.interior_facets(CUT)), h_power=face_h_power), space)
+                form = form + tau_f * face_jump_penalty(cut.dF(cut.interior_facets(CUT)), h_power=face_h_power)
             elif stabilization == "normal" and tau_n > 0:
-                K = K + tau_n * assemble(normal_gradient_penalty(cut.dx(CUT), h_power=normal_h_power), space)
+                form = form + tau_n * normal_gradient_penalty(cut.dx(CUT), h_power=normal_h_power)
+            K = assemble(form, space)
         multigrid = None
         if (stabilization == "face" and tau_f > 0) or (stabilization == "normal" and tau_n > 0):
             # the multigrid's coarse spaces also hold phi_h v: the normally linear functions phi_h g
@@ -205,11 +252,11 @@ class LaplaceBeltramiCut(Problem):
             # iterations instead of 27, 40, 60 (spacings 0.05, 0.025, 0.0125; solve 1.56 s instead
             # of 2.05 s at 0.0125).
             multigrid = {"augment": space.cut.values, "coarse_size": 400}
-        u, rec = _solve_and_measure(space, dS, K.tocsr(), phi.closest_point, sol, t, solver, multigrid)
+        u, rec = _solve_and_measure(space, dS, K, sol, t, solver, multigrid)
         rec.update(cut_record(cut))
-        rec["area"] = float(M.sum())
+        rec["area"] = float(assemble(basis_integrals(dS), space).sum())
         rec["time"] = dict(t)
         rec["fields"] = LazyFields(
-            lambda: {"surface": with_point_data(cut.to_pyvista(), u_h=space.surface_vertex_values(u), u_exact=sol.u(phi.closest_point(cut.vertices)))}
+            lambda: {"surface": with_point_data(cut.to_pyvista(), u_h=space.surface_vertex_values(u), u_exact=sol.u(cut.vertices))}
         )
         return rec

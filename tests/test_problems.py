@@ -137,6 +137,33 @@ def test_manufactured_data_against_finite_differences():
     assert np.allclose(np.einsum("ij,ij->i", g, xt), dt, atol=1e-6)
 
 
+def test_manufactured_solutions_are_extended_along_the_normals():
+    """u, f and grad_S u at a point off the surface equal their values at its closest point
+    (the extension f^e = f o p of docs/math.md §4); the torus's compiled angles agree with
+    numpy's arctan2 and trigonometric functions; the angles' singular set is an error."""
+    from cutfem.levelset import Sphere, Torus
+    from cutfem.problems.laplace_beltrami import manufactured
+    from cutfem.registry import ProblemError
+
+    rng = np.random.default_rng(7)
+    for phi in (Torus(1.0, 0.5), Sphere(1.3)):
+        sol = manufactured(phi)
+        x = rng.uniform(-1.4, 1.4, (200, 3))
+        x = x[np.abs(phi.value(x)) < 0.2]
+        p = phi.closest_point(x)
+        for fn in (sol.u, sol.f, sol.grad):
+            np.testing.assert_allclose(fn(x), fn(p), rtol=0, atol=1e-13)
+    sol = manufactured(Torus(1.0, 0.5))
+    t, q = rng.uniform(-np.pi, np.pi, (2, 50))
+    s = 1.0 + 0.5 * np.cos(q)
+    on = np.stack([s * np.cos(t), s * np.sin(t), 0.5 * np.sin(q)], axis=-1)
+    np.testing.assert_allclose(sol.u(on), np.cos(3 * t) * np.sin(q), rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match="axis or its core circle"):
+        sol.u(np.array([[0.0, 0.0, 0.3], [1.0, 0.0, 0.0]]))
+    with pytest.raises(ProblemError, match="centre 0"):
+        manufactured(Torus(1.0, 0.5, center=(0.1, 0, 0)))
+
+
 def test_bad_parameters_are_reported():
     from cutfem.registry import ProblemError
 

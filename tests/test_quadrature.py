@@ -267,6 +267,25 @@ def test_map_triangles_normal():
     np.testing.assert_allclose(map_triangles(tri, 1, normal=[[0, 0, -4.0]]).normal, [[0, 0, -1]])
 
 
+def test_map_triangles_of_a_mesh_with_its_areas_and_normals():
+    """The nodes and triangles of a mesh with its areas and normals give the same rule as the
+    gathered vertices; ``whole`` is kept; missing normal/areas or wrong shapes are errors."""
+    from cutfem.surface import torus_mesh
+
+    mesh = torus_mesh(12, "perturbed", seed=1)
+    ref = map_triangles(mesh.points[mesh.triangles], 4, normal=mesh.normals)
+    quad = map_triangles(mesh.points, 4, normal=mesh.normals, areas=mesh.areas, triangles=mesh.triangles, whole=mesh.n_triangles)
+    np.testing.assert_array_equal(quad.points, ref.points)
+    np.testing.assert_allclose(quad.weights, ref.weights, rtol=1e-14, atol=0)
+    assert quad.whole == mesh.n_triangles and ref.whole == 0
+    with pytest.raises(ValueError, match="come with normal and areas"):
+        map_triangles(mesh.points, 4, triangles=mesh.triangles)
+    with pytest.raises(ValueError, match="areas must have shape"):
+        map_triangles(mesh.points, 4, normal=mesh.normals, areas=mesh.areas[:-1], triangles=mesh.triangles)
+    with pytest.raises(ValueError, match="give normal= with areas="):
+        map_triangles(mesh.points[mesh.triangles], 4, areas=mesh.areas)
+
+
 def test_degenerate_triangle_needs_explicit_normal():
     tri = np.array([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0]], [[0.0, 0, 0], [1, 1, 1], [2, 2, 2]]])
     with pytest.raises(ValueError, match="zero area"):
