@@ -658,13 +658,6 @@ class CutMesh:
         e = self.surface_edges
         return np.linalg.norm(self.vertices[e[:, 1]] - self.vertices[e[:, 0]], axis=1)
 
-    # -- quadrature --------------------------------------------------------------------------
-    def surface_quadrature(self, degree: int = 2):
-        """Quadrature on S_h: the triangles of the pieces, parent = active tet, normal = n_h."""
-        from .quadrature import map_triangles
-
-        return map_triangles(self.triangle_points, degree, parent=self.triangle_tets, normal=self.normals[self.triangle_tets])
-
     def to_pyvista(self):
         """S_h as a ``pyvista.PolyData`` (cell data: parent tet)."""
         import pyvista as pv

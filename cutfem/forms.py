@@ -805,7 +805,8 @@ def stiffness(measure: Measure, field=None) -> Form:
 def tangential_stiffness(measure: Measure, field=None) -> Form:
     """(P_h grad u, P_h grad v) over a surface: on each piece |K| (P_h G_j)·(P_h G_i), |K| the area
     of the piece and P_h = I - n_h n_h^T; on a triangulated surface in closed form
-    (:func:`_meshed_stiffness`)."""
+    (:func:`_meshed_stiffness`); on the cut tets of a structured box per lattice edge
+    (:func:`_kuhn_tangential_stiffness`)."""
     _require(measure, (SurfacePieces, MeshedSurface), "tangential_stiffness")
 
     def build(space, into):
@@ -813,6 +814,8 @@ def tangential_stiffness(measure: Measure, field=None) -> Form:
             into.add(*_meshed_stiffness(space))
             return None
         if _same_elements(space, measure):
+            if into is not None:
+                return _kuhn_tangential_stiffness(space, measure, into)
             return _gradient_matrix(space, space.tangential_gradients_of, measure.piece_areas)
         es = measure.elements
         el = space.local_elements(measure, np.arange(es.n_elements))
@@ -821,6 +824,24 @@ def tangential_stiffness(measure: Measure, field=None) -> Form:
         return _gradient_matrix(space, lambda cells: tG[cells], measure.piece_areas, el)
 
     return Form([(1.0, _GramTerm(build, field, summed=True))], False)
+
+
+def _kuhn_tangential_stiffness(space, measure, into):
+    """sum_K |K| (P_h G)(P_h G)^T over the pieces of the cut tets of a structured box, into
+    ``into`` (:class:`~cutfem.assembly.LatticeSum`).  G is the row of the tet's Kuhn type in the
+    (6, 4, 3) gradient table, so with c = G n_h the entries are |K| (G_a . G_b - c_a c_b), per tet
+    in one compiled pass (:func:`cutfem.kernels.tangential_entries`): no (m, 4, 3) gradients and no
+    sparse Gram product (at spacing 0.0125, 853 thousand cut tets, the Gram route took 0.40 s,
+    this one 0.05 s)."""
+    from . import kernels
+
+    table, types = space.gradient_lookup()
+    m = len(types)
+    edges, diagonal = np.empty((m, 6)), np.empty((m, 4))
+    kernels.tangential_entries(np.ascontiguousarray(table, dtype=float), np.ascontiguousarray(types),
+                               np.ascontiguousarray(measure.normals, dtype=float),
+                               np.ascontiguousarray(measure.piece_areas, dtype=float), edges, diagonal)
+    into.add_elements(space.element_dofs, edges, diagonal)
 
 
 def position_load(measure: Measure, field=None) -> Form:

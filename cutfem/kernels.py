@@ -2122,6 +2122,27 @@ def triangle_gradients(v, grads, normals, areas):
             grads[t, i, 2] = (n0 * e1 - n1 * e0) / twice
 
 
+@parallel_kernel
+def tangential_entries(table, types, normals, areas, edges, diagonal):
+    """The entries of |K| (P G)(P G)^T, P = I - n n^T, for tets whose gradients G (4, 3) are
+    ``table[types[k]]``, with normal ``normals[k]`` and weight ``areas[k]``: on the local edges
+    (:data:`~cutfem.mesh.TET_EDGES` order) into ``edges`` (m, 6) and on the diagonal into
+    ``diagonal`` (m, 4), for :func:`cutfem.forms._kuhn_tangential_stiffness`:
+    |K| (G_a . G_b - (G_a . n)(G_b . n)).  One pass (numpy's masks per type, gathers and products
+    took 0.17 s for the 853 thousand cut tets at spacing 0.0125)."""
+    for k in prange(types.shape[0]):
+        G = table[types[k]]
+        c = np.empty(4)
+        for a in range(4):
+            c[a] = G[a, 0] * normals[k, 0] + G[a, 1] * normals[k, 1] + G[a, 2] * normals[k, 2]
+        w = areas[k]
+        for a in range(4):
+            diagonal[k, a] = (G[a, 0] * G[a, 0] + G[a, 1] * G[a, 1] + G[a, 2] * G[a, 2] - c[a] * c[a]) * w
+        for e in range(6):
+            a, b = _TET_EDGES[e, 0], _TET_EDGES[e, 1]
+            edges[k, e] = (G[a, 0] * G[b, 0] + G[a, 1] * G[b, 1] + G[a, 2] * G[b, 2] - c[a] * c[b]) * w
+
+
 @njit(cache=True, error_model="numpy")
 def closed_halfedges(tri, n):
     """The half-edges of a triangle mesh with n nodes in the order of the key

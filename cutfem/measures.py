@@ -107,8 +107,9 @@ class SurfacePieces(Measure):
         self.cut = cut
 
     def _build(self, degree):
-        c = self.cut
-        return map_triangles(c.triangle_points, degree, parent=c.triangle_tets, normal=c.normals[c.triangle_tets])
+        c = self.cut  # the triangles of the pieces from the cut's vertices, with their areas and normals n_h
+        return map_triangles(c.vertices, degree, parent=c.triangle_tets, normal=c.normals[c.triangle_tets], areas=c.triangle_areas,
+                             triangles=c.triangles)
 
     @property
     def normals(self):

@@ -384,6 +384,36 @@ def test_volume_stiffness_on_a_structured_box_matches_reference(cells, monkeypat
     assert whole.sum() == pytest.approx(V.elements.volumes.sum(), rel=1e-13)
 
 
+def test_tangential_stiffness_on_a_structured_box_matches_the_gram_route():
+    """The lattice route of the tangential stiffness (cut tets of a StructuredBox: a table of
+    Kuhn gradient products less a rank-one term per tet) against the Gram product of the same
+    tangential gradients and against the simplex route of the same tets as a TetMesh: the same
+    matrix to round-off, exactly symmetric, constants in its kernel, and a linear function x . g
+    gives sum_K |K| |P_h g|^2."""
+    from cutfem.forms import _gradient_matrix, tangential_stiffness
+
+    bg = structured_box([-1, -1, -1], [1, 1, 1], cells=(6, 5, 7))
+    ls = Sphere(0.71, [0.05, -0.03, 0.02])
+    cut = cut_mesh(bg, ls)
+    V = CutP1Space(cut)
+    assert V.elements.kuhn_types is not None
+    dS = cut.ds()
+    A = assemble(tangential_stiffness(dS), V)
+    G = _gradient_matrix(V, V.tangential_gradients_of, dS.piece_areas)
+    scale = abs(G).max()
+    np.testing.assert_allclose(A.toarray(), G.toarray(), rtol=0, atol=1e-14 * scale)
+    assert abs(A - A.T).max() == 0.0
+    np.testing.assert_allclose(A @ np.ones(V.n_dofs), 0.0, atol=1e-13 * scale)
+    plain = cut_mesh(TetMesh(np.array(bg.points), np.array(bg.tets)), ls)
+    Vp = CutP1Space(plain)
+    np.testing.assert_array_equal(Vp.node_ids, V.node_ids)
+    np.testing.assert_allclose(A.toarray(), assemble(tangential_stiffness(plain.ds()), Vp).toarray(), rtol=0, atol=1e-13 * scale)
+    g = np.array([0.3, -1.2, 0.7])
+    u = V.dof_points @ g
+    tangential = g - np.outer(dS.normals @ g, np.ones(3)) * dS.normals
+    assert u @ A @ u == pytest.approx(np.sum(dS.piece_areas * np.einsum("md,md->m", tangential, tangential)), rel=1e-12)
+
+
 # ----------------------------------------------------------------------------------------------
 # the assembly benchmark study, at a tiny size
 # ----------------------------------------------------------------------------------------------

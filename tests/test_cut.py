@@ -364,7 +364,7 @@ def test_flat_surface_has_opposite_conormals():
 def test_surface_quadrature():
     sphere = Sphere(1.3, center=(0.05, -0.02, 0.1))
     cut = cut_mesh(SPHERE_BOX, sphere)
-    q = cut.surface_quadrature(2)
+    q = cut.ds().quadrature(2)
     assert q.integrate(np.ones(q.weights.shape)) == pytest.approx(cut.area, rel=1e-13)
     assert np.array_equal(q.parent, cut.triangle_tets)
     np.testing.assert_allclose(q.normal, cut.normals[cut.triangle_tets], rtol=1e-14)
@@ -377,7 +377,7 @@ def test_surface_quadrature():
     def quadratic(x):
         return x[..., 0] ** 2 - 2 * x[..., 1] * x[..., 2] + 3 * x[..., 2] + 0.5
 
-    q8 = cut.surface_quadrature(8)
+    q8 = cut.ds().quadrature(8)
     assert q.integrate(quadratic(q.points)) == pytest.approx(q8.integrate(quadratic(q8.points)), rel=1e-12)
     # per piece as well
     per2 = np.bincount(q.parent, weights=q.integrate_per_element(quadratic(q.points)), minlength=cut.n_tets)
