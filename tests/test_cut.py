@@ -440,6 +440,22 @@ def test_nan_values():
         cut_mesh(SPHERE_BOX, values)
 
 
+def test_nodal_values_of_a_structured_box_go_by_blocks(monkeypatch):
+    """On a structured box the level set is evaluated block by block of node ids, never on the
+    box's (N, 3) coordinates: the same values as on those coordinates, and no coordinates kept."""
+    import cutfem.cut as cutmod
+    from cutfem.cut import nodal_values
+
+    monkeypatch.setattr(cutmod, "NODE_BLOCK", 97)
+    box = structured_box([-1.4, -1.4, -0.7], [1.4, 1.4, 0.7], cells=(9, 8, 5))
+    torus = Torus(1.0, 0.5)
+    values = nodal_values(box, torus)
+    assert "points" not in box.__dict__
+    np.testing.assert_array_equal(values, torus.value(box.points))
+    with pytest.raises(ValueError, match="background nodes"):
+        nodal_values(box, lambda x: np.where(x[..., 0] > 1.3, np.nan, 1.0))
+
+
 def test_nodal_values_of_the_wrong_length():
     values = Sphere(1.0).value(SPHERE_BOX.points)
     with pytest.raises(ValueError, match=f"got {values.size - 1} nodal values for a mesh of {values.size} nodes"):
