@@ -344,7 +344,13 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
         size //= 2
         # the children of the kept blocks inside the box, their centres and their parent's value
         blocks, centre, parent_phi = kernels.refine_blocks(blocks, phi, keep, size, cells, box.lower, box.spacing, CUBE_CORNERS)
-    return blocks[:, 0] + cells[0] * (blocks[:, 1] + cells[1] * blocks[:, 2]), phi
+    # in cell-id order (the search leaves them in block order): the cut's tets then come in id
+    # order, so their nodes run through the box layer by layer and the lattice sums over the
+    # pieces split into chunks of disjoint node ranges (cutfem.kernels.scatter_chunks)
+    ids = blocks[:, 0] + cells[0] * (blocks[:, 1] + cells[1] * blocks[:, 2])
+    order = np.empty(len(ids), dtype=np.int64)
+    kernels.radix_argsort(ids, int(box.n_cells).bit_length(), order)
+    return ids[order], phi[order]
 
 
 _KUHN_MIXED = (KUHN_CORNER_COUNTS > 0) & (KUHN_CORNER_COUNTS < 4)

@@ -1031,9 +1031,10 @@ def scatter_chunks(dofs, owners, counts=SWEEP_CHUNKS):
     reads, e.g. its tet, the two tets of a face, or its own row of Gram dofs).  The first k of
     ``counts`` for which k contiguous chunks of about equal elements give chunks of one parity
     disjoint ranges of nodes (so the even chunks can add at the same time, then the odd ones);
-    [0, E] when none does.  Elements listed along the lattice pass, as the whole tets of a side and
-    the interior faces of a cut do; the cut's tets come in the band search's order of blocks, whose
-    chunks span most node numbers, so the triangles of S_h and the rows of cut cells get one chunk.
+    [0, E] when none does.  Elements listed along the lattice pass: the whole tets of a side, the
+    interior faces of a cut, and the cut's tets and the triangles of S_h, since the band search
+    returns its cells in id order (in the order of its blocks, the cut's chunks spanned most node
+    numbers and got one chunk: the piece mass and the cut rows ran on one core).
     The chunk order changes the order of the sums at nodes shared by two chunks: the same bits on
     any number of threads, not those of one pass in element order."""
     owners = np.ascontiguousarray(owners).reshape(len(owners), -1)
