@@ -365,8 +365,7 @@ def _candidates_structured(box: StructuredBox, f, lipschitz):
     see :func:`_band_cells`)."""
     if lipschitz is None:
         cell_ids = np.arange(box.n_cells)
-        values = np.asarray(f(box.points), dtype=float).reshape(-1)
-        _check_finite(values, "background nodes")
+        values = nodal_values(box, f)  # by blocks of nodes, no (N, 3) coordinates
         label_values = _snap_zeros(values, _zero_tolerance(box, None, values))
         corner = box.cell_corner_ids(cell_ids)
         label_ids = None
