@@ -408,6 +408,26 @@ def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0):
         )
 
 
+def _check_band_boundary(box: StructuredBox, f, band_nodes, tol: float):
+    """:func:`_check_boundary` after the band search, from one node when the band stays off the
+    box's faces.  Every tet with nodes of both signs (after the snap) lies in a band cell, so when
+    no band node ``band_nodes`` is on the boundary, no boundary edge joins a node with phi < -tol
+    to one without, and as the boundary of a box is connected its nodes are all inside or all
+    outside: the first node decides (all inside: the full check words the error).  Otherwise
+    every boundary node is checked.  At spacing 0.003125 the boundary has 6 million nodes (0.6 s)."""
+    n = box.node_shape
+    i = np.asarray(band_nodes, dtype=np.int64)
+    j, k = i // n[0], i // (n[0] * n[1])
+    i, j = i % n[0], j % n[1]
+    on_faces = (i == 0) | (i == n[0] - 1) | (j == 0) | (j == n[1] - 1) | (k == 0) | (k == n[2] - 1)
+    if not on_faces.any():
+        first = np.asarray(f(box.node_coordinates(np.zeros(1, dtype=np.int64))), dtype=float).reshape(-1)
+        _check_finite(first, "boundary nodes")
+        if first[0] >= -tol:
+            return
+    _check_boundary(box, f, tol)
+
+
 # ---------------------------------------------------------------------------------------------
 # the cut mesh
 # ---------------------------------------------------------------------------------------------
@@ -742,10 +762,11 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     elif structured:
         _check_box_memory(background, lipschitz)
         f = _as_values_function(levelset)
-        if check_boundary:
-            tol = _zero_tolerance(background, lipschitz) if lipschitz is not None else 0.0
-            _check_boundary(background, f, tol)
+        if check_boundary and not band:
+            _check_boundary(background, f)
         cand = _candidates_structured(background, f, lipschitz)
+        if check_boundary and band:
+            _check_band_boundary(background, f, cand[3], _zero_tolerance(background, lipschitz))
     else:
         values = nodal_values(background, levelset)
         values = _snap_zeros(values, _zero_tolerance(background, lipschitz, values))

@@ -465,3 +465,19 @@ def test_interpolate_values_and_nan_detection():
             interpolate(ls, x)
     with pytest.raises(ValueError, match=r"\(n, 3\)"):
         interpolate(Sphere(), x[:, :2])
+
+
+def test_torus_value_is_numpys_hypot_bit_for_bit():
+    """The compiled torus level set gives the bits of the numpy expression (libm's hypot both
+    ways), keeps the shape of its input, and names points that are not finite."""
+    tor = Torus(1.1, 0.4, center=(0.1, -0.2, 0.05))
+    x = np.random.default_rng(2).uniform(-2, 2, (7, 11, 3))
+    y = x - tor.center
+    ref = np.hypot(y[..., 2], np.hypot(y[..., 0], y[..., 1]) - tor.R) - tor.r
+    np.testing.assert_array_equal(tor.value(x), ref)
+    assert tor.value(x[0, 0]).shape == () and tor.value(x[0]).shape == (11,)
+    x[3, 4, 1] = np.nan
+    with pytest.raises(ValueError, match="NaN or infinite"):
+        tor.value(x)
+    with pytest.raises(ValueError, match="shape"):
+        tor.value(np.zeros((4, 2)))
