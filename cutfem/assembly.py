@@ -151,7 +151,7 @@ class LatticeSum:
     differ by one of 13 lattice vectors (:func:`~cutfem.mesh.kuhn_neighbour_offsets`), so the entry
     (a, b), a < b, has the slot 13 a + the rank of ids[b] - ids[a] among the box's
     :attr:`~cutfem.mesh.StructuredBox.neighbour_id_offsets`; the ranks follow the column order, and
-    :meth:`matrix` writes the CSR arrays in one pass over the slots: no sort, no sparse product,
+    :meth:`matrix` writes the CSR arrays from the slots (:func:`cutfem.kernels.lattice_csr`): no sort, no sparse product,
     exactly symmetric.  Pairs whose sum is exactly zero are left out of the pattern (as a sparse
     product leaves them out: on a uniform lattice the P1 stiffness of the diagonal edges cancels);
     the diagonal is always stored.  Memory: 13 slots of 12 bytes a node while summing, allocated

@@ -155,7 +155,8 @@ faces has at most 13 entries right of the diagonal in each row.  :func:`lattice_
 :func:`lattice_add_rows` (with :func:`lattice_add_face_jumps` and :func:`lattice_add_pieces`) add
 element matrices and Gram rows, each times a scale, into 13 slots a node (the slot of the pair
 (a, b), a < b, is 13 a + the rank of the node-id difference), and :func:`lattice_csr` writes the
-CSR arrays from them in one pass: no sort, no sparse product, exactly symmetric.  This is what
+CSR arrays from them on all cores, each entry at a position fixed by the slots: no sort, no
+sparse product, exactly symmetric.  This is what
 :class:`cutfem.assembly.LatticeSum` does; :func:`cutfem.forms.assemble` sums all the lattice
 terms of a form into one set of slots.  The face penalty (:func:`lattice_add_face_jumps`) builds
 each face's row in scalars on the five nodes the opposite vertices name: 140 ns a face at spacing
@@ -1057,27 +1058,29 @@ def scatter_chunks(dofs, owners, counts=SWEEP_CHUNKS):
     return np.array([0, E], dtype=np.int64)
 
 
-@njit(cache=True, error_model="numpy")
-def lattice_csr(sums, partner, diag, indptr, indices, data):
-    """The CSR arrays of the symmetric matrix held by the slots (``indptr`` (n + 1,) filled here,
-    ``indices`` and ``data`` of length ``indptr[n]``, see :func:`lattice_nnz`): in row a the
-    mirrors (a, c) of the slots (c, a), c < a, in increasing c, the diagonal, then the slots of a
-    in increasing partner.  Slots whose sum is exactly zero are left out."""
+@parallel_kernel
+def _incoming_offsets(sums, partner, bounds, parity, incoming):
+    """incoming[b] |= 1 << c for every nonzero slot (a, c) of the rows a of the chunks of ``bounds``
+    with the given ``parity`` (their targets b lie in their own chunk or the next)."""
+    S = 13
+    for k in prange((bounds.shape[0] - parity) // 2):
+        ch = 2 * k + parity
+        for a in range(bounds[ch], bounds[ch + 1]):
+            for c in range(S):
+                if sums[a * S + c] != 0.0:
+                    b = partner[a * S + c]
+                    incoming[b] |= np.uint16(1 << c)
+
+
+@parallel_kernel
+def _lattice_fill(sums, partner, diag, incoming, indptr, indices, data):
+    """Row a of the CSR arrays of :func:`lattice_csr` (diagonal and upper slots) and the mirrors of
+    its slots, each at its own position: in row b the mirror of slot (a, c) comes after those of
+    the slots with a larger offset rank c' (a smaller a'), the bits of ``incoming[b]`` above c."""
     n = diag.shape[0]
     S = 13
-    lower = np.zeros(n, dtype=indptr.dtype)
-    upper = np.zeros(n, dtype=indptr.dtype)
-    for a in range(n):
-        for c in range(S):
-            if sums[a * S + c] != 0.0:
-                upper[a] += 1
-                lower[partner[a * S + c]] += 1
-    indptr[0] = 0
-    for a in range(n):
-        indptr[a + 1] = indptr[a] + lower[a] + 1 + upper[a]
-    nxt = indptr[:-1].copy()  # next free mirror position of each row
-    for a in range(n):
-        pos = indptr[a] + lower[a]
+    for a in prange(n):
+        pos = indptr[a] + _popcount(np.uint64(incoming[a]))
         indices[pos] = a
         data[pos] = diag[a]
         pos += 1
@@ -1088,9 +1091,68 @@ def lattice_csr(sums, partner, diag, indptr, indices, data):
                 indices[pos] = b
                 data[pos] = v
                 pos += 1
-                indices[nxt[b]] = a
-                data[nxt[b]] = v
-                nxt[b] += 1
+                m = indptr[b] + _popcount(np.uint64(incoming[b]) >> np.uint64(c + 1))
+                indices[m] = a
+                data[m] = v
+
+
+def lattice_csr(sums, partner, diag, indptr, indices, data):
+    """The CSR arrays of the symmetric matrix held by the slots (``indptr`` (n + 1,) filled here,
+    ``indices`` and ``data`` of length ``indptr[n]``, see :func:`lattice_nnz`): in row a the
+    mirrors (a, c) of the slots (c, a), c < a, in increasing c, the diagonal, then the slots of a
+    in increasing partner.  Slots whose sum is exactly zero are left out.
+
+    On the available cores: a 13-bit mask per row of the slots that point at it (by chunks of rows
+    whose targets stay in the chunk or the next, even chunks at once, then odd; else one chunk),
+    the row pointers from the masks' bit counts, then every row and the mirrors of its slots,
+    each entry at a position fixed by the masks: the same arrays as one pass in row order, which
+    took 1.2 s at spacing 0.003125 (4.7 million rows)."""
+    n = diag.shape[0]
+    incoming = np.zeros(n, dtype=np.uint16)
+    bounds = np.array([0, n], dtype=np.int64)
+    for k in SWEEP_CHUNKS:
+        if n < 64 * k:
+            break
+        cand = (np.arange(k + 1, dtype=np.int64) * n) // k
+        last = _chunk_reach(partner, sums, cand)
+        if np.all(last[:-2] < cand[2:-1]):  # targets of chunk i stay below chunk i + 2
+            bounds = cand
+            break
+    for parity in (0, 1):
+        _incoming_offsets(sums, partner, bounds, parity, incoming)
+    indptr[0] = 0
+    np.cumsum(_row_lengths(sums, incoming), out=indptr[1:])
+    _lattice_fill(sums, partner, diag, incoming, indptr, indices, data)
+
+
+@parallel_kernel
+def _chunk_reach(partner, sums, bounds):
+    """The largest target of a nonzero slot of each chunk of rows (its first row if none)."""
+    S = 13
+    out = np.empty(bounds.shape[0] - 1, dtype=np.int64)
+    for ch in prange(bounds.shape[0] - 1):
+        top = bounds[ch]
+        for a in range(bounds[ch], bounds[ch + 1]):
+            for c in range(S):
+                if sums[a * S + c] != 0.0 and partner[a * S + c] > top:
+                    top = partner[a * S + c]
+        out[ch] = top
+    return out
+
+
+@parallel_kernel
+def _row_lengths(sums, incoming):
+    """Entries of each row of :func:`lattice_csr`: the mirrors (bits of ``incoming``), the
+    diagonal and the nonzero slots."""
+    S = 13
+    out = np.empty(incoming.shape[0], dtype=np.int64)
+    for b in prange(incoming.shape[0]):
+        k = _popcount(np.uint64(incoming[b])) + 1
+        for c in range(S):
+            if sums[b * S + c] != 0.0:
+                k += 1
+        out[b] = k
+    return out
 
 
 @njit(cache=True, error_model="numpy")

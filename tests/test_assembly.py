@@ -544,3 +544,37 @@ def test_face_penalty_sums_on_all_cores(monkeypatch):
     monkeypatch.setattr(kernels, "scatter_chunks", lambda dofs, owners, counts=None: np.array([0, len(owners)]))
     J0 = assemble(face_jump_penalty(dF), V)
     assert abs(J0 - J).max() <= 1e-14 * abs(J0).max()
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_lattice_csr_by_chunks_is_the_csr_of_the_slots(threads):
+    """The CSR arrays written from the lattice slots on the available cores (rows in chunks,
+    mirrors placed by the masks of incoming slots) equal scipy's CSR of the same entries: the
+    diagonal, each nonzero slot (a, partner) and its mirror; on one thread and on two."""
+    import numba
+
+    from cutfem.assembly import LatticeSum
+
+    cut = cut_mesh(structured_box([-1.6, -1.6, -0.7], [1.6, 1.6, 0.7], cells=(40, 40, 18)), Torus(1.0, 0.5))
+    V = CutP1Space(cut)
+    assert V.n_dofs > 8 * 64  # enough rows for the chunks
+    lattice = LatticeSum(V.node_ids, cut.background)
+    rng = np.random.default_rng(5)
+    lattice.add_elements(V.element_dofs, rng.random((len(V.element_dofs), 6)), rng.random((len(V.element_dofs), 4)))
+    sums, partner, diagonal = lattice._slots()
+    n = V.n_dofs
+    a = np.repeat(np.arange(n), 13)
+    nz = sums != 0
+    ref = sp.coo_matrix((np.concatenate([diagonal, sums[nz], sums[nz]]),
+                         (np.concatenate([np.arange(n), a[nz], partner[nz]]), np.concatenate([np.arange(n), partner[nz], a[nz]]))),
+                        shape=(n, n)).tocsr()
+    ref.sort_indices()
+    before = numba.get_num_threads()
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
+    try:
+        A = lattice.matrix()
+    finally:
+        numba.set_num_threads(before)
+    for x, y in ((A.indptr, ref.indptr), (A.indices, ref.indices), (A.data, ref.data)):
+        np.testing.assert_array_equal(x, y)
+    assert abs(A - A.T).max() == 0.0
