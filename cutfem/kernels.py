@@ -1332,6 +1332,65 @@ def side_split(tets, values, neg, whole, partial, counts):
     return nw, npart
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _cut_point(x, w, i, j, out, row):
+    t = w[i] / (w[i] - w[j])
+    for d in range(3):
+        out[row, d] = x[i, d] + t * (x[j, d] - x[i, d])
+
+
+@parallel_kernel
+def side_pieces(points, tets, values, neg, partial, counts, rank, base, sizes, sub, parent):
+    """The sub-tetrahedra of :func:`cutfem.markers.side_subtetrahedra` (which states them) for the
+    ``partial`` tets with ``counts`` nodes on the side: tet q of the group of count c, of rank
+    ``rank[q]`` in it, writes its sub-tet s at ``base[c] + s sizes[c] + rank[q]`` of ``sub`` (s, 4, 3)
+    and ``parent``, the order of the numpy expression (a group at a time, sub-tet by sub-tet), the
+    same points operation for operation."""
+    for q in prange(partial.shape[0]):
+        e = partial[q]
+        c = counts[q]
+        x = np.empty((4, 3))
+        w = np.empty(4)
+        n = 0
+        for pas in range(2):  # the side's nodes first, each part in the tet's order
+            for v in range(4):
+                val = values[tets[e, v]]
+                on = (val < 0.0) if neg else (val > 0.0)
+                if on == (pas == 0):
+                    for d in range(3):
+                        x[n, d] = points[tets[e, v], d]
+                    w[n] = val
+                    n += 1
+        pts = np.empty((6, 3))  # the prism a, b, c, a2, b2, c2 (or the one tet in its first four)
+        if c == 1:
+            pts[0] = x[0]
+            _cut_point(x, w, 0, 1, pts, 1)
+            _cut_point(x, w, 0, 2, pts, 2)
+            _cut_point(x, w, 0, 3, pts, 3)
+            nsub = 1
+        elif c == 2:
+            pts[0] = x[0]
+            _cut_point(x, w, 0, 2, pts, 1)
+            _cut_point(x, w, 0, 3, pts, 2)
+            pts[3] = x[1]
+            _cut_point(x, w, 1, 2, pts, 4)
+            _cut_point(x, w, 1, 3, pts, 5)
+            nsub = 3
+        else:
+            pts[0], pts[1], pts[2] = x[0], x[1], x[2]
+            _cut_point(x, w, 0, 3, pts, 3)
+            _cut_point(x, w, 1, 3, pts, 4)
+            _cut_point(x, w, 2, 3, pts, 5)
+            nsub = 3
+        for s in range(nsub):
+            row = base[c] + s * sizes[c] + rank[q]
+            parent[row] = e
+            for v in range(4):
+                src = v + s  # the prism's tets: (a, b, c, a2), (b, c, a2, b2), (c, a2, b2, c2)
+                for d in range(3):
+                    sub[row, v, d] = pts[src, d]
+
+
 @parallel_kernel
 def rule_points(bary, nodes, simplices, out):
     """out[e, i] = sum_v bary[i, v] x_ev, the points of a reference rule (q, k) on b simplices: x_ev

@@ -337,33 +337,15 @@ def side_subtetrahedra(points: np.ndarray, tets: np.ndarray, values: np.ndarray,
     whole, partial, k = np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int64), np.empty(m, dtype=np.int8)
     nw, npart = kernels.side_split(tets, values, side == NEG, whole, partial, k)  # one pass over the tets
     whole, partial, k = whole[:nw], partial[:npart], k[:npart]
-    pieces, parents = [np.empty((0, 4, 3))], [np.empty(0, dtype=np.int64)]
-    for count in (1, 2, 3):
-        sel = partial[k == count]
-        if sel.size == 0:
-            continue
-        t = tets[sel]
-        v = values[t]
-        inside = v < 0 if side == NEG else v > 0
-        order = np.argsort(~inside, axis=1, kind="stable")  # the side's nodes first
-        x = np.take_along_axis(points[t], order[..., None], axis=1)
-        w = np.take_along_axis(v, order, axis=1)
-
-        def at(i, j):
-            t = (w[:, i] / (w[:, i] - w[:, j]))[:, None]
-            return x[:, i] + t * (x[:, j] - x[:, i])
-
-        if count == 1:
-            sub = [np.stack([x[:, 0], at(0, 1), at(0, 2), at(0, 3)], axis=1)]
-        elif count == 2:
-            sub = _prism(x[:, 0], at(0, 2), at(0, 3), x[:, 1], at(1, 2), at(1, 3))
-        else:
-            sub = _prism(x[:, 0], x[:, 1], x[:, 2], at(0, 3), at(1, 3), at(2, 3))
-        pieces.extend(sub)
-        parents.extend([sel] * len(sub))
-    return whole, np.concatenate(pieces), np.concatenate(parents)
-
-
-def _prism(a, b, c, a2, b2, c2):
-    """Three tets filling the prism with bottom (a, b, c), top (a2, b2, c2), lateral edges a-a2 etc."""
-    return [np.stack([a, b, c, a2], axis=1), np.stack([b, c, a2, b2], axis=1), np.stack([c, a2, b2, c2], axis=1)]
+    # the sub-tets a group of counts at a time (1, 2, 3 nodes on the side), sub-tet by sub-tet,
+    # each group's tets in increasing order: one compiled pass writes each at its place
+    sizes = np.array([0] + [int(np.count_nonzero(k == c)) for c in (1, 2, 3)], dtype=np.int64)
+    base = np.array([0, 0, sizes[1], sizes[1] + 3 * sizes[2]], dtype=np.int64)
+    rank = np.empty(npart, dtype=np.int64)
+    for c in (1, 2, 3):  # the three groups, not the tets
+        rank[k == c] = np.arange(sizes[c])
+    total = int(sizes[1] + 3 * sizes[2] + 3 * sizes[3])
+    sub, parent = np.empty((total, 4, 3)), np.empty(total, dtype=np.int64)
+    kernels.side_pieces(np.ascontiguousarray(points, dtype=float), tets, values, side == NEG, partial, k.astype(np.int64),
+                        rank, base, sizes, sub, parent)
+    return whole, sub, parent

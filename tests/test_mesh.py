@@ -536,3 +536,34 @@ def test_kuhn_edge_codes_are_the_lattice_steps():
     np.testing.assert_array_equal(hi - lo, offset(codes))
     assert np.all(np.diff([offset(c) for c in range(8)]) > 0)
     assert KUHN_TETS.shape == (6, 4)
+
+
+def test_side_subtetrahedra_partition_each_tet():
+    """The NEG and POS parts of each tet (whole tets and sub-tets of the cut ones, from the compiled
+    pass) fill it: their volumes add up to the tet's, every sub-tet lies in its parent and on its
+    side (the linear phi_h at its vertices), and the sub-tets of a count come grouped, 1 then 3
+    per tet, each tet's pieces in the order of the prism."""
+    from cutfem.markers import NEG, POS, side_subtetrahedra
+    from cutfem.quadrature import signed_volumes
+
+    rng = np.random.default_rng(9)
+    points = rng.random((60, 3))
+    tets = np.array([rng.choice(60, 4, replace=False) for _ in range(300)])
+    values = rng.normal(size=60)
+    values[:5] = 0.0  # nodes on the zero level (the zero rule's snap)
+    volume = np.abs(signed_volumes(points[tets]))
+    total = np.zeros(len(tets))
+    for side, sign in ((NEG, -1.0), (POS, 1.0)):
+        whole, sub, parent = side_subtetrahedra(points, tets, values, side)
+        total += np.bincount(whole, weights=volume[whole], minlength=len(tets))
+        total += np.bincount(parent, weights=np.abs(signed_volumes(sub)), minlength=len(tets))
+        # phi_h at the sub-tets' vertices: barycentric coordinates in the parent tet
+        x = points[tets[parent]]
+        T = np.stack([x[:, 1] - x[:, 0], x[:, 2] - x[:, 0], x[:, 3] - x[:, 0]], axis=-1)
+        lam = np.linalg.solve(T[:, None], (sub - x[:, None, 0])[..., None])[..., 0]
+        bary = np.concatenate([1 - lam.sum(-1, keepdims=True), lam], axis=-1)
+        assert bary.min() > -1e-9
+        phi = np.einsum("mvk,mk->mv", bary, values[tets[parent]])
+        assert (sign * phi).min() > -1e-9
+        assert np.count_nonzero(np.diff(parent) <= 0) <= 6  # at most 7 increasing runs: 1 + 3 + 3 sub-tets
+    np.testing.assert_allclose(total, volume, rtol=1e-10, atol=1e-15)
