@@ -1392,6 +1392,24 @@ def side_pieces(points, tets, values, neg, partial, counts, rank, base, sizes, s
 
 
 @parallel_kernel
+def longest_edges(points, simplices, out):
+    """out[e] = the longest edge of simplex e, the nodes ``simplices`` (m, k) of ``points`` (N, 3),
+    k = 3 or 4 (:func:`cutfem.markers.longest_edges`): the coordinates gathered in the same pass,
+    each edge's length as numpy's norm computes it."""
+    k = simplices.shape[1]
+    for e in prange(simplices.shape[0]):
+        top = 0.0
+        for a in range(k):
+            for b in range(a + 1, k):
+                p, q = simplices[e, a], simplices[e, b]
+                d0 = points[q, 0] - points[p, 0]
+                d1 = points[q, 1] - points[p, 1]
+                d2 = points[q, 2] - points[p, 2]
+                top = max(top, np.sqrt(d0 * d0 + d1 * d1 + d2 * d2))
+        out[e] = top
+
+
+@parallel_kernel
 def rule_points(bary, nodes, simplices, out):
     """out[e, i] = sum_v bary[i, v] x_ev, the points of a reference rule (q, k) on b simplices: x_ev
     = nodes[simplices[e, v]] (node coordinates (N, 3) and node numbers (b, k), gathered in the same

@@ -44,14 +44,19 @@ CUT = "cut"
 SIDES = (NEG, POS)
 
 
-def longest_edges(vertices: np.ndarray) -> np.ndarray:
-    """(m,) the longest edge of each simplex, vertices (m, k, 3) with k = 3 or 4."""
-    k = vertices.shape[1]
-    pairs = TET_EDGES if k == 4 else np.array([[0, 1], [1, 2], [0, 2]])
-    longest = np.zeros(len(vertices))
-    for a, b in pairs:  # six (or three) edges, each over all elements at once
-        np.maximum(longest, np.linalg.norm(vertices[:, b] - vertices[:, a], axis=1), out=longest)
-    return longest
+def longest_edges(points: np.ndarray, simplices: np.ndarray) -> np.ndarray:
+    """(m,) the longest edge of each simplex: ``simplices`` (m, k) node numbers of ``points``
+    (N, 3), k = 3 or 4.  One compiled pass (:func:`cutfem.kernels.longest_edges`), the vertices
+    gathered in it (numpy gathered (m, k, 3) blocks and took six norms: 0.06 s for the 3.5 million
+    tets of the solid torus at spacing 0.02)."""
+    from . import kernels
+
+    simplices = np.ascontiguousarray(simplices)
+    if simplices.ndim != 2 or simplices.shape[1] not in (3, 4):
+        raise ValueError(f"simplices must have shape (m, 3) or (m, 4), got {simplices.shape}")
+    out = np.empty(len(simplices))
+    kernels.longest_edges(np.ascontiguousarray(points, dtype=float), simplices, out)
+    return out
 
 
 def interior_facets(tets: np.ndarray, n_nodes: int, kuhn=None):
@@ -166,7 +171,7 @@ class ElementSet:
     @cached_property
     def h(self) -> np.ndarray:
         """(m,) local size h_T: the longest edge of each tet."""
-        return longest_edges(self.vertices)
+        return longest_edges(self.points, self.tets)
 
     @cached_property
     def _lookup(self):
@@ -300,17 +305,20 @@ class FacetSet:
         return self.normals_areas()[1]
 
     @cached_property
-    def vertices(self) -> np.ndarray:
-        """(F, 3, 3) the face's vertices (those of the minus tet without the opposite one)."""
-        es = self.elements
+    def nodes(self) -> np.ndarray:
+        """(F, 3) the face's nodes (those of the minus tet without the opposite one)."""
         local = TET_FACES[self.opposite[:, 0]]  # (F, 3)
-        nodes = np.take_along_axis(es.tets[self.pairs[:, 0]], local, axis=1)
-        return es.points[nodes]
+        return np.take_along_axis(self.elements.tets[self.pairs[:, 0]], local, axis=1)
+
+    @property
+    def vertices(self) -> np.ndarray:
+        """(F, 3, 3) the face's vertices, gathered on each call."""
+        return self.elements.points[self.nodes]
 
     @cached_property
     def h(self) -> np.ndarray:
         """(F,) local size h_F: the longest edge of each face."""
-        return longest_edges(self.vertices)
+        return longest_edges(self.elements.points, self.nodes)
 
 
 def side_subtetrahedra(points: np.ndarray, tets: np.ndarray, values: np.ndarray, side: str):

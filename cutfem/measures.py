@@ -309,7 +309,7 @@ class MeshedSurface(Measure):
 
     @cached_property
     def h(self) -> np.ndarray:
-        return longest_edges(self.mesh.points[self.mesh.triangles])
+        return longest_edges(self.mesh.points, self.mesh.triangles)
 
     @property
     def size(self) -> float:

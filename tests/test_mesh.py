@@ -567,3 +567,18 @@ def test_side_subtetrahedra_partition_each_tet():
         assert (sign * phi).min() > -1e-9
         assert np.count_nonzero(np.diff(parent) <= 0) <= 6  # at most 7 increasing runs: 1 + 3 + 3 sub-tets
     np.testing.assert_allclose(total, volume, rtol=1e-10, atol=1e-15)
+
+
+def test_longest_edges_of_tets_and_triangles():
+    """The compiled longest edge equals the largest of numpy's edge norms, bit for bit, for tets
+    and triangles given by node numbers; other shapes are an error."""
+    from cutfem.markers import longest_edges
+
+    rng = np.random.default_rng(1)
+    P = rng.random((100, 3))
+    for k in (3, 4):
+        S = rng.integers(0, 100, (200, k))
+        ref = np.max([np.linalg.norm(P[S[:, b]] - P[S[:, a]], axis=1) for a in range(k) for b in range(a + 1, k)], axis=0)
+        np.testing.assert_array_equal(longest_edges(P, S), ref)
+    with pytest.raises(ValueError, match=r"\(m, 3\) or \(m, 4\)"):
+        longest_edges(P, np.zeros((5, 2), dtype=np.int64))
