@@ -48,7 +48,7 @@ class SymmetricPattern:
 
         pairs = np.asarray(pairs)
         if pairs.size == 0:
-            pairs = pairs.reshape(0, 2)
+            pairs = np.zeros((0, 2), dtype=np.int64)  # no pairs: a diagonal matrix
         if pairs.ndim != 2 or pairs.shape[1] != 2 or pairs.dtype.kind not in "iu":
             raise ValueError(f"pairs must be an (m, 2) array of integer dof numbers, got shape {pairs.shape} and dtype {pairs.dtype}")
         pairs = np.ascontiguousarray(pairs, dtype=np.int32 if pairs.dtype.itemsize <= 4 and pairs.dtype.kind == "i" else np.int64)

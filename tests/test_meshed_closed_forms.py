@@ -224,6 +224,11 @@ def test_symmetric_pattern_sums_repeated_pairs():
         SymmetricPattern([[1, 1]], 3)
     with pytest.raises(ValueError, match=r"in \[0, 3\)"):
         SymmetricPattern([[0, 3]], 3)
+    with pytest.raises(ValueError, match="integer dof numbers"):
+        SymmetricPattern(np.array([[0.5, 1.0]]), 3)
+    with pytest.raises(ValueError, match=r"in \[0, 3\)"):  # checked before the narrowing to int32
+        SymmetricPattern(np.array([[0, 2**32 + 1]]), 3)
+    np.testing.assert_array_equal(SymmetricPattern([], 3).matrix(np.arange(3.0), np.zeros(0)).toarray(), np.diag(np.arange(3.0)))
     # the distinct pairs in lexicographic order, given as presorted: the same structure, no sums
     lo, hi = np.minimum(pairs[:, 0], pairs[:, 1]), np.maximum(pairs[:, 0], pairs[:, 1])
     unique = np.unique(np.column_stack([lo, hi]), axis=0)
