@@ -526,6 +526,29 @@ def map_segments(vertices, degree: int, parent=None) -> Quadrature:
     return Quadrature(points, weights, parent=parent, normal=None, bary=bary)
 
 
+def _rule_points(bary, vertices, simplices, name: str, given: str, has_given: bool):
+    """(points (m, q, 3), vertices) of a reference rule on simplices: ``vertices`` (m, k, 3), or with
+    ``simplices`` (m, k) node numbers the node coordinates (N, 3) of a mesh, gathered in the
+    compiled pass (:func:`mapped_points`); then the measures must be ``given`` by the caller."""
+    k = bary.shape[1]
+    if simplices is None:
+        vertices = _as_vertices(vertices, k, name)
+        return mapped_points(bary, vertices), vertices
+    simplices = np.asarray(simplices)
+    if not has_given or simplices.ndim != 2 or simplices.shape[1] != k:
+        label = {3: "triangles", 4: "tets"}[k]
+        raise ValueError(f"{label} must have shape (m, {k}) and come with {given}, got {simplices.shape}")
+    return mapped_points(bary, vertices, simplices), vertices
+
+
+def _given_sizes(sizes, m: int, name: str) -> np.ndarray:
+    """The measures (m,) a caller gave, as floats, or a ValueError naming the shape."""
+    sizes = np.asarray(sizes, dtype=float)
+    if sizes.shape != (m,):
+        raise ValueError(f"{name} must have shape ({m},), got {sizes.shape}")
+    return sizes
+
+
 def map_triangles(vertices, degree: int, parent=None, normal=None, areas=None, triangles=None, whole: int = 0) -> Quadrature:
     """Quadrature on ``m`` flat triangles in R^3.
 
@@ -555,19 +578,10 @@ def map_triangles(vertices, degree: int, parent=None, normal=None, areas=None, t
     Quadrature with ``bary (q, 3)`` and unit ``normal (m, 3)``.
     """
     bary, w = triangle_rule(degree)
-    if triangles is not None:
-        triangles = np.asarray(triangles)
-        if normal is None or areas is None or triangles.ndim != 2 or triangles.shape[1] != 3:
-            raise ValueError(f"triangles must have shape (m, 3) and come with normal and areas, got {triangles.shape}")
-        points = mapped_points(bary, vertices, triangles)
-    else:
-        vertices = _as_vertices(vertices, 3, "triangle")
-        points = mapped_points(bary, vertices)
+    points, vertices = _rule_points(bary, vertices, triangles, "triangle", "normal and areas", normal is not None and areas is not None)
     m = len(points)
     if areas is not None:
-        twice_area = 2.0 * np.asarray(areas, dtype=float)
-        if twice_area.shape != (m,):
-            raise ValueError(f"areas must have shape ({m},), got {twice_area.shape}")
+        twice_area = 2.0 * _given_sizes(areas, m, "areas")
     else:
         cross = np.cross(vertices[:, 1] - vertices[:, 0], vertices[:, 2] - vertices[:, 0])
         twice_area = np.linalg.norm(cross, axis=1)
@@ -631,21 +645,9 @@ def map_tetrahedra(vertices, degree: int, parent=None, whole: int = 0, volumes=N
     Quadrature with ``bary (q, 4)``, ``normal=None``.
     """
     bary, w = tetrahedron_rule(degree)
-    if tets is not None:
-        tets = np.asarray(tets)
-        if volumes is None or tets.ndim != 2 or tets.shape[1] != 4:
-            raise ValueError(f"tets must have shape (m, 4) and come with volumes, got {tets.shape}")
-        points = mapped_points(bary, vertices, tets)
-    else:
-        vertices = _as_vertices(vertices, 4, "tetrahedron")
-        points = mapped_points(bary, vertices)
+    points, vertices = _rule_points(bary, vertices, tets, "tetrahedron", "volumes", volumes is not None)
     m = len(points)
-    if volumes is None:
-        volume = np.abs(signed_volumes(vertices))
-    else:
-        volume = np.asarray(volumes, dtype=float)
-        if volume.shape != (m,):
-            raise ValueError(f"volumes must have shape ({m},), got {volume.shape}")
+    volume = np.abs(signed_volumes(vertices)) if volumes is None else _given_sizes(volumes, m, "volumes")
     return Quadrature(points, volume[:, None] * w[None, :], parent=parent, normal=None, bary=bary, whole=whole)
 
 
