@@ -87,7 +87,30 @@ class SymmetricPattern:
         return out
 
 
-class PairSum:
+class _RunningSum:
+    """Arrays that the terms of one form add into, each times :attr:`scale` (1; :meth:`scaled`
+    gives a view of the same arrays with another), made on the first term added."""
+
+    def __init__(self):
+        self._store = {}  # the arrays, shared with the scaled views
+        self.scale = 1.0
+
+    @property
+    def used(self) -> bool:
+        """Whether any term was added (the arrays exist): a form whose summed terms all went
+        elsewhere allocates nothing and adds no matrix."""
+        return bool(self._store)
+
+    def scaled(self, scale: float):
+        """The same sums (shared arrays), with every term added through the result multiplied by
+        ``scale``: several forms c_1 a_1 + c_2 a_2 summed into one set of arrays (one CSR pass, no
+        sparse sum of matrices)."""
+        out = copy.copy(self)
+        out.scale = float(scale)
+        return out
+
+
+class PairSum(_RunningSum):
     """A symmetric matrix on the nodes of a triangulated surface, summed from terms given as a
     diagonal (n,), one value per mesh edge (E,) and, for terms that reach across an edge (the edge
     penalty), one value per pair of vertices opposite an edge (E,).
@@ -102,20 +125,8 @@ class PairSum:
     """
 
     def __init__(self, space):
+        super().__init__()
         self.space = space
-        self._store = {}  # the arrays, made on the first add and shared with the scaled views
-        self.scale = 1.0
-
-    @property
-    def used(self) -> bool:
-        """Whether any term was added."""
-        return bool(self._store)
-
-    def scaled(self, scale: float) -> "PairSum":
-        """The same sums (shared arrays), with every term added through the result times ``scale``."""
-        out = copy.copy(self)
-        out.scale = float(scale)
-        return out
 
     def add(self, diagonal, edges, opposite=None) -> "PairSum":
         """Add scale * (``diagonal`` (n,), ``edges`` (E,), ``opposite`` (E,) or None)."""
@@ -142,7 +153,7 @@ class PairSum:
         return space.node_pattern().matrix(st["diagonal"], st["edges"])
 
 
-class LatticeSum:
+class LatticeSum(_RunningSum):
     """A symmetric matrix over nodes of a structured box, summed from element matrices and Gram rows
     of tets and face-adjacent pairs of tets, in 13 slots a node (compiled: :mod:`cutfem.kernels`).
 
@@ -170,8 +181,7 @@ class LatticeSum:
         self.code = np.full(int(offsets[-1]) + 1, -1, dtype=np.int8)  # node-id difference -> slot rank
         self.code[offsets] = np.arange(len(offsets))
         self._width = len(offsets)
-        self._store = {}  # the slot arrays, made on the first add and shared with the scaled views
-        self.scale = 1.0
+        super().__init__()
 
     def _slots(self):
         """(sums (13 n,), partner (13 n,), diagonal (n,)), allocated on first use."""
@@ -181,20 +191,6 @@ class LatticeSum:
                                diagonal=np.zeros(n))
         st = self._store
         return st["sums"], st["partner"], st["diagonal"]
-
-    @property
-    def used(self) -> bool:
-        """Whether any term was added (the slots exist): a form whose lattice terms all went
-        elsewhere allocates nothing and adds no matrix."""
-        return bool(self._store)
-
-    def scaled(self, scale: float) -> "LatticeSum":
-        """The same sums (shared arrays), with every term added through the result multiplied by
-        ``scale``: several forms c_1 a_1 + c_2 a_2 summed into one set of slots (one CSR pass, no
-        sparse sum of matrices)."""
-        out = copy.copy(self)
-        out.scale = float(scale)
-        return out
 
     def _check(self, outside, what):
         if outside:
