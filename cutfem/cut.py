@@ -501,14 +501,17 @@ class CutMesh:
     def ghost_facets(self, side) -> FacetSet:
         """The ghost-penalty faces of a side: interior faces of its element set with at least one
         tet cut (for the bulk ghost penalty of docs/math.md §7)."""
+        from . import kernels
+
         es = self.elements(side)
         cut_mark = np.zeros(es.n_elements, dtype=bool)
         cut_mark[es.locate(self.tet_ids, "the cut tets")] = True
         # both tets of such a face touch a node of a cut tet: look for faces only among those tets
-        # (a band around Gamma_h) instead of sorting every face of the side
-        near = np.zeros(es.n_nodes, dtype=bool)
-        near[es.tets[cut_mark]] = True
-        band = np.flatnonzero(near[es.tets].any(axis=1))
+        # (a band around Gamma_h) instead of sorting every face of the side; the band in one compiled
+        # pass (numpy's gather of every tet's four flags took 0.085 s at spacing 0.02, 3.9 million tets)
+        near = np.empty(es.n_elements, dtype=bool)
+        kernels.tets_near(es.tets, cut_mark, es.n_nodes, near)
+        band = np.flatnonzero(near)
         kuhn = es.kuhn_types
         pairs, opposite = interior_facets(es.tets[band], es.n_nodes, None if kuhn is None else kuhn[band])
         pairs = band[pairs]

@@ -1305,6 +1305,30 @@ def kuhn_tet_nodes(tet_ids, cells_x, cells_y, nodes_x, nodes_y, offsets, out):
             out[t, v] = base + offsets[l, v]
 
 
+@parallel_kernel
+def signed_volumes(v, out):
+    """out[e] = (x_1 - x_0) x (x_2 - x_0) . (x_3 - x_0) / 6 for the tets ``v`` (m, 4, 3), in the
+    order of :func:`cutfem.quadrature.signed_volumes`' terms (the same bits)."""
+    for e in prange(v.shape[0]):
+        a0, a1, a2 = v[e, 1, 0] - v[e, 0, 0], v[e, 1, 1] - v[e, 0, 1], v[e, 1, 2] - v[e, 0, 2]
+        b0, b1, b2 = v[e, 2, 0] - v[e, 0, 0], v[e, 2, 1] - v[e, 0, 1], v[e, 2, 2] - v[e, 0, 2]
+        c0, c1, c2 = v[e, 3, 0] - v[e, 0, 0], v[e, 3, 1] - v[e, 0, 1], v[e, 3, 2] - v[e, 0, 2]
+        out[e] = (a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0)) / 6.0
+
+
+@parallel_kernel
+def box_node_coordinates(ids, nodes_x, nodes_y, lower, spacing, out):
+    """out[t] = lower + (i, j, k) spacing for the node id ``ids[t]`` = i + nodes_x (j + nodes_y k) of
+    a structured box (componentwise; the bits of numpy's ``lower + ijk * spacing``)."""
+    for t in prange(ids.shape[0]):
+        n = ids[t]
+        r = n // nodes_x
+        k = r // nodes_y
+        out[t, 0] = lower[0] + np.float64(n - nodes_x * r) * spacing[0]
+        out[t, 1] = lower[1] + np.float64(r - nodes_y * k) * spacing[1]
+        out[t, 2] = lower[2] + np.float64(k) * spacing[2]
+
+
 @njit(cache=True, error_model="numpy")
 def side_split(tets, values, neg, whole, partial, counts):
     """Split the tets (m, 4) by the sign of the nodal ``values`` on one side (``neg``: phi < 0, else
@@ -1389,6 +1413,20 @@ def side_pieces(points, tets, values, neg, partial, counts, rank, base, sizes, s
                 src = v + s  # the prism's tets: (a, b, c, a2), (b, c, a2, b2), (c, a2, b2, c2)
                 for d in range(3):
                     sub[row, v, d] = pts[src, d]
+
+
+@parallel_kernel
+def tets_near(tets, marked, n_nodes, out):
+    """out[t] = whether tet t shares a node with a tet of ``marked`` (m,) (itself included): the
+    marked tets' nodes flagged in one pass (the marked tets are few: a serial pass), then every tet
+    tested on all cores.  ``tets`` (m, 4) node numbers below ``n_nodes``."""
+    near = np.zeros(n_nodes, np.bool_)
+    for t in range(tets.shape[0]):
+        if marked[t]:
+            for k in range(4):
+                near[tets[t, k]] = True
+    for t in prange(tets.shape[0]):
+        out[t] = near[tets[t, 0]] or near[tets[t, 1]] or near[tets[t, 2]] or near[tets[t, 3]]
 
 
 @parallel_kernel

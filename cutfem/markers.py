@@ -125,8 +125,8 @@ class ElementSet:
 
     def volumes_of(self, idx) -> np.ndarray:
         """The volumes of the tets ``idx`` (local indices: a slice, integers or a mask)."""
-        if self._volumes is None:
-            return np.array(np.broadcast_to(self.background.tet_volume, (len(self.tet_ids),))[idx])
+        if self._volumes is None:  # the selection's length from a zero-width view (indices checked, nothing gathered)
+            return np.full(np.empty((len(self.tet_ids), 0))[idx].shape[:-1], self.background.tet_volume)
         return self._volumes[idx]
 
     @property
@@ -175,8 +175,11 @@ class ElementSet:
 
     @cached_property
     def _lookup(self):
-        order = np.argsort(self.tet_ids, kind="stable")
-        return order, self.tet_ids[order]
+        ids = self.tet_ids
+        if len(ids) < 2 or np.all(ids[1:] >= ids[:-1]):  # the sides' sets come sorted (np.flatnonzero): no sort
+            return np.arange(len(ids)), ids
+        order = np.argsort(ids, kind="stable")
+        return order, ids[order]
 
     def _find(self, tet_ids):
         """(local index candidates, found mask) of background tets ``tet_ids``, by one binary search."""

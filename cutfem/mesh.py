@@ -604,7 +604,17 @@ class StructuredBox(TetMesh):
         return np.sort(self.node_id(kuhn_neighbour_offsets()))
 
     def node_coordinates(self, ids) -> np.ndarray:
-        return self.coordinates(self.node_index(ids))
+        """(..., 3) coordinates of node ids (...): :meth:`coordinates` of :meth:`node_index`, in one
+        compiled pass (:func:`cutfem.kernels.box_node_coordinates`; numpy's integer divisions and
+        stacks took 0.55 s for the 5.2 million nodes of the solid torus at spacing 0.01)."""
+        from . import kernels
+
+        ids = np.asarray(ids, dtype=np.int64)
+        flat = np.ascontiguousarray(ids.reshape(-1))
+        out = np.empty((len(flat), 3))
+        kernels.box_node_coordinates(flat, int(self.node_shape[0]), int(self.node_shape[1]),
+                                     np.asarray(self.lower, dtype=float), np.asarray(self.spacing, dtype=float), out)
+        return out.reshape(ids.shape + (3,))
 
     def cell_index(self, cell_ids) -> np.ndarray:
         c = np.asarray(cell_ids, dtype=np.int64)

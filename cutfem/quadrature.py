@@ -613,12 +613,17 @@ def map_triangles(vertices, degree: int, parent=None, normal=None, areas=None, t
 
 def signed_volumes(vertices) -> np.ndarray:
     """(m,) signed volumes det[x_1 - x_0, x_2 - x_0, x_3 - x_0] / 6 of tetrahedra ``vertices`` (m, 4, 3),
-    by the triple product (x_1 - x_0) x (x_2 - x_0) . (x_3 - x_0): three times faster than a
-    batched determinant (0.17 s against 0.56 s for 1.6 million tets)."""
-    v = np.asarray(vertices, dtype=float)
-    a, b, c = (v[:, k] - v[:, 0] for k in (1, 2, 3))
-    return (a[:, 0] * (b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1]) + a[:, 1] * (b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2])
-            + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])) / 6.0
+    by the triple product (x_1 - x_0) . ((x_2 - x_0) x (x_3 - x_0)) in one compiled pass
+    (:func:`cutfem.kernels.signed_volumes`; numpy's passes over (m, 3) differences took 0.27 s for the
+    6 million sub-tets of the solid torus at spacing 0.01)."""
+    from . import kernels
+
+    v = np.ascontiguousarray(vertices, dtype=float)
+    if v.ndim != 3 or v.shape[1:] != (4, 3):
+        raise ValueError(f"tetrahedra must have shape (m, 4, 3), got {v.shape}")
+    out = np.empty(len(v))
+    kernels.signed_volumes(v, out)
+    return out
 
 
 def map_tetrahedra(vertices, degree: int, parent=None, whole: int = 0, volumes=None, tets=None) -> Quadrature:

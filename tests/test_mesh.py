@@ -132,7 +132,8 @@ def test_structured_box_subsets_agree_with_full_arrays():
     expected = box.tets[(6 * cells[:, None] + np.arange(6)).reshape(-1)]
     assert np.array_equal(box.cell_tets(cells), expected)
     nodes = rng.choice(box.n_points, size=30, replace=False)
-    np.testing.assert_array_equal(box.node_coordinates(nodes), box.points[nodes])
+    np.testing.assert_array_equal(box.node_coordinates(nodes), box.points[nodes])  # compiled against numpy's ids
+    np.testing.assert_array_equal(box.node_coordinates(nodes.reshape(5, 6)), box.points[nodes].reshape(5, 6, 3))
     # node (i, j, k) sits at lower + (i, j, k) * spacing, with id i + (nx+1) (j + (ny+1) k)
     ijk = np.array([[0, 0, 0], [6, 4, 3], [2, 1, 3], [5, 0, 1]])
     ids = ijk[:, 0] + 7 * (ijk[:, 1] + 5 * ijk[:, 2])

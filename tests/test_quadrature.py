@@ -380,3 +380,22 @@ def test_mapped_points_gather_and_barycentric_values():
     grads, _ = barycentric_gradients(nodes[tets])
     lam = barycentric_at(ref, nodes[tets[:, 0]], grads)
     np.testing.assert_allclose(lam, np.broadcast_to(bary, lam.shape), atol=1e-9)
+
+
+def test_signed_volumes_triple_product():
+    from cutfem.quadrature import signed_volumes
+
+    rng = np.random.default_rng(5)
+    v = rng.normal(size=(2000, 4, 3))
+    vol = signed_volumes(v)
+    np.testing.assert_allclose(vol, np.linalg.det(v[:, 1:] - v[:, :1]) / 6.0, rtol=1e-10, atol=1e-14)
+    # the same bits as the numpy expression of the triple product, term by term
+    a, b, c = (v[:, k] - v[:, 0] for k in (1, 2, 3))
+    numpy_terms = (a[:, 0] * (b[:, 1] * c[:, 2] - b[:, 2] * c[:, 1]) + a[:, 1] * (b[:, 2] * c[:, 0] - b[:, 0] * c[:, 2])
+                   + a[:, 2] * (b[:, 0] * c[:, 1] - b[:, 1] * c[:, 0])) / 6.0
+    np.testing.assert_array_equal(vol, numpy_terms)
+    np.testing.assert_allclose(signed_volumes(v[:, [1, 0, 2, 3]]), -vol, rtol=1e-10, atol=1e-14)  # orientation flips the sign
+    unit = np.array([[[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]]])
+    assert signed_volumes(unit)[0] == 1 / 6
+    with pytest.raises(ValueError, match=r"\(m, 4, 3\)"):
+        signed_volumes(v[:, :3])
