@@ -1478,6 +1478,17 @@ def rule_points(bary, nodes, simplices, out):
 
 
 @parallel_kernel
+def rule_weights(sizes, w, out):
+    """out[e, i] = sizes[e] w[i]: a reference rule's weights (q,) scaled by the cells' measures (m,)
+    (numpy's broadcast product of (m, 1) and (1, q) runs an inner loop of q per row: 0.57 against
+    0.07 ms for 65536 cells and q = 4)."""
+    for e in prange(out.shape[0]):
+        s = sizes[e]
+        for i in range(out.shape[1]):
+            out[e, i] = s * w[i]
+
+
+@parallel_kernel
 def barycentric_values(points, origin, grads, out):
     """out[e, i, a] = delta_a0 + grads[e, a] . (points[e, i] - origin[e]): the P1 basis values at
     ``points`` (m, q, 3) of elements with first vertex ``origin`` (m, 3) and basis gradients

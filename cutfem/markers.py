@@ -123,6 +123,11 @@ class ElementSet:
         tets of the torus at spacing 0.003125); for a subset use :meth:`volumes_of`."""
         return self.volumes_of(slice(None))
 
+    @property
+    def uniform_volume(self) -> float | None:
+        """The volume every tet of the set has (a structured box's tet volume), or None."""
+        return self.background.tet_volume if self._volumes is None else None
+
     def volumes_of(self, idx) -> np.ndarray:
         """The volumes of the tets ``idx`` (local indices: a slice, integers or a mask)."""
         if self._volumes is None:  # the selection's length from a zero-width view (indices checked, nothing gathered)

@@ -206,9 +206,9 @@ class SideVolume(Measure):
         their concatenations took more than a second, most of it first touches of memory)."""
         whole, _, parent = self._parts
         es = self.elements
-        out = np.zeros(es.n_elements)
-        out[whole] = es.volumes_of(whole)
-        out += np.bincount(parent, weights=self.sub_volumes, minlength=es.n_elements) if len(parent) else 0.0
+        # the cut elements' sums first, then the whole ones (disjoint from them) written in place
+        out = np.bincount(parent, weights=self.sub_volumes, minlength=es.n_elements) if len(parent) else np.zeros(es.n_elements)
+        out[whole] = es.volumes_of(whole) if es.uniform_volume is None else es.uniform_volume  # no array of a constant
         return out
 
     def _build(self, degree):

@@ -522,7 +522,7 @@ def map_segments(vertices, degree: int, parent=None) -> Quadrature:
     bary.flags.writeable = False
     length = np.linalg.norm(vertices[:, 1] - vertices[:, 0], axis=1)
     points = mapped_points(bary, vertices)
-    weights = length[:, None] * w[None, :]
+    weights = _scaled_weights(length, w)
     return Quadrature(points, weights, parent=parent, normal=None, bary=bary)
 
 
@@ -539,6 +539,16 @@ def _rule_points(bary, vertices, simplices, name: str, given: str, has_given: bo
         label = {3: "triangles", 4: "tets"}[k]
         raise ValueError(f"{label} must have shape (m, {k}) and come with {given}, got {simplices.shape}")
     return mapped_points(bary, vertices, simplices), vertices
+
+
+def _scaled_weights(sizes, w) -> np.ndarray:
+    """(m, q) weights sizes[e] w[i] of a reference rule w (q,) on cells of measures ``sizes`` (m,),
+    in one compiled pass (:func:`cutfem.kernels.rule_weights`, the bits of the broadcast product)."""
+    from . import kernels
+
+    out = np.empty((len(sizes), len(w)))
+    kernels.rule_weights(np.ascontiguousarray(sizes, dtype=float), np.ascontiguousarray(w, dtype=float), out)
+    return out
 
 
 def _given_sizes(sizes, m: int, name: str) -> np.ndarray:
@@ -607,7 +617,7 @@ def map_triangles(vertices, degree: int, parent=None, normal=None, areas=None, t
                 f"{np.flatnonzero(bad)[0]}); pass a nonzero normal for every triangle"
             )
         unit_normal = normal / length[:, None]
-    weights = (0.5 * twice_area)[:, None] * w[None, :]
+    weights = _scaled_weights(0.5 * twice_area, w)
     return Quadrature(points, weights, parent=parent, normal=unit_normal, bary=bary, whole=whole)
 
 
@@ -653,7 +663,7 @@ def map_tetrahedra(vertices, degree: int, parent=None, whole: int = 0, volumes=N
     points, vertices = _rule_points(bary, vertices, tets, "tetrahedron", "volumes", volumes is not None)
     m = len(points)
     volume = np.abs(signed_volumes(vertices)) if volumes is None else _given_sizes(volumes, m, "volumes")
-    return Quadrature(points, volume[:, None] * w[None, :], parent=parent, normal=None, bary=bary, whole=whole)
+    return Quadrature(points, _scaled_weights(volume, w), parent=parent, normal=None, bary=bary, whole=whole)
 
 
 def concatenate(*quads: Quadrature) -> Quadrature:

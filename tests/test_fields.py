@@ -31,7 +31,7 @@ from cutfem.forms import (
 )
 from cutfem.levelset import Sphere
 from cutfem.markers import CUT, NEG, POS
-from cutfem.mesh import structured_box
+from cutfem.mesh import TetMesh, structured_box
 from cutfem.spaces import CutP1Space, ProductSpace
 
 # a sphere in general position: no nodal value is zero, no two values of a tet coincide
@@ -267,6 +267,16 @@ def test_sides_partition_every_tet_with_zeros_at_nodes():
     cut = cut_mesh(box, Sphere(0.6))
     assert np.sum(cut.background_values == 0.0) >= 30
     _assert_partition(cut)
+    es = cut.elements(NEG)  # a structured box: one volume for every tet, and the arrays agree with it
+    assert es.uniform_volume == box.tet_volume
+    np.testing.assert_allclose(box.volumes[es.tet_ids], es.uniform_volume, rtol=1e-13)
+    assert np.all(es.volumes_of(np.arange(5)) == es.uniform_volume) and es.volumes_of(np.arange(5)).shape == (5,)
+    assert es.volumes_of(3).shape == () and es.volumes_of(es.tet_ids >= 0).shape == (es.n_elements,)
+    with pytest.raises(IndexError):
+        es.volumes_of(np.array([es.n_elements]))
+    plain = cut_mesh(TetMesh(box.points, box.tets), Sphere(0.6)).elements(NEG)  # a mesh keeps each tet's volume
+    assert plain.uniform_volume is None
+    np.testing.assert_allclose(plain.volumes, box.tet_volume, rtol=1e-13)
 
 
 def test_plane_through_nodes_halves_the_box():
