@@ -933,7 +933,7 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
                 local = np.einsum("mqk,mq...->mk...", phi, fw)
             if out is None:
                 out = np.zeros((space.n_dofs,) + local.shape[2:])
-            assemble_vector(space.element_dofs[el], local, space.n_dofs, out=out)
+            assemble_vector(np.take(space.element_dofs, el, axis=0), local, space.n_dofs, out=out)
         return np.zeros(space.n_dofs) if out is None else out
 
     return Form([(1.0, _VectorTerm(build, field))], True)
