@@ -210,12 +210,12 @@ class LatticeSum(_RunningSum):
         edges, diagonal = np.ascontiguousarray(edges, dtype=float), np.ascontiguousarray(diagonal, dtype=float)
         dofs = np.ascontiguousarray(dofs)
         elements = none_i if elements is None else np.ascontiguousarray(elements)
-        owners = elements if len(elements) else np.arange(len(dofs))
+        owners = elements[:, None] if len(elements) else None  # None: element e owns row e of dofs
         self._check(kernels.lattice_add_elements(
             self.ids, self.code, dofs, elements, edges.reshape(-1, 6), diagonal.reshape(-1, 4),
             none_i if types is None else np.ascontiguousarray(types),
             none_f if weights is None else np.ascontiguousarray(weights, dtype=float), self.scale, *self._slots(),
-            kernels.scatter_chunks(dofs, owners[:, None])),
+            kernels.scatter_chunks(dofs, owners)),
             "element matrices")
         return self
 
@@ -242,7 +242,7 @@ class LatticeSum(_RunningSum):
         dofs = np.ascontiguousarray(dofs)
         self._check(kernels.lattice_add_rows(self.ids, self.code, dofs, np.ascontiguousarray(values, dtype=float),
                                              self.scale, *self._slots(),
-                                             kernels.scatter_chunks(dofs, np.arange(len(dofs))[:, None])),
+                                             kernels.scatter_chunks(dofs, None)),
                     "rows")
         return self
 

@@ -1016,12 +1016,16 @@ def _add_face_jumps(ids, code, pairs, opposite, factors, volumes, dofs, table, t
 
 @parallel_kernel
 def _chunk_spans(dofs, owners, bounds, lo, hi):
+    """lo[ch], hi[ch]: the least and largest dof the elements of chunk ch read (``owners`` (E, r), or
+    (0, 1) when element e reads row e of ``dofs``)."""
+    own = owners.shape[0] > 0
     for ch in prange(bounds.shape[0] - 1):
         a, b = np.int64(2**62), np.int64(-1)
         for e in range(bounds[ch], bounds[ch + 1]):
             for o in range(owners.shape[1]):
+                row = owners[e, o] if own else e
                 for i in range(dofs.shape[1]):
-                    d = np.int64(dofs[owners[e, o], i])
+                    d = np.int64(dofs[row, i])
                     a = min(a, d)
                     b = max(b, d)
         lo[ch], hi[ch] = a, b
@@ -1039,9 +1043,13 @@ def scatter_chunks(dofs, owners, counts=SWEEP_CHUNKS):
     returns its cells in id order (in the order of its blocks, the cut's chunks spanned most node
     numbers and got one chunk: the piece mass and the cut rows ran on one core).
     The chunk order changes the order of the sums at nodes shared by two chunks: the same bits on
-    any number of threads, not those of one pass in element order."""
-    owners = np.ascontiguousarray(owners).reshape(len(owners), -1)
-    E = owners.shape[0]
+    any number of threads, not those of one pass in element order.  ``owners`` None: element e reads
+    row e (no (E, 1) array of 0..E-1: 0.24 s for the 29 million tets of a side at spacing 0.01)."""
+    if owners is None:
+        owners, E = np.zeros((0, 1), np.int64), len(dofs)
+    else:
+        owners = np.ascontiguousarray(owners).reshape(len(owners), -1)
+        E = owners.shape[0]
     for k in counts:
         if k < 2 or k % 2 or E < 64 * k:
             continue

@@ -197,7 +197,25 @@ class ElementSet:
 
     def locate(self, tet_ids, what: str = "the measure") -> np.ndarray:
         """Local indices of background tets ``tet_ids`` in this set; a clear error when some are not in it."""
-        local, found = self._find(tet_ids)
+        return self._found(*self._find(tet_ids), what)
+
+    def locate_set(self, other: "ElementSet", rows=None, what: str = "the measure") -> np.ndarray:
+        """:meth:`locate` of the tets ``other.tet_ids[rows]`` (all when None), by one binary search of
+        all of ``other``'s tets, kept for the next call: the measures on the cut tets ask a side's set
+        for their elements block by block and term by term (at spacing 0.01, three searches of the
+        1.3 million cut tets in the 29 million tets of a side took 0.14 s each)."""
+        key = id(other)
+        hit = self._positions.get(key)
+        if hit is None or hit[0] is not other:
+            hit = self._positions[key] = (other, *self._find(other.tet_ids))
+        _, local, found = hit
+        return self._found(local, found, what) if rows is None else self._found(local[rows], found[rows], what)
+
+    @cached_property
+    def _positions(self) -> dict:
+        return {}
+
+    def _found(self, local, found, what):
         if not np.all(found):
             raise ValueError(
                 f"{int(np.sum(~found))} elements of {what} are not in the element set {self.name!r}: a field on "

@@ -127,7 +127,7 @@ class SurfacePieces(Measure):
     def side_fraction(self, side: str) -> np.ndarray:
         """(m,) |T ∩ side| / |T| for each cut tet T (the cut-volume weights of the interface problem)."""
         volume = self.cut.dx(side)
-        local = volume.elements.locate(self.elements.tet_ids, "Gamma_h")
+        local = volume.elements.locate_set(self.elements, what="Gamma_h")
         return volume.part_volumes[local] / self.elements.volumes
 
 

@@ -21,7 +21,7 @@ from functools import cached_property
 import numpy as np
 
 from .assembly import SymmetricPattern
-from .markers import CUT
+from .markers import CUT, ElementSet
 
 __all__ = ["SurfaceP1Space", "CutP1Space", "ProductSpace", "triangle_gradients", "barycentric_at"]
 
@@ -109,10 +109,9 @@ class _P1Space:
             parent = measure.quadrature(0).parent
         if measure.elements is self.elements:
             return parent
-        source = getattr(measure.elements, "tet_ids", None)
-        if source is None or not hasattr(self.elements, "locate"):
+        if not isinstance(measure.elements, ElementSet) or not isinstance(self.elements, ElementSet):
             raise ValueError(f"the field on {getattr(self.elements, 'name', self.elements)!r} does not live on the measure {measure.name!r}")
-        return self.elements.locate(source[parent], f"the measure {measure.name!r}")
+        return self.elements.locate_set(measure.elements, parent, f"the measure {measure.name!r}")
 
     def basis_on(self, measure, quad, elements) -> np.ndarray:
         """(m, q, k) basis values at the points of ``quad`` (a quadrature of ``measure``) in the field's

@@ -546,6 +546,18 @@ def test_face_penalty_sums_on_all_cores(monkeypatch):
     assert abs(J0 - J).max() <= 1e-14 * abs(J0).max()
 
 
+def test_scatter_chunks_without_owners_is_each_element_its_own_row():
+    """owners None (element e reads row e of dofs) gives the chunks of the explicit owners 0..E-1:
+    for rows along a lattice (several chunks) and for rows in random order (one chunk)."""
+    from cutfem import kernels
+
+    base = np.arange(4000)[:, None] + np.array([0, 1, 7, 40])
+    for dofs in (base, base[np.random.default_rng(1).permutation(len(base))]):
+        explicit = kernels.scatter_chunks(dofs, np.arange(len(dofs))[:, None])
+        np.testing.assert_array_equal(kernels.scatter_chunks(dofs, None), explicit)
+    assert len(kernels.scatter_chunks(base, None)) > 2 and len(explicit) == 2
+
+
 @pytest.mark.parametrize("threads", [1, 2])
 def test_lattice_csr_by_chunks_is_the_csr_of_the_slots(threads):
     """The CSR arrays written from the lattice slots on the available cores (rows in chunks,

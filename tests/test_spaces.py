@@ -289,3 +289,21 @@ def test_cut_volume_space_sphere_volume_converges():
         cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=cells), Sphere(R, [0.01, 0.02, -0.03]))
         errors.append(abs(cut.dx(NEG).quadrature(1).weights.sum() - 4 / 3 * np.pi * R**3))
     assert errors[1] < errors[0] / 3  # rate >= log2(3) ~ 1.6, expected 2
+
+
+def test_locate_set_keeps_one_search_and_checks_the_rows_asked():
+    """ElementSet.locate_set: the local indices of another set's tets, equal to locate; a second
+    call reuses the search; only the rows asked must lie in the set (a side's cut tets lie in the
+    other side's set, its whole tets do not)."""
+    cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.6))
+    neg, pos, cutset = cut.elements(NEG), cut.elements(POS), cut.elements(CUT)
+    np.testing.assert_array_equal(neg.locate_set(cutset), neg.locate(cutset.tet_ids))
+    assert neg._positions[id(cutset)][0] is cutset and len(neg._positions) == 1
+    rows = np.array([5, 0, 3])
+    np.testing.assert_array_equal(neg.locate_set(cutset, rows), neg.locate(cutset.tet_ids[rows]))
+    assert len(neg._positions) == 1
+    in_both = np.flatnonzero(neg.contains(pos.tet_ids))
+    assert 0 < len(in_both) < pos.n_elements
+    np.testing.assert_array_equal(neg.locate_set(pos, in_both), neg.locate(pos.tet_ids[in_both]))
+    with pytest.raises(ValueError, match="not in the element set 'neg'"):
+        neg.locate_set(pos)
