@@ -98,6 +98,13 @@ def test_interface_manufactured_solution_loop_against_numpy():
         assert u.shape == x.shape[:-1] and g.shape == x.shape
         np.testing.assert_allclose(u, psi * w / a, rtol=4e-15, atol=1e-16)
         np.testing.assert_allclose(g, (psi[..., None] * grad_w + 2.0 * x * w[..., None]) / a, rtol=4e-15, atol=1e-15)
+        np.testing.assert_allclose(sol.u(side)(x), psi * w / a, rtol=4e-15, atol=1e-16)
+    # f = -Lap(psi w) = -(6 w + 4 x . grad w + psi Lap w), Lap w = -3/4 (w - 2), the same on both sides
+    f = -(6.0 * w + 4.0 * np.sum(x * grad_w, axis=-1) - 0.75 * psi * (w - 2.0))
+    for side in (NEG, POS):
+        np.testing.assert_allclose(sol.f(side)(x), f, rtol=1e-14, atol=1e-13)
+    with pytest.raises(ValueError, match="shape"):
+        sol.f(NEG)(np.zeros((3, 2)))
 
 
 # ---------------------------------------------------------------------------------------------
