@@ -26,11 +26,15 @@ for the sphere's H = 2 / R, all at the closest point p(x) = R x / |x|.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+from numba import prange
 
 from cutfem.cut import cut_mesh
 from cutfem.errors import h1_error, l2_error, l2_h1_errors
 from cutfem.forms import assemble, bilinear_form, face_jump_penalty, load, mass, normal_gradient_penalty, stiffness, tangential_stiffness
+from cutfem.kernels import parallel_kernel
 from cutfem.levelset import Sphere
 from cutfem.markers import CUT, NEG
 from cutfem.registry import LazyFields, Param, ProblemError, register
@@ -40,6 +44,16 @@ from cutfem.spaces import CutP1Space, ProductSpace
 from .common import Timer, background_for, cut_record, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
+
+
+@parallel_kernel
+def _exp_and_gradient(x, d, u, grad):
+    """u = exp(d . x) and, when ``grad`` has rows, grad u = u d at the points x (n, 3)."""
+    with_grad = grad.shape[0] > 0
+    for i in prange(x.shape[0]):
+        u[i] = math.exp(x[i, 0] * d[0] + x[i, 1] * d[1] + x[i, 2] * d[2])
+        if with_grad:
+            grad[i, 0], grad[i, 1], grad[i, 2] = u[i] * d[0], u[i] * d[1], u[i] * d[2]
 
 
 class BulkSurfaceSolution:
@@ -52,12 +66,20 @@ class BulkSurfaceSolution:
         return self.R * x / np.linalg.norm(x, axis=-1, keepdims=True)
 
     def u_bulk(self, x):
-        return np.exp(x @ _D)
+        return self.bulk(x, gradient=False)[0]
 
-    def bulk(self, x):
-        """(u_B, grad u_B) at the points x: the exponential once for both."""
-        u = self.u_bulk(x)
-        return u, u[..., None] * _D
+    def bulk(self, x, gradient=True):
+        """(u_B, grad u_B = u_B d) at the points x (..., 3), the exponential once for both, in one
+        compiled loop on all cores (the errors evaluate it at every quadrature point: numpy's matrix
+        product x @ d and broadcast u d took 0.33 s of the errors at spacing 0.025); grad None
+        without ``gradient``."""
+        x = np.asarray(x, dtype=float)
+        if x.ndim == 0 or x.shape[-1] != 3:
+            raise ValueError(f"points must have shape (..., 3), got {x.shape}")
+        pts = np.ascontiguousarray(x.reshape(-1, 3))
+        u, grad = np.empty(len(pts)), np.empty((len(pts) if gradient else 0, 3))
+        _exp_and_gradient(pts, _D, u, grad)
+        return u.reshape(x.shape[:-1]), grad.reshape(x.shape) if gradient else None
 
     def f_bulk(self, x):
         return (self.c_b - self.k_b * _D @ _D) * self.u_bulk(x)

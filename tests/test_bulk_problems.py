@@ -201,3 +201,20 @@ def test_poisson_cut_on_an_unstructured_background():
     """The same problem on a pytetwild background (no lattice: a direct solve at these sizes)."""
     result = cutfem.run("poisson-cut", levels=[0.3, 0.15], background="tetwild")
     assert result.rates["l2_error"][-1] >= 1.9 and result.rates["h1_error"][-1] >= 0.95
+
+
+def test_bulk_surface_manufactured_bulk_loop_against_numpy():
+    """The compiled loop of the bulk-surface problem's (u_B, grad u_B) = (exp(d . x), u_B d) against
+    numpy to a few ulps, for any shape (..., 3); u_B alone is the same loop."""
+    bs = BulkSurfaceSolution(1.0, 1.0, 1.0, 1.0, 2.0, 1.0)
+    d = np.array([0.6, 0.3, -0.4])
+    x = np.random.default_rng(17).uniform(-1.1, 1.1, size=(3, 6, 3))
+    u, g = bs.bulk(x)
+    ref = np.exp(np.sum(x * d, axis=-1))
+    assert u.shape == x.shape[:-1] and g.shape == x.shape
+    np.testing.assert_allclose(u, ref, rtol=4e-15, atol=0)
+    np.testing.assert_allclose(g, ref[..., None] * d, rtol=4e-15, atol=0)
+    np.testing.assert_array_equal(bs.u_bulk(x), u)
+    np.testing.assert_allclose(bs.f_bulk(x), (1.0 - d @ d) * ref, rtol=4e-15, atol=0)
+    with pytest.raises(ValueError, match="shape"):
+        bs.bulk(np.zeros((4, 2)))
