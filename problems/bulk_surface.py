@@ -41,7 +41,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import Timer, background_for, cut_record, with_point_data
+from .common import Timer, background_for, cut_record, point_rows, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -73,10 +73,7 @@ class BulkSurfaceSolution:
         compiled loop on all cores (the errors evaluate it at every quadrature point: numpy's matrix
         product x @ d and broadcast u d took 0.33 s of the errors at spacing 0.025); grad None
         without ``gradient``."""
-        x = np.asarray(x, dtype=float)
-        if x.ndim == 0 or x.shape[-1] != 3:
-            raise ValueError(f"points must have shape (..., 3), got {x.shape}")
-        pts = np.ascontiguousarray(x.reshape(-1, 3))
+        x, pts = point_rows(x)
         u, grad = np.empty(len(pts)), np.empty((len(pts) if gradient else 0, 3))
         _exp_and_gradient(pts, _D, u, grad)
         return u.reshape(x.shape[:-1]), grad.reshape(x.shape) if gradient else None

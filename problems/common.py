@@ -23,6 +23,15 @@ SHAPE_PARAMS = [
 ]
 
 
+def point_rows(x):
+    """(x as a float array (..., 3), its points as C-contiguous rows (n, 3)): what the compiled
+    manufactured solutions loop over; a ValueError for any other shape."""
+    x = np.asarray(x, dtype=float)
+    if x.ndim == 0 or x.shape[-1] != 3:
+        raise ValueError(f"points must have shape (..., 3), got {x.shape}")
+    return x, np.ascontiguousarray(x.reshape(-1, 3))
+
+
 def parse_numbers(text, count, flag):
     if isinstance(text, (list, tuple, np.ndarray)):
         values = [float(v) for v in text]

@@ -39,7 +39,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import Timer, background_for, cut_record
+from .common import Timer, background_for, cut_record, point_rows
 
 
 @parallel_kernel
@@ -71,13 +71,6 @@ def _source(x, R2, f):
         f[i] = -(6.0 * (e + 2.0) + 4.0 * (x0 * (math.cos(x0) * ey) + x1 * (0.5 * e)) + psi * (-0.75 * e))
 
 
-def _points(x):
-    x = np.asarray(x, dtype=float)
-    if x.ndim == 0 or x.shape[-1] != 3:
-        raise ValueError(f"points must have shape (..., 3), got {x.shape}")
-    return x, np.ascontiguousarray(x.reshape(-1, 3))
-
-
 class InterfaceSolution:
     """The manufactured solution above for a sphere of radius R and coefficients a_neg, a_pos.
 
@@ -90,7 +83,7 @@ class InterfaceSolution:
         self.R, self.a = float(radius), {NEG: float(a_neg), POS: float(a_pos)}
 
     def _u(self, side, x, with_grad):
-        x, pts = _points(x)
+        x, pts = point_rows(x)
         u, grad = np.empty(len(pts)), np.empty((len(pts) if with_grad else 0, 3))
         _u_and_gradient(pts, self.R**2, self.a[side], u, grad)
         return u.reshape(x.shape[:-1]), grad.reshape(x.shape) if with_grad else None
@@ -106,7 +99,7 @@ class InterfaceSolution:
         """f = -div(a grad u) = -Lap(psi w), the same on both sides."""
 
         def value(x):
-            x, pts = _points(x)
+            x, pts = point_rows(x)
             out = np.empty(len(pts))
             _source(pts, self.R**2, out)
             return out.reshape(x.shape[:-1])

@@ -33,7 +33,7 @@ from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
 from cutfem.surface import TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, check_cut_memory, check_resolution, Timer, background_for, cut_record, levelset_for, surface_mesh_for, with_point_data
+from .common import SHAPE_PARAMS, check_cut_memory, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
 
 
 #: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
@@ -115,10 +115,7 @@ class TorusSolution:
         self.R, self.r = float(R), float(r)
 
     def _eval(self, x, mode):
-        x = np.asarray(x, dtype=float)
-        if x.ndim == 0 or x.shape[-1] != 3:
-            raise ValueError(f"points must have shape (..., 3), got {x.shape}")
-        pts = np.ascontiguousarray(x.reshape(-1, 3))
+        x, pts = point_rows(x)
         values = np.empty(len(pts) if mode < 2 else 0)
         grad = np.empty((len(pts) if mode == 2 else 0, 3))
         bad = _torus_solution(pts, self.R, self.r, np.int64(mode), values, grad)

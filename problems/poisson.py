@@ -28,7 +28,7 @@ from cutfem.registry import LazyFields, Param, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space
 
-from .common import SHAPE_PARAMS, Timer, background_for, cut_record, levelset_for
+from .common import SHAPE_PARAMS, Timer, background_for, cut_record, levelset_for, point_rows
 
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
@@ -49,10 +49,7 @@ def _u_and_gradient(x, u, grad):
 
 
 def _evaluate(x, with_grad):
-    x = np.asarray(x, dtype=float)
-    if x.ndim == 0 or x.shape[-1] != 3:
-        raise ValueError(f"points must have shape (..., 3), got {x.shape}")
-    pts = np.ascontiguousarray(x.reshape(-1, 3))
+    x, pts = point_rows(x)
     u, grad = np.empty(len(pts)), np.empty((len(pts) if with_grad else 0, 3))
     _u_and_gradient(pts, u, grad)
     return u.reshape(x.shape[:-1]), grad.reshape(x.shape) if with_grad else None
