@@ -489,6 +489,8 @@ def mapped_points(bary, vertices, simplices=None) -> np.ndarray:
     from . import kernels
 
     bary = np.ascontiguousarray(bary, dtype=float)
+    if bary.ndim != 2 or bary.shape[1] not in (2, 3, 4):
+        raise ValueError(f"a reference rule on segments, triangles or tets has bary (q, 2), (q, 3) or (q, 4), got {bary.shape}")
     if simplices is None:
         m = vertices.shape[0]
         nodes, simplices = np.ascontiguousarray(vertices, dtype=float).reshape(-1, 3), np.empty((0, bary.shape[1]), np.int64)

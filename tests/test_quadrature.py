@@ -380,6 +380,12 @@ def test_mapped_points_gather_and_barycentric_values():
     grads, _ = barycentric_gradients(nodes[tets])
     lam = barycentric_at(ref, nodes[tets[:, 0]], grads)
     np.testing.assert_allclose(lam, np.broadcast_to(bary, lam.shape), atol=1e-9)
+    for k in (2, 3):  # segments and triangles: the same sums on their k vertices
+        b = rng.random((5, k))
+        np.testing.assert_allclose(mapped_points(b, nodes, tets[:, :k]), np.einsum("qv,mvd->mqd", b, nodes[tets[:, :k]]),
+                                   rtol=0, atol=1e-14)
+    with pytest.raises(ValueError, match=r"bary \(q, 2\)"):
+        mapped_points(np.ones((3, 1)), nodes, tets[:, :1])
 
 
 def test_signed_volumes_triple_product():
