@@ -2363,6 +2363,33 @@ def tangential_entries(table, types, normals, areas, edges, diagonal):
 
 
 @njit(cache=True, error_model="numpy")
+def _rows_sorted(lo, key, n, order):
+    """Writes into ``order`` (m,) the indices k in the order of (lo[k], key[k]), stable (equal
+    entries in index order), and returns the row starts (n + 1,) of lo = 0..n-1 in it (``order``'s
+    integer type): a counting sort on lo, then an insertion sort on key within each row (the rows
+    of a surface mesh hold a handful of entries)."""
+    start = np.zeros(n + 1, order.dtype)
+    for k in range(lo.shape[0]):
+        start[lo[k] + 1] += 1
+    for i in range(n):
+        start[i + 1] += start[i]
+    fill = start[:-1].copy()
+    for k in range(lo.shape[0]):
+        order[fill[lo[k]]] = k
+        fill[lo[k]] += 1
+    for i in range(n):
+        s, e = start[i], start[i + 1]
+        for t in range(s + 1, e):
+            k = order[t]
+            u = t
+            while u > s and key[order[u - 1]] > key[k]:
+                order[u] = order[u - 1]
+                u -= 1
+            order[u] = k
+    return start
+
+
+@njit(cache=True, error_model="numpy")
 def closed_halfedges(tri, n):
     """The half-edges of a triangle mesh with n nodes in the order of the key
     2 (min(a, b) n + max(a, b)) + [a > b] of half-edge a -> b, for
@@ -2379,25 +2406,8 @@ def closed_halfedges(tri, n):
             a, b = tri[t, k], tri[t, (k + 1) % 3]
             lo[3 * t + k] = min(a, b)
             rest[3 * t + k] = 2 * max(a, b) + (1 if a > b else 0)
-    start = np.zeros(n + 1, np.int64)
-    for g in range(H):
-        start[lo[g] + 1] += 1
-    for i in range(n):
-        start[i + 1] += start[i]
-    fill = start[:-1].copy()
     order = np.empty(H, np.int64)
-    for g in range(H):
-        order[fill[lo[g]]] = g
-        fill[lo[g]] += 1
-    for i in range(n):
-        s, e = start[i], start[i + 1]
-        for x in range(s + 1, e):
-            g = order[x]
-            y = x
-            while y > s and rest[order[y - 1]] > rest[g]:
-                order[y] = order[y - 1]
-                y -= 1
-            order[y] = g
+    _rows_sorted(lo, rest, n, order)
     edges = np.empty((H // 2, 2), np.int64)
     halfedge_edge = np.empty(H, np.int64)
     if H % 2:
@@ -2502,29 +2512,14 @@ def symmetric_pattern(pairs, n, presorted, like):
         slot = np.empty(0, dt)
         ulo, uhi, p = lo, hi, m
     else:
-        start = np.zeros(n + 1, dt)
-        for k in range(m):
-            start[lo[k] + 1] += 1
-        for i in range(n):
-            start[i + 1] += start[i]
-        fill = start[:-1].copy()
         order = np.empty(m, dt)
-        for k in range(m):  # stable: the pairs of a row in the order given
-            order[fill[lo[k]]] = k
-            fill[lo[k]] += 1
+        start = _rows_sorted(lo, hi, n, order)  # stable: equal pairs in the order given
         slot = np.empty(m, dt)
         ulo = np.empty(m, dt)
         uhi = np.empty(m, dt)
         p = 0
         for i in range(n):
             s, e = start[i], start[i + 1]
-            for t in range(s + 1, e):  # stable insertion sort on hi within the row
-                k = order[t]
-                u = t
-                while u > s and hi[order[u - 1]] > hi[k]:
-                    order[u] = order[u - 1]
-                    u -= 1
-                order[u] = k
             for t in range(s, e):
                 k = order[t]
                 if t == s or hi[k] != uhi[p - 1]:
