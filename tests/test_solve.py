@@ -291,13 +291,17 @@ def test_cell_error_kernels_are_the_weighted_sums(c):
     table = phi[:1]
     ref = np.sum(w[..., None] * (exact - np.einsum("qk,bkc->bqc", table[0], local)) ** 2)
     assert cell_value_error(table, local, exact, w) == pytest.approx(ref, rel=1e-13)
-    grads, u, ge = rng.normal(size=(b, k, 3)), rng.normal(size=(b, k)), rng.normal(size=(b, q, 3))
+    # the gradients read from a table by type (here 5 types), as the Kuhn table of a structured box
+    gtable, types = rng.normal(size=(5, k, 3)), rng.integers(0, 5, b)
+    grads, u, ge = gtable[types], rng.normal(size=(b, k)), rng.normal(size=(b, q, 3))
     d = ge - np.einsum("bk,bkd->bd", u, grads)[:, None, :]
-    assert cell_gradient_error(grads, u, ge, w, np.zeros((0, 3))) == pytest.approx(np.sum(w * np.sum(d * d, axis=2)), rel=1e-13)
+    assert cell_gradient_error(gtable, types, u, ge, w, np.zeros((0, 3))) == pytest.approx(np.sum(w * np.sum(d * d, axis=2)), rel=1e-13)
     n = rng.normal(size=(b, 3))
     n /= np.linalg.norm(n, axis=1, keepdims=True)
     dt = d - np.sum(d * n[:, None, :], axis=2, keepdims=True) * n[:, None, :]
-    assert cell_gradient_error(grads, u, ge, w, n) == pytest.approx(np.sum(w * np.sum(dt * dt, axis=2)), rel=1e-13)
+    assert cell_gradient_error(gtable, types, u, ge, w, n) == pytest.approx(np.sum(w * np.sum(dt * dt, axis=2)), rel=1e-13)
+    # one table row per element (a generic mesh's stored gradients): the same sum as the gathered rows
+    assert cell_gradient_error(grads, np.arange(b), u, ge, w, n) == cell_gradient_error(gtable, types, u, ge, w, n)
 
 
 def test_discrete_error_and_surface_integral():
