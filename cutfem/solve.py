@@ -183,6 +183,7 @@ __all__ = [
     "surface_hierarchy",
     "grid_hierarchy",
     "multigrid_hierarchy",
+    "CGSolver",
     "cg_solve",
     "mg_solve",
     "solve",
@@ -728,7 +729,7 @@ def _one_blas_thread():
 # ---------------------------------------------------------------------------------------------
 
 
-def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
+def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9, x0=None, cache=None):
     """Preconditioned CG on the columns of B (n, c) at once: independent recurrences, one
     preconditioner, each iteration one product with A and one preconditioner application for the
     block of the columns that have not converged (a column stops updating once its relative
@@ -748,8 +749,9 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
     breakdown, p^T A p <= 0 or r^T M r <= 0, raises :class:`SolverError` (:func:`diagnose` with the
     search directions: a scaled Rayleigh quotient p^T A p / p^T D p below -ZERO_TOL is a direction
     of negative curvature, so "indefinite").  At convergence the iterates get the Galerkin
-    correction on the constants (:func:`_constant_correction`).  Returns (X (n, c), iterations,
-    residuals (c,)).
+    correction on the constants (:func:`_constant_correction`; ``cache``, a dict the caller keeps
+    for later solves with A, holds the product A 1 it needs).  ``x0`` (n, c): the starting iterates
+    (default zero).  Returns (X (n, c), iterations, residuals (c,)).
     """
     from . import kernels
 
@@ -757,8 +759,13 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
     b = np.ascontiguousarray(B, dtype=float)
     nb = np.sqrt(kernels.column_dots(b, b))
     nb = np.where(nb > 0, nb, 1.0)
-    x = np.zeros_like(b)
-    r = b.copy()
+    if x0 is None:
+        x = np.zeros_like(b)
+        r = b.copy()
+    else:
+        x = np.array(x0, dtype=float, order="C").reshape(b.shape)
+        r = np.empty_like(b)
+        np.subtract(b, matvec(x, r), out=r)  # r = b - A x0 (A x0 written into r first)
     it = 0
     rel = np.sqrt(kernels.column_dots(r, r)) / nb
     while it < maxiter and np.any(rel > tol):
@@ -795,7 +802,7 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
         np.subtract(b, matvec(x, r), out=r)  # r = b - A x in place (A x written into r first)
         rel = np.sqrt(kernels.column_dots(r, r)) / nb
         if np.all(rel <= tol):
-            r, rel = _constant_correction(A, x, r, nb, tol)
+            r, rel = _constant_correction(A, x, r, nb, tol, cache)
     if it > warn_after and np.all(rel <= tol):
         warnings.warn(
             f"{name} needed {it} iterations (well-conditioned systems need fewer than {warn_after}): the system is "
@@ -811,7 +818,7 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9):
     return x, it, rel
 
 
-def _constant_correction(A, x, r, nb, tol):
+def _constant_correction(A, x, r, nb, tol, cache=None):
     """The Galerkin correction of the iterates ``x`` (n, c) on the constants, in place, where it keeps
     the relative residual within ``tol``: x += alpha 1, alpha = 1^T r / 1^T A 1 (r = b - A x).
 
@@ -820,11 +827,15 @@ def _constant_correction(A, x, r, nb, tol):
     of the residual hold to round-off whatever the tolerance.  For the mean curvature problem,
     int_{S_h} H_h = 1^T M H = 1^T B - 1^T r with 1^T B = 0 and J 1 = 0 (docs/math.md §3): on the cut
     torus at spacing 0.0125 it is 3e-13 after the correction at tolerance 1e-6, where it was 9e-10
-    at 1e-6 and 2e-11 at 1e-8 without it.  Returns (r, rel) updated."""
+    at 1e-6 and 2e-11 at 1e-8 without it.  ``cache`` (a dict, or None): A 1 is taken from its
+    "ones_product" or computed and kept there.  Returns (r, rel) updated."""
     from . import kernels
 
     ones = np.ones((A.shape[0], 1), dtype=A.dtype)
-    a1 = kernels.matmul(A, ones)  # A 1 (a third of A.sum's time)
+    cache = {} if cache is None else cache
+    if cache.get("ones_product") is None:
+        cache["ones_product"] = kernels.matmul(A, ones)  # A 1 (a third of A.sum's time)
+    a1 = cache["ones_product"]
     denom = float(a1.ravel().sum())  # 1^T A 1 > 0 for SPD A
     if not denom > 0:
         return r, np.sqrt(kernels.column_dots(r, r)) / nb
@@ -1367,28 +1378,18 @@ def _mean_edge_hierarchy(points, triangles):
 
 def mg_solve(A, B, lattice=None, tol: float = DEFAULT_TOL, maxiter: int = 300, prolongations=None, kernels=None,
              stabilization=None, indefinite_hint=None, _checks=None, **mg_options):
-    """CG preconditioned by :class:`GeometricMultigrid`; B (n,) or (n, c), all columns at once.
+    """CG preconditioned by :class:`GeometricMultigrid`; B (n,) or (n, c), all columns at once:
+    ``CGSolver(A, "mg", ...).solve(B)`` (see :class:`CGSolver`).
 
     The hierarchy: ``lattice`` (Kuhn lattice indices of the unknowns) or ``prolongations`` (see
-    :func:`multigrid_hierarchy`).  ``tol`` is the relative residual ||A x - b|| / ||b|| of every
-    column.  Returns (X, SolveInfo).  Raises :class:`SolverError` (a non-positive diagonal, an
-    indefinite coarsest level, a null vector found there, a CG breakdown; ``kernels``,
-    ``stabilization``, ``indefinite_hint`` as for :func:`diagnose`) or RuntimeError (no convergence
-    in ``maxiter`` iterations).
+    :func:`multigrid_hierarchy`); ``mg_options`` go to :class:`GeometricMultigrid`.  ``tol`` is the
+    relative residual ||A x - b|| / ||b|| of every column.  Returns (X, SolveInfo).  Raises
+    :class:`SolverError` (a non-positive diagonal, an indefinite coarsest level, a null vector found
+    there, a CG breakdown; ``kernels``, ``stabilization``, ``indefinite_hint`` as for
+    :func:`diagnose`) or RuntimeError (no convergence in ``maxiter`` iterations).
     """
-    t0 = time.perf_counter()
-    A = GeometricMultigrid._prepare(A)
-    checks = _checks if _checks is not None else _Checks.of(kernels, stabilization, indefinite_hint, A.shape[0])
-    mg = GeometricMultigrid(A, lattice, prolongations=prolongations, _checks=checks, **mg_options)
-    t1 = time.perf_counter()
-    B = np.asarray(B, dtype=float)
-    cols = B.reshape(B.shape[0], -1)
-
-    def precond(R):
-        return mg.apply(R, single=True)  # CG reads the cycle's float32 output as it is
-
-    X, it, rel = _pcg(A, precond, cols, tol, maxiter, "CG with geometric multigrid", checks, warn_after=MG_WARN_ITERATIONS)
-    return X.reshape(B.shape), SolveInfo("cg-mg", it, float(rel.max()), time.perf_counter() - t0, t1 - t0)
+    return CGSolver(A, "mg", tol=tol, maxiter=maxiter, lattice=lattice, prolongations=prolongations, multigrid=mg_options,
+                    kernels=kernels, stabilization=stabilization, indefinite_hint=indefinite_hint, _checks=_checks).solve(B)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -1419,42 +1420,96 @@ def _amg(A, points=None):
     return lambda R: np.column_stack([M @ R[:, k] for k in range(R.shape[1])])
 
 
+class CGSolver:
+    """Preconditioned conjugate gradients for the SPD matrix A, the preconditioner built once and
+    reused for every right-hand side given to :meth:`solve`.
+
+    ``preconditioner``: "mg" (:class:`GeometricMultigrid` on the hierarchy ``lattice`` or
+    ``prolongations``, see :func:`multigrid_hierarchy`; ``multigrid``: its options), "amg" (smoothed
+    aggregation, pyamg; with ``points`` (n, 3) the linear functions are its near-kernel
+    candidates), "jacobi" (the inverse diagonal) or "none".  ``tol``: the relative residual
+    ||A x - b|| / ||b|| of every column; ``maxiter``: the most iterations.  ``setup``: the seconds
+    the construction took.
+
+    Sequences of systems with one matrix (time steps, continuation) pass a starting guess to
+    :meth:`solve`: CG then only removes the guess's error.  A guess extrapolated from the previous
+    solutions of a smooth evolution is close (backward Euler for the surface heat equation at
+    spacing 0.025, Jacobi, tolerance 1e-12: 60 iterations a step from zero, 44 from the previous
+    solution, 12.4 on average from the quadratic through the last three; docs/math.md §11).
+
+    Raises :class:`SolverError` on a non-positive diagonal (here) or a breakdown (in
+    :meth:`solve`), with the cause named by :func:`diagnose` (``kernels``, ``stabilization``,
+    ``indefinite_hint`` as there); RuntimeError if CG does not converge in ``maxiter`` iterations.
+    """
+
+    PRECONDITIONERS = ("mg", "amg", "jacobi", "none")
+
+    def __init__(self, A, preconditioner: str = "jacobi", tol: float = DEFAULT_TOL, maxiter: int = 5000, points=None,
+                 lattice=None, prolongations=None, multigrid=None, kernels=None, stabilization=None, indefinite_hint=None,
+                 _checks=None):
+        t0 = time.perf_counter()
+        preconditioner = "none" if preconditioner is None else preconditioner
+        if preconditioner not in self.PRECONDITIONERS:
+            raise ValueError(f"unknown preconditioner {preconditioner!r}; use 'mg', 'amg', 'jacobi' or 'none'")
+        if not tol > 0:
+            raise ValueError(f"tol must be a positive relative residual, got {tol!r}")
+        A = _canonical_csr(A)
+        checks = _checks if _checks is not None else _Checks.of(kernels, stabilization, indefinite_hint, A.shape[0])
+        self.warn_after = 10**9
+        if preconditioner == "mg":
+            if lattice is None and prolongations is None:
+                raise ValueError("preconditioner 'mg' needs the lattice indices of the unknowns (lattice=...) or a "
+                                 "hierarchy of prolongations (prolongations=..., see multigrid_hierarchy)")
+            A = GeometricMultigrid._prepare(A)
+            self.multigrid = GeometricMultigrid(A, lattice, prolongations=prolongations, _checks=checks, **(multigrid or {}))
+            precond = lambda R: self.multigrid.apply(R, single=True)  # noqa: E731  (CG reads the float32 output as it is)
+            self.warn_after = MG_WARN_ITERATIONS
+            name = "CG with geometric multigrid"
+        else:
+            d = A.diagonal()
+            if np.any(d <= 0):
+                raise diagnose(A, where="CG", _checks=checks)
+            if preconditioner == "amg":
+                precond = _amg(A, points)
+            elif preconditioner == "jacobi":
+                inv = 1.0 / d
+                precond = lambda R: R * inv[:, None]  # noqa: E731
+            else:
+                precond = lambda R: R.copy()  # noqa: E731
+            name = f"CG ({preconditioner})"
+        self.A, self.preconditioner, self.tol, self.maxiter = A, preconditioner, float(tol), int(maxiter)
+        self.method = f"cg-{preconditioner}"
+        self._precond, self._name, self._checks, self._cache, self._first = precond, name, checks, {}, True
+        self.setup = time.perf_counter() - t0
+
+    def solve(self, B, x0=None):
+        """X with A X = B to the relative residual ``tol`` per column, B (n,) or (n, c), all columns at
+        once (:func:`_pcg`), from ``x0`` (B's shape; default zero).  Returns (X, SolveInfo); the
+        info's ``setup`` is the construction's, counted in ``seconds`` only by the first solve."""
+        t0 = time.perf_counter()
+        B = np.asarray(B, dtype=float)
+        n = self.A.shape[0]
+        if B.shape[:1] != (n,) or B.ndim > 2:
+            raise ValueError(f"the right-hand side must have shape ({n},) or ({n}, c), got {B.shape}")
+        cols = B.reshape(n, -1)
+        if x0 is not None:
+            x0 = np.asarray(x0, dtype=float)
+            if x0.shape != B.shape or not np.all(np.isfinite(x0)):
+                raise ValueError(f"x0 must be a finite array of the right-hand side's shape {B.shape}, got {x0.shape}")
+            x0 = x0.reshape(cols.shape)
+        X, it, rel = _pcg(self.A, self._precond, cols, self.tol, self.maxiter, self._name, self._checks,
+                          warn_after=self.warn_after, x0=x0, cache=self._cache)
+        setup, self._first = (self.setup if self._first else 0.0), False
+        return X.reshape(B.shape), SolveInfo(self.method, it, float(rel.max()), time.perf_counter() - t0 + setup, setup)
+
+
 def cg_solve(A, B, preconditioner: str = "amg", tol: float = 1e-10, maxiter: int = 5000, points=None, lattice=None,
              kernels=None, stabilization=None, indefinite_hint=None, _checks=None):
-    """Preconditioned CG for SPD A; B (n,) or (n, c), all columns at once with one preconditioner.
-
-    ``preconditioner``: "mg" (geometric multigrid, needs ``lattice``), "amg" (smoothed aggregation;
-    with ``points`` (n, 3) the linear functions are its near-kernel candidates), "jacobi" or "none".
-    ``tol`` is relative to ||b|| per column.  Returns (X, SolveInfo).  Raises :class:`SolverError`
-    on a non-positive diagonal or a breakdown (``kernels``, ``stabilization``, ``indefinite_hint``
-    as for :func:`diagnose`), RuntimeError if CG does not converge in ``maxiter`` iterations.
-    """
-    t0 = time.perf_counter()
-    A = _canonical_csr(A)
-    checks = _checks if _checks is not None else _Checks.of(kernels, stabilization, indefinite_hint, A.shape[0])
-    if preconditioner == "mg":
-        if lattice is None:
-            raise ValueError("preconditioner 'mg' needs the lattice indices of the unknowns (lattice=...)")
-        X, info = mg_solve(A, B, lattice, tol=tol, maxiter=maxiter, _checks=checks)
-        info.method = "cg+mg"
-        return X, info
-    if preconditioner not in ("amg", "jacobi", "none", None):
-        raise ValueError(f"unknown preconditioner {preconditioner!r}; use 'mg', 'amg', 'jacobi' or 'none'")
-    d = A.diagonal()
-    if np.any(d <= 0):
-        raise diagnose(A, where="CG", _checks=checks)
-    if preconditioner == "amg":
-        M = _amg(A, points)
-    elif preconditioner == "jacobi":
-        inv = 1.0 / d
-        M = lambda R: R * inv[:, None]  # noqa: E731
-    else:
-        M = lambda R: R.copy()  # noqa: E731
-    t1 = time.perf_counter()
-    B = np.asarray(B, dtype=float)
-    cols = B.reshape(B.shape[0], -1)
-    X, it, rel = _pcg(A, M, cols, tol, maxiter, f"CG ({preconditioner})", checks)
-    return X.reshape(B.shape), SolveInfo(f"cg+{preconditioner}", it, float(rel.max()), time.perf_counter() - t0, t1 - t0)
+    """Preconditioned CG for SPD A; B (n,) or (n, c), all columns at once with one preconditioner:
+    ``CGSolver(A, preconditioner, ...).solve(B)`` (see :class:`CGSolver`; "mg" needs ``lattice``).
+    Returns (X, SolveInfo)."""
+    return CGSolver(A, preconditioner, tol=tol, maxiter=maxiter, points=points, lattice=lattice, kernels=kernels,
+                    stabilization=stabilization, indefinite_hint=indefinite_hint, _checks=_checks).solve(B)
 
 
 def _check_kernels(A, checks, where):
@@ -1534,9 +1589,7 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
             )
         return mg_solve(A, B, lattice, tol=tol, prolongations=hierarchy, _checks=checks, **(multigrid or {}))
     points = getattr(space, "dof_points", None) if space is not None else None
-    X, info = cg_solve(A, B, preconditioner=method.split("-")[1], tol=tol, points=points, _checks=checks)
-    info.method = method
-    return X, info
+    return cg_solve(A, B, preconditioner=method.split("-")[1], tol=tol, points=points, _checks=checks)
 
 
 class ConditionNumber(float):
