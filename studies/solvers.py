@@ -1,7 +1,8 @@
 """Linear solvers on every registered problem: unknowns, method, CG iterations and solve time.
 
 For every registered problem with a ``solver`` parameter (:func:`cutfem.available_problems`; the
-heat equation on the cut surface has none and is left out) and each of its choices
+heat equation on the cut surface, whose solver solves one system a time step, is left out: its
+module docstring has its own table) and each of its choices
 
 * ``auto``: direct up to :data:`cutfem.solve.DIRECT_LIMIT` unknowns, then CG with geometric
   multigrid where there is a hierarchy, else direct up to :data:`cutfem.solve.DIRECT_LIMIT_NO_MG`

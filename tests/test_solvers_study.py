@@ -35,7 +35,7 @@ def test_study_writes_its_outputs(tiny):
     data = json.loads((out / f"{st.NAME}.json").read_text())
     assert data["complete"] is True
     cases = {c["key"]: c for c in data["cases"]}
-    # every problem with a solver parameter, the heat equation (no solver parameter) left out
+    # every problem with a system solver, the heat equation (a solve a time step) left out
     assert set(cases) == set(BULK) | {"poisson-cut tetwild", "laplace-beltrami-cut", "mean-curvature-cut",
                                       "laplace-beltrami-meshed", "mean-curvature-meshed"}
     assert "heat-surface-cut" not in {c["problem"] for c in data["cases"]}
