@@ -148,17 +148,19 @@ def test_extrapolated_start_reproduces_quadratics():
 
 
 @pytest.mark.parametrize("theta", [1.0, 0.5])
-def test_heat_steps_by_cg_agree_with_the_factor(theta):
-    """CG from the extrapolated solutions (tolerance 1e-10 a step) gives the final error of the
-    factorized steps to 1e-7 relative; under backward Euler in 31 iterations a step at this
+@pytest.mark.parametrize("solver", ["cg-jacobi", "cg-mg"])
+def test_heat_steps_by_cg_agree_with_the_factor(theta, solver):
+    """CG from the extrapolated solutions (tolerance 1e-12 a step) gives the final error of the
+    factorized steps to 1e-7 relative; backward Euler with Jacobi in 31 iterations a step at this
     spacing (measured 30.9; fewer at finer spacings, 5.3 at 0.0125)."""
     kw = dict(levels=[0.1], theta=theta)
     direct = cutfem.run("heat-surface-cut", solver="direct", **kw).records[0]
-    cg = cutfem.run("heat-surface-cut", solver="cg-jacobi", **kw).records[0]
-    assert direct["solver"] == "direct" and cg["solver"] == "cg-jacobi" and direct["step_iterations"] == 0
+    cg = cutfem.run("heat-surface-cut", solver=solver, **kw).records[0]
+    assert direct["solver"] == "direct" and cg["solver"] == solver and direct["step_iterations"] == 0
     assert abs(cg["l2_error"] - direct["l2_error"]) <= 1e-7 * direct["l2_error"]
-    if theta == 1.0:
-        assert 0 < cg["step_iterations"] <= 35
+    assert cg["step_iterations"] > 0
+    if theta == 1.0 and solver == "cg-jacobi":
+        assert cg["step_iterations"] <= 35
     auto = cutfem.run("heat-surface-cut", **kw).records[0]
     assert auto["solver"] == "direct"  # 2932 unknowns: below STEP_DIRECT_LIMIT
 
