@@ -1461,8 +1461,11 @@ class CGSolver:
                 raise ValueError("preconditioner 'mg' needs the lattice indices of the unknowns (lattice=...) or a "
                                  "hierarchy of prolongations (prolongations=..., see multigrid_hierarchy)")
             A = GeometricMultigrid._prepare(A)
-            self.multigrid = GeometricMultigrid(A, lattice, prolongations=prolongations, _checks=checks, **(multigrid or {}))
-            precond = lambda R: self.multigrid.apply(R, single=True)  # noqa: E731  (CG reads the float32 output as it is)
+            # the closures hold the multigrid, not self: no reference cycle keeps a solver's hierarchy
+            # alive after its last use (a one-call cg_solve or mg_solve frees it on return)
+            mg = self.multigrid = GeometricMultigrid(A, lattice, prolongations=prolongations, _checks=checks,
+                                                     **(multigrid or {}))
+            precond = lambda R: mg.apply(R, single=True)  # noqa: E731  (CG reads the float32 output as it is)
             self.warn_after = MG_WARN_ITERATIONS
             name = "CG with geometric multigrid"
         else:

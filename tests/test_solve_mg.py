@@ -309,6 +309,34 @@ def test_mg_solve_agrees_with_direct(torus_space, system):
     assert np.linalg.norm(X - X_direct) <= 1e-8 * np.linalg.norm(X_direct)
 
 
+def test_multigrid_solver_is_reused_and_freed_with_its_last_reference(torus_space):
+    """CGSolver with the multigrid: one hierarchy for several solves, a guess near the solution
+    needs fewer iterations, and the solver (with its hierarchy) is freed as soon as it is no longer
+    referenced, without waiting for the cycle collector (no reference cycle through its closures)."""
+    import gc
+    import weakref
+
+    from cutfem.solve import CGSolver
+
+    V = torus_space
+    M, A, J = mass_matrix(V), stiffness_matrix(V), face_matrix(V)
+    K = (M + 0.1 * J).tocsr()
+    B = A @ V.dof_points
+    cg = CGSolver(K, "mg", tol=1e-10, lattice=lattice_indices(V))
+    X, first = cg.solve(B)
+    X_direct = DirectSolver(K).solve(B)
+    assert np.linalg.norm(X - X_direct) <= 1e-8 * np.linalg.norm(X_direct)
+    _, again = cg.solve(B, X_direct * (1 + 1e-6))
+    assert first.setup > 0 and again.setup == 0 and 0 < again.iterations < first.iterations
+    hierarchy = weakref.ref(cg.multigrid)
+    gc.disable()
+    try:
+        del cg
+        assert hierarchy() is None
+    finally:
+        gc.enable()
+
+
 def test_constant_correction_makes_the_residual_sum_vanish(torus_space):
     """CG ends with the Galerkin correction on the constants: 1^T (B - K X) = 0 to round-off at a
     loose tolerance, and the error in the energy norm is no larger than without it."""
