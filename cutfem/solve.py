@@ -526,6 +526,33 @@ def _canonical_csr(A):
     return A
 
 
+def _check_finite(values, what: str, where: str, fix: str, rows=None):
+    """Raise ValueError when ``values`` holds NaN or inf, naming how many, where the first is (its
+    row: ``rows`` maps an index of ``values`` to one, default the first axis) and the fix.  One sum
+    first (no temporary; NaN and inf make it non-finite), the exact count only when it is not
+    finite."""
+    v = np.asarray(values)
+    if v.size == 0 or np.isfinite(v.sum()):
+        return
+    bad = ~np.isfinite(v)
+    if not bad.any():  # a finite array whose sum overflowed
+        return
+    first = int(np.flatnonzero(bad.ravel())[0])
+    row = int(rows(first)) if rows is not None else int(np.unravel_index(first, v.shape)[0])
+    raise ValueError(f"{where}: the {what} has {int(bad.sum())} non-finite entries (NaN or inf) among {v.size}, the "
+                     f"first in row {row}; {fix}")
+
+
+def _check_finite_matrix(A, where: str):
+    """:func:`_check_finite` on the stored values of the CSR matrix A."""
+    _check_finite(A.data, "matrix", where, "check the assembled forms (a coefficient, a penalty or a level set with "
+                  "NaN values)", rows=lambda k: np.searchsorted(A.indptr, k, side="right") - 1)
+
+
+def _check_finite_rhs(B, where: str):
+    _check_finite(B, "right-hand side", where, "check the loads (a source function or boundary data with NaN values)")
+
+
 def scaled(A, where: str = "the solver", _checks=None):
     """(D^{-1/2} A D^{-1/2}, d) with d = diag(A), CSR in canonical form (sorted, no duplicates);
     raises :class:`SolverError` (see :func:`diagnose`) on a non-positive diagonal."""
@@ -591,6 +618,7 @@ class DirectSolver:
             raise ValueError(f"unknown factorization {method!r}; use 'auto', 'banded' or 'superlu'")
         A = _canonical_csr(A)
         self.n = A.shape[0]
+        _check_finite_matrix(A, where)
         if not spd:
             d = np.abs(A.diagonal())
             self._s = 1.0 / np.sqrt(np.where(d > 0, d, 1.0))
@@ -697,6 +725,7 @@ class DirectSolver:
     def solve(self, b):
         """Solve A x = b for b (n,) or (n, c)."""
         b = np.asarray(b, dtype=float)
+        _check_finite_rhs(b, "the direct solver")
         s = self._s if b.ndim == 1 else self._s[:, None]
         return s * self._solve_scaled(s * b)
 
@@ -1454,6 +1483,7 @@ class CGSolver:
         if not tol > 0:
             raise ValueError(f"tol must be a positive relative residual, got {tol!r}")
         A = _canonical_csr(A)
+        _check_finite_matrix(A, "CG")
         checks = _checks if _checks is not None else _Checks.of(kernels, stabilization, indefinite_hint, A.shape[0])
         self.warn_after = 10**9
         if preconditioner == "mg":
@@ -1494,6 +1524,7 @@ class CGSolver:
         n = self.A.shape[0]
         if B.shape[:1] != (n,) or B.ndim > 2:
             raise ValueError(f"the right-hand side must have shape ({n},) or ({n}, c), got {B.shape}")
+        _check_finite_rhs(B, self._name)
         cols = B.reshape(n, -1)
         if x0 is not None:
             x0 = np.asarray(x0, dtype=float)
@@ -1553,6 +1584,8 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
     for a surface operator on a cut band); ignored by the other methods.
     """
     n = A.shape[0]
+    _check_finite_matrix(_canonical_csr(A), "solve")  # before the null-vector checks, whose NaN would read as "singular"
+    _check_finite_rhs(np.asarray(B, dtype=float), "solve")
     tol = DEFAULT_TOL if tol is None else tol
     kernels = dict(kernels or {})
     phi = getattr(getattr(space, "cut", None), "values", None)

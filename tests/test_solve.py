@@ -162,6 +162,29 @@ def test_cg_solver_reuses_its_preconditioner_and_starts_from_a_guess(systems, pr
         CGSolver(A, "jacobi", tol=0.0)
 
 
+@pytest.mark.parametrize("path", ["direct", "solve-auto", "solve-cg", "cg-solver"])
+def test_non_finite_systems_are_refused_with_the_row(systems, path):
+    """A NaN or inf in the matrix or the right-hand side is named with its row on every path, never
+    returned as zeros or NaN, nor read as a singular system by the null-vector checks."""
+    A = systems["cut-mass"].tocsr()
+    b = np.ones(A.shape[0])
+    run = {
+        "direct": lambda A, b: DirectSolver(A).solve(b),
+        "solve-auto": lambda A, b: solve(A, b),
+        "solve-cg": lambda A, b: solve(A, b, method="cg-jacobi"),
+        "cg-solver": lambda A, b: CGSolver(A, "jacobi").solve(b),
+    }[path]
+    bad = A.copy()
+    row = 7
+    bad.data[bad.indptr[row] + 1] = np.nan
+    with pytest.raises(ValueError, match=rf"matrix has 1 non-finite entries \(NaN or inf\) among {A.nnz}, the first in row {row}"):
+        run(bad, b)
+    b_bad = b.copy()
+    b_bad[[11, 40]] = [np.inf, np.nan]
+    with pytest.raises(ValueError, match=r"right-hand side has 2 non-finite entries \(NaN or inf\) .* the first in row 11"):
+        run(A, b_bad)
+
+
 def test_cg_failure_and_bad_arguments(systems):
     A = systems["cut-mass"]
     b = np.ones(A.shape[0])
