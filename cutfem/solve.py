@@ -543,14 +543,29 @@ def _check_finite(values, what: str, where: str, fix: str, rows=None):
                      f"first in row {row}; {fix}")
 
 
-def _check_finite_matrix(A, where: str):
-    """:func:`_check_finite` on the stored values of the CSR matrix A."""
+def _checked_matrix(A, where: str):
+    """A as a canonical CSR matrix (:func:`_canonical_csr`), refused (ValueError naming the problem)
+    unless it is square with finite values."""
+    A = _canonical_csr(A)
+    if A.shape[0] != A.shape[1]:
+        raise ValueError(f"{where}: the matrix must be square, got shape {A.shape}")
     _check_finite(A.data, "matrix", where, "check the assembled forms (a coefficient, a penalty or a level set with "
                   "NaN values)", rows=lambda k: np.searchsorted(A.indptr, k, side="right") - 1)
+    return A
 
 
-def _check_finite_rhs(B, where: str):
+def _checked_rhs(B, n: int, where: str):
+    """B as a float array of shape (n,) or (n, c), refused (ValueError naming the problem) when it
+    is complex, of another shape or not finite."""
+    B = np.asarray(B)
+    if np.iscomplexobj(B):
+        raise ValueError(f"{where}: the right-hand side is complex, and the solvers are real; solve its real and "
+                         "imaginary parts as two columns")
+    B = np.asarray(B, dtype=float)
+    if B.ndim not in (1, 2) or B.shape[0] != n:
+        raise ValueError(f"{where}: the right-hand side must have shape ({n},) or ({n}, c), got {B.shape}")
     _check_finite(B, "right-hand side", where, "check the loads (a source function or boundary data with NaN values)")
+    return B
 
 
 def scaled(A, where: str = "the solver", _checks=None):
@@ -616,9 +631,8 @@ class DirectSolver:
                  stabilization=None, indefinite_hint=None, where: str = "the direct solver", _checks=None):
         if method not in ("auto", "banded", "superlu"):
             raise ValueError(f"unknown factorization {method!r}; use 'auto', 'banded' or 'superlu'")
-        A = _canonical_csr(A)
+        A = _checked_matrix(A, where)
         self.n = A.shape[0]
-        _check_finite_matrix(A, where)
         if not spd:
             d = np.abs(A.diagonal())
             self._s = 1.0 / np.sqrt(np.where(d > 0, d, 1.0))
@@ -724,8 +738,7 @@ class DirectSolver:
 
     def solve(self, b):
         """Solve A x = b for b (n,) or (n, c)."""
-        b = np.asarray(b, dtype=float)
-        _check_finite_rhs(b, "the direct solver")
+        b = _checked_rhs(b, self.n, "the direct solver")
         s = self._s if b.ndim == 1 else self._s[:, None]
         return s * self._solve_scaled(s * b)
 
@@ -1482,8 +1495,7 @@ class CGSolver:
             raise ValueError(f"unknown preconditioner {preconditioner!r}; use 'mg', 'amg', 'jacobi' or 'none'")
         if not tol > 0:
             raise ValueError(f"tol must be a positive relative residual, got {tol!r}")
-        A = _canonical_csr(A)
-        _check_finite_matrix(A, "CG")
+        A = _checked_matrix(A, "CG")
         checks = _checks if _checks is not None else _Checks.of(kernels, stabilization, indefinite_hint, A.shape[0])
         self.warn_after = 10**9
         if preconditioner == "mg":
@@ -1520,11 +1532,8 @@ class CGSolver:
         once (:func:`_pcg`), from ``x0`` (B's shape; default zero).  Returns (X, SolveInfo); the
         info's ``setup`` is the construction's, counted in ``seconds`` only by the first solve."""
         t0 = time.perf_counter()
-        B = np.asarray(B, dtype=float)
         n = self.A.shape[0]
-        if B.shape[:1] != (n,) or B.ndim > 2:
-            raise ValueError(f"the right-hand side must have shape ({n},) or ({n}, c), got {B.shape}")
-        _check_finite_rhs(B, self._name)
+        B = _checked_rhs(B, n, self._name)
         cols = B.reshape(n, -1)
         if x0 is not None:
             x0 = np.asarray(x0, dtype=float)
@@ -1583,9 +1592,9 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
     ``multigrid``: options of :class:`GeometricMultigrid` for "cg-mg" (e.g. ``{"augment": phi_h}``
     for a surface operator on a cut band); ignored by the other methods.
     """
+    A = _checked_matrix(A, "solve")  # before the null-vector checks, whose NaN would read as "singular"
     n = A.shape[0]
-    _check_finite_matrix(_canonical_csr(A), "solve")  # before the null-vector checks, whose NaN would read as "singular"
-    _check_finite_rhs(np.asarray(B, dtype=float), "solve")
+    B = _checked_rhs(B, n, "solve")
     tol = DEFAULT_TOL if tol is None else tol
     kernels = dict(kernels or {})
     phi = getattr(getattr(space, "cut", None), "values", None)

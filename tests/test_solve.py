@@ -163,9 +163,11 @@ def test_cg_solver_reuses_its_preconditioner_and_starts_from_a_guess(systems, pr
 
 
 @pytest.mark.parametrize("path", ["direct", "solve-auto", "solve-cg", "cg-solver"])
-def test_non_finite_systems_are_refused_with_the_row(systems, path):
+def test_bad_systems_are_refused_with_what_is_wrong(systems, path):
     """A NaN or inf in the matrix or the right-hand side is named with its row on every path, never
-    returned as zeros or NaN, nor read as a singular system by the null-vector checks."""
+    returned as zeros or NaN, nor read as a singular system by the null-vector checks; so are a
+    right-hand side of the wrong shape, a complex one (whose imaginary part would be dropped) and a
+    matrix that is not square."""
     A = systems["cut-mass"].tocsr()
     b = np.ones(A.shape[0])
     run = {
@@ -183,6 +185,14 @@ def test_non_finite_systems_are_refused_with_the_row(systems, path):
     b_bad[[11, 40]] = [np.inf, np.nan]
     with pytest.raises(ValueError, match=r"right-hand side has 2 non-finite entries \(NaN or inf\) .* the first in row 11"):
         run(A, b_bad)
+    n = A.shape[0]
+    for wrong in (b[:-1], np.ones((n, 2, 2))):
+        with pytest.raises(ValueError, match=rf"right-hand side must have shape \({n},\) or \({n}, c\)"):
+            run(A, wrong)
+    with pytest.raises(ValueError, match="right-hand side is complex"):
+        run(A, b + 1j)
+    with pytest.raises(ValueError, match=rf"matrix must be square, got shape \({n}, {n - 1}\)"):
+        run(A[:, :-1], b)
 
 
 def test_cg_failure_and_bad_arguments(systems):
