@@ -375,11 +375,19 @@ def test_discrete_error_and_surface_integral():
     P = np.asarray(V.dof_points)[V.element_dofs]
     area = 0.5 * np.linalg.norm(np.cross(P[:, 1] - P[:, 0], P[:, 2] - P[:, 0]), axis=1).sum()
     M = mass_matrix(V)
-    assert discrete_error(M, np.full(V.n_dofs, 3.0)) == pytest.approx(3.0 * np.sqrt(area), rel=1e-12)
+    assert discrete_error(V, np.full(V.n_dofs, 3.0)) == pytest.approx(3.0 * np.sqrt(area), rel=1e-12)
     E = np.column_stack([np.ones(V.n_dofs), 2 * np.ones(V.n_dofs), np.zeros(V.n_dofs)])
-    assert discrete_error(M, E) == pytest.approx(np.sqrt(5 * area), rel=1e-12)  # components summed
-    e = np.random.default_rng(3).normal(size=V.n_dofs)
-    assert discrete_error(M, e) == pytest.approx(np.sqrt(e @ (M @ e)), rel=1e-13)
+    assert discrete_error(V, E) == pytest.approx(np.sqrt(5 * area), rel=1e-12)  # components summed
+    rng = np.random.default_rng(3)
+    e = rng.normal(size=V.n_dofs)
+    assert discrete_error(V, e) == pytest.approx(np.sqrt(e @ (M @ e)), rel=1e-13)  # the mass matrix's quadratic form
+    # a cut space: the traces at the vertices of S_h give the cut mass matrix's form
+    W = CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02])))
+    Mw = mass_matrix(W)
+    Ew = rng.normal(size=(W.n_dofs, 2))
+    assert discrete_error(W, Ew) == pytest.approx(np.sqrt(np.sum(Ew * (Mw @ Ew))), rel=1e-12)
+    with pytest.raises(ValueError):
+        discrete_error(CutP1Space(W.cut, NEG), np.ones(CutP1Space(W.cut, NEG).n_dofs))  # a bulk field has no S_h
     assert surface_integral(V, np.full(V.n_dofs, 2.0)) == pytest.approx(2 * area, rel=1e-12)
     np.testing.assert_allclose(surface_integral(V, E), [area, 2 * area, 0.0], rtol=1e-12, atol=1e-14)
 
