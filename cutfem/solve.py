@@ -1486,7 +1486,7 @@ class CGSolver:
 
     PRECONDITIONERS = ("mg", "amg", "jacobi", "none")
 
-    def __init__(self, A, preconditioner: str = "jacobi", tol: float = DEFAULT_TOL, maxiter: int = 5000, points=None,
+    def __init__(self, A, preconditioner: str, tol: float = DEFAULT_TOL, maxiter: int = 5000, points=None,
                  lattice=None, prolongations=None, multigrid=None, kernels=None, stabilization=None, indefinite_hint=None,
                  _checks=None):
         t0 = time.perf_counter()
