@@ -1,6 +1,6 @@
 """The studies beyond the paper's figures, run at the tiny size: files written and numbers inside.
 
-conditioning, stabilization_sweeps and laplace_beltrami run by default; curvature_baselines and
+conditioning, stabilization_sweeps, laplace_beltrami and time_stepping run by default; curvature_baselines and
 other_surfaces (pyvista rendering, many panels) are marked slow.  The baseline formulas themselves
 are tested quickly in test_baselines.py.
 """
@@ -11,7 +11,7 @@ import math
 import numpy as np
 import pytest
 
-from cutfem.studies import conditioning, curvature_baselines, laplace_beltrami, other_surfaces, stabilization_sweeps
+from cutfem.studies import conditioning, curvature_baselines, laplace_beltrami, other_surfaces, stabilization_sweeps, time_stepping
 
 
 def _run(module, tmp_path_factory):
@@ -103,6 +103,31 @@ def test_laplace_beltrami(lb):
         assert all(np.diff(c["l2_error"]) < 0)
     assert cases[("sphere", "meshed")]["l2_error"][-1] < 0.02
     assert summary["rates"]["torus, cut, face"]["l2"] == pytest.approx(cases[("torus", "cut, face")]["l2_rate"])
+
+
+def test_time_stepping(tmp_path_factory):
+    """Every scheme, level and solver runs; the steps follow dt = h^2 (backward Euler) and dt = h
+    (Crank-Nicolson) to the final time 1/2; the CG solvers iterate and give the factor's final
+    error to 1e-7 relative."""
+    out, summary, data = _run(time_stepping, tmp_path_factory)
+    _check_outputs(time_stepping, out)
+    rows = data["rows"]
+    assert len(rows) == 2 * 2 * 3 and all(r["status"] == "ok" for r in rows)
+    for r in rows:
+        dt_target = r["spacing"] ** 2 if r["theta"] == 1.0 else r["spacing"]
+        assert r["time_steps"] == math.ceil(0.5 / dt_target - 1e-9)
+        assert r["dt"] * r["time_steps"] == pytest.approx(0.5, rel=1e-14)
+        assert r["method"] == r["solver"]
+        if r["solver"] == "direct":
+            assert r["step_iterations"] == 0 and r["error_change"] == 0
+        else:
+            assert r["step_iterations"] > 0 and r["error_change"] <= 1e-7
+        assert 0 < r["steps_s"] <= r["total_s"]
+    assert summary["largest_error_change"] <= 1e-7
+    assert set(summary["fastest"]) == {f"{s}, {h}" for s in time_stepping.SCHEMES.values() for h in data["levels"]}
+    assert time_stepping.skip_reason(0.5, "cg-jacobi", time_stepping.JACOBI_CN_LIMIT + 1) is not None
+    assert time_stepping.skip_reason(0.5, "cg-jacobi", time_stepping.JACOBI_CN_LIMIT) is None
+    assert time_stepping.skip_reason(1.0, "cg-jacobi", 10**7) is None
 
 
 @pytest.mark.slow
