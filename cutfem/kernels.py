@@ -2070,18 +2070,22 @@ def kuhn_prolongation_csr(ijk, cols, indptr, indices, data):
 
 
 @parallel_kernel
-def _galerkin_upper(r_ptr, r_idx, r_val, a_ptr, a_idx, a_val, p_ptr, p_idx, p_val, nc, bounds, per_row, count, idx, val):
-    """The upper triangles of the rows of P^T A P, chunk by chunk of ``bounds`` (in parallel): row I
-    at idx/val[per_row * bounds[ch] + ...], its length in count[I].  Returns, per chunk, -1 if its
-    rows overflowed their room, else the number of entries right of the diagonal."""
+def _galerkin_upper(r_ptr, r_idx, r_val, a_ptr, a_idx, a_val, p_ptr, p_idx, p_val, nc, bounds, starts, stops, todo, count,
+                    idx, val, strict):
+    """The upper triangles of the rows of P^T A P for the chunks ``ch`` of ``bounds`` with
+    ``todo[ch]`` (in parallel): the rows of chunk ch one after the other in idx/val[starts[ch]:
+    stops[ch]], the length of row I in count[I].  strict[ch] becomes -1 if the chunk's rows
+    overflowed their room, else the number of its entries right of the diagonal."""
     nch = bounds.shape[0] - 1
-    strict = np.zeros(nch, dtype=np.int64)
     for ch in prange(nch):
+        if not todo[ch]:
+            continue
+        strict[ch] = 0
         acc = np.zeros(nc)
         mark = np.full(nc, -1, dtype=np.int64)
         cols = np.empty(nc, dtype=np.int64)
-        nnz = per_row * bounds[ch]
-        room = per_row * bounds[ch + 1]
+        nnz = starts[ch]
+        room = stops[ch]
         for I in range(bounds[ch], bounds[ch + 1]):
             ncols = 0
             for ii in range(r_ptr[I], r_ptr[I + 1]):
@@ -2115,17 +2119,16 @@ def _galerkin_upper(r_ptr, r_idx, r_val, a_ptr, a_idx, a_val, p_ptr, p_idx, p_va
                     strict[ch] += 1
             nnz += ncols
             count[I] = ncols
-    return strict
 
 
 @njit(cache=True, error_model="numpy")
-def _mirror_upper(bounds, per_row, count, idx, val, indptr, indices, data):
+def _mirror_upper(bounds, starts, count, idx, val, indptr, indices, data):
     """The full CSR arrays of the symmetric matrix whose upper triangles :func:`_galerkin_upper`
-    wrote (row I of chunk ch after the rows before it, from per_row * bounds[ch])."""
+    wrote (row I of chunk ch after the rows before it, from starts[ch])."""
     n = count.shape[0]
     start = np.empty(n, dtype=np.int64)
     for ch in range(bounds.shape[0] - 1):
-        pos = per_row * bounds[ch]
+        pos = starts[ch]
         for I in range(bounds[ch], bounds[ch + 1]):
             start[I] = pos
             pos += count[I]
@@ -2152,6 +2155,10 @@ def _mirror_upper(bounds, per_row, count, idx, val, indptr, indices, data):
 #: coarse rows of the Galerkin product per parallel chunk (about; at most 64 chunks)
 GALERKIN_ROWS = 4096
 
+#: the room first given to each coarse row's upper triangle in the Galerkin product (entries; a
+#: chunk whose rows need more is done again with twice its room, the others are kept)
+GALERKIN_ROOM = 12
+
 
 def galerkin(A, P, R=None):
     """The Galerkin product P^T A P of a symmetric CSR matrix A (n, n) and a CSR prolongation P
@@ -2160,8 +2167,10 @@ def galerkin(A, P, R=None):
     and a marker per coarse column), and the lower triangle is their mirror.  ``R``: P^T in CSR,
     when the caller has it.  One pass over the products, where scipy's two sparse products build
     A P first (and their result still needs symmetrizing).  The coarse rows go in chunks on the
-    available cores, each into room for 12 entries a row (again with twice the room where that
-    was short); the values do not depend on the number of threads."""
+    available cores, each into room for :data:`GALERKIN_ROOM` entries a row; a chunk that needs
+    more is done again, alone, with twice its room (the chunks that fitted are kept: on the cut
+    torus at spacing 0.00625, 2 chunks of 64 overflowed, and redoing all of them doubled the
+    product's time).  The values depend neither on the number of threads nor on the retries."""
     R = sp.csr_matrix(P.T) if R is None else R
     R, A, P = (sp.csr_matrix(M) for M in (R, A, P))
     m = P.shape[1]
@@ -2171,17 +2180,31 @@ def galerkin(A, P, R=None):
     nch = int(min(64, max(1, m // GALERKIN_ROWS)))
     bounds = (np.arange(nch + 1, dtype=np.int64) * m) // nch
     count = np.zeros(m, dtype=np.int64)
-    per_row = 12
+    rooms = GALERKIN_ROOM * np.diff(bounds)
+    starts = np.concatenate([[0], np.cumsum(rooms)[:-1]]).astype(np.int64)
+    strict, todo = np.zeros(nch, dtype=np.int64), np.ones(nch, dtype=np.bool_)
+    idx, val = np.empty(int(rooms.sum()), dtype=index_dtype(m)), np.empty(int(rooms.sum()))
     while True:
-        idx, val = np.empty(per_row * m, dtype=index_dtype(m)), np.empty(per_row * m)
-        strict = _galerkin_upper(*args, np.int64(m), bounds, np.int64(per_row), count, idx, val)
-        if np.all(strict >= 0):
+        _galerkin_upper(*args, np.int64(m), bounds, starts, starts + rooms, todo, count, idx, val, strict)
+        todo = strict < 0
+        if not todo.any():
             break
-        per_row *= 2
+        # the chunks that overflowed get twice their room in new arrays, into which the others'
+        # rows are copied (only what they wrote: the pages of unused room are never touched)
+        csum = np.concatenate([[0], np.cumsum(count)])
+        used = csum[bounds[1:]] - csum[bounds[:-1]]
+        rooms = np.where(todo, 2 * rooms, rooms)
+        fresh = np.concatenate([[0], np.cumsum(rooms)[:-1]]).astype(np.int64)
+        new_idx, new_val = np.empty(int(rooms.sum()), dtype=idx.dtype), np.empty(int(rooms.sum()))
+        for ch in np.flatnonzero(~todo):  # chunks (at most 64), not rows
+            a, b, k = starts[ch], fresh[ch], used[ch]
+            new_idx[b : b + k] = idx[a : a + k]
+            new_val[b : b + k] = val[a : a + k]
+        idx, val, starts = new_idx, new_val, fresh
     nnz = int(count.sum() + strict.sum())
     index = index_dtype(nnz)  # int32 written here: scipy checks int64 contents min/max to narrow them
     indptr, indices, data = np.empty(m + 1, dtype=index), np.empty(nnz, dtype=index), np.empty(nnz)
-    _mirror_upper(bounds, np.int64(per_row), count, idx, val, indptr, indices, data)
+    _mirror_upper(bounds, starts, count, idx, val, indptr, indices, data)
     out = sp.csr_matrix((data, indices, indptr), shape=(m, m))
     out.has_sorted_indices = True
     return out

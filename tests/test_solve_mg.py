@@ -97,16 +97,20 @@ def test_coarse_space_is_nested(torus_space):
     np.testing.assert_allclose(interp[ok], u[V.element_dofs].mean(axis=1)[ok], rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("room", [12, 1])
 @pytest.mark.parametrize("rows_per_chunk", [4096, 7])
-def test_galerkin_product_against_scipy(torus_space, monkeypatch, rows_per_chunk):
+def test_galerkin_product_against_scipy(torus_space, monkeypatch, rows_per_chunk, room):
     """The compiled Galerkin product P^T A P: equal to scipy's two products up to round-off, exactly
     symmetric with sorted indices, also when coarse functions see no fine row (an empty column
     of P, so no diagonal entry), when the coarse rows are denser than the room first given to
-    them (a dense coarse block), and bitwise the same whether the rows go in one chunk or many."""
+    them (a dense coarse block; a room of 1 entry a row makes nearly every chunk start again,
+    several times), and bitwise the same whether the rows go in one chunk or many, and whether or
+    not chunks were done again."""
     from cutfem import kernels
     from cutfem.kernels import galerkin
 
     monkeypatch.setattr(kernels, "GALERKIN_ROWS", rows_per_chunk)
+    monkeypatch.setattr(kernels, "GALERKIN_ROOM", room)
     V = torus_space
     K = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
     P = next(multigrid_hierarchy(V)).tocsr()
@@ -121,8 +125,12 @@ def test_galerkin_product_against_scipy(torus_space, monkeypatch, rows_per_chunk
         monkeypatch.setattr(kernels, "GALERKIN_ROWS", 10**9)
         one = galerkin(A, P)  # one chunk
         monkeypatch.setattr(kernels, "GALERKIN_ROWS", rows_per_chunk)
-        for a, b in ((G.indptr, one.indptr), (G.indices, one.indices), (G.data, one.data)):
-            np.testing.assert_array_equal(a, b)
+        monkeypatch.setattr(kernels, "GALERKIN_ROOM", 10**3)
+        roomy = galerkin(A, P)  # no chunk short of room
+        monkeypatch.setattr(kernels, "GALERKIN_ROOM", room)
+        for other in (one, roomy):
+            for a, b in ((G.indptr, other.indptr), (G.indices, other.indices), (G.data, other.data)):
+                np.testing.assert_array_equal(a, b)
         ref = (P.T @ A @ P).toarray()
         inner = np.ones(max(G.nnz - 1, 0), dtype=bool)  # consecutive entries of one row
         inner[G.indptr[1:-1][(G.indptr[1:-1] > 0) & (G.indptr[1:-1] < G.nnz)] - 1] = False
