@@ -518,8 +518,10 @@ def _kernel_message(name, res, checks):
 
 def _canonical_csr(A):
     """A as CSR with sorted indices and no duplicates; sorting and merging happen on a copy, never
-    on the caller's arrays."""
-    A = sp.csr_matrix(A)
+    on the caller's arrays.  A csr_matrix is used as it is (not wrapped anew), so that scipy's
+    answer to has_canonical_format, a pass over the indices, is found once and kept on it: a solve
+    asks several times (the checks, the solver, the multigrid)."""
+    A = A if type(A) is sp.csr_matrix else sp.csr_matrix(A)
     if not A.has_canonical_format:
         A = A.copy()
         A.sum_duplicates()
@@ -1126,7 +1128,7 @@ def augmented_hierarchy(prolongations, w):
 
 def _single(M):
     """M as a CSR matrix of float32 values, sharing M's index arrays."""
-    M = sp.csr_matrix(M)
+    M = M if type(M) is sp.csr_matrix else sp.csr_matrix(M)
     out = sp.csr_matrix((M.data.astype(np.float32), M.indices, M.indptr), shape=M.shape)
     out.has_sorted_indices = M.has_sorted_indices
     return out
@@ -1256,8 +1258,8 @@ class GeometricMultigrid:
     def _prepare(A):
         A = _canonical_csr(A)
         if A.indices.dtype != np.int32 and A.shape[0] < 2**31 and A.nnz < 2**31:
-            A.indices = A.indices.astype(np.int32)
-            A.indptr = A.indptr.astype(np.int32)
+            A = sp.csr_matrix((A.data, A.indices.astype(np.int32), A.indptr.astype(np.int32)), shape=A.shape)
+            A.has_canonical_format = True  # a new object (the caller's keeps its arrays), with the same order
         return A
 
     @property
