@@ -22,7 +22,7 @@ import copy
 import numpy as np
 import scipy.sparse as sp
 
-from .mesh import index_dtype
+from .numbering import index_dtype
 
 __all__ = ["LatticeSum", "PairSum", "SymmetricPattern", "assemble_vector", "gram", "gram_sum", "row_operator"]
 
@@ -199,7 +199,7 @@ class LatticeSum(_RunningSum):
 
     def add_elements(self, dofs, edges, diagonal, types=None, weights=None, elements=None) -> "LatticeSum":
         """Add symmetric 4 x 4 element matrices on the tets' dofs ``dofs`` (m, 4), given by their
-        entries on the local edges (:data:`~cutfem.mesh.TET_EDGES` order) and on the diagonal: rows
+        entries on the local edges (:data:`~cutfem.numbering.TET_EDGES` order) and on the diagonal: rows
         of the tables ``edges`` (L, 6) and ``diagonal`` (L, 4), row ``types[k]`` for element k, or
         with ``types`` None row k (L = m), or the one row of a one-row table; times ``weights[k]``
         when given; for the elements ``elements`` only when given

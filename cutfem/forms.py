@@ -55,7 +55,7 @@ import scipy.sparse as sp
 from . import assembly as _assembly
 from .assembly import LatticeSum, PairSum, assemble_vector, gram, gram_sum
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
-from .mesh import TET_EDGES, index_dtype
+from .numbering import TET_EDGES, index_dtype
 from .markers import CUT
 from .spaces import ProductSpace
 
@@ -756,7 +756,7 @@ def _piece_mass(space, into=None):
 def _piece_moments(cut):
     """(edges (m, 6), diagonal (m, 4), integrals (m, 4)) for the m cut tets (the element set CUT, in
     its order): the exact piece mass matrices M_K by their entries on the local edges
-    (:data:`~cutfem.mesh.TET_EDGES`) and diagonal, and int_{S_K} lambda_i; one compiled pass over
+    (:data:`~cutfem.numbering.TET_EDGES`) and diagonal, and int_{S_K} lambda_i; one compiled pass over
     the triangles of S_h (:func:`cutfem.kernels.piece_moments`)."""
     from . import kernels
 
@@ -768,7 +768,7 @@ def _piece_moments(cut):
 
 def _element_symmetric(space, el, edges, diagonal, into=None):
     """sum_K A_K of symmetric 4 x 4 element matrices on the field's elements ``el`` (an index or a
-    slice), given by their entries on the local edges ``edges`` (m, 6) (:data:`~cutfem.mesh.TET_EDGES`
+    slice), given by their entries on the local edges ``edges`` (m, 6) (:data:`~cutfem.numbering.TET_EDGES`
     order) and their ``diagonal`` (m, 4): added into ``into`` (a :class:`~cutfem.assembly.LatticeSum`
     of a structured box: no sort; returns None), or as one COO matrix when ``into`` is None.
     Exactly symmetric either way."""

@@ -184,7 +184,7 @@ import warnings
 
 from numba import njit, prange
 
-from .mesh import TET_EDGES, index_dtype
+from .numbering import TET_EDGES, index_dtype
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
@@ -715,7 +715,7 @@ def piece_moments(vertices, triangles, tets_of, areas, points, tets, table, type
     """The exact P1 moments of the pieces of S_h over their m cut tets ``tets`` (m, 4) (vertex ids into
     ``points``): ``(edges (m, 6), diagonal (m, 4), integrals (m, 4))`` with
     M_K[i, j] = int_{S_K} lambda_i lambda_j for the local edges (i, j) of
-    :data:`~cutfem.mesh.TET_EDGES` and on the diagonal, and int_{S_K} lambda_i.
+    :data:`~cutfem.numbering.TET_EDGES` and on the diagonal, and int_{S_K} lambda_i.
 
     The piece S_K is the union of its triangles T (``triangles`` (T, 3) into ``vertices``, in tet
     ``tets_of`` (T,), area ``areas``); the basis functions are affine on T, so with their values
@@ -2370,7 +2370,7 @@ def triangle_gradients(v, grads, normals, areas):
 def tangential_entries(table, types, normals, areas, edges, diagonal):
     """The entries of |K| (P G)(P G)^T, P = I - n n^T, for tets whose gradients G (4, 3) are
     ``table[types[k]]``, with normal ``normals[k]`` and weight ``areas[k]``: on the local edges
-    (:data:`~cutfem.mesh.TET_EDGES` order) into ``edges`` (m, 6) and on the diagonal into
+    (:data:`~cutfem.numbering.TET_EDGES` order) into ``edges`` (m, 6) and on the diagonal into
     ``diagonal`` (m, 4), for :func:`cutfem.forms._kuhn_tangential_stiffness`:
     |K| (G_a . G_b - (G_a . n)(G_b . n)).  One pass (numpy's masks per type, gathers and products
     took 0.17 s for the 853 thousand cut tets at spacing 0.0125)."""

@@ -34,7 +34,8 @@ from functools import cached_property
 
 import numpy as np
 
-from .mesh import TET_EDGES, TET_FACES, StructuredBox, barycentric_gradients, dense_unique, index_dtype, kuhn_face_pairs, pair_up, tet_face_keys
+from .mesh import StructuredBox, barycentric_gradients, dense_unique, kuhn_face_pairs, pair_up, tet_face_keys
+from .numbering import TET_EDGES, TET_FACES, index_dtype
 
 __all__ = ["NEG", "POS", "CUT", "SIDES", "ElementSet", "FacetSet", "interior_facets", "side_subtetrahedra", "longest_edges"]
 

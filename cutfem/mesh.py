@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .numbering import TET_EDGES, TET_FACES, index_dtype
+
 __all__ = [
     "TetMesh",
     "StructuredBox",
@@ -41,7 +43,6 @@ __all__ = [
     "kuhn_face_keys",
     "kuhn_face_pairs",
     "kuhn_neighbour_offsets",
-    "index_dtype",
     "pair_up",
     "unique_keys",
 ]
@@ -91,9 +92,6 @@ KUHN_GRADIENTS = _kuhn_reference_gradients()
 KUHN_CORNER_COUNTS = ((np.arange(256)[:, None] >> np.arange(8)) & 1)[:, KUHN_TETS].sum(axis=2).astype(np.int8)
 """(256, 6) how many nodes of Kuhn tet l are among the cube corners of a set (bit c for corner c)."""
 
-# local faces of a tet (opposite to vertex k) and local edges
-TET_FACES = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]], dtype=np.int64)
-TET_EDGES = np.array([[0, 1], [0, 2], [0, 3], [1, 2], [1, 3], [2, 3]], dtype=np.int64)
 
 # Lattice numbering of the edges and faces of a structured box.  The nodes of a Kuhn tet form a
 # chain for the componentwise order of their cube corners (a monotone path 000 -> 111), so an edge
@@ -217,13 +215,6 @@ def tet_face_keys(tets: np.ndarray, n: int) -> tuple:
         cols[1][:, k] = a + b + c - lo - hi
         cols[2][:, k] = hi
     return tuple(col.reshape(-1) for col in cols)
-
-
-def index_dtype(largest) -> type:
-    """np.int32 when integers up to ``largest`` fit in it, else np.int64: the type of the index
-    arrays the library makes (node and element numbers, CSR indices, sort orders), which halves
-    their memory and traffic wherever the sizes allow."""
-    return np.int32 if largest < 2**31 else np.int64
 
 
 def _as_columns(keys) -> list:

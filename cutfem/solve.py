@@ -167,7 +167,8 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from .mesh import dense_unique, index_dtype, unique_keys
+from .mesh import dense_unique, unique_keys
+from .numbering import index_dtype
 
 __all__ = [
     "SolverError",

@@ -172,7 +172,7 @@ def _say(progress, msg):
 def kuhn_boundary_triangles(box) -> np.ndarray:
     """(k, 3) node ids of the boundary triangles of a StructuredBox, outward oriented (right-hand
     rule), found among the Kuhn tets of the boundary cells only."""
-    from cutfem.mesh import TET_FACES
+    from cutfem.numbering import TET_FACES
 
     tris = []
     nc = box.cells

@@ -13,7 +13,8 @@ import pytest
 from cutfem.cut import CutError, CutMesh, cut_mesh, snapped_nodal_values
 from cutfem.levelset import Sphere, Torus
 from cutfem.markers import CUT, NEG
-from cutfem.mesh import TET_FACES, TetMesh, structured_box
+from cutfem.mesh import TetMesh, structured_box
+from cutfem.numbering import TET_FACES
 
 # background boxes with binary-exact nodes (spacing 0.25) and the paper's torus box (spacing 0.1)
 SPHERE_BOX = structured_box([-2.0] * 3, [2.0] * 3, spacing=0.25)

@@ -200,7 +200,7 @@ def test_cut_torus_beyond_two_million_active_nodes():
     cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.0042), Torus(1.0, 0.5))
     assert cut.n_nodes > 2**21
     from cutfem.markers import CUT
-    from cutfem.mesh import TET_FACES
+    from cutfem.numbering import TET_FACES
 
     facets = cut.interior_facets(CUT)
     face_tets = facets.pairs
