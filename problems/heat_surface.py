@@ -118,8 +118,8 @@ class HeatSolution:
         Param("radius", float, 1.0, "radius of the sphere", minimum=0),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the sphere's box grown by 0.1)"),
         Param("solver", str, "auto", "the steps' solver: direct (one factorization), cg-jacobi or cg-mg (CG from the "
-              "extrapolated solutions), auto (direct up to 30000 unknowns, then cg-jacobi for backward Euler, cg-mg for "
-              "Crank-Nicolson)", choices=("auto", "direct", "cg-jacobi", "cg-mg")),
+              f"extrapolated solutions), auto (direct up to {STEP_DIRECT_LIMIT} unknowns, then cg-jacobi for backward "
+              "Euler, cg-mg for Crank-Nicolson)", choices=("auto", "direct", "cg-jacobi", "cg-mg")),
     ],
 )
 def heat_surface_cut(spacing, theta, dt_scale, final_time, tau_n, radius, box, solver):
