@@ -41,7 +41,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import Timer, background_for, cut_record, point_rows, with_point_data
+from .common import Timer, background_for, cut_record, value_and_gradient, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -73,10 +73,7 @@ class BulkSurfaceSolution:
         compiled loop on all cores (the errors evaluate it at every quadrature point: numpy's matrix
         product x @ d and broadcast u d took 0.33 s of the errors at spacing 0.025); grad None
         without ``gradient``."""
-        x, pts = point_rows(x)
-        u, grad = np.empty(len(pts)), np.empty((len(pts) if gradient else 0, 3))
-        _exp_and_gradient(pts, _D, u, grad)
-        return u.reshape(x.shape[:-1]), grad.reshape(x.shape) if gradient else None
+        return value_and_gradient(_exp_and_gradient, x, _D, gradient=gradient)
 
     def f_bulk(self, x):
         return (self.c_b - self.k_b * _D @ _D) * self.u_bulk(x)

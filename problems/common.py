@@ -32,6 +32,16 @@ def point_rows(x):
     return x, np.ascontiguousarray(x.reshape(-1, 3))
 
 
+def value_and_gradient(kernel, x, *params, gradient=True):
+    """(u (...), grad u (..., 3), or None without ``gradient``) at the points x (..., 3) of a compiled
+    manufactured solution ``kernel(points (n, 3), *params, u (n,), grad (n or 0, 3))``, which fills
+    grad only when it has rows."""
+    x, pts = point_rows(x)
+    u, grad = np.empty(len(pts)), np.empty((len(pts) if gradient else 0, 3))
+    kernel(pts, *params, u, grad)
+    return u.reshape(x.shape[:-1]), grad.reshape(x.shape) if gradient else None
+
+
 def parse_numbers(text, count, flag):
     if isinstance(text, (list, tuple, np.ndarray)):
         values = [float(v) for v in text]

@@ -39,7 +39,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import Timer, background_for, cut_record, point_rows
+from .common import Timer, background_for, cut_record, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -83,10 +83,7 @@ class InterfaceSolution:
         self.R, self.a = float(radius), {NEG: float(a_neg), POS: float(a_pos)}
 
     def _u(self, side, x, with_grad):
-        x, pts = point_rows(x)
-        u, grad = np.empty(len(pts)), np.empty((len(pts) if with_grad else 0, 3))
-        _u_and_gradient(pts, self.R**2, self.a[side], u, grad)
-        return u.reshape(x.shape[:-1]), grad.reshape(x.shape) if with_grad else None
+        return value_and_gradient(_u_and_gradient, x, self.R**2, self.a[side], gradient=with_grad)
 
     def u(self, side):
         return lambda x: self._u(side, x, False)[0]
