@@ -1627,7 +1627,6 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
         return X, SolveInfo("direct", 0, res, time.perf_counter() - t0, t1 - t0)
     if method not in ("cg-mg", "cg-amg", "cg-jacobi"):
         raise ValueError(f"unknown method {method!r}; use 'auto', 'direct', 'cg-mg', 'cg-amg' or 'cg-jacobi'")
-    A = _canonical_csr(A)
     _check_kernels(A, checks, f"solve ({method})")
     if method == "cg-mg":
         if not has_mg:
