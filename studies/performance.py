@@ -813,17 +813,17 @@ def _plot(out, records, summary):
         if not rs:
             continue
         x = [r["dofs"] if kind.startswith("meshed") else r["active_tets"] for r in rs]
-        label = {"cut": "cut torus (active tets)", "ngsxfem": "ngsxfem, cut torus"}.get(kind, f"{kind} (nodes)")
+        label = {"cut": "cut torus", "ngsxfem": "ngsxfem, cut torus"}.get(kind, kind.replace("-", ", "))
         for ax, key in zip(axes, ("total", "peak_memory_gib")):
             y = [r[key] for r in rs]
-            p = fitted_exponent(x[-3:], y[-3:])
-            ax.loglog(x, y, marker=marker, label=f"{label}, exponent {p:.2f}" if len(x) >= 3 else label)
-    for ax, title in zip(axes, ("end-to-end time [s]", "peak memory [GiB]")):
-        ax.set_xlabel("active tets / surface nodes")
+            ax.loglog(x, y, marker=marker, label=f"{label}: {fitted_exponent(x[-3:], y[-3:]):.2f}" if len(x) >= 3 else label)
+    for ax, title in zip(axes, ("time [s]", "peak memory [GiB]")):
+        ax.set_xlabel("active tets (cut) / nodes (meshed)")
         ax.set_ylabel(title)
         ax.grid(True, which="both", alpha=0.3)
-        ax.legend(loc="upper left")  # the curves rise from the lower left: this corner stays clear
-    axes[0].set_title("time, fitted over the three finest levels")
+        # the curves rise from the lower left: this corner stays clear
+        ax.legend(loc="upper left", title="exponent, 3 finest levels")
+    axes[0].set_title("all stages, imports excluded")
     axes[1].set_title("peak resident memory of the process")
     save_figure(fig, out, "performance_scaling")
 
