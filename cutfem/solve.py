@@ -873,14 +873,14 @@ def _constant_correction(A, x, r, nb, tol, cache=None):
     int_{S_h} H_h = 1^T M H = 1^T B - 1^T r with 1^T B = 0 and J 1 = 0 (docs/math.md §3): on the cut
     torus at spacing 0.0125 it is 3e-13 after the correction at tolerance 1e-6, where it was 9e-10
     at 1e-6 and 2e-11 at 1e-8 without it.  ``cache`` (a dict, or None): A 1 is taken from its
-    "ones_product" or computed and kept there.  Returns (r, rel) updated."""
+    "ones_product" (with the vector 1 in "ones") or computed and kept there.  Returns (r, rel) updated."""
     from . import kernels
 
-    ones = np.ones((A.shape[0], 1), dtype=A.dtype)
     cache = {} if cache is None else cache
     if cache.get("ones_product") is None:
-        cache["ones_product"] = kernels.matmul(A, ones)  # A 1 (a third of A.sum's time)
-    a1 = cache["ones_product"]
+        cache["ones"] = np.ones((A.shape[0], 1), dtype=A.dtype)
+        cache["ones_product"] = kernels.matmul(A, cache["ones"])  # A 1 (a third of A.sum's time)
+    ones, a1 = cache["ones"], cache["ones_product"]
     denom = float(a1.ravel().sum())  # 1^T A 1 > 0 for SPD A
     if not denom > 0:
         return r, np.sqrt(kernels.column_dots(r, r)) / nb
