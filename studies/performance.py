@@ -1,6 +1,6 @@
 """Performance benchmark: stage times, peak memory and sizes of the mean curvature problems, with a
-lower bound for every stage, the fitted exponents, ngsxfem beside it, bulk Poisson, and the largest
-level that fits in memory.
+lower bound for every stage, the fitted exponents, the commands of the targets timed end to end,
+ngsxfem beside it, bulk Poisson, and the largest level that fits in memory.
 
 Cut torus of docs/math.md §6 (box [-1.6,1.6]^2 x [-0.6,0.6], structured Kuhn background, tau_F = 0.1) at
 spacings 0.1 ... 0.0125 (down to 0.003125 with ``--full``), and the meshed torus (flipped and
@@ -92,6 +92,14 @@ Options of the command line (besides ``--out`` and the size flags)
   --spacing S --json F`` in a fresh process per level (0.1, 0.05, 0.025; with ``--full`` also
   0.0125 and 0.01, 2.7 and 5.2 million unknowns, about 7.5 GiB at the finest; one run each):
   unknowns, wall time, stages, peak memory, time and memory per million unknowns.
+
+End to end through the command line (``commands``; not in ``--limit`` mode): the commands of the
+targets (:func:`command_targets`: ``cutfem run mean-curvature-cut --spacing 0.0125``, target 2 s;
+``cutfem run mean-curvature-meshed --levels 768 --family F`` for the four families, target 1 s;
+with ``--full`` also ``--spacing 0.003125``, target 40 s), each run as many times as the levels
+in fresh processes, the runs of the commands interleaved; the wall time of the whole process
+(interpreter start, imports and numba's start included, as from the shell), the median and range
+of the runs, the peak, and whether the median meets the target.
 
 Peak memory is each process's own VmHWM (``/proc/self/status``), not ``ru_maxrss``, which on Linux
 also counts the parent's peak (the parent's address space at fork/exec).
@@ -559,16 +567,15 @@ entry()
 """
 
 
-def bulk_level(spacing: float) -> dict:
-    """``cutfem run poisson-cut --surface torus --spacing S --json F`` in a fresh process (the
-    command's own entry, :func:`cutfem.cli.entry`, and at exit a print of the process's peak
-    resident memory, VmHWM):
-    the level's unknowns, stage times and wall time from its JSON record, the peak, the CPU times
-    from ``os.wait4``, the process wall time (start-up included), and the time (s) and memory
-    (GiB) per million unknowns."""
+def command_run(args) -> dict:
+    """``cutfem ARGS --json F --quiet`` in a fresh process (the command's own entry,
+    :func:`cutfem.cli.entry`, and at exit a print of the process's peak resident memory, VmHWM):
+    {"record": the first level's JSON record, "process_wall": the wall time of the whole process
+    (interpreter start, imports and numba's start included), "peak_memory_gib", "cpu_user",
+    "cpu_system" (``os.wait4``)}."""
     with tempfile.TemporaryDirectory() as tmp:
         path, out, err = Path(tmp) / "level.json", Path(tmp) / "stdout.txt", Path(tmp) / "stderr.txt"
-        args = ["run", "poisson-cut", "--surface", "torus", "--spacing", repr(spacing), "--json", str(path), "--quiet"]
+        args = [*args, "--json", str(path), "--quiet"]
         t0 = time.perf_counter()
         with out.open("w") as fo, err.open("w") as fe:
             proc = subprocess.Popen([sys.executable, "-c", _BULK_CODE, *args], stdout=fo, stderr=fe, env=_child_env())
@@ -576,15 +583,63 @@ def bulk_level(spacing: float) -> dict:
         proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait again
         process_wall = time.perf_counter() - t0
         if proc.returncode != 0:
-            raise RuntimeError(f"bulk level {spacing} failed (cutfem {' '.join(args)}):\n{err.read_text()[-3000:]}")
-        r = json.loads(path.read_text())["records"][0]
+            raise RuntimeError(f"cutfem {' '.join(args[:-3])} failed:\n{err.read_text()[-3000:]}")
+        record = json.loads(path.read_text())["records"][0]
         peak = float([ln for ln in out.read_text().splitlines() if ln.startswith("PEAK ")][-1].split()[1])
+    return {"record": record, "process_wall": process_wall, "peak_memory_gib": peak, "cpu_user": usage.ru_utime,
+            "cpu_system": usage.ru_stime}
+
+
+def bulk_level(spacing: float) -> dict:
+    """``cutfem run poisson-cut --surface torus --spacing S`` through :func:`command_run`: the
+    level's unknowns, stage times and wall time from its JSON record, the peak, the CPU times, the
+    process wall time (start-up included), and the time (s) and memory (GiB) per million unknowns."""
+    c = command_run(["run", "poisson-cut", "--surface", "torus", "--spacing", repr(spacing)])
+    r, peak = c["record"], c["peak_memory_gib"]
     mega = r["dofs"] / 1e6
     return {"kind": "bulk-poisson", "level": spacing, "dofs": r["dofs"], "active_tets": r["active_tets"],
             "solver": r["solver"], "iterations": r.get("solver_iterations"), "l2_error": r["l2_error"],
-            "time": r["time"], "wall": r["wall_time"], "process_wall": process_wall, "peak_memory_gib": peak,
-            "cpu_user": usage.ru_utime, "cpu_system": usage.ru_stime,
+            "time": r["time"], "wall": r["wall_time"], "process_wall": c["process_wall"], "peak_memory_gib": peak,
+            "cpu_user": c["cpu_user"], "cpu_system": c["cpu_system"],
             "seconds_per_million": r["wall_time"] / mega, "gib_per_million": peak / mega}
+
+
+def command_targets(size: str) -> list:
+    """The end-to-end targets, as (cutfem arguments, seconds or None): the cut torus at spacing
+    0.0125 in 2 s and the meshed torus 768 x 384 of every family in 1 s (with ``full`` also the cut
+    torus at spacing 0.003125 in 40 s); at the tiny size the coarse levels, without a target."""
+    from cutfem.surface import TORUS_FAMILIES
+
+    cut, n = pick(size, ("0.1", "32"), ("0.0125", "768"), ("0.0125", "768"))
+    targets = [(["run", "mean-curvature-cut", "--spacing", cut], None if size == "tiny" else 2.0)]
+    targets += [(["run", "mean-curvature-meshed", "--levels", n, "--family", f], None if size == "tiny" else 1.0)
+                for f in TORUS_FAMILIES]
+    if size == "full":
+        targets.append((["run", "mean-curvature-cut", "--spacing", "0.003125"], 40.0))
+    return targets
+
+
+def command_times(size: str, repeat: int, progress) -> list:
+    """Each command of :func:`command_targets` ``repeat`` times in fresh processes, the runs of all
+    commands interleaved (so that a busy spell of the machine spreads over them): per command the
+    process wall times (``walls``), their median and range, the peak, the target and whether the
+    median meets it."""
+    targets = command_targets(size)
+    runs = [[] for _ in targets]
+    for k in range(repeat):
+        for (args, _), rs in zip(targets, runs):
+            progress(f"cutfem {' '.join(args)} (run {k + 1} of {repeat})")
+            rs.append(command_run(args))
+    rows = []
+    for (args, target), rs in zip(targets, runs):
+        walls = [r["process_wall"] for r in rs]
+        median = float(np.median(walls))
+        rows.append({"command": "cutfem " + " ".join(args), "walls": walls, "median": median, "min": min(walls),
+                     "max": max(walls), "peak_memory_gib": max(r["peak_memory_gib"] for r in rs),
+                     "dofs": rs[0]["record"]["dofs"], "target": target,
+                     "met": None if target is None else bool(median <= target)})
+        progress(f"  {rows[-1]['command']}: median {median:.2f} s ({min(walls):.2f}-{max(walls):.2f})")
+    return rows
 
 
 def _peer_missing():
@@ -715,6 +770,8 @@ def run(out: Path, size: str = "quick", progress=None, peers: bool = False, limi
         r["bounds"] = stage_bounds(r, bw["bandwidth"])
     summary["levels"] = records
     summary["exponents"] = {"cut": scaling_exponents(cut, "active_tets", stages=CUT_STAGES[1:])}  # background: microseconds
+    if not limit:
+        summary["commands"] = command_times(size, repeat, progress)
     if peers:
         summary["peers"] = _peers(cut, memory_gib, peers_down_to, progress)
     if bulk:
@@ -773,6 +830,12 @@ def _print_tables(records, summary):
                   f"user time {_fmt(e.get('user_time'), '.2f')}, memory {_fmt(e.get('memory'), '.2f')}" + (f"; stages {stages}" if stages else ""))
         else:
             print(f"\nexponents ({name}): fewer than three levels ran")
+    if summary.get("commands"):
+        print("\nend to end through the command line (a fresh process a run, start-up included; median of the runs, range)")
+        width = max(len(c["command"]) for c in summary["commands"])
+        for c in summary["commands"]:
+            verdict = "" if c["target"] is None else f"  target {c['target']:g} s: {'met' if c['met'] else 'not met'}"
+            print(f"  {c['command']:{width}s} {c['median']:7.2f} s ({c['min']:.2f}-{c['max']:.2f}), {c['peak_memory_gib']:.2f} GiB{verdict}")
     peers = summary.get("peers")
     if peers is not None:
         print()

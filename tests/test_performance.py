@@ -75,6 +75,17 @@ def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
         assert r["dofs"] > 1000 and r["peak_memory_gib"] > 0.01 and set(r["time"]) == {"geometry", "assembly", "solve", "errors"}
         assert r["seconds_per_million"] == pytest.approx(r["wall"] / (r["dofs"] / 1e6))
     assert data["exponents"]["cut"] == {}  # two cut levels: too few to fit
+    # the commands of the targets, end to end in fresh processes: the tiny sizes, without a target
+    commands = data["commands"]
+    assert [c["command"] for c in commands] == ["cutfem run mean-curvature-cut --spacing 0.1"] + [
+        f"cutfem run mean-curvature-meshed --levels 32 --family {f}" for f in ("structured", "flipped", "perturbed", "perturbed-flipped")]
+    cut_tiny = [r for r in data["levels"] if r["kind"] == "cut" and r["level"] == 0.1][0]
+    assert commands[0]["dofs"] == cut_tiny["dofs"]  # the same level as the staged run
+    for c in commands:
+        assert len(c["walls"]) == 1 and c["median"] == c["min"] == c["max"] == c["walls"][0]
+        assert 0.2 < c["median"] < 60 and c["peak_memory_gib"] > 0.05 and c["target"] is None and c["met"] is None
+    assert [t for _, t in performance.command_targets("quick")] == [2.0, 1.0, 1.0, 1.0, 1.0]
+    assert performance.command_targets("full")[-1] == (["run", "mean-curvature-cut", "--spacing", "0.003125"], 40.0)
     for name in ("performance_scaling", "performance_bounds"):
         assert (tmp_path / f"{name}.png").stat().st_size > 10_000
     assert summary["levels"] == data["levels"]
