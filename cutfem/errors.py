@@ -22,6 +22,8 @@ from .quadrature import triangle_rule
 
 __all__ = ["l2_error", "h1_error", "l2_h1_errors", "discrete_error", "rates", "fitted_rate", "surface_integral"]
 
+_ZERO = np.zeros((0, 0, 0))  # no exact field: kernels.squared_error gives the norm of u_h itself
+
 
 def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1 << 14) -> float:
     """L2 error of the discrete function ``coeffs`` (n,) or (n, c) against ``exact(x)`` over ``measure``
@@ -143,20 +145,23 @@ def discrete_error(space, e) -> float:
     """||e_h||_{L2(S_h)} of the discrete function with coefficients e (n,) or (n, c) (components
     summed) on the surface of ``space``: with e = pi_h u - u_h the discrete error
     ||pi_h u - u_h||_{S_h} = sqrt(e^T M e), M the P1 mass matrix on S_h, computed without M: e_h is
-    linear on every (planar) triangle T of S_h, with the values e_1, e_2, e_3 at its vertices, so
+    linear on every (planar) triangle T of S_h, so e_h^2 is a quadratic there, integrated exactly by
+    the three-point rule of degree 2 (:func:`cutfem.quadrature.triangle_rule`), which gives
 
         int_T e_h^2 = |T| / 12 (e_1^2 + e_2^2 + e_3^2 + (e_1 + e_2 + e_3)^2)
 
-    exactly (the P1 mass matrix of a triangle, |T| / 12 [[2, 1, 1], [1, 2, 1], [1, 1, 2]]), in one compiled
-    pass over the triangles (:func:`cutfem.kernels.p1_squared_norm`).  For a cut space the values at
-    the vertices are the traces of the field (:meth:`surface_vertex_data`)."""
+    (the P1 mass matrix of a triangle, |T| / 12 [[2, 1, 1], [1, 2, 1], [1, 1, 2]]) up to rounding, in
+    one compiled pass over the triangles (:func:`cutfem.kernels.squared_error` against zero).  For
+    a cut space the values at the vertices are the traces of the field (:meth:`surface_vertex_data`)."""
     surface_measure(space)  # a clear error for a bulk field
     from . import kernels
 
     points, triangles, values = space.surface_vertex_data(np.asarray(e, dtype=float))
     v = np.asarray(values, dtype=float)
-    total = kernels.p1_squared_norm(np.ascontiguousarray(points, dtype=float), np.ascontiguousarray(triangles),
-                                    np.ascontiguousarray(v.reshape(v.shape[0], -1)))
+    triangles = np.ascontiguousarray(triangles)
+    bary, w = triangle_rule(2)
+    total = kernels.squared_error(np.ascontiguousarray(v.reshape(v.shape[0], -1)), triangles, bary, w,
+                                  triangle_areas(points, triangles), _ZERO)
     return float(np.sqrt(max(total, 0.0)))
 
 

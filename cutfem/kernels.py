@@ -189,7 +189,7 @@ from .numbering import TET_EDGES, index_dtype
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
 __all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
-           "squared_error", "p1_squared_norm", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
+           "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr", "scatter_chunks"]
 
@@ -1212,11 +1212,12 @@ def triangle_areas(points, triangles):
 @parallel_kernel
 def squared_error(values, triangles, bary, weights, area, exact):
     """sum_T |T| sum_q w_q |u^e(x_q) - u_h(x_q)|^2 over the triangles (b, 3), u_h linear on each with
-    ``values`` (V, c) at the vertices, u_h(x_q) = sum_v bary[q, v] u_v; ``exact`` (b, q, c).  Summed
-    per block of :data:`SUM_BLOCK` triangles, the blocks in order (the same bits on any number of
-    threads)."""
+    ``values`` (V, c) at the vertices, u_h(x_q) = sum_v bary[q, v] u_v; ``exact`` (b, q, c), or an
+    empty array for u^e = 0 (the norm of u_h itself).  Summed per block of :data:`SUM_BLOCK`
+    triangles, the blocks in order (the same bits on any number of threads)."""
     c = values.shape[1]
     n = triangles.shape[0]
+    with_exact = exact.shape[0] > 0
     nblocks = (n + SUM_BLOCK - 1) // SUM_BLOCK
     part = np.zeros((nblocks, 1))
     for b in prange(nblocks):
@@ -1225,36 +1226,12 @@ def squared_error(values, triangles, bary, weights, area, exact):
             s = 0.0
             for i in range(bary.shape[0]):
                 for l in range(c):
-                    d = exact[t, i, l] - (bary[i, 0] * v0[l] + bary[i, 1] * v1[l] + bary[i, 2] * v2[l])
+                    d = (exact[t, i, l] if with_exact else 0.0) - (bary[i, 0] * v0[l] + bary[i, 1] * v1[l] + bary[i, 2] * v2[l])
                     s += weights[i] * d * d
             part[b, 0] += area[t] * s
     total = np.zeros(1)
     _add_blocks(part, total)
     return total[0]
-
-
-@parallel_kernel
-def p1_squared_norm(points, triangles, values):
-    """sum_T int_T |e_h|^2 = sum_T |T| / 12 sum_l (e_1l^2 + e_2l^2 + e_3l^2 + (e_1l + e_2l + e_3l)^2) over
-    the triangles (m, 3) of ``points`` (p, 3), e_h linear on each with ``values`` (p, c) at the
-    vertices (the P1 mass matrix of a triangle, exact), components summed.  Summed per block of
-    :data:`SUM_BLOCK` triangles, the blocks in order (the same bits on any number of threads)."""
-    c = values.shape[1]
-    n = triangles.shape[0]
-    nblocks = (n + SUM_BLOCK - 1) // SUM_BLOCK
-    part = np.zeros((nblocks, 1))
-    for b in prange(nblocks):
-        for t in range(b * SUM_BLOCK, min((b + 1) * SUM_BLOCK, n)):
-            i, j, k = triangles[t, 0], triangles[t, 1], triangles[t, 2]
-            s = 0.0
-            for l in range(c):
-                a, d, e = values[i, l], values[j, l], values[k, l]
-                m = a + d + e
-                s += a * a + d * d + e * e + m * m
-            part[b, 0] += _area(points[i], points[j], points[k]) * s
-    total = np.zeros(1)
-    _add_blocks(part, total)
-    return total[0] / 12.0
 
 
 @njit(cache=True, error_model="numpy")
