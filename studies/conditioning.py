@@ -284,7 +284,7 @@ def _plot_h(out, rows, growth):
     ax.set_xticks(h)
     ax.set_xticklabels([f"{v:.3f}" for v in h])
     ax.grid(True, which="major", alpha=0.3)
-    ax.legend(loc="center right")
+    ax.legend(loc="best")  # where it hides no point: the curves' heights vary with the levels run
     save_figure(fig, out, f"{NAME}_h")
 
 
