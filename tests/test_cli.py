@@ -148,6 +148,34 @@ def test_register_function_problem_and_run():
         cutfem.run("test-quadratic", c=-1)
 
 
+def test_progress_line_shows_the_stages_of_long_levels(monkeypatch, capsys):
+    """A level past STAGES_AFTER seconds lists its stages on its progress line, in order, with
+    their times; a shorter one keeps its short line; nothing is reported outside run()."""
+    import time
+
+    from cutfem import registry
+
+    @register("test-stages", levels=[1.0, 2.0], level_name="n")
+    def staged(n):
+        t = registry.Timer()
+        with t("geometry"):
+            pass
+        with t("solve"):
+            time.sleep(0.25 * (n - 1))
+        return {"h": 1.0 / n, "dofs": 1, "time": dict(t)}
+
+    monkeypatch.setattr(registry, "STAGES_AFTER", 0.1)
+    cutfem.run("test-stages", progress=True)
+    lines = capsys.readouterr().err.splitlines()
+    assert re.fullmatch(r"\[1/2\] test-stages n=1\.0 \.\.\. done in \d+\.\d\d s", lines[0])  # at once: no stages
+    m = re.fullmatch(r"\[2/2\] test-stages n=2\.0 \.\.\. geometry \d+\.\d\d s, solve (\d+\.\d\d) s, done in \d+\.\d\d s", lines[1])
+    assert m and float(m.group(1)) >= 0.25
+    assert registry._STAGE_LISTENER.get() is None  # reset after the run
+    with registry.Timer()("outside"):
+        pass
+    assert capsys.readouterr().err == ""
+
+
 def test_entry_point_plugins_are_loaded(monkeypatch, tmp_path):
     import importlib.metadata as md
 
