@@ -280,23 +280,33 @@ def _check_box_memory(box: StructuredBox, lipschitz) -> None:
         _refuse_if_too_big(box, BYTES_PER_BOX_NODE * nodes + 80.0 * boundary, f"{nodes:.3g} nodes", 3.0)
 
 
-def _lipschitz_check(dphi, dist, lipschitz: float, tol: float) -> None:
-    """Raise CutError when sampled differences break the declared bound: |dphi| > L dist.
+def _lipschitz_slack(dist, lipschitz: float, tol: float):
+    """L dist with the slack that keeps rounding from breaking a valid bound (relative 1e-9,
+    absolute 1e-14 + the zero rule's tol): what the band search's pruning and its checks compare
+    |phi| and |dphi| with."""
+    return lipschitz * dist * (1 + 1e-9) + 1e-14 + tol
 
-    ``dphi`` (...) are differences of phi between evaluated points ``dist`` apart (a scalar or an
-    array broadcasting with dphi).  The same slack as the pruning test (relative 1e-9, absolute
-    1e-14 + the zero rule's tol) keeps rounding from raising for a valid bound."""
-    bad = np.abs(dphi) > lipschitz * dist * (1 + 1e-9) + 1e-14 + tol
+
+def _lipschitz_check(dphi, dist, lipschitz: float, tol: float) -> None:
+    """Raise CutError when sampled differences break the declared bound: |dphi| > L dist (with
+    :func:`_lipschitz_slack`).  ``dphi`` (...) are differences of phi between evaluated points
+    ``dist`` apart (a scalar or an array broadcasting with dphi)."""
+    bad = np.abs(dphi) > _lipschitz_slack(dist, lipschitz, tol)
     if np.any(bad):
-        ratio = float(np.max(np.abs(dphi) / dist))
-        raise CutError(
-            f"the level set breaks its declared Lipschitz bound L = {lipschitz:g}: between points the band "
-            f"search evaluated, |phi(x) - phi(y)| / |x - y| reaches {ratio:.4g} ({int(np.count_nonzero(bad))} "
-            "pairs). The band search drops cells where |phi(centre)| > L r and would leave S_h open. Fix: declare "
-            f"a true bound (levelset.lipschitz >= {ratio:.3g}, or None to evaluate every node). A signed distance "
-            "to a surface mesh is 1-Lipschitz only when its closed components neither overlap nor intersect: "
-            "repair such a mesh (merge the overlapping parts into one closed surface)."
-        )
+        _lipschitz_broken(int(np.count_nonzero(bad)), float(np.max(np.abs(dphi) / dist)), lipschitz)
+
+
+def _lipschitz_broken(pairs: int, ratio: float, lipschitz: float):
+    """The CutError of a broken Lipschitz bound: ``pairs`` evaluated pairs break it, the largest
+    |phi(x) - phi(y)| / |x - y| seen is ``ratio``."""
+    raise CutError(
+        f"the level set breaks its declared Lipschitz bound L = {lipschitz:g}: between points the band "
+        f"search evaluated, |phi(x) - phi(y)| / |x - y| reaches {ratio:.4g} ({pairs} "
+        "pairs). The band search drops cells where |phi(centre)| > L r and would leave S_h open. Fix: declare "
+        f"a true bound (levelset.lipschitz >= {ratio:.3g}, or None to evaluate every node). A signed distance "
+        "to a surface mesh is 1-Lipschitz only when its closed components neither overlap nor intersect: "
+        "repair such a mesh (merge the overlapping parts into one closed surface)."
+    )
 
 
 def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
@@ -335,7 +345,7 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
         _check_finite(phi, "block centres of the band search")
         if parent_phi is not None:
             _lipschitz_check(phi - parent_phi, half_diag * size, lipschitz, tol)
-        keep = np.abs(phi) <= lipschitz * half_diag * size * (1 + 1e-9) + 1e-14 + tol
+        keep = np.abs(phi) <= _lipschitz_slack(half_diag * size, lipschitz, tol)
         predicted = 1.3 * np.count_nonzero(keep) * float(size) ** 2
         _refuse_if_too_big(box, box_bytes + BYTES_PER_BAND_CELL * predicted, f"about {predicted:.3g} cells near the surface", 2.0)
         if size == 1:
@@ -362,29 +372,33 @@ def _candidates_structured(box: StructuredBox, f, lipschitz):
     """Candidates of a structured box.  With a Lipschitz bound only the corners of the band cells
     are evaluated, each distinct node once (labels = their rank among those nodes); the corner
     values are checked against the bound (each corner lies r = |spacing| / 2 from its cell's centre,
-    see :func:`_band_cells`)."""
+    see :func:`_band_cells`) in the compiled pass that picks the cut tets
+    (:func:`cutfem.kernels.mixed_kuhn_tets`)."""
+    from . import kernels
+
+    # the cut tets from each cell's corner signs (8 bits) by a table, in one compiled pass that also
+    # snaps the corner values and checks them against the bound: the (k, 8) corner values and the
+    # (6k, 4) values and nodes of every band tet are never made
     if lipschitz is None:
         cell_ids = np.arange(box.n_cells)
         values = nodal_values(box, f)  # by blocks of nodes, no (N, 3) coordinates
         label_values = _snap_zeros(values, _zero_tolerance(box, None, values))
-        corner = box.cell_corner_ids(cell_ids)
         label_ids = None
-        cv = label_values[corner]
+        tet_ids, nodes, vals, _, _ = kernels.mixed_kuhn_tets(label_values, box.cell_corner_ids(cell_ids), cell_ids,
+                                                            _KUHN_MIXED, KUHN_TETS)
     else:
         tol = _zero_tolerance(box, lipschitz)
         cell_ids, centre_phi = _band_cells(box, f, float(lipschitz), tol)
         label_ids, corner = dense_unique(box.cell_corner_ids(cell_ids), box.n_points)
         values = np.asarray(f(box.node_coordinates(label_ids)), dtype=float)
         _check_finite(values, "background nodes near the surface")
-        cv = values[corner]
-        _lipschitz_check(cv - centre_phi[:, None], 0.5 * np.linalg.norm(box.spacing), float(lipschitz), tol)
+        r = 0.5 * float(np.linalg.norm(box.spacing))  # each corner lies r from its cell's centre
+        tet_ids, nodes, vals, broken, ratio = kernels.mixed_kuhn_tets(
+            values, corner, cell_ids, _KUHN_MIXED, KUHN_TETS, tol=tol, centre=centre_phi,
+            bound=_lipschitz_slack(r, float(lipschitz), tol), dist=r)
+        if broken:
+            _lipschitz_broken(broken, ratio, float(lipschitz))
         label_values = _snap_zeros(values, tol)
-        cv[np.abs(cv) <= tol] = 0.0  # the snap, entry by entry: cv == label_values[corner]
-    # the cut tets from each cell's corner signs (8 bits) by a table, in one compiled pass: the
-    # (6k, 4) values and nodes of every band tet are never made
-    from . import kernels
-
-    tet_ids, nodes, vals = kernels.mixed_kuhn_tets(cv, corner, cell_ids, _KUHN_MIXED, KUHN_TETS)
     return tet_ids, nodes, vals, label_ids, label_values
 
 
@@ -415,12 +429,10 @@ def _check_band_boundary(box: StructuredBox, f, band_nodes, tol: float):
     to one without, and as the boundary of a box is connected its nodes are all inside or all
     outside: the first node decides (all inside: the full check words the error).  Otherwise
     every boundary node is checked.  At spacing 0.003125 the boundary has 6 million nodes (0.6 s)."""
-    n = box.node_shape
-    i = np.asarray(band_nodes, dtype=np.int64)
-    j, k = i // n[0], i // (n[0] * n[1])
-    i, j = i % n[0], j % n[1]
-    on_faces = (i == 0) | (i == n[0] - 1) | (j == 0) | (j == n[1] - 1) | (k == 0) | (k == n[2] - 1)
-    if not on_faces.any():
+    from . import kernels
+
+    n = [int(v) for v in box.node_shape]
+    if not kernels.box_ids_on_faces(np.ascontiguousarray(band_nodes, dtype=np.int64), *n):
         first = np.asarray(f(box.node_coordinates(np.zeros(1, dtype=np.int64))), dtype=float).reshape(-1)
         _check_finite(first, "boundary nodes")
         if first[0] >= -tol:
@@ -807,7 +819,7 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     if structured:
         grads = volumes = None  # every tet has the box's volume (see ElementSet.volumes)
         negative = None
-        table, types = background.gradient_table, (tet_ids % 6).astype(np.int8)
+        table, types = background.gradient_table, kernels.kuhn_types(tet_ids)
     else:
         grads, volumes = barycentric_gradients(points[tets])
         negative = volumes < 0

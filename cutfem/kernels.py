@@ -66,8 +66,10 @@ kept (V, 4) dof and basis arrays on the space: 0.86-1.78 s at 1.7 million vertic
 0.00625, against 0.21-0.30 s).
 
 :func:`mixed_kuhn_tets`: the Kuhn tets with nodal values of both signs in the band cells of a
-structured box, with their nodes and values (numpy: sign bytes, a table, and two (n, 4) gathers
-through a flat index, 0.6 s at 3.4 million tets).
+structured box, with their nodes and values, the zero rule's snap and the check of the Lipschitz
+bound at the cells' corners on the way (numpy: the (k, 8) corner values, their differences from the
+centres and the snap as (k, 8) temporaries, sign bytes, a table, and two (n, 4) gathers through a
+flat index, 0.6 s at 3.4 million tets).
 
 :func:`marching`, :func:`slot_keys` and :func:`surface`: the marching tetrahedra.  The sign code of
 each candidate tet, the tets whose piece collapsed dropped in place, the keys of the polygon slots
@@ -188,7 +190,7 @@ from .numbering import TET_EDGES, index_dtype
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "box_cell_corner_ids", "box_ids_on_faces", "kuhn_types", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr", "scatter_chunks"]
@@ -1338,6 +1340,48 @@ def box_node_coordinates(ids, nodes_x, nodes_y, lower, spacing, out):
         out[t, 2] = lower[2] + np.float64(k) * spacing[2]
 
 
+@parallel_kernel
+def box_cell_corner_ids(cell_ids, cells_x, cells_y, nodes_x, nodes_y, offsets, out):
+    """out[t, b] = the node id of corner b of the cell ``cell_ids[t]`` = i + cells_x (j + cells_y k)
+    of a structured box: i + nodes_x (j + nodes_y k) + ``offsets[b]`` (the corners' id offsets)."""
+    for t in prange(cell_ids.shape[0]):
+        c = cell_ids[t]
+        r = c // cells_x
+        k = r // cells_y
+        base = (c - cells_x * r) + nodes_x * ((r - cells_y * k) + nodes_y * k)
+        for b in range(offsets.shape[0]):
+            out[t, b] = base + offsets[b]
+
+
+@njit(cache=True, error_model="numpy")
+def box_ids_on_faces(ids, nodes_x, nodes_y, nodes_z):
+    """Whether any node id ``ids[t]`` = i + nodes_x (j + nodes_y k) of a structured box lies on one
+    of its faces (i, j or k first or last); stops at the first."""
+    for t in range(ids.shape[0]):
+        n = ids[t]
+        r = n // nodes_x
+        k = r // nodes_y
+        i, j = n - nodes_x * r, r - nodes_y * k
+        if i == 0 or i == nodes_x - 1 or j == 0 or j == nodes_y - 1 or k == 0 or k == nodes_z - 1:
+            return True
+    return False
+
+
+@parallel_kernel
+def _kuhn_types(tet_ids, out):
+    for t in prange(tet_ids.shape[0]):
+        out[t] = tet_ids[t] % 6
+
+
+def kuhn_types(tet_ids):
+    """(m,) int8: the Kuhn type (tet id % 6) of tets of a structured box, in one pass on all cores
+    (numpy's remainder and cast: 64 ms for 13.7 million tets)."""
+    tet_ids = np.ascontiguousarray(tet_ids, dtype=np.int64)
+    out = np.empty(len(tet_ids), dtype=np.int8)
+    _kuhn_types(tet_ids, out)
+    return out
+
+
 @njit(cache=True, error_model="numpy")
 def side_split(tets, values, neg, whole, partial, counts):
     """Split the tets (m, 4) by the sign of the nodal ``values`` on one side (``neg``: phi < 0, else
@@ -1819,14 +1863,27 @@ def surface(vinv, n_vertices, tets, code, vals, points, edge_i_table, edge_j_tab
 
 
 @parallel_kernel
-def _mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets, bounds, starts, tet_ids, nodes, vals):
+def _mixed_kuhn_tets(values, corner, cell_ids, mixed_table, kuhn_tets, tol, centre, bound, dist, bounds, starts,
+                     broken, ratio, tet_ids, nodes, vals):
     fill = tet_ids.shape[0] > 0
+    check = centre.shape[0] > 0 and not fill
     for ch in prange(bounds.shape[0] - 1):
         n = starts[ch] if fill else 0
+        bad, top = 0, 0.0
+        cv = np.empty(8)
         for c in range(bounds[ch], bounds[ch + 1]):
             signs = 0
             for b in range(8):
-                if cv[c, b] < 0:
+                v = values[corner[c, b]]
+                if check:
+                    d = abs(v - centre[c])
+                    top = max(top, d / dist)
+                    if d > bound:
+                        bad += 1
+                if abs(v) <= tol:  # the zero rule's snap
+                    v = 0.0
+                cv[b] = v
+                if v < 0:
                     signs |= 1 << b
             for l in range(6):
                 if mixed_table[signs, l]:
@@ -1834,39 +1891,50 @@ def _mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets, bounds, start
                         tet_ids[n] = 6 * cell_ids[c] + l
                         for k in range(4):
                             nodes[n, k] = corner[c, kuhn_tets[l, k]]
-                            vals[n, k] = cv[c, kuhn_tets[l, k]]
+                            vals[n, k] = cv[kuhn_tets[l, k]]
                     n += 1
         if not fill:
             starts[ch] = n
+            broken[ch] = bad
+            ratio[ch] = top
 
 
 #: cells per chunk of :func:`mixed_kuhn_tets` (chunks counted, then filled, on all cores)
 MIXED_CELLS = 1 << 14
 
 
-def mixed_kuhn_tets(cv, corner, cell_ids, mixed_table, kuhn_tets):
-    """The Kuhn tets of the cells ``cell_ids`` (k,) whose corner values ``cv`` (k, 8) (corner labels
-    ``corner`` (k, 8)) have both signs by ``mixed_table`` (256, 6) (bit c of the row: corner c has
-    phi < 0): ``(tet_ids (n,), nodes (n, 4), vals (n, 4))`` in cell order, then Kuhn type, the
-    nodes in :data:`~cutfem.mesh.KUHN_TETS` order.  Two passes over chunks of :data:`MIXED_CELLS`
-    cells, each on any core: count per chunk, then fill from the chunk's offset (the same arrays as
-    one pass in cell order)."""
-    cv, corner = np.ascontiguousarray(cv, dtype=float), np.ascontiguousarray(corner)
+def mixed_kuhn_tets(values, corner, cell_ids, mixed_table, kuhn_tets, tol: float = 0.0, centre=None, bound: float = 0.0,
+                    dist: float = 1.0):
+    """The Kuhn tets of the cells ``cell_ids`` (k,) whose corner values have both signs by
+    ``mixed_table`` (256, 6) (bit c of the row: corner c has phi < 0).  Corner c of cell i has the
+    label ``corner[i, c]`` and the value ``values[corner[i, c]]``, set to 0 where its modulus is at
+    most ``tol`` (the zero rule's snap).  Returns ``(tet_ids (n,), nodes (n, 4), vals (n, 4), broken,
+    ratio)``: the tets in cell order, then Kuhn type, the nodes (labels) and snapped values in
+    :data:`~cutfem.mesh.KUHN_TETS` order; with ``centre`` (k,), the value at each cell's centre,
+    also the count ``broken`` of corners whose unsnapped value differs from their cell's centre
+    value by more than ``bound``, and the largest |value - centre| / ``dist`` (a Lipschitz bound
+    checked where the band search relies on it; 0 and 0.0 without ``centre``).  Two passes over
+    chunks of :data:`MIXED_CELLS` cells, each on any core: count (and check) per chunk, then fill
+    from the chunk's offset (the same arrays as one pass in cell order); the (k, 8) corner values
+    are never made."""
+    values, corner = np.ascontiguousarray(values, dtype=float), np.ascontiguousarray(corner)
     cell_ids = np.ascontiguousarray(cell_ids, dtype=np.int64)
+    centre = np.zeros(0) if centre is None else np.ascontiguousarray(centre, dtype=float)
     table = np.ascontiguousarray(mixed_table, dtype=np.bool_)
     kt = np.ascontiguousarray(kuhn_tets, dtype=np.int64)
     k = len(cell_ids)
     bounds = np.append(np.arange(0, k, MIXED_CELLS, dtype=np.int64), np.int64(k))
-    counts = np.zeros(len(bounds) - 1, dtype=np.int64)
+    nch = len(bounds) - 1
+    counts, broken, ratio = np.zeros(nch, dtype=np.int64), np.zeros(nch, dtype=np.int64), np.zeros(nch)
+    args = (values, corner, cell_ids, table, kt, float(tol), centre, float(bound), float(dist), bounds)
     empty = np.empty(0, dtype=np.int64)
-    _mixed_kuhn_tets(cv, corner, cell_ids, table, kt, bounds, counts, empty, np.empty((0, 4), dtype=corner.dtype),
-                     np.empty((0, 4)))
+    _mixed_kuhn_tets(*args, counts, broken, ratio, empty, np.empty((0, 4), dtype=corner.dtype), np.empty((0, 4)))
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
     n = int(counts.sum())
     tet_ids, nodes, vals = np.empty(n, dtype=np.int64), np.empty((n, 4), dtype=corner.dtype), np.empty((n, 4))
     if n:
-        _mixed_kuhn_tets(cv, corner, cell_ids, table, kt, bounds, starts, tet_ids, nodes, vals)
-    return tet_ids, nodes, vals
+        _mixed_kuhn_tets(*args, starts, broken, ratio, tet_ids, nodes, vals)
+    return tet_ids, nodes, vals, int(broken.sum()), float(ratio.max()) if nch else 0.0
 
 
 @njit(cache=True, error_model="numpy")

@@ -266,7 +266,11 @@ class ElementSet:
     @cached_property
     def kuhn_types(self):
         """(m,) int8 the Kuhn type (background tet id % 6) of each tet on a structured box, else None."""
-        return (self.tet_ids % 6).astype(np.int8) if isinstance(self.background, StructuredBox) else None
+        if not isinstance(self.background, StructuredBox):
+            return None
+        from . import kernels
+
+        return kernels.kuhn_types(self.tet_ids)
 
     @cached_property
     def boundary_nodes(self) -> np.ndarray:

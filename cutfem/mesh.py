@@ -613,8 +613,16 @@ class StructuredBox(TetMesh):
         return np.stack([c % nx, (c // nx) % ny, c // (nx * ny)], axis=-1)
 
     def cell_corner_ids(self, cell_ids) -> np.ndarray:
-        """(k, 8) node ids of the cube corners (corner c has offset bits (c&1, c>>1&1, c>>2&1))."""
-        return self.node_id(self.cell_index(cell_ids))[:, None] + self.node_id(CUBE_CORNERS)[None, :]
+        """(k, 8) node ids of the cube corners (corner c has offset bits (c&1, c>>1&1, c>>2&1)), in
+        one compiled pass (:func:`cutfem.kernels.box_cell_corner_ids`; numpy's divisions, stacks
+        and sums took 0.14 s for the 4 million band cells at spacing 0.003125)."""
+        from . import kernels
+
+        c = np.ascontiguousarray(np.asarray(cell_ids, dtype=np.int64).reshape(-1))
+        out = np.empty((len(c), 8), dtype=np.int64)
+        kernels.box_cell_corner_ids(c, int(self.cells[0]), int(self.cells[1]), int(self.node_shape[0]),
+                                    int(self.node_shape[1]), np.ascontiguousarray(self.node_id(CUBE_CORNERS)), out)
+        return out
 
     @property
     def gradient_table(self) -> np.ndarray:

@@ -581,21 +581,32 @@ def test_element_set_volumes_on_a_box_and_on_a_tet_mesh():
 @pytest.mark.parametrize("cells_per_chunk", [7, 1 << 14])
 def test_mixed_kuhn_tets_in_chunks_against_numpy(monkeypatch, cells_per_chunk):
     """The mixed Kuhn tets of cells, counted and filled chunk by chunk on all cores: exactly the
-    tets of a cell-order pass (a numpy reference: the table's mask of each cell, cell by cell, then
-    Kuhn type), also with no cell at all."""
+    tets of a cell-order pass (a numpy reference: the corner values gathered and snapped, the
+    table's mask of each cell, cell by cell, then Kuhn type), the corners that break a bound
+    against their cell's centre counted with the largest ratio, also with no cell at all."""
     from cutfem import kernels
     from cutfem.mesh import KUHN_TETS
 
     monkeypatch.setattr(kernels, "MIXED_CELLS", cells_per_chunk)
     rng = np.random.default_rng(5)
-    k = 1000
-    cv = rng.standard_normal((k, 8))
-    cv[rng.random(k) < 0.3] = 1.0  # some cells without a sign change
-    corner = rng.integers(0, 10**6, size=(k, 8)).astype(np.int32)
+    k, p = 1000, 3000
+    values = rng.standard_normal(p)
+    values[rng.random(p) < 0.3] = 1.0  # some cells without a sign change
+    values[:40] = rng.uniform(-1e-3, 1e-3, 40)  # snapped to zero below
+    corner = rng.integers(0, p, size=(k, 8)).astype(np.int32)
+    corner[:5] = np.arange(40).reshape(5, 8)
     cell_ids = np.sort(rng.choice(10**7, size=k, replace=False))
     table = rng.random((256, 6)) < 0.5
     table[0] = table[255] = False
-    tet_ids, nodes, vals = kernels.mixed_kuhn_tets(cv, corner, cell_ids, table, KUHN_TETS)
+    centre = rng.standard_normal(k)
+    tol, bound, dist = 2e-3, 2.5, 0.7
+    tet_ids, nodes, vals, broken, ratio = kernels.mixed_kuhn_tets(values, corner, cell_ids, table, KUHN_TETS, tol=tol,
+                                                                  centre=centre, bound=bound, dist=dist)
+    cv = values[corner]
+    dphi = np.abs(cv - centre[:, None])
+    assert broken == np.count_nonzero(dphi > bound) > 0 and ratio == np.max(dphi) / dist
+    cv[np.abs(cv) <= tol] = 0.0
+    assert np.count_nonzero(cv[:5] == 0.0) == 40
     signs = ((cv < 0) * (1 << np.arange(8))).sum(axis=1)
     mask = table[signs]
     kt = np.asarray(KUHN_TETS)
@@ -603,5 +614,9 @@ def test_mixed_kuhn_tets_in_chunks_against_numpy(monkeypatch, cells_per_chunk):
     np.testing.assert_array_equal(nodes, corner[:, kt][mask])
     np.testing.assert_array_equal(vals, cv[:, kt][mask])
     assert nodes.dtype == corner.dtype
-    none = kernels.mixed_kuhn_tets(cv[:0], corner[:0], cell_ids[:0], table, KUHN_TETS)
-    assert [len(a) for a in none] == [0, 0, 0]
+    plain = kernels.mixed_kuhn_tets(values, corner, cell_ids, table, KUHN_TETS, tol=tol)  # no centre: no check
+    assert plain[3:] == (0, 0.0)
+    for a, b in zip(plain[:3], (tet_ids, nodes, vals)):
+        np.testing.assert_array_equal(a, b)
+    none = kernels.mixed_kuhn_tets(values, corner[:0], cell_ids[:0], table, KUHN_TETS, centre=centre[:0])
+    assert [len(a) for a in none[:3]] == [0, 0, 0] and none[3:] == (0, 0.0)

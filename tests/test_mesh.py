@@ -143,6 +143,10 @@ def test_structured_box_subsets_agree_with_full_arrays():
     np.testing.assert_allclose(box.node_coordinates(ids), np.array([-1.0, 0.5, 0.0]) + ijk * spacing, rtol=0, atol=1e-15)
     # the 8 corners of a cell are the 8 nodes of its 6 tets
     corners = box.cell_corner_ids(cells)
+    from cutfem.mesh import CUBE_CORNERS
+
+    cell_ijk = np.stack([cells % 6, (cells // 6) % 4, cells // 24], axis=-1)  # cells (6, 4, 3)
+    np.testing.assert_array_equal(corners, box.node_id(cell_ijk)[:, None] + box.node_id(CUBE_CORNERS)[None, :])
     tets6 = box.cell_tets(cells).reshape(-1, 24)
     assert np.all((tets6[:, :, None] == corners[:, None, :]).any(axis=2))
     assert np.all((corners[:, :, None] == tets6[:, None, :]).any(axis=2))
