@@ -287,15 +287,6 @@ def _lipschitz_slack(dist, lipschitz: float, tol: float):
     return lipschitz * dist * (1 + 1e-9) + 1e-14 + tol
 
 
-def _lipschitz_check(dphi, dist, lipschitz: float, tol: float) -> None:
-    """Raise CutError when sampled differences break the declared bound: |dphi| > L dist (with
-    :func:`_lipschitz_slack`).  ``dphi`` (...) are differences of phi between evaluated points
-    ``dist`` apart (a scalar or an array broadcasting with dphi)."""
-    bad = np.abs(dphi) > _lipschitz_slack(dist, lipschitz, tol)
-    if np.any(bad):
-        _lipschitz_broken(int(np.count_nonzero(bad)), float(np.max(np.abs(dphi) / dist)), lipschitz)
-
-
 def _lipschitz_broken(pairs: int, ratio: float, lipschitz: float):
     """The CutError of a broken Lipschitz bound: ``pairs`` evaluated pairs break it, the largest
     |phi(x) - phi(y)| / |x - y| seen is ``ratio``."""
@@ -316,7 +307,7 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
     half-diagonal r = size |spacing| / 2) is dropped when |phi(c)| > L r.  The bound is also
     verified where it is relied on: the centre of each of the 8 children of a kept block lies
     r / 2 from the block's centre, so |phi(child) - phi(parent)| <= L r / 2 must hold; a violation
-    raises CutError (see :func:`_lipschitz_check`) instead of silently dropping cells.  This costs
+    raises CutError (see :func:`_lipschitz_broken`) instead of silently dropping cells.  This costs
     one comparison per evaluated centre; it samples the bound, it does not prove it.
 
     At every level, before the children of the kept blocks are made, the memory of the cut is
@@ -342,14 +333,17 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
 
     while True:
         phi = np.asarray(f(centre), dtype=float)
-        _check_finite(phi, "block centres of the band search")
-        if parent_phi is not None:
-            _lipschitz_check(phi - parent_phi, half_diag * size, lipschitz, tol)
-        keep = np.abs(phi) <= _lipschitz_slack(half_diag * size, lipschitz, tol)
-        predicted = 1.3 * np.count_nonzero(keep) * float(size) ** 2
+        r = half_diag * size
+        # keep |phi| <= L r; the children's centres lie r from their parent's: |dphi| <= L r checked
+        keep, kept, nonfinite, broken, ratio = kernels.prune_blocks(
+            phi, parent_phi, _lipschitz_slack(r, lipschitz, tol), _lipschitz_slack(r, lipschitz, tol), r)
+        if nonfinite:
+            _check_finite(phi, "block centres of the band search")
+        if broken:
+            _lipschitz_broken(broken, ratio, lipschitz)
+        predicted = 1.3 * kept * float(size) ** 2
         _refuse_if_too_big(box, box_bytes + BYTES_PER_BAND_CELL * predicted, f"about {predicted:.3g} cells near the surface", 2.0)
         if size == 1:
-            blocks, phi = blocks[keep], phi[keep]
             break
         size //= 2
         # the children of the kept blocks inside the box, their centres and their parent's value
@@ -357,7 +351,9 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
     # in cell-id order (the search leaves them in block order): the cut's tets then come in id
     # order, so their nodes run through the box layer by layer and the lattice sums over the
     # pieces split into chunks of disjoint node ranges (cutfem.kernels.scatter_chunks)
-    ids = blocks[:, 0] + cells[0] * (blocks[:, 1] + cells[1] * blocks[:, 2])
+    ids, phi_kept = np.empty(kept, dtype=np.int64), np.empty(kept)
+    kernels.kept_cells(np.ascontiguousarray(blocks, dtype=np.int64), phi, keep, int(cells[0]), int(cells[1]), ids, phi_kept)
+    phi = phi_kept
     order = np.empty(len(ids), dtype=np.int64)
     kernels.radix_argsort(ids, int(box.n_cells).bit_length(), order)
     return ids[order], phi[order]

@@ -190,7 +190,7 @@ from .numbering import TET_EDGES, index_dtype
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "refine_blocks", "box_cell_corner_ids", "box_ids_on_faces", "kuhn_types", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "prune_blocks", "kept_cells", "refine_blocks", "box_cell_corner_ids", "box_ids_on_faces", "kuhn_types", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr", "scatter_chunks"]
@@ -2366,6 +2366,54 @@ def _refine_blocks(blocks, phi, keep, size, cells, lower, spacing, corners, chil
                     parent_phi[n] = phi[b]
                 n += 1
     return n
+
+
+@njit(cache=True, error_model="numpy")
+def _prune_blocks(phi, parent_phi, check_slack, keep_slack, dist, keep):
+    nonfinite = broken = kept = 0
+    top = 0.0
+    check = parent_phi.shape[0] > 0
+    for t in range(phi.shape[0]):
+        v = phi[t]
+        if not np.isfinite(v):
+            nonfinite += 1
+            keep[t] = False
+            continue
+        if check:
+            d = abs(v - parent_phi[t])
+            top = max(top, d / dist)
+            if d > check_slack:
+                broken += 1
+        keep[t] = abs(v) <= keep_slack
+        if keep[t]:
+            kept += 1
+    return nonfinite, broken, top, kept
+
+
+def prune_blocks(phi, parent_phi, check_slack: float, keep_slack: float, dist: float):
+    """One level of the band search over the block centres' values ``phi`` (k,): ``(keep (k,) bool,
+    kept, nonfinite, broken, ratio)``, keep = |phi| <= ``keep_slack`` (finite values only), the
+    counts of kept blocks and of non-finite values, and with the parents' values ``parent_phi``
+    (k,) (None on the first level) the count of blocks whose |phi - parent| exceeds ``check_slack``
+    and the largest |phi - parent| / ``dist`` (0 and 0.0 without parents).  One pass, where numpy
+    made five (k,) temporaries."""
+    phi = np.ascontiguousarray(phi, dtype=float)
+    parent = np.zeros(0) if parent_phi is None else np.ascontiguousarray(parent_phi, dtype=float)
+    keep = np.empty(len(phi), dtype=np.bool_)
+    nonfinite, broken, ratio, kept = _prune_blocks(phi, parent, float(check_slack), float(keep_slack), float(dist), keep)
+    return keep, int(kept), int(nonfinite), int(broken), float(ratio)
+
+
+@njit(cache=True, error_model="numpy")
+def kept_cells(blocks, phi, keep, cells_x, cells_y, ids, kept_phi):
+    """The cell ids i + cells_x (j + cells_y k) of the blocks (k, 3) of one cell with ``keep``, and
+    their values, in block order, into ``ids`` and ``kept_phi``."""
+    n = 0
+    for t in range(blocks.shape[0]):
+        if keep[t]:
+            ids[n] = blocks[t, 0] + cells_x * (blocks[t, 1] + cells_y * blocks[t, 2])
+            kept_phi[n] = phi[t]
+            n += 1
 
 
 def refine_blocks(blocks, phi, keep, size: int, cells, lower, spacing, corners):
