@@ -190,7 +190,7 @@ from .numbering import TET_EDGES, index_dtype
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "prune_blocks", "kept_cells", "refine_blocks", "box_cell_corner_ids", "box_ids_on_faces", "kuhn_types", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "csr_diagonal", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "prune_blocks", "kept_cells", "refine_blocks", "box_cell_corner_ids", "box_ids_on_faces", "kuhn_types", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr", "scatter_chunks"]
@@ -479,6 +479,39 @@ def matmul(A, X, out=None, alpha: float = 1.0, accumulate: bool = False, dots=No
         part = dots[g] if dots.shape[0] else _NO_DOTS
         _kernels(g.stop - g.start)[0](indptr, indices, data, np.ascontiguousarray(X[:, g]), Y, alpha, accumulate, part)
         out[:, g] = Y
+    return out
+
+
+@parallel_kernel
+def _csr_diagonal(indptr, indices, data, canonical, out):
+    for i in prange(out.shape[0]):
+        s = data.dtype.type(0)
+        lo, hi = indptr[i], indptr[i + 1]
+        if canonical:  # sorted, no duplicates: a binary search reads a few indices of the row
+            while lo < hi:
+                mid = (lo + hi) // 2
+                if indices[mid] < i:
+                    lo = mid + 1
+                else:
+                    hi = mid
+            if lo < indptr[i + 1] and indices[lo] == i:
+                s = data[lo]
+        else:
+            for k in range(lo, hi):
+                if indices[k] == i:
+                    s += data[k]
+        out[i] = s
+
+
+def csr_diagonal(A):
+    """The diagonal of a CSR matrix (min(n, m),), the entries of a row on the diagonal summed as
+    scipy's ``A.diagonal()`` sums them, on all cores; in a matrix flagged canonical (sorted rows
+    without duplicates) each row's entry is found by a binary search.  scipy's serial pass took
+    29 ms for the 19.8 million entries of the cut torus at spacing 0.00625, and a solve asked for
+    it twice."""
+    indptr, indices, data = _csr(A)
+    out = np.empty(min(A.shape), dtype=data.dtype)
+    _csr_diagonal(indptr, indices, data, bool(A.has_canonical_format), out)
     return out
 
 

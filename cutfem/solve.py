@@ -546,6 +546,13 @@ def _check_finite(values, what: str, where: str, fix: str, rows=None):
                      f"first in row {row}; {fix}")
 
 
+def _diagonal(A):
+    """The diagonal of the CSR matrix A by the compiled pass (:func:`cutfem.kernels.csr_diagonal`)."""
+    from . import kernels
+
+    return kernels.csr_diagonal(A)
+
+
 def _checked_matrix(A, where: str):
     """A as a canonical CSR matrix (:func:`_canonical_csr`), refused (ValueError naming the problem)
     unless it is square with finite values."""
@@ -1173,7 +1180,9 @@ class GeometricMultigrid:
                  augment=None, _checks=None):
         if not len(visits) or any(v not in (1, 2) for v in visits):
             raise ValueError(f"visits must be a non-empty sequence of 1 (V-cycle) and 2 (K-cycle) per level, got {visits!r}")
-        A = sp.csr_matrix(A, dtype=float)
+        # used as it is when already a double CSR matrix: a new wrapper would scan its indices again
+        # for scipy's format flags
+        A = A if type(A) is sp.csr_matrix and A.dtype == np.float64 else sp.csr_matrix(A, dtype=float)
         self._finest = A  # in double precision, for the null-vector checks
         n = A.shape[0]
         if (lattice is None) == (prolongations is None):
@@ -1190,7 +1199,7 @@ class GeometricMultigrid:
                                  f"phi_h of a cut space), got shape {augment.shape}; pass augment=None for the plain hierarchy")
             prolongations = augmented_hierarchy(prolongations, augment)
         self._checks = _checks if _checks is not None else _Checks.of(n=n)
-        if np.any(A.diagonal() <= 0):
+        if np.any(_diagonal(A) <= 0):
             raise diagnose(A, where="the geometric multigrid", _checks=self._checks)
         from . import kernels
 
@@ -1514,7 +1523,7 @@ class CGSolver:
             self.warn_after = MG_WARN_ITERATIONS
             name = "CG with geometric multigrid"
         else:
-            d = A.diagonal()
+            d = _diagonal(A)
             if np.any(d <= 0):
                 raise diagnose(A, where="CG", _checks=checks)
             if preconditioner == "amg":
@@ -1563,7 +1572,7 @@ def _check_kernels(A, checks, where):
     vector of A (||D^{-1/2} A u|| <= KERNEL_TOL ||D^{1/2} u||; a non-positive diagonal is left to
     the solvers).  An iterative solver with a consistent right-hand side would converge without
     noticing a null vector.  One product with A per candidate."""
-    d = A.diagonal()
+    d = _diagonal(A)
     if np.any(d <= 0):
         return
     err = _named_kernel_error(A, d, checks, where)

@@ -665,6 +665,32 @@ def test_column_dots_of_three_blocks_and_mixed_precision(c):
     np.testing.assert_array_equal(column_dots(a[:, :1], b32[:, :1], q[:, :1])[1], bq[:1])
 
 
+def test_csr_diagonal_is_scipys():
+    """The compiled diagonal equals scipy's A.diagonal() bitwise: duplicates on the diagonal summed,
+    a missing diagonal entry zero, unsorted rows, rectangular matrices, float32 kept."""
+    from cutfem.kernels import csr_diagonal
+
+    rng = np.random.default_rng(11)
+    n, per_row = 300, 12
+    indices = rng.integers(0, n, (n, per_row))  # unsorted rows, with repeated columns
+    indices[::3, :2] = np.arange(0, n, 3)[:, None]  # every third row: its diagonal twice
+    indices[1::3] = np.where(indices[1::3] == np.arange(1, n, 3)[:, None], 0, indices[1::3])  # these rows: none
+    A = sp.csr_matrix((rng.standard_normal(n * per_row), indices.reshape(-1), np.arange(0, n * per_row + 1, per_row)),
+                      shape=(n, n))
+    assert not A.has_canonical_format
+    d = csr_diagonal(A)
+    np.testing.assert_array_equal(d, A.diagonal())
+    assert np.all(d[1::3] == 0) and np.all(d[::3] != 0)
+    C = A.copy()
+    C.sum_duplicates()  # canonical: the binary search
+    assert C.has_canonical_format
+    for B in (C, A[:200], A[:, :120], A.astype(np.float32), C[:, :120]):
+        B = sp.csr_matrix(B)
+        d = csr_diagonal(B)
+        assert d.dtype == B.dtype
+        np.testing.assert_array_equal(d, B.diagonal())
+
+
 def test_single_precision_application_is_the_cycle_output(torus_space):
     """GeometricMultigrid.apply(R, single=True) (what mg_solve's CG uses) returns the float32
     values whose float64 copy apply(R) returns."""
