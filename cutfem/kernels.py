@@ -2329,23 +2329,17 @@ def _mark_bits(ids, words):
 
 
 @njit(cache=True, error_model="numpy")
-def _rank_bits(words, prefix):
+def _rank_bits(words, prefix, unique):
     total = 0
     for w in range(words.shape[0]):
         prefix[w] = total
-        total += np.int64(_popcount(words[w]))
-    return total
-
-
-@njit(cache=True, error_model="numpy")
-def _set_bits(words, unique):
-    total = 0
-    for w in range(words.shape[0]):
         x = words[w]
         while x:
-            unique[total] = 64 * w + _trailing_bit(x)
+            b = _trailing_bit(x)
+            unique[total] = 64 * w + b
             total += 1
             x &= x - np.uint64(1)
+    return total
 
 
 @njit(cache=True, error_model="numpy", inline="always")
@@ -2376,15 +2370,14 @@ def dense_unique(ids, n: int, inverse_dtype=None):
     words = np.zeros((int(n) + 63) // 64, dtype=np.uint64)
     _mark_bits(flat, words)
     prefix = np.empty(len(words), dtype=np.int64)
-    u = _rank_bits(words, prefix)
-    unique = np.empty(u, dtype=np.int64)  # exactly u: no array of ids' size, no copy of its head
-    _set_bits(words, unique)
+    unique = np.empty(min(int(n), flat.size), dtype=np.int64)
+    u = _rank_bits(words, prefix, unique)
     dtype = np.dtype(inverse_dtype) if inverse_dtype is not None else np.dtype(index_dtype(u))
     if u > 0 and np.iinfo(dtype).max < u - 1:
         raise ValueError(f"inverse_dtype {dtype} cannot hold {u} distinct values")
     inverse = np.empty(flat.size, dtype=dtype)
     _bit_ranks(flat, words, prefix, inverse)
-    return unique, inverse.reshape(ids.shape)
+    return unique[:u].copy(), inverse.reshape(ids.shape)
 
 
 @njit(cache=True, error_model="numpy")
