@@ -335,8 +335,7 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
         phi = np.asarray(f(centre), dtype=float)
         r = half_diag * size
         # keep |phi| <= L r; the children's centres lie r from their parent's: |dphi| <= L r checked
-        keep, kept, nonfinite, broken, ratio = kernels.prune_blocks(
-            phi, parent_phi, _lipschitz_slack(r, lipschitz, tol), _lipschitz_slack(r, lipschitz, tol), r)
+        keep, kept, nonfinite, broken, ratio = kernels.prune_blocks(phi, parent_phi, _lipschitz_slack(r, lipschitz, tol), r)
         if nonfinite:
             _check_finite(phi, "block centres of the band search")
         if broken:

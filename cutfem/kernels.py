@@ -2402,7 +2402,7 @@ def _refine_blocks(blocks, phi, keep, size, cells, lower, spacing, corners, chil
 
 
 @njit(cache=True, error_model="numpy")
-def _prune_blocks(phi, parent_phi, check_slack, keep_slack, dist, keep):
+def _prune_blocks(phi, parent_phi, slack, dist, keep):
     nonfinite = broken = kept = 0
     top = 0.0
     check = parent_phi.shape[0] > 0
@@ -2415,25 +2415,26 @@ def _prune_blocks(phi, parent_phi, check_slack, keep_slack, dist, keep):
         if check:
             d = abs(v - parent_phi[t])
             top = max(top, d / dist)
-            if d > check_slack:
+            if d > slack:
                 broken += 1
-        keep[t] = abs(v) <= keep_slack
+        keep[t] = abs(v) <= slack
         if keep[t]:
             kept += 1
     return nonfinite, broken, top, kept
 
 
-def prune_blocks(phi, parent_phi, check_slack: float, keep_slack: float, dist: float):
-    """One level of the band search over the block centres' values ``phi`` (k,): ``(keep (k,) bool,
-    kept, nonfinite, broken, ratio)``, keep = |phi| <= ``keep_slack`` (finite values only), the
-    counts of kept blocks and of non-finite values, and with the parents' values ``parent_phi``
-    (k,) (None on the first level) the count of blocks whose |phi - parent| exceeds ``check_slack``
-    and the largest |phi - parent| / ``dist`` (0 and 0.0 without parents).  One pass, where numpy
-    made five (k,) temporaries."""
+def prune_blocks(phi, parent_phi, slack: float, dist: float):
+    """One level of the band search over the values ``phi`` (k,) at the centres of blocks of
+    half-diagonal ``dist``: ``(keep (k,) bool, kept, nonfinite, broken, ratio)``, keep = |phi| <=
+    ``slack`` (L dist and its rounding slack; finite values only), the counts of kept blocks and of
+    non-finite values, and with the parents' values ``parent_phi`` (k,) (None on the first level;
+    each centre lies ``dist`` from its parent's) the count of blocks whose |phi - parent| exceeds
+    ``slack`` and the largest |phi - parent| / ``dist`` (0 and 0.0 without parents).  One pass,
+    where numpy made five (k,) temporaries."""
     phi = np.ascontiguousarray(phi, dtype=float)
     parent = np.zeros(0) if parent_phi is None else np.ascontiguousarray(parent_phi, dtype=float)
     keep = np.empty(len(phi), dtype=np.bool_)
-    nonfinite, broken, ratio, kept = _prune_blocks(phi, parent, float(check_slack), float(keep_slack), float(dist), keep)
+    nonfinite, broken, ratio, kept = _prune_blocks(phi, parent, float(slack), float(dist), keep)
     return keep, int(kept), int(nonfinite), int(broken), float(ratio)
 
 
