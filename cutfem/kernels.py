@@ -1932,8 +1932,20 @@ def _mixed_kuhn_tets(values, corner, cell_ids, mixed_table, kuhn_tets, tol, cent
             ratio[ch] = top
 
 
-#: cells per chunk of :func:`mixed_kuhn_tets` (chunks counted, then filled, on all cores)
-MIXED_CELLS = 1 << 14
+#: rows per chunk of the kernels that count their output chunk by chunk, then fill it from each
+#: chunk's offset, on all cores (:func:`mixed_kuhn_tets`, :func:`refine_blocks`): the same arrays
+#: as one pass in row order
+COUNT_FILL_CHUNK = 1 << 14
+
+
+def _count_fill_bounds(k: int):
+    """The chunk bounds (c + 1,) of k rows for the count-then-fill kernels."""
+    return np.append(np.arange(0, k, COUNT_FILL_CHUNK, dtype=np.int64), np.int64(k))
+
+
+def _offsets(counts):
+    """(each chunk's first output row (c,), the output's length) from the chunks' counts."""
+    return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64), int(counts.sum())
 
 
 def mixed_kuhn_tets(values, corner, cell_ids, mixed_table, kuhn_tets, tol: float = 0.0, centre=None, bound: float = 0.0,
@@ -1947,7 +1959,7 @@ def mixed_kuhn_tets(values, corner, cell_ids, mixed_table, kuhn_tets, tol: float
     also the count ``broken`` of corners whose unsnapped value differs from their cell's centre
     value by more than ``bound``, and the largest |value - centre| / ``dist`` (a Lipschitz bound
     checked where the band search relies on it; 0 and 0.0 without ``centre``).  Two passes over
-    chunks of :data:`MIXED_CELLS` cells, each on any core: count (and check) per chunk, then fill
+    chunks of :data:`COUNT_FILL_CHUNK` cells, each on any core: count (and check) per chunk, then fill
     from the chunk's offset (the same arrays as one pass in cell order); the (k, 8) corner values
     are never made."""
     values, corner = np.ascontiguousarray(values, dtype=float), np.ascontiguousarray(corner)
@@ -1955,15 +1967,13 @@ def mixed_kuhn_tets(values, corner, cell_ids, mixed_table, kuhn_tets, tol: float
     centre = np.zeros(0) if centre is None else np.ascontiguousarray(centre, dtype=float)
     table = np.ascontiguousarray(mixed_table, dtype=np.bool_)
     kt = np.ascontiguousarray(kuhn_tets, dtype=np.int64)
-    k = len(cell_ids)
-    bounds = np.append(np.arange(0, k, MIXED_CELLS, dtype=np.int64), np.int64(k))
+    bounds = _count_fill_bounds(len(cell_ids))
     nch = len(bounds) - 1
     counts, broken, ratio = np.zeros(nch, dtype=np.int64), np.zeros(nch, dtype=np.int64), np.zeros(nch)
     args = (values, corner, cell_ids, table, kt, float(tol), centre, float(bound), float(dist), bounds)
     empty = np.empty(0, dtype=np.int64)
     _mixed_kuhn_tets(*args, counts, broken, ratio, empty, np.empty((0, 4), dtype=corner.dtype), np.empty((0, 4)))
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-    n = int(counts.sum())
+    starts, n = _offsets(counts)
     tet_ids, nodes, vals = np.empty(n, dtype=np.int64), np.empty((n, 4), dtype=corner.dtype), np.empty((n, 4))
     if n:
         _mixed_kuhn_tets(*args, starts, broken, ratio, tet_ids, nodes, vals)
@@ -2380,25 +2390,28 @@ def dense_unique(ids, n: int, inverse_dtype=None):
     return unique[:u].copy(), inverse.reshape(ids.shape)
 
 
-@njit(cache=True, error_model="numpy")
-def _refine_blocks(blocks, phi, keep, size, cells, lower, spacing, corners, children, centres, parent_phi, fill):
-    n = 0
-    for b in range(blocks.shape[0]):
-        if not keep[b]:
-            continue
-        for c in range(8):
-            i0 = blocks[b, 0] + size * corners[c, 0]
-            i1 = blocks[b, 1] + size * corners[c, 1]
-            i2 = blocks[b, 2] + size * corners[c, 2]
-            if i0 < cells[0] and i1 < cells[1] and i2 < cells[2]:
-                if fill:
-                    children[n, 0], children[n, 1], children[n, 2] = i0, i1, i2
-                    centres[n, 0] = lower[0] + (i0 + 0.5 * size) * spacing[0]
-                    centres[n, 1] = lower[1] + (i1 + 0.5 * size) * spacing[1]
-                    centres[n, 2] = lower[2] + (i2 + 0.5 * size) * spacing[2]
-                    parent_phi[n] = phi[b]
-                n += 1
-    return n
+@parallel_kernel
+def _refine_blocks(blocks, phi, keep, size, cells, lower, spacing, corners, bounds, starts, children, centres, parent_phi):
+    fill = children.shape[0] > 0
+    for ch in prange(bounds.shape[0] - 1):
+        n = starts[ch] if fill else 0
+        for b in range(bounds[ch], bounds[ch + 1]):
+            if not keep[b]:
+                continue
+            for c in range(8):
+                i0 = blocks[b, 0] + size * corners[c, 0]
+                i1 = blocks[b, 1] + size * corners[c, 1]
+                i2 = blocks[b, 2] + size * corners[c, 2]
+                if i0 < cells[0] and i1 < cells[1] and i2 < cells[2]:
+                    if fill:
+                        children[n, 0], children[n, 1], children[n, 2] = i0, i1, i2
+                        centres[n, 0] = lower[0] + (i0 + 0.5 * size) * spacing[0]
+                        centres[n, 1] = lower[1] + (i1 + 0.5 * size) * spacing[1]
+                        centres[n, 2] = lower[2] + (i2 + 0.5 * size) * spacing[2]
+                        parent_phi[n] = phi[b]
+                    n += 1
+        if not fill:
+            starts[ch] = n
 
 
 @njit(cache=True, error_model="numpy")
@@ -2455,14 +2468,18 @@ def refine_blocks(blocks, phi, keep, size: int, cells, lower, spacing, corners):
     cell index) with ``keep``, its 8 sub-blocks of ``size`` cells at ``corners`` (8, 3) that start
     inside the box of ``cells`` (3,), in block order then corner order: ``(children (k', 3), their
     centres lower + (child + size / 2) spacing (k', 3), the parent's phi (k',))``.  Two passes
-    (count, fill); no (k, 8, 3) arrays."""
+    (count, fill) over chunks of :data:`COUNT_FILL_CHUNK` blocks on all cores; no (k, 8, 3) arrays."""
+    bounds = _count_fill_bounds(len(blocks))
     args = (np.ascontiguousarray(blocks, dtype=np.int64), np.ascontiguousarray(phi, dtype=float),
             np.ascontiguousarray(keep, dtype=np.bool_), np.int64(size), np.ascontiguousarray(cells, dtype=np.int64),
             np.ascontiguousarray(lower, dtype=float), np.ascontiguousarray(spacing, dtype=float),
-            np.ascontiguousarray(corners, dtype=np.int64))
-    n = _refine_blocks(*args, np.empty((0, 3), dtype=np.int64), np.empty((0, 3)), np.empty(0), False)
+            np.ascontiguousarray(corners, dtype=np.int64), bounds)
+    counts = np.zeros(len(bounds) - 1, dtype=np.int64)
+    _refine_blocks(*args, counts, np.empty((0, 3), dtype=np.int64), np.empty((0, 3)), np.empty(0))
+    starts, n = _offsets(counts)
     children, centres, parent_phi = np.empty((n, 3), dtype=np.int64), np.empty((n, 3)), np.empty(n)
-    _refine_blocks(*args, children, centres, parent_phi, True)
+    if n:
+        _refine_blocks(*args, starts, children, centres, parent_phi)
     return children, centres, parent_phi
 
 

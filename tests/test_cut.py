@@ -578,6 +578,19 @@ def test_element_set_volumes_on_a_box_and_on_a_tet_mesh():
     np.testing.assert_allclose(plain.tet_volumes.sum(), cut.tet_volumes.sum(), rtol=1e-12)
 
 
+def test_band_search_and_cut_in_small_chunks_are_the_same(monkeypatch):
+    """The count-then-fill kernels (the band search's refinement, the mixed tets) give the same cut
+    with chunks of 7 rows as with one chunk: the same arrays, in the same order."""
+    from cutfem import kernels
+
+    box = structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1)
+    one = cut_mesh(box, Torus(1.0, 0.5))
+    monkeypatch.setattr(kernels, "COUNT_FILL_CHUNK", 7)
+    small = cut_mesh(box, Torus(1.0, 0.5))
+    for name in ("tet_ids", "tets", "node_ids", "values", "vertices", "triangles", "triangle_tets", "normals"):
+        np.testing.assert_array_equal(getattr(small, name), getattr(one, name))
+
+
 @pytest.mark.parametrize("cells_per_chunk", [7, 1 << 14])
 def test_mixed_kuhn_tets_in_chunks_against_numpy(monkeypatch, cells_per_chunk):
     """The mixed Kuhn tets of cells, counted and filled chunk by chunk on all cores: exactly the
@@ -587,7 +600,7 @@ def test_mixed_kuhn_tets_in_chunks_against_numpy(monkeypatch, cells_per_chunk):
     from cutfem import kernels
     from cutfem.mesh import KUHN_TETS
 
-    monkeypatch.setattr(kernels, "MIXED_CELLS", cells_per_chunk)
+    monkeypatch.setattr(kernels, "COUNT_FILL_CHUNK", cells_per_chunk)
     rng = np.random.default_rng(5)
     k, p = 1000, 3000
     values = rng.standard_normal(p)
