@@ -516,9 +516,10 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
 
     ``levels`` are checked before anything is solved (:func:`check_levels`).  ``progress``: True
     prints one line per level to standard error (with the times of its stages when it runs more
-    than :data:`STAGES_AFTER` seconds); a callable gets (index, count, level, record-or-None).  When a level fails its exception propagates, unless ``keep_finished``: then
-    the run stops there and returns the finished levels with ``failure`` set (the command line
-    writes those).  ``command``: the command line to record in the JSON.
+    than :data:`STAGES_AFTER` seconds); a callable gets (index, count, level, record-or-None).
+    When a level fails its exception propagates, unless ``keep_finished``: then the run stops
+    there and returns the finished levels with ``failure`` set (the command line writes those).
+    ``command``: the command line to record in the JSON.
     """
     problem = get_problem(name)
     p = problem.resolve(params)
