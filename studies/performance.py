@@ -559,7 +559,7 @@ def _available_gib():
 # ---------------------------------------------------------------------------------------------
 
 
-_BULK_CODE = _PEAK_CODE + """\
+_COMMAND_CODE = _PEAK_CODE + """\
 import atexit
 from cutfem.cli import entry
 atexit.register(lambda: print(f'PEAK {_peak()!r}', flush=True))
@@ -575,15 +575,15 @@ def command_run(args) -> dict:
     "cpu_system" (``os.wait4``)}."""
     with tempfile.TemporaryDirectory() as tmp:
         path, out, err = Path(tmp) / "level.json", Path(tmp) / "stdout.txt", Path(tmp) / "stderr.txt"
-        args = [*args, "--json", str(path), "--quiet"]
+        argv = [*args, "--json", str(path), "--quiet"]
         t0 = time.perf_counter()
         with out.open("w") as fo, err.open("w") as fe:
-            proc = subprocess.Popen([sys.executable, "-c", _BULK_CODE, *args], stdout=fo, stderr=fe, env=_child_env())
+            proc = subprocess.Popen([sys.executable, "-c", _COMMAND_CODE, *argv], stdout=fo, stderr=fe, env=_child_env())
             _, status, usage = os.wait4(proc.pid, 0)
         proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait again
         process_wall = time.perf_counter() - t0
         if proc.returncode != 0:
-            raise RuntimeError(f"cutfem {' '.join(args[:-3])} failed:\n{err.read_text()[-3000:]}")
+            raise RuntimeError(f"cutfem {' '.join(args)} failed:\n{err.read_text()[-3000:]}")
         record = json.loads(path.read_text())["records"][0]
         peak = float([ln for ln in out.read_text().splitlines() if ln.startswith("PEAK ")][-1].split()[1])
     return {"record": record, "process_wall": process_wall, "peak_memory_gib": peak, "cpu_user": usage.ru_utime,
