@@ -48,11 +48,12 @@ def _cmd_list(args) -> int:
 
 def _problem_parser(problem) -> argparse.ArgumentParser:
     p = _Parser(prog=f"cutfem run {problem.name}", description=problem.summary, allow_abbrev=False)
-    p.add_argument("--levels", nargs="+", default=None, help=f"the {problem.level_name} of each level (default {problem.default_levels})")
+    levels = p.add_mutually_exclusive_group()  # both given: refused, not the last one silently kept
+    levels.add_argument("--levels", nargs="+", default=None, help=f"the {problem.level_name} of each level (default {problem.default_levels})")
     if problem.level_name not in {q.name for q in problem.params}:
-        p.add_argument("--" + problem.level_name.replace("_", "-"), dest="levels", nargs="+", default=None, help="same as --levels")
+        levels.add_argument("--" + problem.level_name.replace("_", "-"), dest="levels", nargs="+", default=None, help="same as --levels")
     for q in problem.params:
-        extra = f" (one of {', '.join(map(str, q.choices))})" if q.choices else ""
+        extra = f" (one of {', '.join(map(str, q.choices))}{', or a file' if q.files else ''})" if q.choices else ""
         p.add_argument(q.flag, dest=q.name, default=None, nargs=q.nargs, metavar=q.type.__name__.upper(), help=f"{q.help}{extra} [default {q.default}]")
     p.add_argument("--json", default=None, metavar="PATH", help="write the results as JSON ('-' for standard output)")
     p.add_argument("--vtk", default=None, metavar="DIR", help="write the fields of every level as VTK files for ParaView")
@@ -159,7 +160,11 @@ def _cmd_run(argv) -> int:
                 series.setdefault(kind, []).append((index, path.name))
         for kind, entries in series.items():
             write_pvd(out / f"{problem.name}_{kind}.pvd", entries)
-        print(f"wrote VTK files and one .pvd series over the levels per field to {out}", file=sys.stderr)
+        if series:
+            print(f"wrote VTK files and one .pvd series over the levels per field to {out}", file=sys.stderr)
+        else:
+            print(f"--vtk: nothing written: the records of {problem.name} carry no fields (a record's \"fields\")",
+                  file=sys.stderr)
     if known.plot and result.records:
         from .convergence import convergence_plot
 
@@ -223,6 +228,10 @@ def main(argv=None) -> int:
             lp.add_argument("-v", "--verbose", action="store_true")
             return _cmd_list(lp.parse_args(rest))
         if command == "run":
+            if rest[:1] in (["-h"], ["--help"]):
+                print("usage: cutfem run PROBLEM [--levels L ...] [--param value ...] [--json PATH] [--vtk DIR] [--plot PATH]\n\n"
+                      "'cutfem list' shows the problems, 'cutfem run PROBLEM --help' the parameters of one.")
+                return 0
             if len(rest) >= 2 and rest[1] in ("-h", "--help"):
                 from .registry import get_problem
 

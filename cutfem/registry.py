@@ -29,6 +29,7 @@ import platform
 import sys
 import threading
 import time
+from pathlib import Path
 from collections.abc import Mapping
 from contextlib import contextmanager
 from dataclasses import dataclass, field
@@ -135,7 +136,13 @@ class ProblemError(ValueError):
 @dataclass
 class Param:
     """A named problem parameter: type (float, int, str, bool), default, help, optional choices and
-    bounds.  ``nargs="+"`` makes it a list."""
+    bounds.  ``nargs="+"`` makes it a list.
+
+    Numbers must be finite (an int also integral: 2.5 is not read as 2, nor True as 1), at least
+    ``minimum`` when given, and one of ``choices`` when given (numbers compared by value: 0.5 is
+    one of (1.0, 0.5)).  ``files``: the parameter also takes the path of an existing file besides
+    its ``choices`` (a surface mesh).  Objects that are neither strings nor numbers (a level set, a
+    mesh) pass through from Python unchecked: the problem checks them."""
 
     name: str
     type: type = float
@@ -144,6 +151,7 @@ class Param:
     choices: tuple | None = None
     minimum: float | None = None
     nargs: str | None = None
+    files: bool = False
 
     @property
     def flag(self) -> str:
@@ -166,19 +174,27 @@ class Param:
                 v = value.lower() in ("true", "1", "yes")
             elif self.type is str or not isinstance(value, str) and not isinstance(value, (int, float, np.number)):
                 v = value  # objects (level sets, meshes) pass through from Python
+            elif self.type in (int, float) and isinstance(value, (bool, np.bool_)):
+                raise TypeError(value)
+            elif self.type is int and not isinstance(value, str):
+                if not float(value).is_integer():
+                    raise ValueError(value)
+                v = int(value)
             else:
                 v = self.type(value)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise ProblemError(f"{self.flag}: cannot read {value!r} as {self.type.__name__}") from None
-        if self.choices is not None and isinstance(v, str) and v not in self.choices and not _looks_like_path(v):
-            raise ProblemError(f"{self.flag}: {v!r} is not one of {', '.join(map(str, self.choices))}")
-        if self.minimum is not None and isinstance(v, (int, float)) and (not math.isfinite(v) or v < self.minimum):
+        number = isinstance(v, (int, float)) and not isinstance(v, bool)
+        if number and not math.isfinite(v):
+            raise ProblemError(f"{self.flag}: {v} is not a finite number")
+        if self.choices is not None and (number or isinstance(v, str)) and v not in self.choices:
+            if not (self.files and isinstance(v, str)):
+                raise ProblemError(f"{self.flag}: {v!r} is not one of {', '.join(map(str, self.choices))}")
+            if not Path(v).is_file():
+                raise ProblemError(f"{self.flag}: {v!r} is neither {', '.join(map(str, self.choices))} nor an existing file")
+        if self.minimum is not None and number and v < self.minimum:
             raise ProblemError(f"{self.flag}: {v} must be a finite number >= {self.minimum}")
         return v
-
-
-def _looks_like_path(v: str) -> bool:
-    return "." in v.rsplit("/", 1)[-1] or "/" in v
 
 
 class Problem:
@@ -226,12 +242,13 @@ class Problem:
     def describe(self) -> str:
         lines = [f"{self.name}: {self.summary}", f"  levels ({self.level_name}): default {self.default_levels}"]
         for p in self.params:
-            extra = f" (one of {', '.join(map(str, p.choices))})" if p.choices else ""
+            extra = f" (one of {', '.join(map(str, p.choices))}{', or a file' if p.files else ''})" if p.choices else ""
             lines.append(f"  {p.flag} {p.type.__name__.upper()}{' ...' if p.nargs else ''}  {p.help}{extra} [default {p.default}]")
         return "\n".join(lines)
 
 
 _REGISTRY: dict[str, Problem] = {}
+_ORIGIN: dict[str, str] = {}  # name -> the module that registered it
 _LOADED = False
 
 
@@ -240,9 +257,14 @@ def register(name=None, *, summary: str = "", params=None, levels=None, level_na
 
     Used bare on a class (``@register``) it takes the class's ``name``.  On a function
     ``f(level, **params) -> record`` give ``name``, ``params``, ``levels``, ``level_name``.
+
+    Registering a name again replaces the earlier problem (a notebook cell run twice), except a
+    built-in problem's name, which raises ValueError: the built-ins are loaded first, so a problem
+    of yours is never silently replaced by one of them.
     """
 
     def wrap(obj):
+        _load_builtin_and_plugins()  # returns at once inside the load (the built-ins registering)
         if inspect.isclass(obj) and issubclass(obj, Problem):
             problem = obj()
             if isinstance(name, str):
@@ -265,7 +287,10 @@ def register(name=None, *, summary: str = "", params=None, levels=None, level_na
             raise TypeError("register() decorates a Problem subclass or a function f(level, **params)")
         if not problem.name:
             raise ValueError("a problem needs a name")
+        if _is_builtin(_ORIGIN.get(problem.name, "")) and not _is_builtin(obj.__module__):
+            raise ValueError(f"{problem.name!r} is the name of a built-in problem; register yours under another name")
         _REGISTRY[problem.name] = problem
+        _ORIGIN[problem.name] = obj.__module__
         return obj
 
     if inspect.isclass(name) or (callable(name) and not isinstance(name, str)):
@@ -275,6 +300,11 @@ def register(name=None, *, summary: str = "", params=None, levels=None, level_na
 
 
 _LOAD_LOCK = threading.RLock()
+
+
+def _is_builtin(module: str) -> bool:
+    """Whether a problem defined in ``module`` comes with cutfem (:mod:`cutfem.problems`)."""
+    return module.startswith("cutfem.problems.")
 
 
 def _load_builtin_and_plugins():
@@ -319,6 +349,10 @@ def get_problem(name: str) -> Problem:
     return problems[name]
 
 
+def _utc_now() -> str:
+    return time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime())
+
+
 @dataclass
 class RunResult:
     """Records of a convergence run, with rates between levels for every ``*_error`` entry.
@@ -338,7 +372,7 @@ class RunResult:
     components: int = 1
     definitions: dict = field(default_factory=dict)
     command: list | None = None
-    created_utc: str = field(default_factory=lambda: time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()))
+    created_utc: str = field(default_factory=_utc_now)
     #: the exception of the failed level (not saved to JSON)
     exception: BaseException | None = field(default=None, repr=False, compare=False)
 
@@ -347,8 +381,9 @@ class RunResult:
         the problem, its parameters, the levels asked for and the records of those finished, the
         rates, the failure (or None), the definitions of ``h``, ``dofs`` and every error key, the
         number of components and the dofs per component of each level, the command line, the UTC
-        time the run started, the git commit of the source (None outside a git checkout), the
-        thread pools (threadpoolctl) and the versions of cutfem, numpy, scipy, pyvista, VTK and Python."""
+        time the run started, the git commit of the source and whether its tracked files were
+        modified (None outside a git checkout), the thread pools (threadpoolctl) and the versions
+        of cutfem, numpy, scipy, pyvista, VTK and Python."""
         keys = ["h", "dofs"] + self.error_keys()
         definitions = {k: self.definitions.get(k, COMMON_DEFINITIONS.get(k, "not defined by the problem")) for k in keys}
         return jsonable(
@@ -366,7 +401,7 @@ class RunResult:
                 "definitions": definitions,
                 "command": self.command,
                 "created_utc": self.created_utc,
-                "git_commit": _git_commit(),
+                **_git_state(),
                 "threads": _thread_info(),
                 "versions": _versions(),
             }
@@ -385,7 +420,8 @@ class RunResult:
         return keys
 
     def table(self) -> str:
-        """A readable table: level, h, dofs, errors with rates, area, time."""
+        """A readable table: level, h, dofs, errors with rates, area, time (the level's wall time;
+        the sum of its stages for a record without one)."""
         keys = self.error_keys()
         head = ["level", "h", "dofs"] + [c for k in keys for c in (k, "rate")] + ["area", "time[s]"]
         rows = []
@@ -397,7 +433,7 @@ class RunResult:
                 rr = self.rates.get(k)
                 row.append("" if i == 0 or rr is None or rr[i - 1] is None else f"{rr[i - 1]:.2f}")
             row.append(f"{r['area']:.6f}" if "area" in r else "")
-            row.append(f"{sum(r.get('time', {}).values()):.2f}")
+            row.append(f"{r.get('wall_time', sum(r.get('time', {}).values())):.2f}")
             rows.append(row)
         widths = [max([len(h)] + [len(r[j]) for r in rows]) for j, h in enumerate(head)]
         fmt = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, widths))  # noqa: E731
@@ -408,19 +444,23 @@ class RunResult:
         return "\n".join(lines)
 
 
-def _git_commit() -> str | None:
-    """The commit of the checkout cutfem runs from, or None (no git, not a checkout: never fails)."""
+def _git_state() -> dict:
+    """{"git_commit": the commit of the checkout cutfem runs from, "git_modified": whether its
+    tracked files differ from that commit}; both None without git or outside a checkout (never
+    fails)."""
     import subprocess
-    from pathlib import Path
 
+    here = Path(__file__).resolve().parent
     try:
-        out = subprocess.run(
-            ["git", "rev-parse", "HEAD"], cwd=Path(__file__).resolve().parent, capture_output=True, text=True, timeout=5
-        )
+        head = subprocess.run(["git", "rev-parse", "HEAD"], cwd=here, capture_output=True, text=True, timeout=5)
+        commit = head.stdout.strip()
+        if head.returncode != 0 or len(commit) < 40:
+            return {"git_commit": None, "git_modified": None}
+        status = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no"], cwd=here, capture_output=True,
+                                text=True, timeout=10)
     except (OSError, subprocess.SubprocessError):
-        return None
-    commit = out.stdout.strip()
-    return commit if out.returncode == 0 and len(commit) >= 40 else None
+        return {"git_commit": None, "git_modified": None}
+    return {"git_commit": commit, "git_modified": bool(status.stdout.strip()) if status.returncode == 0 else None}
 
 
 def _thread_info() -> dict:
@@ -439,10 +479,11 @@ def _thread_info() -> dict:
                          "threading_layer": numba.threading_layer() if started else None,
                          "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")}
     try:
-        from threadpoolctl import threadpool_info
+        from .solve import _threadpoolctl
 
         info["pools"] = [
-            {k: p.get(k) for k in ("user_api", "internal_api", "num_threads", "version")} for p in threadpool_info()
+            {k: p.get(k) for k in ("user_api", "internal_api", "num_threads", "version")}
+            for p in _threadpoolctl().threadpool_info()
         ]
     except Exception:  # pragma: no cover - threadpoolctl missing or failing: the record says so
         info["pools"] = None
@@ -525,6 +566,7 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
     p = problem.resolve(params)
     levels = check_levels(problem, levels)
     records, failure = [], None
+    started = _utc_now()
     for i, level in enumerate(levels):
         if progress is True:
             print(f"[{i + 1}/{len(levels)}] {problem.name} {problem.level_name}={level} ...", file=sys.stderr, end="", flush=True)
@@ -534,6 +576,10 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
         token = _STAGE_LISTENER.set(_StageLine() if progress is True else None)
         try:
             rec = problem.solve_level(level, **p)
+            if not isinstance(rec, dict) or "h" not in rec:
+                raise TypeError(f"{problem.name}: the level {level!r} returned {type(rec).__name__} "
+                                f"{'without the key h' if isinstance(rec, dict) else 'instead of a record'}; a level "
+                                "returns a dict with at least 'h', the mesh size the rates are taken against")
         except Exception as exc:
             if progress is True:
                 print(" failed", file=sys.stderr, flush=True)
@@ -557,7 +603,7 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
             progress(i, len(levels), level, rec)
     result = RunResult(
         problem.name, p, levels, records, level_name=problem.level_name, components=problem.components,
-        definitions=dict(problem.definitions), command=None if command is None else list(command),
+        definitions=dict(problem.definitions), command=None if command is None else list(command), created_utc=started,
     )
     if failure is not None:
         result.exception = failure.pop("exception")

@@ -764,15 +764,29 @@ def _is_symmetric(S, atol: float = 1e-13):
 _BLAS_CONTROLLER = None
 
 
+def _threadpoolctl():
+    """The threadpoolctl module, imported without its process-wide side effect: its import sets
+    the environment variable KMP_DUPLICATE_LIB_OK=True (which lets Intel's OpenMP runtime load
+    twice); the variable is put back as it was, so that using cutfem changes no environment."""
+    import os
+
+    before = os.environ.get("KMP_DUPLICATE_LIB_OK")
+    import threadpoolctl as module
+
+    if before is None:
+        os.environ.pop("KMP_DUPLICATE_LIB_OK", None)
+    else:
+        os.environ["KMP_DUPLICATE_LIB_OK"] = before
+    return module
+
+
 def _one_blas_thread():
     """Context limiting BLAS/LAPACK to one thread (threadpoolctl).  The banded factorizations are
     small level-3 kernels: OpenBLAS' threads gain little on them and, when the other core of this
     2-core machine is busy, their synchronization made a 2 ms factorization take up to 0.5 s."""
     global _BLAS_CONTROLLER
     if _BLAS_CONTROLLER is None:
-        from threadpoolctl import ThreadpoolController
-
-        _BLAS_CONTROLLER = ThreadpoolController()
+        _BLAS_CONTROLLER = _threadpoolctl().ThreadpoolController()
     return _BLAS_CONTROLLER.limit(limits=1, user_api="blas")
 
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -97,6 +98,9 @@ def levelset_for(surface, R=1.0, r=0.5, radius=1.0, axes="1.0,0.8,0.6") -> Level
             raise ProblemError(f"--surface: {exc}") from exc
     if path.exists():
         return SignedDistance(read_surface(path))
+    if re.fullmatch(r"[\w./\\~-]*\.[A-Za-z][A-Za-z0-9]*", str(surface)):  # a file name, not an expression
+        raise ProblemError(f"--surface: there is no file {str(surface)!r} (looked in {str(Path.cwd())!r}); give the path "
+                           f"of an existing file, a named surface ({', '.join(SURFACES)}) or an expression in x, y, z")
     try:
         return FunctionLevelSet.from_expression(str(surface))
     except ValueError as exc:
@@ -104,6 +108,17 @@ def levelset_for(surface, R=1.0, r=0.5, radius=1.0, axes="1.0,0.8,0.6") -> Level
             f"--surface: {str(surface)!r} is none of {', '.join(SURFACES)}, an existing file, or a valid expression "
             f"({exc}); give a named surface or {USER_SURFACES}"
         ) from None
+
+
+def nitsche_hint(gamma: float, gamma_g: float) -> str:
+    """The advice for an indefinite Nitsche system (:func:`cutfem.solve.solve`'s ``indefinite_hint``):
+    the penalty ``gamma`` is below its stability bound, which holds uniformly in the cut only with
+    the ghost penalty; with ``gamma_g`` = 0 the bound grows without limit on small cut elements."""
+    hint = f"raise the Nitsche penalty (--gamma {gamma:g} is below its stability bound)"
+    if gamma_g == 0:
+        hint += (" or restore the ghost penalty (--gamma-g is 0: without it the bound grows without limit on the "
+                 "small cut elements, default --gamma-g 0.1)")
+    return hint
 
 
 def has_exact(levelset) -> bool:

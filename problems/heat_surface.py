@@ -57,11 +57,11 @@ from cutfem.errors import l2_error
 from cutfem.forms import assemble, load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.levelset import Sphere
 from cutfem.markers import CUT
-from cutfem.registry import Param, ProblemError, register
+from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import CGSolver, DirectSolver, multigrid_hierarchy
 from cutfem.spaces import CutP1Space
 
-from .common import Timer, background_for, cut_record
+from .common import Timer, background_for, cut_record, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -124,7 +124,8 @@ class HeatSolution:
     ],
 )
 def heat_surface_cut(spacing, theta, dt_scale, final_time, tau_n, radius, box, solver):
-    """One level: the L2(S_h) error at the final time."""
+    """One level: the L2(S_h) error at the final time; the fields (for ``--vtk``) are u_h and the
+    exact u at the final time on the surface S_h."""
     if not (dt_scale > 0 and final_time > 0):
         raise ProblemError("--dt-scale and --final-time must be positive")
     sol = HeatSolution(radius)
@@ -179,4 +180,6 @@ def heat_surface_cut(spacing, theta, dt_scale, final_time, tau_n, radius, box, s
         }
     rec.update(cut_record(cut))
     rec["time"] = dict(t)
+    rec["fields"] = LazyFields(lambda: {"surface": with_point_data(
+        cut.to_pyvista(), u_h=V.surface_vertex_values(u), u_exact=sol.u(final_time)(cut.vertices))})
     return rec

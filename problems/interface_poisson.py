@@ -39,7 +39,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import Timer, background_for, cut_record, point_rows, value_and_gradient
+from .common import Timer, background_for, cut_record, nitsche_hint, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -145,7 +145,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
         boundary = W.offsets[1] + outer.boundary_dofs
         K, b = apply_dirichlet(K, b, boundary, sol.u(POS)(outer.dof_points[outer.boundary_dofs]))
     with t("solve"):
-        x, info = solve(K, b, method=solver, space=W, indefinite_hint=f"raise the Nitsche penalty (--gamma {gamma:g} is below its stability bound)")
+        x, info = solve(K, b, method=solver, space=W, indefinite_hint=nitsche_hint(gamma, gamma_g))
         u_neg, u_pos = W.split(x)
     with t("errors"):
         rec = {"h": W.h, "dofs": int(W.n_dofs), "dofs_inside": int(W[0].n_dofs), "dofs_outside": int(W[1].n_dofs)}

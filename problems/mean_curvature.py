@@ -98,7 +98,7 @@ class MeanCurvatureMeshed(Problem):
     components = 3
     definitions = DEFINITIONS
     params = [
-        Param("surface", str, "torus", "torus, sphere, or a closed mesh file (STL, OBJ, PLY, VTK, ...)", choices=("torus", "sphere")),
+        Param("surface", str, "torus", "torus, sphere, or a closed mesh file (STL, OBJ, PLY, VTK, ...)", choices=("torus", "sphere"), files=True),
         Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES),
         Param("tau_e", float, 0.1, "edge stabilization tau_E", minimum=0),
         Param("seed", int, 0, "random seed of the flipped/perturbed families"),

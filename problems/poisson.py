@@ -28,7 +28,7 @@ from cutfem.registry import LazyFields, Param, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space
 
-from .common import SHAPE_PARAMS, Timer, background_for, cut_record, levelset_for, value_and_gradient
+from .common import SHAPE_PARAMS, Timer, background_for, cut_record, levelset_for, nitsche_hint, value_and_gradient
 
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
@@ -104,7 +104,7 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
         K = assemble(a, V)
         b = assemble(load(source, dx, degree=2) + nitsche_load(exact_u, ds, gamma), V)
     with t("solve"):
-        u, info = solve(K, b, method=solver, space=V, indefinite_hint=f"raise the Nitsche penalty (--gamma {gamma:g} is below its stability bound)")
+        u, info = solve(K, b, method=solver, space=V, indefinite_hint=nitsche_hint(gamma, gamma_g))
     with t("errors"):
         rec = {
             "h": V.h,

@@ -84,7 +84,15 @@ def test_bulk_fields_in_vtk_carry_phi_h_and_the_cut_marker(tmp_path):
     (["run", "mean-curvature-cut", "--surface", "sphere", "--radius", "3", "--box", "-1,-1,-1,1,1,1", "--levels", "0.25"], "surface reaches or leaves the box"),
     (["run", "mean-curvature-cut", "--surface", "sphere", "--radius", "0.01", "--box", "-1,-1,-1,1,1,1", "--levels", "0.25"], "too coarse to resolve the surface"),
     (["run", "mean-curvature-cut", "--surface", "sphere", "--radius", "0.01", "--box", "0.3,0.3,0.3,1,1,1", "--levels", "0.1"], "does not cut the background mesh"),
-    (["run", "mean-curvature-meshed", "--surface", "missing.stl"], "neither torus, sphere nor an existing mesh file"),
+    (["run", "mean-curvature-meshed", "--surface", "missing.stl"], "--surface: 'missing.stl' is neither torus, sphere nor an existing file"),
+    (["run", "laplace-beltrami-cut", "--stabilization", "n.a"], "--stabilization: 'n.a' is not one of face, normal, none"),
+    (["run", "laplace-beltrami-meshed", "--surface", "ball.stl"], "--surface: 'ball.stl' is not one of torus, sphere"),
+    (["run", "heat-surface-cut", "--theta", "0.7"], r"--theta: 0.7 is not one of 1.0, 0.5"),
+    (["run", "mean-curvature-cut", "--face-h-power", "nan"], "--face-h-power: nan is not a finite number"),
+    (["run", "heat-surface-cut", "--theta", "inf"], "--theta: inf is not a finite number"),
+    (["run", "mean-curvature-cut", "--surface", "nosuch.stl", "--levels", "0.2"], "there is no file 'nosuch.stl'"),
+    (["run", "mean-curvature-cut", "--levels", "0.2", "--spacing", "0.1"], "--spacing: not allowed with argument --levels"),
+    (["run", "poisson-cut", "--gamma-g", "0", "--levels", "0.2"], r"indefinite.*raise the Nitsche penalty .* or restore the ghost penalty \(--gamma-g is 0"),
     (["run", "mean-curvature-cut", "--levels", "0.1", "--tau-f", "0", "--solver", "direct"], "singular"),
 ])
 def test_bad_input_is_one_line_and_exit_2(argv, pattern, capsys):
@@ -387,6 +395,7 @@ def test_json_record_describes_itself(capsys):
     assert data["command"] == ["cutfem", "run", "mean-curvature-cut", "--spacing", "0.2", "--json", "-"]
     assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", data["created_utc"])
     assert data["git_commit"] is None or re.fullmatch(r"[0-9a-f]{40}", data["git_commit"])
+    assert data["git_modified"] in ((None,) if data["git_commit"] is None else (True, False))
     assert data["threads"]["cpu_count"] >= 1 and isinstance(data["threads"]["pools"], list)
     numba_threads = data["threads"]["numba"]
     assert numba_threads["num_threads"] >= 1 and numba_threads["threading_layer"] in ("omp", "tbb", "workqueue")
@@ -403,7 +412,144 @@ def test_git_commit_is_none_without_git(monkeypatch):
         raise FileNotFoundError("git")
 
     monkeypatch.setattr(subprocess, "run", no_git)
-    assert reg._git_commit() is None
+    assert reg._git_state() == {"git_commit": None, "git_modified": None}
     res = cutfem.run("test-quadratic") if "test-quadratic" in available_problems() else None
     if res is not None:
         assert res.to_json()["git_commit"] is None
+
+
+@pytest.mark.parametrize("value,expected", [(2, 2), (2.0, 2), ("3", 3), (np.int64(4), 4)])
+def test_int_parameter_reads_integral_values(value, expected):
+    v = Param("n", int, 1).convert(value)
+    assert v == expected and type(v) is int
+
+
+@pytest.mark.parametrize("param,value", [
+    (Param("n", int, 1), 2.5),
+    (Param("n", int, 1), True),
+    (Param("n", int, 1), "2.5"),
+    (Param("x", float, 1.0), False),
+    (Param("x", float, 1.0), float("inf")),
+    (Param("x", float, 1.0), "nan"),
+    (Param("theta", float, 1.0, choices=(1.0, 0.5)), 0.0),
+    (Param("kind", str, "a", choices=("a", "b")), "a.b"),
+])
+def test_parameter_refuses_values_it_cannot_take_as_given(param, value):
+    with pytest.raises(ProblemError, match=param.flag):
+        param.convert(value)
+
+
+def test_numeric_choices_compare_by_value_and_files_when_allowed(tmp_path):
+    assert Param("theta", float, 1.0, choices=(1.0, 0.5)).convert("0.5") == 0.5
+    mesh = tmp_path / "m.stl"
+    mesh.write_text("solid\nendsolid\n")
+    surface = Param("surface", str, "torus", choices=("torus", "sphere"), files=True)
+    assert surface.convert(str(mesh)) == str(mesh) and surface.convert("sphere") == "sphere"
+    with pytest.raises(ProblemError, match="neither torus, sphere nor an existing file"):
+        surface.convert(str(tmp_path / "missing.stl"))
+    with pytest.raises(ProblemError, match="is not one of torus, sphere"):
+        Param("surface", str, "torus", choices=("torus", "sphere")).convert(str(mesh))
+
+
+def test_builtin_problem_names_cannot_be_taken():
+    for name in ("mean-curvature-cut", "heat-surface-cut"):  # a class and a function problem
+        with pytest.raises(ValueError, match=f"'{name}' is the name of a built-in problem"):
+            @register(name, levels=[1.0])
+            def mine(level):
+                return {"h": level}
+    assert "stabilized mean curvature" in available_problems()["mean-curvature-cut"].summary
+
+
+def test_a_problem_registered_before_the_builtins_load_stays():
+    code = (
+        "from cutfem import register, available_problems\n"
+        "import cutfem.registry as reg\n"
+        "assert not reg._LOADED\n"
+        "try:\n"
+        "    register('poisson-cut', levels=[1.0])(lambda level: {'h': level})\n"
+        "except ValueError as exc:\n"
+        "    print('refused:', exc)\n"
+        "register('early-problem', levels=[1.0], summary='mine')(lambda level: {'h': level})\n"
+        "problems = available_problems()\n"
+        "print(problems['early-problem'].summary, 'poisson-cut' in problems, problems['poisson-cut'].summary[:14])\n"
+        "register('early-problem', levels=[1.0], summary='again')(lambda level: {'h': level})\n"
+        "print(available_problems()['early-problem'].summary)\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.splitlines() == [
+        "refused: 'poisson-cut' is the name of a built-in problem; register yours under another name",
+        "mine True fictitious-dom",
+        "again",  # a cell run twice replaces the earlier one
+    ]
+
+
+def test_run_records_start_time_and_table_shows_wall_time(monkeypatch):
+    import time as _time
+
+    import cutfem.registry as reg
+
+    stamps = iter(["2026-01-01T00:00:00Z", "2026-01-01T00:00:09Z"])
+    monkeypatch.setattr(reg, "_utc_now", lambda: next(stamps))
+
+    @register("test-sleepy", levels=[0.5], level_name="step")
+    def sleepy(step):
+        _time.sleep(0.05)
+        return {"h": step, "toy_error": step}
+
+    res = cutfem.run("test-sleepy")
+    assert res.created_utc == "2026-01-01T00:00:00Z"  # taken before the levels ran
+    wall = res.records[0]["wall_time"]
+    assert wall >= 0.05 and res.records[0]["time"] == {}
+    assert res.table().splitlines()[2].split()[-1] == f"{wall:.2f}"
+
+
+def test_a_level_without_h_fails_with_the_reason():
+    @register("test-no-h", levels=[0.5])
+    def no_h(level):
+        return {"dofs": 3}
+
+    with pytest.raises(TypeError, match="without the key h"):
+        cutfem.run("test-no-h")
+
+
+def test_vtk_of_a_problem_without_fields_says_nothing_was_written(tmp_path, capsys):
+    @register("test-fieldless", levels=[0.5], level_name="step")
+    def fieldless(step):
+        return {"h": step}
+
+    assert main(["run", "test-fieldless", "--vtk", str(tmp_path / "v"), "--quiet"]) == 0  # in-process: registered
+    err = capsys.readouterr().err
+    assert "nothing written" in err and "wrote VTK" not in err
+    assert not any((tmp_path / "v").iterdir())
+
+
+def test_heat_writes_its_fields(tmp_path):
+    import pyvista as pv
+
+    assert main(["run", "heat-surface-cut", "--levels", "0.4", "--vtk", str(tmp_path), "--quiet"]) == 0
+    surface = pv.read(tmp_path / "heat-surface-cut_spacing0.4_surface.vtp")
+    err = np.abs(surface.point_data["u_h"] - surface.point_data["u_exact"]).max()
+    assert surface.n_points > 100 and 0 < err < 0.1 * np.abs(surface.point_data["u_exact"]).max()
+
+
+def test_run_help_without_a_problem(capsys):
+    assert main(["run", "--help"]) == 0
+    assert "cutfem run PROBLEM" in capsys.readouterr().out
+
+
+def test_using_cutfem_leaves_the_environment_alone():
+    code = (
+        "import os, numpy as np, scipy.sparse as sp\n"
+        "before = dict(os.environ)\n"
+        "import cutfem\n"
+        "from cutfem.solve import solve\n"
+        "A = sp.diags([2.0] * 50) - sp.diags([0.5] * 49, 1) - sp.diags([0.5] * 49, -1)\n"
+        "solve(A.tocsr(), np.ones(50), method='direct')\n"
+        "cutfem.run('mean-curvature-meshed', levels=[8]).to_json()\n"
+        "after = dict(os.environ)\n"
+        "print(sorted(set(before.items()) ^ set(after.items())))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "[]"

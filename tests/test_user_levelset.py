@@ -188,7 +188,7 @@ def test_python_file_surface_through_the_command_line(tmp_path, capsys, tangle_r
     (["--surface", "x^2 + y^2 + z^2 - 1", "--box", "-2,-2,-2,2,2,2"], r"\^, which is not a power in Python: write \*\*"),
     (["--surface", "x**2 + os.system(1)", "--box", "-2,-2,-2,2,2,2"], r"calls 'os.system\(1\)', which is not allowed"),
     (["--surface", "x**2 + w**2 - 1", "--box", "-2,-2,-2,2,2,2"], r"unknown name 'w'"),
-    (["--surface", "missing.stl"], r"'missing.stl' is none of torus, sphere, ellipsoid, an existing file"),
+    (["--surface", "missing.stl"], r"--surface: there is no file 'missing.stl' \(looked in"),
     (["--surface", "missing.py"], r"'missing.py' does not exist"),
 ])
 def test_bad_user_surfaces_are_one_line_and_exit_2(argv, pattern, capsys):
