@@ -316,7 +316,7 @@ def main(argv=None) -> int:
 
     configure()  # a large run: opt into the allocation settings (cutfem.memory)
     p = argparse.ArgumentParser(prog="cutfem reproduce", description="run every study of the paper; figures to OUT/figures, tables to OUT/tables")
-    p.add_argument("--out", default="paper", help="output folder (default: paper, the manuscript's folder)")
+    p.add_argument("--out", default="paper", help="output folder (default: paper in the current folder: the manuscript's folder when run from the repository)")
     g = p.add_mutually_exclusive_group()
     g.add_argument("--tiny", dest="size", action="store_const", const="tiny", help="seconds; for tests")
     g.add_argument("--quick", dest="size", action="store_const", const="quick", help="the default: a few minutes")
