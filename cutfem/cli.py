@@ -128,7 +128,8 @@ def _cmd_run(argv) -> int:
     if unknown:
         raise ProblemError(f"unknown argument(s) {' '.join(unknown)} for {problem.name}; allowed: {allowed}")
     params = {q.name: getattr(known, q.name) for q in problem.params if getattr(known, q.name) is not None}
-    levels = check_levels(problem, known.levels, _level_flag(argv, problem))
+    # None when not given: run() then asks the problem for its defaults under these parameters
+    levels = None if known.levels is None else check_levels(problem, known.levels, _level_flag(argv, problem))
     to_stdout = known.json == "-"
     if known.json and not to_stdout:
         _check_output("--json", known.json, JSON_SUFFIXES)

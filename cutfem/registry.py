@@ -221,6 +221,12 @@ class Problem:
     def solve_level(self, level, **params) -> dict:  # pragma: no cover - abstract
         raise NotImplementedError
 
+    def levels_for(self, levels, params: dict):
+        """The levels to run for the resolved ``params``: ``levels`` as given, or the defaults when
+        None; a problem whose parameters make some levels meaningless adapts the defaults or
+        refuses (ProblemError) before the first level runs."""
+        return self.default_levels if levels is None else levels
+
     # parameters
     def param_map(self) -> dict:
         return {p.name: p for p in self.params}
@@ -564,7 +570,7 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
     """
     problem = get_problem(name)
     p = problem.resolve(params)
-    levels = check_levels(problem, levels)
+    levels = check_levels(problem, problem.levels_for(levels, p))
     records, failure = [], None
     started = _utc_now()
     for i, level in enumerate(levels):

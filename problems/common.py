@@ -44,8 +44,13 @@ def value_and_gradient(kernel, x, *params, gradient=True):
 
 
 def parse_numbers(text, count, flag):
+    """``count`` floats from "a,b,c" or from a sequence (nested ones flattened: a box as two
+    corners ((x0, y0, z0), (x1, y1, z1))); ProblemError naming ``flag`` otherwise."""
     if isinstance(text, (list, tuple, np.ndarray)):
-        values = [float(v) for v in text]
+        try:
+            values = [float(v) for v in np.asarray(text, dtype=float).ravel()]
+        except (TypeError, ValueError):
+            raise ProblemError(f"{flag}: expected {count} numbers, got {text!r}") from None
     else:
         try:
             values = [float(v) for v in str(text).replace(" ", "").split(",") if v]

@@ -19,7 +19,7 @@ import numpy as np
 from cutfem.cut import cut_mesh
 from cutfem.errors import discrete_error, l2_error
 from cutfem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, mass, position_load
-from cutfem.registry import LazyFields, Param, Problem, register
+from cutfem.registry import LazyFields, Param, Problem, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
@@ -105,6 +105,17 @@ class MeanCurvatureMeshed(Problem):
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
         *SHAPE_PARAMS,
     ]
+
+    def levels_for(self, levels, params):
+        """A mesh file has one resolution that the levels n do not change: one level (default 1)."""
+        if not (isinstance(params["surface"], str) and params["surface"] not in ("torus", "sphere")):
+            return super().levels_for(levels, params)
+        if levels is None:
+            return [1]
+        if len(list(levels)) > 1:
+            raise ProblemError(f"--surface {params['surface']}: a mesh file is solved as it is, at one resolution that the "
+                               f"levels n do not change; give one level (--levels 1) instead of {len(list(levels))}")
+        return levels
 
     def solve_level(self, level, surface, family, tau_e, seed, solver, R, r, radius, axes):
         t = Timer()

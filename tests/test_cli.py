@@ -121,9 +121,13 @@ def test_closed_surface_file_runs(tmp_path, capsys):
     path = tmp_path / "ball.obj"
     write_surface(sphere_mesh(3, radius=1.5), path)
     assert main(["run", "mean-curvature-meshed", "--surface", str(path), "--json", "-"]) == 0
-    rec = json.loads(capsys.readouterr().out)["records"][0]
+    data = json.loads(capsys.readouterr().out)
+    assert data["levels"] == [1]  # one resolution: one level, not the torus's four
+    rec = data["records"][0]
     assert abs(rec["area"] - 4 * np.pi * 1.5**2) < 0.2
     assert np.max(np.abs(rec["integral_H"])) < 1e-9
+    assert main(["run", "mean-curvature-meshed", "--surface", str(path), "--levels", "16", "32", "--quiet"]) == 2
+    assert "a mesh file is solved as it is" in capsys.readouterr().err
 
 
 def test_console_script_is_installed():
