@@ -94,7 +94,11 @@ def levelset_for(surface, R=1.0, r=0.5, radius=1.0, axes="1.0,0.8,0.6") -> Level
     if surface == "sphere":
         return Sphere(radius=radius)
     if surface == "ellipsoid":
-        return Ellipsoid(*parse_numbers(axes, 3, "--axes"))
+        semi_axes = parse_numbers(axes, 3, "--axes")
+        try:
+            return Ellipsoid(*semi_axes)
+        except ValueError as exc:
+            raise ProblemError(f"--axes {axes}: {exc}") from None
     path = Path(surface)
     if path.suffix == ".py":
         try:

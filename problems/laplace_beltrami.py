@@ -175,7 +175,7 @@ class LaplaceBeltramiMeshed(Problem):
         Param("surface", str, "sphere", "sphere or torus", choices=("torus", "sphere")),
         Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
-        Param("seed", int, 0, "random seed of the flipped/perturbed families"),
+        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
         *SHAPE_PARAMS,
     ]

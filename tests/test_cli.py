@@ -91,6 +91,8 @@ def test_bulk_fields_in_vtk_carry_phi_h_and_the_cut_marker(tmp_path):
     (["run", "mean-curvature-cut", "--face-h-power", "nan"], "--face-h-power: nan is not a finite number"),
     (["run", "heat-surface-cut", "--theta", "inf"], "--theta: inf is not a finite number"),
     (["run", "mean-curvature-cut", "--surface", "nosuch.stl", "--levels", "0.2"], "there is no file 'nosuch.stl'"),
+    (["run", "mean-curvature-cut", "--surface", "ellipsoid", "--axes", "1,0,0.5", "--levels", "0.2"], "--axes 1,0,0.5: b must be"),
+    (["run", "mean-curvature-meshed", "--seed", "-1", "--levels", "8"], "--seed: -1 must be a finite number >= 0"),
     (["run", "mean-curvature-cut", "--levels", "0.2", "--spacing", "0.1"], "--spacing: not allowed with argument --levels"),
     (["run", "poisson-cut", "--gamma-g", "0", "--levels", "0.2"], r"indefinite.*raise the Nitsche penalty .* or restore the ghost penalty \(--gamma-g is 0"),
     (["run", "mean-curvature-cut", "--levels", "0.1", "--tau-f", "0", "--solver", "direct"], "singular"),
