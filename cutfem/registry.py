@@ -142,7 +142,10 @@ class Param:
     ``minimum`` when given, and one of ``choices`` when given (numbers compared by value: 0.5 is
     one of (1.0, 0.5)).  ``files``: the parameter also takes the path of an existing file besides
     its ``choices`` (a surface mesh).  Objects that are neither strings nor numbers (a level set, a
-    mesh) pass through from Python unchecked: the problem checks them."""
+    mesh) pass through from Python unchecked: the problem checks them.  ``only`` = (name, values):
+    the parameter shapes the result only when the parameter ``name`` is one of ``values`` (the
+    torus's radii with ``surface="torus"``); given with another, it is refused
+    (:meth:`Problem.resolve`) rather than silently ignored."""
 
     name: str
     type: type = float
@@ -152,6 +155,7 @@ class Param:
     minimum: float | None = None
     nargs: str | None = None
     files: bool = False
+    only: tuple | None = None
 
     @property
     def flag(self) -> str:
@@ -243,6 +247,12 @@ class Problem:
         out = {p.name: p.default for p in self.params}
         for k, v in given.items():
             out[k] = allowed[k].convert(v)
+        for k in given:
+            only = allowed[k].only
+            if only is not None and not (isinstance(out[only[0]], str) and out[only[0]] in only[1]):
+                other = allowed[only[0]].flag
+                raise ProblemError(f"{allowed[k].flag} applies only with {other} {' or '.join(only[1])}, not with {other} "
+                                   f"{out[only[0]]!r}: leave {allowed[k].flag} out, or choose {other} {only[1][0]}")
         return out
 
     def describe(self) -> str:

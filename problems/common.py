@@ -17,10 +17,10 @@ SURFACES = ("torus", "sphere", "ellipsoid")
 
 #: the shape parameters shared by every problem
 SHAPE_PARAMS = [
-    Param("R", float, 1.0, "torus: radius of the big circle", minimum=0),
-    Param("r", float, 0.5, "torus: radius of the tube", minimum=0),
-    Param("radius", float, 1.0, "sphere radius", minimum=0),
-    Param("axes", str, "1.0,0.8,0.6", "ellipsoid semi-axes a,b,c"),
+    Param("R", float, 1.0, "torus: radius of the big circle", minimum=0, only=("surface", ("torus",))),
+    Param("r", float, 0.5, "torus: radius of the tube", minimum=0, only=("surface", ("torus",))),
+    Param("radius", float, 1.0, "sphere radius", minimum=0, only=("surface", ("sphere",))),
+    Param("axes", str, "1.0,0.8,0.6", "ellipsoid semi-axes a,b,c", only=("surface", ("ellipsoid",))),
 ]
 
 

@@ -173,14 +173,14 @@ class LaplaceBeltramiMeshed(Problem):
     default_levels = [16, 32, 64, 128]
     params = [
         Param("surface", str, "sphere", "sphere or torus", choices=("torus", "sphere")),
-        Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES),
+        Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
-        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0),
+        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0, only=("surface", ("torus",))),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
-        *SHAPE_PARAMS,
+        *SHAPE_PARAMS[:3],  # torus and sphere: no ellipsoid, no axes
     ]
 
-    def solve_level(self, level, surface, family, tau_e, seed, solver, R, r, radius, axes):
+    def solve_level(self, level, surface, family, tau_e, seed, solver, R, r, radius):
         t = Timer()
         with t("geometry"):
             mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
@@ -217,13 +217,13 @@ class LaplaceBeltramiCut(Problem):
         Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N", minimum=0),
         Param("normal_h_power", float, 1.0, "power a of h in the normal-gradient term"),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
-        *SHAPE_PARAMS,
+        *SHAPE_PARAMS[:3],  # torus and sphere: no ellipsoid, no axes
     ]
 
-    def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, solver, R, r, radius, axes):
+    def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, solver, R, r, radius):
         t = Timer()
         with t("geometry"):
-            phi = levelset_for(surface, R, r, radius, axes)
+            phi = levelset_for(surface, R, r, radius)
             sol = manufactured(phi)
             cut = cut_mesh(background_for(phi, level, background, box), phi)
             check_resolution(cut, phi, level)

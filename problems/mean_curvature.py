@@ -99,9 +99,9 @@ class MeanCurvatureMeshed(Problem):
     definitions = DEFINITIONS
     params = [
         Param("surface", str, "torus", "torus, sphere, or a closed mesh file (STL, OBJ, PLY, VTK, ...)", choices=("torus", "sphere"), files=True),
-        Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES),
+        Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
         Param("tau_e", float, 0.1, "edge stabilization tau_E", minimum=0),
-        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0),
+        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0, only=("surface", ("torus",))),
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
         *SHAPE_PARAMS,
     ]
