@@ -132,6 +132,7 @@ thread: 0.96 s).  ``NUMBA_NUM_THREADS=1`` keeps every kernel on the calling thre
 
 from __future__ import annotations
 
+import math
 import os
 import platform
 
@@ -142,6 +143,8 @@ __all__ = [
     "InsufficientMemoryError",
     "available_memory",
     "check_memory",
+    "spacing_that_fits",
+    "coarser_spacing_fix",
     "format_bytes",
     "CUT_BASE_BYTES",
     "BYTES_PER_BAND_CELL",
@@ -149,6 +152,11 @@ __all__ = [
     "BYTES_PER_BOX_NODE",
     "BYTES_PER_ACTIVE_TET",
     "BYTES_PER_SURFACE_NODE",
+    "BYTES_PER_BOUNDARY_NODE",
+    "BYTES_PER_EVALUATED_NODE",
+    "BAND_MARGIN",
+    "TETS_PER_BAND_CELL",
+    "ACTIVE_TETS_MARGIN",
 ]
 
 #: the fixed part of the cut's memory (measured about 100 MB, see the module docstring)
@@ -157,6 +165,19 @@ CUT_BASE_BYTES = 150 * 2**20
 BYTES_PER_BAND_CELL = 1_000
 #: bytes per node of a structured box for the band's node bitmap and its word counts (n / 4 bytes)
 BYTES_PER_BOX_NODE = 0.25
+#: bytes per boundary node of a structured box when its boundary is checked node by node (index
+#: triples, ids and their sort; counted from those arrays)
+BYTES_PER_BOUNDARY_NODE = 80
+#: bytes per node of a structured box whose every node is evaluated (a level set without a Lipschitz
+#: bound: coordinates, values, corner ids and the (6, 4) values of each cell's tets; counted)
+BYTES_PER_EVALUATED_NODE = 400
+#: the band cells predicted from the surveyed area, times this (the survey within 3 % of the final band)
+BAND_MARGIN = 1.2
+#: active tets per band cell, to predict before the cut what the later stages need (measured 3.70-4.24)
+TETS_PER_BAND_CELL = 4.0
+#: the active tets of a cut scaled to another spacing as spacing**-2, times this (tets times
+#: spacing**2 measured within 4 % from spacing 0.04 to 0.01)
+ACTIVE_TETS_MARGIN = 1.1
 #: the fixed part of what the stages after the cut add (measured about 16 MB, see the module docstring)
 SOLVE_BASE_BYTES = 64 * 2**20
 #: bytes the stages after the cut add per active tet, by default (measured up to 969 B, see the module docstring)
@@ -229,6 +250,38 @@ def check_memory(estimate: float, what: str, fix: str) -> None:
             f"{what} needs about {format_bytes(estimate)} of memory, more than the {format_bytes(available)} available "
             f"({source}); {fix}"
         )
+
+
+def spacing_that_fits(estimate, spacing: float, available: float) -> float | None:
+    """The finest spacing ``t * spacing`` (t >= 1) at which ``estimate(t)`` bytes fit in
+    ``available``, rounded up to two significant digits; None when no t up to a million fits (a
+    fixed part alone is too large).
+
+    ``estimate`` is a model of the run at ``t`` times the spacing, non-increasing in t: fixed parts
+    and parts that shrink like t**-2 (a surface's band, its active tets) or t**-3 (the box's nodes),
+    each with its own scaling.  The smallest t is found by doubling and then 60 bisection steps on
+    log t (O(1) work); rounding up keeps the named spacing on the side that fits."""
+    lo, hi = 1.0, 1.0
+    while estimate(hi) > available:
+        lo, hi = hi, 2.0 * hi
+        if hi > 1e6:
+            return None
+    for _ in range(60 if hi > 1.0 else 0):
+        mid = math.sqrt(lo * hi)
+        lo, hi = (lo, mid) if estimate(mid) <= available else (mid, hi)
+    x = hi * spacing
+    unit = 10.0 ** (math.floor(math.log10(x)) - 1)
+    return float(f"{math.ceil(x / unit) * unit:.2g}")
+
+
+def coarser_spacing_fix(estimate, spacing: float, available: float, other: str = "") -> str:
+    """The fix of a refusal: the spacing of :func:`spacing_that_fits` ("use a coarser spacing (about
+    0.0048 or more)" + ``other``), or, when none fits, what the fixed part alone needs."""
+    coarser = spacing_that_fits(estimate, spacing, available)
+    if coarser is None:
+        return f"no spacing fits: the fixed part alone needs about {format_bytes(estimate(1e6))}; free memory"
+    return f"use a coarser spacing (about {coarser:g} or more){other}"
+
 
 #: glibc mmap and trim thresholds set by :func:`configure` (bytes)
 MMAP_THRESHOLD = 2047 * 2**20

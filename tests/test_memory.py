@@ -185,6 +185,21 @@ def test_check_memory_states_estimate_available_and_fix(monkeypatch):
     assert issubclass(InsufficientMemoryError, MemoryError)
 
 
+def test_spacing_that_fits_solves_the_model(monkeypatch):
+    """The advice solves a model of fixed parts and parts that shrink like t**-2 and t**-3 for the
+    finest spacing that fits, rounded up to two digits: that spacing fits, one 1.1 times finer does
+    not; no spacing when the fixed part alone is too large."""
+    from cutfem.memory import coarser_spacing_fix, spacing_that_fits
+
+    model = lambda t: 100.0 + 4000.0 / t**2 + 8000.0 / t**3  # noqa: E731
+    s = spacing_that_fits(model, 0.01, 300.0)
+    assert s == 0.053 and model(s / 0.01) <= 300.0 < model(s / 0.01 / 1.1)
+    assert spacing_that_fits(model, 0.01, 1e9) == 0.01  # fits as it is
+    assert spacing_that_fits(model, 0.01, 99.0) is None
+    assert coarser_spacing_fix(model, 0.01, 300.0, " or a smaller box") == "use a coarser spacing (about 0.053 or more) or a smaller box"
+    assert coarser_spacing_fix(model, 0.01, 99.0) == "no spacing fits: the fixed part alone needs about 100 B; free memory"
+
+
 @pytest.mark.slow
 def test_cut_torus_beyond_two_million_active_nodes():
     """The cut torus at spacing 0.0042 (about 2.6 million active nodes: past 2**21, where the old
