@@ -88,7 +88,7 @@ from .mesh import (
     unique_keys,
 )
 
-__all__ = ["CutMesh", "cut_mesh", "nodal_values", "snapped_nodal_values", "CutError", "NEG", "POS", "CUT"]
+__all__ = ["CutMesh", "cut_mesh", "cut_memory_estimate", "nodal_values", "snapped_nodal_values", "CutError", "NEG", "POS", "CUT"]
 
 
 class CutError(ValueError):
@@ -249,35 +249,139 @@ def _spacing_text(box: StructuredBox) -> str:
     return f"{s[0]:g}" if np.all(s == s[0]) else "(" + ", ".join(f"{v:g}" for v in s) + ")"
 
 
-def _refuse_if_too_big(box: StructuredBox, estimate: float, what: str, scaling: float) -> None:
-    """:func:`cutfem.memory.check_memory` for the cut of ``box``; the fix names a spacing that fits,
-    from the estimate growing like spacing**(-scaling)."""
-    from .memory import available_memory, check_memory
+# ---------------------------------------------------------------------------------------------
+# memory: the model of the cut (and of the stages after it), checked before any large allocation
+# ---------------------------------------------------------------------------------------------
+
+#: cubes that the surface survey keeps at its finest level, at least (see :func:`_surface_survey`)
+SURVEY_BLOCKS = 1 << 14
+#: cubes at which the surface survey stops in any case (at most about 2 million evaluations)
+SURVEY_MAX_BLOCKS = 1 << 18
+
+
+def _surface_survey(box: StructuredBox, f, lipschitz: float) -> tuple[float, float]:
+    """``(area, edge)``: the area of S as the band search sees it, ``A = L * integral over S of
+    1 / |grad phi|`` (the area itself for a signed distance), and the edge of the survey's finest cubes.
+
+    The band search keeps the cells whose centre value is at most L r (r the half-diagonal): a layer
+    about 2 r L / |grad phi| thick, so ``|h| A / (hx hy hz)`` cells at spacing h = (hx, hy, hz)
+    (:func:`_cut_bytes`).  The survey prunes cubes by the same rule, coarse to fine, and measures
+    A = kept b**3 / (2 r_b) = kept b**2 / sqrt(3) on its finest cubes (edge b).  The cubes are those
+    of edge 2**k on the lattice anchored at the origin, not at the box's corner: a box has the same
+    cubes at every spacing, so its A, and with it the estimate at any spacing, does not depend on
+    the spacing the box was made with (the advice at one spacing is the estimate at another).  A
+    cube centre outside the box is clipped into it and r grows by the distance clipped (the level
+    set is evaluated in the box only).  The survey stops at the first level that keeps
+    :data:`SURVEY_BLOCKS` cubes with an A within 10 % of the level above (the surface resolved), at
+    :data:`SURVEY_MAX_BLOCKS`, or at cubes a millionth of the box.  Measured against the band
+    search's final cells times hx hy hz / |h| (tori R = 1, r = 0.5 and r = 0.1, unit sphere at
+    spacings 0.04-0.005, spheres of radius 0.05 and 0.1 at 0.004-0.001): 0.96-1.03 times it, and
+    0.92 for the thin torus at 0.04 (five cells across its tube); the same A at every spacing;
+    about 60-150 thousand evaluations, 10-50 ms.  Non-finite values keep their cube (the band
+    search names them)."""
+    lo, hi = box.lower.astype(float), box.upper.astype(float)
+    extent = float(np.max(hi - lo))
+    edge = 2.0 ** np.ceil(np.log2(extent / 8))
+    first, stop = np.floor(lo / edge).astype(np.int64), np.ceil(hi / edge).astype(np.int64)
+    blocks = np.stack(np.meshgrid(*[np.arange(a, b) for a, b in zip(first, stop)], indexing="ij"), axis=-1).reshape(-1, 3)
+    tol = _zero_tolerance(box, lipschitz)
+    area = np.inf
+    while True:
+        centre = (blocks + 0.5) * edge
+        point = np.clip(centre, lo, hi)
+        r = 0.5 * np.sqrt(3.0) * edge + np.linalg.norm(centre - point, axis=1)
+        phi = np.asarray(f(point), dtype=float).reshape(-1)
+        keep = ~(np.abs(phi) > _lipschitz_slack(r, lipschitz, tol))
+        kept = int(np.count_nonzero(keep))
+        previous, area = area, kept * edge**2 / np.sqrt(3.0)
+        if kept == 0 or kept >= SURVEY_MAX_BLOCKS or edge < 1e-6 * extent or (kept >= SURVEY_BLOCKS and area <= 1.1 * previous):
+            return float(area), float(edge)
+        edge /= 2
+        children = (2 * blocks[keep][:, None, :] + CUBE_CORNERS).reshape(-1, 3)
+        blocks = children[np.all((children * edge < hi) & ((children + 1) * edge > lo), axis=1)]
+
+
+def _cut_bytes(cells, spacing, area, per_tet=None) -> tuple[float, float, float, float]:
+    """``(cut, after, band cells, active tets)``: the estimated bytes of the cut of a structured box
+    of ``cells`` (3,) at ``spacing`` (3,), of what the stages after it add (0 without ``per_tet``),
+    and the band cells and active tets predicted.  ``area``: the surface's area as the band search
+    sees it (:func:`_surface_survey`; ``inf`` puts every cell of the box in the band; None: no
+    Lipschitz bound, every node is evaluated).
+
+    A fixed part plus parts with their own scaling in the spacing (see :mod:`cutfem.memory`):
+
+    * :data:`~cutfem.memory.CUT_BASE_BYTES`, fixed;
+    * :data:`~cutfem.memory.BYTES_PER_BOX_NODE` per node of the box (the band's node bitmap), or
+      :data:`~cutfem.memory.BYTES_PER_EVALUATED_NODE` without a bound: spacing**-3;
+    * :data:`~cutfem.memory.BYTES_PER_BOUNDARY_NODE` per boundary node (checked one by one without
+      a bound, or when the band reaches a face of the box): spacing**-2;
+    * :data:`~cutfem.memory.BYTES_PER_BAND_CELL` per band cell, ``BAND_MARGIN |h| area / (hx hy hz)``
+      of them (at most every cell): spacing**-2;
+    * after the cut, :data:`~cutfem.memory.SOLVE_BASE_BYTES` plus ``per_tet`` per active tet,
+      :data:`~cutfem.memory.TETS_PER_BAND_CELL` per band cell (none predicted without a bound:
+      :func:`cutfem.problems.common.check_cut_memory` counts them after the cut).
+
+    Every part is non-increasing in the spacing, and so is the estimate."""
+    from . import memory as M
+
+    cells, spacing = np.asarray(cells, dtype=float), np.asarray(spacing, dtype=float)
+    n = cells + 1.0
+    nodes, boundary = float(np.prod(n)), 2.0 * float(n[0] * n[1] + n[1] * n[2] + n[0] * n[2])
+    if area is None:
+        return M.CUT_BASE_BYTES + M.BYTES_PER_EVALUATED_NODE * nodes + M.BYTES_PER_BOUNDARY_NODE * boundary, 0.0, float(np.prod(cells)), 0.0
+    band = min(float(np.prod(cells)), M.BAND_MARGIN * float(np.linalg.norm(spacing)) * area / float(np.prod(spacing)))
+    tets = M.TETS_PER_BAND_CELL * band
+    cut = M.CUT_BASE_BYTES + M.BYTES_PER_BOX_NODE * nodes + M.BYTES_PER_BOUNDARY_NODE * boundary + M.BYTES_PER_BAND_CELL * band
+    return cut, (0.0 if per_tet is None else M.SOLVE_BASE_BYTES + per_tet * tets), band, tets
+
+
+def _check_cut_memory(box: StructuredBox, f, lipschitz, per_tet=None, survey=None):
+    """Refuse, before anything large is allocated, the cut of ``box`` (and, with ``per_tet``, the
+    run after it) when :func:`_cut_bytes` exceeds :func:`cutfem.memory.available_memory`.  Returns
+    the survey ``(area, edge)`` that the band search's levels check against (:func:`_band_cells`),
+    or None when no survey was needed.
+
+    With a Lipschitz bound the box is first estimated with every cell in the band: when that fits,
+    nothing more is done; otherwise the surface is surveyed (:func:`_surface_survey`, or ``survey``
+    when given).  The two estimates (the cut; after it, ``SOLVE_BASE_BYTES + per_tet`` per predicted
+    active tet, against the same memory as :func:`cutfem.problems.common.check_cut_memory`) are
+    checked in turn; a refusal names the spacing at which both fit (:func:`cutfem.memory.
+    spacing_that_fits` on the model at t times the spacing, the box two cells longer per axis for
+    its rounding to the new spacing), so that the same command at that spacing is not refused,
+    here or after the cut, and a spacing 1.3 times finer is."""
+    from .memory import available_memory, check_memory, coarser_spacing_fix
 
     available = available_memory()[0]
-    coarser = float(np.max(box.spacing)) * 1.1 * (estimate / max(available, 1)) ** (1.0 / scaling)
-    check_memory(
-        estimate,
-        f"the cut of the {' x '.join(map(str, box.cells.tolist()))}-cell box at spacing {_spacing_text(box)} ({what})",
-        f"use a coarser spacing (about {float(f'{coarser:.2g}'):g} or more) or a smaller box",
-    )
+    cells, h = box.cells.astype(float), box.spacing.astype(float)
+    if lipschitz is not None and survey is None:
+        if max(_cut_bytes(cells, h, np.inf, per_tet)[:2]) <= available:
+            return None
+        survey = _surface_survey(box, f, float(lipschitz))
+    area = None if lipschitz is None else survey[0]
+    cut, after, band, tets = _cut_bytes(cells, h, area, per_tet)
+    if cut <= available and after <= available:
+        return survey
+    fix = coarser_spacing_fix(lambda t: max(_cut_bytes(cells / t + 2.0, h * t, area, per_tet)[:2]), float(np.max(h)), available,
+                              " or a smaller box")
+    box_text = f"the {' x '.join(map(str, box.cells.tolist()))}-cell box at spacing {_spacing_text(box)}"
+    nodes = float(np.prod(box.node_shape.astype(float)))
+    if cut > available:
+        detail = ("every node evaluated: the level set declares no Lipschitz bound" if area is None
+                  else f"{nodes:.3g} nodes, about {band:.3g} cells near the surface")
+        check_memory(cut, f"the cut of {box_text} ({detail})", fix)
+    check_memory(after, f"the matrices and the solve of about {tets:.3g} active tets (predicted for the cut of {box_text})", fix)
 
 
-def _check_box_memory(box: StructuredBox, lipschitz) -> None:
-    """Refuse, before anything is allocated, a box whose node arrays cannot fit: the bitmap of the
-    band's nodes (:data:`~cutfem.memory.BYTES_PER_BOX_NODE` per node) and the boundary nodes (80 bytes
-    each: index triples, ids and their sort); without a Lipschitz bound every node and cell is
-    visited (coordinates, values, corner ids and the (6, 4) values of each cell's tets: 400 bytes
-    per cell, counted from those arrays)."""
-    from .memory import BYTES_PER_BOX_NODE
-
-    nx, ny, nz = (box.node_shape.astype(float)).tolist()
-    boundary = 2.0 * (nx * ny + ny * nz + nx * nz)
-    nodes = nx * ny * nz
-    if lipschitz is None:
-        _refuse_if_too_big(box, 400.0 * nodes + 80.0 * boundary, "every node evaluated: the level set declares no Lipschitz bound", 3.0)
-    else:
-        _refuse_if_too_big(box, BYTES_PER_BOX_NODE * nodes + 80.0 * boundary, f"{nodes:.3g} nodes", 3.0)
+def cut_memory_estimate(background: StructuredBox, levelset, solve_bytes_per_tet: float | None = None) -> tuple[float, float]:
+    """``(cut, after)``: the bytes that :func:`cut_mesh` estimates for the cut of the structured box
+    ``background`` by ``levelset``, and those that the stages after it add with
+    ``solve_bytes_per_tet`` bytes per active tet (0 without).  What :func:`cut_mesh` refuses when it
+    exceeds the memory available (it skips the survey when the box fits with every cell in the
+    band).  Surveys the surface when the level set declares a Lipschitz bound
+    (:func:`_surface_survey`: tens of thousands of evaluations); see :func:`_cut_bytes`."""
+    lipschitz = getattr(levelset, "lipschitz", None)
+    area = None if lipschitz is None else _surface_survey(background, _as_values_function(levelset), float(lipschitz))[0]
+    return _cut_bytes(background.cells, background.spacing, area, solve_bytes_per_tet)[:2]
 
 
 def _lipschitz_slack(dist, lipschitz: float, tol: float):
@@ -300,7 +404,7 @@ def _lipschitz_broken(pairs: int, ratio: float, lipschitz: float):
     )
 
 
-def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
+def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0, survey=None):
     """Cells that may contain a zero of phi, by coarse-to-fine block pruning.
 
     Returns ``(cell ids (k,), phi at their centres (k,))``.  A block of ``size`` cells (centre c,
@@ -310,15 +414,19 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
     raises CutError (see :func:`_lipschitz_broken`) instead of silently dropping cells.  This costs
     one comparison per evaluated centre; it samples the bound, it does not prove it.
 
-    At every level, before the children of the kept blocks are made, the memory of the cut is
-    estimated from the band cells to come: a surface's band at block size s has about
-    ``final / s**2`` blocks (measured ratio final / (kept s**2) of 0.9-1.3 on the torus and the
-    sphere), so ``1.3 * kept * s**2`` cells at :data:`~cutfem.memory.BYTES_PER_BAND_CELL` bytes,
-    plus :data:`~cutfem.memory.CUT_BASE_BYTES` and the box's node bitmap; a cut that cannot fit is
-    refused (:func:`cutfem.memory.check_memory`)."""
-    from .memory import BYTES_PER_BAND_CELL, BYTES_PER_BOX_NODE, CUT_BASE_BYTES
+    The memory was estimated before the search from a survey of the surface
+    (:func:`_check_cut_memory`).  ``survey`` = ``(area, edge, per_tet)``, the survey's area and
+    cube edge and the later stages' bytes per active tet, or None (no survey was needed: the box
+    fits with every cell in the band).  With it, each level whose blocks are no larger than the
+    survey's cubes, before the children of its kept blocks are made, measures the area the same way
+    (``kept s**2 hx hy hz / |h|``; 0.99-1.02 times the survey's on the torus, the thin torus and
+    the spheres at spacings 0.02-0.001): when it exceeds the survey's by more than the margin
+    :data:`~cutfem.memory.BAND_MARGIN` (detail finer than the survey's cubes), the estimate is made
+    again with it and a cut that cannot fit is refused.  Coarser levels are not checked: blocks
+    much larger than the surface predict up to 2.5 times the final band (a sphere of radius 0.05
+    in its box)."""
+    from .memory import BAND_MARGIN
 
-    box_bytes = CUT_BASE_BYTES + BYTES_PER_BOX_NODE * float(np.prod(box.node_shape.astype(float)))
     cells = box.cells
     size = 1
     while size * 4 <= cells.min():
@@ -340,8 +448,11 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0):
             _check_finite(phi, "block centres of the band search")
         if broken:
             _lipschitz_broken(broken, ratio, lipschitz)
-        predicted = 1.3 * kept * float(size) ** 2
-        _refuse_if_too_big(box, box_bytes + BYTES_PER_BAND_CELL * predicted, f"about {predicted:.3g} cells near the surface", 2.0)
+        if survey is not None and size * float(np.max(box.spacing)) <= survey[1]:
+            area = kept * float(size) ** 2 * float(np.prod(box.spacing)) / float(np.linalg.norm(box.spacing))
+            if area > BAND_MARGIN * survey[0]:
+                survey = (area, survey[1], survey[2])
+                _check_cut_memory(box, f, lipschitz, survey[2], survey[:2])
         if size == 1:
             break
         size //= 2
@@ -363,9 +474,10 @@ _KUHN_MIXED = (KUHN_CORNER_COUNTS > 0) & (KUHN_CORNER_COUNTS < 4)
 cube corners with phi < 0 (bit c for corner c)."""
 
 
-def _candidates_structured(box: StructuredBox, f, lipschitz):
+def _candidates_structured(box: StructuredBox, f, lipschitz, survey=None):
     """Candidates of a structured box.  With a Lipschitz bound only the corners of the band cells
-    are evaluated, each distinct node once (labels = their rank among those nodes); the corner
+    (:func:`_band_cells`, which checks the memory at its levels against ``survey``) are evaluated,
+    each distinct node once (labels = their rank among those nodes); the corner
     values are checked against the bound (each corner lies r = |spacing| / 2 from its cell's centre,
     see :func:`_band_cells`) in the compiled pass that picks the cut tets
     (:func:`cutfem.kernels.mixed_kuhn_tets`)."""
@@ -383,7 +495,7 @@ def _candidates_structured(box: StructuredBox, f, lipschitz):
                                                             _KUHN_MIXED, KUHN_TETS)
     else:
         tol = _zero_tolerance(box, lipschitz)
-        cell_ids, centre_phi = _band_cells(box, f, float(lipschitz), tol)
+        cell_ids, centre_phi = _band_cells(box, f, float(lipschitz), tol, survey)
         label_ids, corner = dense_unique(box.cell_corner_ids(cell_ids), box.n_points)
         values = np.asarray(f(box.node_coordinates(label_ids)), dtype=float)
         _check_finite(values, "background nodes near the surface")
@@ -748,7 +860,7 @@ def _marching(tet_ids, labels, vals):
     return tet_ids[:n], labels[:n], vals[:n], code
 
 
-def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> CutMesh:
+def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solve_bytes_per_tet: float | None = None) -> CutMesh:
     """Cut a background tetrahedral mesh by the zero level set of the P1 interpolant of ``levelset``.
 
     ``levelset``: a LevelSet (``value``, optional ``lipschitz``), a callable ``f(x)`` with x (..., 3),
@@ -757,8 +869,17 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
     boundary (unless ``check_boundary=False``), the declared Lipschitz bound is seen to be broken
     (:func:`_band_cells`) or S_h is not closed and edge-manifold (:func:`_check_closed`: every
     edge of its triangles in exactly two triangles; with ``check_boundary=False`` S_h may end on
-    the faces of the box); ValueError for NaN/inf values.  See the module docstring for the zero rule.  :class:`cutfem.memory.InsufficientMemoryError` is raised before any large allocation when the cut of a structured box would
-    not fit in memory.
+    the faces of the box); ValueError for NaN/inf values.  See the module docstring for the zero rule.
+
+    :class:`cutfem.memory.InsufficientMemoryError` is raised before any large allocation when the
+    cut of a structured box would not fit in memory (:func:`cut_memory_estimate`), naming a spacing
+    that fits.  ``solve_bytes_per_tet``: what the stages after the cut (space, matrices, solve) add
+    per active tet, as :func:`cutfem.problems.common.check_cut_memory` counts it.  When given (the
+    problems give theirs), the cut also refuses up front a spacing whose later stages would not fit,
+    from the active tets it predicts, and its advice is a spacing at which the cut and those stages
+    both fit: one estimate before the cut, with its one advice, instead of a cut that is made and then
+    refused.  The check after the cut, on the real active tets, stays for what the prediction does not
+    cover (no Lipschitz bound, unstructured backgrounds).
     """
     lipschitz = getattr(levelset, "lipschitz", None)
     structured = isinstance(background, StructuredBox)
@@ -770,11 +891,11 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True) -> C
             _check_boundary(background, values)
         cand = _candidates_full(background, values)
     elif structured:
-        _check_box_memory(background, lipschitz)
         f = _as_values_function(levelset)
+        survey = _check_cut_memory(background, f, lipschitz, solve_bytes_per_tet)
         if check_boundary and not band:
             _check_boundary(background, f)
-        cand = _candidates_structured(background, f, lipschitz)
+        cand = _candidates_structured(background, f, lipschitz, None if survey is None else (*survey, solve_bytes_per_tet))
         if check_boundary and band:
             _check_band_boundary(background, f, cand[3], _zero_tolerance(background, lipschitz))
     else:

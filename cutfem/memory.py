@@ -18,15 +18,22 @@ item, fitted to the peak resident memory of fresh ``cutfem run`` processes (``/p
   Measured on the cut torus, the resident memory the cut adds: 116, 150, 279, 828 and 3062 MB for
   14,024, 55,120, 219,912, 879,968 and about 3.5 million band cells (spacings 0.05 to 0.003125):
   about 100 MB and 831-846 bytes a cell from spacing 0.0125 on.  The estimate, 150 MiB and 1000
-  bytes a cell, is checked at every level of the band search on the predicted cells (between 1 and
-  1.44 times the final ones).  It was 3000 bytes a cell with no fixed part, fitted at spacing 0.0125
-  and coarser, where the fixed part is most of the cut: that refused spacing 0.002 on a 24 GiB
-  machine as needing 34.8 GiB, where the whole run is predicted at about 14 GiB;
+  bytes a cell, is checked once before the band search (:func:`cutfem.cut.cut_memory_estimate`),
+  on :data:`BAND_MARGIN` times the cells predicted from the surface's area as the band search sees
+  it, measured once by a survey of a few ten thousand cubes (:func:`cutfem.cut._surface_survey`:
+  the band at spacing h is about sqrt(3) A / h**2 cells for a signed distance; the final band 0.92
+  to 1.05 times the survey's on tori and spheres at spacings 0.04-0.001, the predicted cells 1.14
+  to 1.3 times the final ones).  It was 3000 bytes a cell with no fixed part, fitted at spacing
+  0.0125 and coarser, where the fixed part is most of the cut: that refused spacing 0.002 on a
+  24 GiB machine as needing 34.8 GiB, where the whole run is predicted at about 14 GiB;
 * :data:`BYTES_PER_BOX_NODE`: what the band search keeps per node of the structured box: a bitmap
   of the band's nodes and a running count per 64-bit word of it (:func:`cutfem.mesh.dense_unique`,
   a quarter byte a node; 101 MB for the 404 million nodes of the box at spacing 0.003125).  It was
   5 bytes, from the marker and lookup arrays the bitmap replaced, and refused spacing 0.0015625 on
-  a 24 GiB machine as needing 28.5 GiB, 16 of them for node markers that are no longer made;
+  a 24 GiB machine as needing 28.5 GiB, 16 of them for node markers that are no longer made.  With
+  it :data:`BYTES_PER_BOUNDARY_NODE` per boundary node (checked node by node when the band reaches
+  a face of the box), and without a Lipschitz bound :data:`BYTES_PER_EVALUATED_NODE` per node of
+  the box instead of the bitmap and the band (every node evaluated; both counted from the arrays);
 * :data:`SOLVE_BASE_BYTES` + bytes per active tet: what the stages after the cut (space, faces,
   mass, penalty, solve, errors) add to the resident memory at the check
   (:func:`cutfem.problems.common.check_cut_memory`; the cut's freed temporaries stay in the
@@ -43,6 +50,19 @@ item, fitted to the peak resident memory of fresh ``cutfem run`` processes (``/p
   :data:`BYTES_PER_ACTIVE_TET`, 850 bytes, for the others;
 * :data:`BYTES_PER_SURFACE_NODE`: a meshed surface problem per node (0.6 GiB for the meshed torus
   with 295 thousand nodes: 2.2 KB).
+
+A refusal names a spacing that fits: :func:`spacing_that_fits` solves the model of the estimate
+at t times the spacing, each part with its own scaling (the fixed parts not at all, the band, the
+box's boundary and the active tets like t**-2, the box's nodes like t**-3), for the smallest t at
+which every estimate of the run fits, and rounds the spacing up to two digits.  The same command
+at that spacing is not refused, and a spacing 1.3 times finer is (tests/test_memory.py).  The
+advice used to scale the whole of one estimate, fixed parts included, like spacing**-3 for the
+box's nodes (which knew nothing of the band) or spacing**-2 for the band predicted at a coarse
+level of the band search (1 to 1.44 times the final band, varying with the spacing), rounded to
+the nearest two digits: under a 2 GiB limit the cut torus at spacing 0.0005 was told 0.0014, which
+was told 0.0016 (2.41 GiB, the box's nodes alone), which was told 0.0045 (13.1 GiB, the band),
+and 0.004 and 0.0045 were still refused.  Now the five are all told 0.0048, the finest two-digit
+spacing whose estimate fits (1.96 GiB; 0.0047: 2.04 GiB).
 
 Allocation settings
 -------------------

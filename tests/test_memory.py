@@ -232,3 +232,105 @@ def test_cut_torus_beyond_two_million_active_nodes():
         for col in range(3):
             assert np.all(np.any(tets == faces[sample, col, None], axis=1))
     assert abs(cut.area - 4 * np.pi**2 * 0.5) < 1e-3
+
+
+# ----------------------------------------------------------------------------------------------
+# the spacing that a refusal names
+# ----------------------------------------------------------------------------------------------
+
+TORUS_BOX = ([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6])
+SPHERE_BOX = ([-1.2] * 3, [1.2] * 3)
+
+
+def _refusal(call) -> tuple[str, float]:
+    """The message of the InsufficientMemoryError that ``call()`` raises (its form: the estimate,
+    the memory available, the fix) and the spacing that it names."""
+    import re
+
+    from cutfem.memory import InsufficientMemoryError
+
+    with pytest.raises(InsufficientMemoryError) as info:
+        call()
+    message = str(info.value)
+    assert re.search(r" needs about [0-9.]+ [KMGT]iB of memory, more than the [0-9.]+ MiB available \(CUTFEM_MEMORY_LIMIT\); "
+                     r"use a coarser spacing \(about [0-9.e-]+ or more\)", message), message
+    return message, float(re.search(r"about ([0-9.e-]+) or more", message).group(1))
+
+
+def _cut_cases():
+    from cutfem.levelset import Ellipsoid, Sphere, Torus
+
+    return {  # level set, box, limit, a spacing refused, the part that decides
+        "torus": (Torus(1.0, 0.5), TORUS_BOX, "256MiB", 0.0005, "cells near the surface"),
+        "sphere": (Sphere(1.0), SPHERE_BOX, "200MiB", 0.005, "cells near the surface"),
+        "small sphere, large box": (Sphere(0.1), ([-2.0] * 3, [2.0] * 3), "300MiB", 0.002, "nodes"),
+        "no Lipschitz bound": (Ellipsoid(1.0, 0.8, 0.6), SPHERE_BOX, "200MiB", 0.01, "every node evaluated"),
+    }
+
+
+@pytest.mark.parametrize("case", ["torus", "sphere", "small sphere, large box", "no Lipschitz bound"])
+def test_cut_refusal_names_a_spacing_that_fits(monkeypatch, case):
+    """A cut refused for memory names a spacing at which the same cut runs, within its estimate of
+    the limit, and a spacing 1.3 times finer than that is refused, naming the same spacing: the
+    band of a surface (spacing**-2), the nodes and the boundary of a large box around a small
+    surface (spacing**-3 and **-2), every node evaluated without a Lipschitz bound."""
+    from cutfem.cut import cut_memory_estimate, cut_mesh
+    from cutfem.memory import available_memory
+    from cutfem.mesh import structured_box
+
+    levelset, (lo, hi), limit, refused, part = _cut_cases()[case]
+    monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", limit)
+    available = available_memory()[0]
+    message, fits = _refusal(lambda: cut_mesh(structured_box(lo, hi, spacing=refused), levelset))
+    assert f"at spacing {refused:g} (" in message and part in message
+    box = structured_box(lo, hi, spacing=fits)
+    estimate = cut_memory_estimate(box, levelset)[0]
+    assert 0.6 * available < estimate <= available  # fits, and not by far
+    cut = cut_mesh(box, levelset)  # not refused
+    assert cut.n_tets > 1000 and cut.is_closed
+    finer = fits / 1.3
+    message, again = _refusal(lambda: cut_mesh(structured_box(lo, hi, spacing=finer), levelset))
+    assert f"at spacing {finer:g} (" in message
+    assert again == pytest.approx(fits, rel=0.03)  # the same advice from another refused spacing
+
+
+def test_cut_estimate_grows_as_the_spacing_shrinks():
+    """For one surface and box the estimate never shrinks with the spacing: not between the cut's
+    parts (the spacing 0.0014 of the torus was refused at 2.41 GiB from the box's nodes and 0.0016
+    at 13.1 GiB from the band), not between close spacings, not for the later stages."""
+    from cutfem.cut import cut_memory_estimate
+    from cutfem.levelset import Ellipsoid, Sphere, Torus
+    from cutfem.mesh import structured_box
+    from cutfem.problems.common import background_for
+
+    spacings = [0.05, 0.02, 0.01, 0.0046, 0.0045, 0.0044, 0.004, 0.0016, 0.0014, 0.0005]
+    for levelset, (lo, hi) in [(Torus(1.0, 0.5), TORUS_BOX), (Sphere(0.1), ([-2.0] * 3, [2.0] * 3)),
+                               (Ellipsoid(1.0, 0.8, 0.6), SPHERE_BOX)]:
+        cut, after = np.array([cut_memory_estimate(structured_box(lo, hi, spacing=s), levelset, 200) for s in spacings]).T
+        assert np.all(np.diff(cut) > 0), (levelset, cut)
+        assert np.all(np.diff(after) >= 0), (levelset, after)
+    torus = Torus(1.0, 0.5)
+    cut = [cut_memory_estimate(background_for(torus, s), torus)[0] / 2**30 for s in (0.0016, 0.0014)]
+    assert 15 < cut[0] < cut[1] < 25  # GiB, on the command's boxes
+
+
+@pytest.mark.parametrize("surface", ["torus", "sphere"])
+def test_predicted_band_and_tets_cover_the_cut(surface):
+    """The band cells and active tets predicted before the cut (the survey's area at every spacing)
+    are at least the cut's, by at most 1.35 times."""
+    from cutfem.cut import _band_cells, _surface_survey, _cut_bytes, _zero_tolerance, cut_mesh
+    from cutfem.levelset import Sphere, Torus
+    from cutfem.mesh import structured_box
+
+    levelset, box = (Torus(1.0, 0.5), TORUS_BOX) if surface == "torus" else (Sphere(1.0), SPHERE_BOX)
+    areas = []
+    for s in (0.04, 0.02):
+        bg = structured_box(*box, spacing=s)
+        area = _surface_survey(bg, levelset.value, 1.0)[0]
+        band, tets = _cut_bytes(bg.cells, bg.spacing, area)[2:]
+        real_band = len(_band_cells(bg, levelset.value, 1.0, _zero_tolerance(bg, 1.0))[0])
+        real_tets = cut_mesh(bg, levelset).n_tets
+        assert real_band <= band <= 1.35 * real_band
+        assert real_tets <= tets <= 1.35 * real_tets
+        areas.append(area)
+    assert areas[0] == areas[1] and areas[0] == pytest.approx(levelset.area, rel=0.02)
