@@ -47,7 +47,10 @@ item, fitted to the peak resident memory of fresh ``cutfem run`` processes (``/p
   162 bytes a tet at spacings 0.0125, 0.00625 and 0.003125, and about 157 at 0.0015625 (17.5 GiB
   peak).  The estimates: 64 MiB plus 200 bytes a tet for the mean curvature problem (its own
   constant; 250 before, which at 0.0015625 asked 13.8 GB where about 8.6 GB was needed) and plus
-  :data:`BYTES_PER_ACTIVE_TET`, 850 bytes, for the others;
+  :data:`BYTES_PER_ACTIVE_TET`, 850 bytes, for the others.  The problems give their cost to the
+  cut, which checks it before cutting on :data:`TETS_PER_BAND_CELL` active tets per predicted band
+  cell (measured 3.70-4.24 on the torus, the thin torus and the sphere at spacings 0.04-0.01), and
+  check it again on the real active tets after the cut;
 * :data:`BYTES_PER_SURFACE_NODE`: a meshed surface problem per node (0.6 GiB for the meshed torus
   with 295 thousand nodes: 2.2 KB).
 

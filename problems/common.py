@@ -215,20 +215,36 @@ def check_resolution(cut, levelset, spacing) -> None:
         )
 
 
-def check_cut_memory(cut, bytes_per_tet: float | None = None) -> None:
+def check_cut_memory(cut, bytes_per_tet: float | None = None, spacing: float | None = None) -> None:
     """Refuse, before the space and the matrices are built, a cut whose later stages cannot fit:
     :data:`cutfem.memory.SOLVE_BASE_BYTES` plus ``bytes_per_tet`` per active tet (the problem's
     measured cost; default :data:`cutfem.memory.BYTES_PER_ACTIVE_TET`): what the space, faces,
     matrices, solve and errors add to the memory in use after the cut, against
-    :func:`cutfem.memory.available_memory`."""
+    :func:`cutfem.memory.available_memory`.
+
+    The refusal names a spacing at which this check passes: the active tets scale like
+    spacing**-2 from ``spacing`` (default: the structured background's), times
+    :data:`cutfem.memory.ACTIVE_TETS_MARGIN`, and the fixed part does not scale
+    (:func:`cutfem.memory.spacing_that_fits`).  The problems also give their cost to
+    :func:`cutfem.cut.cut_mesh` (``solve_bytes_per_tet``), which refuses such a spacing before the
+    cut from the active tets it predicts; this check on the real ones catches the rest (a level set
+    without a Lipschitz bound, an unstructured background)."""
     from cutfem import memory
 
     per_tet = memory.BYTES_PER_ACTIVE_TET if bytes_per_tet is None else bytes_per_tet
-    memory.check_memory(
-        memory.SOLVE_BASE_BYTES + per_tet * float(cut.n_tets),
-        f"the matrices and the solve of {cut.n_tets} active tets",
-        "use a coarser spacing (the memory grows like spacing**-2)",
-    )
+    tets = float(cut.n_tets)
+    estimate = memory.SOLVE_BASE_BYTES + per_tet * tets
+    available = memory.available_memory()[0]
+    if estimate <= available:
+        return
+    if spacing is None and hasattr(cut.background, "spacing"):
+        spacing = float(np.max(cut.background.spacing))
+    if spacing is None:
+        fix = "use a coarser spacing (the memory grows like spacing**-2)"
+    else:
+        model = lambda t: memory.SOLVE_BASE_BYTES + per_tet * memory.ACTIVE_TETS_MARGIN * tets / t**2  # noqa: E731
+        fix = memory.coarser_spacing_fix(model, spacing, available)
+    memory.check_memory(estimate, f"the matrices and the solve of {cut.n_tets} active tets", fix)
 
 
 def check_surface_memory(nodes: float, what: str) -> None:

@@ -31,6 +31,7 @@ from cutfem.registry import LazyFields, Param, Problem, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
+from cutfem.memory import BYTES_PER_ACTIVE_TET
 from cutfem.surface import TORUS_FAMILIES
 
 from .common import SHAPE_PARAMS, check_cut_memory, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
@@ -225,9 +226,9 @@ class LaplaceBeltramiCut(Problem):
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius)
             sol = manufactured(phi)
-            cut = cut_mesh(background_for(phi, level, background, box), phi)
+            cut = cut_mesh(background_for(phi, level, background, box), phi, solve_bytes_per_tet=BYTES_PER_ACTIVE_TET)
             check_resolution(cut, phi, level)
-            check_cut_memory(cut)
+            check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
             space = CutP1Space(cut)
         with t("assembly"):
             dS = cut.ds()

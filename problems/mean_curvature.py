@@ -37,9 +37,10 @@ SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 #: 0.0125), and CG needs 20 iterations instead of 27 at spacing 0.0125 (with the multigrid's
 #: K-cycles; 23 instead of 31 with W-cycles).
 SOLVER_TOL = 1e-6
-#: what the stages after the cut add to the resident memory per active tet, for the memory check
-#: before the space is built (:func:`~cutfem.problems.common.check_cut_memory`; measured 152, 155,
-#: 162 and about 157 bytes at spacings 0.0125 to 0.0015625, see :mod:`cutfem.memory`)
+#: what the stages after the cut add to the resident memory per active tet, for the memory checks
+#: before the cut (:func:`cutfem.cut.cut_mesh`'s ``solve_bytes_per_tet``, on the predicted active
+#: tets) and before the space is built (:func:`~cutfem.problems.common.check_cut_memory`); measured
+#: 152, 155, 162 and about 157 bytes at spacings 0.0125 to 0.0015625, see :mod:`cutfem.memory`
 BYTES_PER_ACTIVE_TET = 200
 
 #: the record entries of the mean curvature problems (saved in the JSON of a run)
@@ -165,9 +166,9 @@ class MeanCurvatureCut(Problem):
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius, axes)
             bg = background_for(phi, level, background, box)
-            cut = cut_mesh(bg, phi)
+            cut = cut_mesh(bg, phi, solve_bytes_per_tet=BYTES_PER_ACTIVE_TET)
             check_resolution(cut, phi, level)
-            check_cut_memory(cut, BYTES_PER_ACTIVE_TET)
+            check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
             space = CutP1Space(cut)
         with t("assembly"):
             K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)), face_h_power=face_h_power)

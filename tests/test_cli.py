@@ -300,22 +300,31 @@ def test_size_that_cannot_fit_is_refused_before_allocating(capsys):
 
 
 def test_memory_limit_refuses_the_band_and_the_matrices(monkeypatch):
-    """With CUTFEM_MEMORY_LIMIT the cut is refused from the band estimate, and a cut that fits but
-    whose matrices would not is refused before they are built."""
+    """With CUTFEM_MEMORY_LIMIT the cut is refused from the band estimate; a cut that fits but
+    whose matrices would not is refused before the cut, from the active tets it predicts; and where
+    no prediction is made (no Lipschitz bound) the real active tets are checked before the matrices
+    are built.  (The spacings that these refusals name are checked in tests/test_memory.py.)"""
     from cutfem.memory import InsufficientMemoryError
 
-    monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "20MiB")
-    with pytest.raises(InsufficientMemoryError, match=r"cells near the surface\) needs about .* more than the 20 MiB available \(CUTFEM_MEMORY_LIMIT\)"):
+    monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "20MiB")  # below the cut's fixed part, 150 MiB
+    with pytest.raises(InsufficientMemoryError, match=r"cells near the surface\) needs about .* more than the 20 MiB available "
+                       r"\(CUTFEM_MEMORY_LIMIT\); no spacing fits: the fixed part alone needs about 150 MiB"):
         cutfem.run("mean-curvature-cut", levels=[0.025])
-    # spacing 0.05: the cut (14,024 band cells, estimated at most 150 MiB + 1.44 x 14,024 x 1000
-    # bytes = 178 MB) fits in 200 MiB (210 MB); its 52,252 active tets at 5000 bytes each on top
-    # of 64 MiB (328 MB) do not.  (The mean curvature problem's 250 bytes a tet, what the later
-    # stages add to the resident memory, never exceed the band estimate of the same cut; the
-    # per-tet cost is raised here to reach the second check.)
+    # spacing 0.05: the cut (14,024 band cells, 16,519 predicted; with the box's bitmap and boundary
+    # 175 MB) fits in 200 MiB (210 MB); the 66,075 active tets it predicts (52,252 made) at 5000
+    # bytes each on top of 64 MiB (397 MB) do not.  (The mean
+    # curvature problem's 200 bytes a tet never exceed the band estimate of the same cut; the
+    # per-tet cost is raised here to reach the second estimate.)
     monkeypatch.setattr("cutfem.problems.mean_curvature.BYTES_PER_ACTIVE_TET", 5000)
     monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "200MiB")
-    with pytest.raises(InsufficientMemoryError, match=r"matrices and the solve of 52252 active tets"):
+    with pytest.raises(InsufficientMemoryError, match=r"^the matrices and the solve of about 6.61e\+04 active tets \(predicted for the cut "
+                       r"of the 64 x 64 x 24-cell box at spacing 0.05\) needs about 379 MiB .*; use a coarser spacing \(about 0.077 or more\)"):
         cutfem.run("mean-curvature-cut", levels=[0.05])
+    # the ellipsoid declares no Lipschitz bound: its cut (every node evaluated, 48,285 nodes,
+    # 177 MB) fits and its 21,596 active tets (at 10,000 bytes, 283 MB) are refused after the cut
+    monkeypatch.setattr("cutfem.problems.mean_curvature.BYTES_PER_ACTIVE_TET", 10_000)
+    with pytest.raises(InsufficientMemoryError, match=r"^the matrices and the solve of \d+ active tets needs about .*; use a coarser spacing \(about"):
+        cutfem.run("mean-curvature-cut", levels=[0.05], surface="ellipsoid")
     with pytest.raises(InsufficientMemoryError, match=r"meshed torus at n = 4096"):
         cutfem.run("mean-curvature-meshed", levels=[4096])
 

@@ -294,6 +294,57 @@ def test_cut_refusal_names_a_spacing_that_fits(monkeypatch, case):
     assert again == pytest.approx(fits, rel=0.03)  # the same advice from another refused spacing
 
 
+@pytest.mark.parametrize("problem,surface,limit,per_tet,refused,part", [
+    ("mean-curvature-cut", "torus", "180MiB", None, 0.0005, "the cut of"),
+    # the later stages decide: the cut names a spacing at which they fit too
+    ("laplace-beltrami-cut", "sphere", "300MiB", 5000, 0.02, "the matrices and the solve of about"),
+])
+def test_problem_refusal_names_a_spacing_that_runs(monkeypatch, problem, surface, limit, per_tet, refused, part):
+    """The command refused for memory names a spacing at which the same command runs (its cut, and
+    the check of its real active tets before the matrices), and a spacing 1.3 times finer than that
+    is refused.  The Laplace-Beltrami problem's cost per active tet is raised to 5000 bytes so that
+    its later stages, not its cut, decide at a cheap size."""
+    import cutfem
+    from cutfem.memory import SOLVE_BASE_BYTES, available_memory
+
+    if per_tet is not None:
+        monkeypatch.setattr("cutfem.problems.laplace_beltrami.BYTES_PER_ACTIVE_TET", per_tet)
+    monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", limit)
+    available = available_memory()[0]
+    message, fits = _refusal(lambda: cutfem.run(problem, levels=[refused], surface=surface))
+    assert message.startswith(part)
+    record = cutfem.run(problem, levels=[fits], surface=surface).records[0]  # not refused
+    tets = record["active_tets"]
+    assert tets > 20_000
+    if per_tet is not None:  # the later stages fit on the real active tets
+        assert 0.5 * available < SOLVE_BASE_BYTES + per_tet * tets <= available
+    message, again = _refusal(lambda: cutfem.run(problem, levels=[fits / 1.3], surface=surface))
+    assert message.startswith(part) and again == pytest.approx(fits, rel=0.03)
+
+
+def test_check_after_the_cut_names_a_spacing_that_passes(monkeypatch):
+    """check_cut_memory, on the real active tets of a cut that fits, names a spacing at which it
+    passes, and refuses a spacing 1.3 times finer than that (tets scaled like spacing**-2)."""
+    from cutfem.cut import cut_mesh
+    from cutfem.levelset import Sphere
+    from cutfem.memory import SOLVE_BASE_BYTES, available_memory
+    from cutfem.mesh import structured_box
+    from cutfem.problems.common import check_cut_memory
+
+    monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "512MiB")
+    available = available_memory()[0]
+    sphere = Sphere(1.0)
+    cut = cut_mesh(structured_box(*SPHERE_BOX, spacing=0.016), sphere)  # the cut alone fits
+    message, fits = _refusal(lambda: check_cut_memory(cut, 2000))
+    assert message.startswith(f"the matrices and the solve of {cut.n_tets} active tets needs about")
+    cut = cut_mesh(structured_box(*SPHERE_BOX, spacing=fits), sphere)
+    check_cut_memory(cut, 2000)  # passes
+    assert 0.6 * available < SOLVE_BASE_BYTES + 2000 * cut.n_tets <= available
+    finer = cut_mesh(structured_box(*SPHERE_BOX, spacing=fits / 1.3), sphere)
+    _, again = _refusal(lambda: check_cut_memory(finer, 2000))
+    assert again == pytest.approx(fits, rel=0.05)
+
+
 def test_cut_estimate_grows_as_the_spacing_shrinks():
     """For one surface and box the estimate never shrinks with the spacing: not between the cut's
     parts (the spacing 0.0014 of the torus was refused at 2.41 GiB from the box's nodes and 0.0016
