@@ -194,7 +194,7 @@ BYTES_PER_BOUNDARY_NODE = 80
 #: bytes per node of a structured box whose every node is evaluated (a level set without a Lipschitz
 #: bound: coordinates, values, corner ids and the (6, 4) values of each cell's tets; counted)
 BYTES_PER_EVALUATED_NODE = 400
-#: the band cells predicted from the surveyed area, times this (the survey within 3 % of the final band)
+#: the band cells predicted from the surveyed area, times this (the final band 0.92-1.05 times the prediction)
 BAND_MARGIN = 1.2
 #: active tets per band cell, to predict before the cut what the later stages need (measured 3.70-4.24)
 TETS_PER_BAND_CELL = 4.0
