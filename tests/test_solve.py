@@ -162,6 +162,51 @@ def test_cg_solver_reuses_its_preconditioner_and_starts_from_a_guess(systems, pr
         CGSolver(A, "jacobi", tol=0.0)
 
 
+def test_a_guess_worse_than_zero_is_not_used(systems):
+    """A column of x0 whose residual exceeds |b| starts from zero: bitwise the solve from zero, in
+    as many iterations; the other column keeps its (good) guess."""
+    A = systems["cut-lb"]
+    rng = np.random.default_rng(3)
+    B = rng.normal(size=(A.shape[0], 2))
+    X_direct = DirectSolver(A).solve(B)
+    cg = CGSolver(A, "jacobi", tol=1e-10)
+    X_zero, zero = cg.solve(B[:, 0])
+    bad = 1e3 * rng.normal(size=A.shape[0])
+    assert np.linalg.norm(B[:, 0] - A @ bad) > np.linalg.norm(B[:, 0])
+    X_bad, from_bad = cg.solve(B[:, 0], bad)
+    np.testing.assert_array_equal(X_bad, X_zero)
+    assert from_bad.iterations == zero.iterations
+    X, both = cg.solve(B, np.column_stack([bad, X_direct[:, 1] + 1e-6 * rng.normal(size=A.shape[0])]))
+    np.testing.assert_array_equal(X[:, 0], X_zero)  # the columns are independent recurrences
+    assert np.linalg.norm(A @ X[:, 1] - B[:, 1]) <= 1.5e-10 * np.linalg.norm(B[:, 1])
+
+
+def test_lumped_guess_of_the_meshed_mean_curvature():
+    """H_0 = M_L^{-1} A x: on the structured torus grid close (fewer multigrid iterations, the
+    same solution to the tolerance), on the flipped family worse than zero (the solve from zero,
+    bitwise); None when a node has no mass."""
+    from cutfem.forms import assemble, basis_integrals
+    from cutfem.problems.mean_curvature import SOLVER_TOL, lumped_guess, mean_curvature_system
+    from cutfem.spaces import SurfaceP1Space
+    from cutfem.surface import torus_mesh
+
+    for family, fewer in (("structured", True), ("flipped", False)):
+        mesh = torus_mesh(128, family=family, seed=0)
+        V = SurfaceP1Space(mesh)
+        K, B = mean_curvature_system(V, mesh.ds(), tau_e=0.1)
+        guess = lumped_guess(B, assemble(basis_integrals(mesh.ds()), V))
+        r0 = np.linalg.norm(B - K @ guess, axis=0) / np.linalg.norm(B, axis=0)
+        H0, plain = solve(K, B, space=V, method="cg-mg", tol=SOLVER_TOL)
+        H, guessed = solve(K, B, space=V, method="cg-mg", tol=SOLVER_TOL, x0=guess)
+        if fewer:
+            assert r0.max() < 0.05 and guessed.iterations < plain.iterations
+            assert np.abs(H - H0).max() < 1e-4 * np.abs(H0).max()
+        else:
+            assert r0.min() > 1 and guessed.iterations == plain.iterations
+            np.testing.assert_array_equal(H, H0)
+    assert lumped_guess(np.ones((3, 3)), np.array([1.0, 0.0, 2.0])) is None
+
+
 @pytest.mark.parametrize("path", ["direct", "solve-auto", "solve-cg", "cg-solver"])
 def test_bad_systems_are_refused_with_what_is_wrong(systems, path):
     """A NaN or inf in the matrix or the right-hand side is named with its row on every path, never
