@@ -493,9 +493,7 @@ def test_a_problem_registered_before_the_builtins_load_stays():
         "register('early-problem', levels=[1.0], summary='again')(lambda level: {'h': level})\n"
         "print(available_problems()['early-problem'].summary)\n"
     )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.splitlines() == [
+    assert _fresh_python(code).splitlines() == [
         "refused: 'poisson-cut' is the name of a built-in problem; register yours under another name",
         "mine True fictitious-dom",
         "again",  # a cell run twice replaces the earlier one
@@ -568,6 +566,11 @@ def test_using_cutfem_leaves_the_environment_alone():
         "after = dict(os.environ)\n"
         "print(sorted(set(before.items()) ^ set(after.items())))\n"
     )
+    assert _fresh_python(code).strip() == "[]"
+
+
+def _fresh_python(code: str) -> str:
+    """The standard output of ``code`` run by a fresh interpreter (a process with nothing loaded)."""
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
-    assert out.stdout.strip() == "[]"
+    return out.stdout
