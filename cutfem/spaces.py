@@ -363,11 +363,17 @@ class ProductSpace:
         return self.fields[self.index(k)]
 
     def index(self, k) -> int:
-        """The position of a field given by position or name."""
+        """The position of a field given by its position (an int, 0 <= k < number of fields; no
+        negative positions, no floats, no bools) or its name.  A KeyError for an unknown name, a
+        ValueError for any other position, naming the fields."""
         if isinstance(k, str):
             if k not in self.names:
                 raise KeyError(f"no field named {k!r}; the fields are {self.names}")
             return self.names.index(k)
+        ok = isinstance(k, (int, np.integer)) and not isinstance(k, (bool, np.bool_))
+        if not ok or not 0 <= k < len(self.fields):
+            raise ValueError(f"a field is given by its position 0..{len(self.fields) - 1} or its name; got {k!r}, and "
+                             f"the fields are {self.names}")
         return int(k)
 
     def split(self, x) -> list:

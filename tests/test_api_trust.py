@@ -1,0 +1,56 @@
+"""Inputs that used to give silent wrong answers, crashes or raw tracebacks: field positions of a
+product space, coefficient vectors of the wrong length, measures of another background mesh, bad
+element ids, bad convergence data, bad solver input and bad sizes.  Each is refused with a message
+that names the problem, next to the legitimate use that still gives the right number."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from cutfem.cut import CUT, NEG, POS, cut_mesh
+from cutfem.errors import fitted_rate, h1_error, l2_error, l2_h1_errors, rates
+from cutfem.forms import assemble, face_jump_penalty, mass
+from cutfem.levelset import Sphere
+from cutfem.markers import ElementSet
+from cutfem.mesh import structured_box
+from cutfem.solve import CGSolver, DirectSolver, condition_number, solve
+from cutfem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
+from cutfem.surface import sphere_mesh
+
+X = lambda p: p[..., 0]  # noqa: E731
+GRAD_X = lambda p: np.broadcast_to(np.array([1.0, 0.0, 0.0]), p.shape)  # noqa: E731
+
+
+@pytest.fixture(scope="module")
+def cut():
+    return cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=0.2), Sphere(1.0))
+
+
+@pytest.fixture(scope="module")
+def spaces(cut):
+    VN, VP, VC = CutP1Space(cut, NEG), CutP1Space(cut, POS), CutP1Space(cut, CUT)
+    return VN, VP, VC, ProductSpace(VN, VP)
+
+
+def laplacian_1d(n=50):
+    return sp.diags([-np.ones(n - 1), 2.0 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1]).tocsr()
+
+
+# 1. field positions of a product space -------------------------------------------------------
+
+def test_product_space_takes_only_positions_in_range(cut, spaces):
+    VN, VP, _, W = spaces
+    n0 = VN.n_dofs
+    for bad in (-1, -2, 2, 5, 1.5, 1.0, True):
+        with pytest.raises(ValueError, match=r"position 0\.\.1 or its name; got .*the fields are \['u0', 'u1'\]"):
+            W.index(bad)
+    with pytest.raises(ValueError, match="position 0..1"):
+        W.dofs(-1)
+    with pytest.raises(ValueError, match="position 0..1"):
+        W[-2]
+    dg = cut.dF(cut.ghost_facets(NEG))
+    with pytest.raises(ValueError, match="position 0..1"):  # used to land field 0's block in field 1's rows
+        assemble(face_jump_penalty(dg, field=-2), W)
+    K = assemble(face_jump_penalty(dg, field=np.int64(0)), W).tocsr()
+    assert K[:n0, :n0].nnz > 0 and K[n0:, n0:].nnz == 0
+    assert np.array_equal(W.dofs(1), np.arange(n0, W.n_dofs)) and W[1] is VP
