@@ -10,6 +10,11 @@
   from its values at the vertices of S_h (exact for P1: sqrt(e^T M e) without the matrix M).
 * :func:`rates`: ``log(e_i / e_{i+1}) / log(h_i / h_{i+1})``; :func:`fitted_rate`: least-squares
   slope of log e against log h.
+
+Every error takes one field (a :class:`~cutfem.spaces.CutP1Space` or
+:class:`~cutfem.spaces.SurfaceP1Space`, not a :class:`~cutfem.spaces.ProductSpace`) and its
+coefficients of shape (n_dofs,) or (n_dofs, c) (:func:`_coefficients`, on every path): the block of
+a product's vector is ``W.split(x)[k]``.
 """
 
 from __future__ import annotations
@@ -23,6 +28,17 @@ from .quadrature import triangle_rule
 __all__ = ["l2_error", "h1_error", "l2_h1_errors", "discrete_error", "rates", "fitted_rate", "surface_integral"]
 
 _ZERO = np.zeros((0, 0, 0))  # no exact field: kernels.squared_error gives the norm of u_h itself
+
+
+def _coefficients(space, coeffs) -> np.ndarray:
+    """``coeffs`` of the one field ``space`` as an array (n_dofs,) or (n_dofs, c); a ValueError for
+    a product space (errors are per field) or for any other shape (``space._coefficients``)."""
+    from .spaces import ProductSpace
+
+    if isinstance(space, ProductSpace):
+        raise ValueError(f"errors are computed per field, and this is a product space of the fields {space.names}: pass "
+                         "one field and its block, e.g. l2_error(W[k], W.split(x)[k], exact, measure)")
+    return space._coefficients(coeffs)
 
 
 def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1 << 14) -> float:
@@ -48,6 +64,7 @@ def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1
     if measure is None:
         from . import kernels
 
+        coeffs = _coefficients(space, coeffs)
         surface_measure(space)  # a clear error for a bulk field
         points, triangles, values = space.surface_vertex_data(coeffs)
         points = np.ascontiguousarray(points, dtype=float)
@@ -88,8 +105,18 @@ def l2_h1_errors(space, coeffs, exact, measure=None, degree: int = 4, chunk: int
     One pass maps each block's quadrature points once, and lets ``exact`` share its work between u
     and grad u (a product of sines, cosines and exponentials needs each factor once): on the
     fictitious-domain Poisson problem at 292k unknowns (22 million points) that is about a third of
-    the time of the two separate calls."""
-    return _cell_errors(space, coeffs, exact, measure, degree, chunk)
+    the time of the two separate calls.  Anything but a pair from ``exact`` is refused (ValueError)."""
+
+    def pair(x):
+        out = exact(x)
+        if not isinstance(out, (tuple, list)) or len(out) != 2:
+            got = f"a {type(out).__name__} of length {len(out)}" if isinstance(out, (tuple, list)) else \
+                f"{type(out).__name__} of shape {np.shape(out)}"
+            raise ValueError(f"l2_h1_errors: exact(x) must return the pair (u(x) of shape (m, q), grad u(x) of shape "
+                             f"(m, q, 3)) at points x {x.shape}, got {got}; for one of them use l2_error or h1_error")
+        return out
+
+    return _cell_errors(space, coeffs, pair, measure, degree, chunk)
 
 
 def _cell_errors(space, coeffs, exact, measure, degree, chunk):
@@ -105,11 +132,11 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
     million points, they replace numpy work of about 0.6 s)."""
     if degree < 4:
         raise ValueError("docs/math.md §5 asks for quadrature of degree >= 4 in error norms")
+    coeffs = _coefficients(space, coeffs)
     if measure is None:
         measure = surface_measure(space)
     from . import kernels
 
-    coeffs = np.asarray(coeffs)
     table, types = space.gradient_lookup()  # the gradients of element K: table[types[K]]
     table = np.ascontiguousarray(table, dtype=float)
     sums = [0.0, 0.0]
@@ -153,6 +180,7 @@ def discrete_error(space, e) -> float:
     (the P1 mass matrix of a triangle, |T| / 12 [[2, 1, 1], [1, 2, 1], [1, 1, 2]]) up to rounding, in
     one compiled pass over the triangles (:func:`cutfem.kernels.squared_error` against zero).  For
     a cut space the values at the vertices are the traces of the field (:meth:`surface_vertex_data`)."""
+    e = _coefficients(space, e)
     surface_measure(space)  # a clear error for a bulk field
     from . import kernels
 
@@ -168,6 +196,7 @@ def discrete_error(space, e) -> float:
 def surface_integral(space, coeffs) -> np.ndarray:
     """Integral over S_h of a discrete function: scalar or (c,) vector.  Exact: a linear function
     integrates over a triangle to its area times the mean of its vertex values."""
+    coeffs = _coefficients(space, coeffs)
     surface_measure(space)  # a clear error for a bulk field
     points, triangles, values = space.surface_vertex_data(coeffs)
     area = triangle_areas(points, triangles)

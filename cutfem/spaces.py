@@ -75,10 +75,15 @@ class _P1Space:
         return self.element_gradients[elements]
 
     def _coefficients(self, coeffs) -> np.ndarray:
-        """``coeffs`` as an array of shape (n_dofs,) or (n_dofs, c), or a ValueError naming the shapes."""
+        """``coeffs`` as an array of shape (n_dofs,) or (n_dofs, c), or a ValueError naming the shapes
+        (and, for a longer vector, the block of a product space's vector, which is the usual cause)."""
         coeffs = np.asarray(coeffs)
         if coeffs.ndim not in (1, 2) or len(coeffs) != self.n_dofs:
-            raise ValueError(f"coefficients of this space have shape ({self.n_dofs},) or ({self.n_dofs}, c), got {coeffs.shape}")
+            hint = ""
+            if coeffs.ndim in (1, 2) and len(coeffs) > self.n_dofs:
+                hint = ("; a vector of a ProductSpace holds the coefficients of all its fields: pass this field's block, "
+                        "W.split(x)[k]")
+            raise ValueError(f"coefficients of this space have shape ({self.n_dofs},) or ({self.n_dofs}, c), got {coeffs.shape}{hint}")
         return coeffs
 
     def gradient_lookup(self):

@@ -54,3 +54,36 @@ def test_product_space_takes_only_positions_in_range(cut, spaces):
     K = assemble(face_jump_penalty(dg, field=np.int64(0)), W).tocsr()
     assert K[:n0, :n0].nnz > 0 and K[n0:, n0:].nnz == 0
     assert np.array_equal(W.dofs(1), np.arange(n0, W.n_dofs)) and W[1] is VP
+
+
+# 2. coefficient vectors of the wrong length ---------------------------------------------------
+
+def test_errors_check_the_length_of_the_coefficients(cut, spaces):
+    VN, VP, VC, W = spaces
+    u = lambda p: p[..., 0] + 2  # noqa: E731
+    x = W.join([u(VN.dof_points), u(VP.dof_points)])
+    assert l2_error(VP, W.split(x)[1], u, cut.dx(POS)) < 1e-14
+    for call in (lambda: l2_error(VP, x, u, cut.dx(POS)),  # used to give 2.915
+                 lambda: h1_error(VP, x, GRAD_X, cut.dx(POS)),  # used to give 21.43
+                 lambda: l2_h1_errors(VP, x, lambda p: (u(p), GRAD_X(p)), cut.dx(POS))):
+        with pytest.raises(ValueError, match=rf"shape \({VP.n_dofs},\) .* got \({W.n_dofs},\).*W\.split\(x\)\[k\]"):
+            call()
+    with pytest.raises(ValueError, match=rf"got \({VP.n_dofs - 1},\)"):  # used to be a raw IndexError
+        l2_error(VP, x[: VP.n_dofs - 1], u, cut.dx(POS))
+    with pytest.raises(ValueError, match=rf"got \({VC.n_dofs + 1},\)"):  # on S_h: used to give 0.0
+        h1_error(VC, np.zeros(VC.n_dofs + 1), lambda p: np.zeros(p.shape))
+
+
+# 6. exact solutions and product spaces in the errors -----------------------------------------
+
+def test_error_functionals_say_what_they_need(cut, spaces):
+    VN, VP, _, W = spaces
+    uh = VN.dof_points[:, 0]
+    with pytest.raises(ValueError, match=r"must return the pair \(u\(x\).*got ndarray of shape"):
+        l2_h1_errors(VN, uh, X, cut.dx(NEG))
+    with pytest.raises(ValueError, match="got a tuple of length 3"):
+        l2_h1_errors(VN, uh, lambda p: (X(p), GRAD_X(p), 1), cut.dx(NEG))
+    l2, h1 = l2_h1_errors(VN, uh, lambda p: (X(p), GRAD_X(p)), cut.dx(NEG))
+    assert l2 < 1e-14 and h1 < 1e-13
+    with pytest.raises(ValueError, match=r"per field.*\['u0', 'u1'\].*l2_error\(W\[k\], W\.split\(x\)\[k\]"):
+        l2_error(W, np.zeros(W.n_dofs), X, cut.dx(NEG))
