@@ -14,7 +14,8 @@
 Every error takes one field (a :class:`~cutfem.spaces.CutP1Space` or
 :class:`~cutfem.spaces.SurfaceP1Space`, not a :class:`~cutfem.spaces.ProductSpace`) and its
 coefficients of shape (n_dofs,) or (n_dofs, c) (:func:`_coefficients`, on every path): the block of
-a product's vector is ``W.split(x)[k]``.
+a product's vector is ``W.split(x)[k]``.  A measure must lie on the field's background mesh
+(:meth:`~cutfem.spaces.CutP1Space.local_elements`).
 """
 
 from __future__ import annotations

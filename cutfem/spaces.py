@@ -21,7 +21,7 @@ from functools import cached_property
 import numpy as np
 
 from .assembly import SymmetricPattern
-from .markers import CUT, ElementSet
+from .markers import CUT, ElementSet, same_background
 
 __all__ = ["SurfaceP1Space", "CutP1Space", "ProductSpace", "triangle_gradients", "barycentric_at"]
 
@@ -109,7 +109,9 @@ class _P1Space:
 
     def local_elements(self, measure, parent=None) -> np.ndarray:
         """The field's element of each cell of ``measure`` (its ``quadrature().parent``, or the given
-        ``parent`` ids of the measure's elements); a clear error where the field does not live."""
+        ``parent`` ids of the measure's elements); a clear error where the field does not live, and
+        for a measure on another background mesh (:meth:`~cutfem.markers.ElementSet.locate_set`: tet
+        ids are compared only on one background)."""
         if parent is None:
             parent = measure.quadrature(0).parent
         if measure.elements is self.elements:
@@ -246,10 +248,14 @@ class CutP1Space(_P1Space):
     live on S_h (TraceFEM); ``on=NEG`` or ``POS`` the tets of one side (a bulk field of CutFEM);
     or any :class:`~cutfem.markers.ElementSet` of the cut.  Dofs are the nodes of the set, numbered
     by increasing background id; ``node_ids`` maps them back.  ``h`` is the background ``N**(-1/3)``.
+    An element set given as ``on`` must lie on the cut's background mesh (:func:`~cutfem.markers.same_background`).
     """
 
     def __init__(self, cut, on=CUT, h: float | None = None):
         es = cut.elements(on)
+        if not same_background(es.background, cut.background):
+            raise ValueError(f"the element set {es.name!r} lies on another background mesh than the cut "
+                             f"({es.background!r}, the cut's: {cut.background!r}); build it on the cut's background")
         self.cut = cut
         self.elements = es
         self.n_dofs = es.n_nodes

@@ -74,6 +74,28 @@ def test_errors_check_the_length_of_the_coefficients(cut, spaces):
         h1_error(VC, np.zeros(VC.n_dofs + 1), lambda p: np.zeros(p.shape))
 
 
+# 3. measures of another background ------------------------------------------------------------
+
+def test_a_measure_of_another_background_is_refused(cut, spaces):
+    VN = spaces[0]
+    xA = VN.dof_points[:, 0]
+    shifted = cut_mesh(structured_box([-1.0, -1.2, -1.2], [1.4, 1.2, 1.2], spacing=0.2), Sphere(0.8, center=(0.2, 0, 0)))
+    for call in (lambda: l2_error(VN, xA**2, lambda p: p[..., 0] ** 2, shifted.dx(NEG)),  # used to give 0.0586
+                 lambda: assemble(mass(shifted.dx(NEG)), VN),
+                 lambda: l2_error(VN, xA, X, shifted.ds()),
+                 lambda: CutP1Space(cut, shifted.elements(NEG))):
+        with pytest.raises(ValueError, match="another background mesh"):
+            call()
+    VB = CutP1Space(shifted, NEG)
+    assert l2_error(VB, VB.dof_points[:, 0] ** 2, lambda p: p[..., 0] ** 2, shifted.dx(NEG)) == pytest.approx(0.0105331, rel=1e-4)
+    # the same box built again, another cut of it: the same tets, so its measures serve the field
+    other = cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=0.2), Sphere(0.8, center=(0.1, 0, 0)))
+    M = assemble(mass(other.dx(NEG)), VN)
+    one = np.ones(VN.n_dofs)
+    assert one @ M @ xA == pytest.approx(0.1 * other.dx(NEG).size, rel=1e-12)
+    assert l2_error(VN, xA, X, other.ds()) < 1e-14
+
+
 # 6. exact solutions and product spaces in the errors -----------------------------------------
 
 def test_error_functionals_say_what_they_need(cut, spaces):
