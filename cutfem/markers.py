@@ -94,6 +94,17 @@ def interior_facets(tets: np.ndarray, n_nodes: int, kuhn=None):
     return rows >> 2, (rows & 3).astype(np.int8)
 
 
+def _integer_ids(tet_ids) -> np.ndarray:
+    """``tet_ids`` as int64 (m,), or a ValueError unless they are a 1-D array of integers."""
+    ids = np.asarray(tet_ids)
+    if ids.ndim != 1:
+        raise ValueError(f"tet_ids must be a 1-D array of background tet ids, got shape {ids.shape}")
+    if ids.size and ids.dtype.kind not in "iu":
+        what = "a boolean mask (use np.flatnonzero(mask))" if ids.dtype.kind == "b" else f"an array of dtype {ids.dtype}"
+        raise ValueError(f"tet_ids must be integer background tet ids, got {what}")
+    return ids.astype(np.int64, copy=False)
+
+
 class ElementSet:
     """A set of tets of a background mesh with a node numbering of its own.
 
@@ -102,12 +113,17 @@ class ElementSet:
     barycentric coordinates; ``volumes`` (m,); ``h`` (m,) the longest edge of each tet.
     ``name`` says which set it is (``"neg"``, ``"pos"``, ``"cut"`` or a user's name); ``cut`` is the
     cut it comes from (or None).  ``normals`` (m, 3): n_h of the cut tets (only for the set of cut tets).
+
+    ``tet_ids`` must be a 1-D array of integers (not floats, not a boolean mask: use
+    ``np.flatnonzero(mask)``), each in ``[0, background.n_tets)`` and none twice (a repeated tet would
+    be integrated again); anything else is refused with a ValueError.
     """
 
     def __init__(self, background, tet_ids, *, name="elements", cut=None, tets=None, node_ids=None, points=None,
                  gradients=None, volumes=None, normals=None):
         self.background = background
-        self.tet_ids = np.asarray(tet_ids, dtype=np.int64)
+        self.tet_ids = _integer_ids(tet_ids)
+        self._check_ids()  # before any use of the ids: one out of range reads outside the mesh
         self.name = name
         self.cut = cut
         structured = isinstance(background, StructuredBox)
@@ -128,6 +144,20 @@ class ElementSet:
         self._gradients = gradients  # None on a structured box: read off the Kuhn table on access
         self._volumes = None if structured else volumes  # on a structured box every tet has the box's volume
         self.normals = normals
+
+    def _check_ids(self):
+        """A ValueError unless the ids lie in [0, n_tets) and none repeats: on the sorted ids kept for
+        the searches (:attr:`_lookup`; the sides' sets come sorted, no sort), the ends and the
+        neighbours."""
+        sorted_ids, n_tets = self._lookup[1], self.background.n_tets
+        if len(sorted_ids) and (sorted_ids[0] < 0 or sorted_ids[-1] >= n_tets):
+            bad = int(sorted_ids[0] if sorted_ids[0] < 0 else sorted_ids[-1])
+            raise ValueError(f"tet_ids must lie in [0, {n_tets}) (the tets of the background mesh), got {bad}")
+        same = sorted_ids[1:] == sorted_ids[:-1]
+        if same.any():
+            dup = sorted_ids[1:][same]
+            raise ValueError(f"tet_ids of an element set must not repeat a tet (it would be integrated again); "
+                             f"{len(np.unique(dup))} repeated, the first {int(dup[0])}")
 
     @property
     def volumes(self) -> np.ndarray:
@@ -322,10 +352,27 @@ class FacetSet:
     def n_facets(self) -> int:
         return len(self.pairs)
 
-    def subset(self, mask, name=None) -> "FacetSet":
-        """The facets where ``mask`` (F,) is true."""
-        mask = np.asarray(mask, dtype=bool)
-        return FacetSet(self.elements, self.pairs[mask], self.opposite[mask], name=name or self.name)
+    def subset(self, selection, name=None) -> "FacetSet":
+        """The facets where the boolean ``selection`` (F,) is true, or the facets of the integer
+        indices ``selection`` (in [0, F), kept in the order given, none twice).  Anything else (a
+        mask of another length, floats, indices out of range or repeated) is refused with a
+        ValueError."""
+        sel = np.asarray(selection)
+        F = self.n_facets
+        if sel.ndim != 1 or not (sel.dtype.kind in "biu" or sel.size == 0):
+            raise ValueError(f"subset takes a boolean mask of shape ({F},) or integer facet indices, got an array of "
+                             f"shape {sel.shape} and dtype {sel.dtype}")
+        if sel.dtype.kind == "b":
+            if len(sel) != F:
+                raise ValueError(f"a boolean mask of the facets must have shape ({F},), got ({len(sel)},)")
+        else:
+            sel = sel.astype(np.int64, copy=False)
+            if sel.size and (sel.min() < 0 or sel.max() >= F):
+                raise ValueError(f"facet indices must lie in [0, {F}), got {int(sel.min() if sel.min() < 0 else sel.max())}")
+            if len(np.unique(sel)) != len(sel):
+                raise ValueError("facet indices must not repeat a facet (it would be integrated again); for a 0/1 "
+                                 "mask pass booleans")
+        return FacetSet(self.elements, self.pairs[sel], self.opposite[sel], name=name or self.name)
 
     def normals_areas(self):
         """(unit normals (F, 3) out of the minus tet, areas (F,)), computed on each call from the

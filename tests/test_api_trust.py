@@ -96,6 +96,40 @@ def test_a_measure_of_another_background_is_refused(cut, spaces):
     assert l2_error(VN, xA, X, other.ds()) < 1e-14
 
 
+# 4. element and facet ids ---------------------------------------------------------------------
+
+def test_element_set_ids_are_checked(cut):
+    bg = cut.background
+    for bad in ([bg.n_tets], [10**9], [-1], [bg.n_tets, bg.n_tets + 7]):  # 10**9 and -1 used to segfault
+        with pytest.raises(ValueError, match=rf"must lie in \[0, {bg.n_tets}\)"):
+            ElementSet(bg, np.array(bad), cut=cut)
+    with pytest.raises(ValueError, match="must not repeat a tet"):  # [5, 5, 5] used to count three times
+        ElementSet(bg, np.array([5, 5, 5]), cut=cut)
+    with pytest.raises(ValueError, match="integer background tet ids, got an array of dtype float64"):
+        ElementSet(bg, np.array([1.5, 2.7]), cut=cut)
+    with pytest.raises(ValueError, match="flatnonzero"):
+        ElementSet(bg, np.ones(bg.n_tets, bool), cut=cut)
+    es = ElementSet(bg, np.array([7, 5]), cut=cut)
+    assert cut.dx(es).size == pytest.approx(2 * bg.tet_volume, rel=1e-14)
+    assert ElementSet(bg, np.array([], dtype=np.int64), cut=cut).n_elements == 0
+
+
+def test_facet_subset_takes_masks_and_indices(cut):
+    fs = cut.interior_facets(CUT)
+    mask = np.zeros(fs.n_facets, bool)
+    mask[[0, 4, 9]] = True
+    by_index = fs.subset(np.array([0, 4, 9]))
+    assert by_index.n_facets == 3 and np.array_equal(by_index.pairs, fs.subset(mask).pairs)
+    with pytest.raises(ValueError, match=rf"boolean mask of the facets must have shape \({fs.n_facets},\), got \(5,\)"):
+        fs.subset(np.ones(5, bool))
+    with pytest.raises(ValueError, match=rf"facet indices must lie in \[0, {fs.n_facets}\)"):
+        fs.subset([fs.n_facets])
+    with pytest.raises(ValueError, match="must not repeat a facet"):
+        fs.subset([1, 1])
+    with pytest.raises(ValueError, match="boolean mask .* or integer facet indices"):
+        fs.subset(np.ones(fs.n_facets))
+
+
 # 6. exact solutions and product spaces in the errors -----------------------------------------
 
 def test_error_functionals_say_what_they_need(cut, spaces):
