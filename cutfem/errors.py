@@ -204,14 +204,47 @@ def surface_integral(space, coeffs) -> np.ndarray:
     return np.einsum("m,mk...->...", area / 3.0, np.asarray(values)[triangles])
 
 
-def rates(h, errors) -> np.ndarray:
-    """Rates between consecutive levels, log(e_i/e_{i+1}) / log(h_i/h_{i+1}); length len(h) - 1."""
+def _levels(h, errors, what: str):
+    """(h, e) as float arrays of one length, checked: h positive and finite, every error positive
+    and finite or missing (None or NaN, kept as NaN); a ValueError naming the first bad entry."""
+    if np.ndim(h) != 1 or np.ndim(errors) != 1 or len(h) != len(errors):
+        raise ValueError(f"{what}: h and errors must be two sequences of the same length, got shapes {np.shape(h)} and "
+                         f"{np.shape(errors)}")
     h = np.asarray(h, dtype=float)
-    e = np.asarray(errors, dtype=float)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.log(e[:-1] / e[1:]) / np.log(h[:-1] / h[1:])
+    e = np.array([np.nan if v is None else v for v in errors], dtype=float)
+    bad = ~(np.isfinite(h) & (h > 0))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{what}: every h must be positive and finite, got h[{i}] = {h[i]}")
+    bad = ~np.isnan(e) & ~(np.isfinite(e) & (e > 0))
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{what}: an error must be positive and finite (or None/NaN for a level without it), got "
+                         f"errors[{i}] = {e[i]}")
+    return h, e
+
+
+def rates(h, errors) -> np.ndarray:
+    """Rates between consecutive levels, log(e_i/e_{i+1}) / log(h_i/h_{i+1}); length len(h) - 1.
+
+    ``h`` and ``errors``: sequences of one length, h positive and finite with no two consecutive
+    levels equal, the errors positive and finite; an error that is missing (None or NaN: a level
+    without it) gives NaN for the rates next to it.  Anything else raises a ValueError."""
+    h, e = _levels(h, errors, "rates")
+    same = h[:-1] == h[1:]
+    if same.any():
+        i = int(np.flatnonzero(same)[0])
+        raise ValueError(f"rates: consecutive levels need different h, got h[{i}] = h[{i + 1}] = {h[i]}")
+    return np.log(e[:-1] / e[1:]) / np.log(h[:-1] / h[1:])
 
 
 def fitted_rate(h, errors) -> float:
-    """Least-squares slope of log(error) against log(h)."""
-    return float(np.polyfit(np.log(np.asarray(h, float)), np.log(np.asarray(errors, float)), 1)[0])
+    """Least-squares slope of log(error) against log(h) over the levels with an error (missing
+    errors, None or NaN, are left out).  ``h`` and ``errors`` as for :func:`rates`; the fit needs
+    at least two levels with an error and two distinct h among them, else a ValueError."""
+    h, e = _levels(h, errors, "fitted_rate")
+    have = ~np.isnan(e)
+    if len(np.unique(h[have])) < 2:
+        raise ValueError(f"fitted_rate: a fit needs errors at two levels of different h at least, got {int(have.sum())} "
+                         f"error(s) at h = {h[have].tolist()}")
+    return float(np.polyfit(np.log(h[have]), np.log(e[have]), 1)[0])

@@ -130,6 +130,28 @@ def test_facet_subset_takes_masks_and_indices(cut):
         fs.subset(np.ones(fs.n_facets))
 
 
+# 5. convergence data --------------------------------------------------------------------------
+
+def test_rates_refuse_bad_levels():
+    with pytest.raises(ValueError, match="same length"):  # used to broadcast to [2.0, 2.06]
+        rates([0.2, 0.1], [1, 0.25, 0.06])
+    with pytest.raises(ValueError, match="consecutive levels need different h"):  # used to give inf
+        rates([0.2, 0.2], [1.0, 0.25])
+    with pytest.raises(ValueError, match=r"positive and finite .* errors\[1\] = -0.25"):  # used to give nan
+        rates([0.2, 0.1], [1.0, -0.25])
+    with pytest.raises(ValueError, match=r"h\[1\] = 0.0"):
+        rates([0.2, 0.0], [1.0, 0.25])
+    with pytest.raises(ValueError, match="two levels of different h"):  # used to give 0.0 with a RankWarning
+        fitted_rate([0.2], [1.0])
+    with pytest.raises(ValueError, match="two levels of different h"):
+        fitted_rate([0.2, 0.2], [1.0, 0.5])
+    # a level without an error: None (or NaN) gives NaN next to it, and is left out of the fit
+    np.testing.assert_allclose(rates([0.4, 0.2, 0.1], [1.6, None, 0.1]), [np.nan, np.nan])
+    h = np.array([0.4, 0.2, 0.1, 0.05])
+    assert fitted_rate(h, [3 * 0.16, None, 3 * 0.01, 3 * 0.0025]) == pytest.approx(2.0, rel=1e-12)
+    np.testing.assert_allclose(rates(h, 3 * h**2), [2.0, 2.0, 2.0], rtol=1e-12)
+
+
 # 6. exact solutions and product spaces in the errors -----------------------------------------
 
 def test_error_functionals_say_what_they_need(cut, spaces):
