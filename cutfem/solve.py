@@ -555,18 +555,21 @@ def _diagonal(A):
 
 def _checked_matrix(A, where: str):
     """A as a canonical CSR matrix (:func:`_canonical_csr`), refused (ValueError naming the problem)
-    unless it is square with finite values."""
+    unless it is square, not empty (n >= 1) and with finite values."""
     A = _canonical_csr(A)
     if A.shape[0] != A.shape[1]:
         raise ValueError(f"{where}: the matrix must be square, got shape {A.shape}")
+    if A.shape[0] == 0:
+        raise ValueError(f"{where}: the system is empty (a 0 x 0 matrix): there are no unknowns to solve for; check the "
+                         "space (an element set without elements?)")
     _check_finite(A.data, "matrix", where, "check the assembled forms (a coefficient, a penalty or a level set with "
                   "NaN values)", rows=lambda k: np.searchsorted(A.indptr, k, side="right") - 1)
     return A
 
 
 def _checked_rhs(B, n: int, where: str):
-    """B as a float array of shape (n,) or (n, c), refused (ValueError naming the problem) when it
-    is complex, of another shape or not finite."""
+    """B as a float array of shape (n,) or (n, c) with c >= 1, refused (ValueError naming the
+    problem) when it is complex, of another shape, without columns or not finite."""
     B = np.asarray(B)
     if np.iscomplexobj(B):
         raise ValueError(f"{where}: the right-hand side is complex, and the solvers are real; solve its real and "
@@ -574,8 +577,23 @@ def _checked_rhs(B, n: int, where: str):
     B = np.asarray(B, dtype=float)
     if B.ndim not in (1, 2) or B.shape[0] != n:
         raise ValueError(f"{where}: the right-hand side must have shape ({n},) or ({n}, c), got {B.shape}")
+    if B.ndim == 2 and B.shape[1] == 0:
+        raise ValueError(f"{where}: the right-hand side has no columns (shape {B.shape}); give shape ({n},) or ({n}, c) "
+                         "with c >= 1")
     _check_finite(B, "right-hand side", where, "check the loads (a source function or boundary data with NaN values)")
     return B
+
+
+def _checked_tol(tol, where: str) -> float:
+    """The relative residual ``tol`` of an iterative solve: a number with 0 < tol < 1 (at tol >= 1
+    the zero vector already passes, and CG would return it after no iteration)."""
+    try:
+        value = float(tol)
+    except (TypeError, ValueError):
+        value = np.nan
+    if not 0 < value < 1:
+        raise ValueError(f"{where}: tol must be a positive relative residual below 1 (e.g. 1e-8), got {tol!r}")
+    return value
 
 
 def scaled(A, where: str = "the solver", _checks=None):
@@ -627,8 +645,9 @@ class DirectSolver:
     "indefinite"; one within +-``pivot_tol`` times the largest, a zero diagonal entry or a failed
     LU, "singular" or "over-stabilized" (:func:`diagnose`, which then gets a near-null vector from
     two steps of inverse iteration with the factorization, or with that of S + 1e-8 I when the LU
-    failed).  ``kernels``, ``stabilization`` and ``indefinite_hint`` let :func:`diagnose` name the
-    cause.  A non-symmetric matrix with ``spd=True`` is refused (ValueError).
+    failed).  ``pivot_tol``: a number in [0, 1).  ``kernels``, ``stabilization`` and
+    ``indefinite_hint`` let :func:`diagnose` name the cause.  A non-symmetric matrix with
+    ``spd=True`` is refused (ValueError), as are an empty (0 x 0), non-square or non-finite matrix.
 
     ``spd=False``: a general square matrix (indefinite or non-symmetric by design), SuperLU with
     partial pivoting on A scaled by its nonzero |diagonal|; only a failed factorization is
@@ -641,6 +660,14 @@ class DirectSolver:
                  stabilization=None, indefinite_hint=None, where: str = "the direct solver", _checks=None):
         if method not in ("auto", "banded", "superlu"):
             raise ValueError(f"unknown factorization {method!r}; use 'auto', 'banded' or 'superlu'")
+        try:
+            pivot_ok = 0 <= float(pivot_tol) < 1
+        except (TypeError, ValueError):
+            pivot_ok = False
+        if not pivot_ok:
+            raise ValueError(f"{where}: pivot_tol must be a number in [0, 1) (a pivot within +-pivot_tol times the "
+                             f"largest counts as zero), got {pivot_tol!r}")
+        pivot_tol = float(pivot_tol)
         A = _checked_matrix(A, where)
         self.n = A.shape[0]
         if not spd:
@@ -1502,7 +1529,7 @@ class CGSolver:
     ``prolongations``, see :func:`multigrid_hierarchy`; ``multigrid``: its options), "amg" (smoothed
     aggregation, pyamg; with ``points`` (n, 3) the linear functions are its near-kernel
     candidates), "jacobi" (the inverse diagonal) or "none".  ``tol``: the relative residual
-    ||A x - b|| / ||b|| of every column; ``maxiter``: the most iterations.  ``setup``: the seconds
+    ||A x - b|| / ||b|| of every column, 0 < tol < 1; ``maxiter``: the most iterations.  ``setup``: the seconds
     the construction took.
 
     Sequences of systems with one matrix (time steps, continuation) pass a starting guess to
@@ -1525,8 +1552,7 @@ class CGSolver:
         preconditioner = "none" if preconditioner is None else preconditioner
         if preconditioner not in self.PRECONDITIONERS:
             raise ValueError(f"unknown preconditioner {preconditioner!r}; use 'mg', 'amg', 'jacobi' or 'none'")
-        if not tol > 0:
-            raise ValueError(f"tol must be a positive relative residual, got {tol!r}")
+        tol = _checked_tol(tol, "CG")
         A = _checked_matrix(A, "CG")
         checks = _checks if _checks is not None else _Checks.of(kernels, stabilization, indefinite_hint, A.shape[0])
         self.warn_after = 10**9
@@ -1569,8 +1595,11 @@ class CGSolver:
         cols = B.reshape(n, -1)
         if x0 is not None:
             x0 = np.asarray(x0, dtype=float)
-            if x0.shape != B.shape or not np.all(np.isfinite(x0)):
+            if x0.shape != B.shape:
                 raise ValueError(f"x0 must be a finite array of the right-hand side's shape {B.shape}, got {x0.shape}")
+            if not np.all(np.isfinite(x0)):
+                raise ValueError(f"x0 must be a finite array: it has {int(np.sum(~np.isfinite(x0)))} non-finite entries "
+                                 f"(NaN or inf) among {x0.size}")
             x0 = x0.reshape(cols.shape)
         X, it, rel = _pcg(self.A, self._precond, cols, self.tol, self.maxiter, self._name, self._checks,
                           warn_after=self.warn_after, x0=x0, cache=self._cache)
@@ -1609,8 +1638,10 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
     hierarchy (``space`` on a StructuredBox or on a surface mesh, see :func:`multigrid_hierarchy`;
     or ``lattice`` given), else direct up to
     :data:`DIRECT_LIMIT_NO_MG` and "cg-amg" above.  ``space`` also provides the dof coordinates for
-    the AMG candidates.  ``tol``: relative residual of the iterative methods (default
-    :data:`DEFAULT_TOL`).
+    the AMG candidates, and must have n unknowns (``space.n_dofs == n``, else a ValueError).
+    ``tol``: relative residual of the iterative methods, 0 < tol < 1 (default :data:`DEFAULT_TOL`).
+    An empty system, a right-hand side without columns, and a non-square or non-finite matrix are
+    refused (ValueError).
 
     A system that is not positive definite raises :class:`SolverError` with its cause, on every
     path.  What the caller knows helps to name it (:func:`diagnose`): ``kernels`` ({name: (n,)
@@ -1629,7 +1660,10 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
     A = _checked_matrix(A, "solve")  # before the null-vector checks, whose NaN would read as "singular"
     n = A.shape[0]
     B = _checked_rhs(B, n, "solve")
-    tol = DEFAULT_TOL if tol is None else tol
+    tol = DEFAULT_TOL if tol is None else _checked_tol(tol, "solve")
+    if space is not None and getattr(space, "n_dofs", n) != n:
+        raise ValueError(f"solve: the space has {space.n_dofs} unknowns and the matrix {n}: pass the space the system "
+                         "was assembled on (space= gives the multigrid hierarchy, the dof coordinates and phi_h)")
     kernels = dict(kernels or {})
     phi = getattr(getattr(space, "cut", None), "values", None)
     if phi is not None and np.shape(phi) == (n,):
@@ -1697,11 +1731,15 @@ def condition_number(A, tol: float = 1e-8, kernels=None, stabilization=None) -> 
     SuperLU (no pivoting), whose negative pivots count the negative eigenvalues (Sylvester); the
     smallest magnitude by shift-invert Lanczos around 0 with that factorization.  A failed
     factorization gives ``inf``.  ``kernels`` and ``stabilization``: as for :func:`diagnose`.
+
+    "Never an exception" is about the system: a singular or indefinite matrix gives its verdict.
+    Bad input is refused with a ValueError before any eigenvalue is sought: a matrix that is not
+    square, is empty, or has a NaN or inf entry (no spectrum to tabulate).
     """
+    A = _checked_matrix(A, "condition_number")
     checks = _Checks.of(kernels, stabilization, None, A.shape[0])
-    A = _canonical_csr(A)
     d = A.diagonal()
-    if np.any(d == 0) or not np.all(np.isfinite(d)):
+    if np.any(d == 0):
         err = diagnose(A, where="condition_number", _checks=checks)
         return ConditionNumber(np.inf, err.cause, err.smallest, np.nan, err)
     # a negative diagonal entry is a basis function of negative energy (indefinite); scaling by |d|

@@ -165,3 +165,46 @@ def test_error_functionals_say_what_they_need(cut, spaces):
     assert l2 < 1e-14 and h1 < 1e-13
     with pytest.raises(ValueError, match=r"per field.*\['u0', 'u1'\].*l2_error\(W\[k\], W\.split\(x\)\[k\]"):
         l2_error(W, np.zeros(W.n_dofs), X, cut.dx(NEG))
+
+
+# 7. solver entry ------------------------------------------------------------------------------
+
+def test_solver_entry_checks(spaces):
+    A = laplacian_1d()
+    n = A.shape[0]
+    b = np.ones(n)
+    with pytest.raises(ValueError, match=r"no columns \(shape \(50, 0\)\)"):
+        solve(A, np.ones((n, 0)))
+    with pytest.raises(ValueError, match="no columns"):
+        CGSolver(A, "jacobi").solve(np.ones((n, 0)))
+    for call in (lambda: solve(sp.csr_matrix((0, 0)), np.ones(0)), lambda: DirectSolver(sp.csr_matrix((0, 0)))):
+        with pytest.raises(ValueError, match="the system is empty"):
+            call()
+    for tol in (10, 1.0, 0.0, np.nan):  # tol=10 used to return x = 0 after 0 iterations
+        with pytest.raises(ValueError, match="tol must be a positive relative residual below 1"):
+            solve(A, b, method="cg-jacobi", tol=tol)
+    with pytest.raises(ValueError, match="below 1"):
+        CGSolver(A, "jacobi", tol=5)
+    for pivot_tol in (-1, np.nan, 2, "x"):  # -1 used to call this SPD matrix indefinite
+        with pytest.raises(ValueError, match=r"pivot_tol must be a number in \[0, 1\)"):
+            DirectSolver(A, pivot_tol=pivot_tol)
+    assert np.allclose(A @ DirectSolver(A, pivot_tol=0).solve(b), b)
+    with pytest.raises(ValueError, match=r"x0 must be a finite array: it has 1 non-finite"):
+        CGSolver(A, "jacobi").solve(b, x0=np.r_[np.nan, np.zeros(n - 1)])
+    VN = spaces[0]
+    for method in ("cg-mg", "cg-amg", "direct"):
+        with pytest.raises(ValueError, match=rf"the space has {VN.n_dofs} unknowns and the matrix {n}"):
+            solve(A, b, method=method, space=VN)
+
+
+def test_condition_number_refuses_bad_input_and_keeps_its_verdicts():
+    A = laplacian_1d()
+    B = A.tolil()
+    B[1, 1] = np.nan
+    with pytest.raises(ValueError, match="condition_number: the matrix has 1 non-finite"):  # used to be an ArpackError
+        condition_number(B.tocsr())
+    with pytest.raises(ValueError, match="condition_number: the matrix must be square"):
+        condition_number(A[:, :-1])
+    kappa = condition_number(A)
+    assert kappa.cause is None and float(kappa) == pytest.approx(1 / np.tan(np.pi / (2 * 51)) ** 2, rel=1e-8)
+    assert condition_number(-A).cause == "indefinite"
