@@ -696,6 +696,23 @@ class StructuredBox(TetMesh):
         )
 
 
+def _per_axis(name: str, value, scalar: bool, integral: bool = False) -> np.ndarray:
+    """``value`` as 3 numbers (x, y, z): a real array of shape (3,), or with ``scalar`` also one
+    number for all axes; ``integral``: whole numbers, returned as int64.  A ValueError naming
+    ``name`` for anything else (strings, booleans, 2-D corners, two values)."""
+    a = np.asarray(value)
+    what = "a number or 3 numbers (x, y, z)" if scalar else "3 numbers (x, y, z)"
+    if integral:
+        what = what.replace("number", "whole number")
+    if a.dtype.kind not in "iuf" or a.shape not in (((), (3,)) if scalar else ((3,),)):
+        raise ValueError(f"{name} must be {what}, got {value!r}")
+    if integral:
+        if not (np.all(np.isfinite(a)) and np.all(a == np.rint(a))):
+            raise ValueError(f"{name} must be {what}, got {value!r}")
+        return np.broadcast_to(a.astype(np.int64), (3,))
+    return np.broadcast_to(a.astype(float), (3,))
+
+
 def structured_box(lower, upper, spacing=None, cells=None) -> StructuredBox:
     """Structured tetrahedral mesh of the box ``[lower, upper]`` (6 Kuhn tets per cuboid).
 
@@ -709,16 +726,19 @@ def structured_box(lower, upper, spacing=None, cells=None) -> StructuredBox:
       ``n = ceil((upper - lower) / spacing)``, so that it still contains the box asked for (and the
       surface inside it); ``box.lower``/``box.upper`` are the corners used.  It is never shrunk and
       the spacing is never changed to fit the box.
+
+    ``lower`` and ``upper`` are 3 numbers each; ``cells`` whole numbers (2.5 is refused, not
+    truncated).  Anything else is refused with a ValueError naming the argument.
     """
-    lower = np.asarray(lower, dtype=float).reshape(3)
-    upper = np.asarray(upper, dtype=float).reshape(3)
+    lower = _per_axis("lower", lower, scalar=False)
+    upper = _per_axis("upper", upper, scalar=False)
     if (spacing is None) == (cells is None):
         raise ValueError("give exactly one of spacing= or cells=")
     if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))) or np.any(upper <= lower):
         raise ValueError(f"box must have finite corners with upper > lower in every axis, got lower={lower.tolist()}, upper={upper.tolist()}")
     if cells is not None:
-        return StructuredBox(lower, upper, np.broadcast_to(np.asarray(cells, dtype=np.int64), (3,)))
-    spacing = np.broadcast_to(np.asarray(spacing, dtype=float), (3,))
+        return StructuredBox(lower, upper, _per_axis("cells", cells, scalar=True, integral=True))
+    spacing = _per_axis("spacing", spacing, scalar=True)
     if np.any(~np.isfinite(spacing)) or np.any(spacing <= 0):
         raise ValueError(f"spacing must be a positive finite number, got {spacing.tolist()}; give e.g. spacing=0.1")
     ratio = (upper - lower) / spacing

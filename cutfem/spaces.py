@@ -59,6 +59,19 @@ def barycentric_at(points: np.ndarray, origin: np.ndarray, grads: np.ndarray) ->
     return lam
 
 
+def _mesh_size(h, default) -> float:
+    """The global mesh size ``h`` of a space (``default`` when None): a positive finite number."""
+    if h is None:
+        return float(default)
+    try:
+        value = float(h)
+    except (TypeError, ValueError):
+        raise ValueError(f"h must be a positive finite number (the mesh size), got {h!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"h must be a positive finite number (the mesh size), got {h!r}")
+    return value
+
+
 class _P1Space:
     """Shared machinery: cached sparsity patterns (surface meshes) and evaluation of discrete functions."""
 
@@ -163,7 +176,8 @@ class _P1Space:
 class SurfaceP1Space(_P1Space):
     """Continuous P1 on a closed triangle surface mesh (meshed case); dofs are the mesh nodes.
 
-    ``h`` defaults to the global ``N**(-1/2)`` of docs/math.md §2 (N = number of nodes).
+    ``h`` defaults to the global ``N**(-1/2)`` of docs/math.md §2 (N = number of nodes); a given
+    ``h`` must be a positive finite number.
 
     The geometry is computed on demand: the mass, stiffness and edge penalty of
     :mod:`cutfem.forms` use closed forms in the areas and the edge-vector dot products of the
@@ -176,7 +190,7 @@ class SurfaceP1Space(_P1Space):
         self.n_dofs = int(len(mesh.points))
         self.element_dofs = np.asarray(mesh.triangles, dtype=np.int64)
         self.dof_points = np.asarray(mesh.points, dtype=float)
-        self.h = float(h) if h is not None else self.n_dofs ** -0.5
+        self.h = _mesh_size(h, self.n_dofs ** -0.5)
         self.elements = mesh
 
     @cached_property
@@ -247,8 +261,9 @@ class CutP1Space(_P1Space):
     """Continuous P1 on an element set of a cut: ``on=CUT`` (default) the cut tets, whose traces
     live on S_h (TraceFEM); ``on=NEG`` or ``POS`` the tets of one side (a bulk field of CutFEM);
     or any :class:`~cutfem.markers.ElementSet` of the cut.  Dofs are the nodes of the set, numbered
-    by increasing background id; ``node_ids`` maps them back.  ``h`` is the background ``N**(-1/3)``.
-    An element set given as ``on`` must lie on the cut's background mesh (:func:`~cutfem.markers.same_background`).
+    by increasing background id; ``node_ids`` maps them back.  ``h`` is the background ``N**(-1/3)``
+    unless given (a positive finite number).  An element set given as ``on`` must lie on the cut's
+    background mesh (:func:`~cutfem.markers.same_background`).
     """
 
     def __init__(self, cut, on=CUT, h: float | None = None):
@@ -263,7 +278,7 @@ class CutP1Space(_P1Space):
         self.dof_points = es.points
         self.element_normals = es.normals
         self.node_ids = es.node_ids
-        self.h = float(h) if h is not None else cut.h
+        self.h = _mesh_size(h, cut.h)
 
     def __repr__(self) -> str:
         return f"CutP1Space(on={self.elements.name!r}, dofs={self.n_dofs})"

@@ -208,3 +208,32 @@ def test_condition_number_refuses_bad_input_and_keeps_its_verdicts():
     kappa = condition_number(A)
     assert kappa.cause is None and float(kappa) == pytest.approx(1 / np.tan(np.pi / (2 * 51)) ** 2, rel=1e-8)
     assert condition_number(-A).cause == "indefinite"
+
+
+# 8. sizes -------------------------------------------------------------------------------------
+
+def test_mesh_sizes_are_checked(cut):
+    for h in (-1, 0, np.nan, np.inf):
+        with pytest.raises(ValueError, match="h must be a positive finite number"):
+            CutP1Space(cut, NEG, h=h)
+        with pytest.raises(ValueError, match="h must be a positive finite number"):
+            SurfaceP1Space(sphere_mesh(1), h=h)
+    assert CutP1Space(cut, NEG, h=0.25).h == 0.25
+
+
+def test_structured_box_arguments_are_checked():
+    with pytest.raises(ValueError, match=r"lower must be 3 numbers \(x, y, z\), got 0"):
+        structured_box(0, 1, spacing=0.5)
+    with pytest.raises(ValueError, match="lower must be 3 numbers"):
+        structured_box([0, 0], [1, 1], spacing=0.1)
+    with pytest.raises(ValueError, match=r"upper must be 3 numbers"):
+        structured_box([0, 0, 0], [[1, 1, 1]], spacing=0.1)
+    with pytest.raises(ValueError, match=r"spacing must be a number or 3 numbers"):
+        structured_box([0] * 3, [1] * 3, spacing=[0.5, 0.25])
+    with pytest.raises(ValueError, match=r"cells must be a whole number or 3 whole numbers .* got 2.5"):  # used to give 2
+        structured_box([0] * 3, [1] * 3, cells=2.5)
+    with pytest.raises(ValueError, match="cells must be"):
+        structured_box([0] * 3, [1] * 3, cells=(2, 3))
+    assert structured_box([0] * 3, [1] * 3, cells=3.0).cells.tolist() == [3, 3, 3]
+    box = structured_box([0] * 3, [1] * 3, spacing=[0.5, 0.25, 0.5])
+    assert box.cells.tolist() == [2, 4, 2]
