@@ -661,6 +661,9 @@ class CutMesh:
 
     def dF(self, facets):
         """The facet measure of a facet set (:class:`~cutfem.measures.FacetMeasure`)."""
+        if not isinstance(facets, FacetSet):
+            raise TypeError(f"dF takes a FacetSet (cut.interior_facets(...), cut.ghost_facets(...), or a subset of one), "
+                            f"got {type(facets).__name__}")
         key = ("dF", id(facets))
         if key not in self._measures:
             self._measures[key] = FacetMeasure(facets)

@@ -237,3 +237,11 @@ def test_structured_box_arguments_are_checked():
     assert structured_box([0] * 3, [1] * 3, cells=3.0).cells.tolist() == [3, 3, 3]
     box = structured_box([0] * 3, [1] * 3, spacing=[0.5, 0.25, 0.5])
     assert box.cells.tolist() == [2, 4, 2]
+
+
+def test_facet_measure_takes_a_facet_set_only():
+    cut = cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=0.4), Sphere(1.0))
+    assert cut.dF(cut.interior_facets(CUT)).facets.n_facets > 0
+    for wrong in (cut.elements(CUT), None, CUT):
+        with pytest.raises(TypeError, match="dF takes a FacetSet"):
+            cut.dF(wrong)
