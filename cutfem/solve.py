@@ -1734,7 +1734,8 @@ def condition_number(A, tol: float = 1e-8, kernels=None, stabilization=None) -> 
 
     "Never an exception" is about the system: a singular or indefinite matrix gives its verdict.
     Bad input is refused with a ValueError before any eigenvalue is sought: a matrix that is not
-    square, is empty, or has a NaN or inf entry (no spectrum to tabulate).
+    square, is empty, has a NaN or inf entry (no spectrum to tabulate), or is not symmetric (beyond
+    1e-8 of the scaled entries: round-off is averaged away).
     """
     A = _checked_matrix(A, "condition_number")
     checks = _Checks.of(kernels, stabilization, None, A.shape[0])
@@ -1746,6 +1747,11 @@ def condition_number(A, tol: float = 1e-8, kernels=None, stabilization=None) -> 
     # still measures the spread of the spectrum, which studies of unstabilized systems tabulate
     d = np.abs(d)
     S = sp.diags(1.0 / np.sqrt(d)) @ A @ sp.diags(1.0 / np.sqrt(d))
+    skew = abs(S - S.T).max() if S.nnz else 0.0
+    if skew > 1e-8:  # the mean below only removes round-off; a nonsymmetric A has no such verdict
+        raise ValueError(f"condition_number: the matrix is not symmetric (|S - S^T| reaches {skew:.3g} with S scaled to a "
+                         "unit diagonal); it measures symmetric matrices (use numpy.linalg.cond on a dense "
+                         "nonsymmetric one)")
     S = (0.5 * (S + S.T)).tocsr()
     n = S.shape[0]
     negative = 0
