@@ -250,7 +250,7 @@ def test_facet_measure_takes_a_facet_set_only():
 def test_condition_number_refuses_a_nonsymmetric_matrix():
     A = sp.diags([2.0] * 30) - sp.diags([0.5] * 29, 1) - sp.diags([0.5] * 29, -1)
     kappa = condition_number(A.tocsr())
-    lam = 2.0 - np.cos(np.pi * np.arange(1, 31) / 31)  # the eigenvalues of tridiag(-0.5, 2, -0.5) / 2 scaled
+    lam = 2.0 - np.cos(np.pi * np.arange(1, 31) / 31)  # eigenvalues of tridiag(-0.5, 2, -0.5); the scaling keeps their ratio
     assert kappa.cause is None and float(kappa) == pytest.approx(lam.max() / lam.min(), rel=1e-10)
     B = (A + sp.diags([0.3] * 29, 1)).tocsr()
     with pytest.raises(ValueError, match="not symmetric"):
