@@ -38,13 +38,14 @@ Built-in terms
 --------------
 :func:`mass`, :func:`stiffness`, :func:`tangential_stiffness`, :func:`face_jump_penalty` (J_F and
 the bulk ghost penalty), :func:`edge_jump_penalty` (J_E), :func:`normal_gradient_penalty`,
-:func:`nitsche` (symmetric Nitsche for Dirichlet data), :func:`interface_nitsche`
-(Hansbo-Hansbo coupling) and the linear terms :func:`load`, :func:`nitsche_load`,
-:func:`position_load`.  Each takes its measure (and, on a product space, ``field=``); the symmetric
-positive semidefinite ones are assembled as Gram matrices E^T E with exact P1 formulas
-(:func:`cutfem.assembly.gram`), several times faster than the general route and exactly symmetric;
-the general route gives the same matrices to round-off (tested).  Strong Dirichlet conditions:
-:func:`apply_dirichlet`.  The mathematics is in docs/math.md §3, §4 and §7-§10.
+:func:`nitsche` (symmetric Nitsche for Dirichlet data, with the outward normal of the field's
+side), :func:`interface_nitsche` (Hansbo-Hansbo coupling) and the linear terms :func:`load`,
+:func:`nitsche_load`, :func:`position_load`.  Each takes its measure (and, on a product space,
+``field=``); the symmetric positive semidefinite ones are assembled as Gram matrices E^T E with
+exact P1 formulas (:func:`cutfem.assembly.gram`), several times faster than the general route and
+exactly symmetric; the general route gives the same matrices to round-off (tested).  Strong
+Dirichlet conditions: :func:`apply_dirichlet`.  The mathematics is in docs/math.md §3, §4 and
+§7-§10.
 """
 
 from __future__ import annotations
@@ -56,7 +57,7 @@ from . import assembly as _assembly
 from .assembly import LatticeSum, PairSum, assemble_vector, gram, gram_sum
 from .measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from .numbering import TET_EDGES, index_dtype
-from .markers import CUT
+from .markers import CUT, NEG, POS, SIDES
 from .spaces import ProductSpace
 
 __all__ = [
@@ -244,6 +245,32 @@ def dot(a, b):
     if isinstance(a, _Zero) or isinstance(b, _Zero):
         return ZERO if (a is ZERO or b is ZERO) else _PROBE
     return np.einsum("...d,...d->...", a, b)
+
+
+def _require_function(f, what: str) -> None:
+    if not callable(f):
+        raise TypeError(f"{what} must be a function of the points x (m, q, 3), got {type(f).__name__} {f!r}")
+
+
+def _point_values(f, points: np.ndarray, what: str) -> np.ndarray:
+    """``f(points)`` for points (m, q, 3), checked: real, finite values of shape (m, q) or (m, q, c),
+    as floats; otherwise an error naming ``what``, the expected and the actual shape (a constant
+    is written ``np.full(x.shape[:-1], c)``)."""
+    value = np.asarray(f(points))
+    if value.dtype.kind == "c":
+        raise TypeError(f"{what} returned complex values; only real values are supported")
+    if value.dtype.kind not in "biuf":
+        raise TypeError(f"{what} must return real numbers, got {value.dtype} values")
+    if value.ndim not in (2, 3) or value.shape[:2] != points.shape[:2]:
+        raise ValueError(f"{what} must return shape (m, q) or (m, q, c) for points {points.shape}; got {value.shape} "
+                         "(a constant c is np.full(x.shape[:-1], c))")
+    value = value.astype(float, copy=False)
+    finite = np.isfinite(value)
+    if not finite.all():
+        bad = np.argwhere(~finite)[0]
+        raise ValueError(f"{what} is not finite at {np.count_nonzero(~finite)} of its values, e.g. {value[tuple(bad)]} at "
+                         f"x = {points[bad[0], bad[1]]}")
+    return value
 
 
 class QuadData:
@@ -1036,14 +1063,38 @@ def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=
     return Form([(1.0, _GramTerm(build, field))], False)
 
 
+def _side_of(space):
+    """NEG or POS for a bulk field on one side's element set of its cut (``CutP1Space(cut, NEG)`` or
+    ``CutP1Space(cut, POS)``: the set is the cut's own, :meth:`~cutfem.cut.CutMesh.elements`), else
+    None (the cut tets, another element set, a surface mesh)."""
+    cut, es = getattr(space, "cut", None), getattr(space, "elements", None)
+    side = getattr(es, "name", None)
+    if cut is None or side not in SIDES:
+        return None
+    return side if cut.elements(side) is es else None
+
+
+def _outward_sign(space, measure: SurfacePieces, what: str) -> float:
+    """The outward unit normal of the field's side on Gamma_h is ``sign * n_h`` (n_h points from NEG
+    to POS): +1 for a field of NEG, -1 for a field of POS.  A clear error for a field that is not a
+    bulk field of one side of the measure's cut: its outward normal is not defined."""
+    side = _side_of(space)
+    if side is None or space.cut is not measure.cut:
+        raise ValueError(f"{what} imposes a condition on Gamma_h for a bulk field of one side of the same cut, "
+                         f"CutP1Space(cut, NEG) or CutP1Space(cut, POS); got {space!r}")
+    return 1.0 if side == NEG else -1.0
+
+
 def nitsche(measure: SurfacePieces, gamma: float = 10.0, field=None) -> Form:
     """Symmetric Nitsche terms for u = g on Gamma (Burman-Hansbo, docs/math.md §8):
 
         -(n . grad u, v)_Gamma - (u, n . grad v)_Gamma + (gamma / h) (u, v)_Gamma,
 
-    n the normal of the measure (n_h, out of NEG) and h the local h_T of the cut tet.  The matching
-    right-hand side is :func:`nitsche_load`.  gamma must exceed an inverse-estimate constant, or the
-    matrix is indefinite; the solver reports that.
+    n the outward unit normal of the field's domain and h the local h_T of the cut tet.  The side
+    comes from the field: n = n_h (from NEG to POS) for ``CutP1Space(cut, NEG)``, n = -n_h for
+    ``CutP1Space(cut, POS)`` (the outer domain); any other field is refused (:func:`_outward_sign`).
+    The matching right-hand side is :func:`nitsche_load`.  gamma (a positive number) must exceed an
+    inverse-estimate constant, or the matrix is indefinite; the solver reports that.
 
     Exact for P1, per cut tet K with the piece S_K (area |S|, centroid c): grad u is constant and
     int_{S_K} lambda_i = |S| lambda_i(c), so the element matrix is
@@ -1057,11 +1108,14 @@ def nitsche(measure: SurfacePieces, gamma: float = 10.0, field=None) -> Form:
     _require(measure, SurfacePieces, "nitsche")
 
     def build(space, into):
+        sign = _outward_sign(space, measure, "nitsche")
         cut = measure.cut
         edges, diagonal, p = _piece_moments(cut)
         es = cut.elements(CUT)
         el = space.local_elements(measure, np.arange(es.n_elements))
         g = np.einsum("mkd,md->mk", space.gradients_of(el), es.normals)
+        if sign < 0:
+            g = -g
         scale = (gamma / es.h)[:, None]
         i, j = TET_EDGES[:, 0], TET_EDGES[:, 1]
         edges = edges * scale - (p[:, i] * g[:, j] + g[:, i] * p[:, j])
@@ -1071,17 +1125,36 @@ def nitsche(measure: SurfacePieces, gamma: float = 10.0, field=None) -> Form:
     return Form([(1.0, _GramTerm(build, field, summed=True))], False)
 
 
-def nitsche_load(g, measure: Measure, gamma: float = 10.0, field=None) -> Form:
+def nitsche_load(g, measure: SurfacePieces, gamma: float = 10.0, field=None) -> Form:
     """The Nitsche right-hand side of u = g on Gamma: -(g, n . grad v)_Gamma + (gamma / h) (g, v)_Gamma,
-    with ``g(x)`` evaluated at the quadrature points of Gamma_h (docs/math.md §8)."""
+    with ``g(x)`` evaluated at the quadrature points of Gamma_h (degree 4; docs/math.md §8) and n the
+    outward normal of the field's side, as in :func:`nitsche`.  ``g`` returns (m, q) or, for a
+    vector-valued field, (m, q, c) (the vector is then (n, c)); its values must be real and finite.
+
+    Block by block of the triangles of S_h, with weights w_q, basis values phi_k and the constant
+    n . grad phi_k of the cut tet: b_k = sum_q w_q g(x_q) (gamma / h_T phi_k(x_q) - n . grad phi_k)."""
     _positive(gamma=gamma)
+    _require(measure, SurfacePieces, "nitsche_load")
+    _require_function(g, "nitsche_load: g")
+    degree = 4
 
-    @linear_form
-    def terms(v, w):
-        gx = w.at(g)
-        return gx * (-dot(w.n, v.grad) + (gamma / w.h) * v.value)
+    def build(space):
+        sign = _outward_sign(space, measure, "nitsche_load")
+        out = None
+        for _, quad in measure.blocks(degree):
+            gw = _point_values(g, quad.points, "nitsche_load: g(x)")
+            gw = gw * (quad.weights if gw.ndim == 2 else quad.weights[..., None])
+            el = space.local_elements(measure, quad.parent)
+            phi = space.basis_on(measure, quad, el)
+            dn = sign * np.einsum("mkd,md->mk", space.gradients_of(el), quad.normal)
+            penalty = (gamma / measure.h[quad.parent]).reshape((-1,) + (1,) * (gw.ndim - 1))
+            local = np.einsum("mqk,mq...->mk...", phi, gw * penalty) - np.einsum("mk,m...->mk...", dn, gw.sum(axis=1))
+            if out is None:
+                out = np.zeros((space.n_dofs,) + local.shape[2:])
+            assemble_vector(np.take(space.element_dofs, el, axis=0), local, space.n_dofs, out=out)
+        return np.zeros(space.n_dofs) if out is None else out
 
-    return terms.on(measure, field) if field is not None else terms * measure
+    return Form([(1.0, _VectorTerm(build, field))], True)
 
 
 def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma: float = 10.0, weights: str = "harmonic",
