@@ -50,6 +50,8 @@ Dirichlet conditions: :func:`apply_dirichlet`.  The mathematics is in docs/math.
 
 from __future__ import annotations
 
+import numbers
+
 import numpy as np
 import scipy.sparse as sp
 
@@ -433,8 +435,11 @@ class Form:
 
 
 class _IntegrandTerm:
-    def __init__(self, integrand: Integrand, measure: Measure, field=None):
-        self.integrand, self.measure, self.field = integrand, measure, field
+    """``integrand * measure``, for all fields of a space or (``field``) one; ``check(space)``, if
+    given, is called before anything is evaluated (a built-in form's rule on the space)."""
+
+    def __init__(self, integrand: Integrand, measure: Measure, field=None, check=None):
+        self.integrand, self.measure, self.field, self.check = integrand, measure, field, check
 
     def _field_pairs(self, space, w):
         """The (trial, test) field pairs (or test fields, linear) that the integrand couples."""
@@ -467,6 +472,8 @@ class _IntegrandTerm:
         """Local vectors (linear) or matrices (bilinear) of the term, block by block of the measure's
         cells (:meth:`~cutfem.measures.Measure.blocks`): the points, basis values and integrand
         values of one block at a time.  The coupled field pairs are found on the first block."""
+        if self.check is not None:
+            self.check(space)
         pairs = None
         for _, quad in self.measure.blocks(self.integrand.degree):
             w = _quad_data(self.measure, quad, params)
@@ -540,14 +547,21 @@ class _VectorTerm:
 
 
 def _field_index(space, field):
+    """The position of ``field`` in ``space``: a name of a product space's fields, or a position
+    0..n-1 (an integer: not a bool, a float or a negative number); None for the only field."""
     if isinstance(space, ProductSpace):
+        nf = len(space.fields)
         if field is None:
-            if len(space.fields) == 1:
+            if nf == 1:
                 return 0
-            raise ValueError(f"on a product space of {len(space.fields)} fields, give field= (a position or one of {space.names})")
-        return space.index(field)
-    if field not in (None, 0):
-        raise ValueError(f"field={field!r} given for a single field")
+            raise ValueError(f"on a product space of {nf} fields, give field= (a position or one of {space.names})")
+        if isinstance(field, str):
+            return space.index(field)
+        if isinstance(field, (bool, np.bool_)) or not isinstance(field, numbers.Integral) or not 0 <= field < nf:
+            raise ValueError(f"field={field!r}: give a position 0..{nf - 1} or one of the names {space.names} of the product space's fields")
+        return int(field)
+    if field is not None and (isinstance(field, (bool, np.bool_)) or field != 0):
+        raise ValueError(f"field={field!r} given for a single field (a space that is not a ProductSpace)")
     return 0
 
 
@@ -1168,23 +1182,47 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
     contrast; ``weights="volume"``: k_i = |T ∩ Omega_i| / |T| per cut tet.  The penalty is
     lambda = 2 gamma (k_NEG^2 a_NEG + k_POS^2 a_POS), the weight that bounds the flux average by the
     energy of both sides; for harmonic weights it equals gamma times the harmonic mean
-    2 a_NEG a_POS / (a_NEG + a_POS).  ``fields`` names the NEG and the POS field of the product space."""
+    2 a_NEG a_POS / (a_NEG + a_POS).
+
+    ``fields = (f_NEG, f_POS)`` (positions or names) are the NEG field, then the POS field, of a
+    :class:`~cutfem.spaces.ProductSpace`: ``CutP1Space(cut, NEG)`` and ``CutP1Space(cut, POS)`` of
+    the measure's cut.  The rule is checked when the form is assembled, never adapted: two fields in
+    the other order, the same field twice, a field of another element set or a single space are
+    refused with the fix (e.g. ``fields=(1, 0)`` for ``ProductSpace(V_pos, V_neg)``)."""
     _require(measure, SurfacePieces, "interface_nitsche")
     _positive(a_neg=a_neg, a_pos=a_pos, gamma=gamma)
+    if isinstance(fields, str) or np.ndim(fields) != 1 or len(fields) != 2:
+        raise ValueError(f"fields must be a pair (NEG field, POS field) of positions or names, got {fields!r}")
     if weights == "harmonic":
         k_neg = np.full(measure.elements.n_elements, a_pos / (a_neg + a_pos))
     elif weights == "volume":
-        from .markers import NEG
-
         k_neg = measure.side_fraction(NEG)
     else:
         raise ValueError(f"weights must be 'harmonic' or 'volume', got {weights!r}")
     k_pos = 1.0 - k_neg
     lam = 2.0 * gamma * (k_neg**2 * a_neg + k_pos**2 * a_pos)
-    i_neg, i_pos = fields
+    at = {}  # the positions of the NEG and the POS field in the space being assembled (set by check)
+
+    def check(space):
+        if not isinstance(space, ProductSpace):
+            raise TypeError(f"interface_nitsche couples two fields: assemble it on ProductSpace(V_neg, V_pos), not on {space!r}")
+        k = [_field_index(space, f) for f in fields]
+        if k[0] == k[1]:
+            raise ValueError(f"interface_nitsche: fields={tuple(fields)!r} names the same field twice; give the NEG field, "
+                             "then the POS field, e.g. fields=(0, 1)")
+        sides = [_side_of(space.fields[i]) if getattr(space.fields[i], "cut", None) is measure.cut else None for i in k]
+        if sides != [NEG, POS]:
+            where = ", ".join(f"field {f!r} on {getattr(getattr(space.fields[i], 'elements', None), 'name', space.fields[i])!r}"
+                              for f, i in zip(fields, k))
+            fix = (f"pass fields=({fields[1]!r}, {fields[0]!r})" if sides == [POS, NEG] else
+                   "give the fields CutP1Space(cut, NEG) and CutP1Space(cut, POS) of the measure's cut")
+            raise ValueError(f"interface_nitsche: fields=(f_NEG, f_POS) must name the NEG field, then the POS field, of "
+                             f"the measure's cut; got {where}: {fix}")
+        at["neg"], at["pos"] = k
 
     @bilinear_form(symmetric=True)
     def coupling(u, v, w):
+        i_neg, i_pos = at["neg"], at["pos"]
         kn, kp, penalty = k_neg[w.parent][:, None], k_pos[w.parent][:, None], lam[w.parent][:, None] / w.h
         un, up, vn, vp = u[i_neg], u[i_pos], v[i_neg], v[i_pos]
         flux_u = kn * a_neg * dot(w.n, un.grad) + kp * a_pos * dot(w.n, up.grad)
@@ -1192,7 +1230,7 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
         ju, jv = un - up, vn - vp
         return -flux_u * jv - flux_v * ju + penalty * ju * jv
 
-    return coupling * measure
+    return Form([(1.0, _IntegrandTerm(coupling, measure, check=check))], False)
 
 
 def _positive(**values):

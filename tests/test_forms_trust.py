@@ -125,3 +125,52 @@ def test_nitsche_load_takes_gamma_h_and_vector_data(cut):
     both = assemble(nitsche_load(lambda x: np.stack([LINEAR(x), SMOOTH(x)], -1), cut.ds()), V)
     assert both.shape == (V.n_dofs, 2)
     np.testing.assert_allclose(both[:, 1], assemble(nitsche_load(SMOOTH, cut.ds()), V), rtol=1e-13, atol=1e-15)
+
+
+# ---------------------------------------------------------------------------------------------
+# 2. interface_nitsche: fields=(NEG field, POS field), checked
+# ---------------------------------------------------------------------------------------------
+
+
+def _interface_error(cut, order, fields):
+    """The interface problem with a_NEG = a_POS = 1 and a linear solution: max L2 error of the sides."""
+    V = {NEG: CutP1Space(cut, NEG), POS: CutP1Space(cut, POS)}
+    W = ProductSpace(*(V[s] for s in order))
+    form, rhs = interface_nitsche(cut.ds(), 1.0, 1.0, fields=fields), 0
+    for k, side in enumerate(order):
+        form = form + stiffness(cut.dx(side), field=k) + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(side)), h_power=1, field=k)
+        rhs = rhs + load(lambda x: 0 * x[..., 0], cut.dx(side), field=k)
+    K, b = assemble(form, W), assemble(rhs, W)
+    k = order.index(POS)
+    bd = V[POS].boundary_dofs
+    K, b = apply_dirichlet(K, b, W.offsets[k] + bd, LINEAR(V[POS].dof_points[bd]))
+    x, _ = solve(K, b)
+    return max(l2_error(W[k], part, LINEAR, cut.dx(side)) for k, (side, part) in enumerate(zip(order, W.split(x))))
+
+
+def test_interface_nitsche_with_the_fields_in_either_order(cut):
+    assert _interface_error(cut, (NEG, POS), (0, 1)) < 1e-12
+    assert _interface_error(cut, (POS, NEG), (1, 0)) < 1e-12
+
+
+def test_interface_nitsche_refuses_fields_that_are_not_neg_then_pos(cut):
+    VN, VP = CutP1Space(cut, NEG), CutP1Space(cut, POS)
+    ds = cut.ds()
+    with pytest.raises(ValueError, match=r"NEG field, then the POS field.*pass fields=\(1, 0\)"):
+        assemble(interface_nitsche(ds, 1.0, 2.0), ProductSpace(VP, VN))  # inside error 0.31 -> 0.19 before
+    with pytest.raises(ValueError, match="same field twice"):
+        assemble(interface_nitsche(ds, 1.0, 2.0, fields=(0, 0)), ProductSpace(VN, VP))  # the zero matrix before
+    with pytest.raises(ValueError, match=r"field=5: give a position 0\.\.1"):
+        assemble(interface_nitsche(ds, 1.0, 2.0, fields=(0, 5)), ProductSpace(VN, VP))
+    with pytest.raises(TypeError, match=r"ProductSpace\(V_neg, V_pos\)"):
+        assemble(interface_nitsche(ds, 1.0, 2.0), VN)
+    with pytest.raises(ValueError, match="CutP1Space"):
+        assemble(interface_nitsche(ds, 1.0, 2.0), ProductSpace(VN, CutP1Space(cut, CUT)))
+    with pytest.raises(ValueError, match="pair"):
+        interface_nitsche(ds, 1.0, 2.0, fields=0)
+    with pytest.raises(ValueError, match=r"field=-1: give a position 0\.\.1"):
+        assemble(stiffness(cut.dx(NEG), field=-1), ProductSpace(VN, VP))
+    # by name, in the product's own order
+    W = ProductSpace(outer=VP, inner=VN)
+    _close(assemble(interface_nitsche(ds, 1.0, 2.0, fields=("inner", "outer")), W),
+           assemble(interface_nitsche(ds, 1.0, 2.0, fields=(1, 0)), W), rtol=0)
