@@ -1245,16 +1245,53 @@ def apply_dirichlet(K, b, dofs, values):
     Returns ``(K_bc, b_bc)`` of the same size: the rows and columns of ``dofs`` are replaced by the
     identity and b_bc = b - K[:, dofs] g outside ``dofs``, b_bc = g on them.  K_bc stays symmetric
     (positive definite when K is on the other dofs), its solution carries the prescribed values, and
-    the dof numbering (hence a multigrid hierarchy) is unchanged.  ``values``: (len(dofs),) or
-    (len(dofs), c), or a number."""
+    the dof numbering (hence a multigrid hierarchy) is unchanged.
+
+    ``dofs``: integer dof numbers in [0, n), in any order (``values[i]`` goes with ``dofs[i]``; a dof
+    given twice must have the same value twice), or a boolean mask of length n, which stands for
+    ``np.flatnonzero(mask)`` (the values then go with the masked dofs in increasing order).
+    ``values``: a number (every dof, every column), or one row per dof, shape (len(dofs),) + b.shape[1:]
+    (b is (n,) or (n, c)); real and finite.  Anything else is refused with the shapes."""
     K = sp.csr_matrix(K)
     n = K.shape[0]
-    dofs = np.unique(np.asarray(dofs, dtype=np.int64))
-    if dofs.size and (dofs[0] < 0 or dofs[-1] >= n):
-        raise ValueError(f"Dirichlet dofs must lie in [0, {n})")
+    if K.shape != (n, n):
+        raise ValueError(f"K must be square, got shape {K.shape}")
     b = np.asarray(b, dtype=float)
+    if b.ndim not in (1, 2) or len(b) != n:
+        raise ValueError(f"b must have shape ({n},) or ({n}, c) for K of shape {K.shape}, got {b.shape}")
+    dofs = np.asarray(dofs)
+    if dofs.dtype == bool:
+        if dofs.shape != (n,):
+            raise ValueError(f"a boolean mask of Dirichlet dofs must have shape ({n},), got {dofs.shape}")
+        dofs = np.flatnonzero(dofs)
+    elif dofs.size == 0:
+        dofs = np.zeros(0, dtype=np.int64)
+    elif dofs.dtype.kind not in "iu":
+        raise TypeError(f"Dirichlet dofs must be integer dof numbers (or a boolean mask of length {n}), got {dofs.dtype} values")
+    if dofs.ndim != 1:
+        raise ValueError(f"Dirichlet dofs must be a 1-d array of dof numbers, got shape {dofs.shape}")
+    if dofs.size and (dofs.min() < 0 or dofs.max() >= n):
+        raise ValueError(f"Dirichlet dofs must lie in [0, {n})")
+    rows = (dofs.size,) + b.shape[1:]
+    values = np.asarray(values)
+    if values.dtype.kind not in "biuf":
+        raise TypeError(f"Dirichlet values must be real numbers, got {values.dtype} values")
+    values = np.broadcast_to(values.astype(float), rows) if values.ndim == 0 else values.astype(float)
+    if values.shape != rows:
+        raise ValueError(f"Dirichlet values must be a number or have shape {rows} (one row per dof of dofs, "
+                         f"{dofs.size} of them), got {values.shape}")
+    if not np.all(np.isfinite(values)):
+        raise ValueError("Dirichlet values must be finite (no nan or inf)")
+    dofs, first, which = np.unique(dofs, return_index=True, return_inverse=True)
+    g_dofs = values[first]  # the values in the order of the sorted dofs: each stays with its dof
+    if len(dofs) < len(which):
+        differ = np.flatnonzero(np.any((values != g_dofs[which]).reshape(len(which), -1), axis=1))
+        if differ.size:
+            d = dofs[which[differ[0]]]
+            raise ValueError(f"Dirichlet dof {d} is given twice with different values, {g_dofs[which[differ[0]]]} and "
+                             f"{values[differ[0]]}")
     g = np.zeros((n,) + b.shape[1:])
-    g[dofs] = np.broadcast_to(np.asarray(values, dtype=float), (dofs.size,) + b.shape[1:])
+    g[dofs] = g_dofs
     keep = np.ones(n)
     keep[dofs] = 0.0
     D = sp.diags(keep)

@@ -174,3 +174,51 @@ def test_interface_nitsche_refuses_fields_that_are_not_neg_then_pos(cut):
     W = ProductSpace(outer=VP, inner=VN)
     _close(assemble(interface_nitsche(ds, 1.0, 2.0, fields=("inner", "outer")), W),
            assemble(interface_nitsche(ds, 1.0, 2.0, fields=(1, 0)), W), rtol=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# 3. apply_dirichlet keeps each value with its dof
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def outer_system(cut):
+    """The outer problem with u = LINEAR: Nitsche on Gamma_h, the box's dofs still free."""
+    V = CutP1Space(cut, POS)
+    K = assemble(stiffness(cut.dx(POS)) + nitsche(cut.ds()) + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(POS)), h_power=1), V)
+    return V, K, assemble(nitsche_load(LINEAR, cut.ds()), V)
+
+
+def test_apply_dirichlet_pairs_values_with_their_dofs_in_any_order(outer_system):
+    V, K, b = outer_system
+    bd, P = V.boundary_dofs, V.dof_points
+    exact = LINEAR(P)
+    mask = np.zeros(V.n_dofs, dtype=bool)
+    mask[bd] = True
+    shuffled = np.random.default_rng(1).permutation(bd)
+    twice = np.concatenate([bd, bd[:5]])
+    for dofs in (bd, bd[::-1], shuffled, twice, mask):
+        picked = np.flatnonzero(dofs) if dofs.dtype == bool else dofs
+        x, _ = solve(*apply_dirichlet(K, b, dofs, LINEAR(P[picked])))
+        assert np.abs(x - exact).max() < 1e-12  # reversed: 7.2 before
+    # a vector of right-hand sides, one column per load
+    Kb, bb = apply_dirichlet(K, np.stack([b, 2 * b], 1), bd[::-1], np.stack([exact[bd[::-1]], 2 * exact[bd[::-1]]], 1))
+    x, _ = solve(Kb, bb)
+    assert np.abs(x - np.stack([exact, 2 * exact], 1)).max() < 1e-12
+
+
+def test_apply_dirichlet_refuses_what_it_cannot_pair(outer_system):
+    V, K, b = outer_system
+    bd = V.boundary_dofs
+    with pytest.raises(ValueError, match=rf"shape \({len(bd)},\).*got \({len(bd) + 1},\)"):
+        apply_dirichlet(K, b, bd, np.zeros(len(bd) + 1))
+    with pytest.raises(ValueError, match="given twice with different values"):
+        apply_dirichlet(K, b, bd[[0, 0]], [1.0, 2.0])
+    with pytest.raises(ValueError, match=rf"boolean mask.*shape \({V.n_dofs},\)"):
+        apply_dirichlet(K, b, np.ones(5, dtype=bool), 0.0)
+    with pytest.raises(TypeError, match="integer dof numbers"):
+        apply_dirichlet(K, b, bd.astype(float), 0.0)
+    with pytest.raises(ValueError, match="finite"):
+        apply_dirichlet(K, b, bd, np.nan)
+    with pytest.raises(ValueError, match="b must have shape"):
+        apply_dirichlet(K, b[:-1], bd, 0.0)
