@@ -727,6 +727,20 @@ def _same_elements(space, measure) -> bool:
     return measure.elements is space.elements
 
 
+def _same_mesh(space, measure: MeshedSurface, what: str) -> None:
+    """A clear error unless the field lives on the measure's surface mesh: a
+    :class:`~cutfem.spaces.SurfaceP1Space` of that mesh (the same object, or a mesh with the same
+    points and triangles).  The closed forms on a triangulated surface read the field's mesh only,
+    so a measure on another mesh would be ignored silently."""
+    mesh = getattr(space, "mesh", None)
+    if mesh is None:
+        raise ValueError(f"{what} over the triangles of a surface mesh needs SurfaceP1Space(mesh) of that mesh; got {space!r}")
+    other = measure.mesh
+    if mesh is not other and not (np.array_equal(mesh.points, other.points) and np.array_equal(mesh.triangles, other.triangles)):
+        raise ValueError(f"{what}: the measure is over {other!r}, but the field lives on another mesh (other points or "
+                         f"triangles), {mesh!r}; integrate over mesh.ds() of the field's own mesh")
+
+
 def _require(measure, kinds, what):
     if not isinstance(measure, kinds):
         names = " or ".join(k.__name__ for k in (kinds if isinstance(kinds, tuple) else (kinds,)))
@@ -742,6 +756,7 @@ def mass(measure: Measure, field=None) -> Form:
 
     def build(space, into):
         if isinstance(measure, MeshedSurface):
+            _same_mesh(space, measure, "mass")
             return _meshed_mass(space, into)
         if isinstance(measure, SurfacePieces):
             if _same_elements(space, measure):
@@ -852,6 +867,7 @@ def tangential_stiffness(measure: Measure, field=None) -> Form:
 
     def build(space, into):
         if isinstance(measure, MeshedSurface):
+            _same_mesh(space, measure, "tangential_stiffness")
             into.add(*_meshed_stiffness(space))
             return None
         if _same_elements(space, measure):
@@ -905,6 +921,7 @@ def position_load(measure: Measure, field=None) -> Form:
 
     def build(space):
         if isinstance(measure, MeshedSurface):
+            _same_mesh(space, measure, "position_load")
             return space.node_pattern().matrix(*_meshed_stiffness(space)) @ space.dof_points
         if not _same_elements(space, measure):
             raise ValueError("position_load needs the field on the cut tets, CutP1Space(cut, CUT)")
@@ -931,6 +948,7 @@ def basis_integrals(measure: Measure, field=None) -> Form:
 
     def build(space):
         if isinstance(measure, MeshedSurface):
+            _same_mesh(space, measure, "basis_integrals")
             return np.bincount(space.element_dofs.reshape(-1), weights=np.repeat(space.element_areas / 3.0, 3),
                                minlength=space.n_dofs)
         if isinstance(measure, SurfacePieces) and _same_elements(space, measure):
@@ -1048,6 +1066,7 @@ def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> F
     def build(space, into):
         hh = space.h if h is None else h
         if isinstance(measure, MeshedSurface):
+            _same_mesh(space, measure, "edge_jump_penalty")
             into.add(*_meshed_edge_penalty(space, hh))
             return None
         if not _same_elements(space, measure):

@@ -222,3 +222,27 @@ def test_apply_dirichlet_refuses_what_it_cannot_pair(outer_system):
         apply_dirichlet(K, b, bd, np.nan)
     with pytest.raises(ValueError, match="b must have shape"):
         apply_dirichlet(K, b[:-1], bd, 0.0)
+
+
+# ---------------------------------------------------------------------------------------------
+# 4. the closed forms on a triangulated surface read the measure's mesh
+# ---------------------------------------------------------------------------------------------
+
+
+def test_meshed_terms_refuse_a_measure_on_another_mesh():
+    sphere, torus = sphere_mesh(2), torus_mesh(16)
+    S = SurfaceP1Space(torus)
+    ds = sphere.ds()
+    forms = [mass(ds), tangential_stiffness(ds), edge_jump_penalty(ds), position_load(ds), basis_integrals(ds)]
+    for form in forms:  # mass summed to the torus's area, 18.93, before
+        with pytest.raises(ValueError, match="another mesh"):
+            assemble(form, S)
+    # a mesh with the same points and triangles is the same mesh
+    copy = SurfaceMesh(np.array(torus.points), np.array(torus.triangles))
+    assert assemble(mass(copy.ds()), S).sum() == pytest.approx(torus.area, rel=1e-13)
+    np.testing.assert_allclose(assemble(position_load(copy.ds()), S), assemble(position_load(torus.ds()), S), rtol=0, atol=0)
+
+
+def test_meshed_terms_refuse_a_cut_field(cut):
+    with pytest.raises(ValueError, match=r"SurfaceP1Space\(mesh\)"):
+        assemble(mass(sphere_mesh(1).ds()), CutP1Space(cut, CUT))
