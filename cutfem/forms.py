@@ -24,13 +24,19 @@ normal (n_h on Gamma_h from NEG to POS, n_F on facets from the minus to the plus
 (m, 1) the local size (h_T of the cell's tet, h_F of a facet), ``w.parent``, ``w.at(f)`` (f
 evaluated at the points, once per term) and the keyword arguments given to :func:`assemble`.
 
+An integrand returns real values of shape (m, q), or (m, 1) for a value constant on each cell (a
+linear one also (m, q, c): c loads at once), and it is linear in each argument, so it vanishes
+when u or v is zero.  Both are checked when the form is assembled, as are finite values: an
+integrand that ignores an argument (``return v``, ``return 1.0``) or returns another shape is
+refused with the shapes, not summed into a wrong matrix.
+
 On a facet measure each basis function has two traces: ``u.minus`` and ``u.plus`` (one of them is
 zero), with :func:`jump` (minus - plus) and :func:`avg`: ``jump(u)``, ``jump(u.grad)``.
 
 On a :class:`~cutfem.spaces.ProductSpace` ``u`` and ``v`` are tuples with one entry per field, all
-zero (:data:`ZERO`) but one; ``uN - uP`` is then the jump across an interface and the assembly
-skips every pair of fields whose integrand is identically zero.  One form thus assembles to one
-block matrix.  The assembly loops only over fields and local basis pairs, never over elements;
+zero (:data:`ZERO`) but one, to be indexed (``u[0]``); ``uN - uP`` is then the jump across an
+interface and the assembly skips every pair of fields whose integrand is identically zero.  One
+form thus assembles to one block matrix.  The assembly loops only over fields and local basis pairs, never over elements;
 ``symmetric=True`` evaluates half the pairs and mirrors them, and a form whose integrands are all
 symmetric assembles to an exactly symmetric matrix.
 
@@ -302,10 +308,7 @@ class QuadData:
         """``f(x)`` at the quadrature points (m, q) or (m, q, c), evaluated once per term."""
         key = id(f)
         if key not in self._values:
-            value = np.asarray(f(self.x), dtype=float)
-            if value.shape[:2] != self.x.shape[:2]:
-                raise ValueError(f"a function of the points must return shape (m, q) or (m, q, c) for points {self.x.shape}; got {value.shape}")
-            self._values[key] = value
+            self._values[key] = _point_values(f, self.x, "a function of the points given to w.at")
         return self._values[key]
 
 
@@ -434,9 +437,50 @@ class Form:
         return assemble(self, space, **params)
 
 
+class _FieldTuple(tuple):
+    """What an integrand sees on a :class:`~cutfem.spaces.ProductSpace` (without ``field=``): one
+    basis function per field, all :data:`ZERO` but one.  Index it (``u[0]``, ``v[1]``); used as a
+    function itself (``u.grad``, ``u * v``, ``dot(u, ...)``, ``np.asarray(u)``) it raises an error
+    saying so, instead of tuple arithmetic or numpy's broadcasting errors."""
+
+    __slots__ = ()
+    __array_ufunc__ = None
+
+    def _message(self):
+        return (f"on a product space u and v are tuples with one entry per field ({len(self)} fields): index them "
+                "(u[0], v[1]) or integrate one field with integrand.on(measure, field=...)")
+
+    def __getattr__(self, name):
+        if name.startswith("__"):
+            raise AttributeError(name)
+        raise AttributeError(f"a tuple of fields has no attribute {name!r}: " + self._message())
+
+    def _refuse(self, *args, **kwargs):
+        raise TypeError(self._message())
+
+    __add__ = __radd__ = __sub__ = __rsub__ = __mul__ = __rmul__ = __truediv__ = __rtruediv__ = _refuse
+    __pow__ = __neg__ = __matmul__ = __rmatmul__ = __array__ = _refuse
+
+
+def _zero_like(b):
+    """The zero function in the shape of a basis function (numeric zeros, unlike :data:`ZERO`): both
+    traces on a facet."""
+    if isinstance(b, FacetField):
+        z = _zero_like(b.minus if isinstance(b.minus, BasisField) else b.plus)
+        return FacetField(z, z)
+    return BasisField(np.zeros_like(b.value), np.zeros_like(b.grad), np.zeros_like(b.tgrad))
+
+
 class _IntegrandTerm:
     """``integrand * measure``, for all fields of a space or (``field``) one; ``check(space)``, if
-    given, is called before anything is evaluated (a built-in form's rule on the space)."""
+    given, is called before anything is evaluated (a built-in form's rule on the space).
+
+    The integrand is evaluated for one pair of local basis functions (or one test function) at a
+    time, on arrays (m, q); each value is checked (:func:`_integrand_values`): real, of shape
+    (m, q) or (m, 1) ((m, q, c) for a linear form), finite in sum.  On the first block of cells the
+    form must also vanish with its arguments (:meth:`_check_vanishes`): a(0, v) = a(u, 0) = 0, l(0) = 0
+    -- an integrand that ignores u or v (``return v``, ``return 1.0``) would otherwise be summed
+    over every basis pair as if it were a product."""
 
     def __init__(self, integrand: Integrand, measure: Measure, field=None, check=None):
         self.integrand, self.measure, self.field, self.check = integrand, measure, field, check
@@ -450,7 +494,7 @@ class _IntegrandTerm:
         nf = len(fields)
 
         def probe(k):
-            return tuple(_PROBE if i == k else ZERO for i in range(nf))
+            return _FieldTuple(_PROBE if i == k else ZERO for i in range(nf))
 
         def couples(*args):
             try:
@@ -466,22 +510,70 @@ class _IntegrandTerm:
         """The argument an integrand sees: the bare basis function, or a tuple on a product space."""
         if not isinstance(space, ProductSpace) or self.field is not None:
             return basis
-        return tuple(basis if i == k else ZERO for i in range(len(space.fields)))
+        return _FieldTuple(basis if i == k else ZERO for i in range(len(space.fields)))
+
+    def _evaluate(self, *args):
+        """The integrand at ``args``; an error raised inside it gets a note (Python 3.11+) with the
+        shapes it was given, since most slips in an integrand surface as numpy's broadcasting errors."""
+        try:
+            return self.integrand(*args)
+        except Exception as error:
+            note = getattr(error, "add_note", None)
+            if note is not None:
+                m, q = args[-1].x.shape[:2]
+                facets = self.measure.facets is not None
+                note(f"in the integrand {self.integrand.__name__!r} over {self.measure.name!r}: u.value, v.value have shape "
+                     f"(m, q) = {(m, q)}, u.grad, u.tgrad (m, 1, 3), w.x (m, q, 3), w.n (m, 1, 3) or None, w.h (m, 1)"
+                     + ("; on facets u.minus, u.plus with jump(u), avg(u)" if facets else "")
+                     + ("; on a product space u and v are tuples, u[k]" if isinstance(args[0], _FieldTuple) else "")
+                     + f"; the result must have shape {(m, q)} or (m, 1)" + (" or (m, q, c)" if self.integrand.linear else ""))
+            raise
+
+    def _check_vanishes(self, space, trial_field, test_field, trial, test, w):
+        """A clear error if the integrand does not vanish when its trial (bilinear) or test function is
+        the zero function: it then does not depend on that argument, or not linearly (``return v``,
+        ``return 1.0``, ``(u - 1) * v``).  Evaluated once per field pair, on the first block, with a
+        real basis function for the other argument; an integrand that cannot run on zeros is left to
+        the evaluation that follows."""
+        f = self.integrand
+        kind = "linear" if f.linear else "bilinear"
+        if f.linear:
+            cases = [("v", "test", (self._wrap(space, test_field, _zero_like(test)), w))]
+        else:
+            cases = [("u", "trial", (self._wrap(space, trial_field, _zero_like(trial)), self._wrap(space, test_field, test), w)),
+                     ("v", "test", (self._wrap(space, trial_field, trial), self._wrap(space, test_field, _zero_like(test)), w))]
+        for name, role, args in cases:
+            try:
+                with np.errstate(all="ignore"):
+                    val = f(*args)
+                    if val is ZERO:
+                        continue
+                    value = np.asarray(_value(val))
+                    # nan and inf are left to the check of finite values, which names them
+                    vanishes = value.dtype.kind not in "biuf" or not np.any(np.isfinite(value) & (value != 0))
+            except Exception:
+                continue
+            if not vanishes:
+                example = "f * v" if f.linear else "u * v"
+                raise ValueError(f"the {kind} integrand {f.__name__!r} does not vanish for {name} = 0: it does not depend on the "
+                                 f"{role} function {name} (or not linearly); a {kind} integrand is linear in "
+                                 f"{'v' if f.linear else 'u and in v'}: multiply by {name}, e.g. return {example}")
 
     def contributions(self, space, params):
         """Local vectors (linear) or matrices (bilinear) of the term, block by block of the measure's
         cells (:meth:`~cutfem.measures.Measure.blocks`): the points, basis values and integrand
-        values of one block at a time.  The coupled field pairs are found on the first block."""
+        values of one block at a time.  The coupled field pairs are found, and checked, on the first block."""
         if self.check is not None:
             self.check(space)
         pairs = None
         for _, quad in self.measure.blocks(self.integrand.degree):
             w = _quad_data(self.measure, quad, params)
-            if pairs is None:
+            first = pairs is None
+            if first:
                 pairs = self._field_pairs(space, w)
-            yield from self._block(space, quad, w, pairs)
+            yield from self._block(space, quad, w, pairs, first)
 
-    def _block(self, space, quad, w, pairs):
+    def _block(self, space, quad, w, pairs, first):
         measure = self.measure
         weights = quad.weights
         cache = {}
@@ -495,14 +587,21 @@ class _IntegrandTerm:
         if f.linear:
             for j in pairs:
                 dofs, fields = basis(j)
+                if first:
+                    self._check_vanishes(space, None, j, None, fields[0], w)
                 local = []
                 for b in fields:
-                    val = f(self._wrap(space, j, b), w)
-                    local.append(None if val is ZERO else np.einsum("mq...,mq->m...", np.broadcast_to(val, weights.shape + np.shape(val)[2:]), weights))
+                    val = self._evaluate(self._wrap(space, j, b), w)
+                    if val is ZERO:
+                        local.append(None)
+                        continue
+                    val = _integrand_values(f, val, weights.shape)
+                    local.append(np.einsum("mq...,mq->m...", np.broadcast_to(val, weights.shape + val.shape[2:]), weights))
                 if all(x is None for x in local):
                     continue
                 shape = next(x for x in local if x is not None).shape
                 local = np.stack([np.zeros(shape) if x is None else x for x in local], axis=1)
+                _finite_sums(f, measure, local)
                 yield j, dofs, local
             return
         symmetric = f.symmetric
@@ -511,21 +610,53 @@ class _IntegrandTerm:
                 continue  # mirrored from (j, i)
             dofs_u, trial = basis(i)
             dofs_v, test = basis(j)
+            if first:
+                self._check_vanishes(space, i, j, trial[0], test[0], w)
             blocks = np.zeros((weights.shape[0], len(test), len(trial)))
             same = i == j
             for b, vb in enumerate(test):
                 for a, ua in enumerate(trial):
                     if symmetric and same and a < b:
                         continue
-                    val = f(self._wrap(space, i, ua), self._wrap(space, j, vb), w)
+                    val = self._evaluate(self._wrap(space, i, ua), self._wrap(space, j, vb), w)
                     if val is ZERO:
                         continue
-                    blocks[:, b, a] = np.einsum("mq,mq->m", np.broadcast_to(val, weights.shape), weights)
+                    blocks[:, b, a] = np.einsum("mq,mq->m", np.broadcast_to(_integrand_values(f, val, weights.shape), weights.shape), weights)
                     if symmetric and same:
                         blocks[:, a, b] = blocks[:, b, a]
+            _finite_sums(f, measure, blocks)
             yield i, j, dofs_u, dofs_v, blocks
             if symmetric and i != j and (j, i) in pairs:
                 yield j, i, dofs_v, dofs_u, blocks.transpose(0, 2, 1)
+
+
+def _integrand_values(f: Integrand, val, shape) -> np.ndarray:
+    """The value an integrand returned, as an array that broadcasts to the quadrature's ``shape``
+    (m, q) without reading the cell axis wrongly: real, of shape (m, q) or (m, 1) (one value per
+    cell), for a linear form also (m, q, c) or (m, 1, c); anything else is an error with the
+    expected and the actual shape."""
+    try:
+        value = np.asarray(_value(val))
+    except TypeError as error:  # a tuple of fields returned as it is
+        raise TypeError(f"the integrand {f.__name__!r} returned a tuple of fields: {error}") from None
+    if value.dtype.kind == "c":
+        raise TypeError(f"the integrand {f.__name__!r} returned complex values; only real forms are supported")
+    if value.dtype.kind not in "biuf":
+        raise TypeError(f"the integrand {f.__name__!r} returned {type(val).__name__}, not real values at the quadrature points")
+    m, q = shape
+    if value.ndim not in ((2, 3) if f.linear else (2,)) or value.shape[0] != m or value.shape[1] not in (1, q):
+        expected = f"(m, q) = {(m, q)} or (m, 1)" + (", or (m, q, c) for c loads at once" if f.linear else "")
+        raise ValueError(f"the {'linear' if f.linear else 'bilinear'} integrand {f.__name__!r} must return one value per cell "
+                         f"and quadrature point, shape {expected}; got shape {value.shape}")
+    return value
+
+
+def _finite_sums(f: Integrand, measure: Measure, local: np.ndarray) -> None:
+    """A clear error if the integrated values of a block (m, ...) are not all finite."""
+    finite = np.isfinite(local.reshape(len(local), -1)).all(axis=1)
+    if not finite.all():
+        raise ValueError(f"the integrand {f.__name__!r} gave non-finite values (nan or inf) on {np.count_nonzero(~finite)} "
+                         f"cells of the measure {measure.name!r}")
 
 
 class _GramTerm:
@@ -968,10 +1099,14 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
     """(f, v) over ``measure`` (a cell measure: a side's volume, whole tets, S_h or a triangulated
     surface) by quadrature of the given degree.
 
-    ``f(x)`` takes points (m, q, 3) and returns (m, q) or (m, q, c) (then the vector is (n, c)); with
-    ``closest_point`` (a map x -> p(x)) it is evaluated as f o p, the extension f^e of docs/math.md §4.
+    ``f(x)`` takes points (m, q, 3) and returns real, finite values (checked) of shape (m, q) or
+    (m, q, c) (then the vector is (n, c)); with ``closest_point`` (a map x -> p(x)) it is evaluated
+    as f o p, the extension f^e of docs/math.md §4.
     Block by block of cells, b_{K,k} = sum_q w_q f(x_q) phi_k(x_q): one product of the weighted
     values with the basis values (the rule's own barycentric coordinates on whole elements)."""
+    _require_function(f, "load: f")
+    if closest_point is not None:
+        _require_function(closest_point, "load: closest_point")
     g = f if closest_point is None else (lambda x: f(closest_point(x)))
     if isinstance(measure, FacetMeasure):
         raise TypeError("load integrates over cells (a volume or a surface); for a facet term write a linear_form integrand")
@@ -980,9 +1115,7 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
     def build(space):
         out = None
         for _, quad in measure.blocks(degree):
-            fx = np.asarray(g(quad.points), dtype=float)
-            if fx.shape[:2] != quad.weights.shape:
-                raise ValueError(f"the load f(x) must return shape (m, q) or (m, q, c) for points {quad.points.shape}; got {fx.shape}")
+            fx = _point_values(g, quad.points, "the load f(x)")
             fw = fx * (quad.weights if fx.ndim == 2 else quad.weights[..., None])
             el = space.local_elements(measure, quad.parent)
             phi = space.basis_on(measure, quad, el)

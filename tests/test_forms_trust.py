@@ -246,3 +246,59 @@ def test_meshed_terms_refuse_a_measure_on_another_mesh():
 def test_meshed_terms_refuse_a_cut_field(cut):
     with pytest.raises(ValueError, match=r"SurfaceP1Space\(mesh\)"):
         assemble(mass(sphere_mesh(1).ds()), CutP1Space(cut, CUT))
+
+
+# ---------------------------------------------------------------------------------------------
+# 5. integrands must depend on their arguments and return (m, q)
+# ---------------------------------------------------------------------------------------------
+
+
+def test_integrands_that_ignore_an_argument_are_refused(cut):
+    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    with pytest.raises(ValueError, match="does not vanish for v = 0.*multiply by v"):
+        assemble(linear_form(lambda v, w: 1.0) * dx, V)  # 4 |Omega_h| before
+    with pytest.raises(ValueError, match="does not vanish for u = 0.*multiply by u"):
+        assemble(bilinear_form(lambda u, v, w: v) * dx, V)
+    with pytest.raises(ValueError, match="does not vanish for v = 0.*multiply by v"):
+        assemble(bilinear_form(lambda u, v, w: u.value) * dx, V)
+    with pytest.raises(ValueError, match="multiply by u"):
+        assemble(bilinear_form(lambda u, v, w: 1.0) * dx, V)
+    with pytest.raises(ValueError, match="multiply by u"):
+        assemble(bilinear_form(lambda u, v, w: (u - 1) * v) * dx, V)  # affine, not linear, in u
+    with pytest.raises(ValueError, match="multiply by u"):  # on a facet measure too
+        assemble(bilinear_form(lambda u, v, w: jump(v) * w.h) * cut.dF(cut.ghost_facets(NEG)), V)
+
+
+def test_integrands_of_the_wrong_shape_name_the_shapes(cut):
+    V, dx = CutP1Space(cut, NEG), cut.dx(CUT)  # whole cut tets: one block of cells
+    m, q = dx.quadrature(2).weights.shape
+    with pytest.raises(ValueError, match=rf"shape \(m, q\) = \({m}, {q}\).*got shape \({q}, {m}\)"):
+        assemble(bilinear_form(lambda u, v, w: (u * v).T) * dx, V)
+    with pytest.raises(ValueError, match=rf"got shape \({m}, {q}, 1\)"):
+        assemble(bilinear_form(lambda u, v, w: (u * v)[..., None]) * dx, V)
+    with pytest.raises(ValueError, match=rf"got shape \({m},\)"):
+        assemble(bilinear_form(lambda u, v, w: dot(u, v)) * dx, V)
+    with pytest.raises(TypeError, match="complex"):
+        assemble(bilinear_form(lambda u, v, w: 1j * u * v) * dx, V)
+    with pytest.raises(ValueError, match="non-finite"):
+        assemble(linear_form(lambda v, w: np.nan * v) * dx, V)
+    # an error inside the integrand carries the shapes it was given
+    with pytest.raises(ValueError) as info:
+        assemble(bilinear_form(lambda u, v, w: u * v * w.x) * dx, V)
+    assert any("u.value, v.value have shape" in note for note in getattr(info.value, "__notes__", ["u.value, v.value have shape"]))
+    # values constant on each cell, (m, 1), and vector loads, (m, q, c), are what they should be
+    K = assemble(bilinear_form(lambda u, v, w: dot(u.grad, v.grad), symmetric=True) * dx, V)
+    _close(K, assemble(stiffness(dx), V))
+    np.testing.assert_allclose(assemble(linear_form(lambda v, w: w.x * v.value[..., None]) * dx, V)[:, 1],
+                               assemble(load(lambda x: x[..., 1], dx), V), rtol=1e-12, atol=1e-15)
+
+
+def test_scalar_integrands_on_a_product_space_are_told_to_index_the_fields(cut):
+    W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, CUT))
+    with pytest.raises(AttributeError, match=r"tuples with one entry per field.*u\[0\]"):
+        assemble(bilinear_form(lambda u, v, w: dot(u.grad, v.grad)) * cut.dx(NEG), W)
+    with pytest.raises(TypeError, match="tuples with one entry per field"):
+        assemble(bilinear_form(lambda u, v, w: u * v) * cut.ds(), W)
+    with pytest.raises(TypeError, match="returned a tuple of fields"):
+        assemble(linear_form(lambda v, w: v) * cut.ds(), W)
+    assert assemble(linear_form(lambda v, w: v[1]) * cut.ds(), W).sum() == pytest.approx(cut.area, rel=1e-12)
