@@ -715,9 +715,20 @@ def _field(space, k):
 def assemble(form: Form, space, **params):
     """The matrix (bilinear form: CSR, n x n over all fields of ``space``) or the vector (linear form:
     (n,) or (n, c)) of ``form`` on ``space`` (one field or a :class:`~cutfem.spaces.ProductSpace`).
-    ``params`` are handed to the integrands as attributes of ``w``."""
+    ``params`` are handed to the integrands as attributes of ``w``.
+
+    The arguments are checked first: a form (not an integrand, a measure or a space) and a space."""
     if isinstance(form, Integrand):
         raise TypeError("an integrand needs a measure: assemble(integrand * measure, space)")
+    if isinstance(form, Measure):
+        raise TypeError(f"assemble needs a form, got the measure {form!r}: multiply it by an integrand "
+                        "(integrand * measure) or give it to a built-in term, e.g. mass(measure)")
+    if not isinstance(form, Form):
+        if isinstance(space, Form):
+            raise TypeError("assemble(form, space): the arguments are swapped")
+        raise TypeError(f"assemble needs a form (a sum of integrand * measure and built-in terms), got {type(form).__name__}")
+    if not (isinstance(space, ProductSpace) or (hasattr(space, "n_dofs") and hasattr(space, "element_dofs"))):
+        raise TypeError(f"assemble(form, space) needs the space of the fields (CutP1Space, SurfaceP1Space or ProductSpace), got {space!r}")
     offsets = space.offsets if isinstance(space, ProductSpace) else np.array([0, space.n_dofs])
     n = int(offsets[-1])
     if form.linear:
@@ -1165,11 +1176,14 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
     it is constant on F, so the integral is |F| times the product of jumps.  Over the interior faces
     of the cut tets with a = 0 this is the face stabilization J_F of the mean curvature problem
     (docs/math.md §3); over the ghost faces of a side with a = 1 it is the Burman-Hansbo ghost
-    penalty of a bulk field (§7), to be multiplied by gamma_g."""
+    penalty of a bulk field (§7), to be multiplied by gamma_g.  An empty facet set gives the zero
+    matrix."""
     _require(measure, FacetMeasure, "face_jump_penalty")
 
     def build(space, into):
         f = measure.facets
+        if f.n_facets == 0:
+            return None  # nothing to add: the zero matrix, as a user form over the same facets gives
         if measure.elements is space.elements:
             pairs = f.pairs
         else:

@@ -302,3 +302,29 @@ def test_scalar_integrands_on_a_product_space_are_told_to_index_the_fields(cut):
     with pytest.raises(TypeError, match="returned a tuple of fields"):
         assemble(linear_form(lambda v, w: v) * cut.ds(), W)
     assert assemble(linear_form(lambda v, w: v[1]) * cut.ds(), W).sum() == pytest.approx(cut.area, rel=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
+# 6. clear errors, or the right answer, instead of tracebacks
+# ---------------------------------------------------------------------------------------------
+
+
+def test_empty_facet_set_gives_the_zero_matrix(cut):
+    V = CutP1Space(cut, CUT)
+    facets = cut.interior_facets(CUT)
+    empty = cut.dF(facets.subset(np.zeros(facets.n_facets, dtype=bool)))
+    for form in (face_jump_penalty(empty), face_jump_penalty(empty, h_power=1) + mass(cut.ds())):
+        A = assemble(form, V)
+        assert A.shape == (V.n_dofs, V.n_dofs)
+    assert assemble(face_jump_penalty(empty), V).nnz == 0
+    _close(assemble(face_jump_penalty(empty) + mass(cut.ds()), V), assemble(mass(cut.ds()), V), rtol=0)
+
+
+def test_assemble_checks_its_arguments(cut):
+    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    with pytest.raises(TypeError, match="got the measure"):
+        assemble(dx, V)
+    with pytest.raises(TypeError, match="swapped"):
+        assemble(V, mass(dx))
+    with pytest.raises(TypeError, match="needs the space"):
+        assemble(mass(dx), None)
