@@ -28,7 +28,8 @@ An integrand returns real values of shape (m, q), or (m, 1) for a value constant
 linear one also (m, q, c): c loads at once), and it is linear in each argument, so it vanishes
 when u or v is zero.  Both are checked when the form is assembled, as are finite values: an
 integrand that ignores an argument (``return v``, ``return 1.0``) or returns another shape is
-refused with the shapes, not summed into a wrong matrix.
+refused with the shapes, not summed into a wrong matrix.  Forms are scaled by real, finite
+numbers.
 
 On a facet measure each basis function has two traces: ``u.minus`` and ``u.plus`` (one of them is
 zero), with :func:`jump` (minus - plus) and :func:`avg`: ``jump(u)``, ``jump(u.grad)``.
@@ -312,6 +313,11 @@ class QuadData:
         return self._values[key]
 
 
+#: the attributes of :class:`QuadData` itself: keywords of :func:`assemble` with these names would be hidden
+_QUAD_DATA_NAMES = frozenset({"x", "n", "h", "parent", "at", "params"})
+_QUAD_DATA_NAMES_DOC = "w.x the points, w.n the normal, w.h the local size, w.parent the cells' elements, w.at, w.params"
+
+
 def _quad_data(measure: Measure, quad, params):
     """QuadData of a measure's quadrature (normals and local sizes gathered per cell)."""
     parent = quad.parent
@@ -358,6 +364,8 @@ def _field_basis(space, measure: Measure, quad):
 class Integrand:
     """A bilinear ``f(u, v, w)`` or linear ``f(v, w)`` integrand; ``integrand * measure`` is a :class:`Form`."""
 
+    __array_ufunc__ = None  # ndarray * integrand defers to __rmul__, which asks for a measure
+
     def __init__(self, function, linear: bool, symmetric: bool = False, degree: int | None = None):
         self.function = function
         self.linear = linear
@@ -399,7 +407,13 @@ def linear_form(function=None, *, degree=None):
 
 class Form:
     """A sum of terms with coefficients; bilinear or linear (``linear``).  ``+``, ``-`` and scalar
-    ``*`` combine forms; :meth:`assemble` (or :func:`assemble`) gives the matrix or vector."""
+    ``*`` combine forms; :meth:`assemble` (or :func:`assemble`) gives the matrix or vector.
+
+    A coefficient is one real, finite number (a Python or numpy number, or a 0-d array): strings,
+    complex numbers, arrays, nan and inf are refused where the product is written, not found in the
+    matrix later; coefficients that vary in space go into the integrand."""
+
+    __array_ufunc__ = None  # ndarray * form defers to Form.__rmul__ (which refuses arrays) instead of making an object array
 
     def __init__(self, terms, linear: bool):
         self.terms = list(terms)
@@ -424,8 +438,9 @@ class Form:
         return self + (-1.0) * self._check(other)
 
     def __mul__(self, c):
-        if not np.isscalar(c):
-            raise TypeError("forms are scaled by numbers; coefficients that vary go into the integrand")
+        if isinstance(c, (Form, Integrand, Measure)) or (isinstance(c, np.ndarray) and c.ndim > 0):
+            raise TypeError(f"forms are scaled by numbers, not by {type(c).__name__}; coefficients that vary go into the integrand")
+        c = _number("a form's coefficient", c)
         return Form([(c * a, t) for a, t in self.terms], self.linear)
 
     __rmul__ = __mul__
@@ -715,7 +730,8 @@ def _field(space, k):
 def assemble(form: Form, space, **params):
     """The matrix (bilinear form: CSR, n x n over all fields of ``space``) or the vector (linear form:
     (n,) or (n, c)) of ``form`` on ``space`` (one field or a :class:`~cutfem.spaces.ProductSpace`).
-    ``params`` are handed to the integrands as attributes of ``w``.
+    ``params`` are handed to the integrands as attributes of ``w``; the names of its own attributes
+    (x, n, h, parent, at, params) are refused, since ``w`` would show its own value instead.
 
     The arguments are checked first: a form (not an integrand, a measure or a space) and a space."""
     if isinstance(form, Integrand):
@@ -729,6 +745,10 @@ def assemble(form: Form, space, **params):
         raise TypeError(f"assemble needs a form (a sum of integrand * measure and built-in terms), got {type(form).__name__}")
     if not (isinstance(space, ProductSpace) or (hasattr(space, "n_dofs") and hasattr(space, "element_dofs"))):
         raise TypeError(f"assemble(form, space) needs the space of the fields (CutP1Space, SurfaceP1Space or ProductSpace), got {space!r}")
+    hidden = sorted(k for k in params if k in _QUAD_DATA_NAMES or k.startswith("_"))
+    if hidden:
+        raise ValueError(f"assemble(): the keyword(s) {', '.join(hidden)} would be hidden by the quadrature data's own w."
+                         f"{hidden[0]} ({_QUAD_DATA_NAMES_DOC}); give the parameter another name")
     offsets = space.offsets if isinstance(space, ProductSpace) else np.array([0, space.n_dofs])
     n = int(offsets[-1])
     if form.linear:
@@ -1176,9 +1196,10 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
     it is constant on F, so the integral is |F| times the product of jumps.  Over the interior faces
     of the cut tets with a = 0 this is the face stabilization J_F of the mean curvature problem
     (docs/math.md §3); over the ghost faces of a side with a = 1 it is the Burman-Hansbo ghost
-    penalty of a bulk field (§7), to be multiplied by gamma_g.  An empty facet set gives the zero
-    matrix."""
+    penalty of a bulk field (§7), to be multiplied by gamma_g.  ``h_power`` is one real, finite
+    number.  An empty facet set gives the zero matrix."""
     _require(measure, FacetMeasure, "face_jump_penalty")
+    h_power = _number("h_power", h_power)
 
     def build(space, into):
         f = measure.facets
@@ -1207,11 +1228,15 @@ def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> F
 
     [t_E . grad u] = t_{E,K1} . grad u|K1 + t_{E,K2} . grad u|K2 with the outward conormals of the
     two surface elements; constant on E for P1, so the integral is |E| times the product of jumps.
-    ``h`` defaults to the field's global mesh size (docs/math.md §3 asks for exactly that value)."""
+    ``h`` defaults to the field's global mesh size (docs/math.md §3 asks for exactly that value);
+    either must be a positive number."""
     _require(measure, (SurfacePieces, MeshedSurface), "edge_jump_penalty")
+    if h is not None:
+        _positive(h=h)
 
     def build(space, into):
         hh = space.h if h is None else h
+        _positive(h=hh)
         if isinstance(measure, MeshedSurface):
             _same_mesh(space, measure, "edge_jump_penalty")
             into.add(*_meshed_edge_penalty(space, hh))
@@ -1228,8 +1253,10 @@ def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> F
 
 def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=None) -> Form:
     """s(u, v) = sum_T h_T^a (n_h . grad u, n_h . grad v)_T over whole tets that carry a normal n_h
-    (the cut tets: ``cut.dx(CUT)``), with the local h_T and a = ``h_power`` (multiply by tau_N)."""
+    (the cut tets: ``cut.dx(CUT)``), with the local h_T and a = ``h_power`` (one real, finite number;
+    multiply by tau_N)."""
     _require(measure, ElementVolume, "normal_gradient_penalty")
+    h_power = _number("h_power", h_power)
     if measure.normals is None:
         raise ValueError("normal_gradient_penalty needs tets with a normal n_h: integrate over cut.dx(CUT)")
 
@@ -1399,9 +1426,28 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
     return Form([(1.0, _IntegrandTerm(coupling, measure, check=check))], False)
 
 
+def _number(name: str, value) -> float:
+    """``value`` as a float if it is one real, finite number (a Python or numpy number, or a 0-d
+    array); a TypeError for anything else (a string, a complex number, an array), a ValueError for
+    nan and inf."""
+    if isinstance(value, np.ndarray) and value.ndim == 0:
+        value = value[()]
+    if not isinstance(value, numbers.Real):
+        raise TypeError(f"{name} must be a real number, got {type(value).__name__} {value!r}")
+    if not np.isfinite(value):
+        raise ValueError(f"{name} must be a finite number, got {value!r}")
+    return float(value)
+
+
 def _positive(**values):
+    """Each keyword a real, finite, positive number, or an error naming it: a TypeError for what is
+    not one real number (:func:`_number`), a ValueError for nan, inf, zero and negative numbers."""
     for name, value in values.items():
-        if not (np.isfinite(value) and value > 0):
+        try:
+            ok = _number(name, value) > 0
+        except ValueError:
+            ok = False
+        if not ok:
             raise ValueError(f"{name} must be a positive number, got {value!r}")
 
 

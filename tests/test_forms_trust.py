@@ -328,3 +328,44 @@ def test_assemble_checks_its_arguments(cut):
         assemble(V, mass(dx))
     with pytest.raises(TypeError, match="needs the space"):
         assemble(mass(dx), None)
+
+
+# ---------------------------------------------------------------------------------------------
+# 7. coefficients and parameters
+# ---------------------------------------------------------------------------------------------
+
+
+def test_forms_are_scaled_by_real_finite_numbers(cut):
+    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    M = assemble(mass(dx), V)
+    with pytest.raises(TypeError, match="not by ndarray"):
+        np.ones(3) * mass(dx)  # an object array of forms before
+    for bad in (1 + 1j, "2"):
+        with pytest.raises(TypeError, match="real number"):
+            bad * mass(dx)
+    for bad in (np.nan, np.inf):
+        with pytest.raises(ValueError, match="finite"):
+            bad * mass(dx)
+    _close(assemble(np.float64(2.0) * mass(dx), V), 2 * M, rtol=1e-15)
+    _close(assemble(np.array(2.0) * mass(dx), V), 2 * M, rtol=1e-15)
+
+
+def test_parameters_are_checked(cut):
+    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    dg = cut.dF(cut.ghost_facets(NEG))
+    with pytest.raises(ValueError, match="h_power must be a finite number"):
+        face_jump_penalty(dg, h_power=np.nan)
+    with pytest.raises(ValueError, match="h_power must be a finite number"):
+        normal_gradient_penalty(cut.dx(CUT), h_power=np.nan)
+    for bad in (-1.0, 0.0, np.nan):
+        with pytest.raises(ValueError, match="h must be a positive number"):
+            edge_jump_penalty(cut.ds(), h=bad)
+    with pytest.raises(TypeError, match="gamma must be a real number"):
+        nitsche(cut.ds(), gamma="10")
+    with pytest.raises(TypeError, match="gamma must be a real number"):
+        nitsche(cut.ds(), gamma=np.array([10.0, 10.0]))
+    uvh = bilinear_form(lambda u, v, w: u * v * w.h)
+    for name in ("h", "x", "n"):
+        with pytest.raises(ValueError, match=rf"keyword\(s\) {name} would be hidden by .* w\.{name}"):
+            assemble(uvh * dx, V, **{name: 1.0})
+    assert assemble(bilinear_form(lambda u, v, w: w.c * u * v) * dx, V, c=2.0).sum() == pytest.approx(2 * dx.size, rel=1e-12)
