@@ -701,11 +701,10 @@ def _field_index(space, field):
             if nf == 1:
                 return 0
             raise ValueError(f"on a product space of {nf} fields, give field= (a position or one of {space.names})")
-        if isinstance(field, str):
-            return space.index(field)
-        if isinstance(field, (bool, np.bool_)) or not isinstance(field, numbers.Integral) or not 0 <= field < nf:
-            raise ValueError(f"field={field!r}: give a position 0..{nf - 1} or one of the names {space.names} of the product space's fields")
-        return int(field)
+        try:
+            return space.index(field)  # a name, or a position checked there
+        except ValueError as exc:
+            raise ValueError(f"field={field!r}: {exc}") from None
     if field is not None and (isinstance(field, (bool, np.bool_)) or field != 0):
         raise ValueError(f"field={field!r} given for a single field (a space that is not a ProductSpace)")
     return 0
@@ -1143,23 +1142,29 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
         raise TypeError("load integrates over cells (a volume or a surface); for a facet term write a linear_form integrand")
     _require(measure, Measure, "load")
 
-    def build(space):
-        out = None
-        for _, quad in measure.blocks(degree):
-            fx = _point_values(g, quad.points, "the load f(x)")
-            fw = fx * (quad.weights if fx.ndim == 2 else quad.weights[..., None])
-            el = space.local_elements(measure, quad.parent)
-            phi = space.basis_on(measure, quad, el)
-            if phi.strides[0] == 0 and fw.ndim == 2:  # every cell whole: one basis table
-                local = fw @ phi[0]
-            else:
-                local = np.einsum("mqk,mq...->mk...", phi, fw)
-            if out is None:
-                out = np.zeros((space.n_dofs,) + local.shape[2:])
-            assemble_vector(np.take(space.element_dofs, el, axis=0), local, space.n_dofs, out=out)
-        return np.zeros(space.n_dofs) if out is None else out
+    def local(quad, el, phi, fw):
+        if phi.strides[0] == 0 and fw.ndim == 2:  # every cell whole: one basis table
+            return fw @ phi[0]
+        return np.einsum("mqk,mq...->mk...", phi, fw)
 
-    return Form([(1.0, _VectorTerm(build, field))], True)
+    return Form([(1.0, _VectorTerm(lambda space: _point_load(space, measure, degree, g, "the load f(x)", local), field))], True)
+
+
+def _point_load(space, measure, degree, f, what, local):
+    """The vector of a load term on ``space``, block by block of ``measure``'s cells at quadrature
+    ``degree``: fw = w_q f(x_q) (``f`` checked as ``what``: real, finite, (m, q) or (m, q, c)), then
+    ``local(quad, elements, basis values, fw)`` -> (m, k) or (m, k, c) per cell, summed into the
+    dofs; (n,) or (n, c), zeros when the measure has no cells."""
+    out = None
+    for _, quad in measure.blocks(degree):
+        fx = _point_values(f, quad.points, what)
+        fw = fx * (quad.weights if fx.ndim == 2 else quad.weights[..., None])
+        el = space.local_elements(measure, quad.parent)
+        values = local(quad, el, space.basis_on(measure, quad, el), fw)
+        if out is None:
+            out = np.zeros((space.n_dofs,) + values.shape[2:])
+        assemble_vector(np.take(space.element_dofs, el, axis=0), values, space.n_dofs, out=out)
+    return np.zeros(space.n_dofs) if out is None else out
 
 
 def _jump_gram(space, pairs, normals_a, normals_b, sign_b, scale):
@@ -1347,19 +1352,13 @@ def nitsche_load(g, measure: SurfacePieces, gamma: float = 10.0, field=None) -> 
 
     def build(space):
         sign = _outward_sign(space, measure, "nitsche_load")
-        out = None
-        for _, quad in measure.blocks(degree):
-            gw = _point_values(g, quad.points, "nitsche_load: g(x)")
-            gw = gw * (quad.weights if gw.ndim == 2 else quad.weights[..., None])
-            el = space.local_elements(measure, quad.parent)
-            phi = space.basis_on(measure, quad, el)
+
+        def local(quad, el, phi, gw):
             dn = sign * np.einsum("mkd,md->mk", space.gradients_of(el), quad.normal)
             penalty = (gamma / measure.h[quad.parent]).reshape((-1,) + (1,) * (gw.ndim - 1))
-            local = np.einsum("mqk,mq...->mk...", phi, gw * penalty) - np.einsum("mk,m...->mk...", dn, gw.sum(axis=1))
-            if out is None:
-                out = np.zeros((space.n_dofs,) + local.shape[2:])
-            assemble_vector(np.take(space.element_dofs, el, axis=0), local, space.n_dofs, out=out)
-        return np.zeros(space.n_dofs) if out is None else out
+            return np.einsum("mqk,mq...->mk...", phi, gw * penalty) - np.einsum("mk,m...->mk...", dn, gw.sum(axis=1))
+
+        return _point_load(space, measure, degree, g, "nitsche_load: g(x)", local)
 
     return Form([(1.0, _VectorTerm(build, field))], True)
 

@@ -160,7 +160,7 @@ def test_interface_nitsche_refuses_fields_that_are_not_neg_then_pos(cut):
         assemble(interface_nitsche(ds, 1.0, 2.0), ProductSpace(VP, VN))  # inside error 0.31 -> 0.19 before
     with pytest.raises(ValueError, match="same field twice"):
         assemble(interface_nitsche(ds, 1.0, 2.0, fields=(0, 0)), ProductSpace(VN, VP))  # the zero matrix before
-    with pytest.raises(ValueError, match=r"field=5: give a position 0\.\.1"):
+    with pytest.raises(ValueError, match=r"field=5: a field is given by its position 0\.\.1"):
         assemble(interface_nitsche(ds, 1.0, 2.0, fields=(0, 5)), ProductSpace(VN, VP))
     with pytest.raises(TypeError, match=r"ProductSpace\(V_neg, V_pos\)"):
         assemble(interface_nitsche(ds, 1.0, 2.0), VN)
@@ -168,7 +168,7 @@ def test_interface_nitsche_refuses_fields_that_are_not_neg_then_pos(cut):
         assemble(interface_nitsche(ds, 1.0, 2.0), ProductSpace(VN, CutP1Space(cut, CUT)))
     with pytest.raises(ValueError, match="pair"):
         interface_nitsche(ds, 1.0, 2.0, fields=0)
-    with pytest.raises(ValueError, match=r"field=-1: give a position 0\.\.1"):
+    with pytest.raises(ValueError, match=r"field=-1: a field is given by its position 0\.\.1"):
         assemble(stiffness(cut.dx(NEG), field=-1), ProductSpace(VN, VP))
     # by name, in the product's own order
     W = ProductSpace(outer=VP, inner=VN)
