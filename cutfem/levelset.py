@@ -181,15 +181,24 @@ def _integer_powers_transformer():
     import ast
 
     class IntegerPowers(ast.NodeTransformer):
-        """Rewrite ``a ** n`` with an integer literal 2 <= n <= 16 into ``_integer_power(a, n)``."""
+        """Rewrite ``a ** n`` with an integer literal 2 <= n <= 16 into ``_integer_power(a, n)``; every
+        other integer literal becomes a float, so that the constants are computed in floating point
+        ('9**9**9' overflows at once instead of building a 370-million-digit integer)."""
 
         def visit_BinOp(self, node):
-            self.generic_visit(node)
             exponent = node.right
             if isinstance(node.op, ast.Pow) and isinstance(exponent, ast.Constant) \
                     and type(exponent.value) is int and 2 <= exponent.value <= 16:
-                return ast.Call(ast.Name("_integer_power", ast.Load()), [node.left, exponent], [])
-            return node
+                return ast.Call(ast.Name("_integer_power", ast.Load()), [self.visit(node.left), exponent], [])
+            return self.generic_visit(node)
+
+        def visit_Constant(self, node):
+            if type(node.value) is not int:
+                return node
+            try:
+                return ast.copy_location(ast.Constant(float(node.value)), node)
+            except OverflowError:
+                raise ValueError(f"the number {node.value:.3g} of a level-set expression is too large for a float") from None
 
     return IntegerPowers()
 
@@ -235,7 +244,7 @@ def _expression_function(text):
                 f"pi, e and the functions {', '.join(_EXPRESSION_FUNCTIONS)}"
             )
         raise ValueError(
-            f"the level-set expression {text!r} contains {ast.unparse(node)!r} ({type(node).__name__}), "
+            f"the level-set expression {text!r} contains {ast.unparse(node) or type(node).__name__!r} ({type(node).__name__}), "
             "which is not allowed: use numbers, x, y, z, pi, e, + - * / ** and the listed numpy functions"
         )
     tree = ast.fix_missing_locations(_integer_powers_transformer().visit(tree))
@@ -246,7 +255,10 @@ def _expression_function(text):
         names = {"__builtins__": {}, **_EXPRESSION_FUNCTIONS, **_EXPRESSION_CONSTANTS, "_integer_power": _integer_power,
                  "x": x[..., 0], "y": x[..., 1], "z": x[..., 2]}
         with np.errstate(all="ignore"):  # NaN/inf values are reported by the callers, with the points
-            out = eval(code, names)  # noqa: S307 - the tree was checked above
+            try:
+                out = eval(code, names)  # noqa: S307 - the tree was checked above
+            except ArithmeticError as exc:  # constants alone: '1/0', '10.0**400' (arrays give inf or NaN)
+                raise ValueError(f"the level-set expression {text!r} cannot be evaluated: {exc} in its constants") from None
         return np.broadcast_to(np.asarray(out, dtype=float), x.shape[:-1]).copy()
 
     return expression

@@ -235,3 +235,17 @@ def test_wrong_shape_derivatives_get_the_documented_error():
     assert ls.value(x).shape == (7,)
     with pytest.raises(ValueError, match=r"value\(x\) returned shape \(7, 3\) for points x of shape \(7, 6, 3\)"):
         ls.gradient(x)  # the differences call it on (n, 6, 3)
+
+
+@pytest.mark.parametrize("text", ["x**2 + y**2 + z**2 - 1 + 9**9**9", "x + 1/0", "x**2 + 10**400"])
+def test_expression_constants_that_overflow_are_refused_at_once(text):
+    """Integer literals are computed as floats: a tower of powers overflows at once (it would build
+    a 370-million-digit integer), and so does a division by zero among the constants."""
+    with pytest.raises(ValueError, match="cannot be evaluated"):
+        FunctionLevelSet.from_expression(text).value(np.zeros((2, 3)))
+
+
+def test_expression_integer_literals_keep_their_values():
+    x = np.random.default_rng(0).normal(size=(50, 3))
+    phi = FunctionLevelSet.from_expression("x**3 - 2*y**17 + 7/2 - z**2").value(x)
+    np.testing.assert_allclose(phi, x[:, 0] ** 3 - 2 * x[:, 1] ** 17 + 3.5 - x[:, 2] ** 2, rtol=1e-14, atol=1e-14)
