@@ -985,9 +985,14 @@ class FunctionLevelSet(LevelSet):
         return self._bounds
 
     def _call(self, fn, x, tail, name):
-        """fn(x) as floats, checked to have shape x.shape[:-1] + tail (ValueError naming the fix)."""
+        """fn(x) as floats, checked to be real and to have shape x.shape[:-1] + tail (ValueError naming
+        the fix)."""
         try:
-            out = np.asarray(fn(x), dtype=float)
+            raw = fn(x)
+            if np.iscomplexobj(raw):  # float() would drop the imaginary part with only a warning
+                raise ValueError(f"{name}(x) returned complex values; a level set is real: return the real part "
+                                 "explicitly if that is what is meant")
+            out = np.asarray(raw, dtype=float)
         except IndexError as exc:
             raise ValueError(
                 f"{name}(x) raised IndexError ({exc}) for x of shape {x.shape}: the coordinates are along "

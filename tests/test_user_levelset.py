@@ -249,3 +249,9 @@ def test_expression_integer_literals_keep_their_values():
     x = np.random.default_rng(0).normal(size=(50, 3))
     phi = FunctionLevelSet.from_expression("x**3 - 2*y**17 + 7/2 - z**2").value(x)
     np.testing.assert_allclose(phi, x[:, 0] ** 3 - 2 * x[:, 1] ** 17 + 3.5 - x[:, 2] ** 2, rtol=1e-14, atol=1e-14)
+
+
+def test_complex_level_set_values_are_refused():
+    phi = FunctionLevelSet(lambda x: np.sum(x**2, axis=-1) - 1 + 0j)
+    with pytest.raises(ValueError, match="complex values"):
+        phi.value(np.zeros((2, 3)))
