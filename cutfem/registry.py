@@ -248,12 +248,23 @@ class Problem:
         for k, v in given.items():
             out[k] = allowed[k].convert(v)
         for k in given:
-            only = allowed[k].only
-            if only is not None and not (isinstance(out[only[0]], str) and out[only[0]] in only[1]):
+            if not self._applies(allowed[k], out):
+                only = allowed[k].only
                 other = allowed[only[0]].flag
                 raise ProblemError(f"{allowed[k].flag} applies only with {other} {' or '.join(only[1])}, not with {other} "
                                    f"{out[only[0]]!r}: leave {allowed[k].flag} out, or choose {other} {only[1][0]}")
         return out
+
+    @staticmethod
+    def _applies(param: "Param", params: dict) -> bool:
+        only = param.only
+        return only is None or (isinstance(params[only[0]], str) and params[only[0]] in only[1])
+
+    def applicable(self, params: dict) -> dict:
+        """The resolved ``params`` that shape this run: those without ``only``, or whose ``only``
+        holds (the torus's radii for the torus, not for the sphere); what a record and a figure name."""
+        pm = self.param_map()
+        return {k: v for k, v in params.items() if k not in pm or self._applies(pm[k], params)}
 
     def describe(self) -> str:
         lines = [f"{self.name}: {self.summary}", f"  levels ({self.level_name}): default {self.default_levels}"]
@@ -618,7 +629,7 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
         elif callable(progress):
             progress(i, len(levels), level, rec)
     result = RunResult(
-        problem.name, p, levels, records, level_name=problem.level_name, components=problem.components,
+        problem.name, problem.applicable(p), levels, records, level_name=problem.level_name, components=problem.components,
         definitions=dict(problem.definitions), command=None if command is None else list(command), created_utc=started,
     )
     if failure is not None:

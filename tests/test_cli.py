@@ -574,3 +574,10 @@ def _fresh_python(code: str) -> str:
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0, out.stderr
     return out.stdout
+
+
+def test_records_name_only_the_parameters_that_shape_the_run():
+    sphere = cutfem.run("mean-curvature-cut", levels=[0.4], surface="sphere", radius=0.9)
+    assert sphere.parameters["radius"] == 0.9 and not {"R", "r", "axes"} & set(sphere.parameters)
+    torus = cutfem.run("mean-curvature-meshed", levels=[8])
+    assert {"R", "r", "family", "seed"} <= set(torus.parameters) and "radius" not in torus.parameters
