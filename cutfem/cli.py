@@ -18,7 +18,6 @@ from __future__ import annotations
 
 import argparse
 import sys
-import tempfile
 from pathlib import Path
 
 __all__ = ["main", "entry"]
@@ -85,28 +84,6 @@ PLOT_SUFFIXES = (".png", ".pdf", ".svg")
 INPUT_ERRORS = (ValueError, FileNotFoundError, RuntimeError, OSError, MemoryError)
 
 
-def _check_output(flag: str, path: str, suffixes=None, folder: bool = False) -> None:
-    """Refuse, before solving, an output that cannot be written: a wrong extension, a path that is
-    (or is not) a folder, or a nearest existing parent folder that is not writable."""
-    from .registry import ProblemError
-
-    target = Path(path)
-    if suffixes is not None and target.suffix.lower() not in suffixes:
-        raise ProblemError(f"{flag}: {path!r} should end in {' or '.join(suffixes)}")
-    if target.exists() and target.is_dir() != folder:
-        raise ProblemError(f"{flag}: {path!r} is {'not ' if folder else ''}a folder; give {'a folder' if folder else 'a file path'}")
-    parent = target if folder and target.exists() else target.parent
-    while not parent.exists():
-        parent = parent.parent
-    try:  # a real write (permission bits say nothing to root, nor about read-only file systems)
-        if not parent.is_dir():
-            raise NotADirectoryError(str(parent))
-        with tempfile.TemporaryFile(dir=parent, prefix=".cutfem-write-test-"):
-            pass
-    except OSError:
-        raise ProblemError(f"{flag}: cannot write {path!r}: the folder {str(parent)!r} is not writable; choose another path") from None
-
-
 def _level_flag(argv, problem) -> str:
     """The flag the levels were given with, for messages: --levels or --<level name>."""
     own = "--" + problem.level_name.replace("_", "-")
@@ -117,7 +94,7 @@ def _level_flag(argv, problem) -> str:
 
 
 def _cmd_run(argv) -> int:
-    from .registry import ProblemError, check_levels, get_problem, run
+    from .registry import ProblemError, check_levels, check_output, get_problem, run
 
     if not argv or argv[0].startswith("-"):
         raise ProblemError("usage: cutfem run PROBLEM [--param value ...]; 'cutfem list' shows the problems")
@@ -132,11 +109,11 @@ def _cmd_run(argv) -> int:
     levels = None if known.levels is None else check_levels(problem, known.levels, _level_flag(argv, problem))
     to_stdout = known.json == "-"
     if known.json and not to_stdout:
-        _check_output("--json", known.json, JSON_SUFFIXES)
+        check_output("--json", known.json, JSON_SUFFIXES)
     if known.plot:
-        _check_output("--plot", known.plot, PLOT_SUFFIXES)
+        check_output("--plot", known.plot, PLOT_SUFFIXES)
     if known.vtk:
-        _check_output("--vtk", known.vtk, folder=True)
+        check_output("--vtk", known.vtk, folder=True)
     result = run(
         problem.name, levels=levels, progress=not (known.quiet or to_stdout), keep_finished=True,
         command=["cutfem", "run", *argv], **params,

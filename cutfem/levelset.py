@@ -79,7 +79,10 @@ def _raise_if_singular(mask: np.ndarray, x: np.ndarray, what: str, where: str) -
 
 def _positive(value, name: str) -> float:
     """Return ``value`` as a float, ValueError unless it is finite and > 0."""
-    v = float(value)
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a finite positive number, got {value!r}") from None
     if not np.isfinite(v) or v <= 0.0:
         raise ValueError(f"{name} must be a finite positive number, got {value!r}")
     return v
@@ -160,6 +163,8 @@ _EXPRESSION_FUNCTIONS = {
     for name in ("sin", "cos", "tan", "arcsin", "arccos", "arctan", "arctan2", "sinh", "cosh", "tanh",
                  "exp", "log", "log2", "log10", "sqrt", "cbrt", "abs", "hypot", "minimum", "maximum")
 }
+#: the number of arguments of each function: numpy reads one more as the array to write into
+_EXPRESSION_ARITY = {name: 2 if name in ("arctan2", "hypot", "minimum", "maximum") else 1 for name in _EXPRESSION_FUNCTIONS}
 _EXPRESSION_CONSTANTS = {"pi": np.pi, "e": np.e}
 _EXPRESSION_MAX_LENGTH = 10000
 
@@ -218,6 +223,10 @@ def _expression_function(text):
             f"cannot parse the level-set expression {text!r}: {exc.msg}; write it in Python syntax, "
             "e.g. 'x**2 + y**2 + z**2 - 1'"
         ) from None
+    except (RecursionError, MemoryError):
+        raise ValueError("the level-set expression is nested too deeply to be parsed; write it in a Python file "
+                         "(FunctionLevelSet.from_file)") from None
+    called = {id(node.func) for node in ast.walk(tree) if isinstance(node, ast.Call)}
     operators = (ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Pow, ast.USub, ast.UAdd)
     variables = {"x", "y", "z"} | set(_EXPRESSION_CONSTANTS)
     for node in ast.walk(tree):
@@ -235,8 +244,17 @@ def _expression_function(text):
                     f"the level-set expression {text!r} calls {ast.unparse(node)!r}, which is not allowed; "
                     f"the functions are {', '.join(_EXPRESSION_FUNCTIONS)} with positional arguments"
                 )
+            arity = _EXPRESSION_ARITY[node.func.id]
+            if len(node.args) != arity or any(isinstance(a, ast.Starred) for a in node.args):
+                raise ValueError(
+                    f"the level-set expression {text!r} calls {node.func.id} with {len(node.args)} argument(s) in "
+                    f"{ast.unparse(node)!r}; {node.func.id} takes {arity}"
+                )
             continue
         if isinstance(node, ast.Name):
+            if node.id in _EXPRESSION_FUNCTIONS and id(node) not in called:
+                raise ValueError(f"the level-set expression {text!r} uses the function {node.id} without calling it; "
+                                 f"write {node.id}(...)")
             if node.id in variables or node.id in _EXPRESSION_FUNCTIONS:
                 continue
             raise ValueError(
@@ -247,8 +265,12 @@ def _expression_function(text):
             f"the level-set expression {text!r} contains {ast.unparse(node) or type(node).__name__!r} ({type(node).__name__}), "
             "which is not allowed: use numbers, x, y, z, pi, e, + - * / ** and the listed numpy functions"
         )
-    tree = ast.fix_missing_locations(_integer_powers_transformer().visit(tree))
-    code = compile(tree, "<level-set expression>", "eval")
+    try:
+        tree = ast.fix_missing_locations(_integer_powers_transformer().visit(tree))
+        code = compile(tree, "<level-set expression>", "eval")
+    except (RecursionError, MemoryError):
+        raise ValueError("the level-set expression is nested too deeply to be compiled; write it in a Python file "
+                         "(FunctionLevelSet.from_file)") from None
 
     def expression(x):
         x = np.asarray(x, dtype=float)
@@ -259,6 +281,9 @@ def _expression_function(text):
                 out = eval(code, names)  # noqa: S307 - the tree was checked above
             except ArithmeticError as exc:  # constants alone: '1/0', '10.0**400' (arrays give inf or NaN)
                 raise ValueError(f"the level-set expression {text!r} cannot be evaluated: {exc} in its constants") from None
+        if np.iscomplexobj(out):  # '(-8)**(1/3)': Python's power of a negative number is complex
+            raise ValueError(f"the level-set expression {text!r} gives complex values (a negative number to a fractional "
+                             "power?); a level set is real: write cbrt(-8) or -(8**(1/3))")
         return np.broadcast_to(np.asarray(out, dtype=float), x.shape[:-1]).copy()
 
     return expression
@@ -968,7 +993,7 @@ class FunctionLevelSet(LevelSet):
             raise ValueError(f"surface file {str(path)!r} does not exist; give the path of a Python file that defines phi(x)")
         try:
             ns = runpy.run_path(str(path), run_name="cutfem_surface")
-        except Exception as exc:
+        except (Exception, SystemExit) as exc:  # a file that exits must not end the caller's process
             raise ValueError(f"running the surface file {str(path)!r} failed: {type(exc).__name__}: {exc}") from exc
         if not callable(ns.get("phi")):
             raise ValueError(

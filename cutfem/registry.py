@@ -27,6 +27,7 @@ import json
 import math
 import platform
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -131,6 +132,27 @@ class LazyFields(Mapping):
 
 class ProblemError(ValueError):
     """Bad problem name or parameter value; the message lists what is allowed."""
+
+
+def check_output(flag: str, path: str, suffixes=None, folder: bool = False) -> None:
+    """Refuse (ProblemError naming ``flag``), before anything runs, an output that cannot be written:
+    a wrong extension, a path that is (or is not) a folder, or a nearest existing parent folder that
+    is not writable (tried by a real write)."""
+    target = Path(path)
+    if suffixes is not None and target.suffix.lower() not in suffixes:
+        raise ProblemError(f"{flag}: {path!r} should end in {' or '.join(suffixes)}")
+    if target.exists() and target.is_dir() != folder:
+        raise ProblemError(f"{flag}: {path!r} is {'not ' if folder else ''}a folder; give {'a folder' if folder else 'a file path'}")
+    parent = target if folder and target.exists() else target.parent
+    while not parent.exists():
+        parent = parent.parent
+    try:  # a real write (permission bits say nothing to root, nor about read-only file systems)
+        if not parent.is_dir():
+            raise NotADirectoryError(str(parent))
+        with tempfile.TemporaryFile(dir=parent, prefix=".cutfem-write-test-"):
+            pass
+    except OSError:
+        raise ProblemError(f"{flag}: cannot write {path!r}: the folder {str(parent)!r} is not writable; choose another path") from None
 
 
 @dataclass

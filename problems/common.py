@@ -105,7 +105,11 @@ def levelset_for(surface, R=1.0, r=0.5, radius=1.0, axes="1.0,0.8,0.6") -> Level
             return FunctionLevelSet.from_file(path)
         except ValueError as exc:
             raise ProblemError(f"--surface: {exc}") from exc
-    if path.exists():
+    try:
+        exists = path.exists()
+    except OSError:  # an expression longer than a file name can be
+        exists = False
+    if exists:
         return SignedDistance(read_surface(path))
     if re.fullmatch(r"[\w./\\~-]*\.[A-Za-z][A-Za-z0-9]*", str(surface)):  # a file name, not an expression
         raise ProblemError(f"--surface: there is no file {str(surface)!r} (looked in {str(Path.cwd())!r}); give the path "

@@ -22,7 +22,7 @@ import numpy as np
 
 from cutfem.convergence import new_figure  # noqa: F401  (the studies' figures)
 from cutfem.memory import configure
-from cutfem.registry import jsonable
+from cutfem.registry import ProblemError, check_output, jsonable
 
 SIZES = ("tiny", "quick", "full")
 
@@ -149,6 +149,11 @@ def study_main(run, name: str):
         p.add_argument("--out", default=f"out/{name}", help="output folder")
         add_size_arguments(p)
         a = p.parse_args(argv)
+        try:
+            check_output("--out", a.out, folder=True)
+        except ProblemError as exc:
+            print(f"error: {exc}", file=sys.stderr)
+            return 2
         t0 = time.perf_counter()
         run(Path(a.out), a.size or "quick", Progress(name, not a.quiet))
         print(f"{name}: done in {time.perf_counter() - t0:.1f} s, results in {a.out}", file=sys.stderr)

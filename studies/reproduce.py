@@ -343,6 +343,13 @@ def main(argv=None) -> int:
             return 2
         selected = [n for n in STUDY_NAMES if n in a.only]
 
+    from cutfem.registry import ProblemError, check_output
+
+    try:
+        check_output("--out", a.out, folder=True)
+    except ProblemError as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
     out = Path(a.out)
     tables = out / "tables"
     for d in (out / "figures", tables):

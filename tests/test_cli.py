@@ -581,3 +581,14 @@ def test_records_name_only_the_parameters_that_shape_the_run():
     assert sphere.parameters["radius"] == 0.9 and not {"R", "r", "axes"} & set(sphere.parameters)
     torus = cutfem.run("mean-curvature-meshed", levels=[8])
     assert {"R", "r", "family", "seed"} <= set(torus.parameters) and "radius" not in torus.parameters
+
+
+def test_studies_and_reproduce_check_their_output_folder_first(tmp_path, capsys):
+    from cutfem.studies import conditioning
+    from cutfem.studies.reproduce import main as reproduce
+
+    afile = tmp_path / "afile"
+    afile.write_text("")
+    assert conditioning.main(["--tiny", "--out", str(afile)]) == 2
+    assert reproduce(["--tiny", "--out", str(afile)]) == 2
+    assert capsys.readouterr().err.count("--out: '" + str(afile) + "' is not a folder") == 2

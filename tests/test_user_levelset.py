@@ -255,3 +255,36 @@ def test_complex_level_set_values_are_refused():
     phi = FunctionLevelSet(lambda x: np.sum(x**2, axis=-1) - 1 + 0j)
     with pytest.raises(ValueError, match="complex values"):
         phi.value(np.zeros((2, 3)))
+
+
+@pytest.mark.parametrize("text,pattern", [
+    ("hypot(x, y, z) - 1", "calls hypot with 3 argument"),  # numpy would write into z (the caller's array)
+    ("abs(x, y)", "calls abs with 2 argument"),
+    ("minimum(x)", "calls minimum with 1 argument"),
+    ("sqrt()", "calls sqrt with 0 argument"),
+    ("sin + x", "uses the function sin without calling it"),
+    ("(-8)**(1/3) + x", "gives complex values"),
+    ("+".join(["x"] * 2000), "nested too deeply"),
+])
+def test_expressions_with_wrong_calls_or_values_are_refused(text, pattern):
+    p = np.array([[0.0, 0.0, 0.5], [0.6, 0.0, 0.8]])
+    before = p.copy()
+    with pytest.raises(ValueError, match=pattern):
+        FunctionLevelSet.from_expression(text).value(p)
+    np.testing.assert_array_equal(p, before)  # the caller's points are never written
+
+
+def test_two_argument_functions_keep_working():
+    p = np.array([[0.0, 0.0, 0.5], [0.6, 0.0, 0.8]])
+    np.testing.assert_allclose(FunctionLevelSet.from_expression("hypot(hypot(x, y), z) - 1").value(p), [-0.5, 0.0], atol=1e-15)
+
+
+def test_surface_file_that_exits_or_declares_nonsense_is_reported(tmp_path):
+    exits = tmp_path / "exits.py"
+    exits.write_text("import sys\nsys.exit(3)\n")
+    with pytest.raises(ValueError, match="SystemExit"):
+        FunctionLevelSet.from_file(exits)
+    words = tmp_path / "words.py"
+    words.write_text("import numpy as np\ndef phi(x):\n    return np.sum(x**2, axis=-1) - 1\nlipschitz = 'one'\n")
+    with pytest.raises(ValueError, match="lipschitz must be a finite positive number, got 'one'"):
+        FunctionLevelSet.from_file(words)
