@@ -22,8 +22,10 @@ A piece lying in a face shared by two tets is therefore owned by the single tet 
 
 Values that are zero up to rounding count as zero: before anything else, nodal values with
 ``|phi| <= tol`` are set to exactly 0, with ``tol = 1e-12 L diam`` (L the declared Lipschitz bound,
-diam the diagonal of the background mesh's bounding box) or ``tol = 1e-12 max_nodes |phi|`` when no
-bound is declared.  Without this, a node that lies on S mathematically but gets phi = 1e-16 (the
+diam the diagonal of the background mesh's bounding box) or, when no bound is declared, per node
+``tol = 1e-12 max |phi|`` over the node and its neighbours (a local scale: a level set such as
+z exp(20 x) spans many orders of magnitude across the box, and the box's largest value would zero
+real values elsewhere).  Without this, a node that lies on S mathematically but gets phi = 1e-16 (the
 paper's torus on its box at spacing 0.1 has such nodes) gives cut points that coincide with the
 node in floating point under different vertex keys: zero-length edges, zero-area triangles and
 undefined conormals.  The snap moves S_h by at most tol / |grad phi|.
@@ -182,12 +184,28 @@ def _check_finite(values, where):
 _SNAP = 1e-12  # relative size of the nodal values that count as zero (see "The zero rule")
 
 
-def _zero_tolerance(mesh: TetMesh, lipschitz, values=None) -> float:
-    """Snap tolerance of the zero rule: ``1e-12 * L * diam`` (L declared) or ``1e-12 * max |phi|``."""
+def _zero_tolerance(mesh: TetMesh, lipschitz, values=None):
+    """Snap tolerance of the zero rule: ``1e-12 * L * diam`` (L declared, a number), or per node
+    ``1e-12 * max |phi|`` over the node and its neighbours (``values`` at every node; an array):
+    the nodes of the tets around it, on a structured box the 3 x 3 x 3 block of nodes around it
+    (a superset of its Kuhn neighbours).  Local, because a level set's values may span many orders
+    of magnitude across the box: with the box's max |phi|, z exp(20 x) on [-1, 1]^3 at spacing 0.1
+    had tol ~ 5e-4, which set nodes with phi ~ 1e-10 to zero, and S_h of area 4.57 instead of 4."""
     if lipschitz is not None:
         lo, hi = mesh.bounds
         return _SNAP * float(lipschitz) * float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
-    return _SNAP * float(np.max(np.abs(values))) if values is not None and values.size else 0.0
+    if values is None or not values.size:
+        return 0.0
+    size = np.abs(values)
+    if isinstance(mesh, StructuredBox):
+        from scipy.ndimage import maximum_filter
+
+        nx, ny, nz = (int(n) for n in mesh.node_shape)
+        local = maximum_filter(size.reshape(nz, ny, nx), size=3, mode="nearest").reshape(-1)
+    else:
+        local = size.copy()
+        np.maximum.at(local, mesh.tets.reshape(-1), np.repeat(size[mesh.tets].max(axis=1), 4))
+    return _SNAP * local
 
 
 def _snap_zeros(values, tol: float) -> np.ndarray:
@@ -1031,8 +1049,8 @@ def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
 
 def snapped_nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
     """phi_h at every node of ``mesh`` as the cut sees it: :func:`nodal_values` with the values of
-    modulus at most 1e-12 L diam (L the level set's declared Lipschitz bound), or 1e-12 max |phi|
-    without one, set to exactly 0 (the zero rule).  Visits every node; for handing the same
+    modulus at most 1e-12 L diam (L the level set's declared Lipschitz bound), or without one 1e-12
+    max |phi| over the node and its neighbours, set to exactly 0 (the zero rule).  Visits every node; for handing the same
     discrete level set to other codes and for volume integrals."""
     values = nodal_values(mesh, levelset)
     return _snap_zeros(values, _zero_tolerance(mesh, getattr(levelset, "lipschitz", None), values))

@@ -174,3 +174,20 @@ def test_surface_leaving_the_box_is_open_only_on_the_box_faces():
     holed = dataclasses.replace(cut, triangles=cut.triangles[1:], triangle_tets=cut.triangle_tets[1:])
     with pytest.raises(CutError, match="one triangle only"):  # a hole inside the box is still refused
         _check_closed(holed, check_boundary=False, band=True)
+
+
+def test_zero_rule_is_local_without_a_lipschitz_bound():
+    """A level set whose values span many orders of magnitude: the snap scale is each node's
+    neighbourhood, not the box's largest value (which zeroed values of 1e-10 and gave area 4.57)."""
+    from cutfem.cut import NEG, snapped_nodal_values
+
+    box = structured_box([-1, -1, -1], [1, 1, 1], spacing=0.1)
+    scaled = FunctionLevelSet.from_expression("z * exp(20 * x)")
+    cut = cut_mesh(box, scaled, check_boundary=False)
+    assert abs(cut.area - 4.0) < 1e-12
+    assert abs(cut.dx(NEG).integrate(lambda x: np.ones(x.shape[:-1])) - 4.0) < 1e-9
+    values = snapped_nodal_values(box, scaled)
+    z = box.node_coordinates(np.arange(box.n_points))[:, 2]
+    np.testing.assert_array_equal(values == 0, np.abs(z) < 1e-12)  # exactly the nodes on the plane
+    tiny = FunctionLevelSet(lambda x: x[..., 2] + 1e-16 * (np.abs(x[..., 2]) < 1e-12))  # rounding noise on the plane
+    assert np.count_nonzero(snapped_nodal_values(box, tiny) == 0) == np.count_nonzero(np.abs(z) < 1e-12)
