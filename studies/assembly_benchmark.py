@@ -50,6 +50,7 @@ from cutfem.cut import CUT, cut_mesh
 from cutfem.forms import assemble, face_jump_penalty, mass, tangential_stiffness
 from cutfem.levelset import Torus
 from cutfem.mesh import structured_box
+from cutfem.registry import ProblemError, check_output
 from cutfem.spaces import CutP1Space
 
 from .common import PAGE_WIDTH, Progress, add_size_arguments, figure_style, pick, save_csv, save_json
@@ -248,8 +249,12 @@ def main(argv=None) -> int:
     a = p.parse_args(argv)
     if a.repeat < 1 or a.cold_repeat < 1:
         p.error("--repeat and --cold-repeat must be at least 1")
-    if a.spacings and any(s <= 0 for s in a.spacings):
-        p.error("--spacings must be positive")
+    if a.spacings and not all(np.isfinite(s) and 0 < s < 0.5 for s in a.spacings):
+        p.error(f"--spacings must be finite numbers between 0 and 0.5 (the torus's tube has radius 0.5), got {a.spacings}")
+    try:
+        check_output("--out", a.out, folder=True)
+    except ProblemError as exc:
+        p.error(str(exc))
     data = run(
         Path(a.out), a.size or "quick", Progress(NAME, not a.quiet), spacings=a.spacings, repeat=a.repeat, cold_repeat=a.cold_repeat
     )
