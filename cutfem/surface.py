@@ -39,6 +39,8 @@ __all__ = [
     "TORUS_FAMILIES",
     "DEGENERATE_TOLERANCE",
     "MERGE_TOLERANCE",
+    "BYTES_PER_GENERATED_NODE",
+    "SPHERE_MAX_LEVEL",
 ]
 
 #: A triangle is degenerate when |(b - a) x (c - a)| <= DEGENERATE_TOLERANCE * l_max**2, with
@@ -52,6 +54,14 @@ MERGE_TOLERANCE = 1e-10
 
 #: The torus families of docs/math.md §6.1 accepted by :func:`torus_mesh`.
 TORUS_FAMILIES = ("structured", "flipped", "perturbed", "perturbed-flipped")
+
+#: Peak bytes per node of a generated mesh (:func:`torus_mesh`, :func:`sphere_mesh`, with its
+#: validation), checked before allocating: measured 582 (torus, n = 1200) and 656 (sphere, level 9)
+#: as the peak resident memory of a fresh process over its baseline, rounded up.
+BYTES_PER_GENERATED_NODE = 800
+
+#: The finest level of :func:`sphere_mesh` (20 * 4**10 = 20,971,520 triangles).
+SPHERE_MAX_LEVEL = 10
 
 _READ_EXTENSIONS_HINT = ".stl, .obj, .ply, .off, .vtk, .vtu, .msh (Gmsh), .mesh (Medit)"
 
@@ -846,11 +856,27 @@ class SurfaceMesh:
 # ---------------------------------------------------------------------------------------------
 
 
-def _check_int(name: str, value, minimum: int) -> int:
+def _int_text(value) -> str:
+    """An integer for a message: in full up to 18 digits, else in floating notation (str() of an
+    integer beyond 4300 digits raises, and writing out a huge one is slow and unreadable)."""
+    value = int(value)
+    if abs(value) < 10**18:
+        return str(value)
+    try:
+        return f"{float(value):.3g}"
+    except OverflowError:
+        return f"{'-' if value < 0 else ''}2**{abs(value).bit_length() - 1} or more"
+
+
+def _check_int(name: str, value, minimum: int, maximum: int | None = None, why: str = "") -> int:
+    """``value`` as an int in [minimum, maximum]; ValueError otherwise (``why`` explains the maximum).
+    The bounds are compared before anything is computed from ``value``."""
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         raise ValueError(f"{name} must be an integer >= {minimum}; got {value!r}.")
     if value < minimum:
-        raise ValueError(f"{name} must be an integer >= {minimum}; got {value}.")
+        raise ValueError(f"{name} must be an integer >= {minimum}; got {_int_text(value)}.")
+    if maximum is not None and value > maximum:
+        raise ValueError(f"{name} must be an integer <= {maximum}; got {_int_text(value)}{why}.")
     return int(value)
 
 
@@ -862,6 +888,24 @@ def _check_positive(name: str, value) -> float:
     if not np.isfinite(value) or value <= 0:
         raise ValueError(f"{name} must be a positive finite number; got {value}.")
     return value
+
+
+def _available_bytes() -> int:
+    from .memory import available_memory
+
+    return available_memory()[0]
+
+
+def _check_generated_memory(nodes: int, what: str, fix: str) -> None:
+    """Refuse a generated mesh of ``nodes`` nodes whose peak memory (:data:`BYTES_PER_GENERATED_NODE`
+    per node) exceeds the memory available (:func:`cutfem.memory.check_memory`), before allocating."""
+    from .memory import check_memory
+
+    try:
+        estimate = BYTES_PER_GENERATED_NODE * float(nodes)
+    except OverflowError:  # more than 1e308 nodes
+        estimate = float("inf")
+    check_memory(estimate, what, fix)
 
 
 def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.5, seed=0) -> SurfaceMesh:
@@ -895,7 +939,10 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
 
     Notes: the cells of the unperturbed grid are planar isosceles trapezoids, so "flipped" has the
     same area (and stiffness matrix) as "structured".  Requires n even and >= 6 (so m >= 3 and the
-    grid is a simplicial complex) and 0 < r < R (an embedded ring torus).
+    grid is a simplicial complex) and 0 < r < R (an embedded ring torus).  Memory: the n m nodes
+    at :data:`BYTES_PER_GENERATED_NODE` each are compared with the memory available before
+    anything is allocated (:class:`cutfem.memory.InsufficientMemoryError` naming the size and an n
+    that fits).
 
     Validation: the grid is closed, manifold (six triangles in one fan at every node) and
     outward by construction, for every family (the offsets move nodes by less than half a cell,
@@ -912,6 +959,11 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
     if not r < R:
         raise ValueError(f"the torus needs 0 < r < R (a ring torus without self-contact); got R = {R}, r = {r}.")
     m = n // 2
+    fits = 2 * int(np.sqrt(_available_bytes() / BYTES_PER_GENERATED_NODE) / 2)  # n**2 / 2 nodes fit
+    _check_generated_memory(
+        n * m, f"torus_mesh(n={_int_text(n)}) ({_int_text(n * m)} nodes, {_int_text(2 * n * m)} triangles)",
+        f"use a smaller n (the memory grows like n**2; n = {fits} fits)" if fits >= 6 else "free memory",
+    )
     rng = np.random.default_rng(seed)
     coins = rng.random(n * m) < 0.5
     offsets = rng.uniform(-0.25, 0.25, size=(n * m, 2))
@@ -983,16 +1035,28 @@ def sphere_mesh(level: int = 3, radius: float = 1.0, center=(0.0, 0.0, 0.0)) -> 
         N = 10 * 4^level + 2,  E = 30 * 4^level,  M = 20 * 4^level,  Euler characteristic 2.
 
     The area tends to 4 pi radius^2 and the volume to 4/3 pi radius^3 at O(h^2).
+
+    ``level`` must be an integer in 0..:data:`SPHERE_MAX_LEVEL`, checked before anything is
+    computed from it (a huge level is refused at once); the nodes at
+    :data:`BYTES_PER_GENERATED_NODE` each must fit in the memory available
+    (:class:`cutfem.memory.InsufficientMemoryError` naming a level that fits).
     """
     from scipy.spatial import ConvexHull
 
-    level = _check_int("level", level, 0)
+    level = _check_int(
+        "level", level, 0, SPHERE_MAX_LEVEL,
+        f" (level {SPHERE_MAX_LEVEL} has {20 * 4**SPHERE_MAX_LEVEL:,} triangles; each level multiplies them by 4)",
+    )
     radius = _check_positive("radius", radius)
     center = np.asarray(center, dtype=float)
     if center.shape != (3,) or not np.isfinite(center).all():
         raise ValueError(f"center must be 3 finite coordinates; got {center!r}.")
-    if level > 10:
-        raise ValueError(f"level {level} would give {20 * 4**level} triangles; use level <= 10.")
+    nodes = 10 * 4**level + 2
+    fits = [k for k in range(level) if BYTES_PER_GENERATED_NODE * (10 * 4**k + 2) <= _available_bytes()]
+    _check_generated_memory(
+        nodes, f"sphere_mesh(level={level}) ({nodes:,} nodes, {20 * 4**level:,} triangles)",
+        f"use a smaller level (the memory grows 4 times a level; level {fits[-1]} fits)" if fits else "free memory",
+    )
     phi = 0.5 * (1.0 + np.sqrt(5.0))
     base = np.array([[0.0, s1, s2 * phi] for s1 in (-1.0, 1.0) for s2 in (-1.0, 1.0)])
     verts = np.concatenate([np.roll(base, shift, axis=1) for shift in range(3)])
