@@ -41,6 +41,8 @@ __all__ = [
     "MERGE_TOLERANCE",
     "BYTES_PER_GENERATED_NODE",
     "SPHERE_MAX_LEVEL",
+    "LENGTH_RANGE",
+    "check_length",
 ]
 
 #: A triangle is degenerate when |(b - a) x (c - a)| <= DEGENERATE_TOLERANCE * l_max**2, with
@@ -59,6 +61,16 @@ TORUS_FAMILIES = ("structured", "flipped", "perturbed", "perturbed-flipped")
 #: validation), checked before allocating: measured 582 (torus, n = 1200) and 656 (sphere, level 9)
 #: as the peak resident memory of a fresh process over its baseline, rounded up.
 BYTES_PER_GENERATED_NODE = 800
+
+#: The lengths (radii, semi-axes) accepted by the analytic surfaces of :mod:`cutfem.levelset`
+#: (Sphere, Torus, Ellipsoid) and by :func:`sphere_mesh` and :func:`torus_mesh`, as (smallest,
+#: largest).  Within it every quantity formed from the lengths up to the fourth power stays a
+#: normal float64 (2.2e-308 to 1.8e308), with room for a factor 1e5 of mesh refinement: areas
+#: (L**2), volumes (L**3), curvatures (1/L), Hessians (1/L**2), the squared cross products of the
+#: triangles' edges in the degeneracy test (L**4), the squared gradient of an ellipsoid.  Outside,
+#: they overflow to inf (the area of a sphere of radius 1e200) or underflow to 0 (the triangles of a
+#: sphere of radius 1e-160 "have zero area"); rescale the unit of length instead.
+LENGTH_RANGE = (1e-50, 1e50)
 
 #: The finest level of :func:`sphere_mesh` (20 * 4**10 = 20,971,520 triangles).
 SPHERE_MAX_LEVEL = 10
@@ -890,6 +902,19 @@ def _check_positive(name: str, value) -> float:
     return value
 
 
+def check_length(name: str, value, owner: str) -> float:
+    """``value`` as a positive float within :data:`LENGTH_RANGE`; ValueError naming ``owner`` (the
+    surface or generator), the length and the fix otherwise."""
+    value = _check_positive(name, value)
+    lo, hi = LENGTH_RANGE
+    if not lo <= value <= hi:
+        raise ValueError(
+            f"{owner}: {name} = {value:.3g} is outside [{lo:g}, {hi:g}], where the areas, volumes and curvatures of "
+            f"the surface {'overflow' if value > hi else 'underflow'} in float64; rescale the unit of length."
+        )
+    return value
+
+
 def _available_bytes() -> int:
     from .memory import available_memory
 
@@ -942,7 +967,8 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
     grid is a simplicial complex) and 0 < r < R (an embedded ring torus).  Memory: the n m nodes
     at :data:`BYTES_PER_GENERATED_NODE` each are compared with the memory available before
     anything is allocated (:class:`cutfem.memory.InsufficientMemoryError` naming the size and an n
-    that fits).
+    that fits).  R and r must lie in :data:`LENGTH_RANGE`, and an r / R so small that the cells are
+    slivers (degenerate by :data:`DEGENERATE_TOLERANCE`) is refused naming r / R.
 
     Validation: the grid is closed, manifold (six triangles in one fan at every node) and
     outward by construction, for every family (the offsets move nodes by less than half a cell,
@@ -954,8 +980,8 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
         raise ValueError(f"n must be even (the grid is n x n/2); got n = {n}. Use n = {n + 1}.")
     if family not in TORUS_FAMILIES:
         raise ValueError(f"unknown torus family {family!r}; allowed: {', '.join(TORUS_FAMILIES)}.")
-    R = _check_positive("R", R)
-    r = _check_positive("r", r)
+    R = check_length("R", R, "torus_mesh")
+    r = check_length("r", r, "torus_mesh")
     if not r < R:
         raise ValueError(f"the torus needs 0 < r < R (a ring torus without self-contact); got R = {R}, r = {r}.")
     m = n // 2
@@ -995,7 +1021,14 @@ def torus_mesh(n: int, family: str = "structured", R: float = 1.0, r: float = 0.
         triangles[flip, 1] = np.stack([v10[flip], v11[flip], v01[flip]], axis=1)
     points, triangles = points.reshape(-1, 3), triangles.reshape(-1, 3)
     mesh = SurfaceMesh(points, triangles, check=False)
-    mesh._check_generated()  # the grid is a closed, outward torus; only the geometry is checked
+    try:
+        mesh._check_generated()  # the grid is a closed, outward torus; only the geometry is checked
+    except ValueError as err:  # r / R so small that the cells are slivers
+        raise ValueError(
+            f"torus_mesh(n={n}, R={R:g}, r={r:g}) makes degenerate triangles: the ratio r / R = {r / R:.3g} is too "
+            f"small for the grid (cells about {2 * np.pi * R / n:.3g} by {2 * np.pi * r / m:.3g}, slivers by the test of "
+            "DEGENERATE_TOLERANCE); use a larger r / R."
+        ) from err
     mesh.grid = (n, m)
     return mesh
 
@@ -1036,7 +1069,8 @@ def sphere_mesh(level: int = 3, radius: float = 1.0, center=(0.0, 0.0, 0.0)) -> 
 
     The area tends to 4 pi radius^2 and the volume to 4/3 pi radius^3 at O(h^2).
 
-    ``level`` must be an integer in 0..:data:`SPHERE_MAX_LEVEL`, checked before anything is
+    ``radius`` must lie in :data:`LENGTH_RANGE`.  ``level`` must be an integer in
+    0..:data:`SPHERE_MAX_LEVEL`, checked before anything is
     computed from it (a huge level is refused at once); the nodes at
     :data:`BYTES_PER_GENERATED_NODE` each must fit in the memory available
     (:class:`cutfem.memory.InsufficientMemoryError` naming a level that fits).
@@ -1047,7 +1081,7 @@ def sphere_mesh(level: int = 3, radius: float = 1.0, center=(0.0, 0.0, 0.0)) -> 
         "level", level, 0, SPHERE_MAX_LEVEL,
         f" (level {SPHERE_MAX_LEVEL} has {20 * 4**SPHERE_MAX_LEVEL:,} triangles; each level multiplies them by 4)",
     )
-    radius = _check_positive("radius", radius)
+    radius = check_length("radius", radius, "sphere_mesh")
     center = np.asarray(center, dtype=float)
     if center.shape != (3,) or not np.isfinite(center).all():
         raise ValueError(f"center must be 3 finite coordinates; got {center!r}.")
