@@ -504,13 +504,20 @@ class Sphere(LevelSet):
     p(x) = c + R u,  n(p(x)) = u,  k1 + k2 = 2/R,  H^e = (2/R) u.
     Area 4 pi R^2, volume 4/3 pi R^3, lipschitz 1.  Derivatives and p are undefined at x = c
     (ValueError there).
+
+    The radius must lie in :data:`cutfem.surface.LENGTH_RANGE` (1e-50 to 1e50; ValueError at
+    construction otherwise): beyond it the area and volume overflow or underflow.  |x - c| is
+    numpy's norm, and ``hypot`` where that norm leaves [1e-150, 1e150] (its squares would overflow
+    or lose bits to underflow), so points as far as 1e300 or as close to c as 1e-320 are exact.
     """
 
     is_distance = True
     lipschitz = 1.0
 
     def __init__(self, radius: float = 1.0, center=(0.0, 0.0, 0.0)):
-        self.radius = _positive(radius, "radius")
+        from .surface import check_length
+
+        self.radius = check_length("radius", _positive(radius, "radius"), "Sphere")
         self.center = _center(center)
 
     def __repr__(self) -> str:
@@ -528,18 +535,30 @@ class Sphere(LevelSet):
         """(c - R, c + R) componentwise, each of shape (3,)."""
         return self.center - self.radius, self.center + self.radius
 
+    @staticmethod
+    def _length(d):
+        """|d| along the last axis: numpy's norm, recomputed with ``hypot`` (no squares) where it is
+        outside [1e-150, 1e150], i.e. where the squares overflow or underflow."""
+        flat = d.reshape(-1, 3)
+        with np.errstate(over="ignore", under="ignore"):  # the points concerned are recomputed below
+            r = np.linalg.norm(flat, axis=-1)
+        careful = ~((r >= 1e-150) & (r <= 1e150))
+        if careful.any():
+            r[careful] = np.hypot(np.hypot(flat[careful, 0], flat[careful, 1]), flat[careful, 2])
+        return r.reshape(d.shape[:-1])
+
     def _unit(self, x):
         """(x, r, u) with r = |x - c| and u = (x - c)/r; ValueError at the center."""
         x = _as_points(x)
         d = x - self.center
-        r = np.linalg.norm(d, axis=-1)
+        r = self._length(d)
         _raise_if_singular(r == 0.0, x, "the direction (x - c)/|x - c|", "at the sphere's center")
         return x, r, d / r[..., None]
 
     def value(self, x):
         """|x - c| - R, shape (...)."""
         x = _as_points(x)
-        return np.linalg.norm(x - self.center, axis=-1) - self.radius
+        return self._length(x - self.center) - self.radius
 
     def gradient(self, x):
         """(x - c)/|x - c|, shape (..., 3)."""
@@ -589,15 +608,21 @@ class Torus(LevelSet):
 
     Area 4 pi^2 R r, volume 2 pi^2 R r^2, lipschitz 1 (rho is the signed distance everywhere).
     Derivatives, p and the exact fields are undefined on the z-axis (s = 0) and on the core
-    circle (d = 0): ValueError there.
+    circle (d = 0): ValueError there; anywhere else, however close, they are returned (s and d by
+    ``hypot``, the frame from the bounded ratios y/s, (s - R)/d, y3/d).
+
+    R and r must lie in :data:`cutfem.surface.LENGTH_RANGE` (1e-50 to 1e50; ValueError at
+    construction otherwise): beyond it the area and volume overflow or underflow.
     """
 
     is_distance = True
     lipschitz = 1.0
 
     def __init__(self, R: float = 1.0, r: float = 0.5, center=(0.0, 0.0, 0.0)):
-        self.R = _positive(R, "R (major radius)")
-        self.r = _positive(r, "r (minor radius)")
+        from .surface import check_length
+
+        self.R = check_length("R", _positive(R, "R (major radius)"), "Torus")
+        self.r = check_length("r", _positive(r, "r (minor radius)"), "Torus")
         if not self.r < self.R:
             raise ValueError(
                 f"a ring torus needs r < R, got R={R!r}, r={r!r}; choose a minor radius smaller "
@@ -630,7 +655,7 @@ class Torus(LevelSet):
         e_s = np.stack([y[..., 0] / s, y[..., 1] / s, np.zeros_like(s)], axis=-1)
         e_t = np.stack([-y[..., 1] / s, y[..., 0] / s, np.zeros_like(s)], axis=-1)
         w = y - self.R * e_s
-        d = np.linalg.norm(w, axis=-1)
+        d = np.hypot(s - self.R, y[..., 2])  # |w|, without squares that overflow or underflow
         _raise_if_singular(d == 0.0, x, "the torus distance's derivatives", "on the core circle")
         m = w / d[..., None]
         return x, s, d, e_s, e_t, m
@@ -704,7 +729,9 @@ class Torus(LevelSet):
         return out.reshape(y.shape)
 
     def _careful_mean_curvature_vector(self, x):
-        """:meth:`exact_mean_curvature_vector` with ``hypot`` and the input and singularity checks."""
+        """:meth:`exact_mean_curvature_vector` with ``hypot``, the input and singularity checks, and
+        H = kappa (cos p e_s + sin p e_z) from the bounded ratios y/s, (s - R)/d, y3/d, so that a
+        point 1e-310 from the axis or 1e-320 from the core circle gets its value (not 0 * inf)."""
         x = _as_points(x)
         y = x - self.center
         s = np.hypot(y[..., 0], y[..., 1])
@@ -712,13 +739,12 @@ class Torus(LevelSet):
         s_minus_R = s - self.R
         d = np.hypot(s_minus_R, y[..., 2])
         _raise_if_singular(d == 0.0, x, "the torus distance's derivatives", "on the core circle")
-        cos_p = s_minus_R / d
-        scale = (self.R + 2.0 * self.r * cos_p) / (self.r * d * (self.R + self.r * cos_p))
+        cos_p, sin_p = s_minus_R / d, y[..., 2] / d  # m = cos p e_s + sin p e_z, from bounded ratios only
+        kappa = (self.R + 2.0 * self.r * cos_p) / (self.r * (self.R + self.r * cos_p))
         out = np.empty_like(y)
-        out[..., 2] = scale * y[..., 2]
-        scale *= s_minus_R / s
-        out[..., 0] = scale * y[..., 0]
-        out[..., 1] = scale * y[..., 1]
+        out[..., 2] = kappa * sin_p
+        out[..., 0] = kappa * cos_p * (y[..., 0] / s)
+        out[..., 1] = kappa * cos_p * (y[..., 1] / s)
         return out
 
 
@@ -760,13 +786,34 @@ class Ellipsoid(LevelSet):
         A = 2 pi c^2 + 2 pi a b (E(phi, m) sin^2 phi + F(phi, m) cos^2 phi) / sin phi
     with the incomplete elliptic integrals F = ellipkinc, E = ellipeinc (parameter m = k^2);
     A = 4 pi a^2 when a = c.  Volume 4/3 pi a b c.
+
+    Mean curvature (at a point x itself, as the base class defines it): with h_i = 2 / a_i^2 and
+    n = grad phi / |grad phi|, trace(P Hess phi) = sum_i h_i (1 - n_i^2) = sum_i h_i sum_{j != i} n_j^2,
+    which has no cancellation (trace(Hess) - n^T Hess n lost everything on a flat ellipsoid: 0 for
+    2e-10 at the centre of the face of (1, 1, 1e-10)).
+
+    Sizes: each semi-axis must lie in :data:`cutfem.surface.LENGTH_RANGE` (1e-50 to 1e50) and the
+    smallest over the largest must be at least :attr:`min_axis_ratio` (1e-12); ValueError at
+    construction otherwise.  Below that ratio arccos(c/a) rounds to pi/2 (from about 1e-16) and the
+    area formula gives inf or NaN, and at 1e-200 the squares of the semi-axes underflow.
     """
 
     is_distance = False
     lipschitz = None
+    #: the smallest semi-axis over the largest must be at least this (see the class docstring)
+    min_axis_ratio = 1e-12
 
     def __init__(self, a: float = 1.0, b: float = 0.8, c: float = 0.6, center=(0.0, 0.0, 0.0)):
-        self.axes = np.array([_positive(a, "a"), _positive(b, "b"), _positive(c, "c")])
+        from .surface import check_length
+
+        self.axes = np.array([check_length(k, _positive(v, k), "Ellipsoid") for k, v in (("a", a), ("b", b), ("c", c))])
+        ratio = self.axes.min() / self.axes.max()
+        if ratio < self.min_axis_ratio:
+            raise ValueError(
+                f"Ellipsoid: the semi-axes a = {a:g}, b = {b:g}, c = {c:g} have smallest / largest = {ratio:.3g}, below "
+                f"{self.min_axis_ratio:g}: the area (elliptic integrals of arccos(smallest / largest)) and the curvatures "
+                "underflow to inf or NaN; use a less flat ellipsoid (or a disc-like surface of another kind)."
+            )
         self.center = _center(center)
 
     def __repr__(self) -> str:
@@ -809,6 +856,18 @@ class Ellipsoid(LevelSet):
         """diag(2 / a_i^2) at every point, shape (..., 3, 3)."""
         x = _as_points(x)
         return np.broadcast_to(np.diag(2.0 / self.axes**2), x.shape[:-1] + (3, 3)).copy()
+
+    def _curvature_and_normal(self, x):
+        """(div n, n) at the points x (..., 3): trace(P Hess phi) = sum_i h_i sum_{j != i} n_j^2 with
+        h_i = 2 / a_i^2 (see the class docstring), divided by |grad phi|."""
+        g = self.gradient(x)
+        norm = np.linalg.norm(g, axis=-1)
+        _raise_if_singular(norm == 0.0, x, "the mean curvature", "where grad phi = 0")
+        n = g / norm[..., None]
+        n2 = n * n
+        h = 2.0 / self.axes**2
+        trace = h[0] * (n2[..., 1] + n2[..., 2]) + h[1] * (n2[..., 0] + n2[..., 2]) + h[2] * (n2[..., 0] + n2[..., 1])
+        return trace / norm, n
 
     def closest_point(self, x):
         """Closest point on the ellipsoid, shape (..., 3): Newton on the Lagrange multiplier.

@@ -8,6 +8,7 @@ import re
 import numpy as np
 import pytest
 
+from cutfem.levelset import Ellipsoid, Sphere, Torus
 from cutfem.memory import InsufficientMemoryError
 from cutfem.surface import sphere_mesh, torus_mesh
 
@@ -44,3 +45,58 @@ def test_torus_mesh_checks_its_memory_before_allocating(monkeypatch):
     assert torus_mesh(362).n_points == 362 * 181  # the size named fits
     with pytest.raises(InsufficientMemoryError, match=r"sphere_mesh\(level=8\) \(655,362 nodes.*level 6 fits"):
         sphere_mesh(8)
+
+
+# ----------------------------------------------------------------------------------------------
+# extreme sizes: lengths checked at construction, points evaluated without overflow
+# ----------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("call, message", [
+    (lambda: sphere_mesh(1, radius=1e-160), "sphere_mesh: radius = 1e-160 is outside [1e-50, 1e+50], where the areas, "
+     "volumes and curvatures of the surface underflow in float64; rescale the unit of length."),
+    (lambda: torus_mesh(8, R=1e200, r=1e199), "torus_mesh: R = 1e+200 is outside [1e-50, 1e+50], where the areas, "
+     "volumes and curvatures of the surface overflow in float64; rescale the unit of length."),
+    (lambda: Sphere(1e200), "Sphere: radius = 1e+200 is outside"),
+    (lambda: Torus(1e200, 1e199), "Torus: R = 1e+200 is outside"),
+    (lambda: Ellipsoid(1e-200, 1, 1), "Ellipsoid: a = 1e-200 is outside [1e-50, 1e+50], where the areas, volumes and "
+     "curvatures of the surface underflow"),
+    (lambda: Ellipsoid(1e-13, 1, 1), "Ellipsoid: the semi-axes a = 1e-13, b = 1, c = 1 have smallest / largest = 1e-13, "
+     "below 1e-12"),
+    (lambda: torus_mesh(8, R=1.0, r=1e-13), "torus_mesh(n=8, R=1, r=1e-13) makes degenerate triangles: the ratio "
+     "r / R = 1e-13 is too small for the grid"),
+])
+def test_lengths_outside_the_representable_range_are_named(call, message):
+    with pytest.raises(ValueError) as err:
+        call()
+    assert str(err.value).startswith(message)
+
+
+def test_surfaces_at_the_ends_of_the_length_range_have_finite_measures():
+    for scale in (1e-50, 1e50):
+        assert Sphere(scale).area == pytest.approx(4 * np.pi * scale**2, rel=1e-15)
+        assert sphere_mesh(2, radius=scale).area == pytest.approx(sphere_mesh(2).area * scale**2, rel=1e-13)
+    for R, r in ((2e-50, 1e-50), (1e50, 0.5e50)):
+        assert Torus(R, r).volume == pytest.approx(2 * np.pi**2 * R * r**2, rel=1e-15)
+    flat = Ellipsoid(1.0, 0.5, 1e-12)
+    assert flat.area == pytest.approx(np.pi, rel=1e-12)  # both faces of the ellipse
+    # the centre of a face of (1, 1, 1e-10): k1 + k2 = 2 c / a^2 (was 0 from trace - n.H.n)
+    assert Ellipsoid(1.0, 1.0, 1e-10).exact_mean_curvature([[0.0, 0.0, 1.1e-10]])[0] == pytest.approx(2e-10, rel=1e-12)
+
+
+def test_sphere_projects_points_whose_squares_overflow_or_underflow():
+    s = Sphere()
+    np.testing.assert_allclose(s.closest_point([[1e300, 1e300, 0.0]]), [[2**-0.5, 2**-0.5, 0.0]], rtol=1e-15)  # was [0, 0, 0]
+    assert s.value([[1e300, 1e300, 0.0]])[0] == pytest.approx(np.sqrt(2.0) * 1e300, rel=1e-15)  # was inf
+    np.testing.assert_array_equal(s.closest_point([[1e-320, 0.0, 0.0]]), [[1.0, 0.0, 0.0]])  # was "at the center"
+    np.testing.assert_allclose(Torus().closest_point([[1e300, 0.0, 1e300]]), [[1 + 0.5**1.5, 0.0, 0.5**1.5]], rtol=1e-14)
+
+
+def test_torus_mean_curvature_vector_next_to_the_axis_and_the_core_circle():
+    t = Torus()  # R = 1, r = 0.5: k1 + k2 = 0 on the inner equator, 1/r = 2 on the top circle
+    np.testing.assert_array_equal(t.exact_mean_curvature_vector([[1e-310, 0.0, 0.0]]), [[0.0, 0.0, 0.0]])  # was nan
+    np.testing.assert_array_equal(t.exact_mean_curvature_vector([[1.0, 0.0, 1e-320]]), [[0.0, 0.0, 2.0]])  # was nan, inf
+    thin = Torus(1.0, 0.3)  # inner equator: -(R - 2r) / (r (R - r)) along -e_s
+    np.testing.assert_allclose(thin.exact_mean_curvature_vector([[1e-310, 0.0, 0.0]]), [[-0.4 / 0.21, 0.0, 0.0]], rtol=1e-14)
+    with pytest.raises(ValueError, match="on the torus axis"):
+        t.exact_mean_curvature_vector([[0.0, 0.0, 1e-320]])
+    with pytest.raises(ValueError, match="on the core circle"):
+        t.exact_mean_curvature_vector([[1.0, 0.0, 0.0]])
