@@ -1142,7 +1142,8 @@ class FunctionLevelSet(LevelSet):
 # triangle mesh
 # ----------------------------------------------------------------------------------------------
 def _surface_arrays(surface):
-    """(points (N, 3) float64, triangles (M, 3) int64) from a PolyData or a points/triangles object."""
+    """(points (N, 3) float64, triangles (M, 3) int64) from a PolyData or a points/triangles object,
+    without the points that no triangle uses."""
     try:
         import pyvista as pv
     except ImportError:  # pragma: no cover - pyvista is a hard dependency
@@ -1175,20 +1176,24 @@ def _surface_arrays(surface):
             f"surface triangles index points outside 0..{len(pts) - 1} "
             f"(range {tris.min()}..{tris.max()})"
         )
-    return pts, tris
+    used = np.unique(tris)
+    return pts[used], np.searchsorted(used, tris)
 
 
 class SignedDistance(LevelSet):
-    """Signed distance to a closed, consistently oriented triangle mesh (negative inside).
+    """Signed distance to a closed triangle mesh (negative inside).
+
+    The mesh is validated and oriented by :class:`cutfem.surface.SurfaceMesh`, the one validation
+    of meshed surfaces (a SurfaceMesh is taken as it is; a pyvista PolyData or an object with
+    ``points`` and ``triangles`` is built into one, after dropping the points no triangle uses):
+    finite points, no degenerate or duplicate triangles, closed, edge- and vertex-manifold,
+    consistently oriented, connected components neither intersecting nor nested, and **each
+    component oriented outward on its own** (a set of disjoint spheres, some of them given inside
+    out, has every sphere's inside negative).  Each failure is a ValueError naming the offenders
+    and the fix.
 
     Values come from VTK's vtkImplicitPolyDataDistance (closest point on the triangles, signed by
     the outward normals) evaluated on a whole vtk array at once (C++ loop, no Python loop).
-
-    The mesh is checked on construction: every undirected edge must belong to exactly two
-    triangles (closed, manifold) and every directed edge to exactly one (consistent orientation);
-    otherwise ValueError.  If the enclosed signed volume (1/6 sum_T p0 . (p1 x p2)) is negative
-    the orientation is reversed so that normals point outward.  Degenerate (zero-area) triangles
-    are rejected.
 
     gradient: central differences of value with h = 1e-6 * (mesh bounding-box diagonal); this is
     the exact gradient wherever the distance is smooth over the stencil (away from the medial set
@@ -1196,7 +1201,7 @@ class SignedDistance(LevelSet):
     closest_point: x - phi(x) grad phi(x), exact where the gradient is.
     The Hessian (and hence curvature) of a polyhedral distance carries no curvature information:
     hessian raises NotImplementedError.  ``area`` and ``volume`` are those of the polyhedron,
-    lipschitz 1, is_distance True, bounds the points' bounding box.
+    lipschitz 1, is_distance True, bounds the points' bounding box; ``mesh`` is the SurfaceMesh.
     """
 
     is_distance = True
@@ -1206,44 +1211,16 @@ class SignedDistance(LevelSet):
         import pyvista as pv
         import vtk
 
-        pts, tris = _surface_arrays(surface)
-        p0, p1, p2 = pts[tris[:, 0]], pts[tris[:, 1]], pts[tris[:, 2]]
-        cross = np.cross(p1 - p0, p2 - p0)
-        twice_area = np.linalg.norm(cross, axis=1)
-        diag = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
-        degenerate = twice_area <= 1e-14 * diag**2
-        if degenerate.any():
-            raise ValueError(
-                f"surface has {int(degenerate.sum())} degenerate (zero-area) triangle(s) "
-                f"(first: index {int(np.flatnonzero(degenerate)[0])}); remove them, e.g. "
-                "surface.clean(), before building a SignedDistance"
-            )
-        directed = np.concatenate([tris[:, [0, 1]], tris[:, [1, 2]], tris[:, [2, 0]]])
-        undirected = np.sort(directed, axis=1)
-        _, counts = np.unique(undirected, axis=0, return_counts=True)
-        if np.any(counts != 2):
-            raise ValueError(
-                f"surface is not a closed manifold triangle mesh: {int(np.sum(counts == 1))} "
-                f"boundary edge(s) and {int(np.sum(counts > 2))} edge(s) shared by more than two "
-                "triangles; close the mesh (or merge duplicate points with surface.clean())"
-            )
-        _, dcounts = np.unique(directed, axis=0, return_counts=True)
-        if np.any(dcounts != 1):
-            raise ValueError(
-                f"surface triangles are not consistently oriented ({int(np.sum(dcounts != 1))} "
-                "directed edge(s) used twice); orient them, e.g. "
-                "surface.compute_normals(consistent_normals=True, auto_orient_normals=True)"
-            )
-        signed_volume = float(np.einsum("ij,ij->", p0, np.cross(p1, p2))) / 6.0
-        if signed_volume < 0.0:
-            tris = tris[:, ::-1].copy()
-            signed_volume = -signed_volume
+        from .surface import SurfaceMesh
 
+        mesh = surface if isinstance(surface, SurfaceMesh) else SurfaceMesh(*_surface_arrays(surface))
+        pts, tris = np.asarray(mesh.points), np.asarray(mesh.triangles)
+        self.mesh = mesh
         self.points = pts
         self.triangles = tris
-        self.area = float(0.5 * twice_area.sum())
-        self.volume = signed_volume
-        self._diag = diag
+        self.area = mesh.area
+        self.volume = mesh.enclosed_volume
+        self._diag = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
         cells = np.hstack([np.full((len(tris), 1), 3, dtype=np.int64), tris]).ravel()
         self._mesh = pv.PolyData(pts, faces=cells)
         self._implicit = vtk.vtkImplicitPolyDataDistance()

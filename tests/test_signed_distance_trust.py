@@ -8,7 +8,7 @@ import re
 import numpy as np
 import pytest
 
-from cutfem.levelset import Ellipsoid, Sphere, Torus
+from cutfem.levelset import Ellipsoid, SignedDistance, Sphere, Torus
 from cutfem.memory import InsufficientMemoryError
 from cutfem.surface import sphere_mesh, torus_mesh
 
@@ -100,3 +100,42 @@ def test_torus_mean_curvature_vector_next_to_the_axis_and_the_core_circle():
         t.exact_mean_curvature_vector([[0.0, 0.0, 1e-320]])
     with pytest.raises(ValueError, match="on the core circle"):
         t.exact_mean_curvature_vector([[1.0, 0.0, 0.0]])
+
+
+# ----------------------------------------------------------------------------------------------
+# SignedDistance: validated and oriented as a SurfaceMesh, closest points on the mesh
+# ----------------------------------------------------------------------------------------------
+class _Soup:
+    def __init__(self, points, triangles):
+        self.points, self.triangles = points, triangles
+
+
+def _two_spheres(flip_second=True, gap=0.6):
+    a, b = sphere_mesh(3, 0.5, (gap, 0.0, 0.0)), sphere_mesh(3, 0.5, (-gap, 0.0, 0.0))
+    second = b.triangles[:, ::-1] if flip_second else b.triangles
+    return np.concatenate([a.points, b.points]), np.concatenate([a.triangles, second + a.n_points])
+
+
+def test_each_component_is_oriented_outward_on_its_own():
+    import pyvista as pv
+
+    sag = 0.5 * (1.0 - sphere_mesh(3).enclosed_volume / (4 / 3 * np.pi)) + 1e-3  # discretization, about 0.003
+    probes = [[0.6, 0.0, 0.0], [-0.6, 0.0, 0.0], [0.0, 0.0, 0.0]]
+    soup = SignedDistance(_Soup(*_two_spheres()))  # was +0.5 at the centre of the inverted sphere, -0.1 between
+    np.testing.assert_allclose(soup.value(probes), [-0.5, -0.5, 0.1], atol=sag)
+    assert soup.mesh.flipped_components == 1
+    merged = pv.Sphere(radius=0.5, center=(0.6, 0, 0)).merge(pv.Sphere(radius=0.5, center=(-0.6, 0, 0)).flip_faces())
+    np.testing.assert_allclose(SignedDistance(merged).value(probes), [-0.5, -0.5, 0.1], atol=0.01)  # was +0.497
+
+
+def test_signed_distance_refuses_what_surface_mesh_refuses():
+    nested = sphere_mesh(2), sphere_mesh(2, radius=0.5)
+    points = np.concatenate([nested[0].points, nested[1].points])
+    triangles = np.concatenate([nested[0].triangles, nested[1].triangles + nested[0].n_points])
+    with pytest.raises(ValueError, match=r"closed components of the surface are nested: 1 component\(s\)"):
+        SignedDistance(_Soup(points, triangles))  # was accepted
+    with pytest.raises(ValueError, match="closed components of the surface intersect"):
+        SignedDistance(_Soup(*_two_spheres(gap=0.3)))
+    points, triangles = _two_spheres()
+    with pytest.raises(ValueError, match="the surface is open: 3 boundary edge"):
+        SignedDistance(_Soup(points, triangles[1:]))

@@ -80,13 +80,11 @@ def test_nested_shells_are_refused_and_disjoint_components_accepted():
     assert mesh.euler_characteristic == 4
 
 
-def test_overlapping_spheres_signed_distance_does_not_cut_silently():
-    """The level set of overlapping parts (built without SurfaceMesh's check) is refused by the cut."""
+def test_overlapping_spheres_signed_distance_is_refused_before_the_cut():
+    """SignedDistance validates through SurfaceMesh: overlapping parts are refused when it is built."""
     points, triangles = OVERLAP
-    phi = SignedDistance(type("Soup", (), {"points": points, "triangles": triangles})())
-    box = structured_box([-1.4, -1.4, -1.4], [2.2, 1.4, 1.4], spacing=0.1)
-    with pytest.raises(CutError, match="Lipschitz|not a closed manifold"):
-        cut_mesh(box, phi)
+    with pytest.raises(ValueError, match=r"closed components of the surface intersect: 1 pair\(s\)"):
+        SignedDistance(type("Soup", (), {"points": points, "triangles": triangles})())
 
 
 def test_overlapping_spheres_through_the_command_line(tmp_path):
