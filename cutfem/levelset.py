@@ -1198,7 +1198,10 @@ class SignedDistance(LevelSet):
     gradient: central differences of value with h = 1e-6 * (mesh bounding-box diagonal); this is
     the exact gradient wherever the distance is smooth over the stencil (away from the medial set
     and from points within h of a mesh edge or vertex).
-    closest_point: x - phi(x) grad phi(x), exact where the gradient is.
+    closest_point: the nearest point of the triangles, computed directly
+    (:meth:`cutfem.surface.SurfaceMesh.closest_points`), so it lies on the mesh and
+    |x - p| = |phi(x)| everywhere, also at the centre of a sphere mesh (where the difference
+    gradient is 0) and far away; where the nearest point is not unique one of them is returned.
     The Hessian (and hence curvature) of a polyhedral distance carries no curvature information:
     hessian raises NotImplementedError.  ``area`` and ``volume`` are those of the polyhedron,
     lipschitz 1, is_distance True, bounds the points' bounding box; ``mesh`` is the SurfaceMesh.
@@ -1263,9 +1266,10 @@ class SignedDistance(LevelSet):
         )
 
     def closest_point(self, x):
-        """x - phi(x) grad phi(x), shape (..., 3) (exact where the distance is smooth)."""
+        """The nearest point of the mesh's triangles, shape (..., 3)
+        (:meth:`cutfem.surface.SurfaceMesh.closest_points`)."""
         x = _as_points(x)
-        return x - self.value(x)[..., None] * self.gradient(x)
+        return self.mesh.closest_points(x.reshape(-1, 3))[0].reshape(x.shape)
 
 
 # ----------------------------------------------------------------------------------------------

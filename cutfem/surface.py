@@ -555,6 +555,44 @@ def _check_disjoint_components(points: np.ndarray, tri: np.ndarray, component: n
         )
 
 
+def _closest_on_triangles(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The point of triangle abc nearest to x, row by row (all (..., 3)).
+
+    Ericson's region test (Real-Time Collision Detection, 5.1.5): with ab = b - a, ac = c - a and
+    the dot products d1 = ab.(x - a), d2 = ac.(x - a), d3 = ab.(x - b), d4 = ac.(x - b),
+    d5 = ab.(x - c), d6 = ac.(x - c), the Voronoi region of x among the three vertices, the three
+    edges and the face is decided by signs, and the point is a vertex, a + t ab, a + t ac,
+    b + t (c - b) with t in [0, 1], or a + v ab + w ac with v, w >= 0, v + w <= 1.  The result lies
+    on the triangle to rounding of its corners' coordinates, whatever |x| is (no squares of x)."""
+    dot = lambda u, v: np.einsum("...i,...i->...", u, v)  # noqa: E731
+    ab, ac = b - a, c - a
+    d1, d2 = dot(ab, x - a), dot(ac, x - a)
+    d3, d4 = dot(ab, x - b), dot(ac, x - b)
+    d5, d6 = dot(ab, x - c), dot(ac, x - c)
+    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
+    with np.errstate(divide="ignore", invalid="ignore"):  # the ratios of the other regions are not used
+        t_ab, t_ac = d1 / (d1 - d3), d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        total = va + vb + vc
+        v, w = vb / total, vc / total
+        choices = [a, b, c, a + t_ab[..., None] * ab, a + t_ac[..., None] * ac, b + t_bc[..., None] * (c - b)]
+        face = a + v[..., None] * ab + w[..., None] * ac
+    regions = [
+        (d1 <= 0) & (d2 <= 0),  # vertex a
+        (d3 >= 0) & (d4 <= d3),  # vertex b
+        (d6 >= 0) & (d5 <= d6),  # vertex c
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),  # edge ab
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),  # edge ac
+        (va <= 0) & (d4 >= d3) & (d5 >= d6),  # edge bc
+    ]
+    return np.select([r[..., None] for r in regions], choices, face)
+
+
+def _lengths(v: np.ndarray) -> np.ndarray:
+    """|v| along the last axis by ``hypot`` (no squares that overflow or underflow)."""
+    return np.hypot(np.hypot(v[..., 0], v[..., 1]), v[..., 2])
+
+
 # ---------------------------------------------------------------------------------------------
 # the mesh
 # ---------------------------------------------------------------------------------------------
@@ -839,6 +877,66 @@ class SurfaceMesh:
         w /= np.linalg.norm(w, axis=2)[:, :, None]
         w.flags.writeable = False
         return w
+
+    # -- nearest points --------------------------------------------------------------------------
+
+    @cached_property
+    def _centroid_tree(self):
+        """(k-d tree of the centroids, rho): rho is the largest distance from a triangle's centroid
+        to its corners, so |x - centroid(T)| - rho <= dist(x, T) for every triangle T."""
+        from scipy.spatial import cKDTree
+
+        corners = self.points[self.triangles]
+        rho = float(_lengths(corners - self.centroids[:, None, :]).max())
+        return cKDTree(self.centroids), rho
+
+    def closest_points(self, x, block: int = 2**18):
+        """Nearest points of the mesh: ``(p, triangle, distance)`` for points x (n, 3), with p (n, 3)
+        on triangle ``triangle`` (n,) and ``distance`` = |x - p| (n,).
+
+        For each point the k triangles of nearest centroids are compared exactly
+        (:func:`_closest_on_triangles`) and the smallest distance d is certified when the k-th
+        centroid is farther than d + rho (rho: the largest centroid-to-corner distance), since
+        every other triangle is then at least as far; points not certified are redone with 2k
+        triangles, up to all of them.  k starts at 8; the pairs (point, triangle) are compared in
+        blocks of at most ``block`` (loops over blocks and doublings only).  Where the nearest point
+        is not unique (x equidistant from several triangles, e.g. the centre of a sphere mesh, whose
+        points are certified only with all the triangles) the one of the lowest triangle index among
+        the equally near is returned.  Points farther than 1e150 from the mesh are refused
+        (ValueError): the k-d tree's squared distances overflow there.
+        """
+        x = np.ascontiguousarray(x, dtype=float)
+        if x.ndim != 2 or x.shape[1] != 3 or not np.isfinite(x).all():
+            raise ValueError(f"x must be finite points of shape (n, 3); got shape {x.shape}")
+        tree, rho = self._centroid_tree
+        m = self.n_triangles
+        huge = np.max(np.abs(x - self.points[0]), axis=1) > 1e150
+        if huge.any():
+            raise ValueError(
+                f"the nearest points of {int(huge.sum())} point(s) farther than 1e150 from the mesh (first: {x[huge][0]}) "
+                "are not computed: the squared distances of the search overflow there."
+            )
+        p = np.empty_like(x)
+        triangle = np.empty(len(x), dtype=np.int64)
+        distance = np.empty(len(x))
+        todo, k = np.arange(len(x)), min(8, m)
+        while todo.size:
+            rows = max(1, block // k)
+            left = []
+            for start in range(0, todo.size, rows):  # blocks of points, each vectorized
+                ids = todo[start:start + rows]
+                far, cand = tree.query(x[ids], k=k)
+                far, cand = far.reshape(len(ids), k), cand.reshape(len(ids), k)
+                corners = self.points[self.triangles[cand]]  # (n, k, 3, 3)
+                near = _closest_on_triangles(x[ids, None, :], corners[..., 0, :], corners[..., 1, :], corners[..., 2, :])
+                dist = _lengths(x[ids, None, :] - near)
+                best = np.argmin(dist, axis=1)
+                row = np.arange(len(ids))
+                p[ids], triangle[ids], distance[ids] = near[row, best], cand[row, best], dist[row, best]
+                sure = (k == m) | (far[:, -1] - rho > distance[ids] * (1.0 + 1e-12))
+                left.append(ids[~sure])
+            todo, k = np.concatenate(left), min(2 * k, m)
+        return p, triangle, distance
 
     # -- conversion ----------------------------------------------------------------------------
 

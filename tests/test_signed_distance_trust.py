@@ -139,3 +139,25 @@ def test_signed_distance_refuses_what_surface_mesh_refuses():
     points, triangles = _two_spheres()
     with pytest.raises(ValueError, match="the surface is open: 3 boundary edge"):
         SignedDistance(_Soup(points, triangles[1:]))
+
+
+def test_closest_point_lies_on_the_mesh_at_the_distance():
+    mesh = sphere_mesh(3)
+    sd = SignedDistance(mesh)
+    rng = np.random.default_rng(7)
+    u = rng.normal(size=(40, 3))
+    u /= np.linalg.norm(u, axis=1)[:, None]
+    x = np.concatenate([u * rng.uniform(0.97, 1.03, (40, 1)), [[0.0, 0.0, 0.0], [1e6, 0.0, 0.0], [0.3, -2e5, 4e5]]])
+    p = sd.closest_point(x)
+    # was [0, 0, 0] at the centre (zero difference gradient) and (14.65, 0, 0) at (1e6, 0, 0)
+    assert np.max(mesh.closest_points(p)[2]) < 1e-15  # on the mesh
+    np.testing.assert_allclose(np.linalg.norm(x - p, axis=1), np.abs(sd.value(x)), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(p[-2], [1.0, 0.0, 0.0], atol=1e-15)
+    # against all the triangles at once
+    corners = mesh.points[mesh.triangles]
+    from cutfem.surface import _closest_on_triangles
+
+    every = _closest_on_triangles(x[:, None, :], corners[None, :, 0], corners[None, :, 1], corners[None, :, 2])
+    np.testing.assert_allclose(np.linalg.norm(x - p, axis=1), np.linalg.norm(x[:, None] - every, axis=2).min(axis=1), rtol=1e-14)
+    with pytest.raises(ValueError, match=r"1 point\(s\) farther than 1e150 from the mesh"):
+        sd.closest_point([[1e300, 0.0, 0.0]])
