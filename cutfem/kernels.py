@@ -1731,8 +1731,10 @@ def torus_mean_curvature_vector(x, center, R, r, out):
 @parallel_kernel
 def level_set_normals(values, table, types, out):
     """out[t] = g / |g|, g = sum_k values[t, k] grad lambda_k with the gradients ``table[types[t]]``
-    (4, 3): the unit normals n_h of the zero level set of the P1 interpolant in each tet.  A tet
-    with g = 0 gets NaN (the caller checks)."""
+    (4, 3): the unit normals n_h of the zero level set of the P1 interpolant in each tet.  Where
+    |g|^2 overflows or underflows (a level set of values near 1e300 or 1e-300), g is first divided
+    by its largest component; elsewhere the plain formula (the same bits as before).  A tet with
+    g = 0, or g not finite, gets NaN (the caller checks)."""
     for t in prange(values.shape[0]):
         G = table[types[t]]
         g0 = g1 = g2 = 0.0
@@ -1741,7 +1743,13 @@ def level_set_normals(values, table, types, out):
             g0 += v * G[k, 0]
             g1 += v * G[k, 1]
             g2 += v * G[k, 2]
-        norm = np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+        square = g0 * g0 + g1 * g1 + g2 * g2
+        if not (1e-290 < square < 1e300):
+            a = max(abs(g0), abs(g1), abs(g2))
+            if 0.0 < a < np.inf:
+                g0, g1, g2 = g0 / a, g1 / a, g2 / a
+                square = g0 * g0 + g1 * g1 + g2 * g2
+        norm = np.sqrt(square)
         out[t, 0] = g0 / norm
         out[t, 1] = g1 / norm
         out[t, 2] = g2 / norm

@@ -189,3 +189,13 @@ def test_zero_rule_is_local_without_a_lipschitz_bound():
     np.testing.assert_array_equal(values == 0, np.abs(z) < 1e-12)  # exactly the nodes on the plane
     tiny = FunctionLevelSet(lambda x: x[..., 2] + 1e-16 * (np.abs(x[..., 2]) < 1e-12))  # rounding noise on the plane
     assert np.count_nonzero(snapped_nodal_values(box, tiny) == 0) == np.count_nonzero(np.abs(z) < 1e-12)
+
+
+@pytest.mark.parametrize("scale", ["1e-320", "1e-300", "1e300", "1e308"])
+def test_level_sets_of_extreme_scale_keep_unit_normals(scale):
+    """|grad phi_h|^2 underflows or overflows for values near 1e-300 or 1e300; the normals are
+    rescaled, so the surface and its measure are those of the unscaled plane."""
+    box = structured_box([-1, -1, -1], [1, 1, 1], spacing=0.25)
+    cut = cut_mesh(box, FunctionLevelSet.from_expression(f"z * {scale}"), check_boundary=False)
+    np.testing.assert_allclose(cut.normals, np.tile([0.0, 0.0, 1.0], (cut.n_tets, 1)), atol=1e-15)
+    assert abs(cut.ds().integrate(lambda x: np.ones(x.shape[:-1])) - 4.0) < 1e-12
