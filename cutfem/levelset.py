@@ -33,6 +33,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .surface import SurfaceMesh, check_length, positive_number
+
 __all__ = [
     "LevelSet",
     "Sphere",
@@ -75,17 +77,6 @@ def _raise_if_singular(mask: np.ndarray, x: np.ndarray, what: str, where: str) -
             f"{what} is undefined at {int(np.count_nonzero(mask))} point(s) {where} "
             f"(first: {first}); evaluate it only away from that set (e.g. near the surface)"
         )
-
-
-def _positive(value, name: str) -> float:
-    """Return ``value`` as a float, ValueError unless it is finite and > 0."""
-    try:
-        v = float(value)
-    except (TypeError, ValueError):
-        raise ValueError(f"{name} must be a finite positive number, got {value!r}") from None
-    if not np.isfinite(v) or v <= 0.0:
-        raise ValueError(f"{name} must be a finite positive number, got {value!r}")
-    return v
 
 
 def _center(center) -> np.ndarray:
@@ -515,9 +506,7 @@ class Sphere(LevelSet):
     lipschitz = 1.0
 
     def __init__(self, radius: float = 1.0, center=(0.0, 0.0, 0.0)):
-        from .surface import check_length
-
-        self.radius = check_length("radius", _positive(radius, "radius"), "Sphere")
+        self.radius = check_length("radius", radius, "Sphere")
         self.center = _center(center)
 
     def __repr__(self) -> str:
@@ -619,10 +608,8 @@ class Torus(LevelSet):
     lipschitz = 1.0
 
     def __init__(self, R: float = 1.0, r: float = 0.5, center=(0.0, 0.0, 0.0)):
-        from .surface import check_length
-
-        self.R = check_length("R", _positive(R, "R (major radius)"), "Torus")
-        self.r = check_length("r", _positive(r, "r (minor radius)"), "Torus")
+        self.R = check_length("R", R, "Torus")
+        self.r = check_length("r", r, "Torus")
         if not self.r < self.R:
             raise ValueError(
                 f"a ring torus needs r < R, got R={R!r}, r={r!r}; choose a minor radius smaller "
@@ -804,9 +791,7 @@ class Ellipsoid(LevelSet):
     min_axis_ratio = 1e-12
 
     def __init__(self, a: float = 1.0, b: float = 0.8, c: float = 0.6, center=(0.0, 0.0, 0.0)):
-        from .surface import check_length
-
-        self.axes = np.array([check_length(k, _positive(v, k), "Ellipsoid") for k, v in (("a", a), ("b", b), ("c", c))])
+        self.axes = np.array([check_length(k, v, "Ellipsoid") for k, v in (("a", a), ("b", b), ("c", c))])
         ratio = self.axes.min() / self.axes.max()
         if ratio < self.min_axis_ratio:
             raise ValueError(
@@ -989,11 +974,11 @@ class FunctionLevelSet(LevelSet):
         self._value = value
         self._gradient = gradient
         self._hessian = hessian
-        self.lipschitz = None if lipschitz is None else _positive(lipschitz, "lipschitz")
+        self.lipschitz = None if lipschitz is None else positive_number(lipschitz, "lipschitz")
         self.is_distance = bool(is_distance)
-        self.area = None if area is None else _positive(area, "area")
-        self.volume = None if volume is None else _positive(volume, "volume")
-        self.step = None if step is None else _positive(step, "step")
+        self.area = None if area is None else positive_number(area, "area")
+        self.volume = None if volume is None else positive_number(volume, "volume")
+        self.step = None if step is None else positive_number(step, "step")
         self.name = name if name is not None else getattr(value, "__name__", "f")
         self._bounds = None if bounds is None else _as_bounds(bounds, "bounds")
 
@@ -1213,8 +1198,6 @@ class SignedDistance(LevelSet):
     def __init__(self, surface):
         import pyvista as pv
         import vtk
-
-        from .surface import SurfaceMesh
 
         mesh = surface if isinstance(surface, SurfaceMesh) else SurfaceMesh(*_surface_arrays(surface))
         pts, tris = np.asarray(mesh.points), np.asarray(mesh.triangles)

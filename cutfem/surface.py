@@ -990,20 +990,22 @@ def _check_int(name: str, value, minimum: int, maximum: int | None = None, why: 
     return int(value)
 
 
-def _check_positive(name: str, value) -> float:
+def positive_number(value, name: str) -> float:
+    """``value`` as a float; ValueError naming ``name`` unless it is a finite number > 0 (the check
+    of the radii, semi-axes and declared sizes of the surfaces and level sets)."""
     try:
-        value = float(value)
-    except (TypeError, ValueError) as err:
-        raise ValueError(f"{name} must be a positive finite number; got {value!r}.") from err
-    if not np.isfinite(value) or value <= 0:
-        raise ValueError(f"{name} must be a positive finite number; got {value}.")
-    return value
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a finite positive number, got {value!r}") from None
+    if not np.isfinite(v) or v <= 0.0:
+        raise ValueError(f"{name} must be a finite positive number, got {value!r}")
+    return v
 
 
 def check_length(name: str, value, owner: str) -> float:
     """``value`` as a positive float within :data:`LENGTH_RANGE`; ValueError naming ``owner`` (the
     surface or generator), the length and the fix otherwise."""
-    value = _check_positive(name, value)
+    value = positive_number(value, name)
     lo, hi = LENGTH_RANGE
     if not lo <= value <= hi:
         raise ValueError(
