@@ -290,8 +290,15 @@ class QuadData:
     def __init__(self, x, n, h, parent, params):
         self.x, self.n, self.parent = x, n, parent
         self._h = h  # the local sizes, or a function giving them: computed only when an integrand asks
-        self.params = params
+        self._params = params
         self._values = {}
+
+    @property
+    def params(self):
+        """The keywords given to :func:`assemble` (a dict; taken whole, all count as read)."""
+        if isinstance(self._params, _Params):
+            self._params.read.update(self._params)
+        return self._params
 
     @property
     def h(self):
@@ -300,8 +307,10 @@ class QuadData:
         return self._h
 
     def __getattr__(self, name):
-        params = self.__dict__.get("params", {})
+        params = self.__dict__.get("_params", {})
         if name in params:
+            if isinstance(params, _Params):
+                params.read.add(name)
             return params[name]
         raise AttributeError(f"quadrature data has no field {name!r}; pass it as a keyword to assemble()")
 
@@ -311,6 +320,26 @@ class QuadData:
         if key not in self._values:
             self._values[key] = _point_values(f, self.x, "a function of the points given to w.at")
         return self._values[key]
+
+
+class _Params(dict):
+    """The keywords of one :func:`assemble` call, with the names the integrands read (``read``) and
+    whether any integrand was evaluated (``evaluated``: a measure with no cells evaluates none)."""
+
+    def __init__(self, params):
+        super().__init__(params)
+        self.read = set()
+        self.evaluated = False
+
+    def check_read(self) -> None:
+        """Refuse keywords that no integrand read (a misspelt parameter would leave the integrand
+        its default silently, or fail in it with a message about something else)."""
+        unread = sorted(set(self) - self.read)
+        if not unread or not self.evaluated:
+            return
+        names = ", ".join(unread)
+        raise ValueError(f"assemble(): no integrand of the form reads the keyword(s) {names} (an integrand reads a "
+                         f"keyword k as w.k); check the spelling, or leave {'it' if len(unread) == 1 else 'them'} out")
 
 
 #: the attributes of :class:`QuadData` itself: keywords of :func:`assemble` with these names would be hidden
@@ -327,6 +356,8 @@ def _quad_data(measure: Measure, quad, params):
         n = measure.normals[parent][:, None, :]
     else:
         n = None
+    if isinstance(params, _Params):
+        params.evaluated = True
     return QuadData(quad.points, n, lambda: measure.h[parent][:, None], parent, params)
 
 
@@ -730,7 +761,9 @@ def assemble(form: Form, space, **params):
     """The matrix (bilinear form: CSR, n x n over all fields of ``space``) or the vector (linear form:
     (n,) or (n, c)) of ``form`` on ``space`` (one field or a :class:`~cutfem.spaces.ProductSpace`).
     ``params`` are handed to the integrands as attributes of ``w``; the names of its own attributes
-    (x, n, h, parent, at, params) are refused, since ``w`` would show its own value instead.
+    (x, n, h, parent, at, params) are refused, since ``w`` would show its own value instead, and so
+    is a keyword that no integrand reads (a form of built-in terms only, or a misspelt name: a
+    ValueError after the integrands ran, unless none ran because the measures have no cells).
 
     The arguments are checked first: a form (not an integrand, a measure or a space) and a space."""
     if isinstance(form, Integrand):
@@ -748,6 +781,11 @@ def assemble(form: Form, space, **params):
     if hidden:
         raise ValueError(f"assemble(): the keyword(s) {', '.join(hidden)} would be hidden by the quadrature data's own w."
                          f"{hidden[0]} ({_QUAD_DATA_NAMES_DOC}); give the parameter another name")
+    if params and not any(isinstance(term, _IntegrandTerm) for _, term in form.terms):
+        raise ValueError(f"assemble(): the keyword(s) {', '.join(sorted(params))} are handed to integrands as w.<name>, and "
+                         "this form has only built-in terms, which take their parameters where they are made (e.g. "
+                         "nitsche(ds, gamma=20)); leave them out")
+    params = _Params(params)
     offsets = space.offsets if isinstance(space, ProductSpace) else np.array([0, space.n_dofs])
     n = int(offsets[-1])
     if form.linear:
@@ -765,6 +803,7 @@ def assemble(form: Form, space, **params):
                     out[offsets[k] : offsets[k + 1]] += vals
                 else:
                     assemble_vector(dofs, vals, int(offsets[k + 1] - offsets[k]), out=out[offsets[k] : offsets[k + 1]])
+        params.check_read()
         return np.zeros(n) if out is None else out
     rows, cols, data = [], [], []
     total = None
@@ -796,6 +835,7 @@ def assemble(form: Form, space, **params):
             rows.append(np.broadcast_to((dofs_v + offsets[j])[:, :, None], blocks.shape).reshape(-1))
             cols.append(np.broadcast_to((dofs_u + offsets[i])[:, None, :], blocks.shape).reshape(-1))
             data.append(c * blocks.reshape(-1))
+    params.check_read()
     for k, into in sums.items():
         if into is not None and into.used:
             add(into.matrix(), k)

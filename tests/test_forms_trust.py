@@ -330,6 +330,28 @@ def test_assemble_checks_its_arguments(cut):
         assemble(mass(dx), None)
 
 
+def test_keywords_no_integrand_reads_are_refused(cut):
+    """A misspelt keyword of assemble() would leave the integrand its default without a word."""
+    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    M = assemble(mass(dx), V)
+    with pytest.raises(ValueError, match="only built-in terms"):
+        assemble(mass(dx), V, gama=3.0)
+    scaled = bilinear_form(lambda u, v, w: w.k * u * v)
+    _close(assemble(scaled * dx, V, k=2.0), 2.0 * M)
+    with pytest.raises(ValueError, match="reads the keyword.s. kk"):
+        assemble(scaled * dx, V, k=2.0, kk=1.0)
+    with pytest.raises(ValueError, match="reads the keyword.s. k "):  # the form is built-in + an integrand ignoring k
+        assemble(mass(dx) + bilinear_form(lambda u, v, w: u * v) * dx, V, k=2.0)
+    # the whole dict taken counts as reading every keyword; linear forms are checked as well
+    _close(assemble(bilinear_form(lambda u, v, w: w.params["k"] * u * v) * dx, V, k=2.0, kk=1.0), 2.0 * M)
+    with pytest.raises(ValueError, match="reads the keyword.s. c"):
+        assemble(linear_form(lambda v, w: v) * dx, V, c=1.0)
+    # a measure without cells runs no integrand: nothing to say, the zero matrix
+    facets = cut.interior_facets(CUT)
+    empty = cut.dF(facets.subset(np.zeros(facets.n_facets, dtype=bool)))
+    assert assemble(bilinear_form(lambda u, v, w: w.k * u * v) * empty, CutP1Space(cut, CUT), kk=1.0).nnz == 0
+
+
 # ---------------------------------------------------------------------------------------------
 # 7. coefficients and parameters
 # ---------------------------------------------------------------------------------------------
