@@ -140,22 +140,27 @@ def add_size_arguments(parser) -> None:
     parser.add_argument("--quiet", action="store_true")
 
 
-def study_main(run, name: str):
-    """A ``main(argv)`` for ``python -m cutfem.studies.NAME``; it applies :func:`cutfem.memory.configure`."""
+def study_main(run, name: str, options=None):
+    """A ``main(argv)`` for ``python -m cutfem.studies.NAME``; it applies :func:`cutfem.memory.configure`.
+
+    ``options``: an ``argparse.ArgumentParser(add_help=False)`` with the study's own options; they
+    join the usual ones (``--out``, the size flags, ``--quiet``) in one parser and one help, and
+    are handed to ``run`` as keywords (their ``dest`` names)."""
 
     def main(argv=None) -> int:
-        configure()  # a study is a large run: opt into the allocation settings (cutfem.memory)
-        p = argparse.ArgumentParser(prog=f"python -m cutfem.studies.{name}")
+        p = argparse.ArgumentParser(prog=f"python -m cutfem.studies.{name}", parents=[options] if options else [])
         p.add_argument("--out", default=f"out/{name}", help="output folder")
         add_size_arguments(p)
         a = p.parse_args(argv)
+        extra = {k: getattr(a, k) for k in vars(options.parse_args([]))} if options else {}
         try:
             check_output("--out", a.out, folder=True)
         except ProblemError as exc:
             print(f"error: {exc}", file=sys.stderr)
             return 2
+        configure()  # a study is a large run: opt into the allocation settings (cutfem.memory)
         t0 = time.perf_counter()
-        run(Path(a.out), a.size or "quick", Progress(name, not a.quiet))
+        run(Path(a.out), a.size or "quick", Progress(name, not a.quiet), **extra)
         print(f"{name}: done in {time.perf_counter() - t0:.1f} s, results in {a.out}", file=sys.stderr)
         return 0
 

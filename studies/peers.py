@@ -1133,15 +1133,12 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(add_help=False)
     p.add_argument("--problem", default="mean-curvature", choices=PROBLEMS,
                    help="which cut problem to compare with ngsxfem (default mean-curvature)")
-    a, rest = p.parse_known_args(argv)
-    if "-h" in rest or "--help" in rest:
-        p.print_help()
-    runners = {"mean-curvature": [run], "poisson": [run_poisson], "both": [run, run_poisson]}[a.problem]
 
-    def run_selected(out, size, progress):
+    def run_selected(out, size, progress, problem):
+        runners = {"mean-curvature": [run], "poisson": [run_poisson], "both": [run, run_poisson]}[problem]
         return [r(out, size, progress) for r in runners]
 
-    return study_main(run_selected, NAME)(rest)
+    return study_main(run_selected, NAME, p)(argv)
 
 
 if __name__ == "__main__":

@@ -219,6 +219,21 @@ def test_limit_records_a_failed_or_oversized_level():
         performance.limit_search(_fake_runner(lambda t: 1.0, ran), 0)
 
 
+def test_command_line_has_one_parser_and_checks_the_memory_limit(capsys):
+    """The benchmark's own options and the usual study options are one parser: one usage, one help."""
+    from cutfem.studies import peers
+
+    for main, own in ((performance.main, "--memory-gib"), (peers.main, "--problem")):
+        with pytest.raises(SystemExit) as exc:
+            main(["--help"])
+        text = capsys.readouterr().out
+        assert exc.value.code == 0 and text.count("usage:") == 1 and own in text and "--out" in text and "--full" in text
+    for bad in ("-1", "0", "nan", "inf", "lots"):
+        with pytest.raises(SystemExit) as exc:
+            performance.main(["--memory-gib", bad])
+        assert exc.value.code == 2 and "positive number of GiB" in capsys.readouterr().err
+
+
 @pytest.mark.parametrize("spacing", [0.05])
 def test_iterative_and_direct_solves_agree(spacing):
     """Multigrid-preconditioned CG (tolerance 1e-8) against the sparse direct solve: the L2 errors
