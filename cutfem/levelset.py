@@ -1165,6 +1165,12 @@ def _surface_arrays(surface):
     return pts[used], np.searchsorted(used, tris)
 
 
+#: beyond this many bounding-box diagonals outside a mesh's bounding box, :class:`SignedDistance`
+#: takes its value from its own nearest-point search instead of VTK's (exact up to 1e7 diagonals on
+#: a unit sphere mesh, wrong from 1e8)
+FAR_DIAGONALS = 100.0
+
+
 class SignedDistance(LevelSet):
     """Signed distance to a closed triangle mesh (negative inside).
 
@@ -1178,7 +1184,11 @@ class SignedDistance(LevelSet):
     and the fix.
 
     Values come from VTK's vtkImplicitPolyDataDistance (closest point on the triangles, signed by
-    the outward normals) evaluated on a whole vtk array at once (C++ loop, no Python loop).
+    the outward normals) evaluated on a whole vtk array at once (C++ loop, no Python loop), except
+    at points more than :data:`FAR_DIAGONALS` bounding-box diagonals outside the mesh's bounding
+    box: there VTK's value loses its digits (-2e8 instead of 1e8 at (1e8, 0, 0) from a unit
+    sphere mesh, NaN off the axes), and the value is the distance to the nearest point of the
+    triangles (:meth:`closest_point`), positive since the point is outside.
 
     gradient: central differences of value with h = 1e-6 * (mesh bounding-box diagonal); this is
     the exact gradient wherever the distance is smooth over the stencil (away from the medial set
@@ -1230,7 +1240,13 @@ class SignedDistance(LevelSet):
             return np.zeros(x.shape[:-1])
         out = vtk.vtkDoubleArray()
         self._implicit.FunctionValue(numpy_to_vtk(flat, deep=True), out)
-        return vtk_to_numpy(out).astype(float, copy=True).reshape(x.shape[:-1])
+        values = vtk_to_numpy(out).astype(float, copy=True)
+        lo, hi = self.bounds()
+        far = np.flatnonzero(np.any((flat < lo - FAR_DIAGONALS * self._diag) | (flat > hi + FAR_DIAGONALS * self._diag), axis=1))
+        if far.size:  # outside the bounding box, so outside the surface: the distance to the nearest point
+            near = self.mesh.closest_points(flat[far])[0]
+            values[far] = np.linalg.norm(flat[far] - near, axis=1)
+        return values.reshape(x.shape[:-1])
 
     def gradient(self, x):
         """Central differences of value, h = 1e-6 * bounding-box diagonal; shape (..., 3)."""
