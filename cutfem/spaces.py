@@ -22,6 +22,7 @@ import numpy as np
 
 from .assembly import SymmetricPattern
 from .markers import CUT, ElementSet, same_background
+from .surface import positive_number
 
 __all__ = ["SurfaceP1Space", "CutP1Space", "ProductSpace", "triangle_gradients", "barycentric_at"]
 
@@ -61,15 +62,7 @@ def barycentric_at(points: np.ndarray, origin: np.ndarray, grads: np.ndarray) ->
 
 def _mesh_size(h, default) -> float:
     """The global mesh size ``h`` of a space (``default`` when None): a positive finite number."""
-    if h is None:
-        return float(default)
-    try:
-        value = float(h)
-    except (TypeError, ValueError):
-        raise ValueError(f"h must be a positive finite number (the mesh size), got {h!r}") from None
-    if not (np.isfinite(value) and value > 0):
-        raise ValueError(f"h must be a positive finite number (the mesh size), got {h!r}")
-    return value
+    return float(default) if h is None else positive_number(h, "h (the mesh size)")
 
 
 class _P1Space:

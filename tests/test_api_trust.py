@@ -214,9 +214,9 @@ def test_condition_number_refuses_bad_input_and_keeps_its_verdicts():
 
 def test_mesh_sizes_are_checked(cut):
     for h in (-1, 0, np.nan, np.inf):
-        with pytest.raises(ValueError, match="h must be a positive finite number"):
+        with pytest.raises(ValueError, match=r"h \(the mesh size\) must be a finite positive number"):
             CutP1Space(cut, NEG, h=h)
-        with pytest.raises(ValueError, match="h must be a positive finite number"):
+        with pytest.raises(ValueError, match=r"h \(the mesh size\) must be a finite positive number"):
             SurfaceP1Space(sphere_mesh(1), h=h)
     assert CutP1Space(cut, NEG, h=0.25).h == 0.25
 
