@@ -50,8 +50,8 @@ __all__ = [
 #: on its longest edge (the smallest angle is below about 1e-12 rad).
 DEGENERATE_TOLERANCE = 1e-12
 
-#: :func:`read_surface` merges points whose coordinates agree after rounding to multiples of
-#: MERGE_TOLERANCE * (diagonal of the bounding box).
+#: :func:`read_surface` merges points closer than MERGE_TOLERANCE * (diagonal of the bounding
+#: box) (:func:`_merge_points`).
 MERGE_TOLERANCE = 1e-10
 
 #: The torus families of docs/math.md §6.1 accepted by :func:`torus_mesh`.
@@ -1213,11 +1213,16 @@ def sphere_mesh(level: int = 3, radius: float = 1.0, center=(0.0, 0.0, 0.0)) -> 
 def _merge_points(points: np.ndarray, triangles: np.ndarray):
     """Drop points used by no triangle and merge coincident points.
 
-    Two points are merged when their coordinates, measured from the bounding-box corner and
-    rounded to multiples of q = MERGE_TOLERANCE * (bounding-box diagonal), agree; exact
-    duplicates (as in STL, which stores every vertex once per facet) always merge.  A merged
-    node keeps the coordinates and the order of its first occurrence.  Returns (points, triangles).
+    With r = MERGE_TOLERANCE * (diagonal of the bounding box of the used points), two points are
+    one node when a chain of points, each within distance r of the next, joins them (single
+    linkage; exact duplicates, as in STL, which stores every vertex once per facet, always merge).
+    Distances, not coordinates rounded to a grid of step r: two copies of a vertex 1e-11 apart on
+    either side of a rounding step would stay two nodes and leave a crack (96 boundary edges in a
+    jittered facet soup of sphere_mesh(2)).  A merged node keeps the coordinates and the order of
+    its first occurrence.  The points used must be finite.  Returns (points, triangles).
     """
+    from scipy.spatial import cKDTree
+
     used = np.unique(triangles)
     points = points[used]
     triangles = np.searchsorted(used, triangles)
@@ -1225,13 +1230,19 @@ def _merge_points(points: np.ndarray, triangles: np.ndarray):
     diagonal = float(np.linalg.norm(points.max(axis=0) - lower))
     if diagonal == 0.0:
         return points, triangles
-    keys = np.round((points - lower) / (MERGE_TOLERANCE * diagonal)).astype(np.int64)
-    _, first, inverse = np.unique(keys, axis=0, return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    order = np.argsort(first)  # unique groups in order of first occurrence
+    # exact duplicates first (the bulk of an STL's copies), then the pairs within r among the rest
+    distinct, label = np.unique(points, axis=0, return_inverse=True)
+    label = label.reshape(-1)
+    pairs = cKDTree(distinct).query_pairs(MERGE_TOLERANCE * diagonal, output_type="ndarray")
+    if len(pairs):
+        graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(distinct),) * 2)
+        label = connected_components(graph, directed=False)[1][label]
+    first = np.full(label.max() + 1, len(points))
+    np.minimum.at(first, label, np.arange(len(points)))
+    order = np.argsort(first)  # nodes in order of first occurrence
     rank = np.empty_like(order)
     rank[order] = np.arange(order.size)
-    return points[first[order]], rank[inverse][triangles]
+    return points[first[order]], rank[label][triangles]
 
 
 def read_surface(path) -> SurfaceMesh:
@@ -1239,9 +1250,10 @@ def read_surface(path) -> SurfaceMesh:
 
     Only "triangle" cells are used (points, lines and volume cells are ignored); a file holding
     quadrilaterals or polygons is rejected (triangulate it first), and so is one without triangles.
-    Points used by no triangle are dropped and coincident points are merged (see
-    :func:`_merge_points`, tolerance MERGE_TOLERANCE relative to the bounding-box diagonal), so
-    that STL facet soups become a connected mesh.  The result is validated and oriented outward
+    Points used by no triangle are dropped (whatever their coordinates, NaN included; a non-finite
+    point that a triangle uses is refused with its row in the file) and coincident points are
+    merged (see :func:`_merge_points`: closer than MERGE_TOLERANCE times the bounding-box
+    diagonal), so that STL facet soups become a connected mesh.  The result is validated and oriented outward
     as in :class:`SurfaceMesh`, which includes the test that distinct closed components neither
     intersect nor nest (a model made of overlapping closed parts is refused with the pairs of
     components named: its signed distance would be wrong inside the overlaps).
@@ -1287,8 +1299,14 @@ def read_surface(path) -> SurfaceMesh:
     try:
         if triangles.min() < 0 or triangles.max() >= len(points):
             raise ValueError(f"triangle node indices outside [0, {len(points)})")
-        if np.isfinite(points).all():
-            points, triangles = _merge_points(points, triangles)
+        used = np.unique(triangles)
+        bad = used[~np.isfinite(points[used]).all(axis=1)]
+        if bad.size:
+            raise ValueError(
+                f"{bad.size} point(s) used by triangles have non-finite (NaN or inf) coordinates, first at rows "
+                f"{_examples(bad)} of the file (0-based); fix them or remove their triangles."
+            )
+        points, triangles = _merge_points(points, triangles)
         return SurfaceMesh(points, triangles)
     except ValueError as err:
         raise ValueError(f"'{path}': {err}") from err

@@ -496,3 +496,44 @@ def test_write_errors(tmp_path):
         write_surface(SPHERE, tmp_path / "s.xyz123")
     with pytest.raises(FileNotFoundError, match="missing_dir"):
         write_surface(SPHERE, tmp_path / "missing_dir" / "s.stl")
+
+
+def test_read_merges_near_duplicates_on_either_side_of_a_rounding_step(tmp_path):
+    import meshio
+
+    # a facet soup of a sphere whose copies of a vertex differ by up to 1e-11 (3% of the merge
+    # distance 1e-10 * diagonal = 3.5e-10): copies of one vertex are one node, whatever grid the
+    # coordinates would round to
+    mesh = sphere_mesh(2)
+    soup = np.asarray(mesh.points)[np.asarray(mesh.triangles)].reshape(-1, 3)
+    soup = soup + 1e-11 * np.random.default_rng(1).uniform(-1, 1, soup.shape)
+    path = tmp_path / "soup.vtu"
+    meshio.write(path, meshio.Mesh(soup, [("triangle", np.arange(len(soup)).reshape(-1, 3))]))
+    back = read_surface(path)
+    assert back.n_points == mesh.n_points == 162 and back.euler_characteristic == 2
+    assert back.area == pytest.approx(mesh.area, rel=1e-10)
+
+
+def test_read_keeps_points_farther_apart_than_the_merge_distance(tmp_path):
+    import meshio
+
+    # two tetrahedra 1e-9 * diagonal apart (3x the merge distance) stay two components
+    second = UNIT_TET + [1 + 1e-9 * np.sqrt(3.0) * 2, 0, 0]
+    points = np.concatenate([UNIT_TET, second])
+    path = tmp_path / "two.vtu"
+    meshio.write(path, meshio.Mesh(points, [("triangle", np.concatenate([tet_surface(range(4)), tet_surface(range(4, 8))]))]))
+    back = read_surface(path)
+    assert back.n_points == 8 and back.euler_characteristic == 4
+
+
+def test_read_ignores_non_finite_points_no_triangle_uses(tmp_path):
+    import meshio
+
+    points = np.concatenate([UNIT_TET, [[np.nan, 0.0, 0.0]]])
+    path = tmp_path / "tet.vtu"
+    meshio.write(path, meshio.Mesh(points, [("triangle", tet_surface(range(4)))]))
+    assert read_surface(path).area == pytest.approx(1.5 + np.sqrt(3) / 2, rel=1e-14)
+    points[1, 2] = np.inf
+    meshio.write(path, meshio.Mesh(points, [("triangle", tet_surface(range(4)))]))
+    with pytest.raises(ValueError, match=r"tet\.vtu': 1 point\(s\) used by triangles have non-finite .*rows 1 of the file"):
+        read_surface(path)
