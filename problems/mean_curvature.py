@@ -10,6 +10,16 @@ A x_k is formed without A: b_i = sum_K |S_K| grad_{S_h} phi_i (:func:`cutfem.for
 Stabilization: meshed J = tau_E J_E (edge conormal-gradient jumps, weighted by the global
 h = N^(-1/2)); cut J = tau_E J_E + tau_F J_F (face normal-gradient jumps of the active mesh, times
 h^a, a = ``face_h_power``, 0 in the paper).  Exact field for errors: H^e = H o p.
+
+Units of length (choice).  Under x -> s x the mass term scales as s^2, the jumps do not: J_E as
+s^-1 (h = N^(-1/2) is a number) and h^a J_F as s^a, so the paper's tau_E = tau_F = 1/10 are
+numbers for a surface of size about 1.  With ``length_scale`` L the stabilization is that of the
+surface measured in units of L, tau_E h L^3 J_E and tau_F L^(2-a) J_F (tau_E L^3 J_E on a cut too):
+the solution for the surface scaled by s with L scaled by s is H_h / s exactly.  Default L = 1 (the
+paper).  A surface whose size sqrt(area / 4 pi) is outside [L/10, 10 L] is refused
+(:func:`check_length_scale`): there the stabilization swamps the mass term or vanishes beside it
+(the unit sphere mesh of 642 nodes given in metres as 1 mm: H_h . n R = 2.9e-6 instead of 2; the
+cut sphere of radius 100 at spacing 10: relative L2 error 0.69 against 0.0054 at radius 1).
 """
 
 from __future__ import annotations
@@ -51,24 +61,48 @@ DEFINITIONS = {
 }
 
 
-def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0):
-    """The bilinear form of K = M + tau_E J_E + tau_F J_F on the measure ``surface`` (S_h), J_F over
-    the facet measure ``faces`` (cut case, times h^a, a = ``face_h_power``).  Assembled as one
-    form: on a structured box the mass and the face penalty sum into one set of lattice slots, on a
+#: a surface of size sqrt(area / 4 pi) outside [L / LENGTH_SCALE_RANGE, L * LENGTH_SCALE_RANGE] is refused
+LENGTH_SCALE_RANGE = 10.0
+
+
+def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0):
+    """The bilinear form of K = M + tau_E L^3 J_E + tau_F L^(2-a) J_F on the measure ``surface``
+    (S_h), J_F over the facet measure ``faces`` (cut case, times h^a, a = ``face_h_power``), L =
+    ``length_scale`` (the module's note on units; 1 in the paper).  Assembled as one form: on a
+    structured box the mass and the face penalty sum into one set of lattice slots, on a
     triangulated surface the mass and the edge penalty into one set of node and pair values."""
     form = mass(surface)
     if tau_e > 0:
-        form = form + tau_e * edge_jump_penalty(surface)
+        form = form + (tau_e * length_scale**3) * edge_jump_penalty(surface)
     if tau_f > 0:
-        form = form + tau_f * face_jump_penalty(faces, h_power=face_h_power)
+        form = form + (tau_f * length_scale ** (2.0 - face_h_power)) * face_jump_penalty(faces, h_power=face_h_power)
     return form
 
 
-def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0):
+def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0):
     """(K, B): the matrix of :func:`mean_curvature_form` on ``space`` and the right-hand sides
     B = A X, (n, 3), computed without A (:func:`cutfem.forms.position_load`)."""
-    K = assemble(mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power), space)
+    K = assemble(mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power, length_scale), space)
     return K, assemble(position_load(surface), space)
+
+
+def check_length_scale(area, length_scale, power, flag="--length-scale"):
+    """Refuse (ProblemError) a surface of area ``area`` whose size sqrt(area / 4 pi) is not within a
+    factor LENGTH_SCALE_RANGE of the length scale L of the stabilization, whose weight relative to
+    the mass term goes as (L / size)^``power``; the message gives the L to pass (the size, rounded
+    to one significant digit)."""
+    if not length_scale > 0:
+        raise ProblemError(f"{flag}: the length scale must be a positive length, got {length_scale:g}")
+    size = float(np.sqrt(area / (4.0 * np.pi)))
+    ratio = size / length_scale
+    if not 1.0 / LENGTH_SCALE_RANGE <= ratio <= LENGTH_SCALE_RANGE:
+        suggest = float(f"{size:.0e}")
+        raise ProblemError(
+            f"the surface's size sqrt(area / 4 pi) = {size:.3g} is {ratio:.3g} times the length scale L = {length_scale:g} "
+            f"of the stabilization: its weight relative to the mass term goes as (L / size)^{power:g}, so the result would be "
+            f"that of a surface of size 1 with a stabilization {ratio ** -power:.3g} times the paper's (docs/math.md §3); pass "
+            f"{flag} {suggest:g} (the unit in which the surface has size about 1; H_h scales exactly with it)"
+        )
 
 
 def lumped_guess(B, ones_M):
@@ -117,6 +151,7 @@ class MeanCurvatureMeshed(Problem):
         Param("tau_e", float, 0.1, "edge stabilization tau_E", minimum=0),
         Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0, only=("surface", ("torus",))),
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
+        Param("length_scale", float, 1.0, "length L in which tau_E is given: tau_E h L^3 J_E (the surface's size, in its file's unit)", minimum=0),
         *SHAPE_PARAMS,
     ]
 
@@ -131,13 +166,14 @@ class MeanCurvatureMeshed(Problem):
                                f"levels n do not change; give one level (--levels 1) instead of {len(list(levels))}")
         return levels
 
-    def solve_level(self, level, surface, family, tau_e, seed, solver, R, r, radius, axes):
+    def solve_level(self, level, surface, family, tau_e, seed, solver, length_scale, R, r, radius, axes):
         t = Timer()
         with t("geometry"):
             mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
+            check_length_scale(mesh.area, length_scale, 3)
             space = SurfaceP1Space(mesh)
         with t("assembly"):
-            K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e)
+            K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e, length_scale=length_scale)
             ones_M = assemble(basis_integrals(mesh.ds()), space)
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL, x0=lumped_guess(B, ones_M))
@@ -172,10 +208,11 @@ class MeanCurvatureCut(Problem):
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
         Param("face_h_power", float, 0.0, "power a of h in the face term h^a J_F"),
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
+        Param("length_scale", float, 1.0, "length L in which tau_F, tau_E are given: tau_F L^(2-a) J_F, tau_E L^3 J_E (the surface's size)", minimum=0),
         *SHAPE_PARAMS,
     ]
 
-    def solve_level(self, level, surface, background, box, tau_f, tau_e, face_h_power, solver, R, r, radius, axes):
+    def solve_level(self, level, surface, background, box, tau_f, tau_e, face_h_power, solver, length_scale, R, r, radius, axes):
         t = Timer()
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius, axes)
@@ -185,8 +222,10 @@ class MeanCurvatureCut(Problem):
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
             space = CutP1Space(cut)
         with t("assembly"):
-            K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)), face_h_power=face_h_power)
             ones_M = assemble(basis_integrals(cut.ds()), space)
+            check_length_scale(float(ones_M.sum()), length_scale, 2.0 - face_h_power if tau_f > 0 else 3)
+            K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)),
+                                         face_h_power=face_h_power, length_scale=length_scale)
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL)
         exact = phi if has_exact(phi) else None

@@ -5,6 +5,7 @@ import pytest
 
 import cutfem
 from cutfem.errors import fitted_rate
+from cutfem.registry import ProblemError
 
 
 def _fit(result, key):
@@ -175,3 +176,52 @@ def test_bad_parameters_are_reported():
         cutfem.run("no-such-problem")
     with pytest.raises(ProblemError, match="family"):
         cutfem.run("mean-curvature-meshed", levels=[8], family="zigzag")
+
+
+# ----------------------------------------------------------------------------------------------
+# units of length: the stabilization's weight is a number in units of --length-scale L
+# ----------------------------------------------------------------------------------------------
+
+
+def _mean_curvature_field(res):
+    return np.asarray(res.records[0]["fields"]["surface"].point_data["H_h"])
+
+
+def _scaled_sphere_file(tmp_path, scale):
+    from cutfem.surface import SurfaceMesh, sphere_mesh, write_surface
+
+    mesh = sphere_mesh(2)
+    path = tmp_path / f"sphere_{scale:g}.stl"
+    write_surface(SurfaceMesh(scale * np.asarray(mesh.points), mesh.triangles), path)
+    return path
+
+
+def test_meshed_mean_curvature_of_a_file_scales_exactly_with_its_unit(tmp_path):
+    # the unit sphere mesh given in metres, and the same sphere as 1 mm given in metres with L = 1 mm:
+    # H_h scales as 1/L, so H_h * 1e-3 of the second is H_h of the first (before: H . n R = 2.9e-6 for
+    # the millimetre sphere at level 3, against 2.01 for the unit sphere)
+    unit = cutfem.run("mean-curvature-meshed", levels=[1], surface=str(_scaled_sphere_file(tmp_path, 1.0)), solver="direct")
+    milli = cutfem.run("mean-curvature-meshed", levels=[1], surface=str(_scaled_sphere_file(tmp_path, 1e-3)),
+                       length_scale=1e-3, solver="direct")
+    H1, Hm = _mean_curvature_field(unit), _mean_curvature_field(milli)
+    np.testing.assert_allclose(Hm * 1e-3, H1, rtol=0, atol=1e-9 * np.abs(H1).max())
+    assert np.abs(np.linalg.norm(H1, axis=1) - 2.0).max() < 0.1
+
+
+@pytest.mark.parametrize("radius", [0.01, 100.0])
+def test_meshed_mean_curvature_refuses_a_surface_far_from_the_length_scale(tmp_path, radius):
+    path = _scaled_sphere_file(tmp_path, radius)
+    with pytest.raises(ProblemError, match=rf"times the length scale L = 1 of the stabilization.*"
+                       rf"--length-scale {radius:g} "):
+        cutfem.run("mean-curvature-meshed", levels=[1], surface=str(path))
+
+
+def test_cut_mean_curvature_scales_exactly_with_the_unit():
+    # a sphere of radius 100 on a grid of spacing 40 with L = 100, against radius 1, spacing 0.4
+    # (before, with L = 1: l2_error * R / sqrt(area) = 0.69 at radius 100, spacing 10; 0.0054 at radius 1)
+    one = cutfem.run("mean-curvature-cut", levels=[0.4], surface="sphere", radius=1.0, solver="direct").records[0]
+    big = cutfem.run("mean-curvature-cut", levels=[40.0], surface="sphere", radius=100.0, length_scale=100.0,
+                     solver="direct").records[0]
+    assert big["l2_error"] == pytest.approx(one["l2_error"], rel=1e-8)  # ||H||_{L2(S)} ~ (1/R) R: no unit
+    with pytest.raises(ProblemError, match=r"--length-scale 100"):
+        cutfem.run("mean-curvature-cut", levels=[40.0], surface="sphere", radius=100.0)
