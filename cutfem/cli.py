@@ -11,7 +11,9 @@ status 2; ``--debug`` shows the traceback.  The levels and the output paths (``-
 ``--vtk``: parent folder writable, extension known) are checked before anything is solved.  When a
 level fails after others finished, the table and the JSON are still written with the finished
 levels and the failure (level, error type, message), and the exit status is 2 (1 for an
-unexpected error, which is a bug).
+unexpected error, which is a bug).  Existing files at the output paths are replaced; ``--plot``
+writes nothing (and says so) when the records carry no errors to plot, ``--vtk`` nothing when they
+carry no fields.
 """
 
 from __future__ import annotations
@@ -143,7 +145,10 @@ def _cmd_run(argv) -> int:
         else:
             print(f"--vtk: nothing written: the records of {problem.name} carry no fields (a record's \"fields\")",
                   file=sys.stderr)
-    if known.plot and result.records:
+    if known.plot and result.records and not result.error_keys():  # an empty figure would pass for a result
+        print(f"--plot: nothing written: the records of {problem.name} carry no errors (no exact solution for this "
+              f"input) to plot against h; an existing {known.plot} is left as it was", file=sys.stderr)
+    elif known.plot and result.records:
         from .convergence import convergence_plot
 
         Path(known.plot).parent.mkdir(parents=True, exist_ok=True)

@@ -592,3 +592,27 @@ def test_studies_and_reproduce_check_their_output_folder_first(tmp_path, capsys)
     assert conditioning.main(["--tiny", "--out", str(afile)]) == 2
     assert reproduce(["--tiny", "--out", str(afile)]) == 2
     assert capsys.readouterr().err.count("--out: '" + str(afile) + "' is not a folder") == 2
+
+
+def test_plot_without_errors_writes_nothing_and_says_so(tmp_path, capsys):
+    import pyvista as pv
+
+    from cutfem.surface import sphere_mesh, write_surface
+
+    # a mesh file has no exact mean curvature: no error to plot (before: an empty figure, exit 0)
+    path = tmp_path / "ball.obj"
+    write_surface(sphere_mesh(2), path)
+    plot, vtk = tmp_path / "conv.png", tmp_path / "vtk"
+    assert main(["run", "mean-curvature-meshed", "--surface", str(path), "--plot", str(plot), "--vtk", str(vtk),
+                 "--json", str(tmp_path / "r.json")]) == 0
+    err = capsys.readouterr().err
+    assert ("--plot: nothing written: the records of mean-curvature-meshed carry no errors (no exact solution "
+            "for this input)") in err
+    assert not plot.exists()
+    # the VTK file holds the solution of the run: H_h . n = 2 on the unit sphere, to the accuracy of level 2
+    saved = pv.read(vtk / "mean-curvature-meshed_n1_surface.vtp")
+    assert saved.n_points == 162 and saved.point_data["H_h"].dtype == np.float64
+    np.testing.assert_allclose(saved.point_data["mean_curvature"],
+                               np.einsum("ij,ij->i", saved.point_data["H_h"], saved.points / np.linalg.norm(saved.points, axis=1)[:, None]),
+                               rtol=0, atol=0.02)
+    assert np.abs(saved.point_data["mean_curvature"] - 2.0).max() < 0.1
