@@ -1288,6 +1288,11 @@ def read_surface(path) -> SurfaceMesh:
             f"'{path}' contains non-triangle surface cells ({other_2d}); only 3-node triangles are supported: "
             "triangulate the surface first (e.g. pyvista PolyData.triangulate())."
         )
+    if len(data.points) == 0 and not any(len(block.data) for block in data.cells):
+        raise ValueError(
+            f"'{path}' holds no points and no cells as read by the {path.suffix.lower() or 'default'} reader: the file is "
+            "empty or its content is not in the format its extension says (rename it to the extension of its format)."
+        )
     blocks = [np.asarray(block.data) for block in data.cells if block.type == "triangle"]
     if not blocks or sum(len(b) for b in blocks) == 0:
         found = sorted({block.type for block in data.cells}) or ["none"]

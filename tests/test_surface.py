@@ -537,3 +537,18 @@ def test_read_ignores_non_finite_points_no_triangle_uses(tmp_path):
     meshio.write(path, meshio.Mesh(points, [("triangle", tet_surface(range(4)))]))
     with pytest.raises(ValueError, match=r"tet\.vtu': 1 point\(s\) used by triangles have non-finite .*rows 1 of the file"):
         read_surface(path)
+
+
+def test_read_empty_or_misnamed_file_names_the_extension(tmp_path):
+    import meshio
+
+    # an STL saved under .obj: meshio's OBJ reader finds no point and no cell in it
+    path = tmp_path / "ball.obj"
+    meshio.write(path, meshio.Mesh(UNIT_TET, [("triangle", tet_surface(range(4)))]), file_format="stl")
+    with pytest.raises(ValueError, match=r"ball\.obj' holds no points and no cells as read by the \.obj reader: the file "
+                                         r"is empty or its content is not in the format its extension says"):
+        read_surface(path)
+    empty = tmp_path / "empty.stl"
+    empty.write_text("")
+    with pytest.raises(ValueError, match=r"empty\.stl' holds no points and no cells as read by the \.stl reader"):
+        read_surface(empty)
