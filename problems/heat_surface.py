@@ -61,7 +61,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import CGSolver, DirectSolver, multigrid_hierarchy
 from cutfem.spaces import CutP1Space
 
-from .common import Timer, background_for, cut_record, with_point_data
+from .common import Timer, background_for, check_cut_memory, check_resolution, cut_record, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -133,6 +133,8 @@ def heat_surface_cut(spacing, theta, dt_scale, final_time, tau_n, radius, box, s
     with t("geometry"):
         phi = Sphere(radius)
         cut = cut_mesh(background_for(phi, spacing, "structured", box), phi)
+        check_resolution(cut, phi, spacing)  # before the closest point is taken at a node near the centre
+        check_cut_memory(cut, spacing=spacing)
         V = CutP1Space(cut, CUT)
         ds = cut.ds()
     with t("assembly"):
