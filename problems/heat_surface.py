@@ -154,7 +154,8 @@ class HeatSolution:
         Param("dt_scale", float, 1.0, "c in dt_max = c h^2 (theta = 1) or c h (theta = 1/2), h the spacing: the level takes "
               "N = ceil(T / dt_max) steps of dt = T / N, which end exactly at T", minimum=0),
         Param("final_time", float, 0.5, "final time T", minimum=0),
-        Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N", minimum=0),
+        Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N (at 0, phi_h, zero on S_h, is a null vector of "
+              "the steps' matrix: direct and cg-mg refuse it, cg-jacobi never meets it)", minimum=0),
         Param("radius", float, 1.0, "radius of the sphere", minimum=0),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the sphere's box grown by 0.1)"),
         Param("solver", str, "auto", "the steps' solver: direct (one factorization), cg-jacobi or cg-mg (CG from the "
@@ -183,12 +184,14 @@ def heat_surface_cut(spacing, theta, dt_scale, final_time, tau_n, radius, box, s
         S = (M + theta * dt * A).tocsr()
         if solver == "auto":
             solver = "direct" if V.n_dofs <= STEP_DIRECT_LIMIT else "cg-jacobi" if theta == 1.0 else "cg-mg"
+        # phi_h (zero on S_h) is a null vector of M and A at tau_N = 0: the factor and the multigrid name it
+        candidates = {"phi_h": cut.values}
         if solver == "direct":
-            factor = DirectSolver(S)
+            factor = DirectSolver(S, kernels=candidates)
         elif solver == "cg-jacobi":
-            cg = CGSolver(S, "jacobi", tol=STEP_TOL)
+            cg = CGSolver(S, "jacobi", tol=STEP_TOL, kernels=candidates)
         else:
-            cg = CGSolver(S, "mg", tol=STEP_TOL, prolongations=multigrid_hierarchy(V))
+            cg = CGSolver(S, "mg", tol=STEP_TOL, prolongations=multigrid_hierarchy(V), kernels=candidates)
         explicit = (M - (1.0 - theta) * dt * A).tocsr()
     with t("time steps"):
         u = sol.u(0.0)(V.dof_points)

@@ -63,3 +63,23 @@ def test_the_advice_of_a_refused_step_count_is_the_largest_step_that_runs():
     assert 0.999e6 < math.ceil(0.5 / (need * 0.16)) <= 1_000_000
     with pytest.raises(ProblemError, match=r"9e\+05 time steps .* on 11824 unknowns, more than the 845737 a level takes"):
         _run(levels=[0.05], dt_scale=0.5 / 9e5 / 0.05**2)
+
+
+@pytest.mark.parametrize("solver", ["direct", "cg-mg"])
+def test_no_stabilization_is_refused_naming_the_null_vector(solver):
+    """tau_N = 0 leaves M_h and A_h the common null vector phi_h (the P1 level set, zero on S_h):
+    the factorization and the multigrid say so and name the term that removes it."""
+    from cutfem.solve import SolverError
+
+    with pytest.raises(SolverError, match=r"the nodal vector of phi_h \(zero on S_h\) is a null vector.*"
+                                          r"Add a stabilization that acts on it \(.*the normal-gradient term") as err:
+        _run(levels=[0.2], tau_n=0.0, solver=solver)
+    assert err.value.cause == "singular"
+
+
+def test_jacobi_cg_without_stabilization_gives_the_surface_solution():
+    """Jacobi-CG on the consistent singular steps never meets the null vector phi_h; it is zero on
+    S_h, so the error there is that of a vanishing stabilization (measured 2e-8 relative)."""
+    bare = _run(levels=[0.2], tau_n=0.0, solver="cg-jacobi")
+    tiny = _run(levels=[0.2], tau_n=1e-8, solver="direct")
+    assert abs(bare["l2_error"] - tiny["l2_error"]) <= 1e-6 * tiny["l2_error"]
