@@ -301,11 +301,13 @@ _ORIGIN: dict[str, str] = {}  # name -> the module that registered it
 _LOADED = False
 
 
-def register(name=None, *, summary: str = "", params=None, levels=None, level_name: str = "level", level_type=float):
+def register(name=None, *, summary: str = "", params=None, levels=None, level_name: str = "level", level_type=float,
+             definitions=None):
     """Register a problem class (a :class:`Problem` subclass) or a level function under ``name``.
 
     Used bare on a class (``@register``) it takes the class's ``name``.  On a function
-    ``f(level, **params) -> record`` give ``name``, ``params``, ``levels``, ``level_name``.
+    ``f(level, **params) -> record`` give ``name``, ``params``, ``levels``, ``level_name`` and
+    ``definitions`` (record key -> its meaning, as :attr:`Problem.definitions`).
 
     Registering a name again replaces the earlier problem (a notebook cell run twice), except a
     built-in problem's name, which raises ValueError: the built-ins are loaded first, so a problem
@@ -332,6 +334,7 @@ def register(name=None, *, summary: str = "", params=None, levels=None, level_na
             problem.default_levels = list(levels or [])
             problem.level_name = level_name
             problem.level_type = level_type
+            problem.definitions = dict(definitions or {})
         else:
             raise TypeError("register() decorates a Problem subclass or a function f(level, **params)")
         if not problem.name:

@@ -178,6 +178,8 @@ class HeatSolution:
     summary="surface heat equation on a cut sphere, TraceFEM + theta-scheme (docs/math.md §11)",
     levels=[0.4, 0.2, 0.1, 0.05],
     level_name="spacing",
+    definitions={"l2_error": "||u_h(T) - u(T)^e||_L2(S_h) at the final time T (the record's final_time, reached in "
+                             "time_steps steps of dt), u^e the normal extension of the exact solution"},
     params=[
         Param("theta", float, 1.0, "theta of the time scheme: 1 backward Euler (dt = c h^2), 0.5 Crank-Nicolson (dt = c h)", choices=(1.0, 0.5)),
         Param("dt_scale", float, 1.0, "c in dt_max = c h^2 (theta = 1) or c h (theta = 1/2), h the spacing: the level takes "

@@ -146,3 +146,13 @@ def test_the_schemes_converge_at_their_order_in_time(theta, steps, rate):
     diffs = np.array([np.abs(a - b).max() for a, b in zip(u, u[1:])])
     rates = np.log2(diffs[:-1] / diffs[1:])
     assert np.all(np.abs(rates - rate) <= 0.1), rates
+
+
+def test_the_json_says_when_and_where_the_error_is_measured():
+    """The record of a level gives the steps, the step and the final time the error is at; the
+    JSON defines that error (it was 'not defined by the problem')."""
+    res = cutfem.run("heat-surface-cut", levels=[0.4], final_time=0.3)
+    data = res.to_json()
+    rec = data["records"][0]
+    assert (rec["time_steps"], rec["dt"], rec["final_time"]) == (2, 0.15, 0.3) == (2, 0.15, data["parameters"]["final_time"])
+    assert data["definitions"]["l2_error"].startswith("||u_h(T) - u(T)^e||_L2(S_h) at the final time T")
