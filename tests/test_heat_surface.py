@@ -156,3 +156,18 @@ def test_the_json_says_when_and_where_the_error_is_measured():
     rec = data["records"][0]
     assert (rec["time_steps"], rec["dt"], rec["final_time"]) == (2, 0.15, 0.3) == (2, 0.15, data["parameters"]["final_time"])
     assert data["definitions"]["l2_error"].startswith("||u_h(T) - u(T)^e||_L2(S_h) at the final time T")
+
+
+def test_a_final_time_that_rounding_drowns_is_refused():
+    """Backward Euler far past the decay ends at the constant of the initial integral: error
+    3.8306423 at spacing 0.4 (T = 1e4).  Every step keeps the constants (seen by M_h alone) to eps dt k
+    (k = 58 here) and the steps add these up: T = 1e12 gave 3.8231 in 7 steps.  Refused; at the
+    longest T advised the constant comes back to 1e-6."""
+    import re
+
+    with pytest.raises(ProblemError, match=r"shorten --final-time to at most ([0-9.e+-]+)") as err:
+        _run(final_time=1e12, dt_scale=1e12)
+    longest = float(re.search(r"at most ([0-9.e+-]+)", str(err.value)).group(1))
+    rec = _run(final_time=longest, dt_scale=longest)
+    assert abs(rec["l2_error"] - 3.8306423) <= 1e-6 * 3.8306423
+    assert abs(_run(final_time=1e4, dt_scale=1e4)["l2_error"] - 3.8306423) <= 1e-8 * 3.8306423
