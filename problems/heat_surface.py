@@ -223,8 +223,10 @@ class HeatSolution:
 def heat_surface_cut(spacing, theta, dt_scale, final_time, tau_n, radius, box, solver):
     """One level: the L2(S_h) error at the final time; the fields (for ``--vtk``) are u_h and the
     exact u at the final time on the surface S_h."""
-    if not (dt_scale > 0 and final_time > 0):
-        raise ProblemError("--dt-scale and --final-time must be positive")
+    if not final_time > 0:
+        raise ProblemError(f"--final-time {final_time:g}: the final time must be positive (default 0.5)")
+    if not dt_scale > 0:
+        raise ProblemError(f"--dt-scale {dt_scale:g}: the step dt_max = c h^2 or c h must be positive (default 1)")
     sol = HeatSolution(radius)
     t = Timer()
     with t("geometry"):

@@ -171,3 +171,13 @@ def test_a_final_time_that_rounding_drowns_is_refused():
     rec = _run(final_time=longest, dt_scale=longest)
     assert abs(rec["l2_error"] - 3.8306423) <= 1e-6 * 3.8306423
     assert abs(_run(final_time=1e4, dt_scale=1e4)["l2_error"] - 3.8306423) <= 1e-8 * 3.8306423
+
+
+@pytest.mark.parametrize("kw, words", [
+    (dict(final_time=0.0), "--final-time 0: the final time must be positive (default 0.5)"),
+    (dict(dt_scale=0.0), "--dt-scale 0: the step dt_max = c h^2 or c h must be positive (default 1)"),
+])
+def test_a_zero_final_time_or_step_is_refused_by_name(kw, words):
+    with pytest.raises(ProblemError) as err:
+        _run(**kw)
+    assert str(err.value) == words
