@@ -391,3 +391,18 @@ def test_parameters_are_checked(cut):
         with pytest.raises(ValueError, match=rf"keyword\(s\) {name} would be hidden by .* w\.{name}"):
             assemble(uvh * dx, V, **{name: 1.0})
     assert assemble(bilinear_form(lambda u, v, w: w.c * u * v) * dx, V, c=2.0).sum() == pytest.approx(2 * dx.size, rel=1e-12)
+
+
+def test_apply_dirichlet_keeps_the_scale_of_the_system(outer_system):
+    """A system of small scale (a coefficient 1e-6) with data of large scale (u = 1e6 LINEAR): the
+    iterative solvers stop on |b - K x| <= tol |b|, and unit rows for the Dirichlet dofs with values
+    of 1e6 made |b| so large that CG stopped with the interior equations unsolved. The eliminated
+    rows carry K's own diagonal instead, so the stopping test weighs every row alike."""
+    V, K, b = outer_system
+    bd, exact = V.boundary_dofs, 1e6 * LINEAR(V.dof_points)
+    Kb, bb = apply_dirichlet(1e-6 * K, b, bd, exact[bd])  # 1e-6 K x = nitsche_load(1e6 LINEAR) * 1e-6 = b
+    np.testing.assert_array_equal(Kb.diagonal()[bd], 1e-6 * K.diagonal()[bd])
+    assert abs(Kb - Kb.T).max() == 0
+    for method in ("direct", "cg-jacobi", "cg-amg"):
+        x, info = solve(Kb, bb, method=method)
+        assert np.abs(x - exact).max() <= 1e-5 * np.abs(exact).max(), (method, np.abs(x - exact).max(), info.iterations)
