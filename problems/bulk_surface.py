@@ -41,7 +41,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import Timer, background_for, cut_record, value_and_gradient, with_point_data
+from .common import Timer, background_for, check_resolution, cut_record, value_and_gradient, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -117,7 +117,8 @@ class BulkSurfaceSolution:
     ],
 )
 def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamma_g, tau_n, radius, box, solver):
-    """One level of the coupled bulk-surface problem."""
+    """One level of the coupled bulk-surface problem; a spacing that does not resolve the sphere (S_h off its area
+    by more than 25 %, :func:`~cutfem.problems.common.check_resolution`) is refused."""
     for flag, value in (("--k-bulk", k_bulk), ("--k-surface", k_surface), ("--b-bulk", b_bulk), ("--b-surface", b_surface)):
         if not value > 0:
             raise ProblemError(f"{flag} must be positive, got {value}")
@@ -131,6 +132,7 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
     with t("geometry"):
         phi = Sphere(radius)
         cut = cut_mesh(background_for(phi, spacing, "structured", box), phi)
+        check_resolution(cut, phi, spacing)  # a sphere a few cells across: refused, not solved on a polyhedron
         W = ProductSpace(bulk=CutP1Space(cut, NEG), surface=CutP1Space(cut, CUT))
         dx, ds = cut.dx(NEG), cut.ds()
 

@@ -39,7 +39,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import Timer, background_for, cut_record, nitsche_hint, point_rows, value_and_gradient
+from .common import Timer, background_for, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -121,7 +121,8 @@ class InterfaceSolution:
     ],
 )
 def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, radius, box, solver):
-    """One level of the interface problem."""
+    """One level of the interface problem; a spacing that does not resolve the sphere (S_h off its area by more
+    than 25 %, :func:`~cutfem.problems.common.check_resolution`) is refused."""
     for name, value in (("--a-inside", a_inside), ("--a-outside", a_outside)):
         if not value > 0:
             raise ProblemError(f"{name} must be positive, got {value}")
@@ -131,6 +132,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
     with t("geometry"):
         phi = Sphere(radius)
         cut = cut_mesh(background_for(phi, spacing, "structured", box), phi)
+        check_resolution(cut, phi, spacing)  # a sphere a few cells across: refused, not solved on a polyhedron
         W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
     with t("assembly"):
         form = interface_nitsche(cut.ds(), a_inside, a_outside, gamma, weights)
