@@ -307,7 +307,8 @@ def register(name=None, *, summary: str = "", params=None, levels=None, level_na
 
     Used bare on a class (``@register``) it takes the class's ``name``.  On a function
     ``f(level, **params) -> record`` give ``name``, ``params``, ``levels``, ``level_name`` and
-    ``definitions`` (record key -> its meaning, as :attr:`Problem.definitions`).
+    ``definitions`` (record key -> its definition, as :attr:`Problem.definitions`: every
+    ``*_error`` key, and ``dofs`` where it is not the nodes of one field).
 
     Registering a name again replaces the earlier problem (a notebook cell run twice), except a
     built-in problem's name, which raises ValueError: the built-ins are loaded first, so a problem

@@ -98,8 +98,21 @@ class BulkSurfaceSolution:
         return -self.k_s * lap + self.b_s * F - self.b_b * np.exp(s)
 
 
+#: the record's entries (saved with the JSON)
+DEFINITIONS = {
+    "dofs": "unknowns of the coupled system, dofs_bulk + dofs_surface: the nodes of the tets of NEG plus the nodes of "
+            "the cut tets",
+    "l2_error_bulk": "||u_B,h - u_B||_L2(Omega_h), Omega_h the NEG cut volume (degree-4 quadrature on its whole tets and cut parts)",
+    "h1_error_bulk": "||grad u_B,h - grad u_B||_L2(Omega_h)",
+    "l2_error_surface": "||u_S,h - u_S o p||_L2(Gamma_h), u_S at the closest point p on the sphere (degree-4 quadrature on S_h)",
+    "h1_error_surface": "||P_h (grad u_S,h - grad U_S)||_L2(Gamma_h), P_h the tangential projection of Gamma_h, U_S the "
+                        "extension of the module docstring",
+}
+
+
 @register(
     "bulk-surface-cut",
+    definitions=DEFINITIONS,
     summary="coupled bulk-surface diffusion in a ball and on its sphere, CutFEM + TraceFEM (docs/math.md §10)",
     levels=[0.2, 0.1, 0.05, 0.025],
     level_name="spacing",

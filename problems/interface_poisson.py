@@ -104,8 +104,19 @@ class InterfaceSolution:
         return value
 
 
+#: the record's entries (saved with the JSON)
+DEFINITIONS = {
+    "dofs": "unknowns of the coupled system, dofs_inside + dofs_outside: the nodes of the tets of NEG plus those of the "
+            "tets of POS (a node of a cut tet counts on both sides)",
+    **{f"{norm}_error_{name}": f"{what} over Omega_h,{side} = the {side} cut volume (degree-4 quadrature on its whole tets and cut parts)"
+       for norm, what in (("l2", "||u_h - u||_L2"), ("h1", "||grad u_h - grad u||_L2"))
+       for name, side in (("inside", "NEG"), ("outside", "POS"))},
+}
+
+
 @register(
     "interface-poisson-cut",
+    definitions=DEFINITIONS,
     summary="-div(a grad u) = f with a jump of a across a sphere, Nitsche-XFEM with ghost penalties (docs/math.md §9)",
     levels=[0.2, 0.1, 0.05, 0.025],
     level_name="spacing",
