@@ -163,6 +163,19 @@ def test_coupled_problems_define_their_records(problem, parts):
     assert all(f"dofs_{p}" in definitions["dofs"] for p in parts)
 
 
+def test_bulk_surface_default_box_is_the_same_at_every_level():
+    """Rates are taken against h = N**(-1/3), N the background nodes, which measures the spacing only
+    in one box.  The default box was rounded outward to multiples of each spacing: [-1.2, 1.2]^3 at
+    0.2, [-1.1, 1.1]^3 at 0.1, so h fell by 1.77 for a halved spacing and the first L2 rates read
+    2.45 (bulk) and 2.41 (surface) where the errors fell by 4.04 and 3.95.  Now the ball's box grown
+    by 0.1 at every level (grown to whole cells): h falls by 1.92 (23 / 12)."""
+    res = cutfem.run("bulk-surface-cut", levels=[0.2, 0.1])
+    boxes = [r["box"] for r in res.records]
+    assert boxes[0] == boxes[1] == [[-1.1] * 3, [1.1] * 3]
+    h = [r["h"] for r in res.records]
+    assert abs(h[0] / h[1] - 23 / 12) < 1e-12
+
+
 def test_bulk_surface_cut_rates():
     res = cutfem.run("bulk-surface-cut", levels=[0.4, 0.2, 0.1])
     _assert_rates(res, BULK_SURFACE)
