@@ -162,7 +162,8 @@ class Param:
 
     Numbers must be finite (an int also integral: 2.5 is not read as 2, nor True as 1), at least
     ``minimum`` when given, and one of ``choices`` when given (numbers compared by value: 0.5 is
-    one of (1.0, 0.5)).  ``files``: the parameter also takes the path of an existing file besides
+    one of (1.0, 0.5)); ``positive``: greater than 0 (a radius, a coefficient, a penalty that
+    must not vanish).  ``files``: the parameter also takes the path of an existing file besides
     its ``choices`` (a surface mesh).  Objects that are neither strings nor numbers (a level set, a
     mesh) pass through from Python unchecked: the problem checks them.  ``only`` = (name, values):
     the parameter shapes the result only when the parameter ``name`` is one of ``values`` (the
@@ -178,6 +179,7 @@ class Param:
     nargs: str | None = None
     files: bool = False
     only: tuple | None = None
+    positive: bool = False
 
     @property
     def flag(self) -> str:
@@ -220,6 +222,8 @@ class Param:
                 raise ProblemError(f"{self.flag}: {v!r} is neither {', '.join(map(str, self.choices))} nor an existing file")
         if self.minimum is not None and number and v < self.minimum:
             raise ProblemError(f"{self.flag}: {v} must be a finite number >= {self.minimum}")
+        if self.positive and number and not v > 0:
+            raise ProblemError(f"{self.flag}: {v} must be a positive number")
         return v
 
 

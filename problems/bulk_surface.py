@@ -117,14 +117,14 @@ DEFINITIONS = {
     levels=[0.2, 0.1, 0.05, 0.025],
     level_name="spacing",
     params=[
-        Param("k_bulk", float, 1.0, "bulk diffusion k_B", minimum=0),
-        Param("k_surface", float, 1.0, "surface diffusion k_S", minimum=0),
+        Param("k_bulk", float, 1.0, "bulk diffusion k_B", positive=True),
+        Param("k_surface", float, 1.0, "surface diffusion k_S", positive=True),
         Param("b_bulk", float, 1.0, "coupling coefficient b_B", minimum=0),
         Param("b_surface", float, 2.0, "coupling coefficient b_S", minimum=0),
-        Param("c_bulk", float, 1.0, "bulk reaction c_B (> 0: with 0 the problem has a kernel)", minimum=0),
+        Param("c_bulk", float, 1.0, "bulk reaction c_B (> 0: with 0 the problem has a kernel)", positive=True),
         Param("gamma_g", float, 0.1, "bulk ghost penalty gamma_g", minimum=0),
         Param("tau_n", float, 1.0, "surface normal-gradient stabilization tau_N", minimum=0),
-        Param("radius", float, 1.0, "radius of the ball", minimum=0),
+        Param("radius", float, 1.0, "radius of the ball", positive=True),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the ball's box grown by 0.1)"),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
     ],
@@ -191,7 +191,7 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
             "solver": info.method,
             "solver_iterations": info.iterations,
         }
-    rec.update(cut_record(cut))
+    rec.update(cut_record(cut, W))
     rec["time"] = dict(t)
     rec["fields"] = LazyFields(
         lambda: {

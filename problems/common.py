@@ -17,9 +17,9 @@ SURFACES = ("torus", "sphere", "ellipsoid")
 
 #: the shape parameters shared by every problem
 SHAPE_PARAMS = [
-    Param("R", float, 1.0, "torus: radius of the big circle", minimum=0, only=("surface", ("torus",))),
-    Param("r", float, 0.5, "torus: radius of the tube", minimum=0, only=("surface", ("torus",))),
-    Param("radius", float, 1.0, "sphere radius", minimum=0, only=("surface", ("sphere",))),
+    Param("R", float, 1.0, "torus: radius of the big circle", positive=True, only=("surface", ("torus",))),
+    Param("r", float, 0.5, "torus: radius of the tube", positive=True, only=("surface", ("torus",))),
+    Param("radius", float, 1.0, "sphere radius", positive=True, only=("surface", ("sphere",))),
     Param("axes", str, "1.0,0.8,0.6", "ellipsoid semi-axes a,b,c", only=("surface", ("ellipsoid",))),
 ]
 
@@ -259,13 +259,19 @@ def check_surface_memory(nodes: float, what: str) -> None:
     check_memory(BYTES_PER_SURFACE_NODE * float(nodes), what, "use a smaller n (the memory grows like n**2)")
 
 
-def cut_record(cut) -> dict:
-    """Sizes of a cut for the per-level records (and the box used, for a structured background)."""
+def cut_record(cut, space=None) -> dict:
+    """Sizes of a cut for the per-level records (and the box used, for a structured background):
+    ``pieces`` the tets the surface cuts (one piece of S_h each), ``active_tets`` the background tets
+    that carry unknowns of ``space`` (the union over the fields of a product space; without a space,
+    or for trace fields, the cut tets)."""
     bg = cut.background
     box = {"box": [bg.lower.tolist(), bg.upper.tolist()]} if hasattr(bg, "lower") else {}
+    fields = getattr(space, "fields", None) or ([space] if space is not None else [])
+    ids = [f.elements.tet_ids for f in fields if getattr(getattr(f, "elements", None), "tet_ids", None) is not None]
+    active = len(np.unique(np.concatenate(ids))) if ids else int(cut.n_tets)
     return box | {
         "background_nodes": int(cut.background.n_points),
-        "active_tets": int(cut.n_tets),
+        "active_tets": int(active),
         "pieces": int(cut.n_tets),
         "surface_triangles": int(cut.n_triangles),
         "interior_faces": int(cut.interior_facets().n_facets),

@@ -121,12 +121,12 @@ DEFINITIONS = {
     levels=[0.2, 0.1, 0.05, 0.025],
     level_name="spacing",
     params=[
-        Param("a_inside", float, 1.0, "coefficient a in the inside domain (NEG)", minimum=0),
-        Param("a_outside", float, 1.0, "coefficient a in the outside domain (POS)", minimum=0),
+        Param("a_inside", float, 1.0, "coefficient a in the inside domain (NEG)", positive=True),
+        Param("a_outside", float, 1.0, "coefficient a in the outside domain (POS)", positive=True),
         Param("weights", str, "harmonic", "averaging weights of the flux", choices=("harmonic", "volume")),
-        Param("gamma", float, 10.0, "Nitsche penalty gamma", minimum=0),
+        Param("gamma", float, 10.0, "Nitsche penalty gamma", positive=True),
         Param("gamma_g", float, 0.1, "ghost penalty gamma_g (times a_i on each side)", minimum=0),
-        Param("radius", float, 0.8, "radius of the interface sphere", minimum=0),
+        Param("radius", float, 0.8, "radius of the interface sphere", positive=True),
         Param("box", str, "-1.2,-1.2,-1.2,1.2,1.2,1.2", "background box x0,y0,z0,x1,y1,z1"),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
     ],
@@ -166,7 +166,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
             V, dx = W[0 if side == NEG else 1], cut.dx(side)
             rec[f"l2_error_{name}"], rec[f"h1_error_{name}"] = l2_h1_errors(V, u, sol.solution(side), dx)
         rec["solver"], rec["solver_iterations"] = info.method, info.iterations
-    rec.update(cut_record(cut))
+    rec.update(cut_record(cut, W))
     rec["time"] = dict(t)
     rec["fields"] = LazyFields(
         lambda: {

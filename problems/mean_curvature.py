@@ -151,7 +151,7 @@ class MeanCurvatureMeshed(Problem):
         Param("tau_e", float, 0.1, "edge stabilization tau_E", minimum=0),
         Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0, only=("surface", ("torus",))),
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
-        Param("length_scale", float, 1.0, "length L in which tau_E is given: tau_E h L^3 J_E (the surface's size, in its file's unit)", minimum=0),
+        Param("length_scale", float, 1.0, "length L in which tau_E is given: tau_E h L^3 J_E (the surface's size, in its file's unit)", positive=True),
         *SHAPE_PARAMS,
     ]
 
@@ -208,7 +208,7 @@ class MeanCurvatureCut(Problem):
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
         Param("face_h_power", float, 0.0, "power a of h in the face term h^a J_F"),
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
-        Param("length_scale", float, 1.0, "length L in which tau_F, tau_E are given: tau_F L^(2-a) J_F, tau_E L^3 J_E (the surface's size)", minimum=0),
+        Param("length_scale", float, 1.0, "length L in which tau_F, tau_E are given: tau_F L^(2-a) J_F, tau_E L^3 J_E (the surface's size)", positive=True),
         *SHAPE_PARAMS,
     ]
 

@@ -74,16 +74,24 @@ def source(x):
     return (_A**2 + _B**2 - _C**2) * exact_u(x)
 
 
+#: the record entries of poisson-cut (saved in the JSON of a run)
+DEFINITIONS = {
+    "l2_error": "||u_h - u||_L2(Omega_h) over the cut volume Omega_h = {phi_h < 0} (degree-4 quadrature on its whole tets and cut parts)",
+    "h1_error": "||grad u_h - grad u||_L2(Omega_h), as l2_error",
+}
+
+
 @register(
     "poisson-cut",
     summary="fictitious-domain Poisson -Lap u = f in {phi < 0}, Nitsche on the cut boundary, ghost penalty (docs/math.md §8)",
     levels=[0.2, 0.1, 0.05, 0.025],
     level_name="spacing",
+    definitions=DEFINITIONS,
     params=[
         Param("surface", str, "sphere", "domain: sphere (ball), torus (solid torus), ellipsoid or a closed mesh file"),
         Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)"),
-        Param("gamma", float, 10.0, "Nitsche penalty gamma", minimum=0),
+        Param("gamma", float, 10.0, "Nitsche penalty gamma", positive=True),
         Param("gamma_g", float, 0.1, "ghost penalty gamma_g", minimum=0),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
         *SHAPE_PARAMS,
@@ -114,7 +122,7 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
             "solver": info.method,
             "solver_iterations": info.iterations,
         }
-    rec.update(cut_record(cut))
+    rec.update(cut_record(cut, V))
     rec["time"] = dict(t)
     rec["fields"] = LazyFields(lambda: {"domain": V.elements.to_pyvista(u_h=u, u_exact=exact_u(V.dof_points)), "boundary": cut.to_pyvista()})
     return rec

@@ -302,3 +302,29 @@ def test_bulk_surface_manufactured_bulk_loop_against_numpy():
     np.testing.assert_allclose(bs.f_bulk(x), (1.0 - d @ d) * ref, rtol=4e-15, atol=0)
     with pytest.raises(ValueError, match="shape"):
         bs.bulk(np.zeros((4, 2)))
+
+
+def test_records_count_the_active_tets_of_the_fields():
+    """``active_tets`` was the number of cut tets for every problem; for bulk fields it is the tets
+    that carry their unknowns: counted here from the nodal values of phi_h (a side's tets are those
+    with a node strictly on that side, the cut tets those with nodes on both)."""
+    from cutfem.cut import cut_mesh
+    from cutfem.levelset import Sphere
+    from cutfem.markers import CUT
+    from cutfem.mesh import structured_box
+    from cutfem.problems.common import cut_record
+    from cutfem.spaces import CutP1Space, ProductSpace
+
+    bg = structured_box([-1.0] * 3, [1.0] * 3, spacing=0.25)
+    cut = cut_mesh(bg, Sphere(0.7))
+    phi = Sphere(0.7).value(bg.points)[bg.tets]
+    neg, pos = (phi < 0).any(axis=1), (phi > 0).any(axis=1)
+    assert cut_record(cut)["active_tets"] == cut_record(cut)["pieces"] == int((neg & pos).sum()) == cut.n_tets
+    assert cut_record(cut, CutP1Space(cut, NEG))["active_tets"] == int(neg.sum())
+    assert cut_record(cut, CutP1Space(cut, CUT))["active_tets"] == int((neg & pos).sum())
+    both = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
+    assert cut_record(cut, both)["active_tets"] == len(bg.tets) == int((neg | pos).sum())
+    res = cutfem.run("poisson-cut", levels=[0.4], surface="sphere")
+    assert res.records[0]["active_tets"] > res.records[0]["pieces"]
+    definitions = res.to_json()["definitions"]
+    assert set(definitions) == {"h", "dofs", "l2_error", "h1_error"} and "not defined by the problem" not in definitions.values()
