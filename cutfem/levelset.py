@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .mesh import unique_keys
 from .surface import SurfaceMesh, check_length, positive_number
 
 __all__ = [
@@ -1161,7 +1162,7 @@ def _surface_arrays(surface):
             f"surface triangles index points outside 0..{len(pts) - 1} "
             f"(range {tris.min()}..{tris.max()})"
         )
-    used = np.unique(tris)
+    used = unique_keys(tris)
     return pts[used], np.searchsorted(used, tris)
 
 

@@ -34,7 +34,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .mesh import StructuredBox, barycentric_gradients, dense_unique, kuhn_face_pairs, pair_up, tet_face_keys
+from .mesh import StructuredBox, barycentric_gradients, dense_unique, kuhn_face_pairs, pair_up, tet_face_keys, unique_keys
 from .numbering import TET_EDGES, TET_FACES, index_dtype
 
 __all__ = ["NEG", "POS", "CUT", "SIDES", "ElementSet", "FacetSet", "interior_facets", "side_subtetrahedra", "longest_edges",
@@ -369,7 +369,7 @@ class FacetSet:
             sel = sel.astype(np.int64, copy=False)
             if sel.size and (sel.min() < 0 or sel.max() >= F):
                 raise ValueError(f"facet indices must lie in [0, {F}), got {int(sel.min() if sel.min() < 0 else sel.max())}")
-            if len(np.unique(sel)) != len(sel):
+            if len(unique_keys(sel)) != len(sel):
                 raise ValueError("facet indices must not repeat a facet (it would be integrated again); for a 0/1 "
                                  "mask pass booleans")
         return FacetSet(self.elements, self.pairs[sel], self.opposite[sel], name=name or self.name)

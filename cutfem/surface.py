@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .mesh import pair_up
+from .mesh import pair_up, unique_keys
 
 __all__ = [
     "SurfaceMesh",
@@ -1223,7 +1223,7 @@ def _merge_points(points: np.ndarray, triangles: np.ndarray):
     """
     from scipy.spatial import cKDTree
 
-    used = np.unique(triangles)
+    used = unique_keys(triangles)
     points = points[used]
     triangles = np.searchsorted(used, triangles)
     lower = points.min(axis=0)
@@ -1304,7 +1304,7 @@ def read_surface(path) -> SurfaceMesh:
     try:
         if triangles.min() < 0 or triangles.max() >= len(points):
             raise ValueError(f"triangle node indices outside [0, {len(points)})")
-        used = np.unique(triangles)
+        used = unique_keys(triangles)
         bad = used[~np.isfinite(points[used]).all(axis=1)]
         if bad.size:
             raise ValueError(

@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from cutfem.levelset import Ellipsoid, FunctionLevelSet, LevelSet, SignedDistance, Sphere, Torus
-from cutfem.mesh import structured_box, unstructured_box
+from cutfem.mesh import structured_box, unique_keys, unstructured_box
 from cutfem.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
 from cutfem.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
 
@@ -268,7 +268,7 @@ def cut_record(cut, space=None) -> dict:
     box = {"box": [bg.lower.tolist(), bg.upper.tolist()]} if hasattr(bg, "lower") else {}
     fields = getattr(space, "fields", None) or ([space] if space is not None else [])
     ids = [f.elements.tet_ids for f in fields if getattr(getattr(f, "elements", None), "tet_ids", None) is not None]
-    active = len(np.unique(np.concatenate(ids))) if ids else int(cut.n_tets)
+    active = (len(ids[0]) if len(ids) == 1 else len(unique_keys(np.concatenate(ids)))) if ids else int(cut.n_tets)
     return box | {
         "background_nodes": int(cut.background.n_points),
         "active_tets": int(active),
