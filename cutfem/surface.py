@@ -356,7 +356,8 @@ def _check_topology(tri: np.ndarray, n_points: int, degree: np.ndarray):
         bad = np.flatnonzero(fans_per_vertex > 1)
         raise ValueError(
             f"the surface is non-manifold at {bad.size} vertex(es), first nodes {_examples(bad)}: separate fans of "
-            "triangles touch at a single point; duplicate such a node once per fan."
+            "triangles touch at a single point; move the touching parts apart (in arrays, a node duplicated once per fan "
+            "also separates them, but a file's coincident points are merged back into one when it is read)."
         )
     return table, pairs
 
