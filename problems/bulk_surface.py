@@ -41,7 +41,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import Timer, background_for, check_resolution, cut_record, value_and_gradient, with_point_data
+from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_resolution, cut_record, value_and_gradient, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -152,7 +152,9 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
         phi = Sphere(radius)
         if box is None:  # the ball's box grown by 0.1, the same at every level (see the docstring)
             box = [-(radius + 0.1)] * 3 + [radius + 0.1] * 3
-        cut = cut_mesh(background_for(phi, spacing, "structured", box), phi)
+        bg = background_for(phi, spacing, "structured", box)
+        check_bulk_memory(bg, phi, (NEG,), BULK_BYTES_PER_TET["bulk-surface-cut"], spacing)
+        cut = cut_mesh(bg, phi)
         check_resolution(cut, phi, spacing)  # a sphere a few cells across: refused, not solved on a polyhedron
         W = ProductSpace(bulk=CutP1Space(cut, NEG), surface=CutP1Space(cut, CUT))
         dx, ds = cut.dx(NEG), cut.ds()

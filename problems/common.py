@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 
 from cutfem.levelset import Ellipsoid, FunctionLevelSet, LevelSet, SignedDistance, Sphere, Torus
+from cutfem.markers import NEG, POS
 from cutfem.mesh import structured_box, unique_keys, unstructured_box
 from cutfem.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
 from cutfem.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
@@ -217,6 +218,58 @@ def check_resolution(cut, levelset, spacing) -> None:
         raise ProblemError(
             f"spacing {spacing:g} is too coarse to resolve the surface ({'; '.join(problems)}); use a smaller spacing"
         )
+
+
+#: the resident memory the bulk problems add per active tet of their fields (the element sets,
+#: faces, matrices, solve and errors; measured peaks less the process's start, through ``cutfem
+#: run``): poisson-cut on the solid torus 199, 163 and 149 bytes at spacings 0.025, 0.0125 and 0.01;
+#: interface-poisson-cut 206 and 158 at 0.025 and 0.0125; bulk-surface-cut 604 and 364 at 0.025 and
+#: 0.0125 (its surface field and coupling on few tets)
+#: (the finer levels' figures, with the margin of the predicted active tets on top: the estimate is
+#: 1.17-1.35 times the measured peak at spacing 0.01-0.0125)
+BULK_BYTES_PER_TET = {"poisson-cut": 170, "interface-poisson-cut": 170, "bulk-surface-cut": 380}
+#: the box-sized arrays of a side's element set (the level set at every node, the per-tet counts
+#: and marks), bytes per background tet
+BOX_BYTES_PER_TET = 4
+#: points per axis of the sample that estimates the fraction of the box on each side
+SIDE_SAMPLE = 48
+
+
+def check_bulk_memory(background, levelset, sides, bytes_per_tet: float, spacing: float) -> None:
+    """Refuse, before the cut, a bulk problem whose fields cannot fit in memory
+    (:class:`cutfem.memory.InsufficientMemoryError` naming a spacing that fits).
+
+    The active tets of the fields on ``sides`` (NEG, POS, or both) are predicted from the fraction
+    of the box on those sides, sampled at the centres of a SIDE_SAMPLE^3 grid of the box (the whole
+    box for both sides), times :data:`cutfem.memory.ACTIVE_TETS_MARGIN`; the estimate is
+    :data:`cutfem.memory.SOLVE_BASE_BYTES` + ``bytes_per_tet`` per active tet (the problem's
+    measured cost, :data:`BULK_BYTES_PER_TET`) + :data:`BOX_BYTES_PER_TET` per tet of the box.  Both
+    scale like spacing**-3.  Backgrounds other than a structured box are made at their size already
+    and not checked here."""
+    from cutfem import memory
+
+    if not hasattr(background, "n_tets") or not hasattr(background, "lower"):
+        return
+    box_tets = float(background.n_tets)
+    if set(sides) >= {NEG, POS}:
+        fraction = 1.0
+    else:
+        lo, hi = np.asarray(background.lower, float), np.asarray(background.upper, float)
+        t = (np.arange(SIDE_SAMPLE) + 0.5) / SIDE_SAMPLE
+        grid = np.stack(np.meshgrid(*(lo[k] + (hi[k] - lo[k]) * t for k in range(3)), indexing="ij"), axis=-1).reshape(-1, 3)
+        values = np.asarray(levelset.value(grid), dtype=float)
+        fraction = float(np.mean(values < 0)) if NEG in sides else float(np.mean(values > 0))
+        fraction = min(1.0, fraction + 1.0 / SIDE_SAMPLE)  # the cut tets, and the sample's resolution
+    tets = memory.ACTIVE_TETS_MARGIN * fraction * box_tets
+
+    def model(t):  # the estimate at t times the spacing
+        return memory.SOLVE_BASE_BYTES + (bytes_per_tet * tets + BOX_BYTES_PER_TET * box_tets) / t**3
+
+    estimate = model(1.0)
+    if estimate <= memory.available_memory()[0]:
+        return
+    fix = memory.coarser_spacing_fix(model, spacing, memory.available_memory()[0])
+    memory.check_memory(estimate, f"the fields of about {tets:.3g} active tets (spacing {spacing:g}, a box of {box_tets:.3g} tets)", fix)
 
 
 def check_cut_memory(cut, bytes_per_tet: float | None = None, spacing: float | None = None) -> None:

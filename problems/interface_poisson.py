@@ -39,7 +39,7 @@ from cutfem.registry import LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import Timer, background_for, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
+from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -142,7 +142,9 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
     a = {NEG: a_inside, POS: a_outside}
     with t("geometry"):
         phi = Sphere(radius)
-        cut = cut_mesh(background_for(phi, spacing, "structured", box), phi)
+        bg = background_for(phi, spacing, "structured", box)
+        check_bulk_memory(bg, phi, (NEG, POS), BULK_BYTES_PER_TET["interface-poisson-cut"], spacing)
+        cut = cut_mesh(bg, phi)
         check_resolution(cut, phi, spacing)  # a sphere a few cells across: refused, not solved on a polyhedron
         W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
     with t("assembly"):

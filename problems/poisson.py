@@ -28,7 +28,7 @@ from cutfem.registry import LazyFields, Param, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space
 
-from .common import SHAPE_PARAMS, Timer, background_for, cut_record, levelset_for, nitsche_hint, value_and_gradient
+from .common import BULK_BYTES_PER_TET, SHAPE_PARAMS, Timer, background_for, check_bulk_memory, cut_record, levelset_for, nitsche_hint, value_and_gradient
 
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
@@ -102,7 +102,9 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
     t = Timer()
     with t("geometry"):
         phi = levelset_for(surface, R, r, radius, axes)
-        cut = cut_mesh(background_for(phi, spacing, background, box), phi)
+        bg = background_for(phi, spacing, background, box)
+        check_bulk_memory(bg, phi, (NEG,), BULK_BYTES_PER_TET["poisson-cut"], spacing)
+        cut = cut_mesh(bg, phi)
         V = CutP1Space(cut, NEG)
         dx, ds = cut.dx(NEG), cut.ds()
     with t("assembly"):

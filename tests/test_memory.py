@@ -385,3 +385,28 @@ def test_predicted_band_and_tets_cover_the_cut(surface):
         assert real_tets <= tets <= 1.35 * real_tets
         areas.append(area)
     assert areas[0] == areas[1] and areas[0] == pytest.approx(levelset.area, rel=0.02)
+
+
+@pytest.mark.parametrize("problem,kw,limit", [
+    ("poisson-cut", {"surface": "sphere"}, "250MiB"),
+    ("interface-poisson-cut", {}, "250MiB"),
+    ("bulk-surface-cut", {}, "250MiB"),
+])
+def test_bulk_problems_refuse_fields_that_cannot_fit(monkeypatch, problem, kw, limit):
+    """The bulk problems were not checked: a spacing whose fields need hundreds of GiB went ahead
+    (poisson-cut on the solid torus at spacing 0.003: 1.3 billion active tets, about 200 GiB).  The
+    refusal comes before the cut and names a spacing that runs under the same limit, where the real
+    peak stays below the estimate; 1.3 times finer than that is refused again."""
+    import cutfem
+
+    monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", limit)
+    message, fits = _refusal(lambda: cutfem.run(problem, levels=[0.01], **kw))
+    assert message.startswith("the fields of about")
+    record = cutfem.run(problem, levels=[fits], **kw).records[0]  # runs: not refused
+    assert record["active_tets"] > 100_000
+    # the model's active tets (scaled back from the finer spacing) cover the real ones, within 1.5 times
+    message, again = _refusal(lambda: cutfem.run(problem, levels=[fits / 1.3], **kw))
+    finer_predicted = float(message.split("the fields of about ")[1].split(" active tets")[0])
+    finer = finer_predicted / 1.3**3
+    assert record["active_tets"] <= finer <= 1.5 * record["active_tets"]
+    assert again == pytest.approx(fits, rel=0.03)
