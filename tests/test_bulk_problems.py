@@ -328,3 +328,15 @@ def test_records_count_the_active_tets_of_the_fields():
     assert res.records[0]["active_tets"] > res.records[0]["pieces"]
     definitions = res.to_json()["definitions"]
     assert set(definitions) == {"h", "dofs", "l2_error", "h1_error"} and "not defined by the problem" not in definitions.values()
+
+
+@pytest.mark.parametrize("solver", ["direct", "cg-mg"])
+def test_bulk_surface_without_stabilization_names_the_null_vector(solver):
+    """tau_N = 0 leaves the surface field the null vector phi_h (zero on S_h, the bulk field zero);
+    the solvers said only 'numerically singular ... pass stabilization= and kernels='."""
+    from cutfem.solve import SolverError
+
+    with pytest.raises(SolverError, match=r"the nodal vector of phi_h \(zero on S_h\) is a null vector.*"
+                                          r"the normal-gradient term") as err:
+        cutfem.run("bulk-surface-cut", levels=[0.2], tau_n=0.0, solver=solver)
+    assert err.value.cause == "singular"
