@@ -215,6 +215,14 @@ class _Traces:
     def __init__(self, minus, plus):
         self.minus, self.plus = minus, plus
 
+    def _two_sided(self, *args):
+        raise TypeError("on a facet a basis function has two traces: take jump(u), avg(u) (or of u.grad), or one side, "
+                        "u.minus or u.plus, before any arithmetic")
+
+    __add__ = __radd__ = __sub__ = __rsub__ = __mul__ = __rmul__ = __truediv__ = __rtruediv__ = __matmul__ = __rmatmul__ = _two_sided
+    __neg__ = __pow__ = _two_sided
+    __array_ufunc__ = None  # numpy hands the operation back, and it is refused above
+
 
 class FacetField(_Traces):
     """A basis function on a facet: its two traces ``minus`` and ``plus`` (:class:`BasisField` or

@@ -330,6 +330,23 @@ def test_assemble_checks_its_arguments(cut):
         assemble(mass(dx), None)
 
 
+def test_facet_basis_functions_refuse_arithmetic_before_jump_or_avg(cut):
+    """On a facet u has two traces; u * v failed inside numpy's operator with 'unsupported operand
+    type(s) for *: FacetField and FacetField'.  Now the error names jump, avg and the sides; with
+    jump the integrand is the built-in face penalty (h^0)."""
+    W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
+    dF = cut.dF(cut.ghost_facets(NEG))
+    for f in (lambda u, v, w: u[0] * v[0], lambda u, v, w: 2.0 * u[0] * jump(v[0]), lambda u, v, w: -u[0] * jump(v[0]),
+              lambda u, v, w: np.float64(2.0) * u[0] * jump(v[0])):
+        with pytest.raises(TypeError, match=r"two traces: take jump\(u\), avg\(u\).*u.minus or u.plus"):
+            assemble(bilinear_form(f) * dF, W)
+    # the normal-gradient jumps on the ghost faces of NEG: the built-in face penalty's matrix
+    A = assemble(bilinear_form(symmetric=True)(lambda u, v, w: dot(jump(u[0].grad), w.n) * dot(jump(v[0].grad), w.n)) * dF, W)
+    B = assemble(face_jump_penalty(dF, field=0), W)
+    assert abs(A - A.T).max() == 0.0 and A.nnz > 0
+    _close(A, B, rtol=1e-12)
+
+
 def test_keywords_no_integrand_reads_are_refused(cut):
     """A misspelt keyword of assemble() would leave the integrand its default without a word."""
     V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
