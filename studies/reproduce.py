@@ -97,6 +97,17 @@ def _r(x):
     return "--" if x is None or not np.isfinite(x) else f"{x:.2f}"
 
 
+def _num(x) -> float:
+    """A number of a study table as a float: NaN for null (the studies save NaN and infinities as
+    null), so that every comparison with it is False and a missing number never agrees."""
+    return float("nan") if x is None else float(x)
+
+
+def _worst(values) -> float:
+    """The largest of ``values``; NaN when any is NaN or null (np.max, unlike max, propagates it)."""
+    return float(np.max([_num(v) for v in values]))
+
+
 def claims(tables: Path) -> list[dict]:
     """The published claims (docs/math.md §3) next to the rates measured by paper_meshed and paper_cut.
 
@@ -114,6 +125,7 @@ def claims(tables: Path) -> list[dict]:
         series = {(s["family"], s["tau_e"]): s for s in meshed["series"]}
         lv = meshed["levels"]
         src = f"meshed torus, n = {lv[0]}..{lv[-1]}"
+        series = {k: {**s, "rate_fit_discrete": _num(s["rate_fit_discrete"])} for k, s in series.items()}
         for fam in ("structured", "flipped", "perturbed", "perturbed-flipped"):
             s = series.get((fam, 0.1))
             if s is None:
@@ -133,10 +145,11 @@ def claims(tables: Path) -> list[dict]:
             s = series.get((fam, 0.0))
             if s is not None:
                 row(f"meshed, {fam}, $\\tau_E = 0$", "not stated", s["rate_fit_discrete"], s["rate_last_discrete"], "--", None, src)
-        worst = max(max(s["integral_H_max"]) for s in meshed["series"])
+        worst = _worst([v for s in meshed["series"] for v in s["integral_H_max"]])
         row("meshed: $\\int_{S_h} H_h = 0$", "exact", worst, None, "$\\max |\\cdot| \\le 10^{-8}$", worst <= ZERO_INTEGRAL, src, kind="integral")
     if cut is not None:
         sp = cut["spacing"]
+        cut = {**cut, "rate_fit_l2": _num(cut["rate_fit_l2"]), "rate_fit_area": _num(cut["rate_fit_area"])}
         src = f"cut torus, spacing {sp[0]:g}..{sp[-1]:g}"
         row("cut, $\\tau_F = 0.1$: $L^2$ rate", "$\\approx 1.3$", cut["rate_fit_l2"], cut["rate_last_l2"],
             f"$|\\text{{fit}} - 1.3| \\le {ABOUT_TOL}$", abs(cut["rate_fit_l2"] - 1.3) <= ABOUT_TOL, src)
@@ -144,7 +157,7 @@ def claims(tables: Path) -> list[dict]:
             f"fit $\\ge {AT_LEAST_ONE}$", cut["rate_fit_l2"] >= AT_LEAST_ONE, src)
         row("cut: area of $S_h$, $O(h^2)$", "$2$", cut["rate_fit_area"], cut["rate_last_area"],
             f"$|\\text{{fit}} - 2| \\le {ABOUT_TOL}$", abs(cut["rate_fit_area"] - 2) <= ABOUT_TOL, src)
-        worst = max(cut["integral_H_max"])
+        worst = _worst(cut["integral_H_max"])
         row("cut: $\\int_{S_h} H_h = 0$", "exact", worst, None, "$\\max |\\cdot| \\le 10^{-8}$", worst <= ZERO_INTEGRAL, src, kind="integral")
     return rows
 
@@ -189,10 +202,10 @@ def _numbers(tables: Path, rows):
             macros[f"rate{tag}"] = _r(s["rate_fit_discrete"])
             macros[f"rateLast{tag}"] = _r(s["rate_last_discrete"])
         stab = [s for s in meshed["series"] if s["tau_e"] > 0]
-        macros["meshedStabFitMin"] = _r(min(s["rate_fit_discrete"] for s in stab))
-        macros["meshedStabFitMax"] = _r(max(s["rate_fit_discrete"] for s in stab))
-        macros["meshedStabLastMin"] = _r(min(s["rate_last_discrete"] for s in stab))
-        macros["meshedStabLastMax"] = _r(max(s["rate_last_discrete"] for s in stab))
+        for key, tag in (("rate_fit_discrete", "Fit"), ("rate_last_discrete", "Last")):
+            values = [_num(s[key]) for s in stab]
+            macros[f"meshedStab{tag}Min"] = _r(np.min(values))
+            macros[f"meshedStab{tag}Max"] = _r(np.max(values))
         macros["meshedNmin"] = str(meshed["levels"][0])
         macros["meshedNmax"] = str(meshed["levels"][-1])
     isolines = _read(tables, "meshed_isolines")
@@ -207,8 +220,8 @@ def _numbers(tables: Path, rows):
         macros["cutSpacingMax"] = f"{cut['spacing'][0]:g}"
         macros["cutDofsMax"] = str(cut["dofs"][-1])
         macros["cutNodesOnSurface"] = str(max(cut["nodes_on_surface"]))
-        worst = max(cut["integral_H_max"])
-        macros["cutIntegralMax"] = f"$10^{{{int(np.ceil(np.log10(worst)))}}}$" if worst > 0 else "$0$"
+        worst = _worst(cut["integral_H_max"])
+        macros["cutIntegralMax"] = "--" if not np.isfinite(worst) else f"$10^{{{int(np.ceil(np.log10(worst)))}}}$" if worst > 0 else "$0$"
     agree = [r for r in rows if r["agrees"] is not None]
     macros["claimsAgree"] = str(sum(bool(r["agrees"]) for r in agree))
     macros["claimsTotal"] = str(len(agree))
