@@ -125,3 +125,28 @@ def test_a_missing_rate_never_agrees(tmp_path, fam, tau):
     assert sum(a is False for a in agrees.values()) == 4
     assert agrees["cut, $\\tau_F = 0.1$: $L^2$ rate"] is False and agrees["cut: area of $S_h$, $O(h^2)$"] is False
     assert "\\newcommand{\\claimsAgree}{7}" in (tables / "numbers.tex").read_text()
+
+
+@pytest.mark.parametrize("status", ["failed", None])
+def test_numbers_of_a_study_that_did_not_run_are_not_used(tmp_path, status):
+    """The tables folder keeps the JSON of an earlier run when a study fails (or is missing) in
+    this one: the claims say so and disagree instead of agreeing with the old numbers."""
+    studies = {"paper_cut": {"status": "ok", "size": "quick"}}
+    if status is not None:
+        studies["paper_meshed"] = {"status": status, "size": "quick", "error": "MemoryError: out of memory"}
+    tables = _tables(tmp_path, meshed_table(), cut_table(), {"size": "quick", "studies": studies})
+    rows = reproduce._claims_outputs(tables)
+    meshed = [r for r in rows if r["claim"].startswith("meshed")]
+    assert [(r["claim"], r["agrees"]) for r in meshed] == [("meshed torus: no numbers from the last run", False)]
+    assert meshed[0]["source"] == ("paper_meshed " + (status or "did not run"))
+    assert [r["agrees"] for r in rows if r["claim"].startswith("cut")] == [True] * 4
+    numbers = (tables / "numbers.tex").read_text()
+    assert "\\newcommand{\\claimsAgree}{4}" in numbers and "\\newcommand{\\claimsTotal}{5}" in numbers
+    assert "rateStructuredStab" not in numbers and "\\newcommand{\\rateCut}{1.30}" in numbers
+    assert "\\textbf{no}" in (tables / "claims.tex").read_text()
+
+
+def test_numbers_of_the_last_run_are_used(tmp_path):
+    studies = {name: {"status": "ok", "size": "quick"} for name in ("paper_meshed", "paper_cut")}
+    rows = reproduce.claims(_tables(tmp_path, meshed_table(), cut_table(), {"size": "quick", "studies": studies}))
+    assert len(rows) == 13 and all(r["agrees"] in (True, None) for r in rows)
