@@ -150,3 +150,18 @@ def test_numbers_of_the_last_run_are_used(tmp_path):
     studies = {name: {"status": "ok", "size": "quick"} for name in ("paper_meshed", "paper_cut")}
     rows = reproduce.claims(_tables(tmp_path, meshed_table(), cut_table(), {"size": "quick", "studies": studies}))
     assert len(rows) == 13 and all(r["agrees"] in (True, None) for r in rows)
+
+
+def test_the_size_names_every_size_in_the_tables(tmp_path):
+    """After ``--only paper_cut --full`` on a quick run the tables mix sizes: the manuscript's
+    size says so instead of naming the last run's alone."""
+    studies = {"paper_meshed": {"status": "ok", "size": "quick"}, "paper_cut": {"status": "ok", "size": "full"},
+               "conditioning": {"status": "ok", "size": "quick"}}
+    tables = _tables(tmp_path, meshed_table(), cut_table(), {"size": "full", "studies": studies})
+    reproduce._claims_outputs(tables)
+    assert "\\newcommand{\\reproduceSize}{quick + full}" in (tables / "numbers.tex").read_text()
+    studies["paper_meshed"]["size"] = "full"
+    studies["conditioning"]["size"] = "full"
+    tables = _tables(tmp_path, meshed_table(), cut_table(), {"size": "full", "studies": studies})
+    reproduce._claims_outputs(tables)
+    assert "\\newcommand{\\reproduceSize}{full}" in (tables / "numbers.tex").read_text()
