@@ -75,11 +75,14 @@ def latex_cell(cell) -> str:
 
 
 def save_latex_table(out: Path, name: str, header: list[str], rows: list[list], caption: str = "", label: str | None = None) -> Path:
-    """A booktabs-free LaTeX tabular (only \\hline), numbers formatted by the caller."""
+    """A booktabs-free LaTeX tabular (only \\hline), numbers formatted by the caller; ``caption``
+    is written above it as a comment (what the table holds, for a reader of the file: the
+    manuscript's caption is its own)."""
     path = Path(out) / f"{name}.tex"
     path.parent.mkdir(parents=True, exist_ok=True)
     cols = "l" + "r" * (len(header) - 1)
-    lines = [f"\\begin{{tabular}}{{{cols}}}", "\\hline", " & ".join(latex_cell(h) for h in header) + " \\\\", "\\hline"]
+    comment = [f"% {line}" for line in caption.splitlines()] if caption else []
+    lines = comment + [f"\\begin{{tabular}}{{{cols}}}", "\\hline", " & ".join(latex_cell(h) for h in header) + " \\\\", "\\hline"]
     lines += [" & ".join(latex_cell(c) for c in row) + " \\\\" for row in rows]
     lines += ["\\hline", "\\end{tabular}"]
     path.write_text("\n".join(lines) + "\n")

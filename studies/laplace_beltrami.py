@@ -89,7 +89,8 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     header = ["surface", "method", "levels", "$h$ (finest)", r"$L^2$ error", "rate", r"$H^1$ error", "rate"]
     table = [[c["surface"], c["method"], str(len(c["h"])), f"{c['h'][-1]:.4f}", f"{c['l2_error'][-1]:.3e}", fmt_rate(c["l2_rate"]),
               f"{c['h1_error'][-1]:.3e}", fmt_rate(c["h1_rate"])] for c in results]
-    save_latex_table(out, f"{NAME}_table", header, table, caption="Laplace-Beltrami: errors at the finest level and fitted rates.")
+    save_latex_table(out, f"{NAME}_table", header, table, caption="Laplace-Beltrami: errors at the finest level and rates fitted over the levels; "
+                     "h = N^{-1/2}, N the surface nodes (meshed), h = N^{-1/3}, N the background nodes (cut).")
     return {
         "size": size,
         "rates": {f"{c['surface']}, {c['method']}": {"l2": c["l2_rate"], "h1": c["h1_rate"]} for c in results},

@@ -189,7 +189,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
         "max_integral_H_norm": max(r["integral_H_norm"] for k in ("ellipsoid", "stl_sphere", "genus2") for r in results[k]["records"]),
         "picture": picture,
     }
-    header = ["surface", "$h$", "dofs", "area", r"$|\int H_h|$", r"$\chi(S_h)$", "error", "rate"]
+    header = ["surface", "$h$", "dofs", "area", r"$|\int H_h|$", r"$\chi(S_h)$", "error", "fitted rate"]
     rows = []
     for key, label, ekey, rkey in (("ellipsoid", "ellipsoid", "l2_error", "l2_rate"),
                                    ("stl_sphere", "sphere (STL)", "nodal_rms_error", "nodal_rms_rate"),
@@ -199,7 +199,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
                          str(r["euler_characteristic"]), f"{r[ekey]:.3e}", fmt_rate(results[key][rkey]) if i == 0 else ""])
     save_latex_table(out, f"{NAME}_table", header, rows,
                      caption="Other surfaces: L2 error (ellipsoid, genus 2) or RMS nodal error (STL sphere) of the cut mean "
-                             "curvature vector; fitted rate.")
+                             "curvature vector; the rate fitted over all the levels of a surface, on its first row.")
     return summary_out
 
 
