@@ -2,7 +2,8 @@
 
 Discrete: (grad_{S_h} u, grad_{S_h} v) + (u, v) + J_h(u, v) = (f^e, v), f^e = f o p.
 Cut stabilizations: ``face`` (tau_F h^a J_F), ``normal`` (tau_N h^a (n_h.grad u, n_h.grad v) over the
-active tets), or ``none``.  Errors: L2(S_h) and the H1(S_h) seminorm against u^e = u o p.
+active tets), or ``none`` (then phi_h, zero on S_h, is a null vector and the solvers refuse the system).
+Each stabilization's parameters are accepted with it only.  Errors: L2(S_h) and the H1(S_h) seminorm against u^e = u o p.
 
 Manufactured solutions (exact data derived by hand, checked in the tests against finite differences):
 
@@ -212,11 +213,13 @@ class LaplaceBeltramiCut(Problem):
         Param("surface", str, "sphere", "sphere or torus", choices=("torus", "sphere")),
         Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)"),
-        Param("stabilization", str, "face", "cut stabilization", choices=("face", "normal", "none")),
-        Param("tau_f", float, 0.1, "face stabilization tau_F", minimum=0),
-        Param("face_h_power", float, 0.0, "power a of h in the face term", minimum=None),
-        Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N", minimum=0),
-        Param("normal_h_power", float, 1.0, "power a of h in the normal-gradient term"),
+        Param("stabilization", str, "face", "cut stabilization (none: the system is singular, phi_h being a null "
+              "vector, and every solver refuses it)", choices=("face", "normal", "none")),
+        # each stabilization's parameters with it only: given with another, refused rather than ignored
+        Param("tau_f", float, 0.1, "face stabilization tau_F", minimum=0, only=("stabilization", ("face",))),
+        Param("face_h_power", float, 0.0, "power a of h in the face term", only=("stabilization", ("face",))),
+        Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N", minimum=0, only=("stabilization", ("normal",))),
+        Param("normal_h_power", float, 1.0, "power a of h in the normal-gradient term", only=("stabilization", ("normal",))),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
         *SHAPE_PARAMS[:3],  # torus and sphere: no ellipsoid, no axes
     ]

@@ -225,3 +225,29 @@ def test_cut_mean_curvature_scales_exactly_with_the_unit():
     assert big["l2_error"] == pytest.approx(one["l2_error"], rel=1e-8)  # ||H||_{L2(S)} ~ (1/R) R: no unit
     with pytest.raises(ProblemError, match=r"--length-scale 100"):
         cutfem.run("mean-curvature-cut", levels=[40.0], surface="sphere", radius=100.0)
+
+
+@pytest.mark.parametrize("stabilization, given, flag, wanted", [
+    ("face", {"tau_n": 1e300}, "--tau-n", "normal"),
+    ("face", {"normal_h_power": 0.0}, "--normal-h-power", "normal"),
+    ("normal", {"tau_f": 5.0}, "--tau-f", "face"),
+    ("normal", {"face_h_power": 2.0}, "--face-h-power", "face"),
+    ("none", {"tau_f": 5.0}, "--tau-f", "face"),
+    ("none", {"tau_n": 5.0}, "--tau-n", "normal"),
+])
+def test_laplace_beltrami_cut_refuses_the_parameters_of_another_stabilization(stabilization, given, flag, wanted):
+    """A parameter of the stabilization that is not chosen changes nothing: refused, not ignored
+    (tau_n = 1e300 with the face term once ran and reported the face term's errors)."""
+    from cutfem.registry import ProblemError
+
+    with pytest.raises(ProblemError) as e:
+        cutfem.run("laplace-beltrami-cut", levels=[0.4], stabilization=stabilization, **given)
+    assert str(e.value) == (f"{flag} applies only with --stabilization {wanted}, not with --stabilization "
+                            f"'{stabilization}': leave {flag} out, or choose --stabilization {wanted}")
+
+
+def test_laplace_beltrami_cut_records_only_the_chosen_stabilization_parameters():
+    res = cutfem.run("laplace-beltrami-cut", levels=[0.4], stabilization="normal", tau_n=2.0)
+    p = res.parameters
+    assert p["tau_n"] == 2.0 and p["normal_h_power"] == 1.0
+    assert "tau_f" not in p and "face_h_power" not in p
