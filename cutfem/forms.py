@@ -1250,7 +1250,7 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
     of the cut tets with a = 0 this is the face stabilization J_F of the mean curvature problem
     (docs/math.md §3); over the ghost faces of a side with a = 1 it is the Burman-Hansbo ghost
     penalty of a bulk field (§7), to be multiplied by gamma_g.  ``h_power`` is one real, finite
-    number.  An empty facet set gives the zero matrix."""
+    number for which every h_F^a is a finite, nonzero float (else a ValueError).  An empty facet set gives the zero matrix."""
     _require(measure, FacetMeasure, "face_jump_penalty")
     h_power = _number("h_power", h_power)
 
@@ -1264,12 +1264,12 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
             pairs = np.stack([space.local_elements(measure, f.pairs[:, s]) for s in (0, 1)], axis=1)
         if into is not None:  # face-adjacent tets of a structured box: normals and areas computed face by face
             table, types = space.gradient_lookup()
-            into.add_face_jumps(pairs, f.opposite, np.ones(1) if h_power == 0 else f.h**h_power,
+            into.add_face_jumps(pairs, f.opposite, np.ones(1) if h_power == 0 else _h_power(f.h, h_power, "face_jump_penalty"),
                                 space.elements.volumes, space.element_dofs, table, types)
             return None
         n, scale = f.normals_areas()
         if h_power != 0:
-            scale *= f.h**h_power
+            scale *= _h_power(f.h, h_power, "face_jump_penalty")
         return _jump_gram(space, pairs, n, n, -1.0, scale)
 
     return Form([(1.0, _GramTerm(build, field, summed=True))], False)
@@ -1306,8 +1306,8 @@ def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> F
 
 def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=None) -> Form:
     """s(u, v) = sum_T h_T^a (n_h . grad u, n_h . grad v)_T over whole tets that carry a normal n_h
-    (the cut tets: ``cut.dx(CUT)``), with the local h_T and a = ``h_power`` (one real, finite number;
-    multiply by tau_N)."""
+    (the cut tets: ``cut.dx(CUT)``), with the local h_T and a = ``h_power`` (one real, finite number
+    for which every h_T^a is a finite, nonzero float, else a ValueError; multiply by tau_N)."""
     _require(measure, ElementVolume, "normal_gradient_penalty")
     h_power = _number("h_power", h_power)
     if measure.normals is None:
@@ -1317,7 +1317,7 @@ def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=
         es = measure.elements
         el = space.local_elements(measure, np.arange(es.n_elements))
         c = np.einsum("mkd,md->mk", space.gradients_of(el), measure.normals)
-        rows = c * np.sqrt(es.h**h_power * es.volumes)[:, None]
+        rows = c * np.sqrt(_h_power(es.h, h_power, "normal_gradient_penalty") * es.volumes)[:, None]
         return gram(space.element_dofs[el], rows, space.n_dofs)
 
     return Form([(1.0, _GramTerm(build, field))], False)
@@ -1484,6 +1484,19 @@ def _number(name: str, value) -> float:
     if not np.isfinite(value):
         raise ValueError(f"{name} must be a finite number, got {value!r}")
     return float(value)
+
+
+def _h_power(h: np.ndarray, a: float, what: str) -> np.ndarray:
+    """h^a of the local sizes h (> 0), or a ValueError naming ``what`` when some h^a is not a finite
+    positive float64: a power that overflows (h^a = inf, a matrix of inf and NaN) or underflows
+    (h^a = 0, the term silently gone) for the sizes of this mesh."""
+    with np.errstate(over="ignore", under="ignore"):
+        s = h**a
+    if not (np.all(np.isfinite(s)) and np.all(s > 0)):
+        raise ValueError(f"{what}: h^a with a = h_power = {a!r} is not a finite positive number for the local h in "
+                         f"[{h.min():.3g}, {h.max():.3g}] (it overflows or underflows in float64); choose a power a for "
+                         "which h^a is finite and nonzero")
+    return s
 
 
 def _positive(**values):
