@@ -142,6 +142,26 @@ def has_exact(levelset) -> bool:
     return not isinstance(levelset, SignedDistance) and type(levelset).hessian is not LevelSet.hessian
 
 
+def sphere_refinements(n) -> int:
+    """L = round(log2(n / 5)), at least 0: the refinements of the icosahedron that the meshed sphere
+    of level n is (about n edges around a great circle, 10 * 4^L + 2 nodes)."""
+    return max(0, int(round(math.log2(max(n, 1) / 5.0))))
+
+
+def check_sphere_levels(levels):
+    """Refuse (ProblemError) sphere levels n that round to the same icosahedron (16 and 20 both give
+    L = 2): two equal rows under two names, and no rate between them."""
+    seen = {}
+    for n in levels:
+        L = sphere_refinements(n)
+        if L in seen:
+            raise ProblemError(f"--n {seen[L]} and {n} give the same sphere mesh (the icosahedron refined {L} times, "
+                               f"{10 * 4**L + 2} nodes): the sphere's n is rounded to 5 * 2^L; give levels that differ "
+                               "by a factor 2, e.g. 10 20 40 80")
+        seen[L] = n
+    return levels
+
+
 def surface_mesh_for(surface, n, family="structured", seed=0, R=1.0, r=0.5, radius=1.0):
     """(SurfaceMesh, level set or None) of a meshed surface at resolution ``n``.
 
@@ -154,7 +174,7 @@ def surface_mesh_for(surface, n, family="structured", seed=0, R=1.0, r=0.5, radi
         check_surface_memory(n * (n // 2), f"the meshed torus at n = {n} ({n * (n // 2)} nodes)")
         return torus_mesh(int(n), family=family, R=R, r=r, seed=seed), Torus(R=R, r=r)
     if surface == "sphere":
-        level = max(0, int(round(math.log2(max(n, 1) / 5.0))))
+        level = sphere_refinements(n)
         check_surface_memory(10 * 4**level + 2, f"the sphere mesh at n = {n} ({10 * 4**level + 2} nodes)")
         return sphere_mesh(level, radius=radius), Sphere(radius=radius)
     if surface in SURFACES:

@@ -35,7 +35,7 @@ from cutfem.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
 from cutfem.surface import TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, check_cut_memory, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
+from .common import SHAPE_PARAMS, check_cut_memory, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
 
 
 #: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
@@ -181,6 +181,11 @@ class LaplaceBeltramiMeshed(Problem):
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
         *SHAPE_PARAMS[:3],  # torus and sphere: no ellipsoid, no axes
     ]
+
+    def levels_for(self, levels, params):
+        """The sphere's levels must give distinct meshes (:func:`check_sphere_levels`)."""
+        levels = super().levels_for(levels, params)
+        return check_sphere_levels(levels) if params["surface"] == "sphere" else levels
 
     def solve_level(self, level, surface, family, tau_e, seed, solver, R, r, radius):
         t = Timer()

@@ -35,7 +35,7 @@ from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
 from cutfem.surface import TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
+from .common import SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
 
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
@@ -156,7 +156,10 @@ class MeanCurvatureMeshed(Problem):
     ]
 
     def levels_for(self, levels, params):
-        """A mesh file has one resolution that the levels n do not change: one level (default 1)."""
+        """A mesh file has one resolution that the levels n do not change: one level (default 1).
+        The sphere's levels must give distinct meshes (:func:`check_sphere_levels`)."""
+        if params["surface"] == "sphere":
+            return check_sphere_levels(super().levels_for(levels, params))
         if not (isinstance(params["surface"], str) and params["surface"] not in ("torus", "sphere")):
             return super().levels_for(levels, params)
         if levels is None:

@@ -251,3 +251,17 @@ def test_laplace_beltrami_cut_records_only_the_chosen_stabilization_parameters()
     p = res.parameters
     assert p["tau_n"] == 2.0 and p["normal_h_power"] == 1.0
     assert "tau_f" not in p and "face_h_power" not in p
+
+
+@pytest.mark.parametrize("problem", ["laplace-beltrami-meshed", "mean-curvature-meshed"])
+def test_meshed_sphere_refuses_levels_that_give_the_same_mesh(problem):
+    """The sphere's n is rounded to an icosahedron refined L = round(log2(n / 5)) times: n = 16 and
+    20 both gave the mesh of 162 nodes, two equal rows under two names and no rate."""
+    from cutfem.registry import ProblemError
+
+    with pytest.raises(ProblemError) as e:
+        cutfem.run(problem, levels=[16, 20, 40], surface="sphere")
+    assert str(e.value) == ("--n 16 and 20 give the same sphere mesh (the icosahedron refined 2 times, 162 nodes): "
+                            "the sphere's n is rounded to 5 * 2^L; give levels that differ by a factor 2, e.g. 10 20 40 80")
+    res = cutfem.run(problem, levels=[10, 20], surface="sphere")
+    assert [r["dofs"] for r in res.records] == [42, 162]
