@@ -456,7 +456,7 @@ def _stabilization_verdict(A, v, low, checks, where, what, kernel=None):
         return SolverError(
             f"{where}: the system is numerically singular because it is over-stabilized ({detail}): the null space of "
             "the stabilization (e.g. the globally linear functions for the face penalty), which dominates the diagonal, "
-            "contains the {what}, which the rest of the form sees. Lower the stabilization parameter.",
+            f"contains the {what}, which the rest of the form sees. Lower the stabilization parameter.",
             "over-stabilized", smallest=low, kernel=kernel,
         )
     if rho_r <= SEEN_TOL < rho_g:

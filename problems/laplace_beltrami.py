@@ -29,7 +29,7 @@ from cutfem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump
 from cutfem.kernels import parallel_kernel
 from cutfem.levelset import Sphere, Torus
 from cutfem.registry import LazyFields, Param, Problem, ProblemError, register
-from cutfem.solve import solve
+from cutfem.solve import SolverError, solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
@@ -146,13 +146,24 @@ def manufactured(levelset):
     raise ProblemError("Laplace-Beltrami has manufactured solutions on the sphere and the torus only")
 
 
-def _solve_and_measure(space, surface, K, sol, t, solver, multigrid=None):
+def _solve_and_measure(space, surface, K, sol, t, solver, multigrid=None, stabilization=None):
     """Load, solve and errors; ``sol``'s functions are extended along the normals (f^e = f o p
-    and so on), so they are evaluated at the quadrature points of S_h directly."""
+    and so on), so they are evaluated at the quadrature points of S_h directly.
+
+    ``stabilization``: the stabilization form contained in K (tau J), or None.  It is assembled
+    only when the solver refuses K, to name the cause (:func:`cutfem.solve.diagnose`): a
+    stabilization too weak on phi_h (tau_F = 1e-12) or so strong that its null space, which holds
+    the constants, swamps the mass term (tau_F = 1e300).  K itself stays one assembly of the whole
+    form, so the numbers of a run do not depend on this."""
     with t("assembly"):
         b = assemble(load(sol.f, surface, degree=4), space)
     with t("solve"):
-        u, info = solve(K, b, method=solver, space=space, multigrid=multigrid)
+        try:
+            u, info = solve(K, b, method=solver, space=space, multigrid=multigrid)
+        except SolverError:
+            if stabilization is None:
+                raise
+            u, info = solve(K, b, method=solver, space=space, multigrid=multigrid, stabilization=assemble(stabilization, space))
     with t("errors"):
         rec = {
             "h": space.h,
@@ -198,8 +209,9 @@ class LaplaceBeltramiMeshed(Problem):
         with t("assembly"):
             dS = mesh.ds()
             form = tangential_stiffness(dS) + mass(dS)
-            K = assemble(form + tau_e * edge_jump_penalty(dS) if tau_e > 0 else form, space)  # one CSR, no sparse sums
-        u, rec = _solve_and_measure(space, dS, K, sol, t, solver)
+            stabilization = tau_e * edge_jump_penalty(dS) if tau_e > 0 else None
+            K = assemble(form if stabilization is None else form + stabilization, space)  # one CSR, no sparse sums
+        u, rec = _solve_and_measure(space, dS, K, sol, t, solver, stabilization=stabilization)
         rec["area"] = float(assemble(basis_integrals(dS), space).sum())
         rec["time"] = dict(t)
         rec["fields"] = LazyFields(lambda: {"surface": with_point_data(mesh.to_pyvista(), u_h=u, u_exact=sol.u(space.dof_points))})
@@ -241,13 +253,14 @@ class LaplaceBeltramiCut(Problem):
         with t("assembly"):
             dS = cut.ds()
             form = tangential_stiffness(dS) + mass(dS)
+            stab = None
             if stabilization == "face" and tau_f > 0:
-                form = form + tau_f * face_jump_penalty(cut.dF(cut.interior_facets(CUT)), h_power=face_h_power)
+                stab = tau_f * face_jump_penalty(cut.dF(cut.interior_facets(CUT)), h_power=face_h_power)
             elif stabilization == "normal" and tau_n > 0:
-                form = form + tau_n * normal_gradient_penalty(cut.dx(CUT), h_power=normal_h_power)
-            K = assemble(form, space)
+                stab = tau_n * normal_gradient_penalty(cut.dx(CUT), h_power=normal_h_power)
+            K = assemble(form if stab is None else form + stab, space)
         multigrid = None
-        if (stabilization == "face" and tau_f > 0) or (stabilization == "normal" and tau_n > 0):
+        if stab is not None:
             # the multigrid's coarse spaces also hold phi_h v: the normally linear functions phi_h g
             # are near-null vectors of A_Gamma + M + tau_F J_F that the coarse lattices alone
             # represent worse and worse (cutfem.solve.augmented_hierarchy).  Unit sphere, spacings
@@ -258,7 +271,7 @@ class LaplaceBeltramiCut(Problem):
             # iterations instead of 27, 40, 60 (spacings 0.05, 0.025, 0.0125; solve 1.56 s instead
             # of 2.05 s at 0.0125).
             multigrid = {"augment": space.cut.values, "coarse_size": 400}
-        u, rec = _solve_and_measure(space, dS, K, sol, t, solver, multigrid)
+        u, rec = _solve_and_measure(space, dS, K, sol, t, solver, multigrid, stabilization=stab)
         rec.update(cut_record(cut))
         rec["area"] = float(assemble(basis_integrals(dS), space).sum())
         rec["time"] = dict(t)

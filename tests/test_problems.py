@@ -265,3 +265,26 @@ def test_meshed_sphere_refuses_levels_that_give_the_same_mesh(problem):
                             "the sphere's n is rounded to 5 * 2^L; give levels that differ by a factor 2, e.g. 10 20 40 80")
     res = cutfem.run(problem, levels=[10, 20], surface="sphere")
     assert [r["dofs"] for r in res.records] == [42, 162]
+
+
+@pytest.mark.parametrize("problem, level, params, words", [
+    # phi_h (zero on S_h) is seen by the face term only, at 1e-12: too weak
+    ("laplace-beltrami-cut", 0.4, {"tau_f": 1e-12, "solver": "cg-jacobi"},
+     "the forms barely see the candidate null vector 'phi_h' and the stabilization is too weak on it. Raise the "
+     "stabilization parameter."),
+    # the constants are seen by the mass term and not by the face term, at 1e300: too strong
+    ("laplace-beltrami-cut", 0.4, {"tau_f": 1e300}, "because it is over-stabilized"),
+    ("laplace-beltrami-cut", 0.4, {"tau_f": 1e300}, "contains the constant functions, which the rest of the form sees. "
+     "Lower the stabilization parameter."),
+    ("laplace-beltrami-cut", 0.4, {"stabilization": "normal", "tau_n": 1e300}, "because it is over-stabilized"),
+    ("laplace-beltrami-meshed", 16, {"tau_e": 1e300}, "because it is over-stabilized"),
+])
+def test_laplace_beltrami_names_a_stabilization_too_weak_or_too_strong(problem, level, params, words):
+    """A numerically singular system from an extreme stabilization parameter says which way to
+    move it; before, the solver could only list both possibilities (it did not know the
+    stabilization matrix)."""
+    from cutfem.solve import SolverError
+
+    with pytest.raises(SolverError) as e:
+        cutfem.run(problem, levels=[level], **params)
+    assert words in str(e.value)
