@@ -340,3 +340,19 @@ def test_bulk_surface_without_stabilization_names_the_null_vector(solver):
                                           r"the normal-gradient term") as err:
         cutfem.run("bulk-surface-cut", levels=[0.2], tau_n=0.0, solver=solver)
     assert err.value.cause == "singular"
+
+
+def test_interface_contrast_beyond_double_precision_is_named():
+    """a_inside / a_outside = 1e12 cannot be solved (the inside field's constant is tied to the rest
+    only by the interface terms); the solvers said 'numerically singular' or 'did not converge' and
+    blamed the stabilization.  The failure now names the contrast; 1e11 still runs, with the errors
+    of 1e7 (the inside one scaled by 1/a_inside, as the manufactured solution is)."""
+    from cutfem.registry import ProblemError
+
+    for solver in ("direct", "cg-mg"):
+        with pytest.raises(ProblemError, match=r"--a-inside 1e\+12 over --a-outside 1 is a contrast of 1.0e\+12.*lower the contrast"):
+            cutfem.run("interface-poisson-cut", levels=[0.1], a_inside=1e12, a_outside=1.0, solver=solver)
+    base = cutfem.run("interface-poisson-cut", levels=[0.1], a_inside=1e7, a_outside=1.0).records[0]
+    high = cutfem.run("interface-poisson-cut", levels=[0.1], a_inside=1e11, a_outside=1.0).records[0]
+    assert high["h1_error_inside"] * 1e11 == pytest.approx(base["h1_error_inside"] * 1e7, rel=1e-3)
+    assert high["h1_error_outside"] == pytest.approx(base["h1_error_outside"], rel=1e-3)
