@@ -42,6 +42,24 @@ def _coefficients(space, coeffs) -> np.ndarray:
     return space._coefficients(coeffs)
 
 
+def _not_finite(part: float, exact_values, coeffs, points, what: str) -> None:
+    """Raise a ValueError naming the cause when a block's sum ``part`` is not finite: the exact
+    function's values (``exact_values`` at ``points`` (m, q, 3)) or the discrete coefficients.
+    Checked only then, so a finite sum costs nothing more."""
+    if np.isfinite(part):
+        return
+    values = np.asarray(exact_values, dtype=float)
+    bad = ~np.isfinite(values.reshape(values.shape[:2] + (-1,))).all(axis=2)
+    if bad.any():
+        i, j = (int(k[0]) for k in np.nonzero(bad))
+        raise ValueError(f"the {what} is not finite at {int(bad.sum())} quadrature point(s), e.g. x = {points[i, j].tolist()}: "
+                         "check where it is defined (the error would be nan)")
+    count = int(np.count_nonzero(~np.isfinite(np.asarray(coeffs, dtype=float))))
+    raise ValueError(f"the discrete coefficients are not finite ({count} of them): the solve or the data that made them "
+                     "failed; the error would be nan or inf" if count else
+                     f"the error sum overflows (the {what} or the coefficients are too large for float64)")
+
+
 def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1 << 14) -> float:
     """L2 error of the discrete function ``coeffs`` (n,) or (n, c) against ``exact(x)`` over ``measure``
     (any cell measure of :mod:`cutfem.measures`; ``None``: S_h of a trace or meshed field).
@@ -81,7 +99,9 @@ def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1
             ue = np.asarray(exact(x), dtype=float)
             if ue.size != len(t) * q * c:
                 raise ValueError(f"the exact solution must give {c} value(s) per point at points {x.shape}, got shape {ue.shape}")
-            total += kernels.squared_error(values, t, bary, w, area, np.ascontiguousarray(ue.reshape(len(t), q, c)))
+            part = kernels.squared_error(values, t, bary, w, area, np.ascontiguousarray(ue.reshape(len(t), q, c)))
+            _not_finite(part, ue.reshape(len(t), q, c), values, x, "exact solution")
+            total += part
         return float(np.sqrt(total))
     return _cell_errors(space, coeffs, lambda x: (exact(x), None), measure, degree, CELL_CHUNK)[0]
 
@@ -155,7 +175,9 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
                 raise ValueError(f"the exact solution must have shape {shape} at points {quad.points.shape}, got {ue.shape}")
             local3 = np.ascontiguousarray(local, dtype=float).reshape(local.shape[:2] + (-1,))
             phi = np.ascontiguousarray(phi[:1] if phi.strides[0] == 0 else phi, dtype=float)  # whole cells: one table
-            sums[0] += kernels.cell_value_error(phi, local3, np.ascontiguousarray(ue.reshape(shape[:2] + (-1,))), weights)
+            part = kernels.cell_value_error(phi, local3, np.ascontiguousarray(ue.reshape(shape[:2] + (-1,))), weights)
+            _not_finite(part, ue, coeffs, quad.points, "exact solution")
+            sums[0] += part
         if ge is not None:
             x = quad.points
             ge = np.asarray(ge, dtype=float)
@@ -164,8 +186,10 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
             if local.ndim != 2:
                 raise ValueError("the H1 error is for a scalar field: coeffs must have shape (n,)")
             normals = np.ascontiguousarray(quad.normal, dtype=float) if measure.surface else no_normals
-            sums[1] += kernels.cell_gradient_error(table, np.ascontiguousarray(types[e]), np.asarray(local, dtype=float),
-                                                   np.ascontiguousarray(ge), weights, normals)
+            part = kernels.cell_gradient_error(table, np.ascontiguousarray(types[e]), np.asarray(local, dtype=float),
+                                               np.ascontiguousarray(ge), weights, normals)
+            _not_finite(part, ge, coeffs, x, "exact gradient")
+            sums[1] += part
     return float(np.sqrt(sums[0])), float(np.sqrt(sums[1]))
 
 

@@ -255,3 +255,23 @@ def test_condition_number_refuses_a_nonsymmetric_matrix():
     B = (A + sp.diags([0.3] * 29, 1)).tocsr()
     with pytest.raises(ValueError, match="not symmetric"):
         condition_number(B)
+
+
+def test_errors_name_what_is_not_finite(cut):
+    """l2_error / h1_error returned nan when the exact function or the coefficients held a nan or
+    inf (a load refuses them); the cause is now named, and only checked when a sum is not finite."""
+    from cutfem.errors import h1_error, l2_error
+
+    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    u = np.ones(V.n_dofs)
+    assert l2_error(V, u, lambda x: np.ones(x.shape[:2]), dx) < 1e-14
+    with pytest.raises(ValueError, match=r"the exact solution is not finite at \d+ quadrature point\(s\), e.g. x = \[0\.3"):
+        l2_error(V, u, lambda x: np.where(x[..., 0] > 0.3, np.nan, 1.0), dx)
+    with pytest.raises(ValueError, match="the exact gradient is not finite"):
+        h1_error(V, u, lambda x: np.full(x.shape, np.inf), dx)
+    u[3] = np.nan
+    with pytest.raises(ValueError, match=r"the discrete coefficients are not finite \(1 of them\)"):
+        l2_error(V, u, lambda x: np.ones(x.shape[:2]), dx)
+    S = SurfaceP1Space(sphere_mesh(2))
+    with np.errstate(all="ignore"), pytest.raises(ValueError, match="the exact solution is not finite"):
+        l2_error(S, np.ones(S.n_dofs), lambda x: np.log(x[..., 0]))
