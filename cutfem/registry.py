@@ -165,7 +165,8 @@ class Param:
     one of (1.0, 0.5)); ``positive``: greater than 0 (a radius, a coefficient, a penalty that
     must not vanish).  ``files``: the parameter also takes the path of an existing file besides
     its ``choices`` (a surface mesh).  Objects that are neither strings nor numbers (a level set, a
-    mesh) pass through from Python unchecked: the problem checks them.  ``only`` = (name, values):
+    mesh) pass through from Python unchecked: the problem checks them.  ``only`` = (name, values),
+    or a tuple of such conditions that must all hold:
     the parameter shapes the result only when the parameter ``name`` is one of ``values`` (the
     torus's radii with ``surface="torus"``); given with another, it is refused
     (:meth:`Problem.resolve`) rather than silently ignored."""
@@ -274,17 +275,24 @@ class Problem:
         for k, v in given.items():
             out[k] = allowed[k].convert(v)
         for k in given:
-            if not self._applies(allowed[k], out):
-                only = allowed[k].only
-                other = allowed[only[0]].flag
-                raise ProblemError(f"{allowed[k].flag} applies only with {other} {' or '.join(only[1])}, not with {other} "
-                                   f"{out[only[0]]!r}: leave {allowed[k].flag} out, or choose {other} {only[1][0]}")
+            failing = self._failing(allowed[k], out)
+            if failing is not None:
+                name, values = failing
+                other = allowed[name].flag
+                raise ProblemError(f"{allowed[k].flag} applies only with {other} {' or '.join(values)}, not with {other} "
+                                   f"{out[name]!r}: leave {allowed[k].flag} out, or choose {other} {values[0]}")
         return out
 
     @staticmethod
-    def _applies(param: "Param", params: dict) -> bool:
+    def _failing(param: "Param", params: dict):
+        """The first condition (name, values) of ``param.only`` that ``params`` do not meet, or None."""
         only = param.only
-        return only is None or (isinstance(params[only[0]], str) and params[only[0]] in only[1])
+        conditions = () if only is None else only if isinstance(only[0], tuple) else (only,)
+        return next((c for c in conditions if not (isinstance(params[c[0]], str) and params[c[0]] in c[1])), None)
+
+    @classmethod
+    def _applies(cls, param: "Param", params: dict) -> bool:
+        return cls._failing(param, params) is None
 
     def applicable(self, params: dict) -> dict:
         """The resolved ``params`` that shape this run: those without ``only``, or whose ``only``

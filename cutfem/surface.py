@@ -54,8 +54,10 @@ DEGENERATE_TOLERANCE = 1e-12
 #: box) (:func:`_merge_points`).
 MERGE_TOLERANCE = 1e-10
 
+#: the torus families drawn at random (their ``seed`` matters)
+RANDOM_FAMILIES = ("flipped", "perturbed", "perturbed-flipped")
 #: The torus families of docs/math.md §6.1 accepted by :func:`torus_mesh`.
-TORUS_FAMILIES = ("structured", "flipped", "perturbed", "perturbed-flipped")
+TORUS_FAMILIES = ("structured", *RANDOM_FAMILIES)
 
 #: Peak bytes per node of a generated mesh (:func:`torus_mesh`, :func:`sphere_mesh`, with its
 #: validation), checked before allocating: measured 582 (torus, n = 1200) and 656 (sphere, level 9)

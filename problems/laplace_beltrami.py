@@ -33,7 +33,7 @@ from cutfem.solve import SolverError, solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
-from cutfem.surface import TORUS_FAMILIES
+from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
 from .common import SHAPE_PARAMS, check_cut_memory, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
 
@@ -188,7 +188,8 @@ class LaplaceBeltramiMeshed(Problem):
         Param("surface", str, "sphere", "sphere or torus", choices=("torus", "sphere")),
         Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
-        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0, only=("surface", ("torus",))),
+        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0,
+              only=(("surface", ("torus",)), ("family", RANDOM_FAMILIES))),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
         *SHAPE_PARAMS[:3],  # torus and sphere: no ellipsoid, no axes
     ]

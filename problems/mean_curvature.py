@@ -33,7 +33,7 @@ from cutfem.registry import LazyFields, Param, Problem, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
-from cutfem.surface import TORUS_FAMILIES
+from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
 from .common import SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
 
@@ -149,7 +149,8 @@ class MeanCurvatureMeshed(Problem):
         Param("surface", str, "torus", "torus, sphere, or a closed mesh file (STL, OBJ, PLY, VTK, ...)", choices=("torus", "sphere"), files=True),
         Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
         Param("tau_e", float, 0.1, "edge stabilization tau_E", minimum=0),
-        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0, only=("surface", ("torus",))),
+        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0,
+              only=(("surface", ("torus",)), ("family", RANDOM_FAMILIES))),
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
         Param("length_scale", float, 1.0, "length L in which tau_E is given: tau_E h L^3 J_E (the surface's size, in its file's unit)", positive=True),
         *SHAPE_PARAMS,

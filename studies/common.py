@@ -143,6 +143,14 @@ def add_size_arguments(parser) -> None:
     parser.add_argument("--quiet", action="store_true")
 
 
+def torus_family(family: str, seed: int) -> dict:
+    """The parameters of a meshed torus family for ``cutfem.run``: the family, and the seed for the
+    families drawn at random (the structured grid takes none)."""
+    from cutfem.surface import RANDOM_FAMILIES
+
+    return {"family": family, **({"seed": seed} if family in RANDOM_FAMILIES else {})}
+
+
 def study_main(run, name: str, options=None):
     """A ``main(argv)`` for ``python -m cutfem.studies.NAME``; it applies :func:`cutfem.memory.configure`.
 

@@ -37,7 +37,7 @@ from cutfem.levelset import Torus
 from cutfem.spaces import SurfaceP1Space
 from cutfem.surface import TORUS_FAMILIES, torus_mesh
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main, torus_family
 
 NAME = "curvature_baselines"
 OUTPUTS = [NAME, f"{NAME}_errors", f"{NAME}_time", f"{NAME}_rates"]
@@ -70,7 +70,7 @@ def _errors(He, H, space):
 
 def _fem(n, family, tau_e):
     """H_h at the nodes and the assembly + solve time from the registered problem."""
-    res = cutfem.run("mean-curvature-meshed", levels=[n], surface="torus", family=family, tau_e=tau_e, seed=SEED)
+    res = cutfem.run("mean-curvature-meshed", levels=[n], surface="torus", tau_e=tau_e, **torus_family(family, SEED))
     rec = res.records[0]
     H = np.asarray(rec["fields"]["surface"].point_data["H_h"])
     return H, rec["time"].get("assembly", 0.0) + rec["time"].get("solve", 0.0)

@@ -26,7 +26,7 @@ import cutfem
 from cutfem.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
 from cutfem.surface import TORUS_FAMILIES, torus_mesh
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, save_csv, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, save_csv, save_figure, save_json, save_latex_table, study_main, torus_family
 
 NAME = "paper_meshed"
 R_MAJOR, R_MINOR = 1.0, 0.5
@@ -122,7 +122,7 @@ def combine_pngs(paths, titles, out: Path, name: str, ncols=2, width=PAGE_WIDTH,
 
 def _series(family, tau_e, levels, progress):
     progress(f"mean-curvature-meshed family={family} tau_E={tau_e} n={levels}")
-    res = cutfem.run("mean-curvature-meshed", levels=levels, surface="torus", family=family, tau_e=tau_e, seed=SEED, R=R_MAJOR, r=R_MINOR, solver=SOLVER)
+    res = cutfem.run("mean-curvature-meshed", levels=levels, surface="torus", tau_e=tau_e, R=R_MAJOR, r=R_MINOR, solver=SOLVER, **torus_family(family, SEED))
     recs = res.records
     h = [r["h"] for r in recs]
     out = {

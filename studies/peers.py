@@ -127,7 +127,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, study_main
+from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, study_main, torus_family
 
 NAME = "peers"
 OUTPUTS = [NAME, f"{NAME}_meshed"]  # peers.json/.csv/.png/.pdf, peers_meshed.csv
@@ -899,7 +899,7 @@ def meshed_level(family, n) -> list[dict]:
         best = min(best, time.perf_counter() - t0)
     rows.append(_meshed_row(family, n, mesh, "cotan-voronoi", H, He, space, best, best + t_mesh))
     t0 = time.perf_counter()
-    res = cutfem.run("mean-curvature-meshed", levels=[n], surface="torus", family=family, tau_e=TAU_E, seed=SEED)
+    res = cutfem.run("mean-curvature-meshed", levels=[n], surface="torus", tau_e=TAU_E, **torus_family(family, SEED))
     wall = time.perf_counter() - t0
     rec = res.records[0]
     H = np.asarray(rec["fields"]["surface"].point_data["H_h"])

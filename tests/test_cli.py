@@ -93,6 +93,7 @@ def test_bulk_fields_in_vtk_carry_phi_h_and_the_cut_marker(tmp_path):
     (["run", "mean-curvature-cut", "--surface", "nosuch.stl", "--levels", "0.2"], "there is no file 'nosuch.stl'"),
     (["run", "mean-curvature-cut", "--surface", "ellipsoid", "--axes", "1,0,0.5", "--levels", "0.2"], "--axes 1,0,0.5: b must be"),
     (["run", "mean-curvature-meshed", "--seed", "-1", "--levels", "8"], "--seed: -1 must be a finite number >= 0"),
+    (["run", "mean-curvature-meshed", "--seed", "3", "--levels", "8"], "--seed applies only with --family flipped or perturbed or perturbed-flipped, not with --family 'structured'"),
     (["run", "poisson-cut", "--gamma", "0", "--levels", "0.2"], "--gamma: 0.0 must be a positive number"),
     (["run", "interface-poisson-cut", "--a-outside", "0", "--levels", "0.2"], "--a-outside: 0.0 must be a positive number"),
     (["run", "bulk-surface-cut", "--c-bulk", "0", "--levels", "0.2"], "--c-bulk: 0.0 must be a positive number"),
@@ -585,7 +586,9 @@ def test_records_name_only_the_parameters_that_shape_the_run():
     sphere = cutfem.run("mean-curvature-cut", levels=[0.4], surface="sphere", radius=0.9)
     assert sphere.parameters["radius"] == 0.9 and not {"R", "r", "axes"} & set(sphere.parameters)
     torus = cutfem.run("mean-curvature-meshed", levels=[8])
-    assert {"R", "r", "family", "seed"} <= set(torus.parameters) and "radius" not in torus.parameters
+    assert {"R", "r", "family"} <= set(torus.parameters) and not {"radius", "seed"} & set(torus.parameters)
+    flipped = cutfem.run("mean-curvature-meshed", levels=[8], family="flipped", seed=2)
+    assert flipped.parameters["seed"] == 2  # the seed shapes the random families only
 
 
 def test_studies_and_reproduce_check_their_output_folder_first(tmp_path, capsys):

@@ -37,7 +37,8 @@ def test_sphere_cut_rate_at_least_one():
 
 @pytest.mark.parametrize("family", ["structured", "flipped", "perturbed"])
 def test_torus_meshed_stabilized_rate_at_least_one(family):
-    res = cutfem.run("mean-curvature-meshed", levels=[16, 32, 64, 128], family=family, tau_e=0.1, seed=3, solver="direct")
+    seed = {} if family == "structured" else {"seed": 3}  # the structured grid has no seed to take
+    res = cutfem.run("mean-curvature-meshed", levels=[16, 32, 64, 128], family=family, tau_e=0.1, solver="direct", **seed)
     assert _fit(res, "discrete_error") >= 1.0
     assert _fit(res, "l2_error") >= 1.0
     _assert_zero_integral(res)
