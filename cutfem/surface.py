@@ -1222,11 +1222,17 @@ def _merge_points(points: np.ndarray, triangles: np.ndarray):
     Distances, not coordinates rounded to a grid of step r: two copies of a vertex 1e-11 apart on
     either side of a rounding step would stay two nodes and leave a crack (96 boundary edges in a
     jittered facet soup of sphere_mesh(2)).  A merged node keeps the coordinates and the order of
-    its first occurrence.  The points used must be finite.  Returns (points, triangles).
+    its first occurrence.  A used point that is not finite is refused (ValueError with its row).  Returns (points, triangles).
     """
     from scipy.spatial import cKDTree
 
     used = unique_keys(triangles)
+    bad = used[~np.isfinite(points[used]).all(axis=1)]
+    if bad.size:
+        raise ValueError(
+            f"{bad.size} point(s) used by triangles have non-finite (NaN or inf) coordinates, first at rows "
+            f"{_examples(bad)} of the file (0-based); fix them or remove their triangles."
+        )
     points = points[used]
     triangles = np.searchsorted(used, triangles)
     lower = points.min(axis=0)
@@ -1307,13 +1313,6 @@ def read_surface(path) -> SurfaceMesh:
     try:
         if triangles.min() < 0 or triangles.max() >= len(points):
             raise ValueError(f"triangle node indices outside [0, {len(points)})")
-        used = unique_keys(triangles)
-        bad = used[~np.isfinite(points[used]).all(axis=1)]
-        if bad.size:
-            raise ValueError(
-                f"{bad.size} point(s) used by triangles have non-finite (NaN or inf) coordinates, first at rows "
-                f"{_examples(bad)} of the file (0-based); fix them or remove their triangles."
-            )
         points, triangles = _merge_points(points, triangles)
         return SurfaceMesh(points, triangles)
     except ValueError as err:
