@@ -964,8 +964,8 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
         table, types = grads, np.arange(m)
     normals = np.empty((m, 3))
     kernels.level_set_normals(vals, table, types, normals)
-    bad = ~np.isfinite(normals).all(axis=1)
-    if bad.any():  # grad phi_h = 0 or not finite: values beyond floating point (the kernel rescales the rest)
+    if not np.isfinite(normals).all():  # grad phi_h = 0 or not finite: values beyond floating point (the kernel rescales the rest)
+        bad = ~np.isfinite(normals).all(axis=1)
         big = float(np.max(np.abs(vals)))
         raise CutError(f"the normals n_h = grad phi_h / |grad phi_h| of {int(np.count_nonzero(bad))} cut tets are not "
                        f"finite: the level set's values (up to {big:.3g} in the cut tets) are too large or too small for "
