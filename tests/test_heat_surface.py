@@ -173,6 +173,24 @@ def test_a_final_time_that_rounding_drowns_is_refused():
     assert abs(_run(final_time=1e4, dt_scale=1e4)["l2_error"] - 3.8306423) <= 1e-8 * 3.8306423
 
 
+@pytest.mark.parametrize("spacing", [0.4, 0.1])
+def test_the_fastest_time_scale_is_about_9_over_h_squared(spacing):
+    """k = max row sum |A_h| / max (M_h 1), the scale check_final_time compares T with, is about
+    9 h^-2 on the unit sphere (h the spacing), as its docstring says (it said 60 h^-2)."""
+    from cutfem.cut import CUT, cut_mesh
+    from cutfem.forms import assemble, mass, normal_gradient_penalty, tangential_stiffness
+    from cutfem.levelset import Sphere
+    from cutfem.mesh import structured_box
+    from cutfem.spaces import CutP1Space
+
+    cut = cut_mesh(structured_box([-1.1] * 3, [1.1] * 3, spacing=spacing), Sphere(1.0))
+    V, ds = CutP1Space(cut, CUT), cut.ds()
+    M = assemble(mass(ds) + normal_gradient_penalty(cut.dx(CUT), h_power=1), V)
+    A = assemble(tangential_stiffness(ds) + normal_gradient_penalty(cut.dx(CUT), h_power=-1), V)
+    k = abs(A).sum(axis=1).max() / (M @ np.ones(V.n_dofs)).max()
+    assert 7.5 < k * spacing**2 < 10.5
+
+
 @pytest.mark.parametrize("kw, words", [
     (dict(final_time=0.0), "--final-time 0: the final time must be positive (default 0.5)"),
     (dict(dt_scale=0.0), "--dt-scale 0: the step dt_max = c h^2 or c h must be positive (default 1)"),
