@@ -38,7 +38,8 @@ On a :class:`~cutfem.spaces.ProductSpace` ``u`` and ``v`` are tuples with one en
 zero (:data:`ZERO`) but one, to be indexed (``u[0]``); ``uN - uP`` is then the jump across an
 interface and the assembly skips every pair of fields whose integrand is identically zero.  One
 form thus assembles to one block matrix.  The assembly loops only over fields and local basis pairs, never over elements;
-``symmetric=True`` evaluates half the pairs and mirrors them, and a form whose integrands are all
+``symmetric=True`` evaluates half the pairs and mirrors them (the first block of cells in full: an
+integrand declared symmetric that is not is refused there), and a form whose integrands are all
 symmetric assembles to an exactly symmetric matrix.
 
 Built-in terms
@@ -658,7 +659,10 @@ class _IntegrandTerm:
                 _finite_sums(f, measure, local)
                 yield j, dofs, local
             return
-        symmetric = f.symmetric
+        # symmetric=True evaluates half the pairs and mirrors them; the first block is evaluated in
+        # full, and a form declared symmetric that is not is refused there (_check_symmetric)
+        symmetric = f.symmetric and not first
+        full = {}
         for i, j in pairs:  # i: trial field, j: test field
             if symmetric and (j, i) in pairs and i > j:
                 continue  # mirrored from (j, i)
@@ -679,9 +683,35 @@ class _IntegrandTerm:
                     if symmetric and same:
                         blocks[:, a, b] = blocks[:, b, a]
             _finite_sums(f, measure, blocks)
+            if first and f.symmetric:
+                full[i, j] = blocks
             yield i, j, dofs_u, dofs_v, blocks
             if symmetric and i != j and (j, i) in pairs:
                 yield j, i, dofs_v, dofs_u, blocks.transpose(0, 2, 1)
+        if full:
+            self._check_symmetric(space, full)
+
+    def _check_symmetric(self, space, full):
+        """A clear error if an integrand declared symmetric gives a(phi_a, phi_b) != a(phi_b, phi_a)
+        on the first block of cells (``full``: its local matrices per (trial, test) field pair), or
+        couples two fields one way only: mirrored, it would be assembled silently into another,
+        symmetric, matrix (an advection term b . grad u v, or u_0 v_1)."""
+        name = self.integrand.__name__
+        product = isinstance(space, ProductSpace) and self.field is None
+        for (i, j), blocks in full.items():
+            where = f" between fields {i} and {j}" if product and i != j else (f" on field {i}" if product else "")
+            fix = ("drop symmetric=True (the matrix is then assembled as the integrand gives it) or write the integrand "
+                   "symmetric in u and v")
+            if (j, i) not in full:
+                raise ValueError(f"the bilinear integrand {name!r} is declared symmetric (bilinear_form(symmetric=True)) but is not "
+                                 f"symmetric: it couples fields {i} and {j} one way only (trial field {i}, test field {j}); {fix}")
+            other = full[j, i].transpose(0, 2, 1)
+            scale = max(np.abs(blocks).max(initial=0.0), np.abs(other).max(initial=0.0))
+            differ = np.abs(blocks - other).max(initial=0.0)
+            if differ > 1e-10 * scale:
+                raise ValueError(f"the bilinear integrand {name!r} is declared symmetric (bilinear_form(symmetric=True)) but is not "
+                                 f"symmetric{where}: a(u, v) and a(v, u) differ by {differ:.3g} on its first cells, where the local "
+                                 f"matrices reach {scale:.3g}; {fix}")
 
 
 def _integrand_values(f: Integrand, val, shape) -> np.ndarray:
