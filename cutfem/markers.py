@@ -240,7 +240,8 @@ class ElementSet:
 
     def locate(self, tet_ids, what: str = "the measure") -> np.ndarray:
         """Local indices of background tets ``tet_ids`` in this set; a clear error when some are not in it."""
-        return self._found(*self._find(tet_ids), what)
+        tet_ids = np.asarray(tet_ids, dtype=np.int64)
+        return self._found(*self._find(tet_ids), what, tet_ids)
 
     def locate_set(self, other: "ElementSet", rows=None, what: str = "the measure") -> np.ndarray:
         """:meth:`locate` of the tets ``other.tet_ids[rows]`` (all when None; ``other`` must lie on the
@@ -259,16 +260,24 @@ class ElementSet:
         if hit is None or hit[0] is not other:
             hit = self._positions[key] = (other, *self._find(other.tet_ids))
         _, local, found = hit
-        return self._found(local, found, what) if rows is None else self._found(local[rows], found[rows], what)
+        if rows is None:
+            return self._found(local, found, what, other.tet_ids)
+        if not np.all(found[rows]):  # counted over the whole measure, not the block of cells that asked
+            self._found(local, found, what, other.tet_ids)
+        return local[rows]
 
     @cached_property
     def _positions(self) -> dict:
         return {}
 
-    def _found(self, local, found, what):
+    def _found(self, local, found, what, tet_ids):
+        """``local`` where every one of the background tets ``tet_ids`` was ``found``; else a ValueError
+        counting the distinct tets missing (a measure's cells repeat their tet: sub-tets, pieces)."""
         if not np.all(found):
+            missing = np.unique(tet_ids[~found])
             raise ValueError(
-                f"{int(np.sum(~found))} elements of {what} are not in the element set {self.name!r}: a field on "
+                f"{missing.size} elements (background tets {', '.join(str(int(t)) for t in missing[:3])}"
+                f"{', ...' if missing.size > 3 else ''}) of {what} are not in the element set {self.name!r}: a field on "
                 f"{self.name!r} does not live there. Integrate over a measure inside the field's elements, or define "
                 "the field on a larger element set."
             )

@@ -307,3 +307,21 @@ def test_locate_set_keeps_one_search_and_checks_the_rows_asked():
     np.testing.assert_array_equal(neg.locate_set(pos, in_both), neg.locate(pos.tet_ids[in_both]))
     with pytest.raises(ValueError, match="not in the element set 'neg'"):
         neg.locate_set(pos)
+
+
+def test_a_field_outside_its_elements_names_the_distinct_tets_missing():
+    """The error of a measure outside a field's elements counts the measure's background tets, not
+    the quadrature cells of the block that asked (a cut tet's part of a side is several sub-tets):
+    a field inside the sphere of radius 0.5 integrated over the inside of a larger sphere's cut on
+    the same box; whichever term asks, the count is the number of tets of that measure that are not
+    in the field's set."""
+    box = structured_box([-1, -1, -1], [1, 1, 1], cells=6)
+    V = CutP1Space(cut_mesh(box, Sphere(0.5)), NEG)
+    dx = cut_mesh(box, Sphere(0.9)).dx(NEG)
+    expected = int(np.count_nonzero(~V.elements.contains(dx.elements.tet_ids)))
+    tets = dx.elements.tet_ids[dx.quadrature(2).parent]  # the background tet of each cell
+    outside = tets[~V.elements.contains(tets)]
+    assert 0 < expected == len(np.unique(outside)) < len(outside)  # the missing tets repeat among the cells
+    for call in (lambda: V.evaluate(np.zeros(V.n_dofs), dx), lambda: V.local_elements(dx)):
+        with pytest.raises(ValueError, match=rf"^{expected} elements \(background tets \d+, \d+, \d+, \.\.\.\) of"):
+            call()
