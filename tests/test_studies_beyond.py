@@ -87,6 +87,22 @@ def test_stabilization_sweeps(sweeps):
     assert tex.count("\\\\") == 1 + 12
 
 
+def test_stabilization_sweeps_are_the_registered_problem(sweeps):
+    """Each (a, tau_F) of the sweep is the system that ``cutfem run mean-curvature-cut --face-h-power a
+    --tau-f tau_F`` solves on the same box: the face term weights each face by its own h_F^a
+    (docs/math.md §2), so the errors agree to the solver's precision."""
+    import cutfem
+
+    out, summary, data = sweeps
+    for a, tau in ((-1, 0.001), (1, 10.0), (2, 0.1)):
+        rows = [r for r in data["records"] if r["a"] == a and r["tau_f"] == pytest.approx(tau)]
+        res = cutfem.run("mean-curvature-cut", levels=[r["spacing"] for r in rows], box=stabilization_sweeps.PAPER_BOX,
+                         tau_f=tau, face_h_power=float(a), solver="direct")
+        for r, rec in zip(rows, res.records, strict=True):
+            assert r["h"] == pytest.approx(rec["h"], rel=1e-12)
+            assert r["l2_error"] == pytest.approx(rec["l2_error"], rel=1e-8), (a, tau, r["spacing"])
+
+
 @pytest.fixture(scope="module")
 def lb(tmp_path_factory):
     return _run(laplace_beltrami, tmp_path_factory)
