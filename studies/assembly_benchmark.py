@@ -49,6 +49,7 @@ import scipy
 from cutfem.cut import CUT, cut_mesh
 from cutfem.forms import assemble, face_jump_penalty, mass, tangential_stiffness
 from cutfem.levelset import Torus
+from cutfem.memory import InsufficientMemoryError
 from cutfem.mesh import structured_box
 from cutfem.registry import ProblemError, check_output
 from cutfem.spaces import CutP1Space
@@ -251,13 +252,17 @@ def main(argv=None) -> int:
         p.error("--repeat and --cold-repeat must be at least 1")
     if a.spacings and not all(np.isfinite(s) and 0 < s < 0.5 for s in a.spacings):
         p.error(f"--spacings must be finite numbers between 0 and 0.5 (the torus's tube has radius 0.5), got {a.spacings}")
+    if a.spacings and a.size:
+        p.error(f"--spacings and --{a.size} both choose the spacings; give one of them")
     try:
         check_output("--out", a.out, folder=True)
     except ProblemError as exc:
         p.error(str(exc))
-    data = run(
-        Path(a.out), a.size or "quick", Progress(NAME, not a.quiet), spacings=a.spacings, repeat=a.repeat, cold_repeat=a.cold_repeat
-    )
+    try:
+        data = run(Path(a.out), a.size or "quick", Progress(NAME, not a.quiet), spacings=a.spacings, repeat=a.repeat,
+                   cold_repeat=a.cold_repeat)
+    except InsufficientMemoryError as exc:  # refused by the cut before allocating
+        p.error(f"--spacings: {exc}")
     print(data["table"])
     print(f"results in {a.out}", file=sys.stderr)
     return 0

@@ -436,6 +436,23 @@ def test_assembly_benchmark_runs_and_records(tmp_path):
     assert row["together_cold_per_million_tets"] == pytest.approx(row["together_cold"] / row["active_tets"] * 1e6)
 
 
+def test_assembly_benchmark_refuses_impossible_spacings(tmp_path, capsys):
+    """A spacing whose cut needs more memory than there is, or --spacings together with a size
+    flag (which would be ignored), end with a usage error that names --spacings, not a traceback."""
+    from cutfem.studies import assembly_benchmark
+
+    with pytest.raises(SystemExit) as exc:
+        assembly_benchmark.main(["--out", str(tmp_path), "--spacings", "0.0005", "--quiet"])
+    assert exc.value.code == 2
+    err = capsys.readouterr().err
+    assert "--spacings: the cut of" in err and "spacing 0.0005" in err and "coarser spacing" in err
+    with pytest.raises(SystemExit) as exc:
+        assembly_benchmark.main(["--out", str(tmp_path), "--spacings", "0.4", "--full", "--quiet"])
+    assert exc.value.code == 2
+    assert "--spacings" in capsys.readouterr().err
+    assert not (tmp_path / "assembly_benchmark.json").exists()
+
+
 def test_gram_leaves_the_callers_arrays_alone():
     """The rows of E are sorted in place; that must not reorder the dofs or values handed in
     (int32 and int64 dofs, which may be used without a copy)."""
