@@ -146,9 +146,9 @@ def check_output(flag: str, path: str, suffixes=None, folder: bool = False) -> N
     parent = target if folder and target.exists() else target.parent
     while not parent.exists():
         parent = parent.parent
+    if not parent.is_dir():
+        raise ProblemError(f"{flag}: cannot write {path!r}: {str(parent)!r} is a file, not a folder; choose another path")
     try:  # a real write (permission bits say nothing to root, nor about read-only file systems)
-        if not parent.is_dir():
-            raise NotADirectoryError(str(parent))
         with tempfile.TemporaryFile(dir=parent, prefix=".cutfem-write-test-"):
             pass
     except OSError:

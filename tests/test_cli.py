@@ -507,6 +507,8 @@ def test_unexpected_error_in_a_level_exits_1(monkeypatch, tmp_path, capsys):
     ("--json", "out.csv", "should end in .json"),
     ("--json", "/proc/no/r.json", "is not writable"),
     ("--vtk", "/proc/cpuinfo", "is not a folder"),
+    ("--json", "/proc/cpuinfo/r.json", "'/proc/cpuinfo' is a file, not a folder"),
+    ("--vtk", "/proc/cpuinfo/sub/dir", "'/proc/cpuinfo' is a file, not a folder"),
 ])
 def test_outputs_are_checked_before_solving(flag, path, pattern, monkeypatch, capsys):
     problem = cutfem.get_problem("mean-curvature-cut")
