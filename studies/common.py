@@ -14,6 +14,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import re
 import sys
 import time
 from pathlib import Path
@@ -74,10 +75,23 @@ def latex_cell(cell) -> str:
     return "$".join(parts)
 
 
+def plain_cell(cell) -> str:
+    """A LaTeX table cell as plain text for the terminal: no $, braces or backslashes
+    (``$\\tau_F$`` -> ``tau_F``, ``$h^{-1}$`` -> ``h^-1``)."""
+    return re.sub(r"\\([A-Za-z]+)", r"\1", str(cell)).replace("$", "").replace("{", "").replace("}", "").replace("\\", "")
+
+
 def save_latex_table(out: Path, name: str, header: list[str], rows: list[list], caption: str = "", label: str | None = None) -> Path:
     """A booktabs-free LaTeX tabular (only \\hline), numbers formatted by the caller; ``caption``
     is written above it as a comment (what the table holds, for a reader of the file: the
-    manuscript's caption is its own)."""
+    manuscript's caption is its own).  The table is also printed on standard output as plain text
+    (:func:`plain_cell`), under its caption and file name."""
+    text = [[plain_cell(c) for c in header]] + [[plain_cell(c) for c in row] for row in rows]
+    widths = [max(len(r[k]) for r in text) for k in range(len(header))]
+    lines = [f"{name}.tex" + (f": {' '.join(caption.split())}" if caption else "")]
+    lines += ["  ".join(c.ljust(w) if k == 0 else c.rjust(w) for k, (c, w) in enumerate(zip(r, widths))) for r in text]
+    lines.insert(2, "  ".join("-" * w for w in widths))
+    print("\n".join(lines) + "\n", flush=True)
     path = Path(out) / f"{name}.tex"
     path.parent.mkdir(parents=True, exist_ok=True)
     cols = "l" + "r" * (len(header) - 1)

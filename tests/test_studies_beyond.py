@@ -210,3 +210,18 @@ def test_double_torus_level_set_data():
     d = near - p
     assert np.linalg.norm(np.cross(d, n), axis=1).max() < 1e-10
     assert np.all(np.linalg.norm(d, axis=1) < 0.1)
+
+
+def test_a_saved_table_is_also_printed_as_plain_text(tmp_path, capsys):
+    """save_latex_table writes the LaTeX file and prints the same cells without LaTeX markup,
+    columns aligned, under the file name and the caption."""
+    from cutfem.studies.common import save_latex_table
+
+    path = save_latex_table(tmp_path, "demo", ["$a$", r"$\tau_F$", r"$h^{-1}$"], [["0", "1e-01", "12.5"], ["-1", "1e+00", "3"]],
+                            caption="Two rows\nof numbers.")
+    assert r"$\tau_F$ & $h^{-1}$" in path.read_text()
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == "demo.tex: Two rows of numbers."
+    assert [line.split() for line in lines[1:5]] == [["a", "tau_F", "h^-1"], ["--", "-----", "----"],
+                                                    ["0", "1e-01", "12.5"], ["-1", "1e+00", "3"]]
+    assert len({len(line) for line in lines[1:5]}) == 1  # aligned columns
