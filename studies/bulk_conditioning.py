@@ -267,7 +267,9 @@ def _print_table(summary, paths):
     for r in ref["records"]:
         print(f"  {r['spacing']:>8g}{r['dofs']:>8d}{r['kappa_min']:>11.3g}{r['kappa_max']:>11.3g}{r['eigen_seconds_max']:>8.2f}")
     e = ref["exponent"]["kappa_max"]
-    print(f"  fitted: max kappa ~ s^(-p), p = {e:.2f}" if e is not None else "  fitted exponent: --")
+    singular = [r["spacing"] for r in ref["records"] if not np.isfinite(r["kappa_max"])]
+    over = f" (over the finite values; singular at spacing {', '.join(f'{v:g}' for v in singular)})" if singular else ""
+    print(f"  fitted: max kappa ~ s^(-p), p = {e:.2f}{over}" if e is not None else f"  fitted exponent: --{over}")
     print("  p between consecutive spacings: " + ", ".join("--" if v is None else f"{v:.2f}" for v in ref["exponent"]["kappa_max_local"]))
     for p in paths:
         print(p)
@@ -292,7 +294,9 @@ def plot(out: Path, rows: list[dict], ref: list[dict], exponent: dict, spacing: 
         k = np.array([r["kappa"] for r in sel])
         ind = np.array([r["indefinite"] for r in sel])
         text = f"{label} (max/min {k.max() / k.min():.3g}" + (f", {ind.sum()} of {len(sel)} indefinite)" if ind.any() else ")")
-        ax1.semilogy(x, k, color=color, ls=ls, lw=0.7, marker=marker, mfc=color, markevery=np.flatnonzero(~ind).tolist(), label=text)
+        # the legend shows the line's marker: filled unless every position is indefinite
+        ax1.semilogy(x, k, color=color, ls=ls, lw=0.7, marker=marker, mfc="none" if ind.all() else color,
+                     markevery=np.flatnonzero(~ind).tolist(), label=text)
         if ind.any():
             ax1.semilogy(x[ind], k[ind], ls="none", marker=marker, mfc="none", mec=color)
     ax1.set_xlabel("position of the ball (random shift of its centre)")

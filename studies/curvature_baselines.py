@@ -19,8 +19,8 @@ Wall times: the formula itself for the baselines (mesh given; best of three call
 call that loads VTK), assembly + solve for the FEM (one call, from the problem's timer).
 
 Outputs (prefix ``curvature_baselines``): ``.json``, ``.csv`` (one row per family, method, level),
-``_errors.png/.pdf`` (discrete L2 and nodal max against h, one column per family, fitted rates in
-the legends), ``_time.png/.pdf`` and ``_rates.tex`` (fitted rates per method and family).
+``_errors.png/.pdf`` (discrete L2 and nodal max against h, one column per family, one legend for
+all panels), ``_time.png/.pdf`` and ``_rates.tex`` (the fitted rates per method and family).
 """
 
 from __future__ import annotations
