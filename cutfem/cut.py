@@ -690,8 +690,8 @@ class CutMesh:
     # -- sizes -----------------------------------------------------------------------------
     @property
     def h(self) -> float:
-        """Global mesh size N**(-1/3), N = number of background nodes."""
-        return float(self.background.n_points) ** (-1.0 / 3.0)
+        """Global mesh size N**(-1/3), N = number of background nodes (:attr:`TetMesh.h`)."""
+        return self.background.h
 
     @property
     def n_tets(self) -> int:

@@ -390,7 +390,7 @@ class TetMesh:
     Cached topology: ``faces`` (F, 3) sorted node triples, ``face_tets`` (F, 2) with -1 for the
     missing neighbour of a boundary face (the first entry is always a tet), ``tet_faces`` (M, 4)
     (face opposite to local vertex k), ``edges`` (E, 2), ``boundary_faces`` (indices into faces),
-    ``boundary_nodes``, ``interior_faces``.  Mesh size ``h = N**(-1/3)``.
+    ``boundary_nodes``, ``interior_faces``.  Mesh size ``h = N**(-1/3)``, N the nodes of the tets.
     """
 
     def __init__(self, points, tets, *, orient: bool = False, check: bool = True):
@@ -446,10 +446,18 @@ class TetMesh:
     def n_tets(self) -> int:
         return len(self.tets)
 
+    @cached_property
+    def n_used_points(self) -> int:
+        """The number of nodes of the tets: ``n_points`` less the points that no tet uses."""
+        used = np.zeros(self.n_points, dtype=bool)
+        used[self.tets.reshape(-1)] = True
+        return int(np.count_nonzero(used))
+
     @property
     def h(self) -> float:
-        """Global mesh size N**(-1/3), N = number of nodes (docs/math.md §2)."""
-        return float(self.n_points) ** (-1.0 / 3.0)
+        """Global mesh size N**(-1/3), N = the number of nodes of the tets (docs/math.md §2): points
+        that no tet uses (stray points of a mesh file) are not nodes of the mesh and do not count."""
+        return float(self.n_used_points) ** (-1.0 / 3.0)
 
     @cached_property
     def volumes(self) -> np.ndarray:
@@ -570,6 +578,10 @@ class StructuredBox(TetMesh):
     @property
     def n_tets(self) -> int:
         return 6 * self.n_cells
+
+    @property
+    def n_used_points(self) -> int:  # type: ignore[override]
+        return self.n_points  # every node of the lattice is a corner of a tet
 
     @property
     def bounds(self):

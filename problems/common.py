@@ -343,7 +343,7 @@ def cut_record(cut, space=None) -> dict:
     ids = [f.elements.tet_ids for f in fields if getattr(getattr(f, "elements", None), "tet_ids", None) is not None]
     active = (len(ids[0]) if len(ids) == 1 else len(unique_keys(np.concatenate(ids)))) if ids else int(cut.n_tets)
     return box | {
-        "background_nodes": int(cut.background.n_points),
+        "background_nodes": int(cut.background.n_used_points),
         "active_tets": int(active),
         "pieces": int(cut.n_tets),
         "surface_triangles": int(cut.n_triangles),

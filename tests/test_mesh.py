@@ -315,6 +315,27 @@ def test_inverted_tet_error_and_orient():
     assert sorted(m.tets[0].tolist()) == [0, 1, 2, 3]
 
 
+def _jittered_box(cells=4, seed=0):
+    """(points, tets) of the Kuhn mesh of [-1, 1]^3 with its interior nodes moved at random by up
+    to 0.1 of the spacing: an unstructured mesh (tets of different shapes) with positive volumes."""
+    box = structured_box([-1.0] * 3, [1.0] * 3, cells=cells)
+    pts = box.points.copy()
+    inner = np.all(np.abs(pts) < 1 - 1e-9, axis=1)
+    pts[inner] += np.random.default_rng(seed).uniform(-0.1, 0.1, (inner.sum(), 3)) * (2.0 / cells)
+    return pts, box.tets.copy()
+
+
+def test_unused_nodes_do_not_change_h():
+    """h = N**(-1/3) counts the nodes of the tets: nodes that no tet uses (a mesh file's stray
+    points) are not nodes of the mesh.  125 nodes for 4 cells a side: h = 125**(-1/3) = 0.2 with or
+    without 1000 unused ones (these made h = 1125**(-1/3) = 0.096)."""
+    pts, tets = _jittered_box()
+    stray = np.random.default_rng(1).uniform(-1, 1, (1000, 3))
+    plain, padded = TetMesh(pts, tets), TetMesh(np.vstack([stray, pts]), tets + len(stray))
+    assert plain.h == pytest.approx(0.2, rel=1e-14)
+    assert padded.h == pytest.approx(0.2, rel=1e-14)
+
+
 def test_bad_shapes():
     with pytest.raises(ValueError, match=r"points must have shape \(N, 3\)"):
         TetMesh(np.zeros((4, 2)), [[0, 1, 2, 3]])
