@@ -376,6 +376,30 @@ def barycentric_gradients(vertices: np.ndarray):
     return grads, det / 6.0
 
 
+def _check_coincident(points, tets) -> None:
+    """Refuse nodes of the tets that lie at one point (exactly equal coordinates): their tets do not
+    share the faces there, so the mesh has a crack, a P1 field is discontinuous across it and the
+    faces drop out of the face penalties.  Points that no tet uses may coincide with anything."""
+    used = np.zeros(len(points), dtype=bool)
+    used[tets.reshape(-1)] = True
+    ids = np.flatnonzero(used)
+    p = points[ids]
+    order = np.lexsort((p[:, 2], p[:, 1], p[:, 0]))
+    sp = p[order]
+    same = np.all(sp[1:] == sp[:-1], axis=1)
+    if np.any(same):
+        involved = np.zeros(len(ids), dtype=bool)
+        involved[:-1] |= same
+        involved[1:] |= same
+        k = int(np.flatnonzero(same)[0])
+        a, b = sorted((int(ids[order[k]]), int(ids[order[k + 1]])))
+        raise ValueError(
+            f"{int(np.count_nonzero(involved))} nodes coincide with other nodes of the tets (first: nodes {a} and {b} "
+            f"at {points[a].tolist()}): the mesh is split there, its tets do not share those faces; merge the "
+            "duplicated nodes (one node per point) and renumber the tets"
+        )
+
+
 class TetMesh:
     """A conforming tetrahedral mesh.
 
@@ -385,7 +409,8 @@ class TetMesh:
     tets : (M, 4) int, vertex indices of each tetrahedron
     orient : if True, tets with negative volume are reordered (two vertices swapped); if False
         (default), negative volumes are an error.
-    check : validate finiteness, index range and non-degeneracy (volume > 1e-12 * mean |volume|).
+    check : validate finiteness, index range, non-degeneracy (volume > 1e-12 * mean |volume|) and
+        that no two nodes of the tets coincide.
 
     Cached topology: ``faces`` (F, 3) sorted node triples, ``face_tets`` (F, 2) with -1 for the
     missing neighbour of a boundary face (the first entry is always a tet), ``tet_faces`` (M, 4)
@@ -415,6 +440,7 @@ class TetMesh:
                     f"{k.size} degenerate (zero-volume) tetrahedra, first: tet {k[0]} with vertices {tets[k[0]].tolist()}; "
                     "remove them or re-mesh"
                 )
+            _check_coincident(points, tets)
             inverted = vol < 0
             if np.any(inverted):
                 if not orient:

@@ -336,6 +336,21 @@ def test_unused_nodes_do_not_change_h():
     assert padded.h == pytest.approx(0.2, rel=1e-14)
 
 
+def test_coincident_nodes_used_by_tets_are_refused():
+    """Two used nodes at one point split the mesh there (a crack: their faces are not shared), so a
+    P1 field is discontinuous across it and the faces drop out of the face penalties.  Refused,
+    naming both nodes; an unused copy is harmless and accepted."""
+    pts, tets = _jittered_box()
+    node = 62  # the centre (2, 2, 2) of the 5 x 5 x 5 nodes
+    users = np.flatnonzero((tets == node).any(axis=1))
+    cracked = tets.copy()
+    cracked[users[::2]] = np.where(cracked[users[::2]] == node, len(pts), cracked[users[::2]])
+    with pytest.raises(ValueError, match=r"2 nodes coincide.*nodes 62 and 125.*merge"):
+        TetMesh(np.vstack([pts, pts[node]]), cracked)
+    m = TetMesh(np.vstack([pts, pts[node]]), tets)  # the copy is not used
+    assert len(m.interior_faces) == TetMesh(pts, tets).interior_faces.size
+
+
 def test_bad_shapes():
     with pytest.raises(ValueError, match=r"points must have shape \(N, 3\)"):
         TetMesh(np.zeros((4, 2)), [[0, 1, 2, 3]])
