@@ -538,8 +538,23 @@ def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0):
         vb = np.asarray(f_or_values(pts), dtype=float)
         _check_finite(vb, "boundary nodes")
     if np.any(vb < -tol):
-        k = int(np.sum(vb < -tol))
+        inside = vb < -tol
+        k = int(np.sum(inside))
         lo, hi = mesh.bounds
+        if not isinstance(mesh, StructuredBox):  # a box's boundary nodes all lie on its faces
+            # boundary nodes away from every face of the bounding box: the mesh has an inner boundary
+            # (a cavity, a crack) or is not a box; 1e-2 of the diagonal leaves room for pytetwild's envelope
+            x = mesh.points[b[inside]]
+            gap = np.minimum(x - lo, hi - x).min(axis=1)
+            off = gap > 1e-2 * float(np.linalg.norm(hi - lo))
+            if np.any(off):
+                raise CutError(
+                    f"{k} boundary nodes of the background mesh are inside the surface (phi < 0), {int(np.sum(off))} of "
+                    f"them off the faces of the mesh's bounding box [{lo.tolist()}, {hi.tolist()}] (first at "
+                    f"{x[np.argmax(off)].tolist()}): the mesh has a hole or a crack there (duplicated nodes make one), or "
+                    "does not cover the surface. Mesh the whole box around the surface in one conforming piece, "
+                    "or check the sign of the level set (negative inside)."
+                )
         raise CutError(
             f"{k} boundary nodes of the background mesh are inside the surface (phi < 0): the surface reaches "
             f"or leaves the box [{lo.tolist()}, {hi.tolist()}]. Enlarge the box so that it contains the surface "

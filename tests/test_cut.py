@@ -421,6 +421,18 @@ def test_surface_reaching_the_box_boundary(levelset):
     assert str(structured.value).split(" boundary")[0] == str(plain.value).split(" boundary")[0]
 
 
+def test_background_with_a_hole_inside_the_surface_names_the_hole():
+    """A background mesh with a cavity inside the surface (tets removed around the centre of the
+    ball) has boundary nodes inside; the surface does not leave the box, so the error names the
+    hole rather than asking for a larger box."""
+    box = structured_box([-1.0] * 3, [1.0] * 3, cells=8)
+    centres = box.points[box.tets].mean(axis=1)
+    holed = TetMesh(box.points, box.tets[np.linalg.norm(centres, axis=1) > 0.3])
+    with pytest.raises(CutError, match=r"off the faces of the mesh's bounding box.*hole") as err:
+        cut_mesh(holed, Sphere(0.6))
+    assert "Enlarge the box" not in str(err.value)
+
+
 def test_nan_values():
     def f(x):
         x = np.asarray(x, float)
