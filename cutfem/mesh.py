@@ -492,8 +492,12 @@ class TetMesh:
 
     @cached_property
     def bounds(self):
-        """(lower (3,), upper (3,)) bounding box of the points."""
-        return self.points.min(axis=0), self.points.max(axis=0)
+        """(lower (3,), upper (3,)) bounding box of the nodes of the tets (points no tet uses left out)."""
+        if self.n_used_points == self.n_points:
+            return self.points.min(axis=0), self.points.max(axis=0)
+        used = np.zeros(self.n_points, dtype=bool)
+        used[self.tets.reshape(-1)] = True
+        return self.points[used].min(axis=0), self.points[used].max(axis=0)
 
     # -- topology ------------------------------------------------------------------------
     @cached_property

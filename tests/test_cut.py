@@ -433,6 +433,15 @@ def test_background_with_a_hole_inside_the_surface_names_the_hole():
     assert "Enlarge the box" not in str(err.value)
 
 
+def test_stray_points_do_not_move_the_box_of_the_boundary_checks():
+    """A point that no tet uses, far off the mesh, is not part of the background's box: the surface
+    that leaves the box [-1, 1]^3 is still told to enlarge it, not to look for a hole."""
+    box = structured_box([-1.0] * 3, [1.0] * 3, cells=8)
+    stray = TetMesh(np.vstack([box.points, [[50.0, -7.0, 3.0]]]), box.tets)
+    with pytest.raises(CutError, match=r"surface reaches or leaves the box \[\[-1.0, -1.0, -1.0\], \[1.0, 1.0, 1.0\]\]"):
+        cut_mesh(stray, Sphere(1.3))
+
+
 def test_nan_values():
     def f(x):
         x = np.asarray(x, float)

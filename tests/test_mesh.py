@@ -334,6 +334,8 @@ def test_unused_nodes_do_not_change_h():
     plain, padded = TetMesh(pts, tets), TetMesh(np.vstack([stray, pts]), tets + len(stray))
     assert plain.h == pytest.approx(0.2, rel=1e-14)
     assert padded.h == pytest.approx(0.2, rel=1e-14)
+    far = TetMesh(np.vstack([pts, [[50.0, -7.0, 3.0]]]), tets)  # one stray point far off the box
+    assert [b.tolist() for b in far.bounds] == [[-1.0] * 3, [1.0] * 3]
 
 
 def test_coincident_nodes_used_by_tets_are_refused():
