@@ -376,12 +376,18 @@ def barycentric_gradients(vertices: np.ndarray):
     return grads, det / 6.0
 
 
-def _check_coincident(points, tets) -> None:
-    """Refuse nodes of the tets that lie at one point (exactly equal coordinates): their tets do not
-    share the faces there, so the mesh has a crack, a P1 field is discontinuous across it and the
-    faces drop out of the face penalties.  Points that no tet uses may coincide with anything."""
-    used = np.zeros(len(points), dtype=bool)
-    used[tets.reshape(-1)] = True
+def _used_mask(n: int, tets) -> np.ndarray:
+    """(n,) bool: which of n points are nodes of the tets."""
+    used = np.zeros(n, dtype=bool)
+    used[np.asarray(tets).reshape(-1)] = True
+    return used
+
+
+def _check_coincident(points, used) -> None:
+    """Refuse nodes of the tets (``used``, a mask of the points) that lie at one point (exactly equal
+    coordinates): their tets do not share the faces there, so the mesh has a crack, a P1 field is
+    discontinuous across it and the faces drop out of the face penalties.  Points that no tet uses
+    may coincide with anything."""
     ids = np.flatnonzero(used)
     p = points[ids]
     order = np.lexsort((p[:, 2], p[:, 1], p[:, 0]))
@@ -440,7 +446,8 @@ class TetMesh:
                     f"{k.size} degenerate (zero-volume) tetrahedra, first: tet {k[0]} with vertices {tets[k[0]].tolist()}; "
                     "remove them or re-mesh"
                 )
-            _check_coincident(points, tets)
+            used = self.__dict__["_used"] = _used_mask(len(points), tets)  # the cached _used
+            _check_coincident(points, used)
             inverted = vol < 0
             if np.any(inverted):
                 if not orient:
@@ -473,11 +480,14 @@ class TetMesh:
         return len(self.tets)
 
     @cached_property
+    def _used(self) -> np.ndarray:
+        """(N,) bool: the points that are nodes of a tet."""
+        return _used_mask(len(self.points), self.tets)
+
+    @cached_property
     def n_used_points(self) -> int:
         """The number of nodes of the tets: ``n_points`` less the points that no tet uses."""
-        used = np.zeros(self.n_points, dtype=bool)
-        used[self.tets.reshape(-1)] = True
-        return int(np.count_nonzero(used))
+        return int(np.count_nonzero(self._used))
 
     @property
     def h(self) -> float:
@@ -495,9 +505,7 @@ class TetMesh:
         """(lower (3,), upper (3,)) bounding box of the nodes of the tets (points no tet uses left out)."""
         if self.n_used_points == self.n_points:
             return self.points.min(axis=0), self.points.max(axis=0)
-        used = np.zeros(self.n_points, dtype=bool)
-        used[self.tets.reshape(-1)] = True
-        return self.points[used].min(axis=0), self.points[used].max(axis=0)
+        return self.points[self._used].min(axis=0), self.points[self._used].max(axis=0)
 
     # -- topology ------------------------------------------------------------------------
     @cached_property
