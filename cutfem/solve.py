@@ -1697,7 +1697,8 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
         if not has_mg:
             raise ValueError(
                 "method 'cg-mg' needs a geometric hierarchy: a space on a structured box or on a surface mesh (space=...), "
-                "or lattice indices (lattice=...)"
+                "or lattice indices (lattice=...); an unstructured background (e.g. --background tetwild) has none: use "
+                "'cg-amg' (algebraic multigrid), 'direct' or 'auto'"
             )
         return mg_solve(A, B, lattice, tol=tol, prolongations=hierarchy, _checks=checks, x0=x0, **(multigrid or {}))
     points = getattr(space, "dof_points", None) if space is not None else None

@@ -758,3 +758,15 @@ print(json.dumps({"status": status, "layer": numba.threading_layer(), **json.loa
         assert len(res["warnings"]) == 1 and "'spawn' or 'forkserver'" in res["warnings"][0]
     else:
         assert res["warnings"] == []
+
+
+def test_cg_mg_without_a_hierarchy_names_the_methods_that_work():
+    """A matrix with no geometric hierarchy (no space, no lattice): 'cg-mg' is refused naming the
+    methods that need none, and 'cg-amg' solves the same system to its tolerance."""
+    n = 2000
+    A = sp.diags([-np.ones(n - 1), 2.01 * np.ones(n), -np.ones(n - 1)], [-1, 0, 1], format="csr")
+    b = np.ones(n)
+    with pytest.raises(ValueError, match="needs a geometric hierarchy.*use 'cg-amg' \\(algebraic multigrid\\), 'direct' or 'auto'"):
+        solve_module.solve(A, b, method="cg-mg")
+    x, info = solve_module.solve(A, b, method="cg-amg", tol=1e-10)
+    assert np.linalg.norm(A @ x - b) <= 1e-10 * np.linalg.norm(b) and info.method == "cg-amg"
