@@ -28,7 +28,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .mesh import pair_up, unique_keys
+from .mesh import COINCIDENT_TOLERANCE, close_pairs, pair_up, unique_keys
 
 __all__ = [
     "SurfaceMesh",
@@ -51,8 +51,8 @@ __all__ = [
 DEGENERATE_TOLERANCE = 1e-12
 
 #: :func:`read_surface` merges points closer than MERGE_TOLERANCE * (diagonal of the bounding
-#: box) (:func:`_merge_points`).
-MERGE_TOLERANCE = 1e-10
+#: box) (:func:`_merge_points`): the tolerance at which a tetrahedral mesh's nodes coincide.
+MERGE_TOLERANCE = COINCIDENT_TOLERANCE
 
 #: the torus families drawn at random (their ``seed`` matters)
 RANDOM_FAMILIES = ("flipped", "perturbed", "perturbed-flipped")
@@ -1224,8 +1224,6 @@ def _merge_points(points: np.ndarray, triangles: np.ndarray):
     jittered facet soup of sphere_mesh(2)).  A merged node keeps the coordinates and the order of
     its first occurrence.  A used point that is not finite is refused (ValueError with its row).  Returns (points, triangles).
     """
-    from scipy.spatial import cKDTree
-
     used = unique_keys(triangles)
     bad = used[~np.isfinite(points[used]).all(axis=1)]
     if bad.size:
@@ -1242,7 +1240,7 @@ def _merge_points(points: np.ndarray, triangles: np.ndarray):
     # exact duplicates first (the bulk of an STL's copies), then the pairs within r among the rest
     distinct, label = np.unique(points, axis=0, return_inverse=True)
     label = label.reshape(-1)
-    pairs = cKDTree(distinct).query_pairs(MERGE_TOLERANCE * diagonal, output_type="ndarray")
+    pairs = close_pairs(distinct, MERGE_TOLERANCE * diagonal)
     if len(pairs):
         graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(distinct),) * 2)
         label = connected_components(graph, directed=False)[1][label]

@@ -353,6 +353,42 @@ def test_coincident_nodes_used_by_tets_are_refused():
     assert len(m.interior_faces) == TetMesh(pts, tets).interior_faces.size
 
 
+def test_nearly_coincident_nodes_used_by_tets_are_refused():
+    """A copy of a node 1e-14 away (a mesher's rounding) splits the mesh as an exact copy does: 650
+    interior faces instead of 672 were accepted.  Refused when the nodes of the tets are closer than
+    1e-10 times the diagonal of their box (here 2 sqrt(3) 1e-10 = 3.5e-10), naming both nodes; a
+    copy 4e-10 away (above the tolerance) is a node of its own."""
+    pts, tets = _jittered_box()
+    node = 62
+    users = np.flatnonzero((tets == node).any(axis=1))
+    cracked = tets.copy()
+    cracked[users[::2]] = np.where(cracked[users[::2]] == node, len(pts), cracked[users[::2]])
+    for shift in ([1e-14, 0, 0], [-2e-10, 1e-10, 2e-10]):  # 3.0e-10 < 3.46e-10
+        with pytest.raises(ValueError, match=r"2 nodes.*nodes 62 and 125.*closer than 3\.46e-10.*merge"):
+            TetMesh(np.vstack([pts, pts[node] + shift]), cracked)
+    far = TetMesh(np.vstack([pts, pts[node] + [0, 0, 4e-10]]), cracked)  # 4e-10 > 3.46e-10: two nodes
+    assert (len(far.interior_faces), len(TetMesh(pts, tets).interior_faces)) == (650, 672)
+
+
+def test_close_pairs_are_the_pairs_within_the_distance():
+    """close_pairs gives exactly the pairs of points at distance <= r, as the O(n^2) distance
+    table does: on a lattice (many equal coordinates along every axis) with copies moved by
+    0.5 r, 0.99 r and 1.5 r, and on random points."""
+    from cutfem.mesh import close_pairs
+
+    rng = np.random.default_rng(3)
+    lattice = np.stack(np.meshgrid(*(np.arange(6.0),) * 3, indexing="ij"), axis=-1).reshape(-1, 3)
+    r = 1e-6
+    copies = lattice[[7, 100, 150, 200]] + np.array([[0.5, 0, 0], [0, 0.99, 0], [0.6, 0.6, 0.6], [1.5, 0, 0]]) * r
+    for pts in (np.vstack([lattice, copies]), rng.uniform(0, 1, (400, 3)), np.vstack([lattice, lattice[:3]])):
+        radius = r if len(pts) != 400 else 0.03
+        d = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+        i, j = np.nonzero(np.triu(d <= radius, k=1))
+        expected = sorted(zip(i.tolist(), j.tolist()))
+        assert sorted(map(tuple, close_pairs(pts, radius).tolist())) == expected
+    assert len(expected) == 3  # the exact copies
+
+
 def test_bad_shapes():
     with pytest.raises(ValueError, match=r"points must have shape \(N, 3\)"):
         TetMesh(np.zeros((4, 2)), [[0, 1, 2, 3]])
