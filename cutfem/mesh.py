@@ -905,8 +905,28 @@ def unstructured_around(surface, edge_length: float, padding: float = 0.2, optim
     return unstructured_box(lo - pad, hi + pad, edge_length, optimize)
 
 
+def _volume_cell_kind(cell_type: str):
+    """'tet' for meshio's tetrahedra of any order (their first four nodes are the corners, in the
+    vtk and gmsh orders alike), 'other' for the other volume cells, None for points, lines and faces."""
+    name = cell_type.lower()
+    if name.startswith("tetra") or name == "vtk_lagrange_tetrahedron":
+        return "tet"
+    if name.startswith(("hexahedron", "wedge", "pyramid", "polyhedron", "vtk_lagrange_hexahedron", "vtk_lagrange_wedge",
+                        "vtk_lagrange_pyramid")):
+        return "other"
+    return None
+
+
 def read_mesh(path) -> TetMesh:
-    """Read a tetrahedral mesh with meshio (any format meshio reads: .vtu, .vtk, .msh, .mesh, .xdmf, ...)."""
+    """Read a tetrahedral mesh with meshio (any format meshio reads: .vtu, .vtk, .msh, .mesh, .xdmf, ...).
+
+    The tets are the file's tetra cells, of every block.  Higher-order tets (tetra10, ...) give
+    their four corners: the straight-sided tets of the same vertices, the mid-edge nodes being
+    points that no tet uses (they count nowhere, e.g. not in ``h``).  Points, lines and surface
+    cells (the boundary triangles and physical groups of a gmsh file) are left out.  A file with
+    other volume cells (hexahedra, wedges, pyramids) is refused: the tets alone would leave holes
+    where those cells are.  So is a file without tets (a surface or 2-D mesh).
+    """
     import meshio
 
     path = Path(path)
@@ -916,10 +936,29 @@ def read_mesh(path) -> TetMesh:
         m = meshio.read(path)
     except (Exception, SystemExit) as exc:  # meshio raises several types (even SystemExit) for broken files
         raise ValueError(f"cannot read mesh file {path}: {exc}. Use a format meshio reads (.vtu, .vtk, .msh, .mesh, .xdmf)") from exc
-    blocks = [c.data for c in m.cells if c.type == "tetra"]
+    kinds = [(c, _volume_cell_kind(c.type)) for c in m.cells if len(c.data)]
+    other = {}
+    for c, kind in kinds:
+        if kind == "other":
+            other[c.type] = other.get(c.type, 0) + len(c.data)
+    if other:
+        raise ValueError(
+            f"{path} holds volume cells other than tetrahedra ({', '.join(f'{n} {t}' for t, n in other.items())}): the "
+            "tets alone would leave holes where they are. Mesh the domain with tetrahedra only, or split those cells "
+            "into conforming tetrahedra before reading"
+        )
+    blocks = [np.asarray(c.data)[:, :4] for c, kind in kinds if kind == "tet"]
     if not blocks:
-        raise ValueError(f"{path} holds no tetrahedra (cell types: {[c.type for c in m.cells]})")
-    return TetMesh(m.points[:, :3], np.concatenate(blocks), orient=True)
+        dim = np.asarray(m.points).shape[1] if np.asarray(m.points).ndim == 2 else 0
+        raise ValueError(
+            f"{path} holds no tetrahedra (cell types: {sorted({c.type for c in m.cells}) or 'none'}, points with {dim} "
+            "coordinates): the background must be a 3-D mesh of tetrahedra; a surface mesh is read by "
+            "cutfem.surface.read_surface"
+        )
+    points = np.asarray(m.points)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"{path} has tetrahedra on points of shape {points.shape}; a 3-D mesh needs (N, 3)")
+    return TetMesh(points, np.concatenate(blocks), orient=True)
 
 
 def write_mesh(mesh: TetMesh, path, point_data=None, cell_data=None) -> None:

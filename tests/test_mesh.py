@@ -271,6 +271,95 @@ def test_read_file_without_tets(tmp_path):
         read_mesh(path)
 
 
+def _write_gmsh41(path, points, tets, triangles):
+    """A gmsh 4.1 ASCII file as gmsh writes one: a volume (physical group 2 "domain") of tets and its
+    boundary surface (physical group 1 "wall") of triangles, node tags from 1."""
+    n, lo, hi = len(points), points.min(axis=0), points.max(axis=0)
+    box = " ".join(f"{v:.17g}" for v in (*lo, *hi))
+    lines = ["$MeshFormat", "4.1 0 8", "$EndMeshFormat", "$PhysicalNames", "2", '2 1 "wall"', '3 2 "domain"',
+             "$EndPhysicalNames", "$Entities", "0 0 1 1", f"1 {box} 1 1 0", f"1 {box} 1 2 1 1", "$EndEntities",
+             "$Nodes", f"1 {n} 1 {n}", f"3 1 0 {n}", *map(str, range(1, n + 1)),
+             *(" ".join(f"{v:.17g}" for v in p) for p in points), "$EndNodes"]
+    m, f = len(tets), len(triangles)
+    lines += ["$Elements", f"2 {m + f} 1 {m + f}", f"2 1 2 {f}",
+              *(" ".join(map(str, (k + 1, *(t + 1)))) for k, t in enumerate(triangles)), f"3 1 4 {m}",
+              *(" ".join(map(str, (f + k + 1, *(t + 1)))) for k, t in enumerate(tets)), "$EndElements"]
+    path.write_text("\n".join(lines) + "\n")
+
+
+def test_read_gmsh_file_with_boundary_triangles_and_physical_groups(tmp_path):
+    """A gmsh 4.1 file of the 2 x 2 x 2 Kuhn box [0, 1]^3 with its 48 boundary triangles in a
+    physical group: the 48 tets and 27 nodes are read, the triangles are left out."""
+    box = structured_box([0, 0, 0], [1, 1, 1], cells=2)
+    mesh = TetMesh(box.points, box.tets)
+    path = tmp_path / "box.msh"
+    _write_gmsh41(path, mesh.points, mesh.tets, mesh.faces[mesh.boundary_faces])
+    back = read_mesh(path)
+    assert (back.n_points, back.n_tets, len(back.boundary_faces)) == (27, 48, 48)
+    assert np.array_equal(back.tets, mesh.tets)
+    assert back.volumes.sum() == pytest.approx(1.0, rel=1e-14)
+
+
+def _tetra10(points, tets):
+    """(points, (m, 10) quadratic tets): the corners, then the midpoints of the edges 01 12 02 03 13 23
+    (the vtk/gmsh order), one midpoint node per edge."""
+    pairs = np.sort(tets[:, [[0, 1], [1, 2], [0, 2], [0, 3], [1, 3], [2, 3]]], axis=2).reshape(-1, 2)
+    edges, inverse = np.unique(pairs, axis=0, return_inverse=True)
+    mids = 0.5 * (points[edges[:, 0]] + points[edges[:, 1]])
+    return np.vstack([points, mids]), np.hstack([tets, len(points) + inverse.reshape(-1, 6)])
+
+
+def test_read_quadratic_tets_uses_their_corners(tmp_path):
+    """A mesh of tetra10 cells only was refused as holding 'no tetrahedra'.  Its corners make the
+    straight-sided tets: the 48 tets of the 2 x 2 x 2 box of volume 1, h = 27**(-1/3) (the 98
+    mid-edge nodes are used by no tet and do not count)."""
+    import meshio
+
+    box = structured_box([0, 0, 0], [1, 1, 1], cells=2)
+    points, t10 = _tetra10(box.points, box.tets)
+    path = tmp_path / "quadratic.vtu"
+    meshio.write(path, meshio.Mesh(points, [("tetra10", t10)]))
+    back = read_mesh(path)
+    assert (back.n_points, back.n_tets, back.n_used_points) == (27 + 98, 48, 27)
+    assert np.array_equal(back.tets, box.tets)
+    assert back.volumes.sum() == pytest.approx(1.0, rel=1e-14)
+    assert back.h == pytest.approx(1 / 3, rel=1e-14)
+
+
+def test_read_mesh_with_other_volume_cells_is_refused(tmp_path):
+    """Tets and a hexahedron: reading the tets alone gave a mesh with a hole where the hexahedron
+    was (volume 1 of 2).  Refused, naming the cells and the fix."""
+    import meshio
+
+    box = structured_box([0, 0, 0], [1, 1, 1], cells=2)
+    cube = np.array([[1, 0, 0], [2, 0, 0], [2, 1, 0], [1, 1, 0], [1, 0, 1], [2, 0, 1], [2, 1, 1], [1, 1, 1]], float)
+    path = tmp_path / "mixed.vtu"
+    meshio.write(path, meshio.Mesh(np.vstack([box.points, cube]), [("tetra", box.tets), ("hexahedron", 27 + np.arange(8)[None])]))
+    with pytest.raises(ValueError, match=r"1 hexahedron.*tetrahedra only"):
+        read_mesh(path)
+
+
+def test_read_two_dimensional_mesh_is_refused(tmp_path):
+    """A 2-D triangle mesh (points with two coordinates) names the tetrahedral mesh needed."""
+    import meshio
+
+    path = tmp_path / "plane.msh"
+    meshio.write(path, meshio.Mesh(np.array([[0.0, 0], [1, 0], [0, 1]]), [("triangle", np.array([[0, 1, 2]]))]), file_format="gmsh22")
+    with pytest.raises(ValueError, match=r"no tetrahedra.*triangle.*3-D mesh of tetrahedra"):
+        read_mesh(path)
+
+
+def test_read_integer_points(tmp_path):
+    """Integer coordinates are read as floats: the 2 x 2 x 2 box scaled to [0, 2]^3 has volume 8."""
+    import meshio
+
+    box = structured_box([0, 0, 0], [1, 1, 1], cells=2)
+    path = tmp_path / "integer.vtu"
+    meshio.write(path, meshio.Mesh(np.rint(2 * box.points).astype(np.int32), [("tetra", box.tets)]))
+    back = read_mesh(path)
+    assert back.points.dtype == np.float64 and back.volumes.sum() == pytest.approx(8.0, rel=1e-14)
+
+
 # ----------------------------------------------------------------------------------------------
 # bad input
 # ----------------------------------------------------------------------------------------------
