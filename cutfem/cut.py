@@ -223,7 +223,11 @@ def nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
     """phi at every node of ``mesh`` (N,), with a clear error for NaN/inf values.  On a
     :class:`~cutfem.mesh.StructuredBox` the nodes go by blocks of :data:`NODE_BLOCK` ids, their
     coordinates made per block: the box's (N, 3) coordinates are never formed (300 MB, and 700 MB
-    while being made, for the 12.5 million nodes of the solid torus's box at spacing 0.01)."""
+    while being made, for the 12.5 million nodes of the solid torus's box at spacing 0.01).
+    Points that no tet uses (a file's stray points, the mid-edge nodes of quadratic tets) are not
+    nodes: the level set is not evaluated there, their entries are NaN (given values may be
+    anything there), and nothing reads them."""
+    used = None if isinstance(mesh, StructuredBox) or mesh.n_used_points == mesh.n_points else mesh._used
     if isinstance(levelset, np.ndarray):
         values = np.asarray(levelset, dtype=float).reshape(-1)
         if values.size != mesh.n_points:
@@ -234,9 +238,12 @@ def nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
         for start in range(0, n, NODE_BLOCK):  # blocks of nodes, not single nodes
             stop = min(start + NODE_BLOCK, n)
             values[start:stop] = np.asarray(f(mesh.node_coordinates(np.arange(start, stop))), dtype=float).reshape(-1)
-    else:
+    elif used is None:
         values = np.asarray(_as_values_function(levelset)(mesh.points), dtype=float).reshape(-1)
-    _check_finite(values, "background nodes")
+    else:
+        values = np.full(mesh.n_points, np.nan)
+        values[used] = np.asarray(_as_values_function(levelset)(mesh.points[used]), dtype=float).reshape(-1)
+    _check_finite(values if used is None else values[used], "background nodes")
     return values
 
 

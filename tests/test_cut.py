@@ -442,6 +442,31 @@ def test_stray_points_do_not_move_the_box_of_the_boundary_checks():
         cut_mesh(stray, Sphere(1.3))
 
 
+def test_level_set_is_not_needed_at_points_that_no_tet_uses():
+    """A level set that is NaN at a stray point of the background (used by no tet, far off the box)
+    rejected the mesh.  The level set is evaluated at the nodes of the tets only: the cut equals the
+    one without the stray point (same node ids: the point comes last), bit for bit, and the sides
+    are found; a NaN at a node of a tet is still refused."""
+    box = structured_box([-1.0] * 3, [1.0] * 3, cells=8)
+    plain = TetMesh(box.points, box.tets)
+    stray = TetMesh(np.vstack([box.points, [[50.0, -7.0, 3.0]]]), box.tets)
+
+    def f(x):
+        r = np.linalg.norm(x, axis=-1)
+        return np.where(r > 10, np.nan, r - 0.6)
+
+    reference, cut = cut_mesh(plain, f), cut_mesh(stray, f)
+    assert cut.area == reference.area and np.array_equal(cut.triangles, reference.triangles)
+    assert cut.dx(NEG).size == reference.dx(NEG).size
+    values = snapped_nodal_values(stray, f)
+    assert np.array_equal(values[:-1], snapped_nodal_values(plain, f)) and np.isnan(values[-1])
+    nodal = np.append(snapped_nodal_values(plain, f), np.nan)  # nodal values given as an array
+    assert cut_mesh(stray, nodal).area == reference.area
+    nodal[0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        cut_mesh(stray, nodal)
+
+
 def test_nan_values():
     def f(x):
         x = np.asarray(x, float)
