@@ -12,7 +12,7 @@ import pytest
 
 from cutfem.cut import CutError, CutMesh, cut_mesh, snapped_nodal_values
 from cutfem.levelset import Sphere, Torus
-from cutfem.markers import CUT, NEG
+from cutfem.markers import CUT, NEG, POS
 from cutfem.mesh import TetMesh, structured_box
 from cutfem.numbering import TET_FACES
 
@@ -465,6 +465,28 @@ def test_level_set_is_not_needed_at_points_that_no_tet_uses():
     nodal[0] = np.nan
     with pytest.raises(ValueError, match="NaN"):
         cut_mesh(stray, nodal)
+
+
+@pytest.mark.parametrize("scale, offset", [(1.0, (1e4, -2e4, 3e4)), (1e3, (1e4, -2e4, 3e4)), (1e-3, (10.0, -20.0, 30.0))])
+def test_cut_of_a_moved_and_scaled_mesh_scales_exactly(scale, offset):
+    """A mesh in other units far from the origin (x -> scale x + offset) with the moved sphere: the
+    nodal values are the same up to the factor scale, so S_h is the same surface moved and scaled,
+    its area times scale**2, the volumes of the sides times scale**3, to round-off of the moved
+    coordinates (1e-16 * 3.7e4 / spacing 0.25 relative).  CutMesh.enclosed_volume summed
+    x . (y x z) from the origin: 0.8286 for 0.8256 at the offset 1e4 in the same units, 0.8223 at
+    the offset 10 in 1e-3 units."""
+    box = structured_box([-1.0] * 3, [1.0] * 3, cells=8)
+    pts = box.points.copy()
+    inner = np.all(np.abs(pts) < 1 - 1e-9, axis=1)
+    pts[inner] += np.random.default_rng(0).uniform(-0.025, 0.025, (inner.sum(), 3))
+    offset, centre = np.asarray(offset), np.array([0.1, 0.05, -0.02])
+    reference = cut_mesh(TetMesh(pts, box.tets), Sphere(0.6, centre))
+    moved = cut_mesh(TetMesh(scale * pts + offset, box.tets), Sphere(0.6 * scale, scale * centre + offset))
+    assert moved.n_triangles == reference.n_triangles
+    assert moved.area / scale**2 == pytest.approx(reference.area, rel=1e-10)
+    assert moved.enclosed_volume / scale**3 == pytest.approx(reference.enclosed_volume, rel=1e-10)
+    assert moved.dx(NEG).size / scale**3 == pytest.approx(reference.dx(NEG).size, rel=1e-10)
+    assert moved.dx(POS).size / scale**3 == pytest.approx(8.0 - reference.dx(NEG).size, rel=1e-10)
 
 
 def test_nan_values():
