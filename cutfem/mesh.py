@@ -403,8 +403,6 @@ def close_pairs(points, r: float) -> np.ndarray:
     no simple ratio between its components, so the points of a mesh, structured or not, have well
     separated projections and almost none reach the tree.  On a million mesh nodes 40-90 ms,
     against 0.5-0.9 s for the k-d tree of all of them."""
-    from scipy.spatial import cKDTree
-
     p = np.asarray(points, dtype=float)
     if len(p) < 2:
         return np.empty((0, 2), dtype=np.int64)
@@ -415,6 +413,8 @@ def close_pairs(points, r: float) -> np.ndarray:
     near = np.diff(s[order]) <= float(r) + slack
     if not near.any():
         return np.empty((0, 2), dtype=np.int64)
+    from scipy.spatial import cKDTree  # imported only when some points are that close (about 40 ms)
+
     mark = np.zeros(len(p), dtype=bool)
     mark[:-1] |= near
     mark[1:] |= near
