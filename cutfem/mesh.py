@@ -482,11 +482,13 @@ class TetMesh:
         if tets.ndim != 2 or tets.shape[1] != 4:
             raise ValueError(f"tets must have shape (M, 4), got {tets.shape}")
         if check:
-            if not np.all(np.isfinite(points)):
-                bad = np.flatnonzero(~np.all(np.isfinite(points), axis=1))
-                raise ValueError(f"{bad.size} mesh points are NaN or infinite (first: point {bad[0]}); fix the input mesh")
             if tets.size and (tets.min() < 0 or tets.max() >= len(points)):
                 raise ValueError(f"tet vertex indices must lie in [0, {len(points)}); got range [{tets.min()}, {tets.max()}]")
+            used = self.__dict__["_used"] = _used_mask(len(points), tets)  # the cached _used
+            if not np.all(np.isfinite(points)):  # only the nodes of the tets count (stray points of a file do not)
+                bad = np.flatnonzero(used & ~np.all(np.isfinite(points), axis=1))
+                if bad.size:
+                    raise ValueError(f"{bad.size} nodes of the tets are NaN or infinite (first: point {bad[0]}); fix the input mesh")
             vol = self._signed_volumes(points, tets)
             scale = np.mean(np.abs(vol)) if vol.size else 0.0
             degenerate = np.abs(vol) <= 1e-12 * scale
@@ -496,7 +498,6 @@ class TetMesh:
                     f"{k.size} degenerate (zero-volume) tetrahedra, first: tet {k[0]} with vertices {tets[k[0]].tolist()}; "
                     "remove them or re-mesh"
                 )
-            used = self.__dict__["_used"] = _used_mask(len(points), tets)  # the cached _used
             _check_coincident(points, used)
             inverted = vol < 0
             if np.any(inverted):

@@ -425,6 +425,13 @@ def test_unused_nodes_do_not_change_h():
     assert padded.h == pytest.approx(0.2, rel=1e-14)
     far = TetMesh(np.vstack([pts, [[50.0, -7.0, 3.0]]]), tets)  # one stray point far off the box
     assert [b.tolist() for b in far.bounds] == [[-1.0] * 3, [1.0] * 3]
+    # a stray point with NaN coordinates is no node either; a NaN node of a tet is refused
+    nan = TetMesh(np.vstack([pts, [[np.nan, 0.0, np.inf]]]), tets)
+    assert nan.h == pytest.approx(0.2, rel=1e-14) and nan.volumes.sum() == pytest.approx(8.0, rel=1e-13)
+    bad = pts.copy()
+    bad[7, 1] = np.nan
+    with pytest.raises(ValueError, match=r"^1 nodes of the tets are NaN or infinite \(first: point 7\)"):
+        TetMesh(bad, tets)
 
 
 def test_coincident_nodes_used_by_tets_are_refused():
