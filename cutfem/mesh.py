@@ -935,6 +935,9 @@ def read_mesh(path) -> TetMesh:
         raise FileNotFoundError(f"mesh file not found: {path}")
     try:
         m = meshio.read(path)
+    except ModuleNotFoundError as exc:  # formats whose reader needs another package (.xdmf: h5py)
+        raise ValueError(f"cannot read mesh file {path}: meshio needs the package {exc.name!r} for this format; install it "
+                         f"(pip install {exc.name}) or convert the file to .vtu or .msh") from exc
     except (Exception, SystemExit) as exc:  # meshio raises several types (even SystemExit) for broken files
         raise ValueError(f"cannot read mesh file {path}: {exc}. Use a format meshio reads (.vtu, .vtk, .msh, .mesh, .xdmf)") from exc
     kinds = [(c, _volume_cell_kind(c.type)) for c in m.cells if len(c.data)]

@@ -757,3 +757,21 @@ def test_longest_edges_of_tets_and_triangles():
         np.testing.assert_array_equal(longest_edges(P, S), ref)
     with pytest.raises(ValueError, match=r"\(m, 3\) or \(m, 4\)"):
         longest_edges(P, np.zeros((5, 2), dtype=np.int64))
+
+
+def test_read_mesh_names_a_missing_reader_package(tmp_path, monkeypatch):
+    """A format whose meshio reader needs another package (.xdmf with HDF5 data: h5py) says which
+    package to install, instead of passing on the import error as a broken file."""
+    import meshio
+
+    from cutfem.mesh import read_mesh
+
+    path = tmp_path / "m.xdmf"
+    path.write_text("<Xdmf/>")
+
+    def read(_):
+        raise ModuleNotFoundError("No module named 'h5py'", name="h5py")
+
+    monkeypatch.setattr(meshio, "read", read)
+    with pytest.raises(ValueError, match=r"needs the package 'h5py' for this format; install it \(pip install h5py\)"):
+        read_mesh(path)
