@@ -25,6 +25,7 @@ import importlib
 import inspect
 import json
 import math
+import numbers
 import platform
 import sys
 import tempfile
@@ -420,7 +421,9 @@ def _utc_now() -> str:
 
 @dataclass
 class RunResult:
-    """Records of a convergence run, with rates between levels for every ``*_error`` entry.
+    """Records of a convergence run, with rates between levels for every ``*_error`` entry:
+    ``rates[k][i] = log(e_i / e_i+1) / log(h_i / h_i+1)`` between the finished levels i and i + 1,
+    None where an error or h is missing, zero, infinite or NaN, or the two h are equal.
 
     ``levels`` are the levels asked for, ``records`` those of the finished levels (the first
     ``len(records)``).  ``failure`` is None, or the level that failed (:func:`run` with
@@ -476,11 +479,12 @@ class RunResult:
         return json.dumps(self.to_json(), indent=2)
 
     def error_keys(self) -> list:
-        """The record keys that hold errors: ``*_error`` and per-field ``*_error_<field>``."""
+        """The record keys that hold errors: ``*_error`` and per-field ``*_error_<field>``, with a
+        number as value (a Python or numpy int or float, ``np.float32`` included; not a bool)."""
         keys = []
         for r in self.records:
             for k, v in r.items():
-                if ("_error" in k and not k.startswith("solver")) and k not in keys and isinstance(v, (int, float)):
+                if ("_error" in k and not k.startswith("solver")) and k not in keys and _is_number(v):
                     keys.append(k)
         return keys
 
@@ -507,6 +511,17 @@ class RunResult:
             f = self.failure
             lines.append(f"{self.level_name}={f['level']} failed ({f['error_type']}): {f['message']}")
         return "\n".join(lines)
+
+
+def _is_number(v) -> bool:
+    """Whether ``v`` is a real number (Python or numpy, any width), not a bool."""
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
+
+
+def _positive(v) -> bool:
+    """Whether ``v`` is a finite number > 0: what a rate log(e_i / e_i+1) / log(h_i / h_i+1) needs
+    (a zero, an infinite or a NaN error has no rate; math.log(0) would raise)."""
+    return _is_number(v) and math.isfinite(v) and v > 0
 
 
 def _git_state() -> dict:
@@ -678,7 +693,7 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
         e = [r.get(k) for r in records]
         rs = []
         for i in range(len(e) - 1):
-            if e[i] is None or e[i + 1] is None or e[i] <= 0 or e[i + 1] <= 0 or h[i] == h[i + 1]:
+            if not (_positive(e[i]) and _positive(e[i + 1]) and _positive(h[i]) and _positive(h[i + 1])) or h[i] == h[i + 1]:
                 rs.append(None)
             else:
                 rs.append(math.log(e[i] / e[i + 1]) / math.log(h[i] / h[i + 1]))

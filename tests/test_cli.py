@@ -744,3 +744,24 @@ def test_plot_without_errors_writes_nothing_and_says_so(tmp_path, capsys):
                                np.einsum("ij,ij->i", saved.point_data["H_h"], saved.points / np.linalg.norm(saved.points, axis=1)[:, None]),
                                rtol=0, atol=0.02)
     assert np.abs(saved.point_data["mean_curvature"] - 2.0).max() < 0.1
+
+
+def test_rates_skip_non_finite_errors_and_count_numpy_scalars():
+    """An infinite error (a diverged level) has no rate instead of crashing the run with
+    math.log(0); a NaN error has no rate (None in memory as in the JSON); an error held in a
+    numpy float32 is an error key like any float (table, rates), a bool is not."""
+
+    @register("test-odd-errors", levels=[1, 2, 4, 8], level_name="n", level_type=int)
+    def odd(n):
+        return {"h": 1.0 / n, "inf_error": float("inf") if n == 2 else 1.0 / n, "nan_error": float("nan") if n == 4 else n**-2.0,
+                "f32_error": np.float32(n**-3.0), "flag_error": True}
+
+    res = cutfem.run("test-odd-errors")
+    assert res.error_keys() == ["inf_error", "nan_error", "f32_error"]
+    assert res.rates["inf_error"][:2] == [None, None] and res.rates["inf_error"][2] == pytest.approx(1.0)
+    assert res.rates["nan_error"][0] == pytest.approx(2.0) and res.rates["nan_error"][1:] == [None, None]
+    assert res.rates["f32_error"] == pytest.approx([3.0, 3.0, 3.0])
+    data = json.loads(res.dumps())
+    assert data["rates"]["nan_error"][1:] == [None, None] and data["records"][2]["nan_error"] is None
+    # level 4 (blank cells drop out of split): inf_error 1/4 without a rate, nan_error nan without one, f32_error 1/64, rate 3
+    assert res.table().splitlines()[4].split()[:6] == ["4", "0.25", "2.5000e-01", "nan", "1.5625e-02", "3.00"]
