@@ -105,12 +105,13 @@ def fitted_rate(h, errors) -> float:
 
 def loglog_with_rates(ax, h, errors, label, marker="o", **kw):
     """Plot one error curve on ``ax`` (log-log) with its fitted rate in the legend label,
-    ``"label (rate 1.23)"``; points with ``e <= 0`` or NaN are left out.  Returns the rate."""
+    ``"label (rate 1.23)"``, or the label alone when there is no rate (fewer than two points);
+    points with ``e <= 0`` or NaN are left out.  Returns the rate (NaN without one)."""
     h = np.asarray(h, float)
     e = np.asarray(errors, float)
     ok = np.isfinite(e) & (e > 0)
     rate = fitted_rate(h, e)
-    ax.loglog(h[ok], e[ok], marker=marker, label=f"{label} (rate {rate:.2f})", **kw)
+    ax.loglog(h[ok], e[ok], marker=marker, label=f"{label} (rate {rate:.2f})" if np.isfinite(rate) else label, **kw)
     return rate
 
 
