@@ -587,13 +587,16 @@ def _versions() -> dict:
 
 
 def jsonable(obj):
-    """Plain Python (dict, list, float, int, str, None) for JSON; non-finite floats become None."""
+    """Plain Python (dict, list, float, int, bool, str, None) for JSON, numpy scalars and arrays
+    included; non-finite floats become None (JSON has no NaN or infinity)."""
     if isinstance(obj, dict):
         return {str(k): jsonable(v) for k, v in obj.items()}
     if isinstance(obj, (list, tuple)):
         return [jsonable(v) for v in obj]
     if isinstance(obj, np.ndarray):
         return jsonable(obj.tolist())
+    if isinstance(obj, np.bool_):  # not an np.integer: it would fall through to repr, the string "np.True_"
+        return bool(obj)
     if isinstance(obj, (np.integer,)):
         return int(obj)
     if isinstance(obj, (np.floating, float)):

@@ -765,3 +765,18 @@ def test_rates_skip_non_finite_errors_and_count_numpy_scalars():
     assert data["rates"]["nan_error"][1:] == [None, None] and data["records"][2]["nan_error"] is None
     # level 4 (blank cells drop out of split): inf_error 1/4 without a rate, nan_error nan without one, f32_error 1/64, rate 3
     assert res.table().splitlines()[4].split()[:6] == ["4", "0.25", "2.5000e-01", "nan", "1.5625e-02", "3.00"]
+
+
+def test_json_of_a_record_with_numpy_values():
+    """numpy scalars and arrays in a record are written as the JSON numbers and booleans they hold
+    (a numpy bool was the string "np.True_"), NaN and infinity as null: strict JSON."""
+
+    @register("test-numpy-record", levels=[0.5], level_name="step")
+    def numpy_record(step):
+        return {"h": step, "converged": np.bool_(True), "flags": np.array([True, False]), "n": np.int8(3),
+                "x_error": np.float32(0.25), "spread": np.array([1.5, np.nan, -np.inf])}
+
+    text = cutfem.run("test-numpy-record").dumps()
+    rec = json.loads(text, parse_constant=lambda c: pytest.fail(f"bare {c} in the JSON"))["records"][0]
+    assert rec["converged"] is True and rec["flags"] == [True, False] and rec["n"] == 3
+    assert rec["x_error"] == 0.25 and rec["spread"] == [1.5, None, None]
