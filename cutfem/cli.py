@@ -12,7 +12,7 @@ status 2; ``--debug`` shows the traceback.  The levels and the output paths (``-
 level fails after others finished, the table and the JSON are still written with the finished
 levels and the failure (level, error type, message), and the exit status is 2 (1 for an
 unexpected error, which is a bug).  Existing files at the output paths are replaced; ``--plot``
-writes nothing (and says so) when the records carry no errors to plot, ``--vtk`` nothing when they
+writes nothing (and says so) when the records carry no finite positive errors to plot, ``--vtk`` nothing when they
 carry no fields.
 """
 
@@ -145,9 +145,13 @@ def _cmd_run(argv) -> int:
         else:
             print(f"--vtk: nothing written: the records of {problem.name} carry no fields (a record's \"fields\")",
                   file=sys.stderr)
-    if known.plot and result.records and not result.error_keys():  # an empty figure would pass for a result
-        print(f"--plot: nothing written: the records of {problem.name} carry no errors (no exact solution for this "
-              f"input) to plot against h; an existing {known.plot} is left as it was", file=sys.stderr)
+    from .convergence import plotted_keys
+
+    if known.plot and result.records and not plotted_keys(result):  # an empty figure would pass for a result
+        why = ("no errors (no exact solution for this input)" if not result.error_keys() else
+               f"no finite positive errors ({', '.join(result.error_keys())} NaN, infinite or zero at every level)")
+        print(f"--plot: nothing written: the records of {problem.name} carry {why} to plot against h; an existing "
+              f"{known.plot} is left as it was", file=sys.stderr)
     elif known.plot and result.records:
         from .convergence import convergence_plot
 

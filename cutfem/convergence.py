@@ -25,6 +25,7 @@ __all__ = [
     "log_ticks",
     "loglog_with_rates",
     "new_figure",
+    "plotted_keys",
     "rate_triangle",
     "save_reproducible",
     "style",
@@ -203,14 +204,23 @@ def _title(result) -> str:
     return "\n".join(textwrap.wrap(head, width=64)) or result.problem
 
 
+def plotted_keys(result) -> list:
+    """The error keys of ``result`` that :func:`convergence_plot` draws: those with at least one
+    finite error > 0 (a key that is NaN, infinite or zero at every level would be an empty curve)."""
+    def drawable(v):
+        return v is not None and np.isfinite(float(v)) and float(v) > 0
+
+    return [k for k in result.error_keys() if any(drawable(r.get(k)) for r in result.records)]
+
+
 def convergence_plot(result, path, title=None, width: float = 5.0, height: float = 3.8):
     """Errors of a :class:`~cutfem.registry.RunResult` against h, one curve per ``*_error`` key
-    with its fitted rate in the legend and a rate triangle (slope: the rate between the two finest
+    with a finite positive error (:func:`plotted_keys`) with its fitted rate in the legend and a rate triangle (slope: the rate between the two finest
     levels rounded to the nearest 1/2, left out below 1/2; one triangle per slope, under the lowest curve with it) at the fine end; the title names the
     problem and its parameters (``title`` replaces it).  Written as PNG, PDF or SVG by the suffix
     of ``path`` at ``width`` x ``height`` inches, with :data:`STYLE` fonts (8 pt); returns the path."""
     h = np.array([r["h"] for r in result.records], float)
-    keys = result.error_keys()
+    keys = plotted_keys(result)
     with style():
         fig, ax = new_figure(width, height)
         triangles = {}  # slope -> (h, e, colour) of the lowest curve with it

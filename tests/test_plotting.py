@@ -141,3 +141,27 @@ def test_convergence_plot_draws_the_records(tmp_path, monkeypatch):
     slopes = sorted(np.log(p.get_xy()[1, 1] / p.get_xy()[0, 1]) / np.log(p.get_xy()[1, 0] / p.get_xy()[0, 0]) for p in ax.patches)
     np.testing.assert_allclose(slopes, [1.0, 2.0], rtol=1e-12)
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["l2 error (rate 2.00)", "h1 error (rate 1.00)", "once error"]
+
+
+def test_convergence_plot_leaves_out_keys_without_a_finite_error(tmp_path, monkeypatch, capsys):
+    """A key NaN (or zero) at every level is no curve and no legend entry; when no key is left,
+    --plot writes nothing and says why (an empty figure would pass for a result)."""
+    from cutfem import convergence
+    from cutfem.cli import main
+    from cutfem.registry import RunResult, register
+
+    records = [{"h": x, "l2_error": x**2, "nan_error": float("nan"), "zero_error": 0.0} for x in (0.5, 0.25)]
+    assert convergence.plotted_keys(RunResult("toy", {}, [0.5, 0.25], records)) == ["l2_error"]
+    drawn = []
+    monkeypatch.setattr(convergence, "save_reproducible", lambda fig, path, dpi=200: drawn.append(fig) or path)
+    convergence.convergence_plot(RunResult("toy", {}, [0.5, 0.25], records), tmp_path / "c.png")
+    assert [line.get_label() for line in drawn[0].axes[0].get_lines()] == ["l2 error (rate 2.00)"]
+    monkeypatch.undo()
+
+    @register("test-nan-errors", levels=[0.5, 0.25], level_name="step")
+    def nan_errors(step):
+        return {"h": step, "l2_error": float("nan")}
+
+    plot = tmp_path / "nan.png"
+    assert main(["run", "test-nan-errors", "--plot", str(plot), "--quiet"]) == 0
+    assert "--plot: nothing written" in capsys.readouterr().err and not plot.exists()
