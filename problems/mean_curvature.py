@@ -257,8 +257,12 @@ def _point_fields(ds, arrays):
 
 
 def _surface_fields(poly, H, He):
-    """Point data on S_h: H_h, |H_h|, the signed mean curvature H_h . n (area-weighted vertex
-    normals), and with an exact field H^e and the pointwise error."""
+    """Point data on S_h: H_h, |H_h|, the signed mean curvature H_h . n, and with an exact field
+    H^e (``H_exact``) the pointwise error |H^e - H_h| (``error``).  n at a vertex is VTK's point
+    normal: the normalized sum of the unit normals of the triangles at the vertex, not weighted by
+    their areas (on a cut surface that gives its slivers a full say; area weights were no closer to
+    the sphere's normals: 7.5 against 6.6 degrees at worst at spacing 0.2).  The triangles are
+    oriented outward, so n is the outward normal and a sphere of radius R gives 2 / R."""
     normals = poly.compute_normals(point_normals=True, cell_normals=False, auto_orient_normals=False, consistent_normals=False, split_vertices=False)
     arrays = {"H_h": H, "|H_h|": np.linalg.norm(H, axis=1), "mean_curvature": np.einsum("ij,ij->i", H, normals.point_data["Normals"])}
     if He is not None:

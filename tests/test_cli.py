@@ -76,6 +76,40 @@ def test_bulk_fields_in_vtk_carry_phi_h_and_the_cut_marker(tmp_path):
     assert (tmp_path / "poisson-cut_domain.pvd").exists() and (tmp_path / "poisson-cut_boundary.pvd").exists()
 
 
+def test_cut_mean_curvature_vtk_holds_the_solution_at_its_points(tmp_path):
+    """mean-curvature-cut --vtk on the unit sphere, checked against what the fields should be: the
+    surface is S_h (area 1^T M 1 of the record), H_h on it is the trace of the active mesh's P1 H_h,
+    H_exact = 2 x / |x|, mean_curvature = H_h . n with n the normalized sum of the unit normals of
+    the triangles at a vertex (outward: 2 / R = 2 up to the discretization), the active mesh has the
+    record's active tets of volume spacing^3 / 6 each."""
+    import pyvista as pv
+
+    js = tmp_path / "r.json"
+    assert main(["run", "mean-curvature-cut", "--surface", "sphere", "--levels", "0.4", "--vtk", str(tmp_path), "--json", str(js),
+                 "--quiet"]) == 0
+    rec = json.loads(js.read_text())["records"][0]
+    surface = pv.read(tmp_path / "mean-curvature-cut_spacing0.4_surface.vtp")
+    active = pv.read(tmp_path / "mean-curvature-cut_spacing0.4_active_mesh.vtu")
+    tri, x = surface.faces.reshape(-1, 4)[:, 1:], surface.points
+    cross = np.cross(x[tri[:, 1]] - x[tri[:, 0]], x[tri[:, 2]] - x[tri[:, 0]])
+    assert 0.5 * np.linalg.norm(cross, axis=1).sum() == pytest.approx(rec["area"], rel=1e-12)
+    assert active.n_cells == rec["active_tets"] and active.n_points == rec["dofs"]
+    assert active.volume == pytest.approx(rec["active_tets"] * 0.4**3 / 6, rel=1e-12)
+    probe = surface.sample(active, tolerance=1e-9)
+    assert probe.point_data["vtkValidPointMask"].all()
+    np.testing.assert_allclose(probe.point_data["H_h"], surface.point_data["H_h"], rtol=0, atol=1e-12)
+    H = surface.point_data["H_h"]
+    np.testing.assert_allclose(surface.point_data["H_exact"], 2 * x / np.linalg.norm(x, axis=1)[:, None], rtol=0, atol=1e-12)
+    unit = cross / np.linalg.norm(cross, axis=1)[:, None]
+    n = np.zeros_like(x)
+    for k in range(3):
+        np.add.at(n, tri[:, k], unit)
+    n /= np.linalg.norm(n, axis=1)[:, None]
+    np.testing.assert_allclose(surface.point_data["mean_curvature"], np.einsum("ij,ij->i", H, n), rtol=0, atol=1e-5)  # float32 normals
+    assert np.all(np.abs(surface.point_data["mean_curvature"] - 2) < 0.2)
+    np.testing.assert_allclose(surface.point_data["error"], np.linalg.norm(surface.point_data["H_exact"] - H, axis=1), rtol=1e-12)
+
+
 @pytest.mark.parametrize("argv,pattern", [
     (["run", "nope"], "unknown problem 'nope'; available:"),
     (["run", "mean-curvature-cut", "--tau-f", "-1"], "--tau-f: -1.0 must be a finite number >= 0"),
