@@ -199,7 +199,8 @@ def log_ticks(ax, axis: str = "both") -> None:
 
 
 def _title(result) -> str:
-    params = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in sorted(result.parameters.items()))
+    params = ", ".join(f"{k}={v:g}" if isinstance(v, float) else f"{k}={v}" for k, v in sorted(result.parameters.items())
+                       if v is not None)  # a parameter left to its default rule (box=None) says nothing
     head = result.problem + (f": {params}" if params else "")
     return "\n".join(textwrap.wrap(head, width=64)) or result.problem
 

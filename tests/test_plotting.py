@@ -127,7 +127,7 @@ def test_convergence_plot_draws_the_records(tmp_path, monkeypatch):
     h = np.array([0.4, 0.2, 0.1])
     records = [{"h": x, "l2_error": 3 * x**2, "h1_error": 0.5 * x} for x in h]
     records[0]["once_error"] = 0.25  # a key of the first level only
-    result = RunResult("toy", {"c": 0.5}, list(h), records)
+    result = RunResult("toy", {"c": 0.5, "box": None}, list(h), records)
     drawn = []
     monkeypatch.setattr(convergence, "save_reproducible", lambda fig, path, dpi=200: drawn.append(fig) or path)
     convergence.convergence_plot(result, tmp_path / "c.png")
@@ -138,6 +138,7 @@ def test_convergence_plot_draws_the_records(tmp_path, monkeypatch):
     np.testing.assert_allclose(curves["l2 error (rate 2.00)"].get_ydata(), 3 * h**2)
     np.testing.assert_allclose(curves["once error"].get_xdata(), [0.4])
     assert ax.get_xlabel() == "$h$" and ax.get_xscale() == ax.get_yscale() == "log"
+    assert ax.get_title(loc="left") == "toy: c=0.5"  # a parameter left to its default rule (None) is not named
     slopes = sorted(np.log(p.get_xy()[1, 1] / p.get_xy()[0, 1]) / np.log(p.get_xy()[1, 0] / p.get_xy()[0, 0]) for p in ax.patches)
     np.testing.assert_allclose(slopes, [1.0, 2.0], rtol=1e-12)
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["l2 error (rate 2.00)", "h1 error (rate 1.00)", "once error"]
