@@ -97,13 +97,23 @@ class _StageLine:
 
     def __init__(self):
         self.t0 = time.perf_counter()
-        self.pending = []
+        self.pending = []  # [stage, seconds] not printed yet
+        self.last = None  # the stage printed last
         self.shown = False
 
     def __call__(self, stage, seconds):
-        self.pending.append(f"{stage} {seconds:.2f} s")
+        # a stage entered again right after itself (the matrix, then the load: both "assembly") is
+        # one entry: summed while not printed, else printed as "+ s" after the first
+        if self.pending and self.pending[-1][0] == stage:
+            self.pending[-1][1] += seconds
+        else:
+            self.pending.append([stage, seconds])
         if self.shown or time.perf_counter() - self.t0 >= STAGES_AFTER:
-            print(" " + ", ".join(self.pending) + ",", end="", file=sys.stderr, flush=True)
+            parts = [f"{name} {t:.2f} s" for name, t in self.pending]
+            if self.pending[0][0] == self.last:
+                parts[0] = f"+{self.pending[0][1]:.2f} s"
+            print(" " + ", ".join(parts) + ",", end="", file=sys.stderr, flush=True)
+            self.last = self.pending[-1][0]
             self.pending.clear()
             self.shown = True
 
