@@ -499,10 +499,12 @@ class RunResult:
         return keys
 
     def table(self) -> str:
-        """A readable table: level, h, dofs, errors with rates, area, time (the level's wall time;
-        the sum of its stages for a record without one)."""
+        """A readable table: level, h, dofs, errors with rates, the size of the domain (``area`` of a
+        surface or ``volume`` of a bulk domain, the column left out when no record has it), time
+        (the level's wall time; the sum of its stages for a record without one)."""
         keys = self.error_keys()
-        head = ["level", "h", "dofs"] + [c for k in keys for c in (k, "rate")] + ["area", "time[s]"]
+        sizes = [k for k in ("area", "volume") if any(k in r for r in self.records)]
+        head = ["level", "h", "dofs"] + [c for k in keys for c in (k, "rate")] + sizes + ["time[s]"]
         rows = []
         for i, r in enumerate(self.records):
             row = [f"{self.levels[i]:g}" if isinstance(self.levels[i], (int, float)) else str(self.levels[i]), f"{r['h']:.4g}", str(r.get("dofs", ""))]
@@ -511,7 +513,7 @@ class RunResult:
                 row.append("" if e is None else f"{e:.4e}")
                 rr = self.rates.get(k)
                 row.append("" if i == 0 or rr is None or rr[i - 1] is None else f"{rr[i - 1]:.2f}")
-            row.append(f"{r['area']:.6f}" if "area" in r else "")
+            row += [f"{r[k]:.6f}" if _is_number(r.get(k)) else "" for k in sizes]
             row.append(f"{r.get('wall_time', sum(r.get('time', {}).values())):.2f}")
             rows.append(row)
         widths = [max([len(h)] + [len(r[j]) for r in rows]) for j, h in enumerate(head)]

@@ -833,6 +833,24 @@ def test_rates_skip_non_finite_errors_and_count_numpy_scalars():
     assert res.table().splitlines()[4].split()[:6] == ["4", "0.25", "2.5000e-01", "nan", "1.5625e-02", "3.00"]
 
 
+def test_table_shows_the_size_of_the_domain_its_records_have():
+    """The table's size column is the records' area (a surface) or volume (a bulk domain), left out
+    when no record has either (a blank 'area' column stood beside every bulk run)."""
+
+    @register("test-bulk-sizes", levels=[1, 2], level_name="n", level_type=int)
+    def bulk(n):
+        return {"h": 1.0 / n, "l2_error": n**-2.0, "volume": 4.0 + 0.1 / n}
+
+    @register("test-no-sizes", levels=[1], level_name="n", level_type=int)
+    def plain(n):
+        return {"h": 1.0, "l2_error": 1.0}
+
+    lines = cutfem.run("test-bulk-sizes").table().splitlines()
+    assert lines[0].split() == ["level", "h", "dofs", "l2_error", "rate", "volume", "time[s]"]
+    assert lines[3].split()[:5] == ["2", "0.5", "2.5000e-01", "2.00", "4.050000"]  # no dofs: blank
+    assert cutfem.run("test-no-sizes").table().splitlines()[0].split() == ["level", "h", "dofs", "l2_error", "rate", "time[s]"]
+
+
 def test_json_of_a_record_with_numpy_values():
     """numpy scalars and arrays in a record are written as the JSON numbers and booleans they hold
     (a numpy bool was the string "np.True_"), NaN and infinity as null: strict JSON."""
