@@ -133,11 +133,7 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
     """One level of the coupled bulk-surface problem; a spacing that does not resolve the sphere (S_h off its area
     by more than 25 %, :func:`~cutfem.problems.common.check_resolution`) is refused.
 
-    The default box is the ball's box grown by 0.1 at every level (grown to whole cells by
-    :func:`cutfem.mesh.structured_box`), not rounded outward to multiples of each spacing: the rates
-    are taken against h = N**(-1/3), which measures the spacing only in one box (rounded, the box was
-    [-1.2, 1.2]^3 at spacing 0.2 and [-1.1, 1.1]^3 at 0.1, and the first L2 rates read 2.45 for
-    errors that fell by 4.04)."""
+    The default box is the ball's box grown by 0.1 at every level (:func:`~cutfem.problems.common.box_for`)."""
     for flag, value in (("--k-bulk", k_bulk), ("--k-surface", k_surface), ("--b-bulk", b_bulk), ("--b-surface", b_surface)):
         if not value > 0:
             raise ProblemError(f"{flag} must be positive, got {value}")
@@ -150,9 +146,7 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
     t = Timer()
     with t("geometry"):
         phi = Sphere(radius)
-        if box is None:  # the ball's box grown by 0.1, the same at every level (see the docstring)
-            box = [-(radius + 0.1)] * 3 + [radius + 0.1] * 3
-        bg = background_for(phi, spacing, "structured", box)
+        bg = background_for(phi, spacing, "structured", box)  # default: the ball's box grown by 0.1 at every level
         check_bulk_memory(bg, phi, (NEG,), BULK_BYTES_PER_TET["bulk-surface-cut"], spacing)
         cut = cut_mesh(bg, phi)
         check_resolution(cut, phi, spacing)  # a sphere a few cells across: refused, not solved on a polyhedron

@@ -96,7 +96,7 @@ class PoissonParts:
             raise ValueError(f"spacing must be positive, got {spacing!r}")
         levelset = Sphere(radius=radius, center=center)
         self.spacing = float(spacing)
-        self.cut = cut_mesh(background_for(levelset, spacing), levelset)
+        self.cut = cut_mesh(background_for(levelset, spacing, anchored=True), levelset)  # the grid stays, the ball moves
         self.space = CutP1Space(self.cut, NEG)
         self.stiffness = assemble(stiffness(self.cut.dx(NEG)), self.space).tocsr()
         self.ghost = assemble(face_jump_penalty(self.cut.dF(self.cut.ghost_facets(NEG)), h_power=1), self.space).tocsr()

@@ -120,8 +120,10 @@ def _kappa(A, null_candidate=None):
 
 
 def matrices(levelset, spacing, box=None):
-    """(space, M, J_F) of the cut of ``levelset`` on a structured background of the given spacing."""
-    cut = cut_mesh(background_for(levelset, spacing, box=box), levelset)
+    """(space, M, J_F) of the cut of ``levelset`` on a structured background of the given spacing
+    (without ``box``: the grid's nodes at multiples of the spacing, so that a surface moved against
+    the grid moves against fixed nodes)."""
+    cut = cut_mesh(background_for(levelset, spacing, box=box, anchored=True), levelset)
     space = CutP1Space(cut)
     M = assemble(mass(cut.ds()), space).tocsr()
     return space, M, assemble(face_jump_penalty(cut.dF(cut.interior_facets(CUT))), space).tocsr()

@@ -289,3 +289,23 @@ def test_laplace_beltrami_names_a_stabilization_too_weak_or_too_strong(problem, 
     with pytest.raises(SolverError) as e:
         cutfem.run(problem, levels=[level], **params)
     assert words in str(e.value)
+
+
+def test_the_default_box_is_the_same_at_every_level_and_anchored_where_asked():
+    """The default background box is the surface's box grown by 0.1 at every spacing (the unit
+    sphere: [-1.1, 1.1]^3 at 0.2 and 0.1 alike; rounded to multiples of each spacing it was
+    [-1.2, 1.2]^3 at 0.2 and the first rate read 2.47 for an error that fell by 4.10), so that
+    h = N**(-1/3) halves with the spacing up to the node count (cells + 1 a side).  anchored=True
+    puts the grid's nodes at multiples of the spacing, fixed in space for a moved surface."""
+    from cutfem.levelset import Sphere
+    from cutfem.problems.common import box_for
+
+    res = cutfem.run("poisson-cut", levels=[0.2, 0.1])
+    boxes = [r["box"] for r in res.records]
+    np.testing.assert_allclose(boxes[0], [[-1.1] * 3, [1.1] * 3], atol=1e-12)
+    np.testing.assert_allclose(boxes[1], boxes[0], atol=1e-12)
+    assert [r["background_nodes"] for r in res.records] == [12**3, 23**3]
+    assert res.rates["l2_error"][0] == pytest.approx(np.log(res.records[0]["l2_error"] / res.records[1]["l2_error"]) / np.log(23 / 12))
+    lo, hi = box_for(Sphere(1.0, center=(0.013, -0.27, 0.5)), 0.1, anchored=True)
+    np.testing.assert_allclose(lo, [-1.1, -1.4, -0.6], atol=1e-12)  # multiples of 0.1 outside the grown box
+    np.testing.assert_allclose(hi, [1.2, 0.9, 1.6], atol=1e-12)
