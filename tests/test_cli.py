@@ -229,35 +229,26 @@ def test_progress_line_shows_the_stages_of_long_levels(monkeypatch, capsys):
     assert m and float(m.group(1)) >= 0.25
     assert registry._STAGE_LISTENER.get() is None  # reset after the run
 
-    @register("test-stages-again", levels=[1.0], level_name="n")
-    def again(n):  # a stage entered twice in a row (the matrix, then the load) is one entry
-        t = registry.Timer()
-        with t("assembly"):
-            pass
-        with t("assembly"):
-            time.sleep(0.15)
-        with t("solve"):
-            pass
-        with t("assembly"):
-            pass
-        return {"h": 1.0 / n, "dofs": 1, "time": dict(t)}
+    def line_of(name, stages):
+        """The progress line of a one-level problem that runs ``stages`` ((stage, seconds) in order)."""
 
-    cutfem.run("test-stages-again", progress=True)
-    line = capsys.readouterr().err.strip()
-    assert re.fullmatch(r"\[1/1\] test-stages-again n=1\.0 \.\.\. assembly (\d+\.\d\d) s, solve \d+\.\d\d s, "
+        @register(name, levels=[1.0], level_name="n")
+        def staged_again(n):
+            t = registry.Timer()
+            for stage, seconds in stages:
+                with t(stage):
+                    time.sleep(seconds)
+            return {"h": 1.0 / n, "dofs": 1, "time": dict(t)}
+
+        cutfem.run(name, progress=True)
+        return capsys.readouterr().err.strip()
+
+    # a stage entered again right after itself (the matrix, then the load) is one entry
+    line = line_of("test-stages-again", [("assembly", 0), ("assembly", 0.15), ("solve", 0), ("assembly", 0)])
+    assert re.fullmatch(r"\[1/1\] test-stages-again n=1\.0 \.\.\. assembly \d+\.\d\d s, solve \d+\.\d\d s, "
                         r"assembly \d+\.\d\d s, done in \d+\.\d\d s", line), line
-    monkeypatch.setattr(registry, "STAGES_AFTER", 0.0)  # each stage printed as it ends
-
-    @register("test-stages-shown", levels=[1.0], level_name="n")
-    def shown(n):
-        t = registry.Timer()
-        for stage in ("assembly", "assembly", "solve"):
-            with t(stage):
-                pass
-        return {"h": 1.0 / n, "dofs": 1, "time": dict(t)}
-
-    cutfem.run("test-stages-shown", progress=True)
-    line = capsys.readouterr().err.strip()
+    monkeypatch.setattr(registry, "STAGES_AFTER", 0.0)  # each stage printed as it ends: the second as "+ s"
+    line = line_of("test-stages-shown", [("assembly", 0), ("assembly", 0), ("solve", 0)])
     assert re.fullmatch(r"\[1/1\] test-stages-shown n=1\.0 \.\.\. assembly \d+\.\d\d s, \+\d+\.\d\d s, solve \d+\.\d\d s, "
                         r"done in \d+\.\d\d s", line), line
     with registry.Timer()("outside"):
