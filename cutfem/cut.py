@@ -227,7 +227,7 @@ def nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
     Points that no tet uses (a file's stray points, the mid-edge nodes of quadratic tets) are not
     nodes: the level set is not evaluated there, their entries are NaN (given values may be
     anything there), and nothing reads them."""
-    used = None if isinstance(mesh, StructuredBox) or mesh.n_used_points == mesh.n_points else mesh._used
+    used = None if mesh.n_used_points == mesh.n_points else mesh._used  # a StructuredBox: every node is used
     if isinstance(levelset, np.ndarray):
         values = np.asarray(levelset, dtype=float).reshape(-1)
         if values.size != mesh.n_points:

@@ -516,13 +516,22 @@ class RunResult:
             row += [f"{r[k]:.6f}" if _is_number(r.get(k)) else "" for k in sizes]
             row.append(f"{r.get('wall_time', sum(r.get('time', {}).values())):.2f}")
             rows.append(row)
-        widths = [max([len(h)] + [len(r[j]) for r in rows]) for j, h in enumerate(head)]
-        fmt = lambda cells: "  ".join(c.rjust(w) for c, w in zip(cells, widths))  # noqa: E731
-        lines = [fmt(head), fmt(["-" * w for w in widths])] + [fmt(r) for r in rows]
+        lines = text_table(head, rows).split("\n")
         if self.failure is not None:
             f = self.failure
             lines.append(f"{self.level_name}={f['level']} failed ({f['error_type']}): {f['message']}")
         return "\n".join(lines)
+
+
+def text_table(head, rows, left: int = 0) -> str:
+    """Fixed-width text of a table: the header, a rule of dashes, the rows (lists of strings);
+    columns two spaces apart, the first ``left`` left-aligned, the others right-aligned."""
+    widths = [max([len(h)] + [len(r[j]) for r in rows]) for j, h in enumerate(head)]
+
+    def line(cells):
+        return "  ".join(c.ljust(w) if j < left else c.rjust(w) for j, (c, w) in enumerate(zip(cells, widths)))
+
+    return "\n".join([line(head), line(["-" * w for w in widths])] + [line(r) for r in rows])
 
 
 def _is_number(v) -> bool:

@@ -51,7 +51,7 @@ from cutfem.forms import assemble, face_jump_penalty, mass, tangential_stiffness
 from cutfem.levelset import Torus
 from cutfem.memory import InsufficientMemoryError
 from cutfem.mesh import structured_box
-from cutfem.registry import ProblemError, check_output
+from cutfem.registry import ProblemError, check_output, text_table
 from cutfem.spaces import CutP1Space
 
 from .common import PAGE_WIDTH, Progress, add_size_arguments, figure_style, pick, save_csv, save_json
@@ -169,13 +169,7 @@ COLUMNS = [
 
 def format_table(rows: list[dict]) -> str:
     """The measured table as fixed-width text (times in seconds)."""
-    cells = [[label for _, label, _ in COLUMNS]]
-    for r in rows:
-        cells.append([fmt.format(r[key]) for key, _, fmt in COLUMNS])
-    widths = [max(len(row[i]) for row in cells) for i in range(len(COLUMNS))]
-    lines = ["  ".join(c.rjust(w) for c, w in zip(row, widths)) for row in cells]
-    lines.insert(1, "  ".join("-" * w for w in widths))
-    return "\n".join(lines)
+    return text_table([label for _, label, _ in COLUMNS], [[fmt.format(r[key]) for key, _, fmt in COLUMNS] for r in rows])
 
 
 @figure_style

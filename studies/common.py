@@ -23,7 +23,7 @@ import numpy as np
 
 from cutfem.convergence import new_figure  # noqa: F401  (the studies' figures)
 from cutfem.memory import configure
-from cutfem.registry import ProblemError, check_output, jsonable
+from cutfem.registry import ProblemError, check_output, jsonable, text_table
 
 SIZES = ("tiny", "quick", "full")
 
@@ -86,12 +86,9 @@ def save_latex_table(out: Path, name: str, header: list[str], rows: list[list], 
     is written above it as a comment (what the table holds, for a reader of the file: the
     manuscript's caption is its own).  The table is also printed on standard output as plain text
     (:func:`plain_cell`), under its caption and file name."""
-    text = [[plain_cell(c) for c in header]] + [[plain_cell(c) for c in row] for row in rows]
-    widths = [max(len(r[k]) for r in text) for k in range(len(header))]
-    lines = [f"{name}.tex" + (f": {' '.join(caption.split())}" if caption else "")]
-    lines += ["  ".join(c.ljust(w) if k == 0 else c.rjust(w) for k, (c, w) in enumerate(zip(r, widths))) for r in text]
-    lines.insert(2, "  ".join("-" * w for w in widths))
-    print("\n".join(lines) + "\n", flush=True)
+    title = f"{name}.tex" + (f": {' '.join(caption.split())}" if caption else "")
+    table = text_table([plain_cell(c) for c in header], [[plain_cell(c) for c in row] for row in rows], left=1)
+    print(f"{title}\n{table}\n", flush=True)
     path = Path(out) / f"{name}.tex"
     path.parent.mkdir(parents=True, exist_ok=True)
     cols = "l" + "r" * (len(header) - 1)
