@@ -77,7 +77,11 @@ LENGTH_RANGE = (1e-50, 1e50)
 #: The finest level of :func:`sphere_mesh` (20 * 4**10 = 20,971,520 triangles).
 SPHERE_MAX_LEVEL = 10
 
-_READ_EXTENSIONS_HINT = ".stl, .obj, .ply, .off, .vtk, .vtu, .msh (Gmsh), .mesh (Medit)"
+_READ_EXTENSIONS_HINT = ".stl, .obj, .ply, .off, .vtk, .vtp, .vtu, .msh (Gmsh), .mesh (Medit)"
+
+# names of the VTK cell types a surface file may hold (vtkCellType.h), for read_surface
+_VTK_CELL_NAMES = {1: "vertex", 2: "vertex", 3: "line", 4: "line", 5: "triangle", 6: "triangle_strip", 7: "polygon",
+                   8: "quad", 9: "quad"}
 
 # local vertex index of the end of local edge k (which starts at vertex k)
 _NEXT = np.array([1, 2, 0])
@@ -1252,11 +1256,48 @@ def _merge_points(points: np.ndarray, triangles: np.ndarray):
     return points[first[order]], rank[label][triangles]
 
 
+def _is_polydata(path: Path) -> bool:
+    """Whether ``path`` holds VTK polygonal data: an XML ``.vtp`` file, or a legacy ``.vtk`` file
+    whose fourth header line (ASCII in both the ASCII and the binary variant) is ``DATASET POLYDATA``."""
+    suffix = path.suffix.lower()
+    if suffix == ".vtp":
+        return True
+    if suffix != ".vtk":
+        return False
+    with open(path, "rb") as f:
+        head = [f.readline(300) for _ in range(4)]
+    return head[-1].split()[:2] == [b"DATASET", b"POLYDATA"]
+
+
+def _read_polydata(path: Path):
+    """Points and cells of a VTK polygonal-data file read with pyvista, in the shape of a meshio
+    mesh (``points``, ``cells`` with ``type`` and ``data``), so that :func:`read_surface` checks it
+    like any other file; triangle strips are reported as such (not triangulated)."""
+    from types import SimpleNamespace
+
+    import pyvista
+
+    if path.suffix.lower() == ".vtp":
+        with open(path, "rb") as f:
+            head = f.read(1000)
+        if b"<VTKFile" not in head or b'"PolyData"' not in head:  # keep VTK's own error log out of the way
+            raise ValueError("not a VTK XML PolyData file (no <VTKFile type=\"PolyData\"> header)")
+    with pyvista.VtkErrorCatcher(raise_errors=True, send_to_logging=False):
+        grid = pyvista.read(path).cast_to_unstructured_grid()
+    cells = [SimpleNamespace(type=_VTK_CELL_NAMES.get(int(kind), f"VTK cell type {int(kind)}"),
+                             data=np.asarray(data) if int(kind) == 5 else data)
+             for kind, data in grid.cells_dict.items()]
+    return SimpleNamespace(points=np.asarray(grid.points), cells=cells)
+
+
 def read_surface(path) -> SurfaceMesh:
-    """Read a closed triangle surface with meshio (STL, OBJ, PLY, OFF, VTK, VTU, Gmsh, ...).
+    """Read a closed triangle surface: STL, OBJ, PLY, OFF, VTK, VTU, Gmsh, ... with meshio, VTK
+    polygonal data (``.vtp``, and legacy ``.vtk`` files of ``DATASET POLYDATA``, which pyvista and
+    ParaView write for surfaces) with pyvista.
 
     Only "triangle" cells are used (points, lines and volume cells are ignored); a file holding
-    quadrilaterals or polygons is rejected (triangulate it first), and so is one without triangles.
+    quadrilaterals, polygons or triangle strips is rejected (triangulate it first), and so is one
+    without triangles.
     Points used by no triangle are dropped (whatever their coordinates, NaN included; a non-finite
     point that a triangle uses is refused with its row in the file) and coincident points are
     merged (see :func:`_merge_points`: closer than MERGE_TOLERANCE times the bounding-box
@@ -1278,17 +1319,17 @@ def read_surface(path) -> SurfaceMesh:
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            data = meshio.read(path)
+            data = _read_polydata(path) if _is_polydata(path) else meshio.read(path)
     except (Exception, SystemExit) as err:  # meshio calls sys.exit(1) when its reader rejects a file
         detail = "meshio could not parse it" if isinstance(err, SystemExit) else f"{type(err).__name__}: {err}"
         raise ValueError(
             f"cannot read surface mesh '{path}' ({detail}); check the file and its "
-            f"extension; supported formats include {_READ_EXTENSIONS_HINT} (meshio)."
+            f"extension; supported formats include {_READ_EXTENSIONS_HINT}."
         ) from err
     other_2d = {
         block.type: len(block.data)
         for block in data.cells
-        if block.type in ("quad", "polygon", "triangle6", "triangle7", "quad8", "quad9") and len(block.data)
+        if block.type in ("quad", "polygon", "triangle_strip", "triangle6", "triangle7", "quad8", "quad9") and len(block.data)
     }
     if other_2d:
         raise ValueError(
@@ -1318,11 +1359,12 @@ def read_surface(path) -> SurfaceMesh:
 
 
 def write_surface(mesh: SurfaceMesh, path, file_format: str | None = None, **kwargs) -> None:
-    """Write ``mesh`` (points and triangle cells) with meshio; the format follows the extension.
+    """Write ``mesh`` (points and triangle cells) with meshio, or as VTK polygonal data with pyvista
+    for a ``.vtp`` path; the format follows the extension.
 
     ``file_format`` and ``kwargs`` are passed to ``meshio.write`` (e.g. ``binary=True`` for STL).
     Node indices are written as int32 when they fit (portable PLY/VTK).  Binary STL stores
-    float32 coordinates; the other common formats (.obj, .ply, .off, .vtk, .vtu, ASCII .stl)
+    float32 coordinates; the other common formats (.obj, .ply, .off, .vtk, .vtp, .vtu, ASCII .stl)
     round-trip float64 exactly.  Raises ValueError naming ``path`` for an unknown format and
     FileNotFoundError when the parent directory does not exist.
     """
@@ -1336,6 +1378,11 @@ def write_surface(mesh: SurfaceMesh, path, file_format: str | None = None, **kwa
     triangles = np.array(mesh.triangles)
     if mesh.n_points < 2**31:
         triangles = triangles.astype(np.int32)
+    if path.suffix.lower() == ".vtp" and file_format is None:  # VTK polygonal data, which meshio does not write
+        import pyvista
+
+        pyvista.PolyData.from_regular_faces(np.array(mesh.points), triangles).save(path, **kwargs)
+        return
     data = meshio.Mesh(np.array(mesh.points), [("triangle", triangles)])
     try:
         meshio.write(path, data, file_format=file_format, **kwargs)

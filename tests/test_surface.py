@@ -408,7 +408,7 @@ def test_bad_input_rejected(make, match):
 # ----------------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("ext", ["stl", "obj", "ply", "vtk", "vtu", "off"])
+@pytest.mark.parametrize("ext", ["stl", "obj", "ply", "vtk", "vtp", "vtu", "off"])
 @pytest.mark.parametrize("mesh", [sphere_mesh(2, 1.5, (0.1, 0.2, 0.3)), torus_mesh(8, "perturbed-flipped")],
                          ids=["sphere", "torus"])
 def test_round_trip(tmp_path, ext, mesh):
@@ -445,13 +445,43 @@ def test_read_merges_near_duplicates_and_drops_unused(tmp_path):
     assert mesh.area == pytest.approx(24.0, rel=1e-12)
 
 
+@pytest.mark.parametrize("name,binary,rel", [("s.vtk", True, 1e-12), ("s_ascii.vtk", False, 1e-8), ("s.vtp", True, 1e-12)])
+def test_read_vtk_polydata_as_pyvista_writes_it(tmp_path, name, binary, rel):
+    # pyvista and ParaView write surfaces as polygonal data (legacy DATASET POLYDATA or .vtp),
+    # which meshio does not read
+    pyvista = pytest.importorskip("pyvista")
+    mesh = sphere_mesh(2, 1.5, (0.1, 0.2, 0.3))
+    path = tmp_path / name
+    pyvista.PolyData.from_regular_faces(mesh.points, mesh.triangles).save(path, binary=binary)
+    if path.suffix == ".vtk":
+        assert b"DATASET POLYDATA" in path.read_bytes()[:300]
+    back = read_surface(path)
+    assert back.n_points == mesh.n_points and back.n_triangles == mesh.n_triangles
+    assert back.euler_characteristic == 2
+    assert back.area == pytest.approx(mesh.area, rel=rel)  # VTK's ASCII writer rounds the coordinates
+    assert back.enclosed_volume == pytest.approx(mesh.enclosed_volume, rel=rel)
+
+
+@pytest.mark.parametrize("name", ["cube.vtp", "cube.vtk"])
+def test_read_polydata_quads_and_strips_rejected(tmp_path, name):
+    pyvista = pytest.importorskip("pyvista")
+    path = tmp_path / name
+    pyvista.Cube().save(path)  # six quads
+    with pytest.raises(ValueError, match=rf"{name}.*non-triangle.*quad.*triangulate"):
+        read_surface(path)
+    strips = tmp_path / f"strips{path.suffix}"
+    pyvista.Sphere().strip().save(strips)
+    with pytest.raises(ValueError, match=r"non-triangle.*triangle_strip.*triangulate"):
+        read_surface(strips)
+
+
 def test_read_missing_file(tmp_path):
     path = tmp_path / "nowhere.stl"
     with pytest.raises(FileNotFoundError, match="nowhere.stl"):
         read_surface(path)
 
 
-@pytest.mark.parametrize("ext", ["stl", "ply", "vtu"])
+@pytest.mark.parametrize("ext", ["stl", "ply", "vtu", "vtp"])
 def test_read_unreadable_file(tmp_path, ext):
     path = tmp_path / f"garbage.{ext}"
     path.write_text("this is not\na mesh at all\n")
