@@ -205,6 +205,14 @@ def _title(result) -> str:
     return "\n".join(textwrap.wrap(head, width=64)) or result.problem
 
 
+def _h_label(result) -> str:
+    """The x label: h with its definition when the problem gives one of the two built-in ones
+    (:data:`cutfem.registry.H_AXIS_LABELS`), else h alone."""
+    from .registry import H_AXIS_LABELS
+
+    return H_AXIS_LABELS.get(result.definitions.get("h"), "$h$")
+
+
 def plotted_keys(result) -> list:
     """The error keys of ``result`` that :func:`convergence_plot` draws: those with at least one
     finite error > 0 (a key that is NaN, infinite or zero at every level would be an empty curve)."""
@@ -239,7 +247,7 @@ def convergence_plot(result, path, title=None, width: float = 5.0, height: float
                     triangles[order] = (hh, ee, color)
         for order, (hh, ee, color) in sorted(triangles.items()):
             rate_triangle(ax, hh, ee, order, color=color)
-        ax.set_xlabel("$h$")
+        ax.set_xlabel(_h_label(result))
         ax.set_ylabel("error")
         ax.set_title(title or _title(result), loc="left", fontsize=8)
         ax.grid(True, which="major", alpha=0.35)

@@ -57,9 +57,16 @@ __all__ = [
 #: version of the layout of :meth:`RunResult.to_json` (2: metadata, definitions, failure)
 SCHEMA_VERSION = 2
 
+#: the definition of ``h`` of a problem on a background tet mesh (cut problems) and on a surface
+#: mesh (meshed problems), for a problem's ``definitions``; :data:`H_AXIS_LABELS` names them on a plot
+H_BACKGROUND = "global mesh size: N**(-1/3), N the number of background nodes (the nodes of its tets)"
+H_SURFACE = "global mesh size: N**(-1/2), N the number of surface nodes"
+H_AXIS_LABELS = {H_BACKGROUND: "$h = N^{-1/3}$, $N$ background nodes", H_SURFACE: "$h = N^{-1/2}$, $N$ surface nodes"}
+
 #: definitions of the record entries shared by every problem (a problem's own ``definitions`` add to them)
 COMMON_DEFINITIONS = {
-    "h": "global mesh size: N**(-1/3), N the number of background nodes (cut problems); N**(-1/2), N the number of surface nodes (meshed problems)",
+    "h": "global mesh size, not defined by the problem (the built-in problems define it as H_BACKGROUND or H_SURFACE: "
+         "N**(-1/3) of the background nodes or N**(-1/2) of the surface nodes)",
     "dofs": "unknowns per component: the number of P1 nodes (active nodes of a cut, surface nodes of a mesh)",
 }
 

@@ -37,7 +37,7 @@ from cutfem.forms import assemble, bilinear_form, face_jump_penalty, load, mass,
 from cutfem.kernels import parallel_kernel
 from cutfem.levelset import Sphere
 from cutfem.markers import CUT, NEG
-from cutfem.registry import LazyFields, Param, ProblemError, register
+from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
@@ -100,6 +100,7 @@ class BulkSurfaceSolution:
 
 #: the record's entries (saved with the JSON)
 DEFINITIONS = {
+    "h": H_BACKGROUND,
     "dofs": "unknowns of the coupled system, dofs_bulk + dofs_surface: the nodes of the tets of NEG plus the nodes of "
             "the cut tets",
     "l2_error_bulk": "||u_B,h - u_B||_L2(Omega_h), Omega_h the NEG cut volume (degree-4 quadrature on its whole tets and cut parts)",

@@ -61,7 +61,7 @@ from cutfem.errors import l2_error
 from cutfem.forms import assemble, load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.levelset import Sphere
 from cutfem.markers import CUT
-from cutfem.registry import LazyFields, Param, ProblemError, register
+from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
 from cutfem.solve import CGSolver, DirectSolver, multigrid_hierarchy
 from cutfem.spaces import CutP1Space
 
@@ -204,7 +204,7 @@ class HeatSolution:
     summary="surface heat equation on a cut sphere, TraceFEM + theta-scheme (docs/math.md §11)",
     levels=[0.4, 0.2, 0.1, 0.05],
     level_name="spacing",
-    definitions={"l2_error": "||u_h(T) - u(T)^e||_L2(S_h) at the final time T (the record's final_time, reached in "
+    definitions={"h": H_BACKGROUND, "l2_error": "||u_h(T) - u(T)^e||_L2(S_h) at the final time T (the record's final_time, reached in "
                              "time_steps steps of dt), u^e the normal extension of the exact solution"},
     params=[
         Param("theta", float, 1.0, "theta of the time scheme: 1 backward Euler (dt = c h^2), 0.5 Crank-Nicolson (dt = c h)", choices=(1.0, 0.5)),

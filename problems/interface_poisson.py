@@ -35,7 +35,7 @@ from cutfem.forms import apply_dirichlet, assemble, face_jump_penalty, interface
 from cutfem.kernels import parallel_kernel
 from cutfem.levelset import Sphere
 from cutfem.markers import NEG, POS
-from cutfem.registry import LazyFields, Param, ProblemError, register
+from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
 from cutfem.solve import SolverError, solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
@@ -106,6 +106,7 @@ class InterfaceSolution:
 
 #: the record's entries (saved with the JSON)
 DEFINITIONS = {
+    "h": H_BACKGROUND,
     "dofs": "unknowns of the coupled system, dofs_inside + dofs_outside: the nodes of the tets of NEG plus those of the "
             "tets of POS (a node of a cut tet counts on both sides)",
     **{f"{norm}_error_{name}": f"{what} over Omega_h,{side} = the {side} cut volume (degree-4 quadrature on its whole tets and cut parts)"

@@ -28,7 +28,7 @@ from cutfem.errors import h1_error, l2_error
 from cutfem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.kernels import parallel_kernel
 from cutfem.levelset import Sphere, Torus
-from cutfem.registry import LazyFields, Param, Problem, ProblemError, register
+from cutfem.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
 from cutfem.solve import SolverError, solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
@@ -181,7 +181,7 @@ class LaplaceBeltramiMeshed(Problem):
     name = "laplace-beltrami-meshed"
     summary = "-Lap_S u + u = f with a manufactured solution on a triangulated sphere or torus (docs/math.md §4)"
     level_name = "n"
-    definitions = DEFINITIONS
+    definitions = {**DEFINITIONS, "h": H_SURFACE}
     level_type = int
     default_levels = [16, 32, 64, 128]
     params = [
@@ -224,7 +224,7 @@ class LaplaceBeltramiCut(Problem):
     name = "laplace-beltrami-cut"
     summary = "-Lap_S u + u = f with a manufactured solution on a cut sphere or torus, face or normal-gradient stabilization (docs/math.md §4)"
     level_name = "spacing"
-    definitions = DEFINITIONS
+    definitions = {**DEFINITIONS, "h": H_BACKGROUND}
     level_type = float
     default_levels = [0.2, 0.1, 0.05, 0.025]
     params = [

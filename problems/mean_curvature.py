@@ -29,7 +29,7 @@ import numpy as np
 from cutfem.cut import cut_mesh
 from cutfem.errors import discrete_error, l2_error
 from cutfem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, mass, position_load
-from cutfem.registry import LazyFields, Param, Problem, ProblemError, register
+from cutfem.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
@@ -144,7 +144,7 @@ class MeanCurvatureMeshed(Problem):
     level_type = int
     default_levels = [16, 32, 64, 128]
     components = 3
-    definitions = DEFINITIONS
+    definitions = {**DEFINITIONS, "h": H_SURFACE}
     params = [
         Param("surface", str, "torus", "torus, sphere, or a closed mesh file (STL, OBJ, PLY, VTK, ...)", choices=("torus", "sphere"), files=True),
         Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
@@ -203,7 +203,7 @@ class MeanCurvatureCut(Problem):
     level_type = float
     default_levels = [0.2, 0.1, 0.05, 0.025]
     components = 3
-    definitions = DEFINITIONS
+    definitions = {**DEFINITIONS, "h": H_BACKGROUND}
     params = [
         Param("surface", str, "torus", f"torus, sphere, ellipsoid, {USER_SURFACES}; H^e is exact at the closest point"),
         Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),

@@ -24,7 +24,7 @@ from cutfem.errors import l2_h1_errors
 from cutfem.forms import assemble, face_jump_penalty, load, nitsche, nitsche_load, stiffness
 from cutfem.kernels import parallel_kernel
 from cutfem.markers import NEG
-from cutfem.registry import LazyFields, Param, register
+from cutfem.registry import H_BACKGROUND, LazyFields, Param, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space
 
@@ -76,6 +76,7 @@ def source(x):
 
 #: the record entries of poisson-cut (saved in the JSON of a run)
 DEFINITIONS = {
+    "h": H_BACKGROUND,
     "l2_error": "||u_h - u||_L2(Omega_h) over the cut volume Omega_h = {phi_h < 0} (degree-4 quadrature on its whole tets and cut parts)",
     "h1_error": "||grad u_h - grad u||_L2(Omega_h), as l2_error",
 }

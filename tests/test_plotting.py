@@ -144,6 +144,30 @@ def test_convergence_plot_draws_the_records(tmp_path, monkeypatch):
     assert [t.get_text() for t in ax.get_legend().get_texts()] == ["l2 error (rate 2.00)", "h1 error (rate 1.00)", "once error"]
 
 
+def test_every_problem_defines_its_h_and_the_figure_names_it(tmp_path, monkeypatch):
+    """Each built-in problem defines h as N^(-1/3) of the background nodes (cut) or N^(-1/2) of the
+    surface nodes (meshed), its records' h is that number, and the convergence figure's x label
+    states it; a problem without its own definition gets h alone (see the toy above)."""
+    from cutfem import convergence
+    from cutfem.registry import _ORIGIN, H_AXIS_LABELS, H_BACKGROUND, H_SURFACE, _is_builtin, available_problems, run
+
+    drawn = []
+    monkeypatch.setattr(convergence, "save_reproducible", lambda fig, path, dpi=200: drawn.append(fig) or path)
+    builtin = {name: p for name, p in available_problems().items() if _is_builtin(_ORIGIN.get(name) or "")}
+    assert len(builtin) >= 8
+    for name, problem in builtin.items():
+        result = run(name, levels=problem.default_levels[:1])
+        rec = result.records[0]
+        if result.definitions["h"] == H_SURFACE:
+            assert rec["h"] == pytest.approx(rec["dofs"] ** -0.5, rel=1e-12), name  # P1 on the surface: a dof a node
+        else:
+            assert result.definitions["h"] == H_BACKGROUND, name
+            assert rec["h"] == pytest.approx(rec["background_nodes"] ** (-1 / 3), rel=1e-12), name
+        convergence.convergence_plot(result, tmp_path / f"{name}.png")
+        assert drawn[-1].axes[0].get_xlabel() == H_AXIS_LABELS[result.definitions["h"]]
+    assert {H_SURFACE, H_BACKGROUND} <= {p.definitions["h"] for p in builtin.values()}
+
+
 def test_convergence_plot_leaves_out_keys_without_a_finite_error(tmp_path, monkeypatch, capsys):
     """A key NaN (or zero) at every level is no curve and no legend entry; when no key is left,
     --plot writes nothing and says why (an empty figure would pass for a result)."""
