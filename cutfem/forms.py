@@ -1152,20 +1152,23 @@ def position_load(measure: Measure, field=None) -> Form:
 
     the area-weighted tangential gradients summed per dof: the same vector as A x_k with A the
     tangential stiffness (to round-off; tested), at the cost of one compiled pass over the elements
-    (:func:`cutfem.kernels.tangential_gradient_sums`) instead of a sparse matrix product.  Each element's contributions sum to |S_K| P_h grad(1) = 0, so sum_i b_i = 0 up
-    to round-off (the zero integral of H_h).  On a triangulated surface the closed-form stiffness
-    (no gradients) times x is cheaper and is used instead.
+    (:func:`cutfem.kernels.tangential_gradient_sums`; on a triangulated surface
+    :func:`cutfem.kernels.meshed_position_load`, from the node positions alone) instead of a sparse
+    matrix product.  Each element's contributions sum to |S_K| P_h grad(1) = 0, so sum_i b_i = 0
+    up to round-off (the zero integral of H_h).
     """
     _require(measure, (SurfacePieces, MeshedSurface), "position_load")
 
     def build(space):
-        if isinstance(measure, MeshedSurface):
-            _same_mesh(space, measure, "position_load")
-            return space.node_pattern().matrix(*_meshed_stiffness(space)) @ space.dof_points
-        if not _same_elements(space, measure):
-            raise ValueError("position_load needs the field on the cut tets, CutP1Space(cut, CUT)")
         from . import kernels
 
+        if isinstance(measure, MeshedSurface):
+            _same_mesh(space, measure, "position_load")
+            out = np.zeros((space.n_dofs, 3))
+            kernels.meshed_position_load(space.dof_points, space.element_dofs, out)
+            return out
+        if not _same_elements(space, measure):
+            raise ValueError("position_load needs the field on the cut tets, CutP1Space(cut, CUT)")
         out = np.zeros((space.n_dofs, 3))
         table, types = space.gradient_lookup()
         kernels.tangential_gradient_sums(space.element_dofs, table, types, np.ascontiguousarray(space.element_normals, dtype=float),

@@ -190,7 +190,7 @@ from .numbering import TET_EDGES, index_dtype
 
 _TET_EDGES = np.ascontiguousarray(TET_EDGES, dtype=np.int64)  # a global array: a compile-time constant
 
-__all__ = ["WIDTH", "matmul", "csr_diagonal", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "prune_blocks", "kept_cells", "refine_blocks", "box_cell_corner_ids", "box_ids_on_faces", "kuhn_types", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "triangle_points",
+__all__ = ["WIDTH", "matmul", "csr_diagonal", "gauss_seidel", "presmooth", "sweep_chunks", "column_dots", "cg_step", "cg_direction", "piece_moments", "piece_integrals", "scatter_add", "radix_argsort", "kuhn_tet_nodes", "side_split", "rule_points", "barycentric_values", "cell_value_error", "cell_gradient_error", "vertex_values", "mixed_kuhn_tets", "marching", "slot_keys", "surface", "kuhn_face_keys", "kuhn_face_pairs", "face_normals_areas", "edge_census", "galerkin", "kuhn_ends_bounds", "kuhn_ends_codes", "kuhn_prolongation_csr", "dense_unique", "prune_blocks", "kept_cells", "refine_blocks", "box_cell_corner_ids", "box_ids_on_faces", "kuhn_types", "level_set_normals", "torus_mean_curvature_vector", "tangential_gradient_sums", "meshed_position_load", "triangle_points",
            "squared_error", "triangle_areas", "jump_rows", "lattice_add_elements", "lattice_add_pieces", "lattice_add_rows",
            "lattice_add_face_jumps",
            "lattice_csr", "scatter_chunks"]
@@ -1897,8 +1897,9 @@ def surface(vinv, n_vertices, tets, code, vals, points, edge_i_table, edge_j_tab
               np.ascontiguousarray(flip, dtype=np.bool_), neg, np.ascontiguousarray(tri_slots, dtype=np.int64))
     vertices = np.empty((n_vertices, 3))
     args = (vinv, tets, code, vals, points) + tables[:4]
-    n = _surface(*args, tables[4], tables[5], vertices, np.empty((0, 3), dtype=vinv.dtype), np.empty(0, dtype=np.int64), False)
-    tri, tri_tet = np.empty((n, 3), dtype=vinv.dtype), np.empty(n, dtype=index_dtype(len(vinv)))
+    tet_dtype = index_dtype(len(vinv))  # the counting pass gets empty arrays of the same types: one compiled signature
+    n = _surface(*args, tables[4], tables[5], vertices, np.empty((0, 3), dtype=vinv.dtype), np.empty(0, dtype=tet_dtype), False)
+    tri, tri_tet = np.empty((n, 3), dtype=vinv.dtype), np.empty(n, dtype=tet_dtype)
     _surface(*args, tables[4], tables[5], vertices, tri, tri_tet, True)
     return vertices, tri, tri_tet
 
@@ -2638,6 +2639,31 @@ def symmetric_data(diagonal_position, upper, lower, slot, diagonal, values, nnz)
     for u in range(upper.shape[0]):
         data[lower[u]] = data[upper[u]]
     return data
+
+
+@njit(cache=True, error_model="numpy")
+def meshed_position_load(points, tri, out):
+    """out[v] += |T| grad lambda_v over the triangles T of a triangulated surface, for
+    :func:`cutfem.forms.position_load`: with c = (x_1 - x_0) x (x_2 - x_0) = 2 |T| n_T,
+
+        |T| grad lambda_k = (1/2) n_T x (x_{k+2} - x_{k+1}) = c x (x_{k+2} - x_{k+1}) / (2 |c|),
+
+    the in-plane edge opposite vertex k turned a quarter towards it.  One pass over the triangles
+    (no gradients stored, no stiffness matrix)."""
+    for t in range(tri.shape[0]):
+        a, b, d = tri[t, 0], tri[t, 1], tri[t, 2]
+        u0, u1, u2 = points[b, 0] - points[a, 0], points[b, 1] - points[a, 1], points[b, 2] - points[a, 2]
+        w0, w1, w2 = points[d, 0] - points[a, 0], points[d, 1] - points[a, 1], points[d, 2] - points[a, 2]
+        c0, c1, c2 = u1 * w2 - u2 * w1, u2 * w0 - u0 * w2, u0 * w1 - u1 * w0
+        s = 0.5 / np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+        c0, c1, c2 = c0 * s, c1 * s, c2 * s
+        for k in range(3):
+            p, q = tri[t, (k + 1) % 3], tri[t, (k + 2) % 3]
+            e0, e1, e2 = points[q, 0] - points[p, 0], points[q, 1] - points[p, 1], points[q, 2] - points[p, 2]
+            v = tri[t, k]
+            out[v, 0] += c1 * e2 - c2 * e1
+            out[v, 1] += c2 * e0 - c0 * e2
+            out[v, 2] += c0 * e1 - c1 * e0
 
 
 @njit(cache=True, error_model="numpy")
