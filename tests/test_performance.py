@@ -62,11 +62,15 @@ def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
         assert r["peak_memory_gib"] > 0.01 and r["total"] > 0 and r["dofs"] > 0
         assert r["cpu_user"] > 0 and r["cpu_system"] >= 0 and r["page_faults"] >= 0
         assert set(r["allocator"]) >= {"malloc", "numpy_hugepage", "thp_defrag"}
+        # run again in its process: the same stages and iterations, the start-up the difference of the totals
+        assert set(r["warm"]["time"]) == set(r["time"]) and r["warm"]["iterations"] == r["iterations"]
+        assert r["warm"]["total"] == pytest.approx(sum(r["warm"]["time"].values()))
+        assert r["start_up"] == pytest.approx(r["total"] - r["warm"]["total"])
         if r["kind"] == "cut":  # a bound for every stage, with its method, and measured / bound
             assert set(r["bounds"]) == set(r["time"])
             assert r["nnz"]["K"] > 7 * r["dofs"]  # each node couples to its neighbours through the face penalty
             for stage, b in r["bounds"].items():
-                assert b["bound_method"] and b["measured"] == r["time"][stage]
+                assert b["bound_method"] and b["measured"] == r["warm"]["time"][stage] and b["measured_fresh"] == r["time"][stage]
                 assert (b["ratio"] is None) == (stage == "background")
     assert data["bandwidth"]["bandwidth"] > 1e8
     assert data["peers"] == {"skipped": "ngsolve/xfem are not importable (test)"}
@@ -137,6 +141,11 @@ def test_stage_bounds_by_hand():
     for stage in ("cut", "topology", "matrix", "rhs", "solve", "errors"):
         assert b[stage]["ratio"] == pytest.approx(10.0), stage
     assert b["background"]["ratio"] is None
+    # a level run again in its process: its stages at half the time, compared with the same bounds
+    warm = performance.stage_bounds(_fabricated_level(warm={"time": {k: v / 2 for k, v in rec["time"].items()}}), 1e10)
+    for stage in ("cut", "topology", "matrix", "rhs", "solve", "errors"):
+        assert warm[stage]["ratio"] == pytest.approx(5.0) and warm[stage]["ratio_fresh"] == pytest.approx(10.0), stage
+        assert warm[stage]["measured"] == rec["time"][stage] / 2 and warm[stage]["measured_fresh"] == rec["time"][stage]
     # a direct solve (no iterations): K read once and the 500 x 3 solution written
     direct = performance.stage_bounds(_fabricated_level(iterations=0), 1e10)["solve"]
     assert direct["bytes"] == 12 * 8000 + 24 * 500 and "direct" in direct["bound_method"]
