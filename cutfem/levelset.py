@@ -712,6 +712,8 @@ class Torus(LevelSet):
 
         points = np.ascontiguousarray(y.reshape(-1, 3))
         out = np.empty_like(points)
+        points = points.view()
+        points.flags.writeable = False  # a read-only view whatever the caller's: one compiled signature
         if not kernels.torus_mean_curvature_vector(points, self.center, self.R, self.r, out):
             return self._careful_mean_curvature_vector(x)
         return out.reshape(y.shape)

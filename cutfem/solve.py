@@ -891,7 +891,8 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9, x0=None, c
             if not np.any(keep):
                 break
             if not np.all(keep):  # freeze the converged columns
-                act, p, q, pq = act[keep], p[:, keep], np.ascontiguousarray(q[:, keep]), pq[keep]
+                # C order (a column selection comes out in Fortran order): the kernels keep one signature
+                act, p, q, pq = act[keep], np.ascontiguousarray(p[:, keep]), np.ascontiguousarray(q[:, keep]), pq[keep]
             ra = r if act.size == r.shape[1] else r[:, act]
             z = precond(ra)
             rz, zq = kernels.column_dots(ra, z, q)  # one pass over the three blocks
