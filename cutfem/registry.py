@@ -20,6 +20,7 @@ A problem is either a :class:`Problem` subclass or a plain function decorated wi
 
 from __future__ import annotations
 
+import contextlib
 import contextvars
 import importlib
 import inspect
@@ -124,6 +125,47 @@ class _StageLine:
             self.pending.clear()
             self.shown = True
 
+
+
+#: whether this process has announced the compiling of cutfem's kernels (:func:`compile_notice`)
+_COMPILE_ANNOUNCED = False
+
+#: the note of :func:`compile_notice`
+COMPILE_NOTE = "compiling cutfem's kernels for this machine: once after an install or an update, then loaded from numba's cache on disk"
+
+
+def _note_on_progress_line(note: str) -> None:
+    print(f" ({note})", end="", file=sys.stderr, flush=True)
+
+
+@contextmanager
+def compile_notice(say: Callable[[str], None] = _note_on_progress_line):
+    """Within the context, the first compilation of one of cutfem's kernels (the functions of the
+    ``cutfem`` package that numba compiles) is announced by ``say(COMPILE_NOTE)``, once a process
+    (default: on the progress line of :func:`run`).  Numba's cache on disk is empty after an
+    install, an update or an edit of ``cutfem/kernels.py``; a first run then spends up to a minute
+    compiling, which would otherwise look like the level's own time.  A listener of numba's
+    ``numba:compile`` events, registered for the duration of the context only; loading a kernel
+    from the cache is not a compilation and says nothing."""
+    if _COMPILE_ANNOUNCED:
+        yield
+        return
+    from numba.core import event
+
+    class Notice(event.Listener):
+        def on_start(self, ev):
+            global _COMPILE_ANNOUNCED
+            function = getattr((ev.data or {}).get("dispatcher"), "py_func", None)
+            module = getattr(function, "__module__", None) or ""
+            if not _COMPILE_ANNOUNCED and (module == "cutfem" or module.startswith("cutfem.")):
+                _COMPILE_ANNOUNCED = True
+                say(COMPILE_NOTE)
+
+        def on_end(self, ev):
+            pass
+
+    with event.install_listener("numba:compile", Notice()):
+        yield
 
 
 class LazyFields(Mapping):
@@ -686,7 +728,8 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
         t0 = time.perf_counter()
         token = _STAGE_LISTENER.set(_StageLine() if progress is True else None)
         try:
-            rec = problem.solve_level(level, **p)
+            with compile_notice() if progress is True else contextlib.nullcontext():
+                rec = problem.solve_level(level, **p)
             if not isinstance(rec, dict) or "h" not in rec:
                 raise TypeError(f"{problem.name}: the level {level!r} returned {type(rec).__name__} "
                                 f"{'without the key h' if isinstance(rec, dict) else 'instead of a record'}; a level "

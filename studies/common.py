@@ -23,7 +23,7 @@ import numpy as np
 
 from cutfem.convergence import new_figure  # noqa: F401  (the studies' figures)
 from cutfem.memory import configure
-from cutfem.registry import ProblemError, check_output, jsonable, text_table
+from cutfem.registry import ProblemError, check_output, compile_notice, jsonable, text_table
 
 SIZES = ("tiny", "quick", "full")
 
@@ -182,7 +182,9 @@ def study_main(run, name: str, options=None):
             return 2
         configure()  # a study is a large run: opt into the allocation settings (cutfem.memory)
         t0 = time.perf_counter()
-        run(Path(a.out), a.size or "quick", Progress(name, not a.quiet), **extra)
+        progress = Progress(name, not a.quiet)
+        with compile_notice(progress):  # Progress says nothing when quiet
+            run(Path(a.out), a.size or "quick", progress, **extra)
         print(f"{name}: done in {time.perf_counter() - t0:.1f} s, results in {a.out}", file=sys.stderr)
         return 0
 

@@ -384,7 +384,7 @@ def main(argv=None) -> int:
             return 2
         selected = [n for n in STUDY_NAMES if n in a.only]
 
-    from cutfem.registry import ProblemError, check_output
+    from cutfem.registry import ProblemError, check_output, compile_notice
 
     try:
         check_output("--out", a.out, folder=True)
@@ -413,7 +413,8 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         entry = {"size": size}
         try:
-            result = studies[name].run(scratch, size, progress)
+            with compile_notice(progress):  # Progress says nothing when quiet
+                result = studies[name].run(scratch, size, progress)
             entry.update(status="ok", result=result)
         except Exception as exc:  # one broken study must not stop the others
             entry.update(status="failed", error=f"{type(exc).__name__}: {exc}")

@@ -256,6 +256,49 @@ def test_progress_line_shows_the_stages_of_long_levels(monkeypatch, capsys):
     assert capsys.readouterr().err == ""
 
 
+def test_the_progress_line_says_when_cutfem_compiles_its_kernels(monkeypatch, capsys):
+    """The first compilation of a function of the cutfem package (numba's cache is empty after an
+    install) is announced on the progress line, once a process; a user's own compiled function,
+    a function already compiled, and a run without progress say nothing."""
+    from numba import njit
+
+    from cutfem import registry
+
+    def compiled(module):
+        def f(x):
+            return x + 1.0
+
+        f.__module__ = module
+        return njit(f)  # not cached: each call below with a new signature compiles
+
+    ours, theirs = compiled("cutfem.probe"), compiled("my_lab.kernels")
+
+    @register("test-compiles", levels=[1.0, 2.0], level_name="n")
+    def level(n):
+        theirs(n)  # a user's function first: no note
+        ours(n)  # compiled at n = 1 (a float), already compiled at n = 2
+        return {"h": 1.0 / n, "dofs": 1}
+
+    monkeypatch.setattr(registry, "_COMPILE_ANNOUNCED", False)
+    cutfem.run("test-compiles", progress=False)  # no progress: nothing said, and the note is still to come
+    assert capsys.readouterr().err == "" and not registry._COMPILE_ANNOUNCED
+    ours(1), theirs(1)  # compiled outside a run: nothing said
+    ours(np.float32(1.0)), ours(np.int8(0))
+    assert capsys.readouterr().err == "" and not registry._COMPILE_ANNOUNCED
+    cutfem.run("test-compiles", progress=True, levels=[np.int8(2)])  # only the user's function compiles (for int8)
+    assert registry.COMPILE_NOTE not in capsys.readouterr().err and not registry._COMPILE_ANNOUNCED
+    cutfem.run("test-compiles", progress=True, levels=[np.uint16(3), 4.0])  # ours compiles for uint16 at the first level
+    lines = capsys.readouterr().err.splitlines()
+    assert lines[0].startswith("[1/2] test-compiles n=3 ... (" + registry.COMPILE_NOTE + ") done in"), lines
+    assert lines[1].startswith("[2/2] test-compiles n=4.0 ... done in"), lines
+    ours(np.int32(5))  # a new compilation later in the process: said once only
+    cutfem.run("test-compiles", progress=True, levels=[np.int16(6)])
+    assert registry.COMPILE_NOTE not in capsys.readouterr().err
+    from numba.core import event
+
+    assert not event._registered["numba:compile"]  # the listener lives only while a run does
+
+
 def test_entry_point_plugins_are_loaded(monkeypatch, tmp_path):
     import importlib.metadata as md
 
