@@ -206,14 +206,16 @@ class LatticeSum(_RunningSum):
         (:func:`cutfem.kernels.lattice_add_elements`: no per-element arrays of the entries)."""
         from . import kernels
 
-        none_i, none_f = np.zeros(0, np.int64), np.zeros(0)
+        # the empty placeholders take the types of the arrays they stand for (element ids int64, Kuhn
+        # types int8): one compiled signature of the kernel whichever are given
+        none_i, none_t, none_f = np.zeros(0, np.int64), np.zeros(0, np.int8), np.zeros(0)
         edges, diagonal = np.ascontiguousarray(edges, dtype=float), np.ascontiguousarray(diagonal, dtype=float)
         dofs = np.ascontiguousarray(dofs)
         elements = none_i if elements is None else np.ascontiguousarray(elements)
         owners = elements[:, None] if len(elements) else None  # None: element e owns row e of dofs
         self._check(kernels.lattice_add_elements(
             self.ids, self.code, dofs, elements, edges.reshape(-1, 6), diagonal.reshape(-1, 4),
-            none_i if types is None else np.ascontiguousarray(types),
+            none_t if types is None else np.ascontiguousarray(types),
             none_f if weights is None else np.ascontiguousarray(weights, dtype=float), self.scale, *self._slots(),
             kernels.scatter_chunks(dofs, owners)),
             "element matrices")
