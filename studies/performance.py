@@ -89,7 +89,8 @@ Options of the command line (besides ``--out`` and the size flags)
   in 90 % of the available memory; the ratio ngsxfem / cutfem of the stage sums (``ratio``).  cutfem
   keeps its automatic solver (CG with multigrid above 20 000 unknowns).  Without ngsolve/xfem a
   note is printed and saved (``peers.skipped``).
-* ``--limit``: the cut torus at spacings 0.1, 0.05, ... (one run each, fresh processes) until the
+* ``--limit``: the cut torus at spacings 0.1, 0.05, ... (one run each, fresh processes, no second
+  run in the process: a level near the memory limit runs once) until the
   next level's predicted peak exceeds ``--memory-gib`` (default 20) or 90 % of the memory
   available when it would start (:func:`limit_search`); records the largest level that ran and the
   prediction for the next (:func:`predict_next`: the fitted exponents, memory at least linear in the
@@ -321,7 +322,7 @@ import json, resource, sys
 import cutfem.memory
 cutfem.memory.configure()
 from cutfem.studies.performance import cut_level, meshed_level, ngsxfem_level
-kind, level = {kind!r}, {level!r}
+kind, level, warm = {kind!r}, {level!r}, {warm!r}
 import pyamg, threadpoolctl, cutfem.cut, cutfem.errors, cutfem.forms, cutfem.levelset, cutfem.mesh, cutfem.solve, cutfem.spaces, cutfem.surface
 if kind == 'ngsxfem':
     import ngsolve, xfem, cutfem.studies.peers
@@ -334,7 +335,7 @@ rec['cpu_user'] = r1.ru_utime - r0.ru_utime
 rec['cpu_system'] = r1.ru_stime - r0.ru_stime
 rec['page_faults'] = r1.ru_minflt - r0.ru_minflt
 rec['allocator'] = dict(cutfem.memory.SETTINGS)
-if kind != 'ngsxfem':
+if warm:
     again = level_once()
     rec['warm'] = {{'time': again['time'], 'total': again['total'], 'iterations': again['iterations']}}
     rec['start_up'] = rec['total'] - again['total']
@@ -365,12 +366,13 @@ def compile_bytecode() -> None:
         compileall.compile_dir(str(Path(mod.__file__).resolve().parent), quiet=1)
 
 
-def _in_subprocess(kind: str, level) -> dict:
+def _in_subprocess(kind: str, level, warm: bool = True) -> dict:
     """Run one level (``kind`` "cut", "meshed-<family>" or "ngsxfem") in a fresh interpreter that
     first applies :func:`cutfem.memory.configure` and imports everything the stages use (so that
     the CPU times are the stages' own); returns its record with the peak memory (GiB), CPU times
-    and page faults."""
-    proc = subprocess.run([sys.executable, "-c", _LEVEL_CODE.format(kind=kind, level=level)],
+    and page faults.  ``warm``: the level runs a second time in the process (its stages' own
+    times, ``warm`` and ``start_up`` of the record; never for ngsxfem)."""
+    proc = subprocess.run([sys.executable, "-c", _LEVEL_CODE.format(kind=kind, level=level, warm=warm and kind != "ngsxfem")],
                           capture_output=True, text=True, env=_child_env())
     if proc.returncode != 0:
         raise RuntimeError(f"level {kind} {level} failed:\n{proc.stderr[-3000:]}")
@@ -740,10 +742,10 @@ def _bandwidth_in_subprocess(mebibytes: int) -> dict:
     return json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1][len("RESULT "):])
 
 
-def _best_of(kind: str, level, repeat: int) -> dict:
+def _best_of(kind: str, level, repeat: int, warm: bool = True) -> dict:
     """Run a level ``repeat`` times (fresh processes) and keep the fastest run; all the end-to-end
     times are kept in ``totals`` and their system CPU times in ``cpu_system_all``."""
-    runs = [_in_subprocess(kind, level) for _ in range(repeat)]
+    runs = [_in_subprocess(kind, level, warm) for _ in range(repeat)]
     best = min(runs, key=lambda r: r["total"])
     best["totals"] = [r["total"] for r in runs]
     best["cpu_system_all"] = [r["cpu_system"] for r in runs]
@@ -755,11 +757,11 @@ def _spread(r) -> str:
     return f"{r['total']:.2f} s" if len(t) == 1 else f"{r['total']:.2f} s (best of {len(t)}; {min(t):.2f}-{max(t):.2f})"
 
 
-def _cut_runner(repeat, progress):
+def _cut_runner(repeat, progress, warm: bool = True):
     def run_cut(s):
         progress(f"cut torus, spacing {s}" + (f" ({repeat} runs)" if repeat > 1 else ""))
         try:
-            r = _best_of("cut", s, repeat)
+            r = _best_of("cut", s, repeat, warm)
         except RuntimeError as exc:  # e.g. out of memory: recorded, not hidden
             progress(f"  failed: {str(exc).splitlines()[-1]}")
             return {"kind": "cut", "level": s, "failed": str(exc)[-500:]}
@@ -783,7 +785,7 @@ def run(out: Path, size: str = "quick", progress=None, peers: bool = False, limi
     progress("memory bandwidth")
     bw = _bandwidth_in_subprocess(pick(size, 32, 200, 200))
     progress(f"  {bw['bandwidth'] / 1e9:.2f} GB/s (copy {bw['copy'] / 1e9:.2f}, triad {bw['triad'] / 1e9:.2f})")
-    run_cut = _cut_runner(repeat, progress)
+    run_cut = _cut_runner(repeat, progress, warm=not limit)  # --limit: no second run beside a level near the memory limit
     summary = {"repeat": repeat, "bandwidth": bw}
     if limit:
         summary["limit"] = lim = limit_search(run_cut, memory_gib, available_gib=_available_gib, progress=progress)
@@ -852,14 +854,15 @@ def _print_tables(records, summary):
     cut = [r for r in records if r["kind"] == "cut"]
     if cut:
         bw = summary["bandwidth"]["bandwidth"]
+        both = all("warm" in r for r in cut)
         print(f"\nlower bounds from the memory traffic at {bw / 1e9:.2f} GB/s (estimates, see the module docstring): "
-              "bound [ms] and measured / bound per stage, the stage's own time (run again in its process) and "
-              "in parentheses a fresh process's")
+              "bound [ms] and measured / bound per stage, " + ("the stage's own time (run again in its process) and "
+                                                                "in parentheses a fresh process's" if both else "in a fresh process"))
         print(f"{'level':>8s} " + " ".join(f"{s:>21s}" for s in CUT_STAGES))
         for r in cut:
             b = r["bounds"]
-            cells = (f"{b[s]['bound'] * 1e3:8.2f} " + ("    --" if b[s]["ratio"] is None else
-                                                        f"{b[s]['ratio']:5.0f}x ({b[s]['ratio_fresh']:.0f}x)") for s in CUT_STAGES)
+            cells = (f"{b[s]['bound'] * 1e3:8.2f} " + ("    --" if b[s]["ratio"] is None else f"{b[s]['ratio']:5.0f}x" + (
+                f" ({b[s]['ratio_fresh']:.0f}x)" if both else "")) for s in CUT_STAGES)
             print(f"{r['level']:>8g} " + " ".join(f"{c:>21s}" for c in cells))
     if cut and all("stage_cpu" in r for r in cut):
         print("\nsystem time and page faults per stage (the kernel's first touches of memory): system s / thousand faults")

@@ -107,6 +107,7 @@ def test_peak_memory_is_the_level_process_own():
     assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20 > 0.37
     rec = performance._in_subprocess("meshed-flipped", 16)
     assert 0.02 < rec["peak_memory_gib"] < 0.3
+    assert "warm" in rec and "warm" not in performance._in_subprocess("meshed-flipped", 16, warm=False)  # --limit: once
 
 
 def _fabricated_level(**changes):
