@@ -23,9 +23,11 @@ totals recorded (``totals``).  Each level's process then runs the level a second
 falls inside the stages of a fresh process (numba's type registries on the first compiled kernel,
 a few milliseconds for each cached kernel it loads); the second pays only the stages' own work.
 ``start_up`` is the first total minus the second.  The peak memory, CPU times and page faults are
-the first run's (taken before the second starts).  Each level also records the CPU time of the timed stages split into
-user and system time, and the number of page faults, in all and per stage (``stage_cpu``, printed
-for the cut levels): on a virtual machine the system time of first touches of memory varies from
+the first run's (taken before the second starts).
+
+Each level also records the CPU time of the timed stages split into user and system time, and the
+number of page faults, in all and per stage (``stage_cpu``, printed for the cut levels): on a
+virtual machine the system time of first touches of memory varies from
 run to run (0.6-5 s at spacing 0.0125; 1.4-10 us a fault), so the user-time exponent is reported
 beside the wall one.  Every level's process opts into the allocation settings of
 :mod:`cutfem.memory` before it imports the stages, and each record keeps what was applied
