@@ -2501,12 +2501,12 @@ def refine_blocks(blocks, phi, keep, size: int, cells, lower, spacing, corners):
 
 @parallel_kernel
 def triangle_geometry(points, tri):
-    """Cross products and edge-vector dot products of triangles, for
-    :func:`cutfem.surface._triangle_geometry` (which states them): ``(cross (M, 3), dots (2, M, 3),
-    longest (M,))``.  One pass over the triangles, where numpy gathered coordinate columns and
-    made two dozen temporaries a block."""
+    """Cross products, their lengths and edge-vector dot products of triangles, for
+    :func:`cutfem.surface._triangle_geometry` (which states them): ``(cross (M, 3), twice_area (M,),
+    dots (2, M, 3), longest (M,))``.  One pass over the triangles, where numpy gathered coordinate
+    columns and made two dozen temporaries a block."""
     M = tri.shape[0]
-    cross, dots, longest = np.empty((M, 3)), np.empty((2, M, 3)), np.empty(M)
+    cross, twice, dots, longest = np.empty((M, 3)), np.empty(M), np.empty((2, M, 3)), np.empty(M)
     for t in prange(M):
         e = np.empty((3, 3))
         for k in range(3):
@@ -2517,6 +2517,7 @@ def triangle_geometry(points, tri):
         cross[t, 0] = e[0, 2] * e[2, 1] - e[0, 1] * e[2, 2]
         cross[t, 1] = e[0, 0] * e[2, 2] - e[0, 2] * e[2, 0]
         cross[t, 2] = e[0, 1] * e[2, 0] - e[0, 0] * e[2, 1]
+        twice[t] = np.sqrt(cross[t, 0] * cross[t, 0] + cross[t, 1] * cross[t, 1] + cross[t, 2] * cross[t, 2])
         top = 0.0
         for k in range(3):
             nx = (k + 1) % 3
@@ -2525,7 +2526,7 @@ def triangle_geometry(points, tri):
             dots[1, t, k] = e[k, 0] * e[nx, 0] + e[k, 1] * e[nx, 1] + e[k, 2] * e[nx, 2]
             top = max(top, sq)
         longest[t] = top
-    return cross, dots, longest
+    return cross, twice, dots, longest
 
 
 @parallel_kernel

@@ -213,11 +213,12 @@ def _as_triangles(triangles) -> np.ndarray:
 
 
 def _triangle_geometry(points: np.ndarray, tri: np.ndarray):
-    """Cross products and edge-vector dot products of the triangles.
+    """Cross products, their lengths and edge-vector dot products of the triangles.
 
     With e_k = x_{k+1} - x_k (indices mod 3) the edge vectors of triangle (x_0, x_1, x_2), returns
 
     * ``cross`` (M, 3): e_0 x (x_2 - x_0) = (x_1 - x_0) x (x_2 - x_0);
+    * ``twice_area`` (M,): |cross| = 2 |T|;
     * ``dots`` (2, M, 3): S[t, k] = e_k . e_k and Q[t, k] = e_k . e_{k+1};
     * ``longest`` (M,): max_k S[t, k], the squared longest edge.
 
@@ -260,8 +261,7 @@ def _check_elements(points: np.ndarray, tri: np.ndarray):
             f"{bad.size} degenerate triangle(s) repeat a vertex, first triangles {_examples(bad)} with nodes "
             f"{_pairs(tri[bad])}; remove them (collapse the edge they sit on) before building the surface."
         )
-    cross, dots, longest_sq = _triangle_geometry(points, tri)
-    twice_area = np.sqrt(np.einsum("ij,ij->i", cross, cross))
+    cross, twice_area, dots, longest_sq = _triangle_geometry(points, tri)
     bad = np.flatnonzero(twice_area <= DEGENERATE_TOLERANCE * longest_sq)
     if bad.size:
         raise ValueError(
@@ -277,7 +277,7 @@ def _check_elements(points: np.ndarray, tri: np.ndarray):
             "have no support (singular mass matrix) and would change h = N**(-1/2). Remove them: "
             "keep = np.unique(triangles); points = points[keep]; triangles = np.searchsorted(keep, triangles)."
         )
-    return cross, dots, degree
+    return cross, twice_area, dots, degree
 
 
 def _check_duplicates(tri: np.ndarray) -> None:
@@ -663,28 +663,29 @@ class SurfaceMesh:
         tri = _as_triangles(triangles)
         self.flipped_components = 0
         if check:
-            cross, dots, degree = _check_elements(pts, tri)
+            cross, twice_area, dots, degree = _check_elements(pts, tri)
             table, pairs = _check_topology(tri, len(pts), degree)
             n_components, component = _components(tri, pairs)
             _check_disjoint_components(pts, tri, component, n_components)
             tri, cross, self.flipped_components = _orient_outward(pts, tri, component, cross)
             if self.flipped_components == 0:
-                self._keep(cross, dots, (table, pairs))
+                self._keep(cross, twice_area, dots, (table, pairs))
             else:  # a flip changes the half-edges and the local edge order, not |cross|
-                self.__dict__["_cross"] = cross
+                self.__dict__.update(_cross=cross, _twice_area=twice_area)
         pts.flags.writeable = False
         tri = np.ascontiguousarray(tri)
         tri.flags.writeable = False
         self.points = pts
         self.triangles = tri
 
-    def _keep(self, cross: np.ndarray, dots: np.ndarray, topology) -> None:
-        """Keep what the validation computed: the cross products, the edge-vector dot products
-        and (table, pairs) of the half-edges."""
+    def _keep(self, cross: np.ndarray, twice_area: np.ndarray, dots: np.ndarray, topology) -> None:
+        """Keep what the validation computed: the cross products and their lengths, the edge-vector
+        dot products and (table, pairs) of the half-edges."""
         dots.flags.writeable = False
         table, pairs = topology
         pairs.flags.writeable = False
-        self.__dict__.update(_cross=cross, triangle_edge_dots=dots, _halfedges=table, _edge_halfedges=pairs)
+        self.__dict__.update(_cross=cross, _twice_area=twice_area, triangle_edge_dots=dots, _halfedges=table,
+                             _edge_halfedges=pairs)
 
     def _check_generated(self) -> None:
         """Validation for generators whose triangulation is closed, edge- and vertex-manifold
@@ -693,11 +694,11 @@ class SurfaceMesh:
         half-edge table that the mesh needs anyway confirms closedness and orientation (with the
         usual message otherwise); the vertex fans and the orientation by components are skipped.
         """
-        cross, dots, _ = _check_elements(self.points, self.triangles)
+        cross, twice_area, dots, _ = _check_elements(self.points, self.triangles)
         fast = _closed_halfedge_table(self.triangles, self.n_points)
         if fast is None:
             _diagnose_topology(self.triangles, self.n_points)
-        self._keep(cross, dots, fast)
+        self._keep(cross, twice_area, dots, fast)
 
     # -- sizes ---------------------------------------------------------------------------------
 
@@ -798,10 +799,25 @@ class SurfaceMesh:
 
     # -- geometry ------------------------------------------------------------------------------
 
+    def _geometry(self, name: str) -> np.ndarray:
+        """One of the arrays of :func:`_triangle_geometry` kept by the validation; without it
+        (check=False) all of them are computed in one pass and kept."""
+        if name not in self.__dict__:
+            cross, twice_area, dots, _ = _triangle_geometry(self.points, self.triangles)
+            dots.flags.writeable = False
+            for key, value in (("_cross", cross), ("_twice_area", twice_area), ("triangle_edge_dots", dots)):
+                self.__dict__.setdefault(key, value)
+        return self.__dict__[name]
+
     @cached_property
     def _cross(self) -> np.ndarray:
-        """(M, 3) (v_1 - v_0) x (v_2 - v_0) (kept from the validation when check=True)."""
-        return _triangle_geometry(self.points, self.triangles)[0]
+        """(M, 3) (v_1 - v_0) x (v_2 - v_0)."""
+        return self._geometry("_cross")
+
+    @cached_property
+    def _twice_area(self) -> np.ndarray:
+        """(M,) |(v_1 - v_0) x (v_2 - v_0)| = 2 |K|."""
+        return self._geometry("_twice_area")
 
     @cached_property
     def triangle_edge_dots(self) -> np.ndarray:
@@ -812,14 +828,12 @@ class SurfaceMesh:
         e_{i+1} . e_{j+1} / (4|T|); the outward conormal of edge k is t_k = e_k / |e_k| x n, so
         t_k . grad lambda_m = -e_k . e_{m+1} / (2|T| |e_k|) (the closed forms of
         :mod:`cutfem.forms`)."""
-        out = _triangle_geometry(self.points, self.triangles)[1]
-        out.flags.writeable = False
-        return out
+        return self._geometry("triangle_edge_dots")
 
     @cached_property
     def areas(self) -> np.ndarray:
         """(M,) triangle areas |K| = |(v_1 - v_0) x (v_2 - v_0)| / 2."""
-        out = 0.5 * np.linalg.norm(self._cross, axis=1)
+        out = 0.5 * self._twice_area
         out.flags.writeable = False
         return out
 
@@ -831,7 +845,7 @@ class SurfaceMesh:
     @cached_property
     def normals(self) -> np.ndarray:
         """(M, 3) unit normals n_K = (v_1 - v_0) x (v_2 - v_0) / |...|, outward after validation."""
-        out = self._cross / np.linalg.norm(self._cross, axis=1)[:, None]
+        out = self._cross / self._twice_area[:, None]
         out.flags.writeable = False
         return out
 
