@@ -681,7 +681,9 @@ def check_levels(problem: Problem, levels, source: str = "levels") -> list:
     """The levels converted to the problem's level type and checked: each a positive finite number
     (a positive integer for integer levels).  ``source`` names the input in the message: the
     parameter (``levels``) from Python, the flag (``--spacing``, ``--levels``, ``--n``) from the
-    command line.  Raises ProblemError naming the source, the bad value and the fix."""
+    command line.  A level given twice is refused: its rate would compare a level with itself and its
+    output files (named by level) would be written twice.  Raises ProblemError naming the source,
+    the bad value and the fix."""
     if levels is None:
         levels = problem.default_levels
     levels = [levels] if isinstance(levels, (str, int, float)) else list(levels)
@@ -702,6 +704,14 @@ def check_levels(problem: Problem, levels, source: str = "levels") -> list:
                 f"{source}: {problem.level_name} {v!r} is not a {kind}; give {problem.level_name} values like {problem.default_levels}"
             )
         out.append(int(x) if problem.level_type is int else x)
+    seen = set()
+    for x in out:
+        if x in seen:
+            raise ProblemError(
+                f"{source}: {problem.level_name} {x!r} is given more than once; give each level once (the rates compare "
+                "successive levels and the output files are named by level). To time a level again, run it again."
+            )
+        seen.add(x)
     return out
 
 

@@ -496,6 +496,17 @@ def test_bad_spacing_names_the_parameter_in_python(value):
     with pytest.raises(ProblemError, match=r"^levels: n .* is not a positive integer"):
         cutfem.run("mean-curvature-meshed", levels=[value])
 
+def test_a_level_given_twice_is_refused(capsys, tmp_path):
+    """A repeated level would compare a level with itself and write its VTK files twice under one
+    name: refused before anything is solved, from the shell (0.2 and 0.20 are one level) and from
+    Python."""
+    assert main(["run", "mean-curvature-cut", "--spacing", "0.2", "0.20", "--vtk", str(tmp_path / "vtk"), "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert "error: --spacing: spacing 0.2 is given more than once" in err, err
+    assert not (tmp_path / "vtk").exists()
+    with pytest.raises(ProblemError, match=r"^levels: n 16 is given more than once"):
+        cutfem.run("mean-curvature-meshed", levels=[16, 32, 16])
+
 
 def test_box_that_does_not_fit_the_spacing_is_grown_at_that_spacing(capsys):
     """--box of width 3 at spacing 0.4 (7.5 cells) is grown symmetrically to 8 cells, [-1.6, 1.6]^3;
