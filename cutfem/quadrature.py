@@ -240,21 +240,30 @@ def segment_rule(degree: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @lru_cache(maxsize=None)
-def _triangle_rule_cached(degree: int) -> tuple[np.ndarray, np.ndarray]:
-    exact_degrees = [p for p in sorted(_TRIANGLE_ORBITS) if p >= max(degree, 1)]
+def _simplex_rule_cached(dim: int, degree: int) -> tuple[np.ndarray, np.ndarray]:
+    """The rule of :func:`triangle_rule` (dim 2) or :func:`tetrahedron_rule` (dim 3): the
+    symmetric rule of the lowest tabulated degree >= ``degree``, else the collapsed (Duffy)
+    product rule x_1 = t_1, x_2 = (1 - t_1) t_2, x_3 = (1 - t_1)(1 - t_2) t_3, whose Jacobian
+    prod_k (1 - t_k)^(dim - k) is the weight of a Gauss-Jacobi rule in each t_k (exact for
+    degree <= 2n - 1 in each, n = degree // 2 + 1), normalised by the volume 1 / dim!."""
+    orbits = _TRIANGLE_ORBITS if dim == 2 else _TETRAHEDRON_ORBITS
+    exact_degrees = [p for p in sorted(orbits) if p >= max(degree, 1)]
     if exact_degrees:
-        bary, w = _expand_orbits(_TRIANGLE_ORBITS[exact_degrees[0]])
-        return _readonly(bary, w)
-    # Collapsed (Duffy) product rule: x = u, y = (1-u) v, dx dy = (1-u) du dv,
-    # normalised by the area 1/2 of the reference triangle.
+        return _readonly(*_expand_orbits(orbits[exact_degrees[0]]))
     n = degree // 2 + 1
-    u, wu = _gauss_jacobi_unit(n, 1)
-    v, wv = _gauss_jacobi_unit(n, 0)
-    U, V = np.meshgrid(u, v, indexing="ij")
-    x, y = U.ravel(), ((1.0 - U) * V).ravel()
-    bary = np.stack([1.0 - x - y, x, y], axis=1)
-    w = 2.0 * np.outer(wu, wv).ravel()
-    return _readonly(bary, w)
+    rules = [_gauss_jacobi_unit(n, dim - k) for k in range(1, dim + 1)]
+    grids = np.meshgrid(*[t for t, _ in rules], indexing="ij")
+    coords, rest, first = [], 1.0, 1.0
+    for g in grids:
+        t = g.ravel()
+        coords.append(rest * t)
+        rest = rest * (1.0 - t)
+    for x in coords:
+        first = first - x
+    w = rules[0][1]
+    for _, wk in rules[1:]:
+        w = np.multiply.outer(w, wk)
+    return _readonly(np.stack([first, *coords], axis=1), math.factorial(dim) * w.ravel())
 
 
 def triangle_rule(degree: int) -> tuple[np.ndarray, np.ndarray]:
@@ -277,28 +286,7 @@ def triangle_rule(degree: int) -> tuple[np.ndarray, np.ndarray]:
     weights : (q,) float, positive, summing to 1 (multiply by the area for a physical triangle)
         Read-only (cached) arrays; copy before modifying.
     """
-    return _triangle_rule_cached(_check_degree(degree, TRIANGLE_MAX_DEGREE, "triangle"))
-
-
-@lru_cache(maxsize=None)
-def _tetrahedron_rule_cached(degree: int) -> tuple[np.ndarray, np.ndarray]:
-    exact_degrees = [p for p in sorted(_TETRAHEDRON_ORBITS) if p >= max(degree, 1)]
-    if exact_degrees:
-        bary, w = _expand_orbits(_TETRAHEDRON_ORBITS[exact_degrees[0]])
-        return _readonly(bary, w)
-    # Collapsed (Duffy) product rule: x = u, y = (1-u) v, z = (1-u)(1-v) s,
-    # dx dy dz = (1-u)^2 (1-v) du dv ds, normalised by the volume 1/6.
-    n = degree // 2 + 1
-    u, wu = _gauss_jacobi_unit(n, 2)
-    v, wv = _gauss_jacobi_unit(n, 1)
-    s, ws = _gauss_jacobi_unit(n, 0)
-    U, V, S = np.meshgrid(u, v, s, indexing="ij")
-    x = U.ravel()
-    y = ((1.0 - U) * V).ravel()
-    z = ((1.0 - U) * (1.0 - V) * S).ravel()
-    bary = np.stack([1.0 - x - y - z, x, y, z], axis=1)
-    w = 6.0 * np.einsum("i,j,k->ijk", wu, wv, ws).ravel()
-    return _readonly(bary, w)
+    return _simplex_rule_cached(2, _check_degree(degree, TRIANGLE_MAX_DEGREE, "triangle"))
 
 
 def tetrahedron_rule(degree: int) -> tuple[np.ndarray, np.ndarray]:
@@ -320,7 +308,7 @@ def tetrahedron_rule(degree: int) -> tuple[np.ndarray, np.ndarray]:
     weights : (q,) float, positive, summing to 1 (multiply by the volume for a physical tet)
         Read-only (cached) arrays; copy before modifying.
     """
-    return _tetrahedron_rule_cached(_check_degree(degree, TETRAHEDRON_MAX_DEGREE, "tetrahedron"))
+    return _simplex_rule_cached(3, _check_degree(degree, TETRAHEDRON_MAX_DEGREE, "tetrahedron"))
 
 
 @dataclass
