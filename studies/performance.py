@@ -81,6 +81,14 @@ errors         80 Q S: Q = 6 points of the degree-4 triangle rule, each with its
 Each stage's record says so in ``bound_method``.  The stage's own time, from the second run of
 its process, is compared with the bound (``ratio``), and so is the first run's (``ratio_fresh``).
 
+Beside the bounds, the kernels that carry the solve and the numbering of the cut are timed against
+an existing compiled library doing the same operation on the same data (``compiled_references``,
+:func:`compiled_references`; not in ``--limit`` mode): the product K X against scipy's CSR
+product, a Gauss-Seidel sweep against pyamg's, the Galerkin product against scipy's two sparse
+products, the numbering of the active nodes against ``numpy.unique``; on the cut torus at 0.0125
+(0.1 at the tiny size), cutfem on all threads and on one, the reference on one, and the largest
+difference of the results.
+
 Options of the command line (besides ``--out`` and the size flags)
 ------------------------------------------------------------------
 * ``--peers``: the same cut torus level in ngsxfem (:func:`cutfem.studies.peers.ngsxfem_mean_curvature`
@@ -474,6 +482,117 @@ def stage_bounds(rec: dict, bandwidth: float) -> dict:
     return out
 
 
+#: repeats of each operation in :func:`compiled_references` (medians)
+REFERENCE_REPEAT = 7
+
+
+def _median_time(f, repeat: int) -> float:
+    times = []
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        f()
+        times.append(time.perf_counter() - t0)
+    return float(np.median(times))
+
+
+def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT) -> list[dict]:
+    """The kernels that carry the solve and the numbering of the cut beside an existing compiled
+    library doing the same operation on the same data: the matrix K = M + tau_F J_F of the cut
+    torus at ``spacing`` (as :func:`cut_level` assembles it), three columns.
+
+    * ``K X`` (double precision): :func:`cutfem.kernels.matmul` against scipy's CSR product
+      (C++, one thread);
+    * one forward Gauss-Seidel sweep from zero, rows in their order: :func:`cutfem.kernels.gauss_seidel`
+      with one chunk (so on one thread) against pyamg's ``gauss_seidel`` (C++), column by column;
+    * the Galerkin product P^T K P of the first coarse level: :func:`cutfem.kernels.galerkin`
+      against scipy's ``R @ K @ P`` (two sparse products, C++, one thread; its result is not made
+      exactly symmetric);
+    * the numbering of the active nodes (the background ids of the cut tets' nodes, their sorted
+      distinct values and the inverse): :func:`cutfem.mesh.dense_unique` against
+      ``numpy.unique(..., return_inverse=True)`` (C, a sort).
+
+    Each row: the medians of ``repeat`` runs of cutfem on all of numba's threads and on one, of
+    the reference, and ``per_thread`` = reference / cutfem on one thread (above 1: cutfem's kernel
+    is the faster one on a core), with ``difference``, the largest difference of the two results
+    (0 where they are the same bits; the reference's sums may be ordered differently).  A yardstick
+    of the compiled code a library offers for the same step, not a bound: the memory-traffic
+    bounds of :func:`stage_bounds` are the lower ones."""
+    import numba
+    import scipy.sparse as sp
+    from pyamg.relaxation.relaxation import gauss_seidel as pyamg_gauss_seidel
+
+    from cutfem import kernels
+    from cutfem.cut import CUT, cut_mesh
+    from cutfem.forms import assemble
+    from cutfem.levelset import Torus
+    from cutfem.mesh import dense_unique, structured_box
+    from cutfem.problems.mean_curvature import mean_curvature_form
+    from cutfem.solve import lattice_hierarchy, lattice_indices
+    from cutfem.spaces import CutP1Space
+
+    box = structured_box(*BOX, spacing=spacing)
+    cut = cut_mesh(box, Torus(1.0, 0.5))
+    space = CutP1Space(cut)
+    K = sp.csr_matrix(assemble(mean_curvature_form(cut.ds(), tau_f=0.1, faces=cut.dF(cut.interior_facets(CUT))), space))
+    n = K.shape[0]
+    rng = np.random.default_rng(0)
+    X, B = rng.standard_normal((n, COLUMNS)), rng.standard_normal((n, COLUMNS))
+    P = sp.csr_matrix(next(iter(lattice_hierarchy(lattice_indices(space)))))
+    R = sp.csr_matrix(P.T)
+    ids = cut.node_ids[cut.tets]
+
+    def sweep():
+        return kernels.gauss_seidel(K, np.zeros((n, COLUMNS)), B)
+
+    def pyamg_sweep():
+        out = np.zeros((n, COLUMNS))
+        for k in range(COLUMNS):
+            x = np.zeros(n)
+            pyamg_gauss_seidel(K, x, np.ascontiguousarray(B[:, k]), iterations=1, sweep="forward")
+            out[:, k] = x
+        return out
+
+    def difference(a, b):
+        if isinstance(a, tuple):  # (distinct values, inverse)
+            return float(max(np.max(np.abs(a[0] - b[0])), np.max(np.abs(a[1] - b[1].reshape(a[1].shape)))))
+        if sp.issparse(a):
+            return float(abs(sp.csr_matrix(a) - sp.csr_matrix(b)).max())
+        return float(np.max(np.abs(a - b)))
+
+    cases = [
+        ("K X, 3 columns, double", lambda: kernels.matmul(K, X), "scipy.sparse CSR product (C++)", lambda: K @ X),
+        ("Gauss-Seidel sweep from zero, 3 columns", sweep, "pyamg gauss_seidel (C++), a column at a time", pyamg_sweep),
+        ("Galerkin P^T K P, first level", lambda: kernels.galerkin(K, P, R), "scipy R @ K @ P (C++)", lambda: R @ K @ P),
+        ("active-node numbering", lambda: dense_unique(ids, box.n_points), "numpy.unique with inverse (C)",
+         lambda: np.unique(ids, return_inverse=True)),
+    ]
+    threads = numba.get_num_threads()
+    rows = []
+    for name, ours, reference, theirs in cases:
+        diff = difference(ours(), theirs())  # also the first calls: compiled kernels loaded before timing
+        t_all = _median_time(ours, repeat)
+        numba.set_num_threads(1)
+        try:
+            t_one = _median_time(ours, repeat)
+        finally:
+            numba.set_num_threads(threads)
+        t_ref = _median_time(theirs, repeat)
+        rows.append({"operation": name, "spacing": spacing, "unknowns": int(n), "cutfem": t_all, "cutfem_one_thread": t_one,
+                     "threads": int(threads), "reference": reference, "reference_time": t_ref, "per_thread": t_ref / t_one,
+                     "difference": diff, "repeat": int(repeat)})
+    return rows
+
+
+def _references_in_subprocess(spacing: float) -> list:
+    """:func:`compiled_references` in a fresh process with the allocation settings of the levels."""
+    code = ("import json, cutfem.memory\ncutfem.memory.configure()\nfrom cutfem.studies.performance import compiled_references\n"
+            f"print('RESULT ' + json.dumps(compiled_references({float(spacing)!r})))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_child_env())
+    if proc.returncode != 0:
+        raise RuntimeError(f"compiled references at spacing {spacing} failed:\n{proc.stderr[-2000:]}")
+    return json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1][len("RESULT "):])
+
+
 # ---------------------------------------------------------------------------------------------
 # exponents
 # ---------------------------------------------------------------------------------------------
@@ -793,6 +912,9 @@ def run(out: Path, size: str = "quick", progress=None, peers: bool = False, limi
     summary["levels"] = records
     summary["exponents"] = {"cut": scaling_exponents(cut, "active_tets", stages=CUT_STAGES[1:])}  # background: microseconds
     if not limit:
+        spacing = pick(size, 0.1, 0.0125, 0.0125)
+        progress(f"compiled references, cut torus at spacing {spacing}")
+        summary["compiled_references"] = _references_in_subprocess(spacing)
         summary["commands"] = command_times(size, repeat, progress)
     if peers:
         summary["peers"] = _peers(cut, memory_gib, peers_down_to, progress)
@@ -863,6 +985,17 @@ def _print_tables(records, summary):
                   f"user time {_fmt(e.get('user_time'), '.2f')}, memory {_fmt(e.get('memory'), '.2f')}" + (f"; stages {stages}" if stages else ""))
         else:
             print(f"\nexponents ({name}): fewer than three levels ran")
+    if summary.get("compiled_references"):
+        refs = summary["compiled_references"]
+        print(f"\ncompiled references: the same operation on the same data by a compiled library (cut torus at spacing "
+              f"{refs[0]['spacing']:g}, {refs[0]['unknowns']} unknowns; medians of {refs[0]['repeat']}); per thread = "
+              "reference / cutfem on one thread")
+        width = max(len(r["operation"]) for r in refs)
+        rwidth = max(len(r["reference"]) for r in refs)
+        print(f"  {'operation':{width}s} {'cutfem ms':>10s} {'1 thread':>9s}  {'reference':{rwidth}s} {'ms':>8s} {'per thread':>10s} {'difference':>10s}")
+        for r in refs:
+            print(f"  {r['operation']:{width}s} {1e3 * r['cutfem']:10.2f} {1e3 * r['cutfem_one_thread']:9.2f}  {r['reference']:{rwidth}s} "
+                  f"{1e3 * r['reference_time']:8.2f} {r['per_thread']:10.2f} {r['difference']:10.1e}")
     if summary.get("commands"):
         print("\nend to end through the command line (a fresh process a run, start-up included; median of the runs, range)")
         width = max(len(c["command"]) for c in summary["commands"])
