@@ -24,6 +24,12 @@ SHAPE_PARAMS = [
     Param("axes", str, "1.0,0.8,0.6", "ellipsoid semi-axes a,b,c", only=("surface", ("ellipsoid",))),
 ]
 
+#: the background of the cut problems (one definition for all of them)
+BACKGROUND_PARAM = Param("background", str, "structured",
+                         "background mesh: structured (Kuhn cells of the given spacing) or tetwild (pytetwild, "
+                         "unstructured, target edge length = spacing; its meshing dominates the run: 9-25 s at "
+                         "spacing 0.1 and 2 minutes at 0.05 on 2 cores)", choices=("structured", "tetwild"))
+
 
 def point_rows(x):
     """(x as a float array (..., 3), its points as C-contiguous rows (n, 3)): what the compiled

@@ -35,7 +35,7 @@ from cutfem.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
 from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, check_cut_memory, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
+from .common import BACKGROUND_PARAM, SHAPE_PARAMS, check_cut_memory, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
 
 
 #: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
@@ -229,7 +229,7 @@ class LaplaceBeltramiCut(Problem):
     default_levels = [0.2, 0.1, 0.05, 0.025]
     params = [
         Param("surface", str, "sphere", "sphere or torus", choices=("torus", "sphere")),
-        Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),
+        BACKGROUND_PARAM,
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)"),
         Param("stabilization", str, "face", "cut stabilization (none: the system is singular, phi_h being a null "
               "vector, and every solver refuses it)", choices=("face", "normal", "none")),

@@ -35,7 +35,7 @@ from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
 from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
-from .common import SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
+from .common import BACKGROUND_PARAM, SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
 
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
@@ -206,7 +206,7 @@ class MeanCurvatureCut(Problem):
     definitions = {**DEFINITIONS, "h": H_BACKGROUND}
     params = [
         Param("surface", str, "torus", f"torus, sphere, ellipsoid, {USER_SURFACES}; H^e is exact at the closest point"),
-        Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),
+        BACKGROUND_PARAM,
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)"),
         Param("tau_f", float, 0.1, "face stabilization tau_F", minimum=0),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),

@@ -28,7 +28,7 @@ from cutfem.registry import H_BACKGROUND, LazyFields, Param, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space
 
-from .common import BULK_BYTES_PER_TET, SHAPE_PARAMS, Timer, background_for, check_bulk_memory, cut_record, levelset_for, nitsche_hint, value_and_gradient
+from .common import BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, Timer, background_for, check_bulk_memory, cut_record, levelset_for, nitsche_hint, value_and_gradient
 
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
@@ -90,7 +90,7 @@ DEFINITIONS = {
     definitions=DEFINITIONS,
     params=[
         Param("surface", str, "sphere", "domain: sphere (ball), torus (solid torus), ellipsoid or a closed mesh file"),
-        Param("background", str, "structured", "background mesh", choices=("structured", "tetwild")),
+        BACKGROUND_PARAM,
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)"),
         Param("gamma", float, 10.0, "Nitsche penalty gamma", positive=True),
         Param("gamma_g", float, 0.1, "ghost penalty gamma_g", minimum=0),
