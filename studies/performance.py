@@ -365,10 +365,21 @@ def _in_subprocess(kind: str, level, warm: bool = True) -> dict:
     the CPU times are the stages' own); returns its record with the peak memory (GiB), CPU times
     and page faults.  ``warm``: the level runs a second time in the process (its stages' own
     times, ``warm`` and ``start_up`` of the record; never for ngsxfem)."""
-    proc = subprocess.run([sys.executable, "-c", _LEVEL_CODE.format(kind=kind, level=level, warm=warm and kind != "ngsxfem")],
-                          capture_output=True, text=True, env=_child_env())
+    return _child_result(_LEVEL_CODE.format(kind=kind, level=level, warm=warm and kind != "ngsxfem"), f"level {kind} {level}")
+
+
+#: a call of this module in a fresh interpreter with the allocation settings of the levels
+_CALL_CODE = ("import json, cutfem.memory\ncutfem.memory.configure()\nimport cutfem.studies.performance as performance\n"
+              "print('RESULT ' + json.dumps(performance.{call}))\n")
+
+
+def _child_result(code: str, what: str):
+    """Run ``code`` in a fresh interpreter (:func:`_child_env`) and return the JSON of the last line
+    it printed that starts with ``RESULT``; a RuntimeError naming ``what``, with the end of its
+    standard error, when it fails."""
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_child_env())
     if proc.returncode != 0:
-        raise RuntimeError(f"level {kind} {level} failed:\n{proc.stderr[-3000:]}")
+        raise RuntimeError(f"{what} failed:\n{proc.stderr[-3000:]}")
     line = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1]
     return json.loads(line[len("RESULT "):])
 
@@ -585,12 +596,7 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
 
 def _references_in_subprocess(spacing: float) -> list:
     """:func:`compiled_references` in a fresh process with the allocation settings of the levels."""
-    code = ("import json, cutfem.memory\ncutfem.memory.configure()\nfrom cutfem.studies.performance import compiled_references\n"
-            f"print('RESULT ' + json.dumps(compiled_references({float(spacing)!r})))\n")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_child_env())
-    if proc.returncode != 0:
-        raise RuntimeError(f"compiled references at spacing {spacing} failed:\n{proc.stderr[-2000:]}")
-    return json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1][len("RESULT "):])
+    return _child_result(_CALL_CODE.format(call=f"compiled_references({float(spacing)!r})"), f"compiled references at spacing {spacing}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -840,10 +846,7 @@ def _peers(cut_records, memory_gib, down_to, progress) -> dict:
 def _bandwidth_in_subprocess(mebibytes: int) -> dict:
     """:func:`memory_bandwidth` in a fresh process with the allocation settings of the levels (and
     without leaving its arrays on this process's heap)."""
-    code = ("import json, cutfem.memory\ncutfem.memory.configure()\nfrom cutfem.studies.performance import memory_bandwidth\n"
-            f"print('RESULT ' + json.dumps(memory_bandwidth({int(mebibytes)})))\n")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=_child_env(), check=True)
-    return json.loads([ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")][-1][len("RESULT "):])
+    return _child_result(_CALL_CODE.format(call=f"memory_bandwidth({int(mebibytes)})"), "the bandwidth measurement")
 
 
 def _best_of(kind: str, level, repeat: int, warm: bool = True) -> dict:
