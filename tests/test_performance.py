@@ -112,6 +112,16 @@ def test_peak_memory_is_the_level_process_own():
     assert "warm" in rec and "warm" not in performance._in_subprocess("meshed-flipped", 16, warm=False)  # --limit: once
 
 
+def test_the_second_run_of_a_level_reuses_the_memory_of_the_first():
+    """The objects of a level refer to each other, so the level process collects them before its
+    second run: that run then takes its memory from the heap the first one freed, instead of
+    touching fresh pages beside the first run's (about 1550 faults at spacing 0.05 without the
+    collection, against about 20 thousand for the first run and a handful with it)."""
+    rec = performance._in_subprocess("cut", 0.05)
+    assert rec["page_faults"] > 5000
+    assert 0 <= rec["warm"]["page_faults"] < rec["page_faults"] / 20
+
+
 def _fabricated_level(**changes):
     rec = {"level": 0.05, "dofs": 500, "active_tets": 1000, "surface_triangles": 1200, "interior_faces": 2000,
            "iterations": 10, "nnz": {"K": 8000},
