@@ -87,13 +87,15 @@ errors         80 Q S: Q = 6 points of the degree-4 triangle rule, each with its
 Each stage's record says so in ``bound_method``.  The stage's own time, from the second run of
 its process, is compared with the bound (``ratio``), and so is the first run's (``ratio_fresh``).
 
-Beside the bounds, the kernels that carry the solve and the numbering of the cut are timed against
-an existing compiled library doing the same operation on the same data (``compiled_references``,
-:func:`compiled_references`; not in ``--limit`` mode): the product K X against scipy's CSR
-product, a Gauss-Seidel sweep against pyamg's, the Galerkin product against scipy's two sparse
-products, the numbering of the active nodes against ``numpy.unique``; on the cut torus at 0.0125
-(0.1 at the tiny size), cutfem on all threads and on one, the reference on one, and the largest
-difference of the results.
+Beside the bounds, the kernels that carry the solve, the numbering of the cut, and the cut and
+matrix stages whole are timed against an existing compiled library doing the same operation on
+the same data (``compiled_references``, :func:`compiled_references`; not in ``--limit`` mode): the
+product K X against scipy's CSR product, a Gauss-Seidel sweep against pyamg's, the Galerkin
+product against scipy's two sparse products, the numbering of the active nodes against
+``numpy.unique``, the cut stage against VTK's contour filter on the active tets (marching tets
+alone), the matrix stage against scipy's COO-to-CSR sum of the element matrices (the sums alone);
+on the cut torus at 0.0125 (0.1 at the tiny size), cutfem on all threads and on one, the
+reference on one, and the largest difference of the results.
 
 Options of the command line (besides ``--out`` and the size flags)
 ------------------------------------------------------------------
@@ -517,9 +519,10 @@ def _median_time(f, repeat: int) -> float:
 
 
 def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT) -> list[dict]:
-    """The kernels that carry the solve and the numbering of the cut beside an existing compiled
-    library doing the same operation on the same data: the matrix K = M + tau_F J_F of the cut
-    torus at ``spacing`` (as :func:`cut_level` assembles it), three columns.
+    """The kernels that carry the solve, the numbering of the cut, and the cut and matrix stages
+    whole, beside an existing compiled library doing the same operation on the same data: the cut
+    torus at ``spacing`` and its matrix K = M + tau_F J_F (as :func:`cut_level` assembles it),
+    three columns.
 
     * ``K X`` (double precision): :func:`cutfem.kernels.matmul` against scipy's CSR product
       (C++, one thread);
@@ -530,12 +533,24 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
       exactly symmetric);
     * the numbering of the active nodes (the background ids of the cut tets' nodes, their sorted
       distinct values and the inverse): :func:`cutfem.mesh.dense_unique` against
-      ``numpy.unique(..., return_inverse=True)`` (C, a sort).
+      ``numpy.unique(..., return_inverse=True)`` (C, a sort);
+    * the whole cut stage (:func:`cutfem.cut.cut_mesh` from the lazy box: the band search, the
+      level set at the band's nodes, the numbering, marching tets and S_h with its normals and
+      areas) against VTK's contour filter (C++, pyvista's ``contour``, one thread in the VTK of
+      the wheels) on the active tets and their level-set values, given in memory: only the
+      marching tets of that stage; ``difference`` is that of the two surfaces' areas, relative;
+    * the whole matrix stage (:func:`cutfem.forms.assemble` of the form, element matrices and
+      sums) against scipy's conversion of the element matrices, given, from COO to CSR (C++, one
+      thread), which only sums them: the exact piece mass matrices (4 x 4 a cut tet, from
+      :func:`cutfem.kernels.piece_moments`) and the Gram matrices c_F c_F^T of the face jumps
+      (8 x 8 a face, from :func:`cutfem.kernels.jump_rows`; a node shared by the two tets summed by
+      the conversion): 104 million entries at spacing 0.0125.
 
     Each row: the medians of ``repeat`` runs of cutfem on all of numba's threads and on one, of
     the reference, and ``per_thread`` = reference / cutfem on one thread (above 1: cutfem's kernel
     is the faster one on a core), with ``difference``, the largest difference of the two results
-    (0 where they are the same bits; the reference's sums may be ordered differently).  A yardstick
+    (0 where they are the same bits; the reference's sums may be ordered differently).  The data
+    a reference is given (the active tets, the element matrices) is made before the timing.  A yardstick
     of the compiled code a library offers for the same step, not a bound: the memory-traffic
     bounds of :func:`stage_bounds` are the lower ones."""
     import numba
@@ -551,11 +566,19 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     from cutfem.solve import lattice_hierarchy, lattice_indices
     from cutfem.spaces import CutP1Space
 
+    import pyvista as pv
+
     box = structured_box(*BOX, spacing=spacing)
-    cut = cut_mesh(box, Torus(1.0, 0.5))
+    torus = Torus(1.0, 0.5)
+    cut = cut_mesh(box, torus)
     space = CutP1Space(cut)
-    K = sp.csr_matrix(assemble(mean_curvature_form(cut.ds(), tau_f=0.1, faces=cut.dF(cut.interior_facets(CUT))), space))
+    faces = cut.interior_facets(CUT)
+    form = mean_curvature_form(cut.ds(), tau_f=0.1, faces=cut.dF(faces))
+    K = sp.csr_matrix(assemble(form, space))
     n = K.shape[0]
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: np.asarray(cut.tets)}, np.asarray(cut.points))
+    grid.point_data["phi"] = np.asarray(cut.values)
+    entries = _element_triplets(cut, space, faces, 0.1)  # (values, (rows, columns))
     rng = np.random.default_rng(0)
     X, B = rng.standard_normal((n, COLUMNS)), rng.standard_normal((n, COLUMNS))
     P = sp.csr_matrix(next(iter(lattice_hierarchy(lattice_indices(space)))))
@@ -574,6 +597,9 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
         return out
 
     def difference(a, b):
+        if isinstance(b, pv.PolyData):  # the cut against VTK's contour: the areas, relative
+            area = float(np.sum(a.triangle_areas))
+            return abs(area - float(b.area)) / area
         if isinstance(a, tuple):  # (distinct values, inverse)
             return float(max(np.max(np.abs(a[0] - b[0])), np.max(np.abs(a[1] - b[1].reshape(a[1].shape)))))
         if sp.issparse(a):
@@ -586,6 +612,10 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
         ("Galerkin P^T K P, first level", lambda: kernels.galerkin(K, P, R), "scipy R @ K @ P (C++)", lambda: R @ K @ P),
         ("active-node numbering", lambda: dense_unique(ids, box.n_points), "numpy.unique with inverse (C)",
          lambda: np.unique(ids, return_inverse=True)),
+        ("the cut stage (band, S_h), whole", lambda: cut_mesh(box, torus), "VTK contour of the active tets (C++)",
+         lambda: grid.contour([0.0], scalars="phi", method="contour")),
+        ("the matrix stage, whole", lambda: assemble(form, space), "scipy COO to CSR of the element matrices (C++)",
+         lambda: sp.coo_matrix(entries, shape=(n, n)).tocsr()),
     ]
     threads = numba.get_num_threads()
     rows = []
@@ -602,6 +632,38 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
                      "threads": int(threads), "reference": reference, "reference_time": t_ref, "per_thread": t_ref / t_one,
                      "difference": diff, "repeat": int(repeat)})
     return rows
+
+
+def _element_triplets(cut, space, faces, tau_f: float):
+    """(values, (rows, columns)) of the element matrices of K = M + tau_F J_F on the cut space ``space``,
+    for :func:`compiled_references`: the exact piece mass matrix of each cut tet (its diagonal and
+    both triangles of its 4 x 4, :func:`cutfem.kernels.piece_moments`) and tau_F c_F c_F^T of each
+    interior face in ``faces`` (8 x 8, c_F the jump row of :func:`cutfem.kernels.jump_rows` on the
+    dofs of both tets, a shared node twice); their sum is K."""
+    from cutfem import kernels
+    from cutfem.cut import CUT
+    from cutfem.numbering import TET_EDGES, index_dtype
+
+    dofs = np.asarray(space.element_dofs)
+    table, types = space.gradient_lookup()
+    es = cut.elements(CUT)
+    edges, diagonal, _ = kernels.piece_moments(cut.vertices, cut.triangles, cut.triangle_tets, cut.triangle_areas,
+                                               es.points, es.tets, table, types)
+    a, b = TET_EDGES[:, 0], TET_EDGES[:, 1]
+    mass_rows = np.concatenate([dofs, dofs[:, a], dofs[:, b]], axis=1)
+    mass_cols = np.concatenate([dofs, dofs[:, b], dofs[:, a]], axis=1)
+    mass_vals = np.concatenate([diagonal, edges, edges], axis=1)
+    normals, weights = faces.normals_areas()
+    pairs = np.ascontiguousarray(faces.pairs)
+    index = index_dtype(space.n_dofs)
+    face_dofs, face_vals = np.empty((len(pairs), 8), dtype=index), np.empty((len(pairs), 8))
+    kernels.jump_rows(pairs, normals, normals, -1.0, np.ascontiguousarray(tau_f * weights, dtype=float), dofs, table, types,
+                      face_dofs, face_vals)
+    shape = (len(pairs), 8, 8)
+    rows = np.concatenate([mass_rows.ravel(), np.broadcast_to(face_dofs[:, :, None], shape).ravel()]).astype(index)
+    cols = np.concatenate([mass_cols.ravel(), np.broadcast_to(face_dofs[:, None, :], shape).ravel()]).astype(index)
+    vals = np.concatenate([mass_vals.ravel(), (face_vals[:, :, None] * face_vals[:, None, :]).ravel()])
+    return vals, (rows, cols)
 
 
 def _references_in_subprocess(spacing: float) -> list:

@@ -80,7 +80,7 @@ def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
         assert r["seconds_per_million"] == pytest.approx(r["wall"] / (r["dofs"] / 1e6))
     assert data["exponents"]["cut"] == {}  # two cut levels: too few to fit
     refs = data["compiled_references"]  # at the tiny size, spacing 0.1, in a fresh process
-    assert [r["spacing"] for r in refs] == [0.1] * 4 and all(r["cutfem"] > 0 and r["reference_time"] > 0 for r in refs)
+    assert [r["spacing"] for r in refs] == [0.1] * 6 and all(r["cutfem"] > 0 and r["reference_time"] > 0 for r in refs)
     # the commands of the targets, end to end in fresh processes: the tiny sizes, without a target
     commands = data["commands"]
     assert [c["command"] for c in commands] == ["cutfem run mean-curvature-cut --spacing 0.1"] + [
@@ -292,13 +292,19 @@ def test_meshed_multigrid_and_direct_errors_agree(family):
 
 def test_compiled_references_compute_what_their_kernels_compute():
     """Each kernel and its compiled reference (scipy's CSR product and sparse products, pyamg's
-    Gauss-Seidel, numpy.unique) give the same result on the cut torus at spacing 0.2: the product
-    and the numbering bit for bit, the sweep and the Galerkin product to round-off; per thread is
-    the reference's time over cutfem's on one thread."""
+    Gauss-Seidel, numpy.unique, VTK's contour filter, scipy's COO to CSR) give the same result on
+    the cut torus at spacing 0.2: the product and the numbering bit for bit, the sweep, the Galerkin
+    product, the surface's area and the matrix to round-off; per thread is the reference's time
+    over cutfem's on one thread."""
     rows = performance.compiled_references(0.2, repeat=1)
     assert [r["operation"] for r in rows] == ["K X, 3 columns, double", "Gauss-Seidel sweep from zero, 3 columns",
-                                              "Galerkin P^T K P, first level", "active-node numbering"]
+                                              "Galerkin P^T K P, first level", "active-node numbering",
+                                              "the cut stage (band, S_h), whole", "the matrix stage, whole"]
     by = {r["operation"]: r for r in rows}
+    # VTK's marching tets on the active tets give the same surface (relative difference of the areas),
+    # and the element matrices summed by scipy's COO to CSR conversion give K
+    assert by["the cut stage (band, S_h), whole"]["difference"] < 1e-12
+    assert by["the matrix stage, whole"]["difference"] < 1e-12
     assert by["K X, 3 columns, double"]["difference"] == 0.0
     assert by["active-node numbering"]["difference"] == 0.0
     assert by["Gauss-Seidel sweep from zero, 3 columns"]["difference"] < 1e-12
