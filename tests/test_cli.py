@@ -205,6 +205,40 @@ def test_register_function_problem_and_run():
         cutfem.run("test-quadratic", c=-1)
 
 
+def test_a_level_after_a_long_one_starts_by_collecting_the_garbage(monkeypatch):
+    """run() collects the process's garbage before a level when the level before it (in this
+    process) ran COLLECT_AFTER seconds or more: the objects of a dropped result that refer to each
+    other (as a cut and its element sets do) are freed before the new level allocates; after a
+    short level nothing is collected."""
+    import gc
+    import weakref
+
+    from cutfem import registry
+
+    @register("test-garbage", levels=[0.5], level_name="step")
+    def level(step):
+        return {"h": step, "dofs": 1}
+
+    class Cycle:
+        def __init__(self):
+            self.me = self
+
+    was_enabled = gc.isenabled()
+    gc.disable()  # only run() may collect
+    try:
+        for threshold, freed in ((float("inf"), False), (0.0, True)):
+            monkeypatch.setattr(registry, "COLLECT_AFTER", threshold)
+            cutfem.run("test-garbage")  # sets the last level's time
+            c = Cycle()
+            ref = weakref.ref(c)
+            del c
+            cutfem.run("test-garbage")
+            assert (ref() is None) == freed, threshold
+    finally:
+        if was_enabled:
+            gc.enable()
+
+
 def test_progress_line_shows_the_stages_of_long_levels(monkeypatch, capsys):
     """A level past STAGES_AFTER seconds lists its stages on its progress line, in order, with
     their times; a shorter one keeps its short line; nothing is reported outside run()."""
