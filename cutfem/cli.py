@@ -118,7 +118,7 @@ def _cmd_run(argv) -> int:
         check_output("--vtk", known.vtk, folder=True)
     result = run(
         problem.name, levels=levels, progress=not (known.quiet or to_stdout), keep_finished=True,
-        command=["cutfem", "run", *argv], **params,
+        command=["cutfem", "run", *argv], keep_fields=bool(known.vtk), **params,
     )
     if to_stdout:
         print(result.dumps())

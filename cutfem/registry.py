@@ -731,7 +731,8 @@ def check_levels(problem: Problem, levels, source: str = "levels") -> list:
     return out
 
 
-def run(name: str, levels=None, progress: bool | Callable = False, keep_finished: bool = False, command=None, **params) -> RunResult:
+def run(name: str, levels=None, progress: bool | Callable = False, keep_finished: bool = False, command=None,
+        keep_fields: bool = True, **params) -> RunResult:
     """Solve problem ``name`` at each level (default: the problem's levels) and compute rates.
 
     ``levels`` are checked before anything is solved (:func:`check_levels`).  ``progress``: True
@@ -739,7 +740,12 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
     than :data:`STAGES_AFTER` seconds); a callable gets (index, count, level, record-or-None).
     When a level fails its exception propagates, unless ``keep_finished``: then the run stops
     there and returns the finished levels with ``failure`` set (the command line writes those).
-    ``command``: the command line to record in the JSON.
+    ``command``: the command line to record in the JSON.  ``keep_fields`` False drops each
+    record's ``"fields"`` as soon as its level is solved: the fields are built on demand from the
+    level's cut, space and solution, which a record that keeps them keeps in memory while the next
+    levels run (the cut torus at spacings 0.025, 0.0125 and 0.00625 in one run: peak 1.54 GiB with
+    the fields kept, 1.39 GiB without, 1.35 GiB for 0.00625 alone).  The command line keeps them
+    only for ``--vtk``.
     """
     problem = get_problem(name)
     p = problem.resolve(params)
@@ -776,6 +782,8 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
         finally:
             _STAGE_LISTENER.reset(token)
         rec.setdefault("time", {})
+        if not keep_fields:
+            rec.pop("fields", None)
         rec["wall_time"] = _last_level["seconds"] = time.perf_counter() - t0
         rec[problem.level_name] = level
         records.append(rec)

@@ -239,6 +239,32 @@ def test_a_level_after_a_long_one_starts_by_collecting_the_garbage(monkeypatch):
             gc.enable()
 
 
+def test_keep_fields_false_frees_what_the_fields_are_built_from():
+    """run(keep_fields=False) drops each record's fields as its level finishes, so the objects they
+    would be built from are freed before the next level; by default the records keep them."""
+    import weakref
+
+    from cutfem.registry import LazyFields
+
+    class Heavy:
+        pass
+
+    refs = []
+
+    @register("test-fields", levels=[0.5, 0.25], level_name="step")
+    def level(step):
+        heavy = Heavy()
+        refs.append(weakref.ref(heavy))
+        return {"h": step, "dofs": 1, "fields": LazyFields(lambda: {"heavy": heavy})}
+
+    kept = cutfem.run("test-fields")
+    assert [r["fields"]["heavy"] for r in kept.records] == [ref() for ref in refs] and all(ref() is not None for ref in refs)
+    refs.clear()
+    dropped = cutfem.run("test-fields", keep_fields=False)
+    assert all("fields" not in r for r in dropped.records)
+    assert [ref() for ref in refs] == [None, None]
+
+
 def test_progress_line_shows_the_stages_of_long_levels(monkeypatch, capsys):
     """A level past STAGES_AFTER seconds lists its stages on its progress line, in order, with
     their times; a shorter one keeps its short line; nothing is reported outside run()."""
