@@ -87,7 +87,8 @@ STAGES_AFTER = 1.0
 #: cut torus at spacing 0.0125 in one process, each result dropped for the next (a stabilization
 #: sweep), reached a peak of 886 MiB without the collections and 659 MiB with them.  A full
 #: collection takes about 50 ms (numba's registries hold some 120 thousand objects), under 5 % of a
-#: level of a second; small levels leave little garbage and skip it.  (The levels of one run keep
+#: level of a second; small levels leave little garbage and skip it, and so does a process that
+#: turned the collector off (``gc.disable()``).  (The levels of one run keep
 #: their objects until the run's result is dropped: their fields are built from them on demand.)
 COLLECT_AFTER = 1.0
 
@@ -757,7 +758,7 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
             print(f"[{i + 1}/{len(levels)}] {problem.name} {problem.level_name}={level} ...", file=sys.stderr, end="", flush=True)
         elif callable(progress):
             progress(i, len(levels), level, None)
-        if _last_level["seconds"] >= COLLECT_AFTER:
+        if _last_level["seconds"] >= COLLECT_AFTER and gc.isenabled():
             gc.collect()  # the objects of dropped results of large levels, before this one allocates beside them
         t0 = time.perf_counter()
         token = _STAGE_LISTENER.set(_StageLine() if progress is True else None)

@@ -209,7 +209,7 @@ def test_a_level_after_a_long_one_starts_by_collecting_the_garbage(monkeypatch):
     """run() collects the process's garbage before a level when the level before it (in this
     process) ran COLLECT_AFTER seconds or more: the objects of a dropped result that refer to each
     other (as a cut and its element sets do) are freed before the new level allocates; after a
-    short level nothing is collected."""
+    short level, or with the collector turned off, nothing is collected."""
     import gc
     import weakref
 
@@ -223,20 +223,21 @@ def test_a_level_after_a_long_one_starts_by_collecting_the_garbage(monkeypatch):
         def __init__(self):
             self.me = self
 
-    was_enabled = gc.isenabled()
-    gc.disable()  # only run() may collect
+    was_enabled, thresholds = gc.isenabled(), gc.get_threshold()
+    gc.set_threshold(10**9)  # no automatic collection: only run() may collect
     try:
-        for threshold, freed in ((float("inf"), False), (0.0, True)):
+        for threshold, enabled, freed in ((float("inf"), True, False), (0.0, False, False), (0.0, True, True)):
             monkeypatch.setattr(registry, "COLLECT_AFTER", threshold)
+            (gc.enable if enabled else gc.disable)()
             cutfem.run("test-garbage")  # sets the last level's time
             c = Cycle()
             ref = weakref.ref(c)
             del c
             cutfem.run("test-garbage")
-            assert (ref() is None) == freed, threshold
+            assert (ref() is None) == freed, (threshold, enabled)
     finally:
-        if was_enabled:
-            gc.enable()
+        gc.set_threshold(*thresholds)
+        (gc.enable if was_enabled else gc.disable)()
 
 
 def test_keep_fields_false_frees_what_the_fields_are_built_from():
