@@ -95,7 +95,11 @@ product against scipy's two sparse products, the numbering of the active nodes a
 ``numpy.unique``, the cut stage against VTK's contour filter on the active tets (marching tets
 alone), the matrix stage against scipy's COO-to-CSR sum of the element matrices (the sums alone);
 on the cut torus at 0.0125 (0.1 at the tiny size), cutfem on all threads and on one, the
-reference on one, and the largest difference of the results.
+reference on one, and the largest difference of the results.  ``stage_targets``
+(:func:`stage_targets`) puts the two side by side for each stage of the cut levels: the own time
+over the traffic bound at the finest level, and cutfem's time on one thread over the compiled
+reference's (the stage whole, or for the solve the worst of its kernels), within 2 times if
+either ratio is at most 2; topology, right-hand sides and errors have no reference.
 
 Options of the command line (besides ``--out`` and the size flags)
 ------------------------------------------------------------------
@@ -666,6 +670,38 @@ def _element_triplets(cut, space, faces, tau_f: float):
     return vals, (rows, cols)
 
 
+#: the compiled references (:func:`compiled_references`) that stand for a stage of a cut level: the
+#: stage whole, or the kernels that carry it
+STAGE_REFERENCES = {
+    "cut": ("the cut stage (band, S_h), whole",),
+    "matrix": ("the matrix stage, whole",),
+    "solve": ("K X, 3 columns, double", "Gauss-Seidel sweep from zero, 3 columns", "Galerkin P^T K P, first level"),
+}
+
+
+def stage_targets(cut_records: list, references: list) -> dict:
+    """The target "every stage within 2 times of its compiled or memory-traffic bound", stage by
+    stage: {stage: {"level", "traffic_ratio" (own time / bound at the finest cut level with
+    bounds), "references" (the rows of :data:`STAGE_REFERENCES`), "compiled_ratio" (cutfem on one
+    thread / the reference, the largest over those rows; None where the stage has none),
+    "within_2x" (either ratio at most 2)}}.  A stage whose reference is its kernels (the solve) is
+    compared by its kernels, not by the calls between them."""
+    with_bounds = [r for r in cut_records if "bounds" in r]
+    if not with_bounds:
+        return {}
+    finest = min(with_bounds, key=lambda r: r["level"])
+    by_name = {r["operation"]: r for r in references}
+    out = {}
+    for stage in CUT_STAGES[1:]:
+        traffic = finest["bounds"][stage]["ratio"]
+        rows = [by_name[n] for n in STAGE_REFERENCES.get(stage, ()) if n in by_name]
+        compiled = max((r["cutfem_one_thread"] / r["reference_time"] for r in rows), default=None)
+        out[stage] = {"level": finest["level"], "traffic_ratio": traffic, "references": [r["operation"] for r in rows],
+                      "compiled_ratio": compiled,
+                      "within_2x": bool((traffic is not None and traffic <= 2) or (compiled is not None and compiled <= 2))}
+    return out
+
+
 def _references_in_subprocess(spacing: float) -> list:
     """:func:`compiled_references` in a fresh process with the allocation settings of the levels."""
     return _child_result(_CALL_CODE.format(call=f"compiled_references({float(spacing)!r})"), f"compiled references at spacing {spacing}")
@@ -990,6 +1026,7 @@ def run(out: Path, size: str = "quick", progress=None, peers: bool = False, limi
         spacing = pick(size, 0.1, 0.0125, 0.0125)
         progress(f"compiled references, cut torus at spacing {spacing}")
         summary["compiled_references"] = _references_in_subprocess(spacing)
+        summary["stage_targets"] = stage_targets(cut, summary["compiled_references"])
         summary["commands"] = command_times(size, repeat, progress)
     if peers:
         summary["peers"] = _peers(cut, memory_gib, peers_down_to, progress)
@@ -1072,6 +1109,15 @@ def _print_tables(records, summary):
         for r in refs:
             print(f"  {r['operation']:{width}s} {1e3 * r['cutfem']:10.2f} {1e3 * r['cutfem_one_thread']:9.2f}  {r['reference']:{rwidth}s} "
                   f"{1e3 * r['reference_time']:8.2f} {r['per_thread']:10.2f} {r['difference']:10.1e}")
+    if summary.get("stage_targets"):
+        targets = summary["stage_targets"]
+        level = next(iter(targets.values()))["level"]
+        print(f"\nevery stage within 2 times of its bound? own time / memory-traffic bound at spacing {level:g}; "
+              "cutfem on one thread / the compiled reference (the largest over the stage's rows above; the solve by its kernels)")
+        for stage, t in targets.items():
+            compiled = "no reference" if t["compiled_ratio"] is None else f"{t['compiled_ratio']:.2f}"
+            print(f"  {stage:10s} traffic {_fmt(t['traffic_ratio'], '.0f'):>4s}x   compiled {compiled:>12s}   "
+                  f"{'within 2x' if t['within_2x'] else 'not within 2x'}")
     if summary.get("commands"):
         print("\nend to end through the command line (a fresh process a run, start-up included; median of the runs, range)")
         width = max(len(c["command"]) for c in summary["commands"])

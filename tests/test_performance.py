@@ -79,6 +79,7 @@ def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
         assert r["dofs"] > 1000 and r["peak_memory_gib"] > 0.01 and set(r["time"]) == {"geometry", "assembly", "solve", "errors"}
         assert r["seconds_per_million"] == pytest.approx(r["wall"] / (r["dofs"] / 1e6))
     assert data["exponents"]["cut"] == {}  # two cut levels: too few to fit
+    assert set(data["stage_targets"]) == {"cut", "topology", "matrix", "rhs", "solve", "errors"}
     refs = data["compiled_references"]  # at the tiny size, spacing 0.1, in a fresh process
     assert [r["spacing"] for r in refs] == [0.1] * 6 and all(r["cutfem"] > 0 and r["reference_time"] > 0 for r in refs)
     # the commands of the targets, end to end in fresh processes: the tiny sizes, without a target
@@ -129,6 +130,36 @@ def _fabricated_level(**changes):
                     "solve": 3.12e-3, "errors": 5.76e-4}}
     rec.update(changes)
     return rec
+
+
+def test_stage_targets_by_hand():
+    """Each stage's verdict from the finest level's own time / traffic bound and, where the stage
+    has compiled references, the largest cutfem-on-one-thread / reference time: the cut 0.5 and the
+    matrix 3.0 by their whole-stage rows, the solve 1.5 by the worst of its three kernels; the
+    coarser level's ratios are not used; stages without a reference have None."""
+    coarse = _fabricated_level(level=0.1)
+    fine = _fabricated_level(level=0.05, time={k: v / 10 if k == "solve" else v for k, v in coarse["time"].items()})
+    for r in (coarse, fine):
+        r["bounds"] = performance.stage_bounds(r, 1e10)  # ratios 10 (the fine solve: 1)
+    coarse["bounds"]["cut"]["ratio"] = 1.0  # would pass the cut if the coarse level were used
+
+    def row(name, one_thread, reference):
+        return {"operation": name, "cutfem_one_thread": one_thread, "reference_time": reference}
+
+    refs = [row("the cut stage (band, S_h), whole", 1.0, 2.0), row("the matrix stage, whole", 3.0, 1.0),
+            row("K X, 3 columns, double", 1.0, 2.0), row("Gauss-Seidel sweep from zero, 3 columns", 1.5, 1.0),
+            row("Galerkin P^T K P, first level", 1.0, 1.0), row("active-node numbering", 9.0, 1.0)]
+    t = performance.stage_targets([coarse, fine], refs)
+    assert list(t) == ["cut", "topology", "matrix", "rhs", "solve", "errors"]
+    assert all(v["level"] == 0.05 for v in t.values())
+    assert t["cut"]["compiled_ratio"] == pytest.approx(0.5) and t["cut"]["traffic_ratio"] == pytest.approx(10.0)
+    assert t["matrix"]["compiled_ratio"] == pytest.approx(3.0) and not t["matrix"]["within_2x"]
+    assert t["solve"]["compiled_ratio"] == pytest.approx(1.5) and len(t["solve"]["references"]) == 3
+    assert t["solve"]["traffic_ratio"] == pytest.approx(1.0) and t["solve"]["within_2x"]
+    assert t["cut"]["within_2x"] and not t["topology"]["within_2x"]
+    for stage in ("topology", "rhs", "errors"):
+        assert t[stage]["compiled_ratio"] is None and t[stage]["references"] == []
+    assert performance.stage_targets([], refs) == {}
 
 
 def test_stage_bounds_by_hand():
