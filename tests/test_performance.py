@@ -79,6 +79,7 @@ def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
         assert r["dofs"] > 1000 and r["peak_memory_gib"] > 0.01 and set(r["time"]) == {"geometry", "assembly", "solve", "errors"}
         assert r["seconds_per_million"] == pytest.approx(r["wall"] / (r["dofs"] / 1e6))
     assert data["exponents"]["cut"] == {}  # two cut levels: too few to fit
+    assert "cut from 0.025" not in data["exponents"]  # none at 0.025 or finer at the tiny size
     assert set(data["stage_targets"]) == {"cut", "topology", "matrix", "rhs", "solve", "errors"}
     refs = data["compiled_references"]  # at the tiny size, spacing 0.1, in a fresh process
     assert [r["spacing"] for r in refs] == [0.1] * 6 and all(r["cutfem"] > 0 and r["reference_time"] > 0 for r in refs)
