@@ -88,8 +88,8 @@ STAGES_AFTER = 1.0
 #: sweep), reached a peak of 886 MiB without the collections and 659 MiB with them.  A full
 #: collection takes about 50 ms (numba's registries hold some 120 thousand objects), under 5 % of a
 #: level of a second; small levels leave little garbage and skip it, and so does a process that
-#: turned the collector off (``gc.disable()``).  (The levels of one run keep
-#: their objects until the run's result is dropped: their fields are built from them on demand.)
+#: turned the collector off (``gc.disable()``).  (The levels of one run keep their objects until
+#: the run's result is dropped, unless ``keep_fields=False``: their fields are built from them.)
 COLLECT_AFTER = 1.0
 
 #: the wall time of the last level :func:`run` solved in this process (for :data:`COLLECT_AFTER`)

@@ -141,8 +141,9 @@ Exponents (``exponents``): least-squares slopes of log(wall time), log(user CPU 
 log(peak memory) and log(stage time) against log(active tets) over the three finest cut levels
 that ran (none with fewer than three), and of log(wall time) and log(peak) against log(unknowns)
 for the bulk levels; with more than three cut levels at spacing :data:`EXPONENT_FROM` and finer
-(``--full``), also the slopes over all of them (``cut from 0.025``).  The figure ``performance_scaling`` shows time and memory against active
-tets (cut, with ngsxfem when run) or surface nodes (meshed) on log-log axes with the exponents;
+(``--full``), also the slopes over all of them (``cut from 0.025``).  The figure
+``performance_scaling`` shows time and memory against active tets (cut, with ngsxfem when run) or
+surface nodes (meshed) on log-log axes with the exponents;
 ``performance_bounds`` shows measured / bound per stage and, with ``--bulk``, the bulk costs per
 million unknowns.
 """
@@ -558,9 +559,9 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     the reference, and ``per_thread`` = reference / cutfem on one thread (above 1: cutfem's kernel
     is the faster one on a core), with ``difference``, the largest difference of the two results
     (0 where they are the same bits; the reference's sums may be ordered differently).  The data
-    a reference is given (the active tets, the element matrices) is made before the timing.  A yardstick
-    of the compiled code a library offers for the same step, not a bound: the memory-traffic
-    bounds of :func:`stage_bounds` are the lower ones."""
+    a reference is given (the active tets, the element matrices) is made before the timing.  A
+    yardstick of the compiled code a library offers for the same step, not a bound: the
+    memory-traffic bounds of :func:`stage_bounds` are the lower ones."""
     import numba
     import scipy.sparse as sp
     from pyamg.relaxation.relaxation import gauss_seidel as pyamg_gauss_seidel
