@@ -85,7 +85,7 @@ STAGES_AFTER = 1.0
 #: hold, by its cycle collector, whose full collections come rarely: a level's objects, once its
 #: result is dropped, stayed in memory while the next levels allocated beside them.  Six runs of the
 #: cut torus at spacing 0.0125 in one process, each result dropped for the next (a stabilization
-#: sweep), reached a peak of 886 MiB without the collections and 659 MiB with them.  A full
+#: sweep), reached a peak of 845-884 MiB without the collections and 622-628 MiB with them.  A full
 #: collection takes about 50 ms (numba's registries hold some 120 thousand objects), under 5 % of a
 #: level of a second; small levels leave little garbage and skip it, and so does a process that
 #: turned the collector off (``gc.disable()``).  (The levels of one run keep their objects until
