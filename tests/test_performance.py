@@ -145,7 +145,8 @@ def test_stage_targets_by_hand():
     coarse["bounds"]["cut"]["ratio"] = 1.0  # would pass the cut if the coarse level were used
 
     def row(name, one_thread, reference):
-        return {"operation": name, "cutfem_one_thread": one_thread, "reference_time": reference}
+        return {"operation": name, "cutfem_one_thread": one_thread, "reference_time": reference,
+                "per_thread": reference / one_thread}
 
     refs = [row("the cut stage (band, S_h), whole", 1.0, 2.0), row("the matrix stage, whole", 3.0, 1.0),
             row("K X, 3 columns, double", 1.0, 2.0), row("Gauss-Seidel sweep from zero, 3 columns", 1.5, 1.0),
