@@ -87,19 +87,22 @@ errors         80 Q S: Q = 6 points of the degree-4 triangle rule, each with its
 Each stage's record says so in ``bound_method``.  The stage's own time, from the second run of
 its process, is compared with the bound (``ratio``), and so is the first run's (``ratio_fresh``).
 
-Beside the bounds, the kernels that carry the solve, the numbering of the cut, and the cut and
-matrix stages whole are timed against an existing compiled library doing the same operation on
-the same data (``compiled_references``, :func:`compiled_references`; not in ``--limit`` mode): the
-product K X against scipy's CSR product, a Gauss-Seidel sweep against pyamg's, the Galerkin
-product against scipy's two sparse products, the numbering of the active nodes against
-``numpy.unique``, the cut stage against VTK's contour filter on the active tets (marching tets
-alone), the matrix stage against scipy's COO-to-CSR sum of the element matrices (the sums alone);
-on the cut torus at 0.0125 (0.1 at the tiny size), cutfem on all threads and on one, the
-reference on one, and the largest difference of the results.  ``stage_targets``
-(:func:`stage_targets`) puts the two side by side for each stage of the cut levels: the own time
-over the traffic bound at the finest level, and cutfem's time on one thread over the compiled
-reference's (the stage whole, or for the solve the worst of its kernels), within 2 times if
-either ratio is at most 2; topology, right-hand sides and errors have no reference.
+Beside the bounds, the kernels that carry the solve, the numbering of the cut, and the cut,
+topology, matrix and right-hand-side stages whole are timed against an existing compiled library
+doing the same operation on the same data (``compiled_references``, :func:`compiled_references`;
+not in ``--limit`` mode): the product K X against scipy's CSR product, a Gauss-Seidel sweep
+against pyamg's, the Galerkin product against scipy's two sparse products, the numbering of the
+active nodes against ``numpy.unique``, the cut stage against VTK's contour filter on the active
+tets (marching tets alone), the topology stage against VTK's geometry filter (the faces of the
+active tets matched), the matrix stage against scipy's COO-to-CSR sum of the element matrices and
+the right-hand sides against ``numpy.bincount`` of the element vectors (the sums alone); on the
+cut torus at 0.0125 (0.1 at the tiny size), cutfem on all threads and on one, the reference on
+one, and the largest difference of the results.  ``stage_targets`` (:func:`stage_targets`) puts
+the two side by side for each stage of the cut levels: the own time over the traffic bound at the
+finest level, and cutfem's time on one thread over the compiled reference's (the stage whole, or
+for the solve the worst of its kernels), within 2 times if either ratio is at most 2.  The errors
+have no reference; the share of their time spent in the exact field's own numpy evaluation (the
+caller's function, evaluated at the quadrature points) is given instead (``exact_share``).
 
 Options of the command line (besides ``--out`` and the size flags)
 ------------------------------------------------------------------
@@ -228,7 +231,9 @@ def _timed_system_solve_error(t, space, surface, form, torus):
     """The stages shared by both kinds: the matrix K of ``form`` (one assembly, as ``cutfem run``),
     the right-hand sides B = A x over the measure ``surface`` (S_h) (``rhs``), the automatic solve
     and the L2 error; returns the record entries they give (``dofs``, ``nnz`` {"K": stored
-    entries}, ``l2_error``, ``solver``, ``iterations``) and the times of all the stages of ``t``."""
+    entries}, ``l2_error``, ``solver``, ``iterations``, ``exact_time``: the seconds of the errors
+    stage spent in the exact field's own numpy evaluation at the quadrature points) and the times
+    of all the stages of ``t``."""
     from cutfem.errors import l2_error
     from cutfem.forms import assemble, position_load
     from cutfem.problems.mean_curvature import SOLVER_TOL
@@ -241,10 +246,19 @@ def _timed_system_solve_error(t, space, surface, form, torus):
     nnz = {"K": int(K.nnz)}
     with t("solve"):
         H, info = solve(K, B, space=space, tol=SOLVER_TOL)  # as `cutfem run` does
+    exact_time = [0.0]
+
+    def exact(x):  # one call per block of 16384 triangles
+        t0 = time.perf_counter()
+        try:
+            return torus.exact_mean_curvature_vector(x)
+        finally:
+            exact_time[0] += time.perf_counter() - t0
+
     with t("errors"):
-        err = l2_error(space, H, torus.exact_mean_curvature_vector)
+        err = l2_error(space, H, exact)
     return {"dofs": int(space.n_dofs), "nnz": nnz, "l2_error": err, "solver": info.method, "iterations": info.iterations,
-            "time": dict(t), "stage_cpu": t.cpu, "total": sum(t.values())}
+            "time": dict(t), "stage_cpu": t.cpu, "total": sum(t.values()), "exact_time": exact_time[0]}
 
 
 def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
@@ -350,7 +364,7 @@ if warm:
     gc.collect()
     r2 = resource.getrusage(resource.RUSAGE_SELF)
     again = level_once()
-    rec['warm'] = {{'time': again['time'], 'total': again['total'], 'iterations': again['iterations'],
+    rec['warm'] = {{'time': again['time'], 'total': again['total'], 'iterations': again['iterations'], 'exact_time': again['exact_time'],
                    'page_faults': resource.getrusage(resource.RUSAGE_SELF).ru_minflt - r2.ru_minflt}}
     rec['start_up'] = rec['total'] - again['total']
 print('RESULT ' + json.dumps(rec))
@@ -554,6 +568,16 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
       :func:`cutfem.kernels.piece_moments`) and the Gram matrices c_F c_F^T of the face jumps
       (8 x 8 a face, from :func:`cutfem.kernels.jump_rows`; a node shared by the two tets summed by
       the conversion): 104 million entries at spacing 0.0125.
+    * the whole topology stage (the field on the cut tets, :class:`cutfem.spaces.CutP1Space`, and
+      the interior faces of the active mesh, :func:`cutfem.markers.interior_facets`) against VTK's
+      geometry filter (vtkGeometryFilter, C++, pyvista's ``extract_surface``, one thread) on the
+      active tets: it matches every face of the tets with its twin and keeps those met once (the
+      boundary), the same matching; ``difference`` is |its boundary faces - (4 T - 2 F)|, T tets
+      and F interior faces;
+    * the whole right-hand-side stage (:func:`cutfem.forms.assemble` of
+      :func:`cutfem.forms.position_load`: b_i = sum_K |S_K| P_h grad phi_i, element vectors and
+      sums in one compiled pass) against ``numpy.bincount`` (C) summing the element vectors |S_K|
+      P_h grad phi_i, given (made in numpy before the timing), one column at a time: the sums alone.
 
     Each row: the medians of ``repeat`` runs of cutfem on all of numba's threads and on one, of
     the reference, and ``per_thread`` = reference / cutfem on one thread (above 1: cutfem's kernel
@@ -568,8 +592,9 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
 
     from cutfem import kernels
     from cutfem.cut import CUT, cut_mesh
-    from cutfem.forms import assemble
+    from cutfem.forms import assemble, position_load
     from cutfem.levelset import Torus
+    from cutfem.markers import interior_facets
     from cutfem.mesh import dense_unique, structured_box
     from cutfem.problems.mean_curvature import mean_curvature_form
     from cutfem.solve import lattice_hierarchy, lattice_indices
@@ -593,6 +618,12 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     P = sp.csr_matrix(next(iter(lattice_hierarchy(lattice_indices(space)))))
     R = sp.csr_matrix(P.T)
     ids = cut.node_ids[cut.tets]
+    es = cut.elements(CUT)
+    areas = np.asarray(cut.ds().piece_areas, dtype=float)
+    vectors = (space.tangential_gradients * areas[:, None, None]).reshape(-1, 3)  # |S_K| P_h grad phi_i
+    columns = [np.ascontiguousarray(vectors[:, k]) for k in range(3)]
+    element_dofs = np.asarray(space.element_dofs).ravel()
+    del vectors
 
     def sweep():
         return kernels.gauss_seidel(K, np.zeros((n, COLUMNS)), B)
@@ -605,7 +636,18 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
             out[:, k] = x
         return out
 
+    def topology():
+        return CutP1Space(cut), interior_facets(es.tets, es.n_nodes, es.kuhn_types)
+
+    def vtk_boundary():
+        return grid.extract_surface(pass_pointid=False, pass_cellid=False, algorithm="geometry")
+
+    def bincount_rhs():
+        return np.stack([np.bincount(element_dofs, weights=c, minlength=n) for c in columns], axis=1)
+
     def difference(a, b):
+        if isinstance(a, tuple) and isinstance(b, pv.PolyData):  # faces met once against 4 T - 2 F
+            return float(abs(b.n_cells - (4 * cut.n_tets - 2 * len(a[1][0]))))
         if isinstance(b, pv.PolyData):  # the cut against VTK's contour: the areas, relative
             area = float(np.sum(a.triangle_areas))
             return abs(area - float(b.area)) / area
@@ -625,6 +667,9 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
          lambda: grid.contour([0.0], scalars="phi", method="contour")),
         ("the matrix stage, whole", lambda: assemble(form, space), "scipy COO to CSR of the element matrices (C++)",
          lambda: sp.coo_matrix(entries, shape=(n, n)).tocsr()),
+        ("the topology stage (interior faces), whole", topology, "VTK geometry filter of the active tets (C++)", vtk_boundary),
+        ("the right-hand sides, whole", lambda: assemble(position_load(cut.ds()), space), "numpy.bincount of the element vectors (C)",
+         bincount_rhs),
     ]
     threads = numba.get_num_threads()
     rows = []
@@ -679,7 +724,9 @@ def _element_triplets(cut, space, faces, tau_f: float):
 #: stage whole, or the kernels that carry it
 STAGE_REFERENCES = {
     "cut": ("the cut stage (band, S_h), whole",),
+    "topology": ("the topology stage (interior faces), whole",),
     "matrix": ("the matrix stage, whole",),
+    "rhs": ("the right-hand sides, whole",),
     "solve": ("K X, 3 columns, double", "Gauss-Seidel sweep from zero, 3 columns", "Galerkin P^T K P, first level"),
 }
 
@@ -690,7 +737,9 @@ def stage_targets(cut_records: list, references: list) -> dict:
     bounds), "references" (the rows of :data:`STAGE_REFERENCES`), "compiled_ratio" (cutfem on one
     thread / the reference, the largest over those rows; None where the stage has none),
     "within_2x" (either ratio at most 2)}}.  A stage whose reference is its kernels (the solve) is
-    compared by its kernels, not by the calls between them."""
+    compared by its kernels, not by the calls between them.  The errors stage also has
+    "exact_share": the part of its own time spent evaluating the exact field (the caller's numpy
+    function, not the library's code), where the level recorded it."""
     with_bounds = [r for r in cut_records if "bounds" in r]
     if not with_bounds:
         return {}
@@ -704,6 +753,9 @@ def stage_targets(cut_records: list, references: list) -> dict:
         out[stage] = {"level": finest["level"], "traffic_ratio": traffic, "references": [r["operation"] for r in rows],
                       "compiled_ratio": compiled,
                       "within_2x": bool((traffic is not None and traffic <= 2) or (compiled is not None and compiled <= 2))}
+    own = finest.get("warm", finest)
+    if own.get("exact_time") is not None and own["time"].get("errors"):
+        out["errors"]["exact_share"] = own["exact_time"] / own["time"]["errors"]
     return out
 
 
@@ -1124,8 +1176,9 @@ def _print_tables(records, summary):
               "cutfem on one thread / the compiled reference (the largest over the stage's rows above; the solve by its kernels)")
         for stage, t in targets.items():
             compiled = "no reference" if t["compiled_ratio"] is None else f"{t['compiled_ratio']:.2f}"
+            share = f" (the exact field's evaluation {100 * t['exact_share']:.0f} % of the stage)" if "exact_share" in t else ""
             print(f"  {stage:10s} traffic {_fmt(t['traffic_ratio'], '.0f'):>4s}x   compiled {compiled:>12s}   "
-                  f"{'within 2x' if t['within_2x'] else 'not within 2x'}")
+                  f"{'within 2x' if t['within_2x'] else 'not within 2x'}{share}")
     if summary.get("commands"):
         print("\nend to end through the command line (a fresh process a run, start-up included; median of the runs, range)")
         width = max(len(c["command"]) for c in summary["commands"])

@@ -82,7 +82,7 @@ def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
     assert "cut from 0.025" not in data["exponents"]  # none at 0.025 or finer at the tiny size
     assert set(data["stage_targets"]) == {"cut", "topology", "matrix", "rhs", "solve", "errors"}
     refs = data["compiled_references"]  # at the tiny size, spacing 0.1, in a fresh process
-    assert [r["spacing"] for r in refs] == [0.1] * 6 and all(r["cutfem"] > 0 and r["reference_time"] > 0 for r in refs)
+    assert [r["spacing"] for r in refs] == [0.1] * 8 and all(r["cutfem"] > 0 and r["reference_time"] > 0 for r in refs)
     # the commands of the targets, end to end in fresh processes: the tiny sizes, without a target
     commands = data["commands"]
     assert [c["command"] for c in commands] == ["cutfem run mean-curvature-cut --spacing 0.1"] + [
@@ -135,11 +135,13 @@ def _fabricated_level(**changes):
 
 def test_stage_targets_by_hand():
     """Each stage's verdict from the finest level's own time / traffic bound and, where the stage
-    has compiled references, the largest cutfem-on-one-thread / reference time: the cut 0.5 and the
-    matrix 3.0 by their whole-stage rows, the solve 1.5 by the worst of its three kernels; the
-    coarser level's ratios are not used; stages without a reference have None."""
+    has compiled references, the largest cutfem-on-one-thread / reference time: the cut 0.5, the
+    topology 0.25, the matrix 3.0 and the right-hand sides 2.5 by their whole-stage rows, the solve
+    1.5 by the worst of its three kernels; the coarser level's ratios are not used; the errors
+    have no reference, and the share of their own (second-run) time in the exact field."""
     coarse = _fabricated_level(level=0.1)
     fine = _fabricated_level(level=0.05, time={k: v / 10 if k == "solve" else v for k, v in coarse["time"].items()})
+    fine["warm"] = {"time": {**fine["time"], "errors": 4e-4}, "exact_time": 1e-4}
     for r in (coarse, fine):
         r["bounds"] = performance.stage_bounds(r, 1e10)  # ratios 10 (the fine solve: 1)
     coarse["bounds"]["cut"]["ratio"] = 1.0  # would pass the cut if the coarse level were used
@@ -150,7 +152,8 @@ def test_stage_targets_by_hand():
 
     refs = [row("the cut stage (band, S_h), whole", 1.0, 2.0), row("the matrix stage, whole", 3.0, 1.0),
             row("K X, 3 columns, double", 1.0, 2.0), row("Gauss-Seidel sweep from zero, 3 columns", 1.5, 1.0),
-            row("Galerkin P^T K P, first level", 1.0, 1.0), row("active-node numbering", 9.0, 1.0)]
+            row("Galerkin P^T K P, first level", 1.0, 1.0), row("active-node numbering", 9.0, 1.0),
+            row("the topology stage (interior faces), whole", 1.0, 4.0), row("the right-hand sides, whole", 5.0, 2.0)]
     t = performance.stage_targets([coarse, fine], refs)
     assert list(t) == ["cut", "topology", "matrix", "rhs", "solve", "errors"]
     assert all(v["level"] == 0.05 for v in t.values())
@@ -158,9 +161,13 @@ def test_stage_targets_by_hand():
     assert t["matrix"]["compiled_ratio"] == pytest.approx(3.0) and not t["matrix"]["within_2x"]
     assert t["solve"]["compiled_ratio"] == pytest.approx(1.5) and len(t["solve"]["references"]) == 3
     assert t["solve"]["traffic_ratio"] == pytest.approx(1.0) and t["solve"]["within_2x"]
-    assert t["cut"]["within_2x"] and not t["topology"]["within_2x"]
-    for stage in ("topology", "rhs", "errors"):
-        assert t[stage]["compiled_ratio"] is None and t[stage]["references"] == []
+    assert t["topology"]["compiled_ratio"] == pytest.approx(0.25) and t["topology"]["within_2x"]
+    assert t["rhs"]["compiled_ratio"] == pytest.approx(2.5) and not t["rhs"]["within_2x"]
+    assert t["cut"]["within_2x"] and not t["errors"]["within_2x"]
+    assert t["errors"]["compiled_ratio"] is None and t["errors"]["references"] == []
+    assert t["errors"]["exact_share"] == pytest.approx(0.25) and "exact_share" not in t["cut"]
+    del fine["warm"]
+    assert "exact_share" not in performance.stage_targets([coarse, fine], refs)["errors"]  # not recorded
     assert performance.stage_targets([], refs) == {}
 
 
@@ -323,21 +330,50 @@ def test_meshed_multigrid_and_direct_errors_agree(family):
     assert abs(ed - ei) <= 1e-5 * ed
 
 
+def test_the_topology_reference_matches_the_same_faces():
+    """VTK's geometry filter, the topology stage's reference, keeps exactly the faces of the active
+    tets that the interior faces leave unpaired (cut torus at spacing 0.2, as sorted node triples)."""
+    import pyvista as pv
+
+    from cutfem.cut import CUT, cut_mesh
+    from cutfem.levelset import Torus
+    from cutfem.markers import interior_facets
+    from cutfem.mesh import structured_box
+
+    es = cut_mesh(structured_box(*performance.BOX, spacing=0.2), Torus(1.0, 0.5)).elements(CUT)
+    tets = np.asarray(es.tets)
+    pairs, opposite = interior_facets(es.tets, es.n_nodes, es.kuhn_types)
+    paired = np.zeros((len(tets), 4), dtype=bool)
+    paired[pairs[:, 0], opposite[:, 0]] = paired[pairs[:, 1], opposite[:, 1]] = True
+    tet, vertex = np.nonzero(~paired)  # a face is named by the local vertex opposite to it
+    others = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
+    ours = np.unique(np.sort(tets[tet[:, None], others[vertex]], axis=1), axis=0)
+    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, np.asarray(es.points))
+    surface = grid.extract_surface(pass_pointid=True, pass_cellid=False, algorithm="geometry")
+    theirs = np.unique(np.sort(surface.point_data["vtkOriginalPointIds"][surface.regular_faces], axis=1), axis=0)
+    assert len(ours) == 4 * len(tets) - 2 * len(pairs) > 1000
+    np.testing.assert_array_equal(ours, theirs)
+
+
 def test_compiled_references_compute_what_their_kernels_compute():
     """Each kernel and its compiled reference (scipy's CSR product and sparse products, pyamg's
-    Gauss-Seidel, numpy.unique, VTK's contour filter, scipy's COO to CSR) give the same result on
-    the cut torus at spacing 0.2: the product and the numbering bit for bit, the sweep, the Galerkin
-    product, the surface's area and the matrix to round-off; per thread is the reference's time
-    over cutfem's on one thread."""
+    Gauss-Seidel, numpy.unique, VTK's contour and geometry filters, scipy's COO to CSR,
+    numpy.bincount) give the same result on the cut torus at spacing 0.2: the product, the
+    numbering and the number of boundary faces exactly, the sweep, the Galerkin product, the
+    surface's area, the matrix and the right-hand sides to round-off; per thread is the reference's
+    time over cutfem's on one thread."""
     rows = performance.compiled_references(0.2, repeat=1)
     assert [r["operation"] for r in rows] == ["K X, 3 columns, double", "Gauss-Seidel sweep from zero, 3 columns",
                                               "Galerkin P^T K P, first level", "active-node numbering",
-                                              "the cut stage (band, S_h), whole", "the matrix stage, whole"]
+                                              "the cut stage (band, S_h), whole", "the matrix stage, whole",
+                                              "the topology stage (interior faces), whole", "the right-hand sides, whole"]
     by = {r["operation"]: r for r in rows}
     # VTK's marching tets on the active tets give the same surface (relative difference of the areas),
     # and the element matrices summed by scipy's COO to CSR conversion give K
     assert by["the cut stage (band, S_h), whole"]["difference"] < 1e-12
     assert by["the matrix stage, whole"]["difference"] < 1e-12
+    assert by["the topology stage (interior faces), whole"]["difference"] == 0.0  # VTK's boundary: 4 T - 2 F faces
+    assert by["the right-hand sides, whole"]["difference"] < 1e-12
     assert by["K X, 3 columns, double"]["difference"] == 0.0
     assert by["active-node numbering"]["difference"] == 0.0
     assert by["Gauss-Seidel sweep from zero, 3 columns"]["difference"] < 1e-12
