@@ -1243,22 +1243,30 @@ def _plot(out, records, summary):
 @figure_style
 def _plot_bounds(out, cut, summary):
     """The stage's own time (run again in its process) / bound per stage of the cut levels; with
-    bulk levels, their time and memory per million unknowns."""
+    the compiled references, the target per stage (:func:`stage_targets`: both ratios of each
+    stage against the line at 2); with bulk levels, their time and memory per million unknowns."""
     from cutfem.convergence import new_figure
 
     bulk = [r for r in summary.get("bulk", []) if "failed" not in r]
-    fig, axes = new_figure(PAGE_WIDTH, 3.2, nrows=1, ncols=2 if bulk else 1, squeeze=False)
-    ax = axes[0, 0]
+    targets = summary.get("stage_targets") or {}
+    panels = 1 + bool(targets) + bool(bulk)
+    fig, axes = new_figure(PAGE_WIDTH, 3.2 if panels < 3 else 6.0, nrows=1 if panels < 3 else 2, ncols=min(panels, 2), squeeze=False)
+    axes = list(axes.ravel())
+    if panels == 3:
+        axes[3].remove()
+    ax = axes[0]
     x = [r["active_tets"] for r in cut]
     for stage in CUT_STAGES[1:]:
         ax.loglog(x, [r["bounds"][stage]["ratio"] for r in cut], marker="o", label=stage)
     ax.set_xlabel("active tets")
     ax.set_ylabel("stage time / memory-traffic bound")
-    ax.set_title(f"cut torus, stages run warm, bound at {summary['bandwidth']['bandwidth'] / 1e9:.1f} GB/s (estimate)")
+    ax.set_title(f"cut torus, stages warm; {summary['bandwidth']['bandwidth'] / 1e9:.1f} GB/s")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(ncols=2)
+    if targets:
+        _plot_stage_targets(axes[1], targets)
     if bulk:
-        ax = axes[0, 1]
+        ax = axes[1 + bool(targets)]
         n = [r["dofs"] for r in bulk]
         per_million = ([r["seconds_per_million"] for r in bulk], [r["gib_per_million"] for r in bulk])
         ax.semilogx(n, per_million[0], marker="o", label="wall time [s]")
@@ -1270,6 +1278,25 @@ def _plot_bounds(out, cut, summary):
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(loc="upper right")  # the values fall from the upper left
     save_figure(fig, out, "performance_bounds")
+
+
+def _plot_stage_targets(ax, targets: dict) -> None:
+    """Per stage, its own time over its memory-traffic bound and its time on one thread over the
+    compiled reference's, as horizontal bars on a log axis, with the target 2 as a line."""
+    stages = [s for s in CUT_STAGES if s in targets]  # the stages' order (a JSON file may have sorted them)
+    y = np.arange(len(stages))
+    for k, (key, label) in enumerate((("traffic_ratio", "own time / traffic bound"), ("compiled_ratio", "one thread / compiled reference"))):
+        values = [targets[s][key] for s in stages]
+        have = [i for i, v in enumerate(values) if v is not None]
+        ax.barh(y[have] + (0.2 if k else -0.2), [values[i] for i in have], height=0.38, label=label)
+    ax.axvline(2.0, color="k", linestyle="--", linewidth=1, label="target 2")
+    ax.set_xscale("log")
+    ax.set_yticks(y, [s + ("" if targets[s]["within_2x"] else " (not met)") for s in stages])
+    ax.invert_yaxis()
+    ax.set_xlabel(f"time ratio (spacing {targets[stages[0]]['level']:g})")
+    ax.set_title("every stage within 2 times?")
+    ax.grid(True, axis="x", which="both", alpha=0.3)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.2), fontsize="small")
 
 
 def _positive_gib(text: str) -> float:
