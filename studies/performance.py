@@ -147,8 +147,9 @@ for the bulk levels; with more than three cut levels at spacing :data:`EXPONENT_
 (``--full``), also the slopes over all of them (``cut from 0.025``).  The figure
 ``performance_scaling`` shows time and memory against active tets (cut, with ngsxfem when run) or
 surface nodes (meshed) on log-log axes with the exponents;
-``performance_bounds`` shows measured / bound per stage and, with ``--bulk``, the bulk costs per
-million unknowns.
+``performance_bounds`` shows measured / bound per stage and level, the per-stage verdict of
+``stage_targets`` (both ratios of each stage against the target 2) and, with ``--bulk``, the bulk
+costs per million unknowns.
 """
 
 from __future__ import annotations
