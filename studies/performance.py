@@ -101,8 +101,9 @@ one, and the largest difference of the results.  ``stage_targets`` (:func:`stage
 the two side by side for each stage of the cut levels: the own time over the traffic bound at the
 finest level, and cutfem's time on one thread over the compiled reference's (the stage whole, or
 for the solve the worst of its kernels), within 2 times if either ratio is at most 2.  The errors
-have no reference; the share of their time spent in the exact field's own numpy evaluation (the
-caller's function, evaluated at the quadrature points) is given instead (``exact_share``).
+have no reference; the share of their time spent in the exact field's own evaluation (the
+caller's function at the quadrature points; for the torus a compiled pass) is given instead
+(``exact_share``).
 
 Options of the command line (besides ``--out`` and the size flags)
 ------------------------------------------------------------------
@@ -233,7 +234,7 @@ def _timed_system_solve_error(t, space, surface, form, torus):
     the right-hand sides B = A x over the measure ``surface`` (S_h) (``rhs``), the automatic solve
     and the L2 error; returns the record entries they give (``dofs``, ``nnz`` {"K": stored
     entries}, ``l2_error``, ``solver``, ``iterations``, ``exact_time``: the seconds of the errors
-    stage spent in the exact field's own numpy evaluation at the quadrature points) and the times
+    stage spent in the exact field's own evaluation at the quadrature points) and the times
     of all the stages of ``t``."""
     from cutfem.errors import l2_error
     from cutfem.forms import assemble, position_load
@@ -739,7 +740,7 @@ def stage_targets(cut_records: list, references: list) -> dict:
     thread / the reference, the largest over those rows; None where the stage has none),
     "within_2x" (either ratio at most 2)}}.  A stage whose reference is its kernels (the solve) is
     compared by its kernels, not by the calls between them.  The errors stage also has
-    "exact_share": the part of its own time spent evaluating the exact field (the caller's numpy
+    "exact_share": the part of its own time spent evaluating the exact field (the caller's
     function, not the library's code), where the level recorded it."""
     with_bounds = [r for r in cut_records if "bounds" in r]
     if not with_bounds:
