@@ -339,15 +339,15 @@ def test_the_topology_reference_matches_the_same_faces():
     from cutfem.levelset import Torus
     from cutfem.markers import interior_facets
     from cutfem.mesh import structured_box
+    from cutfem.numbering import TET_FACES
 
     es = cut_mesh(structured_box(*performance.BOX, spacing=0.2), Torus(1.0, 0.5)).elements(CUT)
     tets = np.asarray(es.tets)
     pairs, opposite = interior_facets(es.tets, es.n_nodes, es.kuhn_types)
     paired = np.zeros((len(tets), 4), dtype=bool)
     paired[pairs[:, 0], opposite[:, 0]] = paired[pairs[:, 1], opposite[:, 1]] = True
-    tet, vertex = np.nonzero(~paired)  # a face is named by the local vertex opposite to it
-    others = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])
-    ours = np.unique(np.sort(tets[tet[:, None], others[vertex]], axis=1), axis=0)
+    tet, vertex = np.nonzero(~paired)  # face k of a tet is the one opposite to its local vertex k
+    ours = np.unique(np.sort(tets[tet[:, None], TET_FACES[vertex]], axis=1), axis=0)
     grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, np.asarray(es.points))
     surface = grid.extract_surface(pass_pointid=True, pass_cellid=False, algorithm="geometry")
     theirs = np.unique(np.sort(surface.point_data["vtkOriginalPointIds"][surface.regular_faces], axis=1), axis=0)
