@@ -1,5 +1,5 @@
-"""Memory: estimates checked before large allocations, and the process-wide settings of a large run
-(allocation, and how idle threads wait).
+"""Memory: estimates checked before large allocations, and the process-wide allocation settings of a
+large run.
 
 Estimates before allocating
 ---------------------------
@@ -138,19 +138,16 @@ The command line and the studies skip them when the environment has ``CUTFEM_ALL
 a ``NUMPY_MADVISE_HUGEPAGE`` set by the user is respected.  ``SETTINGS`` records what was applied
 (empty until :func:`configure` runs; the benchmark saves it with every level).
 
-How idle threads wait
----------------------
-The solvers' kernels share their rows between the cores (:mod:`cutfem.kernels`, numba's threads,
-on OpenMP where numba has it).  OpenMP's threads, once a parallel loop is done, spin until the
-next one by default.  That is harmless on idle cores and ruinous on a busy one: with another
-process computing on the other core of the 2-core machine, the solve of the cut torus at spacing
-0.0125 took 3.1-3.7 s instead of 0.96 s on one thread, the spinning thread taking the core from
-the code between the loops.  :func:`configure` sets ``OMP_WAIT_POLICY=PASSIVE`` (idle threads
-sleep), unless the environment sets it already; OpenMP reads it when numba starts its threads, at
-the first parallel kernel, so :func:`configure` must run before that (``SETTINGS["threads"]``
-says "too late" otherwise).  Measured on that solve (three runs each, 2026-12-03): 0.67 s passive
-against 0.64 s spinning on an idle machine, 1.06 s against 3.1-3.7 s beside a busy process (one
-thread: 0.96 s).  ``NUMBA_NUM_THREADS=1`` keeps every kernel on the calling thread.
+How threads wait
+----------------
+Nothing here: OpenMP's wait policy is left as the environment has it.  The command line used to
+set ``OMP_WAIT_POLICY=PASSIVE``, because the threads that spin after a parallel loop took the core
+from the code between the loops beside a busy process (the cut torus's solve at spacing 0.0125:
+3.1-3.7 s instead of 0.96 s on one thread), which left scripts, which do not call
+:func:`configure`, 2.9 times slower than the same run through the command line.  Each kernel call
+now runs on the calling thread alone when the cores are busy or its arrays are small
+(:mod:`cutfem.threads`), so the team's threads are not woken then and the policy no longer matters;
+scripts and the command line run alike (``studies/contention.py``).
 """
 
 from __future__ import annotations
@@ -349,16 +346,6 @@ def _numpy_hugepage_functions():
     return None, None
 
 
-def _passive_threads() -> str:
-    """OMP_WAIT_POLICY=PASSIVE unless set (see "How idle threads wait"); returns the policy in effect."""
-    import sys
-
-    parallel = sys.modules.get("numba.np.ufunc.parallel")
-    if parallel is not None and getattr(parallel, "_is_initialized", False):
-        return "too late"
-    return os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
-
-
 def configure(force: bool = False) -> dict:
     """Apply the settings of the module docstring once (again with ``force``); returns SETTINGS.
 
@@ -366,15 +353,13 @@ def configure(force: bool = False) -> dict:
     turns numpy's transparent-huge-page advice off when the kernel's defrag mode can stall a fault
     (``always``, ``madvise``, ``defer+madvise``) and ``NUMPY_MADVISE_HUGEPAGE`` is not set.
     Does nothing but record ``skipped`` when the environment has ``CUTFEM_ALLOCATOR=system``.
-    Sets ``OMP_WAIT_POLICY=PASSIVE`` unless the environment has it (see "How idle threads wait").
     Returns the dict ``SETTINGS``: {"malloc": bool (thresholds set), "numpy_hugepage": bool | None
-    (numpy's advice afterwards, None where numpy has no switch), "thp_defrag": str | None,
-    "threads": the OMP_WAIT_POLICY in effect, or "too late" when numba's threads had started}.
+    (numpy's advice afterwards, None where numpy has no switch), "thp_defrag": str | None}.
     """
     if SETTINGS and not force:
         return SETTINGS
     SETTINGS.clear()
-    SETTINGS.update(malloc=False, numpy_hugepage=None, thp_defrag=thp_defrag_mode(), threads=_passive_threads())
+    SETTINGS.update(malloc=False, numpy_hugepage=None, thp_defrag=thp_defrag_mode())
     if os.environ.get("CUTFEM_ALLOCATOR", "").lower() == "system":
         SETTINGS["skipped"] = "CUTFEM_ALLOCATOR=system"
         return SETTINGS

@@ -94,18 +94,19 @@ def test_the_command_line_configures():
         assert s["numpy_hugepage"] == s["numpy_now"]
 
 
-def test_the_command_line_makes_idle_threads_sleep():
-    """The command sets OpenMP's passive wait policy before numba's threads start, keeps a policy
-    the user set, and a late configure() says that it came too late."""
-    assert _after_command(["list"])["threads"] == "PASSIVE"
-    assert _after_command(["list"], OMP_WAIT_POLICY="active")["threads"] == "active"
+def test_the_command_line_leaves_the_wait_policy_alone():
+    """The command runs its kernels as a script does: OpenMP's wait policy is not set (each kernel
+    call's team follows the free cores instead, cutfem.threads), and a policy the user set stays."""
+    assert "threads" not in _after_command(["list"])
     code = (
-        "import json, numpy as np, scipy.sparse as sp\n"
-        "import cutfem.kernels, cutfem.memory\n"
-        "cutfem.kernels.matmul(sp.identity(600, format='csr') * 2.0, np.ones((600, 3)))\n"
-        "print(json.dumps(cutfem.memory.configure()))\n"
+        "import contextlib, io, json, os\n"
+        "import cutfem.cli\n"
+        "with contextlib.redirect_stdout(io.StringIO()):\n"
+        "    cutfem.cli.main(['list'])\n"
+        "print(json.dumps({'omp': os.environ.get('OMP_WAIT_POLICY')}))\n"
     )
-    assert _fresh_process(code)["threads"] == "too late"
+    assert _fresh_process(code)["omp"] is None
+    assert _fresh_process(code, OMP_WAIT_POLICY="active")["omp"] == "active"
 
 
 def test_the_command_line_respects_the_opt_out():
