@@ -21,14 +21,19 @@ A piece lying in a face shared by two tets is therefore owned by the single tet 
 (the tet on the other side has all its nodes >= 0 and is not cut).
 
 Values that are zero up to rounding count as zero: before anything else, nodal values with
-``|phi| <= tol`` are set to exactly 0, with ``tol = 1e-12 L diam`` (L the declared Lipschitz bound,
-diam the diagonal of the background mesh's bounding box) or, when no bound is declared, per node
-``tol = 1e-12 max |phi|`` over the node and its neighbours (a local scale: a level set such as
-z exp(20 x) spans many orders of magnitude across the box, and the box's largest value would zero
-real values elsewhere).  Without this, a node that lies on S mathematically but gets phi = 1e-16 (the
-paper's torus on its box at spacing 0.1 has such nodes) gives cut points that coincide with the
-node in floating point under different vertex keys: zero-length edges, zero-area triangles and
-undefined conormals.  The snap moves S_h by at most tol / |grad phi|.
+``|phi_i| <= tol_i`` are set to exactly 0, with per node ``tol_i = 1e-12 max |phi_j|`` over the
+nodes j of the node's own tets (its neighbours), whether or not a Lipschitz bound is declared.  That
+maximum lies between |phi_i| and |phi_i| + L_loc d (L_loc the level set's local Lipschitz constant,
+d the diameter of the node's cells), so the snap moves S_h by at most
+tol_i / |grad phi| ~ 1e-12 (|phi_i| / |grad phi| + d): round-off on the local scale.  Neither the
+box's largest value (a level set such as z exp(20 x) spans many orders of magnitude across the box)
+nor a declared bound (a true but generous L = 1e10 made a global 1e-12 L diam zero nodes 0.04 from
+the unit sphere) sets the scale.  The band search evaluates the corners of its cells only; every
+cell around a node that the snap may zero is among them (its slack bounds the tolerance, see
+:func:`_zero_tolerance`), so it snaps exactly the nodes that the full evaluation snaps.  Without
+the snap, a node that lies on S mathematically but gets phi = 1e-16 (the paper's torus on its box at
+spacing 0.1 has such nodes) gives cut points that coincide with the node in floating point under
+different vertex keys: zero-length edges, zero-area triangles and undefined conormals.
 
 Active mesh
 -----------
@@ -185,16 +190,30 @@ _SNAP = 1e-12  # relative size of the nodal values that count as zero (see "The 
 
 
 def _zero_tolerance(mesh: TetMesh, lipschitz, values=None):
-    """Snap tolerance of the zero rule: ``1e-12 * L * diam`` (L declared, a number), or per node
-    ``1e-12 * max |phi|`` over the node and its neighbours (``values`` at every node; an array):
-    the nodes of the tets around it, on a structured box the 3 x 3 x 3 block of nodes around it
-    (a superset of its Kuhn neighbours).  Local, because a level set's values may span many orders
-    of magnitude across the box: with the box's max |phi|, z exp(20 x) on [-1, 1]^3 at spacing 0.1
-    had tol ~ 5e-4, which set nodes with phi ~ 1e-10 to zero, and S_h of area 4.57 instead of 4."""
-    if lipschitz is not None:
+    """The zero rule's tolerance.
+
+    With ``values`` (phi at every node, an array): per node ``tol_i = 1e-12 * max |phi_j|`` over
+    the nodes j of the tets around node i (on a structured box the 3 x 3 x 3 block of nodes around
+    it, the corners of its 8 cells).  That maximum is at least |phi_i| and at most
+    |phi_i| + L_loc d, L_loc the level set's Lipschitz constant over the node's cells and d their
+    diameter, so the snap sets to zero only values below 1e-12 of the level set's own scale there,
+    and moves S_h by at most tol / |grad phi| ~ 1e-12 (|phi_i| / |grad phi| + d): round-off on the
+    scale of the node's cells.  Local, because a level set's values may span many orders of
+    magnitude across the box (z exp(20 x) on [-1, 1]^3), and never from a declared Lipschitz bound,
+    which may be generous: 1e-12 L diam with L = 1e10 was 0.043 on a 2.5-wide box and zeroed nodes
+    0.04 from the unit sphere (area 15.98 instead of 12.56).
+
+    Without ``values`` and with a bound ``lipschitz`` (a number): ``1e-12 * L * diam`` (diam the
+    diagonal of the bounding box), not a snap tolerance but the slack that the band search adds to
+    its tests (:func:`_lipschitz_slack`): it bounds every node's tolerance when L is a true bound
+    (the node's neighbours lie within a cell diagonal, so max |phi_j| <= |phi_i| + L |spacing|),
+    so a cell with a corner that the snap may zero is never dropped."""
+    if values is None:
+        if lipschitz is None:
+            return 0.0
         lo, hi = mesh.bounds
         return _SNAP * float(lipschitz) * float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
-    if values is None or not values.size:
+    if not values.size:
         return 0.0
     size = np.abs(values)
     if isinstance(mesh, StructuredBox):
@@ -208,8 +227,9 @@ def _zero_tolerance(mesh: TetMesh, lipschitz, values=None):
     return _SNAP * local
 
 
-def _snap_zeros(values, tol: float) -> np.ndarray:
-    """A copy of ``values`` with the entries of modulus <= tol set to exactly 0."""
+def _snap_zeros(values, tol) -> np.ndarray:
+    """A copy of ``values`` with the entries of modulus <= tol (a number or one per entry) set to
+    exactly 0."""
     values = np.array(values, dtype=float)
     values[np.abs(values) <= tol] = 0.0
     return values
@@ -519,26 +539,31 @@ def _candidates_structured(box: StructuredBox, f, lipschitz, survey=None):
         tet_ids, nodes, vals, _, _ = kernels.mixed_kuhn_tets(label_values, box.cell_corner_ids(cell_ids), cell_ids,
                                                             _KUHN_MIXED, KUHN_TETS)
     else:
-        tol = _zero_tolerance(box, lipschitz)
+        tol = _zero_tolerance(box, lipschitz)  # the band search's slack, not the snap's tolerance
         cell_ids, centre_phi = _band_cells(box, f, float(lipschitz), tol, survey)
         label_ids, corner = dense_unique(box.cell_corner_ids(cell_ids), box.n_points)
         values = np.asarray(f(box.node_coordinates(label_ids)), dtype=float)
         _check_finite(values, "background nodes near the surface")
+        # the snap's tolerance per node from its own band cells: every cell around a node that the
+        # snap may zero is in the band (see _zero_tolerance), so this is the tolerance of the full path
+        snap = _SNAP * kernels.label_scales(values, corner)
         r = 0.5 * float(np.linalg.norm(box.spacing))  # each corner lies r from its cell's centre
         tet_ids, nodes, vals, broken, ratio = kernels.mixed_kuhn_tets(
-            values, corner, cell_ids, _KUHN_MIXED, KUHN_TETS, tol=tol, centre=centre_phi,
+            values, corner, cell_ids, _KUHN_MIXED, KUHN_TETS, tol=snap, centre=centre_phi,
             bound=_lipschitz_slack(r, float(lipschitz), tol), dist=r)
         if broken:
             _lipschitz_broken(broken, ratio, float(lipschitz))
-        label_values = _snap_zeros(values, tol)
+        label_values = _snap_zeros(values, snap)
     return tet_ids, nodes, vals, label_ids, label_values
 
 
-def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0):
-    """All boundary nodes must be outside (phi >= -tol, the zero rule's snap): otherwise the surface
-    leaves the box."""
+def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0, boundary_values=None):
+    """All boundary nodes must be outside (phi >= -tol; ``f_or_values`` the snapped nodal values, or
+    ``boundary_values`` those of ``mesh.boundary_nodes``): otherwise the surface leaves the box."""
     b = mesh.boundary_nodes
-    if isinstance(f_or_values, np.ndarray):
+    if boundary_values is not None:
+        vb = boundary_values
+    elif isinstance(f_or_values, np.ndarray):
         vb = f_or_values[b]
     else:
         pts = mesh.node_coordinates(b) if isinstance(mesh, StructuredBox) else mesh.points[b]
@@ -569,22 +594,32 @@ def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0):
         )
 
 
-def _check_band_boundary(box: StructuredBox, f, band_nodes, tol: float):
+def _check_band_boundary(box: StructuredBox, f, band_nodes, band_values):
     """:func:`_check_boundary` after the band search, from one node when the band stays off the
-    box's faces.  Every tet with nodes of both signs (after the snap) lies in a band cell, so when
-    no band node ``band_nodes`` is on the boundary, no boundary edge joins a node with phi < -tol
-    to one without, and as the boundary of a box is connected its nodes are all inside or all
-    outside: the first node decides (all inside: the full check words the error).  Otherwise
-    every boundary node is checked.  At spacing 0.003125 the boundary has 6 million nodes (0.6 s)."""
+    box's faces.  ``band_nodes`` (increasing ids) and ``band_values`` (snapped by the zero rule):
+    the nodes the band search evaluated.  Every tet with nodes of both signs (after the snap) lies
+    in a band cell, so when no band node is on the boundary, no boundary edge joins a node with
+    phi < 0 to one without, and as the boundary of a box is connected its nodes are all inside or
+    all outside: the first node decides (all inside: the full check words the error).  Otherwise
+    every boundary node is checked, the band's with their snapped values (the cut's own signs),
+    the others with their values: a node outside every band cell has |phi| above the band search's
+    slack, which bounds the snap's tolerance, so the snap leaves it as it is.  At spacing 0.003125
+    the boundary has 6 million nodes (0.6 s)."""
     from . import kernels
 
     n = [int(v) for v in box.node_shape]
     if not kernels.box_ids_on_faces(np.ascontiguousarray(band_nodes, dtype=np.int64), *n):
         first = np.asarray(f(box.node_coordinates(np.zeros(1, dtype=np.int64))), dtype=float).reshape(-1)
         _check_finite(first, "boundary nodes")
-        if first[0] >= -tol:
+        if first[0] >= 0:
             return
-    _check_boundary(box, f, tol)
+    b = box.boundary_nodes
+    vb = np.asarray(f(box.node_coordinates(b)), dtype=float).reshape(-1)
+    _check_finite(vb, "boundary nodes")
+    at = np.minimum(np.searchsorted(band_nodes, b), max(len(band_nodes) - 1, 0))
+    in_band = band_nodes[at] == b if len(band_nodes) else np.zeros(len(b), dtype=bool)
+    vb[in_band] = band_values[at[in_band]]
+    _check_boundary(box, f, boundary_values=vb)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -939,11 +974,11 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     elif structured:
         f = _as_values_function(levelset)
         survey = _check_cut_memory(background, f, lipschitz, solve_bytes_per_tet)
-        if check_boundary and not band:
-            _check_boundary(background, f)
         cand = _candidates_structured(background, f, lipschitz, None if survey is None else (*survey, solve_bytes_per_tet))
         if check_boundary and band:
-            _check_band_boundary(background, f, cand[3], _zero_tolerance(background, lipschitz))
+            _check_band_boundary(background, f, cand[3], cand[4])
+        elif check_boundary:
+            _check_boundary(background, cand[4])  # every node's snapped value: the cut's own signs
     else:
         values = nodal_values(background, levelset)
         values = _snap_zeros(values, _zero_tolerance(background, lipschitz, values))
@@ -1080,8 +1115,8 @@ def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
 
 def snapped_nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
     """phi_h at every node of ``mesh`` as the cut sees it: :func:`nodal_values` with the values of
-    modulus at most 1e-12 L diam (L the level set's declared Lipschitz bound), or without one 1e-12
-    max |phi| over the node and its neighbours, set to exactly 0 (the zero rule).  Visits every node; for handing the same
+    modulus at most 1e-12 max |phi| over the node and its neighbours set to exactly 0 (the zero
+    rule, :func:`_zero_tolerance`).  Visits every node; for handing the same
     discrete level set to other codes and for volume integrals."""
     values = nodal_values(mesh, levelset)
     return _snap_zeros(values, _zero_tolerance(mesh, getattr(levelset, "lipschitz", None), values))
