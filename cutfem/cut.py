@@ -424,7 +424,7 @@ def cut_memory_estimate(background: StructuredBox, levelset, solve_bytes_per_tet
     exceeds the memory available (it skips the survey when the box fits with every cell in the
     band).  Surveys the surface when the level set declares a Lipschitz bound
     (:func:`_surface_survey`: tens of thousands of evaluations); see :func:`_cut_bytes`."""
-    lipschitz = getattr(levelset, "lipschitz", None)
+    lipschitz = _declared_lipschitz(levelset)
     area = None if lipschitz is None else _surface_survey(background, _as_values_function(levelset), float(lipschitz))[0]
     return _cut_bytes(background.cells, background.spacing, area, solve_bytes_per_tet)[:2]
 
@@ -436,17 +436,51 @@ def _lipschitz_slack(dist, lipschitz: float, tol: float):
     return lipschitz * dist * (1 + 1e-9) + 1e-14 + tol
 
 
+class _BoundBroken(CutError):
+    """A declared Lipschitz bound seen broken; ``ratio`` the largest |phi(x) - phi(y)| / |x - y| seen."""
+
+    def __init__(self, message, ratio):
+        super().__init__(message)
+        self.ratio = ratio
+
+
 def _lipschitz_broken(pairs: int, ratio: float, lipschitz: float):
     """The CutError of a broken Lipschitz bound: ``pairs`` evaluated pairs break it, the largest
     |phi(x) - phi(y)| / |x - y| seen is ``ratio``."""
-    raise CutError(
+    raise _BoundBroken(
         f"the level set breaks its declared Lipschitz bound L = {lipschitz:g}: between points the band "
         f"search evaluated, |phi(x) - phi(y)| / |x - y| reaches {ratio:.4g} ({pairs} "
         "pairs). The band search drops cells where |phi(centre)| > L r and would leave S_h open. Fix: declare "
         f"a true bound (levelset.lipschitz >= {ratio:.3g}, or None to evaluate every node). A signed distance "
         "to a surface mesh is 1-Lipschitz only when its closed components neither overlap nor intersect: "
-        "repair such a mesh (merge the overlapping parts into one closed surface)."
+        "repair such a mesh (merge the overlapping parts into one closed surface).", ratio
     )
+
+
+def _mesh_distance_message(levelset, seen: str, crossing_only: bool = False) -> str:
+    """The error for the signed distance to a surface mesh (``levelset.mesh``) that is not a
+    distance (``seen``: what showed it): nobody declared its bound 1, it is the bound of every
+    distance, and a closed mesh whose distance breaks it crosses itself.  With ``crossing_only``, ""
+    unless two triangles cross (an open S_h has other causes too).  Names the first pair of
+    crossing triangles that share no vertex (found by :func:`cutfem.surface._crossing_triangles`
+    with each triangle its own component: a grid of candidates and exact segment-triangle tests)."""
+    from .surface import _crossing_triangles
+
+    points, tri = np.asarray(levelset.mesh.points, dtype=float), np.asarray(levelset.mesh.triangles)
+    x = points[tri]
+    pairs = _crossing_triangles(points, tri, np.arange(len(tri)), x.min(axis=1), x.max(axis=1))
+    apart = ~(tri[pairs[:, 0]][:, :, None] == tri[pairs[:, 1]][:, None, :]).any(axis=(1, 2)) if len(pairs) else np.zeros(0, bool)
+    pairs = pairs[apart]
+    if len(pairs):
+        where = (f"the surface mesh self-intersects: {len(pairs)} pairs of its triangles cross, the first "
+                 f"{pairs[0].tolist()} near {np.round(x[pairs[0]].mean(axis=(0, 1)), 6).tolist()}")
+    elif crossing_only:
+        return ""
+    else:
+        where = "the surface mesh overlaps or touches itself somewhere (no crossing triangles were found)"
+    return (f"the signed distance to the surface mesh is not a distance: {seen}, where a distance changes by at "
+            f"most |x - y|. Cause: {where}, so inside and outside are not defined there. Repair the mesh into one "
+            "closed surface without self-intersections (e.g. remesh it, or merge the overlapping parts).")
 
 
 def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0, survey=None):
@@ -962,7 +996,8 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     refused.  The check after the cut, on the real active tets, stays for what the prediction does not
     cover (no Lipschitz bound, unstructured backgrounds).
     """
-    lipschitz = getattr(levelset, "lipschitz", None)
+    lipschitz = _declared_lipschitz(levelset)
+    mesh_distance = getattr(levelset, "is_distance", False) and getattr(levelset, "mesh", None) is not None
     structured = isinstance(background, StructuredBox)
     band = structured and lipschitz is not None and not isinstance(levelset, np.ndarray)  # band search used
     if isinstance(levelset, np.ndarray):
@@ -974,7 +1009,13 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     elif structured:
         f = _as_values_function(levelset)
         survey = _check_cut_memory(background, f, lipschitz, solve_bytes_per_tet)
-        cand = _candidates_structured(background, f, lipschitz, None if survey is None else (*survey, solve_bytes_per_tet))
+        try:
+            cand = _candidates_structured(background, f, lipschitz, None if survey is None else (*survey, solve_bytes_per_tet))
+        except _BoundBroken as exc:
+            if mesh_distance:  # its bound 1 is no declaration of the user's: say what is wrong with the mesh
+                raise CutError(_mesh_distance_message(
+                    levelset, f"|phi(x) - phi(y)| / |x - y| reaches {exc.ratio:.3g} between points the cut evaluated")) from None
+            raise
         if check_boundary and band:
             _check_band_boundary(background, f, cand[3], cand[4])
         elif check_boundary:
@@ -987,6 +1028,9 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
         cand = _candidates_full(background, values)
     tet_ids, labels, vals, label_ids, label_values = cand
     if len(tet_ids) == 0:
+        touching = _touching_only(background, label_ids, label_values)
+        if touching:
+            raise CutError(touching)
         raise CutError(
             "the level set does not cut the background mesh: no tetrahedron has nodal values of both signs. "
             "Check that the surface lies inside the box and is larger than a cell (refine the mesh), and that "
@@ -997,7 +1041,11 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     tet_ids, labels, vals, code = _marching(tet_ids, labels, np.ascontiguousarray(vals, dtype=float))
     del cand
     if len(tet_ids) == 0:
-        raise CutError("every piece of the cut collapsed to a point or segment; refine the background mesh")
+        raise CutError(
+            "every piece of the cut collapsed to a point or a segment: the level set is negative only at nodes "
+            "whose pieces have no area (its zero set meets the mesh in points or lines). Refine the background mesh "
+            "if the surface is smaller than a cell; if it touches the box only on its boundary, move the box or "
+            "the level set so that the surface lies inside the box.")
     m = len(tet_ids)
 
     # active nodes, numbered by increasing background id (labels increase with it); the tets' node
@@ -1063,8 +1111,63 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
         triangle_tets=tri_tet,
         _gradients=(grads, volumes),  # None on a structured box: the Kuhn table and the box's tet volume serve them
     )
-    _check_closed(cm, check_boundary, band)
+    try:
+        _check_closed(cm, check_boundary, band)
+    except CutError:
+        crossing = _mesh_distance_message(levelset, "the cut surface S_h is not closed", True) if mesh_distance else ""
+        if crossing:
+            raise CutError(crossing) from None
+        raise
     return cm
+
+
+def _declared_lipschitz(levelset):
+    """The level set's declared Lipschitz bound (``levelset.lipschitz``) as a float, or None; ValueError
+    unless it is a finite positive number: the band search drops cells by it (inf keeps every cell,
+    NaN or a bound <= 0 drops every cell, and the cut then says that the level set misses the box)."""
+    lipschitz = None if isinstance(levelset, np.ndarray) else getattr(levelset, "lipschitz", None)
+    if lipschitz is None:
+        return None
+    try:
+        value = float(lipschitz)
+    except (TypeError, ValueError):
+        value = np.nan
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(
+            f"the level set's Lipschitz bound (levelset.lipschitz) is {lipschitz!r}; a Lipschitz bound must be a finite "
+            "positive number, a true bound on |grad phi| (1 for a signed distance): declare one, or None to evaluate "
+            "every node")
+    return value
+
+
+def _touching_only(mesh: TetMesh, label_ids, label_values) -> str:
+    """The message for a level set that is zero at some nodes and negative at none (no cut tet): its
+    zero set meets the mesh in a set of zero area (a plane through an edge, a corner or a face of the
+    box, a surface touching the box from outside), where no refinement can help; "" otherwise."""
+    values = np.asarray(label_values)
+    zero = values == 0
+    if not np.any(zero) or np.any(values < 0):
+        return ""
+    ids = np.flatnonzero(zero) if label_ids is None else np.asarray(label_ids)[zero]
+    if isinstance(mesh, StructuredBox):
+        nx, ny, nz = (int(n) for n in mesh.node_shape)
+        i, j, k = ids % nx, (ids // nx) % ny, ids // (nx * ny)
+        on = (i == 0) | (i == nx - 1) | (j == 0) | (j == ny - 1) | (k == 0) | (k == nz - 1)
+        x = mesh.node_coordinates(ids[:1])[0]
+    else:
+        on = np.isin(ids, mesh.boundary_nodes)
+        x = mesh.points[ids[0]]
+    n = f"{ids.size} node{'s' if ids.size != 1 else ''} (first at {np.round(x, 6).tolist()})"
+    if np.all(on):
+        return (f"the level set does not cut the background mesh: it is zero at {n}, all on the boundary of the mesh, "
+                "and negative at none: it touches the box only on its boundary (its zero set meets the box in a point, "
+                "a line or a face, a set of zero area, with phi >= 0 inside the box), so S_h is empty and refining the "
+                "mesh cannot help. Move the box or the level set so that the surface lies inside the box, with phi < 0 "
+                "inside the surface.")
+    return (f"the level set does not cut the background mesh: it is zero at {n}, {int(np.count_nonzero(on))} of them on "
+            "the boundary of the mesh, and negative at none: its zero set meets the mesh only in a set of zero area "
+            "(phi >= 0 on both sides of it, e.g. abs(x) or a surface touching nodes from outside), so S_h is empty. A "
+            "level set must be negative inside the surface; refine the mesh only if the surface is smaller than a cell.")
 
 
 def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
@@ -1119,4 +1222,4 @@ def snapped_nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
     rule, :func:`_zero_tolerance`).  Visits every node; for handing the same
     discrete level set to other codes and for volume integrals."""
     values = nodal_values(mesh, levelset)
-    return _snap_zeros(values, _zero_tolerance(mesh, getattr(levelset, "lipschitz", None), values))
+    return _snap_zeros(values, _zero_tolerance(mesh, None, values))
