@@ -580,7 +580,7 @@ def _candidates_structured(box: StructuredBox, f, lipschitz, survey=None):
         _check_finite(values, "background nodes near the surface")
         # the snap's tolerance per node from its own band cells: every cell around a node that the
         # snap may zero is in the band (see _zero_tolerance), so this is the tolerance of the full path
-        snap = _SNAP * kernels.label_scales(values, corner)
+        snap = _SNAP * kernels.label_scales(values, corner, _SNAP * float(np.max(np.abs(values), initial=0.0)))
         r = 0.5 * float(np.linalg.norm(box.spacing))  # each corner lies r from its cell's centre
         tet_ids, nodes, vals, broken, ratio = kernels.mixed_kuhn_tets(
             values, corner, cell_ids, _KUHN_MIXED, KUHN_TETS, tol=snap, centre=centre_phi,

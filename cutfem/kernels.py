@@ -1942,19 +1942,29 @@ def _mixed_kuhn_tets(values, corner, cell_ids, mixed_table, kuhn_tets, tol, cent
 
 
 @njit(cache=True, error_model="numpy")
-def label_scales(values, corner):
-    """(L,): for each label l, the largest |values[m]| over the labels m of the cells ``corner``
-    (k, 8) that have l as a corner: the scale of the level set's values around a node, from its own
-    cells (the local scale of the zero rule, :func:`cutfem.cut._zero_tolerance`).  One serial pass
-    (a scatter of maxima); the (k, 8) corner values are never made."""
+def label_scales(values, corner, cap):
+    """(L,): for each label l with |values[l]| <= ``cap``, the largest |values[m]| over the labels m
+    of the cells ``corner`` (k, 8) that have l as a corner: the scale of the level set's values
+    around a node, from its own cells (the local scale of the zero rule,
+    :func:`cutfem.cut._zero_tolerance`); 0 for the other labels.  With cap >= 1e-12 max |values|
+    no other label can be snapped (its value exceeds 1e-12 times any maximum around it), so only
+    the cells with such a corner are reduced: one read-mostly serial pass, 0.04 s for the torus's
+    0.9 million band cells at spacing 0.00625 (0.08-0.16 s scattering to every label); the (k, 8)
+    corner values are never made."""
     out = np.zeros(values.shape[0])
     for c in range(corner.shape[0]):
+        small = False
+        for b in range(8):
+            if abs(values[corner[c, b]]) <= cap:
+                small = True
+        if not small:
+            continue
         top = 0.0
         for b in range(8):
             top = max(top, abs(values[corner[c, b]]))
         for b in range(8):
             label = corner[c, b]
-            if top > out[label]:
+            if abs(values[label]) <= cap and top > out[label]:
                 out[label] = top
     return out
 
