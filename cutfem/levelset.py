@@ -1051,9 +1051,13 @@ class FunctionLevelSet(LevelSet):
                 "of shape (..., 3) returning shape (...), and optionally grad, hessian, lipschitz, box, area"
             )
         box = ns.get("box")
-        levelset = cls(ns["phi"], gradient=ns.get("grad"), hessian=ns.get("hessian"), lipschitz=ns.get("lipschitz"),
-                       area=ns.get("area"), bounds=None if box is None else _as_bounds(box, f"box in {path.name}"),
-                       name=repr(str(path)))
+        try:
+            levelset = cls(ns["phi"], gradient=ns.get("grad"), hessian=ns.get("hessian"), lipschitz=ns.get("lipschitz"),
+                           area=ns.get("area"), bounds=None if box is None else _as_bounds(box, f"box in {path.name}"),
+                           name=repr(str(path)))
+        except ValueError as exc:  # a bad lipschitz, area or box: say which file defines it
+            raise ValueError(f"the surface file {str(path)!r}: {exc} (leave lipschitz out when no true bound on "
+                             "|grad phi| is known: every node is then evaluated)") from exc
         levelset._source = str(path)  # its functions' errors name the file (see _call)
         return levelset
 

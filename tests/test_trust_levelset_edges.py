@@ -201,3 +201,9 @@ def test_cli_mesh_file_run_says_why_there_is_no_error_column(tmp_path, capsys):
     assert "note (spacing=0.1): spacing 0.1 is below 0.5 times the facet size" in out
     record = json.loads(out_json.read_text())["records"][0]
     assert any("facet size" in note for note in record["notes"])
+
+
+def test_a_surface_files_bad_lipschitz_names_the_file(tmp_path):
+    path = _write(tmp_path, "bound.py", "def phi(x):\n    return x[..., 0]\n\nlipschitz = float('inf')\n")
+    with pytest.raises(ValueError, match=r"the surface file .*bound.py': lipschitz must be a finite positive number, got inf"):
+        FunctionLevelSet.from_file(path)
