@@ -65,12 +65,22 @@ def _problem_parser(problem) -> argparse.ArgumentParser:
 
 
 def _join_negative_values(argv, problem):
-    """'--box -1,-1,-1,1,1,1' -> '--box=-1,-1,-1,1,1,1' (argparse would read the value as an option)."""
+    """'--box -1,-1,-1,1,1,1' -> '--box=-1,-1,-1,1,1,1', '--surface "-(x**2 + y**2 + z**2) + 1"' ->
+    '--surface=-(x**2 + ...)': argparse would read a value with a leading minus as an option.  A
+    value that starts with '-' and a digit or '.' is a number; for a text parameter (a surface
+    expression) any value with one leading '-' is taken, except '-h' (help)."""
     single = {q.flag for q in problem.params if q.nargs is None}
+    text = {q.flag for q in problem.params if q.nargs is None and q.type is str}
+
+    def negative(flag, value):
+        if value[:1] != "-" or value.startswith("--") or value == "-h":
+            return False
+        return value[1:2].isdigit() or value[1:2] == "." or flag in text
+
     out, i = [], 0
     while i < len(argv):
         tok = argv[i]
-        if tok in single and i + 1 < len(argv) and argv[i + 1][:1] == "-" and argv[i + 1][1:2].isdigit():
+        if tok in single and i + 1 < len(argv) and negative(tok, argv[i + 1]):
             out.append(f"{tok}={argv[i + 1]}")
             i += 2
             continue

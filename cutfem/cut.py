@@ -21,14 +21,19 @@ A piece lying in a face shared by two tets is therefore owned by the single tet 
 (the tet on the other side has all its nodes >= 0 and is not cut).
 
 Values that are zero up to rounding count as zero: before anything else, nodal values with
-``|phi| <= tol`` are set to exactly 0, with ``tol = 1e-12 L diam`` (L the declared Lipschitz bound,
-diam the diagonal of the background mesh's bounding box) or, when no bound is declared, per node
-``tol = 1e-12 max |phi|`` over the node and its neighbours (a local scale: a level set such as
-z exp(20 x) spans many orders of magnitude across the box, and the box's largest value would zero
-real values elsewhere).  Without this, a node that lies on S mathematically but gets phi = 1e-16 (the
-paper's torus on its box at spacing 0.1 has such nodes) gives cut points that coincide with the
-node in floating point under different vertex keys: zero-length edges, zero-area triangles and
-undefined conormals.  The snap moves S_h by at most tol / |grad phi|.
+``|phi_i| <= tol_i`` are set to exactly 0, with per node ``tol_i = 1e-12 max |phi_j|`` over the
+nodes j of the node's own tets (its neighbours), whether or not a Lipschitz bound is declared.  That
+maximum lies between |phi_i| and |phi_i| + L_loc d (L_loc the level set's local Lipschitz constant,
+d the diameter of the node's cells), so the snap moves S_h by at most
+tol_i / |grad phi| ~ 1e-12 (|phi_i| / |grad phi| + d): round-off on the local scale.  Neither the
+box's largest value (a level set such as z exp(20 x) spans many orders of magnitude across the box)
+nor a declared bound (a true but generous L = 1e10 made a global 1e-12 L diam zero nodes 0.04 from
+the unit sphere) sets the scale.  The band search evaluates the corners of its cells only; every
+cell around a node that the snap may zero is among them (its slack bounds the tolerance, see
+:func:`_zero_tolerance`), so it snaps exactly the nodes that the full evaluation snaps.  Without
+the snap, a node that lies on S mathematically but gets phi = 1e-16 (the paper's torus on its box at
+spacing 0.1 has such nodes) gives cut points that coincide with the node in floating point under
+different vertex keys: zero-length edges, zero-area triangles and undefined conormals.
 
 Active mesh
 -----------
@@ -185,16 +190,30 @@ _SNAP = 1e-12  # relative size of the nodal values that count as zero (see "The 
 
 
 def _zero_tolerance(mesh: TetMesh, lipschitz, values=None):
-    """Snap tolerance of the zero rule: ``1e-12 * L * diam`` (L declared, a number), or per node
-    ``1e-12 * max |phi|`` over the node and its neighbours (``values`` at every node; an array):
-    the nodes of the tets around it, on a structured box the 3 x 3 x 3 block of nodes around it
-    (a superset of its Kuhn neighbours).  Local, because a level set's values may span many orders
-    of magnitude across the box: with the box's max |phi|, z exp(20 x) on [-1, 1]^3 at spacing 0.1
-    had tol ~ 5e-4, which set nodes with phi ~ 1e-10 to zero, and S_h of area 4.57 instead of 4."""
-    if lipschitz is not None:
+    """The zero rule's tolerance.
+
+    With ``values`` (phi at every node, an array): per node ``tol_i = 1e-12 * max |phi_j|`` over
+    the nodes j of the tets around node i (on a structured box the 3 x 3 x 3 block of nodes around
+    it, the corners of its 8 cells).  That maximum is at least |phi_i| and at most
+    |phi_i| + L_loc d, L_loc the level set's Lipschitz constant over the node's cells and d their
+    diameter, so the snap sets to zero only values below 1e-12 of the level set's own scale there,
+    and moves S_h by at most tol / |grad phi| ~ 1e-12 (|phi_i| / |grad phi| + d): round-off on the
+    scale of the node's cells.  Local, because a level set's values may span many orders of
+    magnitude across the box (z exp(20 x) on [-1, 1]^3), and never from a declared Lipschitz bound,
+    which may be generous: 1e-12 L diam with L = 1e10 was 0.043 on a 2.5-wide box and zeroed nodes
+    0.04 from the unit sphere (area 15.98 instead of 12.56).
+
+    Without ``values`` and with a bound ``lipschitz`` (a number): ``1e-12 * L * diam`` (diam the
+    diagonal of the bounding box), not a snap tolerance but the slack that the band search adds to
+    its tests (:func:`_lipschitz_slack`): it bounds every node's tolerance when L is a true bound
+    (the node's neighbours lie within a cell diagonal, so max |phi_j| <= |phi_i| + L |spacing|),
+    so a cell with a corner that the snap may zero is never dropped."""
+    if values is None:
+        if lipschitz is None:
+            return 0.0
         lo, hi = mesh.bounds
         return _SNAP * float(lipschitz) * float(np.linalg.norm(np.asarray(hi) - np.asarray(lo)))
-    if values is None or not values.size:
+    if not values.size:
         return 0.0
     size = np.abs(values)
     if isinstance(mesh, StructuredBox):
@@ -208,8 +227,9 @@ def _zero_tolerance(mesh: TetMesh, lipschitz, values=None):
     return _SNAP * local
 
 
-def _snap_zeros(values, tol: float) -> np.ndarray:
-    """A copy of ``values`` with the entries of modulus <= tol set to exactly 0."""
+def _snap_zeros(values, tol) -> np.ndarray:
+    """A copy of ``values`` with the entries of modulus <= tol (a number or one per entry) set to
+    exactly 0."""
     values = np.array(values, dtype=float)
     values[np.abs(values) <= tol] = 0.0
     return values
@@ -404,7 +424,7 @@ def cut_memory_estimate(background: StructuredBox, levelset, solve_bytes_per_tet
     exceeds the memory available (it skips the survey when the box fits with every cell in the
     band).  Surveys the surface when the level set declares a Lipschitz bound
     (:func:`_surface_survey`: tens of thousands of evaluations); see :func:`_cut_bytes`."""
-    lipschitz = getattr(levelset, "lipschitz", None)
+    lipschitz = _declared_lipschitz(levelset)
     area = None if lipschitz is None else _surface_survey(background, _as_values_function(levelset), float(lipschitz))[0]
     return _cut_bytes(background.cells, background.spacing, area, solve_bytes_per_tet)[:2]
 
@@ -416,17 +436,51 @@ def _lipschitz_slack(dist, lipschitz: float, tol: float):
     return lipschitz * dist * (1 + 1e-9) + 1e-14 + tol
 
 
+class _BoundBroken(CutError):
+    """A declared Lipschitz bound seen broken; ``ratio`` the largest |phi(x) - phi(y)| / |x - y| seen."""
+
+    def __init__(self, message, ratio):
+        super().__init__(message)
+        self.ratio = ratio
+
+
 def _lipschitz_broken(pairs: int, ratio: float, lipschitz: float):
     """The CutError of a broken Lipschitz bound: ``pairs`` evaluated pairs break it, the largest
     |phi(x) - phi(y)| / |x - y| seen is ``ratio``."""
-    raise CutError(
+    raise _BoundBroken(
         f"the level set breaks its declared Lipschitz bound L = {lipschitz:g}: between points the band "
         f"search evaluated, |phi(x) - phi(y)| / |x - y| reaches {ratio:.4g} ({pairs} "
         "pairs). The band search drops cells where |phi(centre)| > L r and would leave S_h open. Fix: declare "
         f"a true bound (levelset.lipschitz >= {ratio:.3g}, or None to evaluate every node). A signed distance "
         "to a surface mesh is 1-Lipschitz only when its closed components neither overlap nor intersect: "
-        "repair such a mesh (merge the overlapping parts into one closed surface)."
+        "repair such a mesh (merge the overlapping parts into one closed surface).", ratio
     )
+
+
+def _mesh_distance_message(levelset, seen: str, crossing_only: bool = False) -> str:
+    """The error for the signed distance to a surface mesh (``levelset.mesh``) that is not a
+    distance (``seen``: what showed it): nobody declared its bound 1, it is the bound of every
+    distance, and a closed mesh whose distance breaks it crosses itself.  With ``crossing_only``, ""
+    unless two triangles cross (an open S_h has other causes too).  Names the first pair of
+    crossing triangles that share no vertex (found by :func:`cutfem.surface._crossing_triangles`
+    with each triangle its own component: a grid of candidates and exact segment-triangle tests)."""
+    from .surface import _crossing_triangles
+
+    points, tri = np.asarray(levelset.mesh.points, dtype=float), np.asarray(levelset.mesh.triangles)
+    x = points[tri]
+    pairs = _crossing_triangles(points, tri, np.arange(len(tri)), x.min(axis=1), x.max(axis=1))
+    apart = ~(tri[pairs[:, 0]][:, :, None] == tri[pairs[:, 1]][:, None, :]).any(axis=(1, 2)) if len(pairs) else np.zeros(0, bool)
+    pairs = pairs[apart]
+    if len(pairs):
+        where = (f"the surface mesh self-intersects: {len(pairs)} pairs of its triangles cross, the first "
+                 f"{pairs[0].tolist()} near {np.round(x[pairs[0]].mean(axis=(0, 1)), 6).tolist()}")
+    elif crossing_only:
+        return ""
+    else:
+        where = "the surface mesh overlaps or touches itself somewhere (no crossing triangles were found)"
+    return (f"the signed distance to the surface mesh is not a distance: {seen}, where a distance changes by at "
+            f"most |x - y|. Cause: {where}, so inside and outside are not defined there. Repair the mesh into one "
+            "closed surface without self-intersections (e.g. remesh it, or merge the overlapping parts).")
 
 
 def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0, survey=None):
@@ -519,26 +573,31 @@ def _candidates_structured(box: StructuredBox, f, lipschitz, survey=None):
         tet_ids, nodes, vals, _, _ = kernels.mixed_kuhn_tets(label_values, box.cell_corner_ids(cell_ids), cell_ids,
                                                             _KUHN_MIXED, KUHN_TETS)
     else:
-        tol = _zero_tolerance(box, lipschitz)
+        tol = _zero_tolerance(box, lipschitz)  # the band search's slack, not the snap's tolerance
         cell_ids, centre_phi = _band_cells(box, f, float(lipschitz), tol, survey)
         label_ids, corner = dense_unique(box.cell_corner_ids(cell_ids), box.n_points)
         values = np.asarray(f(box.node_coordinates(label_ids)), dtype=float)
         _check_finite(values, "background nodes near the surface")
+        # the snap's tolerance per node from its own band cells: every cell around a node that the
+        # snap may zero is in the band (see _zero_tolerance), so this is the tolerance of the full path
+        snap = _SNAP * kernels.label_scales(values, corner, _SNAP * float(np.max(np.abs(values), initial=0.0)))
         r = 0.5 * float(np.linalg.norm(box.spacing))  # each corner lies r from its cell's centre
         tet_ids, nodes, vals, broken, ratio = kernels.mixed_kuhn_tets(
-            values, corner, cell_ids, _KUHN_MIXED, KUHN_TETS, tol=tol, centre=centre_phi,
+            values, corner, cell_ids, _KUHN_MIXED, KUHN_TETS, tol=snap, centre=centre_phi,
             bound=_lipschitz_slack(r, float(lipschitz), tol), dist=r)
         if broken:
             _lipschitz_broken(broken, ratio, float(lipschitz))
-        label_values = _snap_zeros(values, tol)
+        label_values = _snap_zeros(values, snap)
     return tet_ids, nodes, vals, label_ids, label_values
 
 
-def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0):
-    """All boundary nodes must be outside (phi >= -tol, the zero rule's snap): otherwise the surface
-    leaves the box."""
+def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0, boundary_values=None):
+    """All boundary nodes must be outside (phi >= -tol; ``f_or_values`` the snapped nodal values, or
+    ``boundary_values`` those of ``mesh.boundary_nodes``): otherwise the surface leaves the box."""
     b = mesh.boundary_nodes
-    if isinstance(f_or_values, np.ndarray):
+    if boundary_values is not None:
+        vb = boundary_values
+    elif isinstance(f_or_values, np.ndarray):
         vb = f_or_values[b]
     else:
         pts = mesh.node_coordinates(b) if isinstance(mesh, StructuredBox) else mesh.points[b]
@@ -569,22 +628,32 @@ def _check_boundary(mesh: TetMesh, f_or_values, tol: float = 0.0):
         )
 
 
-def _check_band_boundary(box: StructuredBox, f, band_nodes, tol: float):
+def _check_band_boundary(box: StructuredBox, f, band_nodes, band_values):
     """:func:`_check_boundary` after the band search, from one node when the band stays off the
-    box's faces.  Every tet with nodes of both signs (after the snap) lies in a band cell, so when
-    no band node ``band_nodes`` is on the boundary, no boundary edge joins a node with phi < -tol
-    to one without, and as the boundary of a box is connected its nodes are all inside or all
-    outside: the first node decides (all inside: the full check words the error).  Otherwise
-    every boundary node is checked.  At spacing 0.003125 the boundary has 6 million nodes (0.6 s)."""
+    box's faces.  ``band_nodes`` (increasing ids) and ``band_values`` (snapped by the zero rule):
+    the nodes the band search evaluated.  Every tet with nodes of both signs (after the snap) lies
+    in a band cell, so when no band node is on the boundary, no boundary edge joins a node with
+    phi < 0 to one without, and as the boundary of a box is connected its nodes are all inside or
+    all outside: the first node decides (all inside: the full check words the error).  Otherwise
+    every boundary node is checked, the band's with their snapped values (the cut's own signs),
+    the others with their values: a node outside every band cell has |phi| above the band search's
+    slack, which bounds the snap's tolerance, so the snap leaves it as it is.  At spacing 0.003125
+    the boundary has 6 million nodes (0.6 s)."""
     from . import kernels
 
     n = [int(v) for v in box.node_shape]
     if not kernels.box_ids_on_faces(np.ascontiguousarray(band_nodes, dtype=np.int64), *n):
         first = np.asarray(f(box.node_coordinates(np.zeros(1, dtype=np.int64))), dtype=float).reshape(-1)
         _check_finite(first, "boundary nodes")
-        if first[0] >= -tol:
+        if first[0] >= 0:
             return
-    _check_boundary(box, f, tol)
+    b = box.boundary_nodes
+    vb = np.asarray(f(box.node_coordinates(b)), dtype=float).reshape(-1)
+    _check_finite(vb, "boundary nodes")
+    at = np.minimum(np.searchsorted(band_nodes, b), max(len(band_nodes) - 1, 0))
+    in_band = band_nodes[at] == b if len(band_nodes) else np.zeros(len(b), dtype=bool)
+    vb[in_band] = band_values[at[in_band]]
+    _check_boundary(box, f, boundary_values=vb)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -927,7 +996,8 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     refused.  The check after the cut, on the real active tets, stays for what the prediction does not
     cover (no Lipschitz bound, unstructured backgrounds).
     """
-    lipschitz = getattr(levelset, "lipschitz", None)
+    lipschitz = _declared_lipschitz(levelset)
+    mesh_distance = getattr(levelset, "is_distance", False) and getattr(levelset, "mesh", None) is not None
     structured = isinstance(background, StructuredBox)
     band = structured and lipschitz is not None and not isinstance(levelset, np.ndarray)  # band search used
     if isinstance(levelset, np.ndarray):
@@ -939,11 +1009,17 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     elif structured:
         f = _as_values_function(levelset)
         survey = _check_cut_memory(background, f, lipschitz, solve_bytes_per_tet)
-        if check_boundary and not band:
-            _check_boundary(background, f)
-        cand = _candidates_structured(background, f, lipschitz, None if survey is None else (*survey, solve_bytes_per_tet))
+        try:
+            cand = _candidates_structured(background, f, lipschitz, None if survey is None else (*survey, solve_bytes_per_tet))
+        except _BoundBroken as exc:
+            if mesh_distance:  # its bound 1 is no declaration of the user's: say what is wrong with the mesh
+                raise CutError(_mesh_distance_message(
+                    levelset, f"|phi(x) - phi(y)| / |x - y| reaches {exc.ratio:.3g} between points the cut evaluated")) from None
+            raise
         if check_boundary and band:
-            _check_band_boundary(background, f, cand[3], _zero_tolerance(background, lipschitz))
+            _check_band_boundary(background, f, cand[3], cand[4])
+        elif check_boundary:
+            _check_boundary(background, cand[4])  # every node's snapped value: the cut's own signs
     else:
         values = nodal_values(background, levelset)
         values = _snap_zeros(values, _zero_tolerance(background, lipschitz, values))
@@ -952,6 +1028,9 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
         cand = _candidates_full(background, values)
     tet_ids, labels, vals, label_ids, label_values = cand
     if len(tet_ids) == 0:
+        touching = _touching_only(background, label_ids, label_values)
+        if touching:
+            raise CutError(touching)
         raise CutError(
             "the level set does not cut the background mesh: no tetrahedron has nodal values of both signs. "
             "Check that the surface lies inside the box and is larger than a cell (refine the mesh), and that "
@@ -962,7 +1041,11 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     tet_ids, labels, vals, code = _marching(tet_ids, labels, np.ascontiguousarray(vals, dtype=float))
     del cand
     if len(tet_ids) == 0:
-        raise CutError("every piece of the cut collapsed to a point or segment; refine the background mesh")
+        raise CutError(
+            "every piece of the cut collapsed to a point or a segment: the level set is negative only at nodes "
+            "whose pieces have no area (its zero set meets the mesh in points or lines). Refine the background mesh "
+            "if the surface is smaller than a cell; if it touches the box only on its boundary, move the box or "
+            "the level set so that the surface lies inside the box.")
     m = len(tet_ids)
 
     # active nodes, numbered by increasing background id (labels increase with it); the tets' node
@@ -1028,8 +1111,63 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
         triangle_tets=tri_tet,
         _gradients=(grads, volumes),  # None on a structured box: the Kuhn table and the box's tet volume serve them
     )
-    _check_closed(cm, check_boundary, band)
+    try:
+        _check_closed(cm, check_boundary, band)
+    except CutError:
+        crossing = _mesh_distance_message(levelset, "the cut surface S_h is not closed", True) if mesh_distance else ""
+        if crossing:
+            raise CutError(crossing) from None
+        raise
     return cm
+
+
+def _declared_lipschitz(levelset):
+    """The level set's declared Lipschitz bound (``levelset.lipschitz``) as a float, or None; ValueError
+    unless it is a finite positive number: the band search drops cells by it (inf keeps every cell,
+    NaN or a bound <= 0 drops every cell, and the cut then says that the level set misses the box)."""
+    lipschitz = None if isinstance(levelset, np.ndarray) else getattr(levelset, "lipschitz", None)
+    if lipschitz is None:
+        return None
+    try:
+        value = float(lipschitz)
+    except (TypeError, ValueError):
+        value = np.nan
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(
+            f"the level set's Lipschitz bound (levelset.lipschitz) is {lipschitz!r}; a Lipschitz bound must be a finite "
+            "positive number, a true bound on |grad phi| (1 for a signed distance): declare one, or None to evaluate "
+            "every node")
+    return value
+
+
+def _touching_only(mesh: TetMesh, label_ids, label_values) -> str:
+    """The message for a level set that is zero at some nodes and negative at none (no cut tet): its
+    zero set meets the mesh in a set of zero area (a plane through an edge, a corner or a face of the
+    box, a surface touching the box from outside), where no refinement can help; "" otherwise."""
+    values = np.asarray(label_values)
+    zero = values == 0
+    if not np.any(zero) or np.any(values < 0):
+        return ""
+    ids = np.flatnonzero(zero) if label_ids is None else np.asarray(label_ids)[zero]
+    if isinstance(mesh, StructuredBox):
+        nx, ny, nz = (int(n) for n in mesh.node_shape)
+        i, j, k = ids % nx, (ids // nx) % ny, ids // (nx * ny)
+        on = (i == 0) | (i == nx - 1) | (j == 0) | (j == ny - 1) | (k == 0) | (k == nz - 1)
+        x = mesh.node_coordinates(ids[:1])[0]
+    else:
+        on = np.isin(ids, mesh.boundary_nodes)
+        x = mesh.points[ids[0]]
+    n = f"{ids.size} node{'s' if ids.size != 1 else ''} (first at {np.round(x, 6).tolist()})"
+    if np.all(on):
+        return (f"the level set does not cut the background mesh: it is zero at {n}, all on the boundary of the mesh, "
+                "and negative at none: it touches the box only on its boundary (its zero set meets the box in a point, "
+                "a line or a face, a set of zero area, with phi >= 0 inside the box), so S_h is empty and refining the "
+                "mesh cannot help. Move the box or the level set so that the surface lies inside the box, with phi < 0 "
+                "inside the surface.")
+    return (f"the level set does not cut the background mesh: it is zero at {n}, {int(np.count_nonzero(on))} of them on "
+            "the boundary of the mesh, and negative at none: its zero set meets the mesh only in a set of zero area "
+            "(phi >= 0 on both sides of it, e.g. abs(x) or a surface touching nodes from outside), so S_h is empty. A "
+            "level set must be negative inside the surface; refine the mesh only if the surface is smaller than a cell.")
 
 
 def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
@@ -1080,8 +1218,8 @@ def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
 
 def snapped_nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
     """phi_h at every node of ``mesh`` as the cut sees it: :func:`nodal_values` with the values of
-    modulus at most 1e-12 L diam (L the level set's declared Lipschitz bound), or without one 1e-12
-    max |phi| over the node and its neighbours, set to exactly 0 (the zero rule).  Visits every node; for handing the same
+    modulus at most 1e-12 max |phi| over the node and its neighbours set to exactly 0 (the zero
+    rule, :func:`_zero_tolerance`).  Visits every node; for handing the same
     discrete level set to other codes and for volume integrals."""
     values = nodal_values(mesh, levelset)
-    return _snap_zeros(values, _zero_tolerance(mesh, getattr(levelset, "lipschitz", None), values))
+    return _snap_zeros(values, _zero_tolerance(mesh, None, values))

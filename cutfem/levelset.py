@@ -194,8 +194,10 @@ def _integer_powers_transformer():
                 return node
             try:
                 return ast.copy_location(ast.Constant(float(node.value)), node)
-            except OverflowError:
-                raise ValueError(f"the number {node.value:.3g} of a level-set expression is too large for a float") from None
+            except OverflowError:  # its own message must not format the integer as a float either
+                digits = int(node.value.bit_length() * 0.30102999566398120) + 1
+                raise ValueError(f"the integer of about {digits} digits in the level-set expression is too large for a "
+                                 "float (at most about 1.8e308): write a smaller number") from None
 
     return IntegerPowers()
 
@@ -984,6 +986,7 @@ class FunctionLevelSet(LevelSet):
         self.step = None if step is None else positive_number(step, "step")
         self.name = name if name is not None else getattr(value, "__name__", "f")
         self._bounds = None if bounds is None else _as_bounds(bounds, "bounds")
+        self._source = None  # the path of a surface file (from_file): its errors name the file
 
     def __repr__(self) -> str:
         return f"FunctionLevelSet({self.name}, is_distance={self.is_distance}, lipschitz={self.lipschitz})"
@@ -1048,32 +1051,66 @@ class FunctionLevelSet(LevelSet):
                 "of shape (..., 3) returning shape (...), and optionally grad, hessian, lipschitz, box, area"
             )
         box = ns.get("box")
-        return cls(ns["phi"], gradient=ns.get("grad"), hessian=ns.get("hessian"), lipschitz=ns.get("lipschitz"),
-                   area=ns.get("area"), bounds=None if box is None else _as_bounds(box, f"box in {path.name}"),
-                   name=repr(str(path)))
+        try:
+            levelset = cls(ns["phi"], gradient=ns.get("grad"), hessian=ns.get("hessian"), lipschitz=ns.get("lipschitz"),
+                           area=ns.get("area"), bounds=None if box is None else _as_bounds(box, f"box in {path.name}"),
+                           name=repr(str(path)))
+        except ValueError as exc:  # a bad lipschitz, area or box: say which file defines it
+            raise ValueError(f"the surface file {str(path)!r}: {exc} (leave lipschitz out when no true bound on "
+                             "|grad phi| is known: every node is then evaluated)") from exc
+        levelset._source = str(path)  # its functions' errors name the file (see _call)
+        return levelset
 
     def bounds(self):
         """The box containing the surface given at construction, or None."""
         return self._bounds
 
+    #: the names of the callables in a surface file (:meth:`from_file`)
+    _FILE_NAMES = {"value": "phi", "gradient": "grad", "hessian": "hessian"}
+
     def _call(self, fn, x, tail, name):
-        """fn(x) as floats, checked to be real and to have shape x.shape[:-1] + tail (ValueError naming
-        the fix)."""
+        """fn(x) as floats, checked to be real numbers of shape x.shape[:-1] + tail (ValueError naming
+        the function, what it returned and the fix).  For a level set from a surface file
+        (:meth:`from_file`) the messages name the file and its function (``phi``, ``grad``,
+        ``hessian``), and any exception of that function becomes a ValueError naming the exception
+        and the line of the file it came from: it is the user's input that failed, and the command
+        line reports it as such (exit status 2)."""
+        source = getattr(self, "_source", None)  # a subclass may not call this class's __init__
+        prefix = "" if source is None else f"the surface file {source!r}: "
+        if source is not None:
+            name = self._FILE_NAMES.get(name, name)
         try:
             raw = fn(x)
-            if np.iscomplexobj(raw):  # float() would drop the imaginary part with only a warning
-                raise ValueError(f"{name}(x) returned complex values; a level set is real: return the real part "
-                                 "explicitly if that is what is meant")
-            out = np.asarray(raw, dtype=float)
         except IndexError as exc:
             raise ValueError(
-                f"{name}(x) raised IndexError ({exc}) for x of shape {x.shape}: the coordinates are along "
+                f"{prefix}{name}(x) raised IndexError ({exc}) for x of shape {x.shape}: the coordinates are along "
                 "the last axis of x and there may be several leading axes; write x[..., 0], x[..., 1], "
                 "x[..., 2] (not x[:, 0] or x[0])"
             ) from exc
+        except MemoryError:
+            raise
+        except Exception as exc:
+            if source is None:
+                raise
+            import traceback
+
+            frames = [f for f in traceback.extract_tb(exc.__traceback__) if f.filename == source]
+            where = f" at line {frames[-1].lineno} ({frames[-1].line})" if frames else ""
+            raise ValueError(f"{prefix}{name}(x) raised {exc!r}{where} for points x of shape {x.shape}: fix {name} "
+                             "(it must accept points x of shape (..., 3))") from exc
+        if np.iscomplexobj(raw):  # float() would drop the imaginary part with only a warning
+            raise ValueError(f"{prefix}{name}(x) returned complex values; a level set is real: return the real part "
+                             "explicitly if that is what is meant")
+        kind = raw.dtype if isinstance(raw, np.ndarray) else np.asarray(raw).dtype
+        if kind.kind not in "biuf":  # strings, objects (None would become NaN), dates: not numbers
+            first = np.asarray(raw).reshape(-1)[:1]
+            raise ValueError(f"{prefix}{name}(x) returned values of dtype {kind} ({'e.g. ' + repr(first[0]) if first.size else 'empty'}, "
+                             f"shape {np.shape(raw)}) for points x of shape {x.shape}; it must return real numbers "
+                             f"(floats) of shape {x.shape[:-1] + tail}")
+        out = np.asarray(raw, dtype=float)
         expected = x.shape[:-1] + tail
         if out.shape != expected:
-            raise ValueError(_shape_message(name, out.shape, x.shape, expected))
+            raise ValueError(prefix + _shape_message(name, out.shape, x.shape, expected))
         return out
 
     def _h(self, x, power):

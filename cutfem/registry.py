@@ -567,7 +567,9 @@ class RunResult:
     def table(self) -> str:
         """A readable table: level, h, dofs, errors with rates, the size of the domain (``area`` of a
         surface or ``volume`` of a bulk domain, the column left out when no record has it), time
-        (the level's wall time; the sum of its stages for a record without one)."""
+        (the level's wall time; the sum of its stages for a record without one).  A record's
+        ``notes`` (a list of sentences: a result to read with care, a column left out and why) are
+        printed under the table, each once with the levels that carry it."""
         keys = self.error_keys()
         sizes = [k for k in ("area", "volume") if any(k in r for r in self.records)]
         head = ["level", "h", "dofs"] + [c for k in keys for c in (k, "rate")] + sizes + ["time[s]"]
@@ -583,6 +585,12 @@ class RunResult:
             row.append(f"{r.get('wall_time', sum(r.get('time', {}).values())):.2f}")
             rows.append(row)
         lines = text_table(head, rows).split("\n")
+        notes = {}  # each note once, with the levels that carry it
+        for level, r in zip(self.levels, self.records):
+            for note in r.get("notes", ()):
+                notes.setdefault(note, []).append(f"{level:g}" if isinstance(level, (int, float)) else str(level))
+        for note, levels in notes.items():
+            lines.append(f"note ({self.level_name}={', '.join(levels)}): {note}")
         if self.failure is not None:
             f = self.failure
             lines.append(f"{self.level_name}={f['level']} failed ({f['error_type']}): {f['message']}")
@@ -739,7 +747,8 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
     ``levels`` are checked before anything is solved (:func:`check_levels`).  ``progress``: True
     prints one line per level to standard error (with the times of its stages when it runs more
     than :data:`STAGES_AFTER` seconds); a callable gets (index, count, level, record-or-None).
-    When a level fails its exception propagates, unless ``keep_finished``: then the run stops
+    A record's ``notes`` (sentences) are printed under the level's progress line and kept in
+    the record (and the JSON).  When a level fails its exception propagates, unless ``keep_finished``: then the run stops
     there and returns the finished levels with ``failure`` set (the command line writes those).
     ``command``: the command line to record in the JSON.  ``keep_fields`` False drops each
     record's ``"fields"`` as soon as its level is solved: the fields are built on demand from the
@@ -790,6 +799,8 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
         records.append(rec)
         if progress is True:
             print(f" done in {rec['wall_time']:.2f} s", file=sys.stderr, flush=True)
+            for note in rec.get("notes", ()):
+                print(f"  note: {note}", file=sys.stderr, flush=True)
         elif callable(progress):
             progress(i, len(levels), level, rec)
     result = RunResult(

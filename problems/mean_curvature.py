@@ -35,7 +35,7 @@ from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.markers import CUT
 from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
-from .common import BACKGROUND_PARAM, SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
+from .common import BACKGROUND_PARAM, SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, mesh_file_notes, surface_mesh_for
 
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
@@ -188,6 +188,9 @@ class MeanCurvatureMeshed(Problem):
                 He = exact.exact_mean_curvature_vector
                 rec["l2_error"] = l2_error(space, H, He)
                 rec["discrete_error"] = discrete_error(space, He(space.dof_points) - H)
+            elif surface not in ("torus", "sphere"):
+                rec["notes"] = ["no l2_error and discrete_error columns: a surface mesh file has no exact mean curvature; "
+                                "run mean-curvature-cut with the surface as an expression or a Python file to get errors"]
         rec["time"] = dict(t)
         rec["fields"] = LazyFields(
             lambda: {"surface": _surface_fields(mesh.to_pyvista(), H, None if exact is None else exact.exact_mean_curvature_vector(space.dof_points))}
@@ -238,6 +241,9 @@ class MeanCurvatureCut(Problem):
             rec.update(cut_record(cut))
             if exact is not None:
                 rec["l2_error"] = l2_error(space, H, exact.exact_mean_curvature_vector)
+        notes = mesh_file_notes(phi, level)  # a mesh file: no errors, and facets the spacing may resolve
+        if notes:
+            rec["notes"] = notes
         rec["time"] = dict(t)
         rec["fields"] = LazyFields(
             lambda: {
