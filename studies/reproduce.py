@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import Progress, save_json
+from .common import ROUNDOFF_INTEGRAL, Progress, fmt_roundoff, save_json
 
 #: the studies, in the order they run (the paper's own experiments first)
 STUDY_NAMES = [
@@ -206,7 +206,7 @@ def _claims_outputs(tables: Path) -> list[dict]:
     ]
     for r in rows:
         integral = r["kind"] == "integral"
-        fit = "--" if r["fit"] is None else (f"{r['fit']:.1e}" if integral else _r(r["fit"]))
+        fit = "--" if r["fit"] is None else (fmt_roundoff(r["fit"]) if integral else _r(r["fit"]))
         agrees = "n/a" if r["agrees"] is None else ("yes" if r["agrees"] else "\\textbf{no}")
         lines.append(f"{r['claim']} & {r['paper']} & {fit} & {_r(r['last'])} & {r['criterion']} & {agrees} \\\\")
     lines += ["\\hline", "\\end{tabular}"]
@@ -247,7 +247,9 @@ def _numbers(tables: Path, rows):
         macros["cutDofsMax"] = str(cut["dofs"][-1])
         macros["cutNodesOnSurface"] = str(max(cut["nodes_on_surface"]))
         worst = _worst(cut["integral_H_max"])
-        macros["cutIntegralMax"] = "--" if not np.isfinite(worst) else f"$10^{{{int(np.ceil(np.log10(worst)))}}}$" if worst > 0 else "$0$"
+        # below ROUNDOFF_INTEGRAL the integral is round-off (saved as 0): its bound is the number
+        bound = max(worst, ROUNDOFF_INTEGRAL)
+        macros["cutIntegralMax"] = "--" if not np.isfinite(worst) else f"$10^{{{int(np.ceil(np.log10(bound)))}}}$"
     agree = [r for r in rows if r["agrees"] is not None]
     macros["claimsAgree"] = str(sum(bool(r["agrees"]) for r in agree))
     macros["claimsTotal"] = str(len(agree))
@@ -442,8 +444,8 @@ def main(argv=None) -> int:
               f"figures in {out / 'figures'}, tables in {tables}", file=sys.stderr)
         for r in rows:
             agrees = "n/a" if r["agrees"] is None else ("yes" if r["agrees"] else "NO")
-            fit = r["fit"] if r["fit"] is None else float(r["fit"])
-            print(f"  {_plain(r['claim']):<52s} paper {_plain(r['paper']):<18s} measured {'--' if fit is None else f'{fit:.3g}':<9} agrees {agrees}", file=sys.stderr)
+            fit = "--" if r["fit"] is None else _plain(fmt_roundoff(r["fit"])) if r["kind"] == "integral" else f"{float(r['fit']):.3g}"
+            print(f"  {_plain(r['claim']):<52s} paper {_plain(r['paper']):<18s} measured {fit:<9} agrees {agrees}", file=sys.stderr)
     return 1 if failed else 0
 
 
