@@ -10,8 +10,11 @@ manuscript, and a summary of the run (``OUT/tables/summary.json``).
 Wall times differ on every run, so they are kept apart: the entries named in :data:`TIMING_KEYS` are
 taken out of every JSON and CSV table a study writes and, with the wall time of every study, go to
 ``OUT/tables/timings.json`` (and the total, as a LaTeX macro, to ``OUT/tables/timings.tex``).  The
-other outputs -- JSON with sorted keys, figures without dates -- are byte-identical when the numbers
-are, so a rerun that changes no number changes no file but those of :data:`TIMING_FILES`.
+other outputs are the same bytes on every machine and thread count: JSON and CSV with six
+significant digits (sums in another order change the 14th), round-off quantities written as their
+bound (:func:`cutfem.studies.common.roundoff_zero`), figures drawn from those digits and saved
+without dates, so that a rerun changes no file but those of :data:`TIMING_FILES` (listed in the
+README).
 Progress goes to standard error.  Default ``OUT`` is ``paper`` (the manuscript's folder), default
 size ``quick`` (a few minutes on 2 cores); ``--full`` runs the paper's finest levels.
 
