@@ -28,9 +28,11 @@ small matrices) and report
   number on the complement of the kernel (what CG sees on a consistent system);
 * ``kappa_solve_module``: :func:`cutfem.solve.condition_number` for comparison.  For the stabilized
   matrix it agrees with ``kappa``; for the singular unstabilized matrix it returns a finite number,
-  sometimes huge (~1e17) and sometimes equal to ``kappa_effective`` (its shift-invert Lanczos at 0
-  on a singular factorization can miss the null vector), so it must not be read as a condition
-  number there.
+  sometimes huge (~1e17, written as infinite: beyond 1e13 it is 1 over round-off) and sometimes
+  equal to ``kappa_effective`` (its shift-invert Lanczos at 0 on a singular factorization can miss
+  the null vector), so it must not be read as a condition number there.
+
+``lambda_min`` of a singular matrix is written as 0: its computed value is round-off.
 
 Singular values are drawn on a separate "singular" line above the plots and counted, never dropped.
 
@@ -53,7 +55,7 @@ from cutfem.solve import condition_number, scaled
 from cutfem.spaces import CutP1Space
 from cutfem.problems.common import background_for
 
-from .common import PAGE_WIDTH, figure_style, pick, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, pick, save_figure, save_json, save_latex_table, significant, study_main
 
 NAME = "conditioning"
 OUTPUTS = [NAME, f"{NAME}_h", f"{NAME}_shifts", f"{NAME}_table"]
@@ -98,6 +100,12 @@ def scaled_condition(A) -> float:
     return float("inf") if abs(small[0]) <= SINGULAR**-1 * lmax else float(lmax / small[0])
 
 
+def _finite_or_inf(kappa: float) -> float:
+    """A condition number, infinite beyond :data:`SINGULAR` (numerically singular: beyond it the
+    number is 1 over round-off and differs between machines)."""
+    return float("inf") if not kappa < SINGULAR else float(kappa)
+
+
 def _kappa(A, null_candidate=None):
     """Scaled condition numbers of A (see the module docstring)."""
     lmax, small, vec = scaled_spectrum(A)
@@ -108,9 +116,11 @@ def _kappa(A, null_candidate=None):
         "singular": bool(k),
         "kernel_dimension": k,
         "lambda_max": lmax,
-        "lambda_min": float(small[0]),
+        # a zero eigenvalue's computed value and the "condition number" of a singular matrix are
+        # round-off (they change with the machine): written as 0 and infinity, like ``kappa``
+        "lambda_min": 0.0 if k else float(small[0]),
         "kappa_effective": float(lmax / small[k]) if k < len(small) else None,
-        "kappa_solve_module": condition_number(A),
+        "kappa_solve_module": _finite_or_inf(condition_number(A)),
     }
     if null_candidate is not None and k:
         d = np.sqrt(A.diagonal())
@@ -215,8 +225,8 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
         },
     }
     save_json(out, NAME, summary)
-    _plot_h(out, h_rows, growth)
-    _plot_shifts(out, shift_rows, shift_spacing)
+    _plot_h(out, significant(h_rows), significant(growth))  # the digits the tables carry
+    _plot_shifts(out, significant(shift_rows), shift_spacing)
 
     def fk(v):
         return r"$\infty$" if v is None or not math.isfinite(v) else f"{v:.2e}"

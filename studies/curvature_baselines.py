@@ -37,7 +37,7 @@ from cutfem.levelset import Torus
 from cutfem.spaces import SurfaceP1Space
 from cutfem.surface import TORUS_FAMILIES, torus_mesh
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main, torus_family
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, significant, study_main, torus_family
 
 NAME = "curvature_baselines"
 OUTPUTS = [NAME, f"{NAME}_errors", f"{NAME}_time", f"{NAME}_rates"]
@@ -142,7 +142,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     }
     save_json(out, NAME, summary)
     save_csv(out, NAME, rows)
-    _plot_errors(out, rows)
+    _plot_errors(out, significant(rows))  # the digits the tables carry
     _plot_time(out, rows)
     header = ["method"] + [f.replace("-", " ") for f in TORUS_FAMILIES]
     table = [

@@ -25,7 +25,7 @@ from pathlib import Path
 import cutfem
 from cutfem.errors import fitted_rate
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, significant, study_main
 
 NAME = "laplace_beltrami"
 OUTPUTS = [NAME, f"{NAME}_table"]
@@ -85,7 +85,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     summary = {"size": size, "cases": results}
     save_json(out, NAME, summary)
     save_csv(out, NAME, rows)
-    _plot(out, results)
+    _plot(out, significant(results))  # the digits the tables carry
     header = ["surface", "method", "levels", "$h$ (finest)", r"$L^2$ error", "rate", r"$H^1$ error", "rate"]
     table = [[c["surface"], c["method"], str(len(c["h"])), f"{c['h'][-1]:.4f}", f"{c['l2_error'][-1]:.3e}", fmt_rate(c["l2_rate"]),
               f"{c['h1_error'][-1]:.3e}", fmt_rate(c["h1_rate"])] for c in results]

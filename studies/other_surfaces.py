@@ -32,7 +32,7 @@ from cutfem.errors import fitted_rate
 from cutfem.levelset import FunctionLevelSet, Sphere, Torus
 from cutfem.surface import sphere_mesh, write_surface
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, save_figure, save_json, save_latex_table, study_main
+from .common import ROUNDOFF_INTEGRAL, PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_figure, save_json, save_latex_table, significant, study_main
 
 NAME = "other_surfaces"
 OUTPUTS = [NAME, f"{NAME}_convergence", f"{NAME}_pictures", f"{NAME}_table", f"{NAME}_sphere"]
@@ -112,8 +112,8 @@ def _record(rec) -> dict:
         "h": rec["h"],
         "dofs": rec["dofs"],
         "area": rec["area"],
-        "integral_H": rec["integral_H"],
-        "integral_H_norm": float(np.linalg.norm(rec["integral_H"])),
+        "integral_H": roundoff_zero(rec["integral_H"]),  # zero in exact arithmetic: round-off below 1e-10
+        "integral_H_norm": roundoff_zero(float(np.linalg.norm(rec["integral_H"]))),
         "euler_characteristic": _euler(poly),
         "seconds": rec["wall_time"],
     }
@@ -177,7 +177,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
 
     summary = {"size": size, **results}
     save_json(out, NAME, summary)
-    _plot_convergence(out, results)
+    _plot_convergence(out, significant(results))  # the digits the tables carry
     picture = _picture(out, finest)
     summary_out = {
         "size": size,
@@ -195,7 +195,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
                                    ("stl_sphere", "sphere (STL)", "nodal_rms_error", "nodal_rms_rate"),
                                    ("genus2", "genus 2", "l2_error", "l2_rate")):
         for i, r in enumerate(results[key]["records"]):
-            rows.append([label if i == 0 else "", f"{r['h']:.4f}", str(r["dofs"]), f"{r['area']:.5f}", f"{r['integral_H_norm']:.1e}",
+            rows.append([label if i == 0 else "", f"{r['h']:.4f}", str(r["dofs"]), f"{r['area']:.5f}", fmt_roundoff(r["integral_H_norm"]),
                          str(r["euler_characteristic"]), f"{r[ekey]:.3e}", fmt_rate(results[key][rkey]) if i == 0 else ""])
     save_latex_table(out, f"{NAME}_table", header, rows,
                      caption="Other surfaces: L2 error (ellipsoid, genus 2) or RMS nodal error (STL sphere) of the cut mean "
@@ -220,9 +220,15 @@ def _plot_convergence(out, results):
     loglog_with_rates(ax2, [r["h"] for r in e], [r["area_error"] for r in e], "ellipsoid: area", color="C0")
     loglog_with_rates(ax2, [r["h"] for r in s], [r["area_error_polyhedron"] for r in s], "STL sphere: area",
                       marker="s", color="C1")
+    # |int H_h| is zero in exact arithmetic: below ROUNDOFF_INTEGRAL it is round-off (saved as 0) and
+    # is drawn as that bound, one line for all; a value above it is news and drawn as a point
+    floor = ROUNDOFF_INTEGRAL
+    ax2.axhline(floor, ls=":", lw=0.8, color="0.4", label=rf"$|\int_{{S_h}} H_h| < 10^{{{int(round(np.log10(floor)))}}}$ (round-off)")
     for recs, lab, col, m in ((e, "ellipsoid", "C0", "o"), (s, "STL sphere", "C1", "s"), (g, "genus 2", "C2", "^")):
-        ax2.loglog([r["h"] for r in recs], [max(r["integral_H_norm"], 1e-17) for r in recs], ls=":", marker=m, mfc="none", color=col,
-                   label=rf"{lab}: $|\int_{{S_h}} H_h|$")
+        big = [r for r in recs if not abs(r["integral_H_norm"]) < floor]
+        if big:
+            ax2.loglog([r["h"] for r in big], [r["integral_H_norm"] for r in big], ls="none", marker=m, mfc="none", color=col,
+                       label=rf"{lab}: $|\int_{{S_h}} H_h|$")
     rate_triangle(ax2, [r["h"] for r in e], [r["area_error"] for r in e], 2)
     ax2.set_ylabel(r"area error, $|\int_{S_h} H_h|$")
     ax2.set_title("Invariants")
@@ -250,7 +256,7 @@ def _picture(out, surfaces: dict) -> str | None:
     for j, name in enumerate(names):
         poly = surfaces[name]
         values = np.asarray(poly.point_data["mean_curvature"])
-        lo, hi = np.percentile(values, [1, 99])
+        lo, hi = significant(np.percentile(values, [1, 99]))  # the colour bar's ends, without machine digits
         p = pv.Plotter(off_screen=True, window_size=(900, 760), border=False)
         p.set_background("white")
         p.add_mesh(poly.copy(), scalars=values, cmap="viridis", clim=(lo, hi), smooth_shading=True, show_scalar_bar=False)

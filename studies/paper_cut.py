@@ -27,7 +27,7 @@ import cutfem
 from cutfem.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
 from cutfem.levelset import Torus
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, save_csv, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_csv, save_figure, save_json, save_latex_table, significant, study_main
 from .paper_meshed import offscreen_plotter
 
 NAME = "paper_cut"
@@ -211,8 +211,8 @@ def run(out: Path, size: str = "quick", progress=print) -> dict:
         "area": [r["area"] for r in recs],
         "exact_area": Torus(R_MAJOR, R_MINOR).area,
         "area_error": [r["area_error"] for r in recs],
-        "integral_H": [r["integral_H"] for r in recs],
-        "integral_H_max": [float(np.max(np.abs(r["integral_H"]))) for r in recs],
+        "integral_H": [roundoff_zero(r["integral_H"]) for r in recs],  # zero in exact arithmetic
+        "integral_H_max": [roundoff_zero(float(np.max(np.abs(r["integral_H"])))) for r in recs],
         "solver": [r["solver"] for r in recs],
         "wall_time": [r["wall_time"] for r in recs],
         "time": [r["time"] for r in recs],
@@ -236,11 +236,11 @@ def run(out: Path, size: str = "quick", progress=print) -> dict:
     rows = [
         [f"{s:g}", f"{h[i]:.4f}", str(data["active_tets"][i]), str(data["dofs"][i]), _sci(data["l2_error"][i]),
          "--" if i == 0 else fmt_rate(data["rates_l2"][i - 1]), _sci(data["area_error"][i]),
-         "--" if i == 0 else fmt_rate(data["rates_area"][i - 1]), f"{data['integral_H_max'][i]:.1e}"]
+         "--" if i == 0 else fmt_rate(data["rates_area"][i - 1]), fmt_roundoff(data["integral_H_max"][i])]
         for i, s in enumerate(levels)
     ]
     save_latex_table(out, "cut_errors", header, rows)
-    _convergence_figure(out, data)
+    _convergence_figure(out, significant(data))  # the digits the tables carry
 
     progress(f"pictures of the cut at spacing {PICTURE_SPACING}")
     pic = recs[levels.index(PICTURE_SPACING)] if PICTURE_SPACING in levels else _solve([PICTURE_SPACING], progress).records[0]

@@ -10,8 +10,11 @@ manuscript, and a summary of the run (``OUT/tables/summary.json``).
 Wall times differ on every run, so they are kept apart: the entries named in :data:`TIMING_KEYS` are
 taken out of every JSON and CSV table a study writes and, with the wall time of every study, go to
 ``OUT/tables/timings.json`` (and the total, as a LaTeX macro, to ``OUT/tables/timings.tex``).  The
-other outputs -- JSON with sorted keys, figures without dates -- are byte-identical when the numbers
-are, so a rerun that changes no number changes no file but those of :data:`TIMING_FILES`.
+other outputs are the same bytes on every machine and thread count: JSON and CSV with six
+significant digits (sums in another order change the 14th), round-off quantities written as their
+bound (:func:`cutfem.studies.common.roundoff_zero`), figures drawn from those digits and saved
+without dates, so that a rerun changes no file but those of :data:`TIMING_FILES` (listed in the
+README).
 Progress goes to standard error.  Default ``OUT`` is ``paper`` (the manuscript's folder), default
 size ``quick`` (a few minutes on 2 cores); ``--full`` runs the paper's finest levels.
 
@@ -32,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .common import Progress, save_json
+from .common import ROUNDOFF_INTEGRAL, Progress, fmt_roundoff, save_json
 
 #: the studies, in the order they run (the paper's own experiments first)
 STUDY_NAMES = [
@@ -206,7 +209,7 @@ def _claims_outputs(tables: Path) -> list[dict]:
     ]
     for r in rows:
         integral = r["kind"] == "integral"
-        fit = "--" if r["fit"] is None else (f"{r['fit']:.1e}" if integral else _r(r["fit"]))
+        fit = "--" if r["fit"] is None else (fmt_roundoff(r["fit"]) if integral else _r(r["fit"]))
         agrees = "n/a" if r["agrees"] is None else ("yes" if r["agrees"] else "\\textbf{no}")
         lines.append(f"{r['claim']} & {r['paper']} & {fit} & {_r(r['last'])} & {r['criterion']} & {agrees} \\\\")
     lines += ["\\hline", "\\end{tabular}"]
@@ -247,7 +250,9 @@ def _numbers(tables: Path, rows):
         macros["cutDofsMax"] = str(cut["dofs"][-1])
         macros["cutNodesOnSurface"] = str(max(cut["nodes_on_surface"]))
         worst = _worst(cut["integral_H_max"])
-        macros["cutIntegralMax"] = "--" if not np.isfinite(worst) else f"$10^{{{int(np.ceil(np.log10(worst)))}}}$" if worst > 0 else "$0$"
+        # below ROUNDOFF_INTEGRAL the integral is round-off (saved as 0): its bound is the number
+        bound = max(worst, ROUNDOFF_INTEGRAL)
+        macros["cutIntegralMax"] = "--" if not np.isfinite(worst) else f"$10^{{{int(np.ceil(np.log10(bound)))}}}$"
     agree = [r for r in rows if r["agrees"] is not None]
     macros["claimsAgree"] = str(sum(bool(r["agrees"]) for r in agree))
     macros["claimsTotal"] = str(len(agree))
@@ -442,8 +447,8 @@ def main(argv=None) -> int:
               f"figures in {out / 'figures'}, tables in {tables}", file=sys.stderr)
         for r in rows:
             agrees = "n/a" if r["agrees"] is None else ("yes" if r["agrees"] else "NO")
-            fit = r["fit"] if r["fit"] is None else float(r["fit"])
-            print(f"  {_plain(r['claim']):<52s} paper {_plain(r['paper']):<18s} measured {'--' if fit is None else f'{fit:.3g}':<9} agrees {agrees}", file=sys.stderr)
+            fit = "--" if r["fit"] is None else _plain(fmt_roundoff(r["fit"])) if r["kind"] == "integral" else f"{float(r['fit']):.3g}"
+            print(f"  {_plain(r['claim']):<52s} paper {_plain(r['paper']):<18s} measured {fit:<9} agrees {agrees}", file=sys.stderr)
     return 1 if failed else 0
 
 

@@ -32,7 +32,7 @@ from cutfem.forms import assemble, face_jump_penalty, position_load
 from cutfem.levelset import Torus
 from cutfem.solve import SolverError, solve
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, significant, study_main
 from .conditioning import PAPER_BOX, matrices, scaled_condition
 
 NAME = "stabilization_sweeps"
@@ -104,7 +104,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     }
     save_json(out, NAME, summary)
     save_csv(out, NAME, rows)
-    _plot(out, settings, taus)
+    _plot(out, significant(settings), taus)  # the digits the tables carry
 
     def fe(v):
         return "sing." if v is None else f"{v:.3e}"

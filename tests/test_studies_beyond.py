@@ -99,8 +99,9 @@ def test_stabilization_sweeps_are_the_registered_problem(sweeps):
         res = cutfem.run("mean-curvature-cut", levels=[r["spacing"] for r in rows], box=stabilization_sweeps.PAPER_BOX,
                          tau_f=tau, face_h_power=float(a), solver="direct")
         for r, rec in zip(rows, res.records, strict=True):
-            assert r["h"] == pytest.approx(rec["h"], rel=1e-12)
-            assert r["l2_error"] == pytest.approx(rec["l2_error"], rel=1e-8), (a, tau, r["spacing"])
+            # the table holds six significant digits (studies.common.save_json): 5e-6 relative at most
+            assert r["h"] == pytest.approx(rec["h"], rel=5e-6)
+            assert r["l2_error"] == pytest.approx(rec["l2_error"], rel=1e-5), (a, tau, r["spacing"])
 
 
 @pytest.fixture(scope="module")
@@ -118,7 +119,8 @@ def test_laplace_beltrami(lb):
         assert 0.85 < c["h1_rate"] < 1.4, key  # P1: 1
         assert all(np.diff(c["l2_error"]) < 0)
     assert cases[("sphere", "meshed")]["l2_error"][-1] < 0.02
-    assert summary["rates"]["torus, cut, face"]["l2"] == pytest.approx(cases[("torus", "cut, face")]["l2_rate"])
+    # the JSON holds six significant digits (studies.common.save_json), the summary the whole number
+    assert summary["rates"]["torus, cut, face"]["l2"] == pytest.approx(cases[("torus", "cut, face")]["l2_rate"], rel=5e-6)
 
 
 def test_time_stepping(tmp_path_factory):
