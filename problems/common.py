@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -139,6 +140,123 @@ def nitsche_hint(gamma: float, gamma_g: float) -> str:
         hint += (" or restore the ghost penalty (--gamma-g is 0: without it the bound grows without limit on the "
                  "small cut elements, default --gamma-g 0.1)")
     return hint
+
+
+#: the meaningful range of the ghost penalty gamma_g (docs/math.md §7): g and the bulk form both
+#: scale as h^3 per tet, so gamma_g is a number, the same at every spacing.  Its consistency error
+#: grows like gamma_g h^2 |u|_{H^2}^2 in the energy, and as gamma_g grows the penalty locks u_h to one
+#: linear function across the ghost faces: poisson-cut's L2 error at spacings 0.25 / 0.125 is
+#: 0.0264 / 0.0068 at 0.1, 0.061 / 0.018 at 1, 0.131 / 0.059 at 10, 0.266 / 0.264 from 1e4 on
+#: (locked).  Above GHOST_PENALTY_WARN a warning; above GHOST_PENALTY_MAX a refusal: the result no
+#: longer depends on gamma_g and the bulk form is within a few digits of the solvers' null-vector
+#: tolerance beside it (at 1e12 the constants pass for a null vector).
+GHOST_PENALTY_WARN, GHOST_PENALTY_MAX = 1.0, 1e6
+#: the meaningful range of the face stabilization of a surface field, stated for its weight
+#: t = tau_F (s / L)^a (s the spacing, a the power of h, L the length scale in which the surface has
+#: size about 1): the coefficient of J_F (whose entries are O(1) per face) at this spacing, in units
+#: of L, to compare with the paper's 0.1 (a = 0).  The mass of a whole piece is O((s / L)^2):
+#: t / (s / L)^2 is the weight of the stabilization against it.  Below FACE_WEIGHT_WARN the nodes with small pieces are barely controlled and the error
+#: grows like 1 / t (mean-curvature-cut, sphere, spacings 0.2 / 0.1 / 0.05: L2 error 0.061 /
+#: 0.019 / 0.0056 at t = 0.1, 0.27 / 0.081 / 0.025 at 1e-3, 1.4 / 0.49 / 0.15 at 1e-4, 5.8 /
+#: 5.3 / 3.8 at 1e-6): a warning; below FACE_WEIGHT_MIN the result is meaningless (O(1) errors, a
+#: system the direct solver accepts and CG calls singular): a refusal.  Above it the error does not
+#: grow (0.051 / 0.013 / 0.0032 at t = 10 and 100), but the mass is lost beside J_F: from
+#: t / (s / L)^2 = FACE_RATIO_MAX on, ||D^-1/2 K 1|| / ||D^1/2 1|| (about 0.03 s^2 / t) is within a few
+#: digits of the solvers' null-vector tolerance (1e-8; CG refuses tau_F = 1e4 at spacing 0.05): a
+#: refusal.
+FACE_WEIGHT_WARN, FACE_WEIGHT_MIN, FACE_RATIO_MAX = 1e-3, 1e-6, 1e6
+
+
+def _finite_nonnegative(value, flag) -> float:
+    """``value`` as a float >= 0, or ProblemError naming ``flag`` (the problem functions are also
+    called directly from Python, past the checks of :class:`~cutfem.registry.Param`)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ProblemError(f"{flag}: cannot read {value!r} as a number") from None
+    if not (math.isfinite(v) and v >= 0):
+        raise ProblemError(f"{flag}: {value!r} must be a finite number >= 0")
+    return v
+
+
+def _warn(message: str) -> list:
+    """Issue ``message`` as a RuntimeWarning (from the problem's caller) and return it in a list,
+    for the record's ``"warnings"``."""
+    warnings.warn(message, RuntimeWarning, stacklevel=3)
+    return [message]
+
+
+def check_ghost_penalty(gamma_g, flag="--gamma-g") -> list:
+    """Refuse (ProblemError) a ghost penalty gamma_g that is negative, not finite or above
+    :data:`GHOST_PENALTY_MAX`; warn (RuntimeWarning) above :data:`GHOST_PENALTY_WARN`, where it
+    costs accuracy.  Returns the warnings given, for the record.  gamma_g = 0 (no ghost penalty) is
+    allowed: the solver then reports the loss of stability it causes."""
+    g = _finite_nonnegative(gamma_g, flag)
+    fit = f"use {flag} in [0.01, {GHOST_PENALTY_WARN:g}] (default 0.1)"
+    if g > GHOST_PENALTY_MAX:
+        raise ProblemError(
+            f"{flag} {g:g} is above {GHOST_PENALTY_MAX:g}: the ghost penalty locks u_h to one linear function across the "
+            f"ghost faces, the result no longer depends on it and the system is numerically singular; {fit}")
+    if g > GHOST_PENALTY_WARN:
+        return _warn(
+            f"{flag} {g:g} is above {GHOST_PENALTY_WARN:g}: the ghost penalty's consistency error grows with it and locks "
+            f"u_h toward linear functions (poisson-cut at spacing 0.25: L2 error 0.131 at 10, 0.266 at 1e6, against 0.0264 "
+            f"at 0.1); {fit}")
+    return []
+
+
+def _power_of_ten(x: float) -> str:
+    """10^x as text, also where the float would overflow or underflow."""
+    return f"{10.0 ** x:.2g}" if abs(x) < 300 else f"10^{x:.4g}"
+
+
+def check_face_stabilization(tau_f, face_h_power, spacing, length_scale=1.0, flag="--tau-f",
+                             power_flag="--face-h-power") -> list:
+    """Refuse (ProblemError) or warn (RuntimeWarning) about the face stabilization tau_F h^a J_F of
+    a surface field at the spacing ``spacing``: its weight t = tau_F (s / L)^a must be at least
+    :data:`FACE_WEIGHT_MIN` (warning below :data:`FACE_WEIGHT_WARN`) and t / (s / L)^2 at most
+    :data:`FACE_RATIO_MAX`; tau_F and a finite, tau_F >= 0 (0: no stabilization, which the solver
+    reports).  The messages name the flags (the power when it is not 0) and the values that fit.
+    Returns the warnings given, for the record."""
+    tau = _finite_nonnegative(tau_f, flag)
+    try:
+        a = float(face_h_power)
+    except (TypeError, ValueError):
+        raise ProblemError(f"{power_flag}: cannot read {face_h_power!r} as a number") from None
+    if not math.isfinite(a):
+        raise ProblemError(f"{power_flag}: {face_h_power!r} must be a finite number")
+    if tau == 0:
+        return []
+    s = float(spacing) / float(length_scale)  # the spacing in units of L, where the surface has size about 1
+    log_t = math.log10(tau) + a * math.log10(s)  # in logarithms: no overflow for a = 50 or tau_F = 1e300
+    log_ratio = log_t - 2.0 * math.log10(s)
+    low, high = math.log10(FACE_WEIGHT_WARN), math.log10(FACE_RATIO_MAX) + 2.0 * math.log10(s)
+    weight = f"the weight tau_F (s / L)^a = 10^{log_t:.3g} at s / L = {s:g}" if a else f"tau_F = {tau:g}"
+    # the tau_F at this a, and the a at this tau_F, whose weight lies in [FACE_WEIGHT_WARN, FACE_RATIO_MAX (s / L)^2]
+    base = a * math.log10(s)
+    fit = f"tau_F in [{_power_of_ten(low - base)}, {_power_of_ten(high - base)}]" + (" at this power" if a else "")
+    if a and s != 1:
+        ends = sorted(((low - math.log10(tau)) / math.log10(s), (high - math.log10(tau)) / math.log10(s)))
+        fit = f"{power_flag} in [{ends[0]:.3g}, {ends[1]:.3g}] at this spacing" + (f", or {fit}" if abs(base) < 300 else "")
+    fit += " (the paper: tau_F = 0.1, a = 0)"
+    who = f"{flag} {tau:g}" + (f" with {power_flag} {a:g}" if a else "")
+    if log_t < math.log10(FACE_WEIGHT_MIN):
+        raise ProblemError(
+            f"{who}: {weight} is below {FACE_WEIGHT_MIN:g}: the face stabilization vanishes beside the mass of the pieces, "
+            f"the nodes with small pieces are not controlled and the errors are O(1) (the system is nearly singular); "
+            f"give {fit}")
+    if log_ratio > math.log10(FACE_RATIO_MAX):
+        raise ProblemError(
+            f"{who}: {weight} is {_power_of_ten(log_ratio)} times (s / L)^2, the scale of the mass of a piece, above "
+            f"{FACE_RATIO_MAX:g} times: "
+            "the mass of the pieces is lost beside the face stabilization and the system is numerically singular "
+            f"(the constants pass for a null vector); give {fit}")
+    if log_t < low:
+        return _warn(
+            f"{who}: {weight} is below {FACE_WEIGHT_WARN:g}: the nodes with small pieces are barely controlled and the "
+            f"error grows like 1 / tau_F (mean-curvature-cut on the sphere at spacing 0.1: L2 error 0.081 at 1e-3, 0.49 "
+            f"at 1e-4, against 0.019 at 0.1); give {fit}")
+    return []
 
 
 def has_exact(levelset) -> bool:

@@ -39,7 +39,7 @@ from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, regis
 from cutfem.solve import SolverError, solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
+from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -145,6 +145,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
     for name, value in (("--a-inside", a_inside), ("--a-outside", a_outside)):
         if not value > 0:
             raise ProblemError(f"{name} must be positive, got {value}")
+    notes = check_ghost_penalty(gamma_g)  # times a_i on each side: the same ratio to each side's stiffness
     t = Timer()
     sol = InterfaceSolution(radius, a_inside, a_outside)
     a = {NEG: a_inside, POS: a_outside}
@@ -188,6 +189,8 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
             rec[f"l2_error_{name}"], rec[f"h1_error_{name}"] = l2_h1_errors(V, u, sol.solution(side), dx)
         rec["solver"], rec["solver_iterations"] = info.method, info.iterations
     rec.update(cut_record(cut, W))
+    if notes:
+        rec["warnings"] = notes
     rec["time"] = dict(t)
     rec["fields"] = LazyFields(
         lambda: {

@@ -35,7 +35,7 @@ from cutfem.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
 from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
-from .common import BACKGROUND_PARAM, SHAPE_PARAMS, check_cut_memory, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
+from .common import BACKGROUND_PARAM, SHAPE_PARAMS, check_cut_memory, check_face_stabilization, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
 
 
 #: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
@@ -243,6 +243,7 @@ class LaplaceBeltramiCut(Problem):
     ]
 
     def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, solver, R, r, radius):
+        notes = check_face_stabilization(tau_f, face_h_power, level) if stabilization == "face" else []
         t = Timer()
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius)
@@ -274,6 +275,8 @@ class LaplaceBeltramiCut(Problem):
             multigrid = {"augment": space.cut.values, "coarse_size": 400}
         u, rec = _solve_and_measure(space, dS, K, sol, t, solver, multigrid, stabilization=stab)
         rec.update(cut_record(cut))
+        if notes:
+            rec["warnings"] = notes
         rec["area"] = float(assemble(basis_integrals(dS), space).sum())
         rec["time"] = dict(t)
         rec["fields"] = LazyFields(

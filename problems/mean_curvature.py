@@ -36,6 +36,7 @@ from cutfem.markers import CUT
 from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
 from .common import BACKGROUND_PARAM, SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
+from .common import check_face_stabilization
 
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
@@ -70,7 +71,13 @@ def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=
     (S_h), J_F over the facet measure ``faces`` (cut case, times h^a, a = ``face_h_power``), L =
     ``length_scale`` (the module's note on units; 1 in the paper).  Assembled as one form: on a
     structured box the mass and the face penalty sum into one set of lattice slots, on a
-    triangulated surface the mass and the edge penalty into one set of node and pair values."""
+    triangulated surface the mass and the edge penalty into one set of node and pair values.
+
+    A stabilized form is refused (ProblemError, :func:`check_length_scale`) when the surface's size
+    is far from L: every path to the system goes through here (``cutfem run``, :func:`cutfem.run`,
+    the problems' levels and scripts calling this function or :func:`mean_curvature_system`)."""
+    if tau_e > 0 or tau_f > 0:
+        check_length_scale(surface.size, length_scale, 2.0 - face_h_power if tau_f > 0 else 3)
     form = mass(surface)
     if tau_e > 0:
         form = form + (tau_e * length_scale**3) * edge_jump_penalty(surface)
@@ -174,7 +181,6 @@ class MeanCurvatureMeshed(Problem):
         t = Timer()
         with t("geometry"):
             mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
-            check_length_scale(mesh.area, length_scale, 3)
             space = SurfaceP1Space(mesh)
         with t("assembly"):
             K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e, length_scale=length_scale)
@@ -217,6 +223,7 @@ class MeanCurvatureCut(Problem):
     ]
 
     def solve_level(self, level, surface, background, box, tau_f, tau_e, face_h_power, solver, length_scale, R, r, radius, axes):
+        notes = check_face_stabilization(tau_f, face_h_power, level, length_scale)
         t = Timer()
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius, axes)
@@ -227,7 +234,6 @@ class MeanCurvatureCut(Problem):
             space = CutP1Space(cut)
         with t("assembly"):
             ones_M = assemble(basis_integrals(cut.ds()), space)
-            check_length_scale(float(ones_M.sum()), length_scale, 2.0 - face_h_power if tau_f > 0 else 3)
             K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)),
                                          face_h_power=face_h_power, length_scale=length_scale)
         with t("solve"):
@@ -236,6 +242,8 @@ class MeanCurvatureCut(Problem):
         with t("errors"):
             rec = _common_record(space, ones_M, H, exact, info)
             rec.update(cut_record(cut))
+            if notes:
+                rec["warnings"] = notes
             if exact is not None:
                 rec["l2_error"] = l2_error(space, H, exact.exact_mean_curvature_vector)
         rec["time"] = dict(t)

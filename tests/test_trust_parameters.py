@@ -6,6 +6,8 @@ constant c over a measure is c times its size (the sum of the P1 basis integrals
 since the basis functions sum to one); the penalty ranges are those stated in the docstrings.
 """
 
+import re
+
 import numpy as np
 import pytest
 
@@ -96,3 +98,117 @@ def test_an_integrand_returning_one_number_is_told_why(cut):
 
     with pytest.raises(ValueError, match=r"returned the single number 0, not values at the quadrature points.*ZERO"):
         assemble(nothing * cut.dx(NEG), V)
+
+
+# --- 2d: parameters that cost accuracy or mean nothing: the same answer on every path -------------
+
+import json  # noqa: E402
+
+import cutfem  # noqa: E402
+from cutfem.cli import main  # noqa: E402
+from cutfem.registry import ProblemError  # noqa: E402
+
+
+def _cli(capsys, *argv):
+    """(exit status, standard error) of ``cutfem run ...`` in this process."""
+    status = main(["run", *argv, "--quiet"])
+    return status, capsys.readouterr().err
+
+
+def test_a_large_ghost_penalty_warns_on_every_path_and_is_noted(capsys, tmp_path):
+    """gamma_g = 1e6 locks u_h to linear functions (L2 error 0.266 against 0.0264 at the default,
+    spacing 0.25): a RuntimeWarning naming --gamma-g and the range, and a note in the record and
+    its JSON, from cutfem.run and from the command line alike."""
+    with pytest.warns(RuntimeWarning, match=r"--gamma-g 1e\+06 is above 1: .*use --gamma-g in \[0.01, 1\]"):
+        res = cutfem.run("poisson-cut", levels=[0.25], gamma_g=1e6)
+    assert res.records[0]["warnings"][0].startswith("--gamma-g 1e+06 is above 1")
+    out = tmp_path / "run.json"
+    with pytest.warns(RuntimeWarning, match=r"--gamma-g 1e\+06 is above 1"):
+        status, _ = _cli(capsys, "poisson-cut", "--levels", "0.25", "--gamma-g", "1e6", "--json", str(out))
+    assert status == 0
+    assert "--gamma-g 1e+06 is above 1" in json.loads(out.read_text())["records"][0]["warnings"][0]
+
+
+def test_a_default_run_carries_no_warning():
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)
+        res = cutfem.run("poisson-cut", levels=[0.25])
+    assert "warnings" not in res.records[0]
+
+
+@pytest.mark.parametrize("value", [1e7, -1.0, float("nan")])
+def test_a_meaningless_ghost_penalty_is_refused_on_every_path(capsys, value):
+    from cutfem.problems.poisson import poisson_cut
+
+    words = r"--gamma-g:? .*(above 1e\+06.*numerically singular|must be a finite number >= 0|is not a finite number)"
+    with pytest.raises(ProblemError, match=words):
+        cutfem.run("poisson-cut", levels=[0.25], gamma_g=value)
+    status, err = _cli(capsys, "poisson-cut", "--levels", "0.25", "--gamma-g", str(value))
+    assert status == 2 and "--gamma-g" in err and "Traceback" not in err
+    with pytest.raises(ProblemError, match=r"--gamma-g:? .*(above 1e\+06|>= 0)"):  # the problem's own function
+        poisson_cut(0.25, "sphere", "structured", None, 10.0, value, "auto", 1.0, 0.5, 1.0, "1,0.8,0.6")
+
+
+def test_a_tiny_face_stabilization_is_refused_the_same_way_from_python_and_the_command_line(capsys):
+    """tau_F = 1e-10: O(1) errors on the direct path while CG called the system singular; now both
+    paths refuse it before solving, naming --tau-f and the range at this spacing."""
+    words = r"--tau-f 1e-10: tau_F = 1e-10 is below 1e-06: .*give tau_F in \[0.001, "
+    for solver in ("direct", "cg-mg"):
+        with pytest.raises(ProblemError, match=words):
+            cutfem.run("mean-curvature-cut", levels=[0.2], surface="sphere", tau_f=1e-10, solver=solver)
+    status, err = _cli(capsys, "mean-curvature-cut", "--surface", "sphere", "--levels", "0.2", "--tau-f", "1e-10")
+    assert status == 2 and re.search(words, err) and err.count("\n") == 1
+
+
+def test_a_small_face_stabilization_warns_with_the_range():
+    with pytest.warns(RuntimeWarning, match=r"--tau-f 0.0001: tau_F = 0.0001 is below 0.001.*give tau_F in \[0.001, "):
+        res = cutfem.run("laplace-beltrami-cut", levels=[0.2], tau_f=1e-4)
+    assert "below 0.001" in res.records[0]["warnings"][0]
+
+
+@pytest.mark.parametrize("argv, words", [
+    # the constants "were a null vector" and phi_h "was" one: now the flag and the range that fits
+    (["--tau-f", "1e300"], r"--tau-f 1e\+300: tau_F = 1e\+300 is .* above 1e\+06 times: .*give tau_F in \[0.001, 4e\+04\]"),
+    (["--face-h-power", "50"], r"--tau-f 0.1 with --face-h-power 50: .*below 1e-06: .*give --face-h-power in \[-8.01, 2.86\]"),
+])
+def test_extreme_stabilization_flags_are_named_with_their_range(capsys, argv, words):
+    status, err = _cli(capsys, "mean-curvature-cut", "--surface", "sphere", "--levels", "0.2", *argv)
+    assert status == 2 and re.search(words, err), err
+    assert "constant functions are a null vector" not in err and "phi_h (zero on S_h) is a null vector" not in err
+
+
+def test_the_length_scale_is_checked_where_every_path_builds_the_form():
+    """A sphere of radius 100 with L = 1: refused by the command line and cutfem.run, but a script
+    building the system with mean_curvature_system got a 34 % error without a word."""
+    from cutfem.markers import CUT
+    from cutfem.problems.mean_curvature import mean_curvature_system
+
+    big = cut_mesh(structured_box([-120.0] * 3, [120.0] * 3, spacing=20.0), Sphere(100.0))
+    V = CutP1Space(big)
+    faces = big.dF(big.interior_facets(CUT))
+    with pytest.raises(ProblemError, match=r"size sqrt\(area / 4 pi\) = 99.5 is 99.5 times the length scale L = 1.*"
+                                           r"--length-scale 100 "):
+        mean_curvature_system(V, big.ds(), tau_f=0.1, faces=faces)
+    K, B = mean_curvature_system(V, big.ds(), tau_f=0.1, faces=faces, length_scale=100.0)
+    assert K.shape == (V.n_dofs, V.n_dofs)
+
+
+# --- part 4: zero rows with tau_F > 0: the surface lies on grid planes -----------------------------
+
+def test_zero_rows_of_a_surface_on_grid_planes_name_the_cause_and_the_fix(capsys):
+    """A cube whose faces lie on grid planes: 147 nodes off S_h in no term although tau_F = 0.1.
+    The message said to add a stabilization; it now says why none reaches them and what helps."""
+    from cutfem.solve import SolverError
+
+    cube = "maximum(maximum(abs(x), abs(y)), abs(z)) - 0.5"
+    words = (r"147 unknowns appear in no term .*nodes off S_h .*S_h runs along faces of the background mesh.*"
+             r"face stabilization \(any tau_F\) does not reach them.*shift the background box")
+    with pytest.raises(SolverError, match=words):
+        cutfem.run("mean-curvature-cut", levels=[0.1], surface=cube, box="-1,-1,-1,1,1,1", solver="direct")
+    status, err = _cli(capsys, "mean-curvature-cut", "--surface", cube, "--box", "-1,-1,-1,1,1,1", "--levels", "0.1")
+    assert status == 2 and re.search(words, err)
+    # the fix it names: the box shifted by a third of the spacing solves
+    res = cutfem.run("mean-curvature-cut", levels=[0.1], surface=cube, box="-1.033,-1.033,-1.033,1.067,1.067,1.067")
+    assert res.records[0]["dofs"] > 0
