@@ -160,10 +160,11 @@ GHOST_PENALTY_WARN, GHOST_PENALTY_MAX = 1.0, 1e6
 #: 0.019 / 0.0056 at t = 0.1, 0.27 / 0.081 / 0.025 at 1e-3, 1.4 / 0.49 / 0.15 at 1e-4, 5.8 /
 #: 5.3 / 3.8 at 1e-6): a warning; below FACE_WEIGHT_MIN the result is meaningless (O(1) errors, a
 #: system the direct solver accepts and CG calls singular): a refusal.  Above it the error does not
-#: grow (0.051 / 0.013 / 0.0032 at t = 10 and 100), but the mass is lost beside J_F: from
-#: t / (s / L)^2 = FACE_RATIO_MAX on, ||D^-1/2 K 1|| / ||D^1/2 1|| (about 0.03 s^2 / t) is within a few
-#: digits of the solvers' null-vector tolerance (1e-8; CG refuses tau_F = 1e4 at spacing 0.05): a
-#: refusal.
+#: grow (0.051 / 0.013 / 0.0032 at t = 10 and 100), but the mass is lost beside J_F: the constants,
+#: which J_F annihilates, have ||D^-1/2 K 1|| / ||D^1/2 1|| = 0.026 (s / L)^2 / t (0.025-0.026 on the
+#: unit sphere at spacings 0.2-0.025, t = 0.1 and 1e4), which reaches the solvers' null-vector
+#: tolerance (1e-8; CG refused tau_F = 1e4 at spacing 0.05) near t / (s / L)^2 = FACE_RATIO_MAX: a
+#: refusal there.  (The paper's tau_F = 0.1 meets it only below spacing 3e-4, which no memory holds.)
 FACE_WEIGHT_WARN, FACE_WEIGHT_MIN, FACE_RATIO_MAX = 1e-3, 1e-6, 1e6
 
 

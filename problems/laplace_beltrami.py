@@ -243,7 +243,6 @@ class LaplaceBeltramiCut(Problem):
     ]
 
     def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, solver, R, r, radius):
-        notes = check_face_stabilization(tau_f, face_h_power, level) if stabilization == "face" else []
         t = Timer()
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius)
@@ -252,6 +251,8 @@ class LaplaceBeltramiCut(Problem):
             check_resolution(cut, phi, level)
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
             space = CutP1Space(cut)
+        # after the cut's memory checks (a spacing that cannot fit is told so first), before any matrix
+        notes = check_face_stabilization(tau_f, face_h_power, level) if stabilization == "face" else []
         with t("assembly"):
             dS = cut.ds()
             form = tangential_stiffness(dS) + mass(dS)

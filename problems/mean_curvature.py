@@ -223,7 +223,6 @@ class MeanCurvatureCut(Problem):
     ]
 
     def solve_level(self, level, surface, background, box, tau_f, tau_e, face_h_power, solver, length_scale, R, r, radius, axes):
-        notes = check_face_stabilization(tau_f, face_h_power, level, length_scale)
         t = Timer()
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius, axes)
@@ -232,6 +231,8 @@ class MeanCurvatureCut(Problem):
             check_resolution(cut, phi, level)
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
             space = CutP1Space(cut)
+        # after the cut's memory checks (a spacing that cannot fit is told so first), before any matrix
+        notes = check_face_stabilization(tau_f, face_h_power, level, length_scale)
         with t("assembly"):
             ones_M = assemble(basis_integrals(cut.ds()), space)
             K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)),
