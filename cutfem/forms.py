@@ -1317,7 +1317,16 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
     of the cut tets with a = 0 this is the face stabilization J_F of the mean curvature problem
     (docs/math.md §3); over the ghost faces of a side with a = 1 it is the Burman-Hansbo ghost
     penalty of a bulk field (§7), to be multiplied by gamma_g.  ``h_power`` is one real, finite
-    number for which every h_F^a is a finite, nonzero float (else a ValueError).  An empty facet set gives the zero matrix."""
+    number for which every h_F^a is a finite, nonzero float (else a ValueError).  An empty facet set
+    gives the zero matrix.
+
+    Meaningful coefficients (the problems check them, :mod:`cutfem.problems.common`).  As a ghost
+    penalty (a = 1) beside a stiffness both scale as h^3 per tet, so gamma_g is a number: about
+    0.01-1; its consistency error grows with it and it locks u_h to linear functions across the
+    ghost faces as it grows (poisson-cut's L2 error 10 times the default's at 1e6).  As J_F beside a
+    surface mass matrix (entries O(s^2) at spacing s, J_F's O(h^a)) the weight tau_F s^a counts:
+    below 1e-3 the small pieces are barely controlled (the error grows like its inverse), below
+    1e-6 not at all; above 1e6 s^2 the mass is lost beside it in round-off."""
     _require(measure, FacetMeasure, "face_jump_penalty")
     h_power = _number("h_power", h_power)
 

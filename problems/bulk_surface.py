@@ -41,7 +41,7 @@ from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, regis
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_resolution, cut_record, value_and_gradient, with_point_data
+from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_normal_stabilization, check_resolution, cut_record, value_and_gradient, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -144,6 +144,7 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
             "give c_B > 0"
         )
     notes = check_ghost_penalty(gamma_g)  # times b_B k_B: the same ratio to the bulk stiffness
+    notes += check_normal_stabilization(tau_n, 1.0, spacing)  # h^-1 beside the tangential stiffness: weight tau_N
     sol = BulkSurfaceSolution(radius, k_bulk, k_surface, b_bulk, b_surface, c_bulk)
     t = Timer()
     with t("geometry"):

@@ -168,6 +168,30 @@ GHOST_PENALTY_WARN, GHOST_PENALTY_MAX = 1.0, 1e6
 FACE_WEIGHT_WARN, FACE_WEIGHT_MIN, FACE_RATIO_MAX = 1e-3, 1e-6, 1e6
 
 
+#: the Nitsche penalty gamma (docs/math.md §8): gamma / h (u, v)_Gamma beside the stiffness is a
+#: number.  Below its stability bound the system is indefinite (the solver says so and names
+#: --gamma); far above it Nitsche's method tends to the strong condition on the cut boundary, which
+#: locks on the small cut pieces: poisson-cut's L2 error at spacings 0.25 / 0.125 is 0.0264 / 0.0068
+#: at 10, 0.030 / 0.0075 at 100, 0.044 / 0.011 at 1e3, 0.088 / 0.031 at 1e4, 0.15 / 0.084 at 1e6.
+#: A warning above NITSCHE_WARN.
+NITSCHE_WARN = 1e3
+#: the normal-gradient stabilization tau_N h^a (n_h . grad u, n_h . grad v) over the cut tets
+#: (docs/math.md §4): its entries are O(s^(a+1)) at spacing s, the surface mass's O(s^2) (and with
+#: a = -1 against the tangential stiffness's O(1) as with a = 1 against the mass), so the weight
+#: is w = tau_N (s / L)^(a - 1).  The error hardly moves below 1 (laplace-beltrami-cut, sphere,
+#: spacings 0.2 / 0.1 / 0.05: L2 error 0.029 / 0.0074 / 0.0018 at 1e-6 and 0.037 / 0.0091 /
+#: 0.0022 at 1) and grows above it (0.12 / 0.016 / 0.0029 at 100, 1.3 / 0.38 / 0.041 at 1e4,
+#: 1.8 / 2.0 / 1.1 at 1e6: the surface terms lost beside it); at 1e-8 phi_h is numerically null
+#: and at 1e9 the constants.  A warning above NORMAL_WEIGHT_WARN, a refusal above
+#: NORMAL_WEIGHT_MAX and below NORMAL_WEIGHT_MIN.
+NORMAL_WEIGHT_WARN, NORMAL_WEIGHT_MAX, NORMAL_WEIGHT_MIN = 100.0, 1e6, 1e-8
+#: the edge stabilization tau_E of the meshed mean curvature problem (docs/math.md §3; the paper's
+#: 0.1): on the flipped torus at n = 16 / 32 / 64 the L2 error is 1.6 / 0.64 / 0.21 at 0.1,
+#: 4.1 / 2.3 / 1.1 at 1, 7.0 / 5.4 / 3.4 at 10 and about 9.4 (locked) from 1e4 on.  A warning above
+#: EDGE_WARN.
+EDGE_WARN = 1.0
+
+
 def _finite_nonnegative(value, flag) -> float:
     """``value`` as a float >= 0, or ProblemError naming ``flag`` (the problem functions are also
     called directly from Python, past the checks of :class:`~cutfem.registry.Param`)."""
@@ -203,6 +227,68 @@ def check_ghost_penalty(gamma_g, flag="--gamma-g") -> list:
             f"{flag} {g:g} is above {GHOST_PENALTY_WARN:g}: the ghost penalty's consistency error grows with it and locks "
             f"u_h toward linear functions (poisson-cut at spacing 0.25: L2 error 0.131 at 10, 0.266 at 1e6, against 0.0264 "
             f"at 0.1); {fit}")
+    return []
+
+
+def check_nitsche_penalty(gamma, flag="--gamma") -> list:
+    """Refuse (ProblemError) a Nitsche penalty that is not a finite positive number; warn
+    (RuntimeWarning) above :data:`NITSCHE_WARN`, where the method locks toward the strong condition
+    on the cut pieces.  Returns the warnings given, for the record."""
+    g = _finite_nonnegative(gamma, flag)
+    if g == 0:
+        raise ProblemError(f"{flag}: the Nitsche penalty must be positive (default 10), got {gamma!r}")
+    if g > NITSCHE_WARN:
+        return _warn(
+            f"{flag} {g:g} is above {NITSCHE_WARN:g}: Nitsche's method then tends to the strong boundary condition on "
+            f"the cut pieces, which locks (poisson-cut at spacing 0.125: L2 error 0.031 at 1e4, 0.084 at 1e6, against "
+            f"0.0068 at 10); use {flag} in [10, 100] (above the stability bound, which the solver reports if not)")
+    return []
+
+
+def check_normal_stabilization(tau_n, normal_h_power, spacing, length_scale=1.0, flag="--tau-n",
+                               power_flag="--normal-h-power") -> list:
+    """Refuse (ProblemError) or warn (RuntimeWarning) about the normal-gradient stabilization
+    tau_N h^a of a surface field at the spacing ``spacing`` by its weight w = tau_N (s / L)^(a - 1)
+    against the surface terms: refused below :data:`NORMAL_WEIGHT_MIN` or above
+    :data:`NORMAL_WEIGHT_MAX`, a warning above :data:`NORMAL_WEIGHT_WARN`; tau_N = 0 (none) is left
+    to the solver, which reports phi_h as a null vector.  Returns the warnings given."""
+    tau = _finite_nonnegative(tau_n, flag)
+    try:
+        a = float(normal_h_power)
+    except (TypeError, ValueError):
+        raise ProblemError(f"{power_flag}: cannot read {normal_h_power!r} as a number") from None
+    if not math.isfinite(a):
+        raise ProblemError(f"{power_flag}: {normal_h_power!r} must be a finite number")
+    if tau == 0:
+        return []
+    s = float(spacing) / float(length_scale)
+    log_w = math.log10(tau) + (a - 1.0) * math.log10(s)
+    who = f"{flag} {tau:g}" + (f" with {power_flag} {a:g}" if a != 1 else "")
+    weight = f"the weight tau_N (s / L)^(a - 1) = 10^{log_w:.3g} at s / L = {s:g}" if a != 1 else f"tau_N = {tau:g}"
+    base = (a - 1.0) * math.log10(s)
+    fit = (f"tau_N in [{_power_of_ten(math.log10(1e-2) - base)}, {_power_of_ten(math.log10(NORMAL_WEIGHT_WARN) - base)}]"
+           f"{' at this power' if a != 1 else ''} (default 1 with a = 1)")
+    if log_w < math.log10(NORMAL_WEIGHT_MIN):
+        raise ProblemError(f"{who}: {weight} is below {NORMAL_WEIGHT_MIN:g}: the stabilization vanishes and phi_h (zero on "
+                           f"S_h) is a numerical null vector; give {fit}")
+    if log_w > math.log10(NORMAL_WEIGHT_MAX):
+        raise ProblemError(f"{who}: {weight} is above {NORMAL_WEIGHT_MAX:g}: the surface terms are lost beside it and "
+                           f"the errors are O(1) (the system numerically singular from 1e9); give {fit}")
+    if log_w > math.log10(NORMAL_WEIGHT_WARN):
+        return _warn(f"{who}: {weight} is above {NORMAL_WEIGHT_WARN:g}: it damps the solution along the surface too "
+                     f"(laplace-beltrami-cut at spacing 0.1: L2 error 0.38 at 1e4, 0.016 at 100, against 0.0091 at 1); "
+                     f"give {fit}")
+    return []
+
+
+def check_edge_stabilization(tau_e, flag="--tau-e") -> list:
+    """Refuse (ProblemError) an edge stabilization tau_E that is negative or not finite; warn
+    (RuntimeWarning) above :data:`EDGE_WARN`, where it costs accuracy.  Returns the warnings given."""
+    tau = _finite_nonnegative(tau_e, flag)
+    if tau > EDGE_WARN:
+        return _warn(f"{flag} {tau:g} is above {EDGE_WARN:g}: the edge stabilization locks H_h toward functions without "
+                     f"conormal jumps (flipped torus at n = 32: L2 error 2.3 at 1, 5.4 at 10, against 0.64 at 0.1); give "
+                     f"{flag} in [0.01, {EDGE_WARN:g}] (the paper: 0.1)")
     return []
 
 

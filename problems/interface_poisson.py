@@ -39,7 +39,7 @@ from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, regis
 from cutfem.solve import SolverError, solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
+from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -146,6 +146,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
         if not value > 0:
             raise ProblemError(f"{name} must be positive, got {value}")
     notes = check_ghost_penalty(gamma_g)  # times a_i on each side: the same ratio to each side's stiffness
+    notes += check_nitsche_penalty(gamma)
     t = Timer()
     sol = InterfaceSolution(radius, a_inside, a_outside)
     a = {NEG: a_inside, POS: a_outside}

@@ -35,7 +35,7 @@ from cutfem.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
 from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
-from .common import BACKGROUND_PARAM, SHAPE_PARAMS, check_cut_memory, check_face_stabilization, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
+from .common import BACKGROUND_PARAM, SHAPE_PARAMS, check_cut_memory, check_face_stabilization, check_normal_stabilization, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
 
 
 #: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
@@ -252,7 +252,8 @@ class LaplaceBeltramiCut(Problem):
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
             space = CutP1Space(cut)
         # after the cut's memory checks (a spacing that cannot fit is told so first), before any matrix
-        notes = check_face_stabilization(tau_f, face_h_power, level) if stabilization == "face" else []
+        notes = (check_face_stabilization(tau_f, face_h_power, level) if stabilization == "face" else
+                 check_normal_stabilization(tau_n, normal_h_power, level) if stabilization == "normal" else [])
         with t("assembly"):
             dS = cut.ds()
             form = tangential_stiffness(dS) + mass(dS)

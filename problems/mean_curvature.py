@@ -36,7 +36,7 @@ from cutfem.markers import CUT
 from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
 from .common import BACKGROUND_PARAM, SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
-from .common import check_face_stabilization
+from .common import check_edge_stabilization, check_face_stabilization
 
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
@@ -181,6 +181,7 @@ class MeanCurvatureMeshed(Problem):
         t = Timer()
         with t("geometry"):
             mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
+            notes = check_edge_stabilization(tau_e)
             space = SurfaceP1Space(mesh)
         with t("assembly"):
             K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e, length_scale=length_scale)
@@ -190,6 +191,8 @@ class MeanCurvatureMeshed(Problem):
         with t("errors"):
             rec = _common_record(space, ones_M, H, exact, info)
             rec.update(triangles=int(mesh.n_triangles), edges=int(mesh.n_edges))
+            if notes:
+                rec["warnings"] = notes
             if exact is not None:
                 He = exact.exact_mean_curvature_vector
                 rec["l2_error"] = l2_error(space, H, He)

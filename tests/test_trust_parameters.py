@@ -212,3 +212,23 @@ def test_zero_rows_of_a_surface_on_grid_planes_name_the_cause_and_the_fix(capsys
     # the fix it names: the box shifted by a third of the spacing solves
     res = cutfem.run("mean-curvature-cut", levels=[0.1], surface=cube, box="-1.033,-1.033,-1.033,1.067,1.067,1.067")
     assert res.records[0]["dofs"] > 0
+
+
+@pytest.mark.parametrize("problem, level, params, words", [
+    ("poisson-cut", 0.25, {"gamma": 1e4}, r"--gamma 10000 is above 1000: .*use --gamma in \[10, 100\]"),
+    ("laplace-beltrami-cut", 0.2, {"stabilization": "normal", "tau_n": 1e3},
+     r"--tau-n 1000: tau_N = 1000 is above 100: .*give tau_N in \[0.01, 1e\+02\]"),
+    ("mean-curvature-meshed", 16, {"tau_e": 10.0}, r"--tau-e 10 is above 1: .*give --tau-e in \[0.01, 1\]"),
+])
+def test_other_penalties_that_cost_accuracy_warn_and_are_noted(problem, level, params, words):
+    with pytest.warns(RuntimeWarning, match=words):
+        res = cutfem.run(problem, levels=[level], **params)
+    assert re.search(words, res.records[0]["warnings"][0])
+
+
+def test_a_normal_stabilization_that_vanishes_names_both_flags(capsys):
+    status, err = _cli(capsys, "laplace-beltrami-cut", "--levels", "0.2", "--stabilization", "normal",
+                       "--normal-h-power", "20")
+    assert status == 2
+    assert re.search(r"--tau-n 1 with --normal-h-power 20: the weight tau_N \(s / L\)\^\(a - 1\) = .* is below 1e-08: "
+                     r".*phi_h .* give tau_N in \[.*\] at this power", err), err
