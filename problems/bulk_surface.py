@@ -123,8 +123,9 @@ DEFINITIONS = {
         Param("b_bulk", float, 1.0, "coupling coefficient b_B", minimum=0),
         Param("b_surface", float, 2.0, "coupling coefficient b_S", minimum=0),
         Param("c_bulk", float, 1.0, "bulk reaction c_B (> 0: with 0 the problem has a kernel)", positive=True),
-        Param("gamma_g", float, 0.1, "bulk ghost penalty gamma_g", minimum=0),
-        Param("tau_n", float, 1.0, "surface normal-gradient stabilization tau_N", minimum=0),
+        Param("gamma_g", float, 0.1, "bulk ghost penalty gamma_g (a warning above 1, refused above 1e6)", minimum=0),
+        Param("tau_n", float, 1.0, "surface normal-gradient stabilization tau_N (a warning above 100, refused below 1e-8 and "
+              "above 1e6)", minimum=0),
         Param("radius", float, 1.0, "radius of the ball", positive=True),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the ball's box grown by 0.1)"),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),

@@ -212,7 +212,8 @@ class HeatSolution:
               "N = ceil(T / dt_max) steps of dt = T / N, which end exactly at T", minimum=0),
         Param("final_time", float, 0.5, "final time T", minimum=0),
         Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N (at 0, phi_h, zero on S_h, is a null vector of "
-              "the steps' matrix: direct and cg-mg refuse it, cg-jacobi never meets it)", minimum=0),
+              "the steps' matrix: direct and cg-mg refuse it, cg-jacobi never meets it; a warning above 100, refused below 1e-8 "
+              "and above 1e6)", minimum=0),
         Param("radius", float, 1.0, "radius of the sphere", positive=True),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the sphere's box grown by 0.1)"),
         Param("solver", str, "auto", "the steps' solver: direct (one factorization), cg-jacobi or cg-mg (CG from the "

@@ -132,8 +132,9 @@ CONTRAST_LIMIT = 1e10
         Param("a_inside", float, 1.0, "coefficient a in the inside domain (NEG)", positive=True),
         Param("a_outside", float, 1.0, "coefficient a in the outside domain (POS)", positive=True),
         Param("weights", str, "harmonic", "averaging weights of the flux", choices=("harmonic", "volume")),
-        Param("gamma", float, 10.0, "Nitsche penalty gamma", positive=True),
-        Param("gamma_g", float, 0.1, "ghost penalty gamma_g (times a_i on each side)", minimum=0),
+        Param("gamma", float, 10.0, "Nitsche penalty gamma (a warning above 1e3)", positive=True),
+        Param("gamma_g", float, 0.1, "ghost penalty gamma_g (times a_i on each side; meaningful in [0.01, 1]: a warning above 1, "
+              "refused above 1e6)", minimum=0),
         Param("radius", float, 0.8, "radius of the interface sphere", positive=True),
         Param("box", str, "-1.2,-1.2,-1.2,1.2,1.2,1.2", "background box x0,y0,z0,x1,y1,z1"),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),

@@ -234,9 +234,11 @@ class LaplaceBeltramiCut(Problem):
         Param("stabilization", str, "face", "cut stabilization (none: the system is singular, phi_h being a null "
               "vector, and every solver refuses it)", choices=("face", "normal", "none")),
         # each stabilization's parameters with it only: given with another, refused rather than ignored
-        Param("tau_f", float, 0.1, "face stabilization tau_F", minimum=0, only=("stabilization", ("face",))),
+        Param("tau_f", float, 0.1, "face stabilization tau_F (its weight tau_F (s/L)^a: a warning below 1e-3, refused below "
+              "1e-6 and above 1e6 (s/L)^2)", minimum=0, only=("stabilization", ("face",))),
         Param("face_h_power", float, 0.0, "power a of h in the face term", only=("stabilization", ("face",))),
-        Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N", minimum=0, only=("stabilization", ("normal",))),
+        Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N (its weight tau_N (s/L)^(a-1): a warning above 100, "
+              "refused below 1e-8 and above 1e6)", minimum=0, only=("stabilization", ("normal",))),
         Param("normal_h_power", float, 1.0, "power a of h in the normal-gradient term", only=("stabilization", ("normal",))),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
         *SHAPE_PARAMS[:3],  # torus and sphere: no ellipsoid, no axes

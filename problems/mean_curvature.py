@@ -155,7 +155,7 @@ class MeanCurvatureMeshed(Problem):
     params = [
         Param("surface", str, "torus", "torus, sphere, or a closed mesh file (STL, OBJ, PLY, VTK, ...)", choices=("torus", "sphere"), files=True),
         Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
-        Param("tau_e", float, 0.1, "edge stabilization tau_E", minimum=0),
+        Param("tau_e", float, 0.1, "edge stabilization tau_E (a warning above 1)", minimum=0),
         Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0,
               only=(("surface", ("torus",)), ("family", RANDOM_FAMILIES))),
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
@@ -217,9 +217,10 @@ class MeanCurvatureCut(Problem):
         Param("surface", str, "torus", f"torus, sphere, ellipsoid, {USER_SURFACES}; H^e is exact at the closest point"),
         BACKGROUND_PARAM,
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)"),
-        Param("tau_f", float, 0.1, "face stabilization tau_F", minimum=0),
+        Param("tau_f", float, 0.1, "face stabilization tau_F (its weight tau_F (s/L)^a: a warning below 1e-3, refused below "
+              "1e-6 and above 1e6 (s/L)^2)", minimum=0),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
-        Param("face_h_power", float, 0.0, "power a of h in the face term h^a J_F"),
+        Param("face_h_power", float, 0.0, "power a of h in the face term h^a J_F (see --tau-f)"),
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
         Param("length_scale", float, 1.0, "length L in which tau_F, tau_E are given: tau_F L^(2-a) J_F, tau_E L^3 J_E (the surface's size)", positive=True),
         *SHAPE_PARAMS,
