@@ -446,17 +446,18 @@ def _zero_rows_cause(rows, checks) -> str:
     background mesh (a level set zero on a whole grid face, e.g. a cube or a flat cap on grid
     planes).  Such a piece is counted once, in the tet on one side of the face; the tets around it
     carry no piece and are not active, so the face stabilization, which acts on faces between two
-    active tets, does not reach the node either, whatever tau_F: only moving S_h off the grid
-    planes does.  A zero row at a node on S_h, or without phi_h, is a basis function that no term
+    active tets, does not reach the node either, whatever tau_F: fixing such unknowns (their values
+    change nothing on S_h) or moving S_h off the grid planes does.  A zero row at a node on S_h, or without phi_h, is a basis function that no term
     sees: a stabilization acting on it is missing."""
     phi = checks.kernels.get("phi_h")
     if phi is not None and np.all(phi[rows] != 0):
         return ("These are nodes off S_h (phi_h != 0) of active tets whose piece of S_h lies in the face opposite the "
                 "node: S_h runs along faces of the background mesh (the level set is zero on whole faces, e.g. a cube or "
                 "a flat cap lying on grid planes). Their basis functions vanish on S_h, and those tets share no face "
-                "with another active tet, so the face stabilization (any tau_F) does not reach them either. Move the "
-                "surface off the grid planes: shift the background box by a fraction of the spacing (--box, e.g. its "
-                "corners moved by spacing / 3), or the surface itself.")
+                "with another active tet, so the face stabilization (any tau_F) does not reach them either. Their values "
+                "change nothing on S_h: fix them at 0 (cutfem.problems.common.pin_unseen_nodes, as mean-curvature-cut "
+                "does), or move the surface off the grid planes: shift the background box by a fraction of the spacing "
+                "(--box, e.g. its corners moved by spacing / 3), or the surface itself.")
     return ("On a cut surface these are basis functions with no support on S_h: add a stabilization that acts on them "
             "(e.g. tau_F > 0) or leave them out of the space.")
 

@@ -346,6 +346,43 @@ def check_face_stabilization(tau_f, face_h_power, spacing, length_scale=1.0, fla
     return []
 
 
+#: a row of a surface system whose diagonal is at most this times the median diagonal is one that no
+#: term sees (:func:`pin_unseen_nodes`)
+UNSEEN_TOL = 1e-12
+
+
+def pin_unseen_nodes(K, B, space):
+    """(K, B, count) with the unknowns that appear in no term of a surface system fixed at 0.
+
+    When S_h runs along faces of the background mesh (a level set zero on whole grid faces: a cube
+    or a flat cap on grid planes), the piece of such a face is counted in the tet on one side only,
+    and the node of that tet opposite the face has a basis function that vanishes on S_h.  If none
+    of the faces at it is shared with another active tet, the face stabilization does not reach it
+    either: its row and column of K are zero, or round-off (1.8e-32 against a median diagonal of
+    0.57 for the nodes inside a cube on grid planes at spacing 0.1, exactly 0 outside), whatever
+    tau_F (cutfem.solve names this for a system solved directly).  Its value changes nothing on S_h, so these unknowns are removed by
+    fixing them at 0: their rows and columns (round-off at most) replaced by a diagonal entry (the
+    mean diagonal, to keep K's scale for the iterative solvers) and a zero right-hand side, the
+    numbering unchanged for the multigrid.  Only rows whose
+    diagonal is at most :data:`UNSEEN_TOL` times the median, at nodes off S_h (phi_h != 0), are
+    fixed (what such a row adds is round-off beside the rest); any other zero row is left to the solver,
+    which reports it.  K is symmetric positive semidefinite here (a sum of Gram matrices), so a zero
+    diagonal entry means a zero row."""
+    import scipy.sparse as sp
+
+    d = K.diagonal()
+    unseen = np.flatnonzero(d <= UNSEEN_TOL * np.median(d[d > 0])) if np.any(d > 0) else np.arange(0)
+    phi = getattr(getattr(space, "cut", None), "values", None)
+    if unseen.size == 0 or phi is None or np.shape(phi) != (K.shape[0],) or not np.all(phi[unseen] != 0):
+        return K, B, 0
+    keep, pin = np.ones(K.shape[0]), np.zeros(K.shape[0])
+    keep[unseen], pin[unseen] = 0.0, d[d > 0].mean()
+    B = np.array(B, dtype=float)
+    B[unseen] = 0.0
+    D = sp.diags(keep)
+    return (D @ K @ D + sp.diags(pin)).tocsr(), B, int(unseen.size)
+
+
 def has_exact(levelset) -> bool:
     """Whether the exact closest point and mean curvature vector are available: every level set with a
     Hessian (closed forms for the named surfaces, Newton's projection and the formula of docs/math.md §1

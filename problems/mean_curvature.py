@@ -36,7 +36,7 @@ from cutfem.markers import CUT
 from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
 from .common import BACKGROUND_PARAM, SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, surface_mesh_for
-from .common import check_edge_stabilization, check_face_stabilization
+from .common import check_edge_stabilization, check_face_stabilization, pin_unseen_nodes
 
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
@@ -241,12 +241,15 @@ class MeanCurvatureCut(Problem):
             ones_M = assemble(basis_integrals(cut.ds()), space)
             K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)),
                                          face_h_power=face_h_power, length_scale=length_scale)
+            K, B, unseen = pin_unseen_nodes(K, B, space)  # S_h along grid faces: nodes no term sees, fixed at 0
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL)
         exact = phi if has_exact(phi) else None
         with t("errors"):
             rec = _common_record(space, ones_M, H, exact, info)
             rec.update(cut_record(cut))
+            if unseen:
+                rec["unseen_nodes"] = unseen
             if notes:
                 rec["warnings"] = notes
             if exact is not None:
