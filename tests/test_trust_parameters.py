@@ -193,6 +193,8 @@ def test_the_length_scale_is_checked_where_every_path_builds_the_form():
         mean_curvature_system(V, big.ds(), tau_f=0.1, faces=faces)
     K, B = mean_curvature_system(V, big.ds(), tau_f=0.1, faces=faces, length_scale=100.0)
     assert K.shape == (V.n_dofs, V.n_dofs)
+    with pytest.raises(ProblemError, match=r"--length-scale 100 "):  # a level set object through cutfem.run
+        cutfem.run("mean-curvature-cut", levels=[20.0], surface=Sphere(100.0))
 
 
 # --- part 4: zero rows with tau_F > 0: the surface lies on grid planes -----------------------------
