@@ -310,7 +310,8 @@ class QuadData:
         self.x, self.n, self.parent = x, n, parent
         self._h = h  # the local sizes, or a function giving them: computed only when an integrand asks
         self._params = params
-        self._values = {}
+        self._values = {}  # id(f) -> (f, values): f kept alive, so that its id is not reused
+        self._latest = {}  # code object -> the latest function of that code given to at()
 
     @property
     def params(self):
@@ -338,9 +339,17 @@ class QuadData:
         for each function object.  The cache holds ``f`` itself beside its values: an id alone is
         reused by CPython once its object is freed, and a function written inline in the integrand
         (``w.at(lambda x: ...)``, a new object at every call) would then get the values of the one
-        freed before it.  Such a function is evaluated at every call instead."""
+        freed before it.  Such a function is evaluated at every call instead, and only the latest
+        object of each code is kept (an inline lambda made again for every basis pair would
+        otherwise hold one array of values per pair)."""
         entry = self._values.get(id(f))
         if entry is None or entry[0] is not f:
+            code = getattr(f, "__code__", None)
+            if code is not None:
+                older = self._latest.get(code)
+                if older is not None:
+                    self._values.pop(id(older), None)
+                self._latest[code] = f
             entry = self._values[id(f)] = (f, _point_values(f, self.x, "a function of the points given to w.at"))
         return entry[1]
 

@@ -267,3 +267,24 @@ def test_a_normal_stabilization_that_vanishes_names_both_flags(capsys):
     assert status == 2
     assert re.search(r"--tau-n 1 with --normal-h-power 20: the weight tau_N \(s / L\)\^\(a - 1\) = .* is below 1e-08: "
                      r".*phi_h .* give tau_N in \[.*\] at this power", err), err
+
+
+def test_w_at_keeps_one_inline_function_per_code(cut):
+    """The cache holds each function it was given; an inline lambda, made again for every basis
+    pair, replaces the one of the same code before it instead of piling up (correct values, one
+    array held)."""
+    from cutfem.forms import QuadData
+
+    x = np.random.default_rng(0).normal(size=(5, 4, 3))
+    w = QuadData(x, None, None, np.arange(5), {})
+    for c in range(10):
+        assert np.all(w.at(lambda y, c=c: np.full(y.shape[:-1], float(c))) == c)
+    assert len(w._values) == 1
+
+    def f(y):
+        return y[..., 0]
+
+    def g(y):
+        return y[..., 1]
+
+    assert np.array_equal(w.at(f), x[..., 0]) and np.array_equal(w.at(g), x[..., 1]) and len(w._values) == 3
