@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import argparse
 import sys
+import warnings
+from contextlib import contextmanager
 from pathlib import Path
 
 __all__ = ["main", "entry"]
@@ -126,10 +128,11 @@ def _cmd_run(argv) -> int:
         check_output("--plot", known.plot, PLOT_SUFFIXES)
     if known.vtk:
         check_output("--vtk", known.vtk, folder=True)
-    result = run(
-        problem.name, levels=levels, progress=not (known.quiet or to_stdout), keep_finished=True,
-        command=["cutfem", "run", *argv], keep_fields=bool(known.vtk), **params,
-    )
+    with _warnings_as_lines(progress=not (known.quiet or to_stdout)):
+        result = run(
+            problem.name, levels=levels, progress=not (known.quiet or to_stdout), keep_finished=True,
+            command=["cutfem", "run", *argv], keep_fields=bool(known.vtk), **params,
+        )
     if to_stdout:
         print(result.dumps())
     elif result.records:
@@ -176,6 +179,19 @@ def _cmd_run(argv) -> int:
     done = f" ({f['index']} finished level(s) kept)" if f["index"] else ""
     _fail(f"{problem.level_name}={f['level']} failed{done}: {f['message']}")
     return 2 if isinstance(result.exception, INPUT_ERRORS) else 1
+
+
+@contextmanager
+def _warnings_as_lines(progress: bool):
+    """Within the context, a warning (a parameter that costs accuracy, a solver that needed many
+    iterations) prints as one line ``warning: ...`` on standard error, on a line of its own after
+    an open progress line, instead of Python's file, line number and source line."""
+    def show(message, category, filename, lineno, file=None, line=None):
+        print(f"{chr(10) if progress else ''}warning: {message}", file=sys.stderr, flush=True)
+
+    with warnings.catch_warnings():
+        warnings.showwarning = show
+        yield
 
 
 def write_pvd(path, entries) -> None:

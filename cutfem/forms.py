@@ -22,7 +22,9 @@ are basis functions (:class:`BasisField`): ``u.value`` (m, q), ``u.grad`` and ``
 on its value.  ``w`` (:class:`QuadData`) holds ``w.x`` (m, q, 3), ``w.n`` (m, 1, 3) the measure's
 normal (n_h on Gamma_h from NEG to POS, n_F on facets from the minus to the plus tet), ``w.h``
 (m, 1) the local size (h_T of the cell's tet, h_F of a facet), ``w.parent``, ``w.at(f)`` (f
-evaluated at the points, once per term) and the keyword arguments given to :func:`assemble`.
+evaluated at the points, once per block of cells for each function object) and the keyword
+arguments given to :func:`assemble`.  Quadrature: degree 2 for a bilinear integrand, 4 for a
+linear one (:func:`bilinear_form`, :func:`linear_form` say why; ``degree=`` changes it).
 
 An integrand returns real values of shape (m, q), or (m, 1) for a value constant on each cell (a
 linear one also (m, q, c): c loads at once), and it is linear in each argument, so it vanishes
@@ -104,9 +106,17 @@ __all__ = [
 # ---------------------------------------------------------------------------------------------
 
 
+def _is_number_zero(other) -> bool:
+    """Whether ``other`` is the number 0 (a Python or numpy scalar, or a 0-d array), as ``sum()``
+    starts from."""
+    return isinstance(other, (numbers.Number, np.ndarray)) and np.ndim(other) == 0 and other == 0
+
+
 class _Zero:
     """The zero function: what a field that is not being varied contributes to an integrand.
-    Absorbs products, vanishes from sums; every attribute (grad, minus, ...) is zero too."""
+    Absorbs products, vanishes from sums; every attribute (grad, minus, ...) is zero too.  A sum
+    of ZERO terms is ZERO, also from ``sum()``, which starts from the number 0 (``0 + ZERO`` is
+    ZERO, not 0): the integrand then says it does not couple those fields."""
 
     __array_ufunc__ = None  # ndarray op ZERO defers to the reflected operators below
 
@@ -127,15 +137,15 @@ class _Zero:
     __rmul__ = __truediv__ = __mul__
 
     def __add__(self, other):
-        return other
+        return self if _is_number_zero(other) else other
 
     __radd__ = __add__
 
     def __sub__(self, other):
-        return -other
+        return self if _is_number_zero(other) else -other
 
     def __rsub__(self, other):
-        return other
+        return self if _is_number_zero(other) else other
 
     def __neg__(self):
         return self
@@ -300,7 +310,8 @@ class QuadData:
         self.x, self.n, self.parent = x, n, parent
         self._h = h  # the local sizes, or a function giving them: computed only when an integrand asks
         self._params = params
-        self._values = {}
+        self._values = {}  # id(f) -> (f, values): f kept alive, so that its id is not reused
+        self._latest = {}  # code object -> the latest function of that code given to at()
 
     @property
     def params(self):
@@ -324,11 +335,23 @@ class QuadData:
         raise AttributeError(f"quadrature data has no field {name!r}; pass it as a keyword to assemble()")
 
     def at(self, f):
-        """``f(x)`` at the quadrature points (m, q) or (m, q, c), evaluated once per term."""
-        key = id(f)
-        if key not in self._values:
-            self._values[key] = _point_values(f, self.x, "a function of the points given to w.at")
-        return self._values[key]
+        """``f(x)`` at the quadrature points (m, q) or (m, q, c), evaluated once per block of cells
+        for each function object.  The cache holds ``f`` itself beside its values: an id alone is
+        reused by CPython once its object is freed, and a function written inline in the integrand
+        (``w.at(lambda x: ...)``, a new object at every call) would then get the values of the one
+        freed before it.  Such a function is evaluated at every call instead, and only the latest
+        object of each code is kept (an inline lambda made again for every basis pair would
+        otherwise hold one array of values per pair)."""
+        entry = self._values.get(id(f))
+        if entry is None or entry[0] is not f:
+            code = getattr(f, "__code__", None)
+            if code is not None:
+                older = self._latest.get(code)
+                if older is not None:
+                    self._values.pop(id(older), None)
+                self._latest[code] = f
+            entry = self._values[id(f)] = (f, _point_values(f, self.x, "a function of the points given to w.at"))
+        return entry[1]
 
 
 class _Params(dict):
@@ -431,15 +454,30 @@ class Integrand:
 
 
 def bilinear_form(function=None, *, symmetric=False, degree=None):
-    """Decorator turning ``f(u, v, w)`` into a bilinear :class:`Integrand` (quadrature degree 2
-    unless given: exact for P1 products with constant coefficients)."""
+    """Decorator turning ``f(u, v, w)`` into a bilinear :class:`Integrand`, integrated by
+    quadrature of degree 2 unless ``degree`` is given.
+
+    Why 2, where :func:`linear_form` takes 4: the usual bilinear integrand is a product of two P1
+    functions or their gradients with coefficients constant on each cell (u v, grad u . grad v,
+    w.gamma / w.h u v), a polynomial of degree at most 2 that degree 2 integrates exactly; a higher
+    degree would give the same matrix at twice the points or more.  A coefficient that varies in
+    space (``w.at(f) * u * v``) makes it no polynomial: pass ``degree=4`` (or more) for it, as the
+    linear forms do for their data."""
     if function is None:
         return lambda f: Integrand(f, False, symmetric, degree)
     return Integrand(function, False, symmetric, degree)
 
 
 def linear_form(function=None, *, degree=None):
-    """Decorator turning ``f(v, w)`` into a linear :class:`Integrand` (quadrature degree 4 unless given)."""
+    """Decorator turning ``f(v, w)`` into a linear :class:`Integrand`, integrated by quadrature of
+    degree 4 unless ``degree`` is given.
+
+    Why 4, where :func:`bilinear_form` takes 2: a linear integrand carries data, f v with f a
+    general function (a source, boundary values), which no rule integrates exactly; degree 4 keeps
+    the quadrature error of smooth data at O(h^4) per unit volume, far below the O(h^2) of P1
+    (:func:`load` and :func:`nitsche_load` use 4 as well).  The two defaults are kept apart, not
+    unified: either change would alter the published numbers (degree 2 for the loads) or double
+    the points of every bilinear form for the same matrix (degree 4)."""
     if function is None:
         return lambda f: Integrand(f, True, False, degree)
     return Integrand(function, True, False, degree)
@@ -728,6 +766,11 @@ def _integrand_values(f: Integrand, val, shape) -> np.ndarray:
     if value.dtype.kind not in "biuf":
         raise TypeError(f"the integrand {f.__name__!r} returned {type(val).__name__}, not real values at the quadrature points")
     m, q = shape
+    if value.ndim == 0:
+        raise ValueError(f"the {'linear' if f.linear else 'bilinear'} integrand {f.__name__!r} returned the single number "
+                         f"{value.item()!r}, not values at the quadrature points (shape (m, q) = {(m, q)} or (m, 1)): an "
+                         "integrand depends on its basis functions (u * v, dot(u.grad, v.grad)); a term that vanishes "
+                         "for this pair of fields is ZERO (cutfem.forms.ZERO), and so is a sum of ZERO terms")
     if value.ndim not in ((2, 3) if f.linear else (2,)) or value.shape[0] != m or value.shape[1] not in (1, q):
         expected = f"(m, q) = {(m, q)} or (m, 1)" + (", or (m, q, c) for c loads at once" if f.linear else "")
         raise ValueError(f"the {'linear' if f.linear else 'bilinear'} integrand {f.__name__!r} must return one value per cell "
@@ -1283,7 +1326,16 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
     of the cut tets with a = 0 this is the face stabilization J_F of the mean curvature problem
     (docs/math.md §3); over the ghost faces of a side with a = 1 it is the Burman-Hansbo ghost
     penalty of a bulk field (§7), to be multiplied by gamma_g.  ``h_power`` is one real, finite
-    number for which every h_F^a is a finite, nonzero float (else a ValueError).  An empty facet set gives the zero matrix."""
+    number for which every h_F^a is a finite, nonzero float (else a ValueError).  An empty facet set
+    gives the zero matrix.
+
+    Meaningful coefficients (the problems check them, :mod:`cutfem.problems.common`).  As a ghost
+    penalty (a = 1) beside a stiffness both scale as h^3 per tet, so gamma_g is a number: about
+    0.01-1; its consistency error grows with it and it locks u_h to linear functions across the
+    ghost faces as it grows (poisson-cut's L2 error 10 times the default's at 1e6).  As J_F beside a
+    surface mass matrix (entries O(s^2) at spacing s, J_F's O(h^a)) the weight tau_F s^a counts:
+    below 1e-3 the small pieces are barely controlled (the error grows like its inverse), below
+    1e-6 not at all; above 1e6 s^2 the mass is lost beside it in round-off."""
     _require(measure, FacetMeasure, "face_jump_penalty")
     h_power = _number("h_power", h_power)
 

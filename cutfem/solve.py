@@ -399,12 +399,8 @@ def diagnose(A, vectors=(), smallest=None, where="the solver", negative_pivots=0
                 "indefinite", smallest=0.0,
             )
         k = np.flatnonzero(zero)
-        return SolverError(
-            f"{where}: the system is singular: {k.size} unknowns appear in no term (zero rows; first: unknown {k[0]}). "
-            "On a cut surface these are basis functions with no support on S_h: add a stabilization that acts on "
-            "them (e.g. tau_F > 0) or leave them out of the space.",
-            "singular", smallest=0.0,
-        )
+        return SolverError(f"{where}: the system is singular: {k.size} unknowns appear in no term (zero rows; first: "
+                           f"unknown {k[0]}). {_zero_rows_cause(k, checks)}", "singular", smallest=0.0)
     # 2. named candidate null vectors
     err = _named_kernel_error(A, d, checks, where)
     if err is not None:
@@ -439,6 +435,31 @@ def diagnose(A, vectors=(), smallest=None, where="the solver", negative_pivots=0
         "the system) and kernels= (candidate null vectors) to tell them apart.",
         "singular", smallest=low,
     )
+
+
+def _zero_rows_cause(rows, checks) -> str:
+    """The cause and the fix of the unknowns ``rows`` that no term reaches (zero rows).
+
+    With the nodal values of phi_h (a cut space) it is told from the geometry.  A node off S_h
+    (phi_h != 0) whose row is zero has a basis function that vanishes on every piece of S_h in its
+    tets, so those pieces lie in the faces opposite the node: S_h runs along faces of the
+    background mesh (a level set zero on whole grid faces, e.g. a cube or a flat cap on grid
+    planes; such a piece is counted once, in the tet on one side of its face).  A zero row also
+    means that no face at the node is shared by two active tets, so the face stabilization does
+    not reach it, whatever tau_F: fixing such unknowns (their values change nothing on S_h) or
+    moving S_h off the grid planes does.  A zero row at a node on S_h, or without phi_h, is a
+    basis function that no term sees: a stabilization acting on it is missing."""
+    phi = checks.kernels.get("phi_h")
+    if phi is not None and np.all(phi[rows] != 0):
+        return ("These are nodes off S_h (phi_h != 0) of active tets whose piece of S_h lies in the face opposite the "
+                "node: S_h runs along faces of the background mesh (the level set is zero on whole faces, e.g. a cube or "
+                "a flat cap lying on grid planes). Their basis functions vanish on S_h, and no face at them is shared by "
+                "two active tets, so the face stabilization (any tau_F) does not reach them either. Their values "
+                "change nothing on S_h: fix them at 0 (cutfem.problems.common.pin_unseen_nodes, as mean-curvature-cut "
+                "does), or move the surface off the grid planes: shift the background box by a fraction of the spacing "
+                "(--box, e.g. its corners moved by spacing / 3), or the surface itself.")
+    return ("On a cut surface these are basis functions with no support on S_h: add a stabilization that acts on them "
+            "(e.g. tau_F > 0) or leave them out of the space.")
 
 
 def _split_quotients(A, G, v):

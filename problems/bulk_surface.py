@@ -41,7 +41,7 @@ from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, regis
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_resolution, cut_record, value_and_gradient, with_point_data
+from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_normal_stabilization, check_resolution, cut_record, value_and_gradient, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -123,8 +123,9 @@ DEFINITIONS = {
         Param("b_bulk", float, 1.0, "coupling coefficient b_B", minimum=0),
         Param("b_surface", float, 2.0, "coupling coefficient b_S", minimum=0),
         Param("c_bulk", float, 1.0, "bulk reaction c_B (> 0: with 0 the problem has a kernel)", positive=True),
-        Param("gamma_g", float, 0.1, "bulk ghost penalty gamma_g", minimum=0),
-        Param("tau_n", float, 1.0, "surface normal-gradient stabilization tau_N", minimum=0),
+        Param("gamma_g", float, 0.1, "bulk ghost penalty gamma_g (a warning above 1, refused above 1e6)", minimum=0),
+        Param("tau_n", float, 1.0, "surface normal-gradient stabilization tau_N (a warning above 100, refused below 1e-8 and "
+              "above 1e6)", minimum=0),
         Param("radius", float, 1.0, "radius of the ball", positive=True),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the ball's box grown by 0.1)"),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
@@ -143,6 +144,8 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
             "--c-bulk 0 leaves the coupled problem singular (u_B + c / b_B, u_S + c / b_S solves it for every c): "
             "give c_B > 0"
         )
+    notes = check_ghost_penalty(gamma_g)  # times b_B k_B: the same ratio to the bulk stiffness
+    notes += check_normal_stabilization(tau_n, 1.0, spacing)  # h^-1 beside the tangential stiffness: weight tau_N
     sol = BulkSurfaceSolution(radius, k_bulk, k_surface, b_bulk, b_surface, c_bulk)
     t = Timer()
     with t("geometry"):
@@ -192,6 +195,8 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
             "solver_iterations": info.iterations,
         }
     rec.update(cut_record(cut, W))
+    if notes:
+        rec["warnings"] = notes
     rec["time"] = dict(t)
     rec["fields"] = LazyFields(
         lambda: {

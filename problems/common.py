@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import math
 import re
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -146,6 +147,249 @@ def nitsche_hint(gamma: float, gamma_g: float) -> str:
         hint += (" or restore the ghost penalty (--gamma-g is 0: without it the bound grows without limit on the "
                  "small cut elements, default --gamma-g 0.1)")
     return hint
+
+
+#: the meaningful range of the ghost penalty gamma_g (docs/math.md §7): g and the bulk form both
+#: scale as h^3 per tet, so gamma_g is a number, the same at every spacing.  It adds about
+#: gamma_g h^2 |u|_{H^2}^2 to the squared energy error (weak consistency), and as gamma_g grows it
+#: locks u_h to one linear function across the ghost faces: poisson-cut's L2 error at spacings
+#: 0.25 / 0.125 is 0.0264 / 0.0068 at 0.1, 0.061 / 0.018 at 1, 0.131 / 0.059 at 10, and
+#: 0.266 / 0.264 from 1e4 to 1e9 (locked: the result no longer depends on gamma_g); at 1e12 the
+#: solvers find the constants a null vector.  Above GHOST_PENALTY_WARN a warning, above
+#: GHOST_PENALTY_MAX (locked, two decades past the onset) a refusal.
+GHOST_PENALTY_WARN, GHOST_PENALTY_MAX = 1.0, 1e6
+#: the meaningful range of the face stabilization of a surface field, stated for its weight
+#: t = tau_F (s / L)^a (s the spacing, a the power of h, L the length scale in which the surface has
+#: size about 1): the coefficient of J_F (whose entries are O(1) per face) at this spacing, in units
+#: of L, to compare with the paper's 0.1 (a = 0).  The mass of a whole piece is O((s / L)^2):
+#: t / (s / L)^2 is the weight of the stabilization against it.  Below FACE_WEIGHT_WARN the nodes
+#: with small pieces are barely controlled and the error grows like 1 / t (mean-curvature-cut,
+#: sphere, spacings 0.2 / 0.1 / 0.05: L2 error 0.061 /
+#: 0.019 / 0.0056 at t = 0.1, 0.27 / 0.081 / 0.025 at 1e-3, 1.4 / 0.49 / 0.15 at 1e-4, 5.8 /
+#: 5.3 / 3.8 at 1e-6): a warning; below FACE_WEIGHT_MIN the result is meaningless (O(1) errors
+#: at every spacing): a refusal.  Above it the error does not
+#: grow (0.051 / 0.013 / 0.0032 at t = 10 and 100), but the mass is lost beside J_F: the constants,
+#: which J_F annihilates, have ||D^-1/2 K 1|| / ||D^1/2 1|| = 0.026 (s / L)^2 / t (0.025-0.026 on the
+#: unit sphere at spacings 0.2-0.025, t = 0.1 and 1e4), which reaches the solvers' null-vector
+#: tolerance (1e-8; CG refused tau_F = 1e4 at spacing 0.05) near t / (s / L)^2 = FACE_RATIO_MAX: a
+#: refusal there.  (The paper's tau_F = 0.1 meets it only below spacing 3e-4, which no memory holds.)
+FACE_WEIGHT_WARN, FACE_WEIGHT_MIN, FACE_RATIO_MAX = 1e-3, 1e-6, 1e6
+
+
+#: the Nitsche penalty gamma (docs/math.md §8): gamma / h (u, v)_Gamma beside the stiffness is a
+#: number.  Below its stability bound the system is indefinite (the solver says so and names
+#: --gamma); far above it Nitsche's method tends to the strong condition on the cut boundary, which
+#: locks on the small cut pieces: poisson-cut's L2 error at spacings 0.25 / 0.125 is 0.0264 / 0.0068
+#: at 10, 0.030 / 0.0075 at 100, 0.044 / 0.011 at 1e3, 0.088 / 0.031 at 1e4, 0.15 / 0.084 at 1e6.
+#: A warning above NITSCHE_WARN.
+NITSCHE_WARN = 1e3
+#: the normal-gradient stabilization tau_N h^a (n_h . grad u, n_h . grad v) over the cut tets
+#: (docs/math.md §4): its entries are O(s^(a+1)) at spacing s, the surface mass's O(s^2) (and with
+#: a = -1 against the tangential stiffness's O(1) as with a = 1 against the mass), so the weight
+#: is w = tau_N (s / L)^(a - 1).  The error hardly moves below 1 (laplace-beltrami-cut, sphere,
+#: spacings 0.2 / 0.1 / 0.05: L2 error 0.029 / 0.0074 / 0.0018 at 1e-6 and 0.037 / 0.0091 /
+#: 0.0022 at 1) and grows above it (0.12 / 0.016 / 0.0029 at 100, 1.3 / 0.38 / 0.041 at 1e4,
+#: 1.8 / 2.0 / 1.1 at 1e6: the surface terms lost beside it); at 1e-8 phi_h is numerically null
+#: and at 1e9 the constants.  A warning above NORMAL_WEIGHT_WARN, a refusal above
+#: NORMAL_WEIGHT_MAX and below NORMAL_WEIGHT_MIN.
+NORMAL_WEIGHT_WARN, NORMAL_WEIGHT_MAX, NORMAL_WEIGHT_MIN = 100.0, 1e6, 1e-8
+#: the edge stabilization tau_E of the meshed mean curvature problem (docs/math.md §3; the paper's
+#: 0.1): on the flipped torus at n = 16 / 32 / 64 the L2 error is 1.6 / 0.64 / 0.21 at 0.1,
+#: 4.1 / 2.3 / 1.1 at 1, 7.0 / 5.4 / 3.4 at 10 and about 9.4 (locked) from 1e4 on.  A warning above
+#: EDGE_WARN.
+EDGE_WARN = 1.0
+
+
+def _finite_nonnegative(value, flag) -> float:
+    """``value`` as a float >= 0, or ProblemError naming ``flag`` (the problem functions are also
+    called directly from Python, past the checks of :class:`~cutfem.registry.Param`)."""
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise ProblemError(f"{flag}: cannot read {value!r} as a number") from None
+    if not (math.isfinite(v) and v >= 0):
+        raise ProblemError(f"{flag}: {value!r} must be a finite number >= 0")
+    return v
+
+
+def _warn(message: str) -> list:
+    """Issue ``message`` as a RuntimeWarning (from the problem's caller) and return it in a list,
+    for the record's ``"warnings"``."""
+    warnings.warn(message, RuntimeWarning, stacklevel=3)
+    return [message]
+
+
+def check_ghost_penalty(gamma_g, flag="--gamma-g") -> list:
+    """Refuse (ProblemError) a ghost penalty gamma_g that is negative, not finite or above
+    :data:`GHOST_PENALTY_MAX`; warn (RuntimeWarning) above :data:`GHOST_PENALTY_WARN`, where it
+    costs accuracy.  Returns the warnings given, for the record.  gamma_g = 0 (no ghost penalty) is
+    allowed: the solver then reports the loss of stability it causes."""
+    g = _finite_nonnegative(gamma_g, flag)
+    fit = f"use {flag} in [0.01, {GHOST_PENALTY_WARN:g}] (default 0.1)"
+    if g > GHOST_PENALTY_MAX:
+        raise ProblemError(
+            f"{flag} {g:g} is above {GHOST_PENALTY_MAX:g}: the ghost penalty locks u_h to one linear function across the "
+            f"ghost faces and the result no longer depends on it (poisson-cut at spacing 0.25: L2 error 0.266 from 1e4 to "
+            f"1e9, against 0.0264 at 0.1; at 1e12 the system is numerically singular); {fit}")
+    if g > GHOST_PENALTY_WARN:
+        return _warn(
+            f"{flag} {g:g} is above {GHOST_PENALTY_WARN:g}: the ghost penalty's consistency error grows with it and locks "
+            f"u_h toward linear functions (poisson-cut at spacing 0.25: L2 error 0.131 at 10, 0.266 at 1e6, against 0.0264 "
+            f"at 0.1); {fit}")
+    return []
+
+
+def check_nitsche_penalty(gamma, flag="--gamma") -> list:
+    """Refuse (ProblemError) a Nitsche penalty that is not a finite positive number; warn
+    (RuntimeWarning) above :data:`NITSCHE_WARN`, where the method locks toward the strong condition
+    on the cut pieces.  Returns the warnings given, for the record."""
+    g = _finite_nonnegative(gamma, flag)
+    if g == 0:
+        raise ProblemError(f"{flag}: the Nitsche penalty must be positive (default 10), got {gamma!r}")
+    if g > NITSCHE_WARN:
+        return _warn(
+            f"{flag} {g:g} is above {NITSCHE_WARN:g}: Nitsche's method then tends to the strong boundary condition on "
+            f"the cut pieces, which locks (poisson-cut at spacing 0.125: L2 error 0.031 at 1e4, 0.084 at 1e6, against "
+            f"0.0068 at 10); use {flag} in [10, 100] (above the stability bound, which the solver reports if not)")
+    return []
+
+
+def check_normal_stabilization(tau_n, normal_h_power, spacing, length_scale=1.0, flag="--tau-n",
+                               power_flag="--normal-h-power") -> list:
+    """Refuse (ProblemError) or warn (RuntimeWarning) about the normal-gradient stabilization
+    tau_N h^a of a surface field at the spacing ``spacing`` by its weight w = tau_N (s / L)^(a - 1)
+    against the surface terms: refused below :data:`NORMAL_WEIGHT_MIN` or above
+    :data:`NORMAL_WEIGHT_MAX`, a warning above :data:`NORMAL_WEIGHT_WARN`; tau_N = 0 (none) is left
+    to the solver, which reports phi_h as a null vector.  Returns the warnings given."""
+    tau = _finite_nonnegative(tau_n, flag)
+    try:
+        a = float(normal_h_power)
+    except (TypeError, ValueError):
+        raise ProblemError(f"{power_flag}: cannot read {normal_h_power!r} as a number") from None
+    if not math.isfinite(a):
+        raise ProblemError(f"{power_flag}: {normal_h_power!r} must be a finite number")
+    if tau == 0:
+        return []
+    s = float(spacing) / float(length_scale)
+    log_w = math.log10(tau) + (a - 1.0) * math.log10(s)
+    who = f"{flag} {tau:g}" + (f" with {power_flag} {a:g}" if a != 1 else "")
+    weight = f"the weight tau_N (s / L)^(a - 1) = 10^{log_w:.3g} at s / L = {s:g}" if a != 1 else f"tau_N = {tau:g}"
+    base = (a - 1.0) * math.log10(s)
+    fit = (f"tau_N in [{_power_of_ten(math.log10(1e-2) - base)}, {_power_of_ten(math.log10(NORMAL_WEIGHT_WARN) - base)}]"
+           f"{' at this power' if a != 1 else ''} (default 1 with a = 1)")
+    if log_w < math.log10(NORMAL_WEIGHT_MIN):
+        raise ProblemError(f"{who}: {weight} is below {NORMAL_WEIGHT_MIN:g}: the stabilization vanishes and phi_h (zero on "
+                           f"S_h) is a numerical null vector; give {fit}")
+    if log_w > math.log10(NORMAL_WEIGHT_MAX):
+        raise ProblemError(f"{who}: {weight} is above {NORMAL_WEIGHT_MAX:g}: the surface terms are lost beside it and "
+                           f"the errors are O(1) (the system numerically singular from 1e9); give {fit}")
+    if log_w > math.log10(NORMAL_WEIGHT_WARN):
+        return _warn(f"{who}: {weight} is above {NORMAL_WEIGHT_WARN:g}: it damps the solution along the surface too "
+                     f"(laplace-beltrami-cut at spacing 0.1: L2 error 0.38 at 1e4, 0.016 at 100, against 0.0091 at 1); "
+                     f"give {fit}")
+    return []
+
+
+def check_edge_stabilization(tau_e, flag="--tau-e") -> list:
+    """Refuse (ProblemError) an edge stabilization tau_E that is negative or not finite; warn
+    (RuntimeWarning) above :data:`EDGE_WARN`, where it costs accuracy.  Returns the warnings given."""
+    tau = _finite_nonnegative(tau_e, flag)
+    if tau > EDGE_WARN:
+        return _warn(f"{flag} {tau:g} is above {EDGE_WARN:g}: the edge stabilization locks H_h toward functions without "
+                     f"conormal jumps (flipped torus at n = 32: L2 error 2.3 at 1, 5.4 at 10, against 0.64 at 0.1); give "
+                     f"{flag} in [0.01, {EDGE_WARN:g}] (the paper: 0.1)")
+    return []
+
+
+def _power_of_ten(x: float) -> str:
+    """10^x as text, also where the float would overflow or underflow."""
+    return f"{10.0 ** x:.2g}" if abs(x) < 300 else f"10^{x:.4g}"
+
+
+def check_face_stabilization(tau_f, face_h_power, spacing, length_scale=1.0, flag="--tau-f",
+                             power_flag="--face-h-power") -> list:
+    """Refuse (ProblemError) or warn (RuntimeWarning) about the face stabilization tau_F h^a J_F of
+    a surface field at the spacing ``spacing``: its weight t = tau_F (s / L)^a must be at least
+    :data:`FACE_WEIGHT_MIN` (warning below :data:`FACE_WEIGHT_WARN`) and t / (s / L)^2 at most
+    :data:`FACE_RATIO_MAX`; tau_F and a finite, tau_F >= 0 (0: no stabilization, which the solver
+    reports).  The messages name the flags (the power when it is not 0) and the values that fit.
+    Returns the warnings given, for the record."""
+    tau = _finite_nonnegative(tau_f, flag)
+    try:
+        a = float(face_h_power)
+    except (TypeError, ValueError):
+        raise ProblemError(f"{power_flag}: cannot read {face_h_power!r} as a number") from None
+    if not math.isfinite(a):
+        raise ProblemError(f"{power_flag}: {face_h_power!r} must be a finite number")
+    if tau == 0:
+        return []
+    s = float(spacing) / float(length_scale)  # the spacing in units of L, where the surface has size about 1
+    log_t = math.log10(tau) + a * math.log10(s)  # in logarithms: no overflow for a = 50 or tau_F = 1e300
+    log_ratio = log_t - 2.0 * math.log10(s)
+    low, high = math.log10(FACE_WEIGHT_WARN), math.log10(FACE_RATIO_MAX) + 2.0 * math.log10(s)
+    weight = f"the weight tau_F (s / L)^a = 10^{log_t:.3g} at s / L = {s:g}" if a else f"tau_F = {tau:g}"
+    # the tau_F at this a, and the a at this tau_F, whose weight lies in [FACE_WEIGHT_WARN, FACE_RATIO_MAX (s / L)^2]
+    base = a * math.log10(s)
+    fit = f"tau_F in [{_power_of_ten(low - base)}, {_power_of_ten(high - base)}]" + (" at this power" if a else "")
+    if a and s != 1:
+        ends = sorted(((low - math.log10(tau)) / math.log10(s), (high - math.log10(tau)) / math.log10(s)))
+        fit = f"{power_flag} in [{ends[0]:.3g}, {ends[1]:.3g}] at this spacing" + (f", or {fit}" if abs(base) < 300 else "")
+    fit += " (the paper: tau_F = 0.1, a = 0)"
+    who = f"{flag} {tau:g}" + (f" with {power_flag} {a:g}" if a else "")
+    if log_t < math.log10(FACE_WEIGHT_MIN):
+        raise ProblemError(
+            f"{who}: {weight} is below {FACE_WEIGHT_MIN:g}: the face stabilization vanishes beside the mass of the pieces, "
+            f"the nodes with small pieces are not controlled and the errors are O(1) (the system is nearly singular); "
+            f"give {fit}")
+    if log_ratio > math.log10(FACE_RATIO_MAX):
+        raise ProblemError(
+            f"{who}: {weight} is {_power_of_ten(log_ratio)} times (s / L)^2, the scale of the mass of a piece, above "
+            f"{FACE_RATIO_MAX:g} times: "
+            "the mass of the pieces is lost beside the face stabilization and the system is numerically singular "
+            f"(the constants pass for a null vector); give {fit}")
+    if log_t < low:
+        return _warn(
+            f"{who}: {weight} is below {FACE_WEIGHT_WARN:g}: the nodes with small pieces are barely controlled and the "
+            f"error grows like 1 / tau_F (mean-curvature-cut on the sphere at spacing 0.1: L2 error 0.081 at 1e-3, 0.49 "
+            f"at 1e-4, against 0.019 at 0.1); give {fit}")
+    return []
+
+
+#: a row of a surface system whose diagonal is at most this times the median diagonal is one that no
+#: term sees (:func:`pin_unseen_nodes`)
+UNSEEN_TOL = 1e-12
+
+
+def pin_unseen_nodes(K, B, space):
+    """(K, B, count) with the unknowns that appear in no term of a surface system fixed at 0.
+
+    When S_h runs along faces of the background mesh (a level set zero on whole grid faces: a cube
+    or a flat cap on grid planes), the piece in such a face is counted once, in the tet on one side,
+    and the node of that tet opposite the face has a basis function that vanishes on S_h.  When no
+    face at the node is shared by two active tets, the face stabilization does not reach it either:
+    its row and column of K are zero, or round-off (1.8e-32 against a median diagonal of 0.57 for
+    nodes inside a cube on grid planes at spacing 0.1, exactly 0 outside), whatever tau_F
+    (cutfem.solve names this for a system solved directly).  Its value changes nothing on S_h, so
+    these unknowns are removed by fixing them at 0: their rows and columns (round-off at most)
+    replaced by a diagonal entry (the mean diagonal, to keep K's scale for the iterative solvers)
+    and a zero right-hand side, the numbering unchanged for the multigrid.  Only rows whose
+    diagonal is at most :data:`UNSEEN_TOL` times the median, at nodes off S_h (phi_h != 0), are
+    fixed (what such a row adds is round-off beside the rest); any other zero row is left to the
+    solver, which reports it.  K is symmetric positive semidefinite here (a sum of Gram matrices),
+    so a zero diagonal entry means a zero row."""
+    import scipy.sparse as sp
+
+    d = K.diagonal()
+    unseen = np.flatnonzero(d <= UNSEEN_TOL * np.median(d[d > 0])) if np.any(d > 0) else np.arange(0)
+    phi = getattr(getattr(space, "cut", None), "values", None)
+    if unseen.size == 0 or phi is None or np.shape(phi) != (K.shape[0],) or not np.all(phi[unseen] != 0):
+        return K, B, 0
+    keep, pin = np.ones(K.shape[0]), np.zeros(K.shape[0])
+    keep[unseen], pin[unseen] = 0.0, d[d > 0].mean()
+    B = np.array(B, dtype=float)
+    B[unseen] = 0.0
+    D = sp.diags(keep)
+    return (D @ K @ D + sp.diags(pin)).tocsr(), B, int(unseen.size)
 
 
 def has_exact(levelset) -> bool:

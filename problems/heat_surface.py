@@ -65,7 +65,7 @@ from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, regis
 from cutfem.solve import CGSolver, DirectSolver, multigrid_hierarchy
 from cutfem.spaces import CutP1Space
 
-from .common import Timer, background_for, check_cut_memory, check_resolution, cut_record, with_point_data
+from .common import Timer, background_for, check_cut_memory, check_normal_stabilization, check_resolution, cut_record, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -212,7 +212,8 @@ class HeatSolution:
               "N = ceil(T / dt_max) steps of dt = T / N, which end exactly at T", minimum=0),
         Param("final_time", float, 0.5, "final time T", minimum=0),
         Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N (at 0, phi_h, zero on S_h, is a null vector of "
-              "the steps' matrix: direct and cg-mg refuse it, cg-jacobi never meets it)", minimum=0),
+              "the steps' matrix: direct and cg-mg refuse it, cg-jacobi never meets it; a warning above 100, refused below 1e-8 "
+              "and above 1e6)", minimum=0),
         Param("radius", float, 1.0, "radius of the sphere", positive=True),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the sphere's box grown by 0.1)"),
         Param("solver", str, "auto", "the steps' solver: direct (one factorization), cg-jacobi or cg-mg (CG from the "
@@ -227,6 +228,7 @@ def heat_surface_cut(spacing, theta, dt_scale, final_time, tau_n, radius, box, s
         raise ProblemError(f"--final-time {final_time:g}: the final time must be positive (default 0.5)")
     if not dt_scale > 0:
         raise ProblemError(f"--dt-scale {dt_scale:g}: the step dt_max = c h^2 or c h must be positive (default 1)")
+    notes = check_normal_stabilization(tau_n, 1.0, spacing)  # h^1 beside the mass, h^-1 beside the stiffness: weight tau_N
     sol = HeatSolution(radius)
     t = Timer()
     with t("geometry"):
@@ -272,6 +274,8 @@ def heat_surface_cut(spacing, theta, dt_scale, final_time, tau_n, radius, box, s
             "area": cut.area,
         }
     rec.update(cut_record(cut))
+    if notes:
+        rec["warnings"] = notes
     rec["time"] = dict(t)
     rec["fields"] = LazyFields(lambda: {"surface": with_point_data(
         cut.to_pyvista(), u_h=V.surface_vertex_values(u), u_exact=sol.u(final_time)(cut.vertices))})

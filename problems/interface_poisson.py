@@ -39,7 +39,7 @@ from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, regis
 from cutfem.solve import SolverError, solve
 from cutfem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
+from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -132,8 +132,9 @@ CONTRAST_LIMIT = 1e10
         Param("a_inside", float, 1.0, "coefficient a in the inside domain (NEG)", positive=True),
         Param("a_outside", float, 1.0, "coefficient a in the outside domain (POS)", positive=True),
         Param("weights", str, "harmonic", "averaging weights of the flux", choices=("harmonic", "volume")),
-        Param("gamma", float, 10.0, "Nitsche penalty gamma", positive=True),
-        Param("gamma_g", float, 0.1, "ghost penalty gamma_g (times a_i on each side)", minimum=0),
+        Param("gamma", float, 10.0, "Nitsche penalty gamma (a warning above 1e3)", positive=True),
+        Param("gamma_g", float, 0.1, "ghost penalty gamma_g (times a_i on each side; meaningful in [0.01, 1]: a warning above 1, "
+              "refused above 1e6)", minimum=0),
         Param("radius", float, 0.8, "radius of the interface sphere", positive=True),
         Param("box", str, "-1.2,-1.2,-1.2,1.2,1.2,1.2", "background box x0,y0,z0,x1,y1,z1"),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
@@ -145,6 +146,8 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
     for name, value in (("--a-inside", a_inside), ("--a-outside", a_outside)):
         if not value > 0:
             raise ProblemError(f"{name} must be positive, got {value}")
+    notes = check_ghost_penalty(gamma_g)  # times a_i on each side: the same ratio to each side's stiffness
+    notes += check_nitsche_penalty(gamma)
     t = Timer()
     sol = InterfaceSolution(radius, a_inside, a_outside)
     a = {NEG: a_inside, POS: a_outside}
@@ -188,6 +191,8 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
             rec[f"l2_error_{name}"], rec[f"h1_error_{name}"] = l2_h1_errors(V, u, sol.solution(side), dx)
         rec["solver"], rec["solver_iterations"] = info.method, info.iterations
     rec.update(cut_record(cut, W))
+    if notes:
+        rec["warnings"] = notes
     rec["time"] = dict(t)
     rec["fields"] = LazyFields(
         lambda: {

@@ -35,7 +35,7 @@ from cutfem.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
 from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
-from .common import BACKGROUND_PARAM, SHAPE_PARAMS, check_cut_memory, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
+from .common import BACKGROUND_PARAM, SHAPE_PARAMS, check_cut_memory, check_face_stabilization, check_normal_stabilization, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
 
 
 #: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
@@ -234,9 +234,11 @@ class LaplaceBeltramiCut(Problem):
         Param("stabilization", str, "face", "cut stabilization (none: the system is singular, phi_h being a null "
               "vector, and every solver refuses it)", choices=("face", "normal", "none")),
         # each stabilization's parameters with it only: given with another, refused rather than ignored
-        Param("tau_f", float, 0.1, "face stabilization tau_F", minimum=0, only=("stabilization", ("face",))),
+        Param("tau_f", float, 0.1, "face stabilization tau_F (its weight tau_F (s/L)^a: a warning below 1e-3, refused below "
+              "1e-6 and above 1e6 (s/L)^2)", minimum=0, only=("stabilization", ("face",))),
         Param("face_h_power", float, 0.0, "power a of h in the face term", only=("stabilization", ("face",))),
-        Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N", minimum=0, only=("stabilization", ("normal",))),
+        Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N (its weight tau_N (s/L)^(a-1): a warning above 100, "
+              "refused below 1e-8 and above 1e6)", minimum=0, only=("stabilization", ("normal",))),
         Param("normal_h_power", float, 1.0, "power a of h in the normal-gradient term", only=("stabilization", ("normal",))),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
         *SHAPE_PARAMS[:3],  # torus and sphere: no ellipsoid, no axes
@@ -251,6 +253,9 @@ class LaplaceBeltramiCut(Problem):
             check_resolution(cut, phi, level)
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
             space = CutP1Space(cut)
+        # after the cut's memory checks (a spacing that cannot fit is told so first), before any matrix
+        notes = (check_face_stabilization(tau_f, face_h_power, level) if stabilization == "face" else
+                 check_normal_stabilization(tau_n, normal_h_power, level) if stabilization == "normal" else [])
         with t("assembly"):
             dS = cut.ds()
             form = tangential_stiffness(dS) + mass(dS)
@@ -274,6 +279,8 @@ class LaplaceBeltramiCut(Problem):
             multigrid = {"augment": space.cut.values, "coarse_size": 400}
         u, rec = _solve_and_measure(space, dS, K, sol, t, solver, multigrid, stabilization=stab)
         rec.update(cut_record(cut))
+        if notes:
+            rec["warnings"] = notes
         rec["area"] = float(assemble(basis_integrals(dS), space).sum())
         rec["time"] = dict(t)
         rec["fields"] = LazyFields(

@@ -36,6 +36,7 @@ from cutfem.markers import CUT
 from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
 from .common import BACKGROUND_PARAM, SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, mesh_file_notes, surface_mesh_for
+from .common import check_edge_stabilization, check_face_stabilization, pin_unseen_nodes
 
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
@@ -70,7 +71,13 @@ def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=
     (S_h), J_F over the facet measure ``faces`` (cut case, times h^a, a = ``face_h_power``), L =
     ``length_scale`` (the module's note on units; 1 in the paper).  Assembled as one form: on a
     structured box the mass and the face penalty sum into one set of lattice slots, on a
-    triangulated surface the mass and the edge penalty into one set of node and pair values."""
+    triangulated surface the mass and the edge penalty into one set of node and pair values.
+
+    A stabilized form is refused (ProblemError, :func:`check_length_scale`) when the surface's size
+    is far from L: every path to the system goes through here (``cutfem run``, :func:`cutfem.run`,
+    the problems' levels and scripts calling this function or :func:`mean_curvature_system`)."""
+    if tau_e > 0 or tau_f > 0:
+        check_length_scale(surface.size, length_scale, 2.0 - face_h_power if tau_f > 0 else 3)
     form = mass(surface)
     if tau_e > 0:
         form = form + (tau_e * length_scale**3) * edge_jump_penalty(surface)
@@ -148,7 +155,7 @@ class MeanCurvatureMeshed(Problem):
     params = [
         Param("surface", str, "torus", "torus, sphere, or a closed mesh file (STL, OBJ, PLY, VTK, ...)", choices=("torus", "sphere"), files=True),
         Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
-        Param("tau_e", float, 0.1, "edge stabilization tau_E", minimum=0),
+        Param("tau_e", float, 0.1, "edge stabilization tau_E (a warning above 1)", minimum=0),
         Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0,
               only=(("surface", ("torus",)), ("family", RANDOM_FAMILIES))),
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
@@ -174,7 +181,7 @@ class MeanCurvatureMeshed(Problem):
         t = Timer()
         with t("geometry"):
             mesh, exact = surface_mesh_for(surface, level, family, seed, R, r, radius)
-            check_length_scale(mesh.area, length_scale, 3)
+            notes = check_edge_stabilization(tau_e)
             space = SurfaceP1Space(mesh)
         with t("assembly"):
             K, B = mean_curvature_system(space, mesh.ds(), tau_e=tau_e, length_scale=length_scale)
@@ -184,6 +191,8 @@ class MeanCurvatureMeshed(Problem):
         with t("errors"):
             rec = _common_record(space, ones_M, H, exact, info)
             rec.update(triangles=int(mesh.n_triangles), edges=int(mesh.n_edges))
+            if notes:
+                rec["warnings"] = notes
             if exact is not None:
                 He = exact.exact_mean_curvature_vector
                 rec["l2_error"] = l2_error(space, H, He)
@@ -211,9 +220,10 @@ class MeanCurvatureCut(Problem):
         Param("surface", str, "torus", f"torus, sphere, ellipsoid, {USER_SURFACES}; H^e is exact at the closest point"),
         BACKGROUND_PARAM,
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)"),
-        Param("tau_f", float, 0.1, "face stabilization tau_F", minimum=0),
+        Param("tau_f", float, 0.1, "face stabilization tau_F (its weight tau_F (s/L)^a: a warning below 1e-3, refused below "
+              "1e-6 and above 1e6 (s/L)^2)", minimum=0),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
-        Param("face_h_power", float, 0.0, "power a of h in the face term h^a J_F"),
+        Param("face_h_power", float, 0.0, "power a of h in the face term h^a J_F (see --tau-f)"),
         Param("solver", str, "auto", "linear solver", choices=SOLVERS),
         Param("length_scale", float, 1.0, "length L in which tau_F, tau_E are given: tau_F L^(2-a) J_F, tau_E L^3 J_E (the surface's size)", positive=True),
         *SHAPE_PARAMS,
@@ -228,22 +238,28 @@ class MeanCurvatureCut(Problem):
             check_resolution(cut, phi, level)
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
             space = CutP1Space(cut)
+        # after the cut's memory checks (a spacing that cannot fit is told so first), before any matrix
+        notes = check_face_stabilization(tau_f, face_h_power, level, length_scale)
         with t("assembly"):
             ones_M = assemble(basis_integrals(cut.ds()), space)
-            check_length_scale(float(ones_M.sum()), length_scale, 2.0 - face_h_power if tau_f > 0 else 3)
             K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)),
                                          face_h_power=face_h_power, length_scale=length_scale)
+            K, B, unseen = pin_unseen_nodes(K, B, space)  # S_h along grid faces: nodes no term sees, fixed at 0
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL)
         exact = phi if has_exact(phi) else None
         with t("errors"):
             rec = _common_record(space, ones_M, H, exact, info)
             rec.update(cut_record(cut))
+            if unseen:
+                rec["unseen_nodes"] = unseen
+            if notes:
+                rec["warnings"] = notes
             if exact is not None:
                 rec["l2_error"] = l2_error(space, H, exact.exact_mean_curvature_vector)
-        notes = mesh_file_notes(phi, level)  # a mesh file: no errors, and facets the spacing may resolve
-        if notes:
-            rec["notes"] = notes
+        file_notes = mesh_file_notes(phi, level)  # a mesh file: no errors, and facets the spacing may resolve
+        if file_notes:
+            rec["notes"] = file_notes
         rec["time"] = dict(t)
         rec["fields"] = LazyFields(
             lambda: {

@@ -28,7 +28,7 @@ from cutfem.registry import H_BACKGROUND, LazyFields, Param, register
 from cutfem.solve import solve
 from cutfem.spaces import CutP1Space
 
-from .common import BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, Timer, background_for, check_bulk_memory, cut_record, levelset_for, nitsche_hint, value_and_gradient
+from .common import BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for, nitsche_hint, value_and_gradient
 
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
@@ -92,14 +92,17 @@ DEFINITIONS = {
         Param("surface", str, "sphere", "domain: sphere (ball), torus (solid torus), ellipsoid or a closed mesh file"),
         BACKGROUND_PARAM,
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)"),
-        Param("gamma", float, 10.0, "Nitsche penalty gamma", positive=True),
-        Param("gamma_g", float, 0.1, "ghost penalty gamma_g", minimum=0),
+        Param("gamma", float, 10.0, "Nitsche penalty gamma (a warning above 1e3)", positive=True),
+        Param("gamma_g", float, 0.1, "ghost penalty gamma_g (meaningful in [0.01, 1]: a warning above 1, refused above 1e6)", minimum=0),
         Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
         *SHAPE_PARAMS,
     ],
 )
 def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r, radius, axes):
-    """One level of the fictitious-domain Poisson problem."""
+    """One level of the fictitious-domain Poisson problem.  ``gamma_g`` and ``gamma`` are checked
+    first (:func:`~cutfem.problems.common.check_ghost_penalty`, :func:`~cutfem.problems.common.check_nitsche_penalty`);
+    their warnings go into the record's ``"warnings"``."""
+    notes = check_ghost_penalty(gamma_g) + check_nitsche_penalty(gamma)
     t = Timer()
     with t("geometry"):
         phi = levelset_for(surface, R, r, radius, axes)
@@ -126,6 +129,8 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
             "solver_iterations": info.iterations,
         }
     rec.update(cut_record(cut, V))
+    if notes:
+        rec["warnings"] = notes
     rec["time"] = dict(t)
     rec["fields"] = LazyFields(lambda: {"domain": V.elements.to_pyvista(u_h=u, u_exact=exact_u(V.dof_points)), "boundary": cut.to_pyvista()})
     return rec
