@@ -15,8 +15,10 @@ Mesh size: the global value ``h = N**(-1/3)`` (N = number of background nodes), 
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
+from fractions import Fraction
 from functools import cached_property, lru_cache
 from pathlib import Path
 
@@ -28,6 +30,7 @@ __all__ = [
     "TetMesh",
     "StructuredBox",
     "COINCIDENT_TOLERANCE",
+    "SPACING_TOLERANCE",
     "close_pairs",
     "structured_box",
     "unstructured_box",
@@ -629,6 +632,61 @@ class TetMesh:
         return f"{type(self).__name__}(n_points={self.n_points}, n_tets={self.n_tets})"
 
 
+#: :func:`structured_box` keeps the box when (upper - lower) / spacing is within this relative
+#: amount of a whole number, and :class:`StructuredBox` accepts a spacing that differs from
+#: (upper - lower) / cells by this relative amount (plus the round-off of the corners): round-off
+#: of a spacing written in decimal, never a different mesh.
+SPACING_TOLERANCE = 1e-9
+
+#: the largest node or tet id of a structured box: ids are int64
+_LARGEST_ID = 2**63 - 1
+
+
+def _readable_count(n) -> str:
+    """An exact (Python) integer for a message: '3,000,000' below a billion, '2.70e+19' above, at
+    any size (a float would overflow past 1.8e308 and int64 wraps past 9.2e18)."""
+    n = int(n)
+    if abs(n) < 10**9:
+        return f"{n:,}"
+    digits = str(abs(n))
+    return f"{'-' if n < 0 else ''}{digits[0]}.{digits[1:3]}e+{len(digits) - 1}"
+
+
+def _whole_cells(cells) -> tuple:
+    """The three cell counts as Python ints (exact, whatever their size)."""
+    a = np.asarray(cells)
+    if a.dtype.kind == "f":
+        return tuple(int(v) for v in np.broadcast_to(a, (3,)))
+    return tuple(int(v) for v in np.broadcast_to(a, (3,)).tolist())
+
+
+def _check_box_size(cells, what: str, fix: str) -> None:
+    """Refuse a structured box whose node or tet ids do not fit in int64 (more than 9.2e18 nodes or
+    tets) with :class:`cutfem.memory.InsufficientMemoryError`, stating the real counts (exact
+    Python integers) and the memory of the band search's node bitmap (a quarter byte a node, the
+    least any use of the box needs).  Such a box cannot be numbered, let alone held."""
+    n_points = math.prod(c + 1 for c in cells)
+    n_tets = 6 * math.prod(cells)
+    if max(n_points, n_tets) <= _LARGEST_ID:
+        return
+    from .memory import BYTES_PER_BOX_NODE, InsufficientMemoryError, available_memory, format_bytes
+
+    available, source = available_memory()
+    need = n_points * int(4 * BYTES_PER_BOX_NODE) // 4  # exact: BYTES_PER_BOX_NODE is a quarter byte
+    raise InsufficientMemoryError(
+        f"{what} has {_readable_count(n_points)} nodes and {_readable_count(n_tets)} tets: their ids do not fit in "
+        f"64-bit integers (at most {_readable_count(_LARGEST_ID)}), and the band search's node bitmap alone needs about "
+        f"{_readable_count(need)} bytes of memory, more than the {format_bytes(available)} available ({source}); {fix}"
+    )
+
+
+def _spacing_whose_ids_fit(extent) -> float:
+    """The smallest spacing at which a box of the given side lengths has fewer than 2**63 / 6 cells
+    (so that its tet ids fit in int64), from logarithms (the product of the sides may overflow)."""
+    logs = sum(math.log(float(e)) for e in extent)
+    return math.exp((logs + math.log(6.0) - math.log(_LARGEST_ID)) / 3.0)
+
+
 class StructuredBox(TetMesh):
     """Tetrahedral mesh of the box ``[lower, upper]`` with ``cells = (nx, ny, nz)`` cuboids, six
     Kuhn tets per cuboid (all sharing the cuboid's main diagonal).
@@ -643,26 +701,42 @@ class StructuredBox(TetMesh):
     def __init__(self, lower, upper, cells, spacing=None):
         lower = np.asarray(lower, dtype=float).reshape(3)
         upper = np.asarray(upper, dtype=float).reshape(3)
-        cells = np.asarray(cells, dtype=np.int64).reshape(3)
         if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))):
             raise ValueError("box corners must be finite")
         if np.any(upper <= lower):
             raise ValueError(f"box must have upper > lower in every axis, got lower={lower}, upper={upper}")
-        if np.any(cells < 1):
-            raise ValueError(f"need at least one cell per axis, got cells={cells.tolist()}")
+        cells = _whole_cells(cells)
+        if min(cells) < 1:
+            raise ValueError(f"need at least one cell per axis, got cells={list(cells)}")
+        _check_box_size(cells, f"a structured box of {' x '.join(_readable_count(c) for c in cells)} cells",
+                        "give fewer cells")
+        cells = np.array(cells, dtype=np.int64)
         self.lower, self.upper, self.cells = lower, upper, cells
         # the spacing as requested when known (structured_box), not recomputed from the corners
-        self.spacing = (upper - lower) / cells if spacing is None else np.broadcast_to(np.asarray(spacing, float), (3,)).copy()
+        implied = (upper - lower) / cells
+        if spacing is None:
+            self.spacing = implied
+        else:
+            self.spacing = np.broadcast_to(np.asarray(spacing, float), (3,)).copy()
+            # node (i, j, k) is at lower + (i, j, k) * spacing: the last one must be upper (to round-off)
+            slack = SPACING_TOLERANCE * np.abs(self.spacing) + 8 * np.finfo(float).eps * np.maximum(np.abs(lower), np.abs(upper)) / cells
+            if not (np.all(np.isfinite(self.spacing)) and np.all(np.abs(implied - self.spacing) <= slack)):
+                raise ValueError(
+                    f"spacing={self.spacing.tolist()} does not match the corners and cells: lower + cells * spacing = "
+                    f"{(lower + cells * self.spacing).tolist()}, not upper = {upper.tolist()}. The consistent spacing "
+                    f"is (upper - lower) / cells = {implied.tolist()}: pass that, or leave spacing out, or use "
+                    "structured_box(lower, upper, spacing=...), which fits the cells to a spacing"
+                )
         self.node_shape = cells + 1
 
     # sizes without building anything
     @property
     def n_points(self) -> int:
-        return int(np.prod(self.node_shape))
+        return math.prod(int(n) for n in self.node_shape)  # Python ints: exact at any size
 
     @property
     def n_cells(self) -> int:
-        return int(np.prod(self.cells))
+        return math.prod(int(c) for c in self.cells)
 
     @property
     def n_tets(self) -> int:
@@ -812,6 +886,12 @@ def _per_axis(name: str, value, scalar: bool, integral: bool = False) -> np.ndar
     if integral:
         if not (np.all(np.isfinite(a)) and np.all(a == np.rint(a))):
             raise ValueError(f"{name} must be {what}, got {value!r}")
+        if np.any(np.abs(a) >= 2.0**62):  # would wrap in int64: refuse with the exact counts
+            exact = _whole_cells(a)
+            if min(exact) >= 1:
+                _check_box_size(exact, f"a structured box of {' x '.join(_readable_count(c) for c in exact)} cells",
+                                "give fewer cells")
+            raise ValueError(f"{name} must be {what} of at least 1, got {value!r}")
         return np.broadcast_to(a.astype(np.int64), (3,))
     return np.broadcast_to(a.astype(float), (3,))
 
@@ -844,9 +924,18 @@ def structured_box(lower, upper, spacing=None, cells=None) -> StructuredBox:
     spacing = _per_axis("spacing", spacing, scalar=True)
     if np.any(~np.isfinite(spacing)) or np.any(spacing <= 0):
         raise ValueError(f"spacing must be a positive finite number, got {spacing.tolist()}; give e.g. spacing=0.1")
-    ratio = (upper - lower) / spacing
+    with np.errstate(over="ignore"):
+        ratio = (upper - lower) / spacing  # inf when the quotient (or the extent) overflows
+    if not np.all(ratio < 2.0**62):
+        # far too many cells to number: count them exactly (rationals of the floats) for the message
+        extent = [Fraction(float(u)) - Fraction(float(l)) for l, u in zip(lower, upper)]
+        exact = tuple(max(math.ceil(e / Fraction(float(h))), 1) for e, h in zip(extent, spacing))
+        text = f"{spacing[0]:.3g}" if np.all(spacing == spacing[0]) else str(spacing.tolist())
+        _check_box_size(exact, f"the structured box [{lower.tolist()}, {upper.tolist()}] at spacing={text}",
+                        f"use a coarser spacing: at least {_spacing_whose_ids_fit(extent):.3g} for the ids to fit, and in "
+                        "practice a spacing whose cut fits the memory (the cut checks that and names one), or a smaller box")
     whole = np.rint(ratio)
-    fits = (np.abs(ratio - whole) <= 1e-9 * np.maximum(ratio, 1)) & (whole >= 1)
+    fits = (np.abs(ratio - whole) <= SPACING_TOLERANCE * np.maximum(ratio, 1)) & (whole >= 1)
     cells = np.where(fits, whole, np.ceil(ratio)).astype(np.int64)
     if not fits.all():
         centre = 0.5 * (lower + upper)
