@@ -458,6 +458,118 @@ def _check_coincident(points, used) -> None:
         )
 
 
+#: A point of the boundary of a tet mesh lies strictly inside a tet when its four barycentric
+#: coordinates there exceed this (see :func:`_check_overlap`): far above their round-off (1e-16
+#: times the tet's condition), far below any real overlap.
+OVERLAP_TOLERANCE = 1e-8
+
+
+def _face_parities(tets: np.ndarray) -> np.ndarray:
+    """(4m,) int8: for each face row 4 t + k (the face opposite to local vertex k of tet t), the
+    parity of the permutation that takes the tet's vertex order to (lo, mid, hi, apex), the face's
+    sorted nodes followed by its opposite vertex.  For a positively oriented tet, orient(lo, mid,
+    hi, apex) > 0 exactly when the parity is even, so two positively oriented tets sharing a face
+    lie on opposite sides of it exactly when their parities on it differ.  The parity is the number
+    of inversions of the tet's order plus the number of face nodes above the apex, mod 2."""
+    cols = [np.ascontiguousarray(tets[:, j]) for j in range(4)]
+    inversions = np.zeros(len(tets), dtype=np.int8)
+    for i in range(4):
+        for j in range(i + 1, 4):
+            inversions += cols[i] > cols[j]
+    out = np.empty((len(tets), 4), dtype=np.int8)
+    for k, face in enumerate(TET_FACES):
+        above = inversions.copy()
+        for j in face:
+            above += cols[j] > cols[k]
+        out[:, k] = above & 1
+    return out.reshape(-1)
+
+
+def _check_folded(tets: np.ndarray, face_rows: np.ndarray, flipped) -> None:
+    """Refuse positively oriented tets (m, 4) two of which share a face and lie on the same side of
+    it (:func:`_face_parities`): they overlap, the mesh is folded there.  A valid mesh has every
+    interior face between two tets on opposite sides.  ``flipped`` (m,) bool or None: the tets that
+    were inverted in the input (reordered by ``orient=True``), named as the likely culprits."""
+    interior = face_rows[:, 1] >= 0
+    if not interior.any():
+        return
+    rows = face_rows[interior]
+    parity = _face_parities(tets)
+    bad = np.flatnonzero(parity[rows[:, 0]] == parity[rows[:, 1]])
+    if not bad.size:
+        return
+    pairs = rows[bad] // 4
+    folded = unique_keys(pairs.reshape(-1))
+    pair_text = ", ".join(f"({a}, {b})" for a, b in pairs[:5].tolist())
+    text = f"{bad.size} interior faces have their two tets on the same side (first tet pairs: {pair_text}; {folded.size} tets in all)"
+    if flipped is not None and np.any(flipped[folded]):
+        inverted = folded[flipped[folded]]
+        text += (f"; {inverted.size} of them were inverted (negative volume) in the input, first tets "
+                 f"{inverted[:5].tolist()}, and reordering them (orient=True) cannot make the mesh consistent")
+    raise ValueError(
+        f"the mesh is tangled: {text}. Such tets overlap their neighbours (a node moved through the opposite face of "
+        "its tets), so volumes and integrals count the overlap twice; untangle the mesh (move the nodes back or "
+        "re-mesh the region)"
+    )
+
+
+def _check_overlap(points: np.ndarray, tets: np.ndarray, triangles: np.ndarray) -> None:
+    """Refuse a mesh with a point of its boundary strictly inside one of its tets (all barycentric
+    coordinates above :data:`OVERLAP_TOLERANCE`).  In a mesh that covers each point of its domain
+    once, the boundary faces (``triangles``, (b, 3)) lie on the domain's boundary and meet no tet's
+    interior; when two parts overlap (two meshes stacked, or a part wound over another), the
+    boundary of one runs through the tets of the other.  The probes are the boundary nodes and the
+    boundary faces' centroids, sorted into a uniform grid of cells about the median tet size; one
+    compiled pass over the tets tests the probes in the cells their bounding box meets
+    (:func:`cutfem.kernels.points_inside_tets`).  The interior face check (:func:`_check_folded`)
+    sees folds; this sees overlap at a distance."""
+    from . import kernels
+
+    if not len(triangles):
+        return
+    nodes = unique_keys(triangles.reshape(-1))
+    probes = np.concatenate([points[nodes], points[triangles].mean(axis=1)])
+    lower = probes.min(axis=0)
+    span = probes.max(axis=0) - lower
+    # the cell: the median largest bounding-box side of a sample of the tets
+    xs = points[tets[:: max(1, len(tets) // 65536)]]
+    cell = float(np.median(np.max(xs.max(axis=1) - xs.min(axis=1), axis=1)))
+    cell = max(cell, 1e-9 * float(span.max()), np.finfo(float).tiny)
+    while True:
+        dims = np.floor(span / cell).astype(np.int64) + 1
+        if int(np.prod(dims)) <= max(len(tets) // 2, 1_000_000):
+            break
+        cell *= 2.0
+    pc = np.minimum(np.floor((probes - lower) / cell).astype(np.int64), dims - 1)
+    pkey = pc[:, 0] + dims[0] * (pc[:, 1] + dims[1] * pc[:, 2])
+    cell_probes = np.argsort(pkey, kind="stable")
+    cell_start = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pkey, minlength=int(np.prod(dims))), out=cell_start[1:])
+    hits = np.empty((64, 2), dtype=np.int64)
+    found = kernels.points_inside_tets(points, np.ascontiguousarray(tets), probes, lower, cell, dims, cell_start,
+                                       cell_probes, OVERLAP_TOLERANCE, hits)
+    if not found:
+        return
+    hits = hits[: min(found, len(hits))]
+    t, q = (int(v) for v in hits[0])
+    where = (f"boundary node {int(nodes[q])}" if q < len(nodes)
+             else f"the centroid of the boundary face {triangles[q - len(nodes)].tolist()}")
+    raise ValueError(
+        f"the mesh overlaps itself: {found} (point of its boundary, tet) pairs have the point strictly inside the tet "
+        f"(first: {where} at {np.round(probes[q], 12).tolist()} inside tet {t}; overlapping tets "
+        f"{unique_keys(hits[:, 0])[:5].tolist()}), so parts of the domain are covered twice and volumes and integrals "
+        "count them twice (two meshes stacked, or a part wound over another). Give one conforming mesh of the domain: "
+        "remove the duplicated part, or merge the parts with a mesher"
+    )
+
+
+def _orientations(a, b, c, d) -> np.ndarray:
+    """(b - a) . ((c - a) x (d - a)) row by row: six times the signed volume of abcd."""
+    u, v, w = b - a, c - a, d - a
+    return (u[:, 0] * (v[:, 1] * w[:, 2] - v[:, 2] * w[:, 1]) + u[:, 1] * (v[:, 2] * w[:, 0] - v[:, 0] * w[:, 2])
+            + u[:, 2] * (v[:, 0] * w[:, 1] - v[:, 1] * w[:, 0]))
+
+
 class TetMesh:
     """A conforming tetrahedral mesh.
 
@@ -484,6 +596,11 @@ class TetMesh:
             raise ValueError(f"points must have shape (N, 3), got {points.shape}")
         if tets.ndim != 2 or tets.shape[1] != 4:
             raise ValueError(f"tets must have shape (M, 4), got {tets.shape}")
+        if len(tets) == 0:
+            raise ValueError(
+                f"a TetMesh needs at least one tet; got 0 tets (on {len(points)} points): give the tets' vertex indices "
+                "(M, 4), or read the mesh file with read_mesh"
+            )
         if check:
             if tets.size and (tets.min() < 0 or tets.max() >= len(points)):
                 raise ValueError(f"tet vertex indices must lie in [0, {len(points)}); got range [{tets.min()}, {tets.max()}]")
@@ -514,6 +631,13 @@ class TetMesh:
                 tets[inverted, 2], tets[inverted, 3] = tets[inverted, 3], tets[inverted, 2].copy()
         self.points = points
         self.tets = tets
+        if check:
+            # a valid mesh covers each point of its domain once: no fold, no overlap (the faces
+            # found here are kept for the topology)
+            face_rows = self._face_topology[3]
+            _check_folded(tets, face_rows, inverted if np.any(inverted) else None)
+            faces = self._face_topology[0]
+            _check_overlap(points, tets, faces[face_rows[:, 1] < 0])
 
     @staticmethod
     def _signed_volumes(points, tets):
@@ -564,20 +688,30 @@ class TetMesh:
     # -- topology ------------------------------------------------------------------------
     @cached_property
     def _face_topology(self):
+        """(faces, face_tets, tet_faces, face_rows): face_rows (F, 2) the rows 4 t + k (face
+        opposite to local vertex k of tet t) of each face, -1 for the missing one."""
         m, n = self.n_tets, self.n_points
         keys = tet_face_keys(self.tets, n)
         order, starts, counts = pair_up(keys)
         if np.any(counts > 2):
-            raise ValueError(f"{int(np.sum(counts > 2))} faces are shared by more than two tets: the mesh is not conforming")
+            many = np.flatnonzero(counts > 2)
+            g = many[0]
+            tets = (order[starts[g] : starts[g] + counts[g]] // 4).tolist()
+            raise ValueError(
+                f"{many.size} faces are shared by more than two tets (first: face {[int(c[order[starts[g]]]) for c in keys]} "
+                f"of tets {tets}): the mesh is not conforming, tets overlap there (a tet given twice, or two meshes "
+                "stacked); give each tet once and one conforming mesh of the domain"
+            )
         first = order[starts]
         faces = np.stack([col[first] for col in keys], axis=1).astype(np.int64)
-        face_tets = np.full((len(starts), 2), -1, dtype=np.int64)
-        face_tets[:, 0] = first // 4
+        face_rows = np.full((len(starts), 2), -1, dtype=np.int64)
+        face_rows[:, 0] = first
         two = counts == 2
-        face_tets[two, 1] = order[starts[two] + 1] // 4
+        face_rows[two, 1] = order[starts[two] + 1]
+        face_tets = np.where(face_rows >= 0, face_rows // 4, -1)
         face_of_row = np.empty(4 * m, dtype=np.int64)
         face_of_row[order] = np.repeat(np.arange(len(starts)), counts)
-        return faces, face_tets, face_of_row.reshape(m, 4)
+        return faces, face_tets, face_of_row.reshape(m, 4), face_rows
 
     @property
     def faces(self) -> np.ndarray:

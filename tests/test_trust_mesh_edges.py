@@ -76,3 +76,106 @@ def test_cli_tiny_spacing_is_one_clear_line_and_exit_2(argv, capsys):
     assert len(err.splitlines()) == 1, err
     assert "-9223372036854775808" not in err and "upper > lower" not in err
     assert re.search(r"spacing=1e-320 has 1\.\d\de\+961 nodes.*use a coarser spacing", err), err
+
+
+# -- 2b: tangled and overlapping background meshes ------------------------------------------------
+
+
+def _shuffled_box(cells=6, seed=0, jitter=0.2):
+    """A valid mesh of [-1, 1]^3 as a mesh file may hold it: interior nodes jittered, nodes and tets
+    renumbered at random, half the tets with two vertices swapped (negative volume)."""
+    box = structured_box([-1] * 3, [1] * 3, cells=cells)
+    rng = np.random.default_rng(seed)
+    interior = ~np.isin(np.arange(box.n_points), box.boundary_nodes)
+    points = box.points + interior[:, None] * rng.uniform(-jitter, jitter, box.points.shape) * (2 / cells)
+    perm = rng.permutation(box.n_points)
+    new = np.empty_like(perm)
+    new[perm] = np.arange(box.n_points)
+    tets = new[box.tets][rng.permutation(box.n_tets)]
+    swap = rng.random(len(tets)) < 0.5
+    tets[swap, 2], tets[swap, 3] = tets[swap, 3], tets[swap, 2].copy()
+    return points[perm], tets
+
+
+def test_valid_meshes_in_any_vertex_order_are_accepted():
+    points, tets = _shuffled_box()
+    mesh = TetMesh(points, tets, orient=True)
+    assert mesh.volumes.sum() == pytest.approx(8.0, rel=1e-12)
+    # every tet inverted (the other orientation convention): reordering makes the mesh consistent
+    box = structured_box([-1] * 3, [1] * 3, cells=3)
+    flipped = box.tets[:, [1, 0, 2, 3]]
+    assert TetMesh(box.points, flipped, orient=True).volumes.sum() == pytest.approx(8.0, rel=1e-12)
+
+
+def test_a_mesh_with_a_cavity_is_not_an_overlap():
+    box = structured_box([-1] * 3, [1] * 3, cells=4)
+    centre = box.points[box.tets].mean(axis=1)
+    keep = np.max(np.abs(centre), axis=1) > 0.5  # the 2 x 2 x 2 central cells removed: an inner boundary
+    mesh = TetMesh(box.points, box.tets[keep])
+    assert mesh.volumes.sum() == pytest.approx(8.0 - 1.0, rel=1e-12)
+
+
+def test_a_node_pushed_through_a_face_is_refused_as_tangled(tmp_path):
+    # the node at (-0.5, -0.5, -0.5) of a 4 x 4 x 4 box moved across the face x = -1: read_mesh used to
+    # flip its inverted tets, and the box of volume 8 then had tets of volume 8.1
+    box = structured_box([-1] * 3, [1] * 3, cells=4)
+    points = box.points.copy()
+    node = int(np.flatnonzero(np.all(points == -0.5, axis=1))[0])
+    points[node] = [-1.2, -0.5, -0.5]
+    path = tmp_path / "tangled.vtu"
+    meshio.write(path, meshio.Mesh(points, [("tetra", box.tets)]))
+    with pytest.raises(ValueError, match=r"the mesh is tangled: \d+ interior faces have their two tets on the same side "
+                                         r"\(first tet pairs: \(\d+, \d+\).*; \d+ of them were inverted .* first tets \[\d+"
+                                         r".*untangle the mesh"):
+        read_mesh(path)
+
+
+def test_a_slightly_folded_node_is_refused():
+    # a smaller push: the node crosses the face of its star only just (the 8.0062 of the issue)
+    box = structured_box([-1] * 3, [1] * 3, cells=4)
+    points = box.points.copy()
+    node = int(np.flatnonzero(np.all(points == -0.5, axis=1))[0])
+    points[node] = [-1.05, -0.5, -0.5]
+    with pytest.raises(ValueError, match="the mesh is tangled"):
+        TetMesh(points, box.tets, orient=True)
+
+
+def test_two_overlapping_meshes_are_refused(tmp_path):
+    # two box meshes with their own nodes, one shifted into the other: |NEG| of a ball of 0.905 was 1.63
+    a = structured_box([-1] * 3, [1] * 3, cells=8)
+    b = structured_box([-0.93] * 3, [1.07] * 3, cells=7)
+    points = np.vstack([a.points, b.points])
+    tets = np.vstack([a.tets, b.tets + a.n_points])
+    with pytest.raises(ValueError, match=r"the mesh overlaps itself: \d+ \(point of its boundary, tet\) pairs.*"
+                                         r"inside tet \d+.*covered twice.*Give one conforming mesh"):
+        TetMesh(points, tets)
+    path = tmp_path / "two.vtu"
+    write_mesh(a, path)  # a valid file first
+    meshio.write(path, meshio.Mesh(points, [("tetra", tets)]))
+    with pytest.raises(ValueError, match="the mesh overlaps itself"):
+        read_mesh(path)
+
+
+def test_a_mesh_nested_inside_another_is_refused():
+    outer = structured_box([-1] * 3, [1] * 3, cells=5)
+    inner = structured_box([-0.31, -0.27, -0.23], [0.29, 0.33, 0.26], cells=2)  # wholly inside, no node shared
+    points = np.vstack([outer.points, inner.points])
+    tets = np.vstack([outer.tets, inner.tets + outer.n_points])
+    with pytest.raises(ValueError, match=r"the mesh overlaps itself: \d+ \(point of its boundary, tet\) pairs"):
+        TetMesh(points, tets)
+
+
+def test_a_tet_given_twice_is_refused_at_construction():
+    box = structured_box([0] * 3, [1] * 3, cells=2)
+    tets = np.vstack([box.tets, box.tets[5:6]])
+    with pytest.raises(ValueError, match=r"3 faces are shared by more than two tets \(first: face \[.*\] of tets "
+                                         r"\[\d+, \d+, \d+\]\).*a tet given twice"):
+        TetMesh(box.points, tets)
+
+
+# -- part 4: a mesh with no tets ----------------------------------------------------------------
+
+
+def test_a_mesh_without_tets_is_refused():
+    with pytest.raises(ValueError, match=r"a TetMesh needs at least one tet; got 0 tets \(on 4 points\)"):
+        TetMesh(np.eye(4, 3), np.zeros((0, 4), dtype=int))
