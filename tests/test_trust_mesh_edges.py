@@ -179,3 +179,57 @@ def test_a_tet_given_twice_is_refused_at_construction():
 def test_a_mesh_without_tets_is_refused():
     with pytest.raises(ValueError, match=r"a TetMesh needs at least one tet; got 0 tets \(on 4 points\)"):
         TetMesh(np.eye(4, 3), np.zeros((0, 4), dtype=int))
+
+
+# -- part 4: STL soups whose copies of a vertex are 1e-7 apart -----------------------------------
+
+
+def _soup(path, gap=1e-7, drop_first=False):
+    """An icosphere (level 2) written as a facet soup: every triangle with its own three vertices,
+    each moved by up to ``gap`` per coordinate."""
+    from cutfem.surface import sphere_mesh
+
+    sphere = sphere_mesh(2)
+    rng = np.random.default_rng(0)
+    tri = sphere.triangles[1:] if drop_first else sphere.triangles
+    points = sphere.points[tri].reshape(-1, 3) + rng.uniform(-gap, gap, (3 * len(tri), 3))
+    meshio.write(path, meshio.Mesh(points, [("triangle", np.arange(len(points)).reshape(-1, 3))]), binary=False)
+    return sphere
+
+
+def test_an_unmerged_stl_soup_is_named_with_the_tolerance_that_merges_it(tmp_path):
+    from cutfem.surface import read_surface
+
+    path = tmp_path / "soup.stl"
+    sphere = _soup(path)
+    # it was "the surface is open: 960 boundary edge(s) ... close the holes"
+    with pytest.raises(ValueError, match=r"the surface is an unmerged triangle soup: 960 of its 960 boundary edges have "
+                                         r"both ends within 2\.\de-07 of another vertex.*closer than 1e-10 times the "
+                                         r"bounding-box diagonal.*read_surface\(path, merge_tolerance=\de-0[67]\)") as err:
+        read_surface(path)
+    assert "close the holes" not in str(err.value)
+    tolerance = float(re.search(r"merge_tolerance=([0-9.e-]+)\)", str(err.value)).group(1))
+    merged = read_surface(path, merge_tolerance=tolerance)
+    assert merged.n_points == sphere.n_points and merged.n_triangles == sphere.n_triangles
+
+
+def test_a_soup_with_a_real_hole_names_both(tmp_path):
+    from cutfem.surface import read_surface
+
+    path = tmp_path / "holed.stl"
+    _soup(path, drop_first=True)
+    with pytest.raises(ValueError, match=r"unmerged triangle soup: 954 of its 957 boundary edges.*the other 3 boundary "
+                                         r"edges are holes"):
+        read_surface(path)
+
+
+def test_a_real_hole_is_still_a_hole(tmp_path):
+    from cutfem.surface import read_surface, sphere_mesh
+
+    sphere = sphere_mesh(2)
+    path = tmp_path / "open.stl"
+    meshio.write(path, meshio.Mesh(sphere.points, [("triangle", sphere.triangles[1:])]), binary=False)
+    with pytest.raises(ValueError, match=r"the surface is open: 3 boundary edge\(s\).*close the holes"):
+        read_surface(path)
+    with pytest.raises(ValueError, match=r"merge_tolerance must be a number in \[0, 0\.01\)"):
+        read_surface(path, merge_tolerance=0.5)
