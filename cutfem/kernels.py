@@ -2142,27 +2142,28 @@ def _orientation(a0, a1, a2, b, c, d, points):
 
 
 @njit(cache=True, error_model="numpy")
-def points_inside_tets(points, tets, probes, lower, cell, dims, cell_start, cell_probes, tolerance, hits):
+def points_inside_tets(points, tets, node_cells, probes, dims, cell_start, cell_probes, tolerance, hits):
     """The pairs (tet, probe) with the probe strictly inside the positively oriented tet: its four
     barycentric coordinates above ``tolerance`` (each the signed volume of the tet with one vertex
-    replaced by the probe, over the tet's).  Candidates: the probes in the grid cells (origin
-    ``lower`` (3,), side ``cell``, ``dims`` (3,) cells, cell c = i + dims[0] (j + dims[1] k)) met by
-    the tet's bounding box, listed by cell as ``cell_probes[cell_start[c]:cell_start[c + 1]]``, and
-    inside that box.  Writes the first ``len(hits)`` pairs into ``hits`` (k, 2); returns how many
-    there are.  One pass over the tets, no per-tet arrays (:func:`cutfem.mesh._check_overlap`)."""
+    replaced by the probe, over the tet's).  Candidates: the probes in the grid cells (``dims`` (3,)
+    cells, cell c = i + dims[0] (j + dims[1] k)) met by the tet's bounding box, listed by cell as
+    ``cell_probes[cell_start[c]:cell_start[c + 1]]``, and inside that box.  The box's cells come
+    from ``node_cells`` (N, 3) int32, the cell of each node clipped to [-1, dims] (floor is
+    monotone, so the cells of the box are those between its nodes'); the coordinates are read only
+    for the tets that meet a probe's cell, and the probes of a row of cells are one run.
+    Writes the first ``len(hits)`` pairs into ``hits`` (k, 2); returns how many there are.  One
+    pass over the tets, no per-tet arrays (:func:`cutfem.mesh._check_overlap`)."""
     found = 0
-    lo = np.empty(3)
-    hi = np.empty(3)
     c0 = np.empty(3, dtype=np.int64)
     c1 = np.empty(3, dtype=np.int64)
+    lo = np.empty(3)
+    hi = np.empty(3)
     for t in range(tets.shape[0]):
         a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
         empty = False
         for x in range(3):
-            lo[x] = min(min(points[a, x], points[b, x]), min(points[c, x], points[d, x]))
-            hi[x] = max(max(points[a, x], points[b, x]), max(points[c, x], points[d, x]))
-            c0[x] = max(np.int64(np.floor((lo[x] - lower[x]) / cell)), 0)
-            c1[x] = min(np.int64(np.floor((hi[x] - lower[x]) / cell)), dims[x] - 1)
+            c0[x] = max(min(min(node_cells[a, x], node_cells[b, x]), min(node_cells[c, x], node_cells[d, x])), 0)
+            c1[x] = min(max(max(node_cells[a, x], node_cells[b, x]), max(node_cells[c, x], node_cells[d, x])), dims[x] - 1)
             if c1[x] < c0[x]:
                 empty = True
         if empty:
@@ -2170,23 +2171,25 @@ def points_inside_tets(points, tets, probes, lower, cell, dims, cell_start, cell
         volume = -1.0
         for k in range(c0[2], c1[2] + 1):
             for j in range(c0[1], c1[1] + 1):
-                for i in range(c0[0], c1[0] + 1):
-                    g = i + dims[0] * (j + dims[1] * k)
-                    for q in range(cell_start[g], cell_start[g + 1]):
-                        p = cell_probes[q]
-                        p0, p1, p2 = probes[p, 0], probes[p, 1], probes[p, 2]
-                        if not (lo[0] < p0 < hi[0] and lo[1] < p1 < hi[1] and lo[2] < p2 < hi[2]):
-                            continue
-                        if volume < 0.0:
-                            volume = _orientation(points[a, 0], points[a, 1], points[a, 2], b, c, d, points)
-                        limit = tolerance * volume
-                        if (_orientation(p0, p1, p2, b, c, d, points) > limit
-                                and _orientation(p0, p1, p2, c, a, d, points) > limit
-                                and _orientation(p0, p1, p2, a, b, d, points) > limit
-                                and _orientation(p0, p1, p2, b, a, c, points) > limit):
-                            if found < hits.shape[0]:
-                                hits[found, 0], hits[found, 1] = t, p
-                            found += 1
+                g = c0[0] + dims[0] * (j + dims[1] * k)
+                for q in range(cell_start[g], cell_start[g + c1[0] - c0[0] + 1]):
+                    p = cell_probes[q]
+                    if volume < 0.0:  # the tet's box and volume, once
+                        for x in range(3):
+                            lo[x] = min(min(points[a, x], points[b, x]), min(points[c, x], points[d, x]))
+                            hi[x] = max(max(points[a, x], points[b, x]), max(points[c, x], points[d, x]))
+                        volume = _orientation(points[a, 0], points[a, 1], points[a, 2], b, c, d, points)
+                    p0, p1, p2 = probes[p, 0], probes[p, 1], probes[p, 2]
+                    if not (lo[0] < p0 < hi[0] and lo[1] < p1 < hi[1] and lo[2] < p2 < hi[2]):
+                        continue
+                    limit = tolerance * volume
+                    if (_orientation(p0, p1, p2, b, c, d, points) > limit
+                            and _orientation(p0, p1, p2, c, a, d, points) > limit
+                            and _orientation(p0, p1, p2, a, b, d, points) > limit
+                            and _orientation(p0, p1, p2, b, a, c, points) > limit):
+                        if found < hits.shape[0]:
+                            hits[found, 0], hits[found, 1] = t, p
+                        found += 1
     return found
 
 

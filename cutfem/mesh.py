@@ -1,6 +1,7 @@
 """Background tetrahedral meshes: structured boxes, unstructured meshes through pytetwild, topology, I/O.
 
-A :class:`TetMesh` holds ``points`` (N, 3) and positively oriented ``tets`` (M, 4).  Its topology
+A :class:`TetMesh` holds ``points`` (N, 3) and positively oriented ``tets`` (M, 4) that cover
+their domain once (checked on construction: no fold, no overlap).  Its topology
 (unique faces with their one or two tets, edges, boundary) is computed on demand, vectorized, by
 sorting integer keys.  A :class:`StructuredBox` is a tetrahedral mesh of an axis-aligned box made
 of cubes (cuboids), each split into the six Kuhn tetrahedra that share the main diagonal; the split
@@ -545,8 +546,13 @@ def _check_overlap(points: np.ndarray, tets: np.ndarray, triangles: np.ndarray) 
     cell_probes = np.argsort(pkey, kind="stable")
     cell_start = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
     np.cumsum(np.bincount(pkey, minlength=int(np.prod(dims))), out=cell_start[1:])
+    # the cell of every point, clipped to [-1, dims] (outside the probes' box on that side)
+    node_cells = np.empty(points.shape, dtype=np.int32)
+    with np.errstate(invalid="ignore"):  # points no tet uses may be NaN; they are never read
+        for a in range(3):
+            node_cells[:, a] = np.clip(np.floor((points[:, a] - lower[a]) / cell), -1, dims[a])
     hits = np.empty((64, 2), dtype=np.int64)
-    found = kernels.points_inside_tets(points, np.ascontiguousarray(tets), probes, lower, cell, dims, cell_start,
+    found = kernels.points_inside_tets(points, np.ascontiguousarray(tets), node_cells, probes, dims, cell_start,
                                        cell_probes, OVERLAP_TOLERANCE, hits)
     if not found:
         return
@@ -579,9 +585,13 @@ class TetMesh:
     tets : (M, 4) int, vertex indices of each tetrahedron
     orient : if True, tets with negative volume are reordered (two vertices swapped); if False
         (default), negative volumes are an error.
-    check : validate finiteness, index range, non-degeneracy (volume > 1e-12 * mean |volume|) and
+    check : validate finiteness, index range, non-degeneracy (volume > 1e-12 * mean |volume|),
         that no two nodes of the tets coincide (closer than :data:`COINCIDENT_TOLERANCE` = 1e-10
-        times the diagonal of their box: a crack, see :func:`_check_coincident`).
+        times the diagonal of their box: a crack, see :func:`_check_coincident`), and that the
+        tets cover each point of their domain once: no face in more than two tets, the two tets
+        of every interior face on opposite sides of it (:func:`_check_folded`; reordering inverted
+        tets with ``orient`` is accepted only where that makes them agree with their neighbours),
+        and no boundary point strictly inside a tet (:func:`_check_overlap`).  At least one tet.
 
     Cached topology: ``faces`` (F, 3) sorted node triples, ``face_tets`` (F, 2) with -1 for the
     missing neighbour of a boundary face (the first entry is always a tet), ``tet_faces`` (M, 4)
@@ -1149,7 +1159,10 @@ def read_mesh(path) -> TetMesh:
     points that no tet uses (they count nowhere, e.g. not in ``h``).  Points, lines and surface
     cells (the boundary triangles and physical groups of a gmsh file) are left out.  A file with
     other volume cells (hexahedra, wedges, pyramids) is refused: the tets alone would leave holes
-    where those cells are.  So is a file without tets (a surface or 2-D mesh).
+    where those cells are.  So is a file without tets (a surface or 2-D mesh).  Tets written with
+    negative volume are reordered, and the mesh is then checked as every :class:`TetMesh` is: a
+    tangled mesh (a node moved through a face of its tets) or one that overlaps itself (two meshes
+    in one file) is refused, naming the tets.
     """
     import meshio
 
