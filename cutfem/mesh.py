@@ -505,7 +505,7 @@ def _check_folded(tets: np.ndarray, face_rows: np.ndarray, flipped) -> None:
     text = f"{bad.size} interior faces have their two tets on the same side (first tet pairs: {pair_text}; {folded.size} tets in all)"
     if flipped is not None and np.any(flipped[folded]):
         inverted = folded[flipped[folded]]
-        text += (f"; {inverted.size} of them were inverted (negative volume) in the input, first tets "
+        text += (f"; {inverted.size} of them are inverted (negative volume) in the input, first tets "
                  f"{inverted[:5].tolist()}, and reordering them (orient=True) cannot make the mesh consistent")
     raise ValueError(
         f"the mesh is tangled: {text}. Such tets overlap their neighbours (a node moved through the opposite face of "
@@ -631,21 +631,22 @@ class TetMesh:
             _check_coincident(points, used)
             inverted = vol < 0
             if np.any(inverted):
-                if not orient:
-                    k = np.flatnonzero(inverted)
-                    raise ValueError(
-                        f"{k.size} inverted (negatively oriented) tetrahedra, first: tet {k[0]}; "
-                        "swap two vertices of each, or pass orient=True to reorder them"
-                    )
                 tets = tets.copy()
                 tets[inverted, 2], tets[inverted, 3] = tets[inverted, 3], tets[inverted, 2].copy()
         self.points = points
         self.tets = tets
         if check:
             # a valid mesh covers each point of its domain once: no fold, no overlap (the faces
-            # found here are kept for the topology)
+            # found here are kept for the topology).  Folds first: a tangled mesh is named as such
+            # even without orient, where reordering its inverted tets would not help
             face_rows = self._face_topology[3]
             _check_folded(tets, face_rows, inverted if np.any(inverted) else None)
+            if np.any(inverted) and not orient:
+                k = np.flatnonzero(inverted)
+                raise ValueError(
+                    f"{k.size} inverted (negatively oriented) tetrahedra, first: tet {k[0]}; "
+                    "swap two vertices of each, or pass orient=True to reorder them"
+                )
             faces = self._face_topology[0]
             _check_overlap(points, tets, faces[face_rows[:, 1] < 0])
 
