@@ -538,7 +538,7 @@ def _check_overlap(points: np.ndarray, tets: np.ndarray, triangles: np.ndarray) 
     cell = max(cell, 1e-9 * float(span.max()), np.finfo(float).tiny)
     while True:
         dims = np.floor(span / cell).astype(np.int64) + 1
-        if int(np.prod(dims)) <= max(len(tets) // 2, 1_000_000):
+        if math.prod(int(d) for d in dims) <= max(len(tets) // 2, 1_000_000):  # Python ints: no wrap
             break
         cell *= 2.0
     pc = np.minimum(np.floor((probes - lower) / cell).astype(np.int64), dims - 1)
