@@ -569,13 +569,6 @@ def _check_overlap(points: np.ndarray, tets: np.ndarray, triangles: np.ndarray) 
     )
 
 
-def _orientations(a, b, c, d) -> np.ndarray:
-    """(b - a) . ((c - a) x (d - a)) row by row: six times the signed volume of abcd."""
-    u, v, w = b - a, c - a, d - a
-    return (u[:, 0] * (v[:, 1] * w[:, 2] - v[:, 2] * w[:, 1]) + u[:, 1] * (v[:, 2] * w[:, 0] - v[:, 0] * w[:, 2])
-            + u[:, 2] * (v[:, 0] * w[:, 1] - v[:, 1] * w[:, 0]))
-
-
 class TetMesh:
     """A conforming tetrahedral mesh.
 
