@@ -1064,17 +1064,21 @@ def structured_box(lower, upper, spacing=None, cells=None) -> StructuredBox:
         raise ValueError(f"spacing must be a positive finite number, got {spacing.tolist()}; give e.g. spacing=0.1")
     with np.errstate(over="ignore"):
         ratio = (upper - lower) / spacing  # inf when the quotient (or the extent) overflows
-    if not np.all(ratio < 2.0**62):
-        # far too many cells to number: count them exactly (rationals of the floats) for the message
-        extent = [Fraction(float(u)) - Fraction(float(l)) for l, u in zip(lower, upper)]
-        exact = tuple(max(math.ceil(e / Fraction(float(h))), 1) for e, h in zip(extent, spacing))
-        text = f"{spacing[0]:.3g}" if np.all(spacing == spacing[0]) else str(spacing.tolist())
-        _check_box_size(exact, f"the structured box [{lower.tolist()}, {upper.tolist()}] at spacing={text}",
-                        f"use a coarser spacing: at least {_spacing_whose_ids_fit(extent):.3g} for the ids to fit, and in "
-                        "practice a spacing whose cut fits the memory (the cut checks that and names one), or a smaller box")
-    whole = np.rint(ratio)
-    fits = (np.abs(ratio - whole) <= SPACING_TOLERANCE * np.maximum(ratio, 1)) & (whole >= 1)
-    cells = np.where(fits, whole, np.ceil(ratio)).astype(np.int64)
+    huge = not np.all(ratio < 2.0**62)  # then 6 n_x n_y n_z > 2**63: refused below
+    if huge:  # count the cells exactly (rationals of the floats) for the message
+        exact = tuple(max(math.ceil((Fraction(float(u)) - Fraction(float(l))) / Fraction(float(h))), 1)
+                      for l, u, h in zip(lower, upper, spacing))
+    else:
+        whole = np.rint(ratio)
+        fits = (np.abs(ratio - whole) <= SPACING_TOLERANCE * np.maximum(ratio, 1)) & (whole >= 1)
+        cells = np.where(fits, whole, np.ceil(ratio)).astype(np.int64)
+        exact = tuple(int(c) for c in cells)
+    # a box too large to number is refused here, in words about the spacing
+    text = f"{spacing[0]:.3g}" if np.all(spacing == spacing[0]) else str(spacing.tolist())
+    extent = [Fraction(float(u)) - Fraction(float(l)) for l, u in zip(lower, upper)]
+    _check_box_size(exact, f"the structured box [{lower.tolist()}, {upper.tolist()}] at spacing={text}",
+                    f"use a coarser spacing: at least {_spacing_whose_ids_fit(extent):.3g} for the ids to fit, and in "
+                    "practice a spacing whose cut fits the memory (the cut checks that and names one), or a smaller box")
     if not fits.all():
         centre = 0.5 * (lower + upper)
         grown = ~fits

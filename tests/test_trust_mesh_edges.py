@@ -63,6 +63,13 @@ def test_tiny_spacings_state_the_real_counts(spacing, nodes):
     assert "-9223372036854775808" not in text
 
 
+def test_a_spacing_whose_box_passes_int64_is_told_to_coarsen():
+    # 1e7 cells a side fit in int64, their product does not: the fix is about the spacing given
+    with pytest.raises(InsufficientMemoryError, match=r"at spacing=1e-07 has 1\.00e\+21 nodes.*use a coarser spacing: "
+                                                      r"at least 8\.66e-07"):
+        structured_box([0] * 3, [1] * 3, spacing=1e-7)
+
+
 def test_coordinates_near_1e30_state_the_real_counts():
     with pytest.raises(InsufficientMemoryError, match=r"at spacing=0\.1 has 7\.99e\+93 nodes.*at least 1\.73e\+24"):
         structured_box([-1e30] * 3, [1e30] * 3, spacing=0.1)
