@@ -2194,6 +2194,28 @@ def points_inside_tets(points, tets, node_cells, probes, dims, cell_start, cell_
 
 
 @njit(cache=True, error_model="numpy")
+def vertex_solid_angles(points, tets, out):
+    """Adds to ``out`` (N,) the solid angle of each tet (m, 4) at each of its vertices: with a, b, c
+    the other three vertices minus the vertex, tan(Omega / 2) = |det[a b c]| / (|a||b||c| +
+    (a.b)|c| + (b.c)|a| + (c.a)|b|) (Van Oosterom and Strackee), summed tet by tet in order
+    (:func:`cutfem.mesh._check_wound`)."""
+    for t in range(tets.shape[0]):
+        for k in range(4):
+            v = tets[t, k]
+            i, j, l = tets[t, (k + 1) % 4], tets[t, (k + 2) % 4], tets[t, (k + 3) % 4]
+            a0, a1, a2 = points[i, 0] - points[v, 0], points[i, 1] - points[v, 1], points[i, 2] - points[v, 2]
+            b0, b1, b2 = points[j, 0] - points[v, 0], points[j, 1] - points[v, 1], points[j, 2] - points[v, 2]
+            c0, c1, c2 = points[l, 0] - points[v, 0], points[l, 1] - points[v, 1], points[l, 2] - points[v, 2]
+            det = abs(a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0))
+            la = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+            lb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+            lc = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            den = (la * lb * lc + (a0 * b0 + a1 * b1 + a2 * b2) * lc + (b0 * c0 + b1 * c1 + b2 * c2) * la
+                   + (c0 * a0 + c1 * a1 + c2 * a2) * lb)
+            out[v] += 2.0 * np.arctan2(det, den)
+
+
+@njit(cache=True, error_model="numpy")
 def kuhn_ends_bounds(ijk, bounds):
     """``bounds`` (2, 3) = the smallest and largest indices of the ends (ijk - o) / 2 and
     (ijk + o) / 2, o = ijk mod 2, of the coarse Kuhn edges of the fine nodes ``ijk`` (m, 3)

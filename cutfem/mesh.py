@@ -514,6 +514,31 @@ def _check_folded(tets: np.ndarray, face_rows: np.ndarray, flipped) -> None:
     )
 
 
+def _check_wound(points: np.ndarray, tets: np.ndarray, boundary: np.ndarray) -> None:
+    """Refuse an interior node (one on no boundary face; ``boundary`` its sorted ids) whose tets wind
+    around it more than once: the solid angles of its tets at it sum to 4 pi k, k the number of
+    times they cover the directions around it (:func:`cutfem.kernels.vertex_solid_angles`), 4 pi
+    for a mesh that covers its domain once.  With every interior face between tets on opposite
+    sides (:func:`_check_folded`) k is a whole number, so the threshold 6 pi is far from round-off.
+    Such a star passes the face test and has no boundary near it for :func:`_check_overlap`."""
+    from . import kernels
+
+    total = np.zeros(len(points))
+    kernels.vertex_solid_angles(points, np.ascontiguousarray(tets), total)
+    total[boundary] = 0.0
+    wound = np.flatnonzero(total > 6.0 * np.pi)
+    if not wound.size:
+        return
+    node = int(wound[0])
+    star = np.flatnonzero(np.any(tets == node, axis=1))
+    raise ValueError(
+        f"the mesh winds around {wound.size} interior nodes more than once (first: node {node} at "
+        f"{points[node].tolist()}, whose {star.size} tets {star[:5].tolist()}{', ...' if star.size > 5 else ''} cover "
+        f"the directions around it {total[node] / (4 * np.pi):.3g} times: solid angles summing to "
+        f"{total[node]:.4g} instead of 4 pi), so the domain is covered more than once there; re-mesh the region"
+    )
+
+
 def _check_overlap(points: np.ndarray, tets: np.ndarray, triangles: np.ndarray) -> None:
     """Refuse a mesh with a point of its boundary strictly inside one of its tets (all barycentric
     coordinates above :data:`OVERLAP_TOLERANCE`).  In a mesh that covers each point of its domain
@@ -640,8 +665,9 @@ class TetMesh:
                     f"{k.size} inverted (negatively oriented) tetrahedra, first: tet {k[0]}; "
                     "swap two vertices of each, or pass orient=True to reorder them"
                 )
-            faces = self._face_topology[0]
-            _check_overlap(points, tets, faces[face_rows[:, 1] < 0])
+            boundary_faces = self._face_topology[0][face_rows[:, 1] < 0]
+            _check_wound(points, tets, unique_keys(boundary_faces.reshape(-1)))
+            _check_overlap(points, tets, boundary_faces)
 
     @staticmethod
     def _signed_volumes(points, tets):

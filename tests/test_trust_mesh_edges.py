@@ -175,6 +175,24 @@ def test_a_mesh_nested_inside_another_is_refused():
         TetMesh(points, tets)
 
 
+def test_a_star_wound_twice_around_a_node_is_refused():
+    # 14 tets around the origin: a 7-gon on the equator whose corners step by 4 pi / 7 (it goes round
+    # twice), coned to the two poles.  Every interior face has its tets on opposite sides and no
+    # boundary point is inside a tet, yet every direction around the origin is covered twice
+    n = 7
+    angle = 4 * np.pi * np.arange(n) / n
+    points = np.vstack([[0, 0, 0], [0, 0, 1], [0, 0, -1], np.stack([np.cos(angle), np.sin(angle), np.zeros(n)], axis=1)])
+    tets = [[0, 1, 3 + i, 3 + (i + 1) % n] for i in range(n)] + [[0, 2, 3 + (i + 1) % n, 3 + i] for i in range(n)]
+    with pytest.raises(ValueError, match=r"the mesh winds around 1 interior nodes more than once \(first: node 0 at "
+                                         r"\[0\.0, 0\.0, 0\.0\], whose 14 tets .* cover the directions around it 2 times: "
+                                         r"solid angles summing to 25\.13 instead of 4 pi\).*re-mesh"):
+        TetMesh(points, np.array(tets), orient=True)
+    # the same star wound once (step 2 pi / 7) is a valid mesh of a bipyramid
+    angle = 2 * np.pi * np.arange(n) / n
+    points[3:] = np.stack([np.cos(angle), np.sin(angle), np.zeros(n)], axis=1)
+    assert TetMesh(points, np.array(tets), orient=True).volumes.sum() == pytest.approx(2 / 3 * 7 / 2 * np.sin(2 * np.pi / 7))
+
+
 def test_a_tet_given_twice_is_refused_at_construction():
     box = structured_box([0] * 3, [1] * 3, cells=2)
     tets = np.vstack([box.tets, box.tets[5:6]])
