@@ -611,8 +611,9 @@ class TetMesh:
         tets with ``orient`` is accepted only where that makes them agree with their neighbours),
         no interior node wound round more than once (:func:`_check_wound`), and no boundary point
         strictly inside a tet (:func:`_check_overlap`).  At least one tet.  Not seen: tets wound
-        twice around an edge whose two ends are both on the boundary (an edge test would need a
-        sort of the 6 M edges).
+        twice around an edge whose two ends are both on the boundary when, by symmetry, every
+        boundary point of one turn lies on a face of the other (a perturbed ring is seen by the
+        overlap test; an edge test would need a sort of the 6 M edges).
 
     Cached topology: ``faces`` (F, 3) sorted node triples, ``face_tets`` (F, 2) with -1 for the
     missing neighbour of a boundary face (the first entry is always a tet), ``tet_faces`` (M, 4)

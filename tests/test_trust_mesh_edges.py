@@ -193,6 +193,17 @@ def test_a_star_wound_twice_around_a_node_is_refused():
     assert TetMesh(points, np.array(tets), orient=True).volumes.sum() == pytest.approx(2 / 3 * 7 / 2 * np.sin(2 * np.pi / 7))
 
 
+def test_a_ring_wound_twice_around_a_boundary_edge_is_refused():
+    # 7 tets around the edge between the poles, the ring stepping by about 4 pi / 7: both ends of
+    # the edge are on the boundary, and the boundary of one turn runs through the tets of the other
+    n = 7
+    angle = 4 * np.pi * np.arange(n) / n + 0.05 * np.random.default_rng(1).uniform(-1, 1, n)
+    points = np.vstack([[0, 0, -1], [0, 0, 1], np.stack([np.cos(angle), np.sin(angle), np.zeros(n)], axis=1)])
+    tets = np.array([[0, 1, 2 + i, 2 + (i + 1) % n] for i in range(n)])
+    with pytest.raises(ValueError, match=r"the mesh overlaps itself"):
+        TetMesh(points, tets, orient=True)
+
+
 def test_a_tet_given_twice_is_refused_at_construction():
     box = structured_box([0] * 3, [1] * 3, cells=2)
     tets = np.vstack([box.tets, box.tets[5:6]])
