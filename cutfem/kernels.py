@@ -2193,6 +2193,89 @@ def kuhn_face_pairs(tets, kinds, low, ftype, n_keys: int):
     return pairs, opposite
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _orientation(a0, a1, a2, b, c, d, points):
+    """(b - a) . ((c - a) x (d - a)) for a = (a0, a1, a2) and the points rows b, c, d."""
+    u0, u1, u2 = points[b, 0] - a0, points[b, 1] - a1, points[b, 2] - a2
+    v0, v1, v2 = points[c, 0] - a0, points[c, 1] - a1, points[c, 2] - a2
+    w0, w1, w2 = points[d, 0] - a0, points[d, 1] - a1, points[d, 2] - a2
+    return u0 * (v1 * w2 - v2 * w1) + u1 * (v2 * w0 - v0 * w2) + u2 * (v0 * w1 - v1 * w0)
+
+
+@njit(cache=True, error_model="numpy")
+def points_inside_tets(points, tets, node_cells, probes, dims, cell_start, cell_probes, tolerance, hits):
+    """The pairs (tet, probe) with the probe strictly inside the positively oriented tet: its four
+    barycentric coordinates above ``tolerance`` (each the signed volume of the tet with one vertex
+    replaced by the probe, over the tet's).  Candidates: the probes in the grid cells (``dims`` (3,)
+    cells, cell c = i + dims[0] (j + dims[1] k)) met by the tet's bounding box, listed by cell as
+    ``cell_probes[cell_start[c]:cell_start[c + 1]]``, and inside that box.  The box's cells come
+    from ``node_cells`` (N, 3) int32, the cell of each node clipped to [-1, dims] (floor is
+    monotone, so the cells of the box are those between its nodes'); the coordinates are read only
+    for the tets that meet a probe's cell, and the probes of a row of cells are one run.
+    Writes the first ``len(hits)`` pairs into ``hits`` (k, 2); returns how many there are.  One
+    pass over the tets, no per-tet arrays (:func:`cutfem.mesh._check_overlap`)."""
+    found = 0
+    c0 = np.empty(3, dtype=np.int64)
+    c1 = np.empty(3, dtype=np.int64)
+    lo = np.empty(3)
+    hi = np.empty(3)
+    for t in range(tets.shape[0]):
+        a, b, c, d = tets[t, 0], tets[t, 1], tets[t, 2], tets[t, 3]
+        empty = False
+        for x in range(3):
+            c0[x] = max(min(min(node_cells[a, x], node_cells[b, x]), min(node_cells[c, x], node_cells[d, x])), 0)
+            c1[x] = min(max(max(node_cells[a, x], node_cells[b, x]), max(node_cells[c, x], node_cells[d, x])), dims[x] - 1)
+            if c1[x] < c0[x]:
+                empty = True
+        if empty:
+            continue
+        volume = -1.0
+        for k in range(c0[2], c1[2] + 1):
+            for j in range(c0[1], c1[1] + 1):
+                g = c0[0] + dims[0] * (j + dims[1] * k)
+                for q in range(cell_start[g], cell_start[g + c1[0] - c0[0] + 1]):
+                    p = cell_probes[q]
+                    if volume < 0.0:  # the tet's box and volume, once
+                        for x in range(3):
+                            lo[x] = min(min(points[a, x], points[b, x]), min(points[c, x], points[d, x]))
+                            hi[x] = max(max(points[a, x], points[b, x]), max(points[c, x], points[d, x]))
+                        volume = _orientation(points[a, 0], points[a, 1], points[a, 2], b, c, d, points)
+                    p0, p1, p2 = probes[p, 0], probes[p, 1], probes[p, 2]
+                    if not (lo[0] < p0 < hi[0] and lo[1] < p1 < hi[1] and lo[2] < p2 < hi[2]):
+                        continue
+                    limit = tolerance * volume
+                    if (_orientation(p0, p1, p2, b, c, d, points) > limit
+                            and _orientation(p0, p1, p2, c, a, d, points) > limit
+                            and _orientation(p0, p1, p2, a, b, d, points) > limit
+                            and _orientation(p0, p1, p2, b, a, c, points) > limit):
+                        if found < hits.shape[0]:
+                            hits[found, 0], hits[found, 1] = t, p
+                        found += 1
+    return found
+
+
+@njit(cache=True, error_model="numpy")
+def vertex_solid_angles(points, tets, out):
+    """Adds to ``out`` (N,) the solid angle of each tet (m, 4) at each of its vertices: with a, b, c
+    the other three vertices minus the vertex, tan(Omega / 2) = |det[a b c]| / (|a||b||c| +
+    (a.b)|c| + (b.c)|a| + (c.a)|b|) (Van Oosterom and Strackee), summed tet by tet in order
+    (:func:`cutfem.mesh._check_wound`)."""
+    for t in range(tets.shape[0]):
+        for k in range(4):
+            v = tets[t, k]
+            i, j, l = tets[t, (k + 1) % 4], tets[t, (k + 2) % 4], tets[t, (k + 3) % 4]
+            a0, a1, a2 = points[i, 0] - points[v, 0], points[i, 1] - points[v, 1], points[i, 2] - points[v, 2]
+            b0, b1, b2 = points[j, 0] - points[v, 0], points[j, 1] - points[v, 1], points[j, 2] - points[v, 2]
+            c0, c1, c2 = points[l, 0] - points[v, 0], points[l, 1] - points[v, 1], points[l, 2] - points[v, 2]
+            det = abs(a0 * (b1 * c2 - b2 * c1) + a1 * (b2 * c0 - b0 * c2) + a2 * (b0 * c1 - b1 * c0))
+            la = np.sqrt(a0 * a0 + a1 * a1 + a2 * a2)
+            lb = np.sqrt(b0 * b0 + b1 * b1 + b2 * b2)
+            lc = np.sqrt(c0 * c0 + c1 * c1 + c2 * c2)
+            den = (la * lb * lc + (a0 * b0 + a1 * b1 + a2 * b2) * lc + (b0 * c0 + b1 * c1 + b2 * c2) * la
+                   + (c0 * a0 + c1 * a1 + c2 * a2) * lb)
+            out[v] += 2.0 * np.arctan2(det, den)
+
+
 @njit(cache=True, error_model="numpy")
 def kuhn_ends_bounds(ijk, bounds):
     """``bounds`` (2, 3) = the smallest and largest indices of the ends (ijk - o) / 2 and

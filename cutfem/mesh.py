@@ -1,6 +1,7 @@
 """Background tetrahedral meshes: structured boxes, unstructured meshes through pytetwild, topology, I/O.
 
-A :class:`TetMesh` holds ``points`` (N, 3) and positively oriented ``tets`` (M, 4).  Its topology
+A :class:`TetMesh` holds ``points`` (N, 3) and positively oriented ``tets`` (M, 4) that cover
+their domain once (checked on construction: no fold, no overlap).  Its topology
 (unique faces with their one or two tets, edges, boundary) is computed on demand, vectorized, by
 sorting integer keys.  A :class:`StructuredBox` is a tetrahedral mesh of an axis-aligned box made
 of cubes (cuboids), each split into the six Kuhn tetrahedra that share the main diagonal; the split
@@ -15,8 +16,10 @@ Mesh size: the global value ``h = N**(-1/3)`` (N = number of background nodes), 
 
 from __future__ import annotations
 
+import math
 import os
 import tempfile
+from fractions import Fraction
 from functools import cached_property, lru_cache
 from pathlib import Path
 
@@ -28,6 +31,7 @@ __all__ = [
     "TetMesh",
     "StructuredBox",
     "COINCIDENT_TOLERANCE",
+    "SPACING_TOLERANCE",
     "close_pairs",
     "structured_box",
     "unstructured_box",
@@ -455,6 +459,141 @@ def _check_coincident(points, used) -> None:
         )
 
 
+#: A point of the boundary of a tet mesh lies strictly inside a tet when its four barycentric
+#: coordinates there exceed this (see :func:`_check_overlap`): far above their round-off (1e-16
+#: times the tet's condition), far below any real overlap.
+OVERLAP_TOLERANCE = 1e-8
+
+
+def _face_parities(tets: np.ndarray) -> np.ndarray:
+    """(4m,) int8: for each face row 4 t + k (the face opposite to local vertex k of tet t), the
+    parity of the permutation that takes the tet's vertex order to (lo, mid, hi, apex), the face's
+    sorted nodes followed by its opposite vertex.  For a positively oriented tet, orient(lo, mid,
+    hi, apex) > 0 exactly when the parity is even, so two positively oriented tets sharing a face
+    lie on opposite sides of it exactly when their parities on it differ.  The parity is the number
+    of inversions of the tet's order plus the number of face nodes above the apex, mod 2."""
+    cols = [np.ascontiguousarray(tets[:, j]) for j in range(4)]
+    inversions = np.zeros(len(tets), dtype=np.int8)
+    for i in range(4):
+        for j in range(i + 1, 4):
+            inversions += cols[i] > cols[j]
+    out = np.empty((len(tets), 4), dtype=np.int8)
+    for k, face in enumerate(TET_FACES):
+        above = inversions.copy()
+        for j in face:
+            above += cols[j] > cols[k]
+        out[:, k] = above & 1
+    return out.reshape(-1)
+
+
+def _check_folded(tets: np.ndarray, face_rows: np.ndarray, flipped) -> None:
+    """Refuse positively oriented tets (m, 4) two of which share a face and lie on the same side of
+    it (:func:`_face_parities`): they overlap, the mesh is folded there.  A valid mesh has every
+    interior face between two tets on opposite sides.  ``flipped`` (m,) bool or None: the tets that
+    were inverted in the input (reordered by ``orient=True``), named as the likely culprits."""
+    interior = face_rows[:, 1] >= 0
+    if not interior.any():
+        return
+    rows = face_rows[interior]
+    parity = _face_parities(tets)
+    bad = np.flatnonzero(parity[rows[:, 0]] == parity[rows[:, 1]])
+    if not bad.size:
+        return
+    pairs = rows[bad] // 4
+    folded = unique_keys(pairs.reshape(-1))
+    pair_text = ", ".join(f"({a}, {b})" for a, b in pairs[:5].tolist())
+    text = f"{bad.size} interior faces have their two tets on the same side (first tet pairs: {pair_text}; {folded.size} tets in all)"
+    if flipped is not None and np.any(flipped[folded]):
+        inverted = folded[flipped[folded]]
+        text += (f"; {inverted.size} of them are inverted (negative volume) in the input, first tets "
+                 f"{inverted[:5].tolist()}, and reordering them (orient=True) cannot make the mesh consistent")
+    raise ValueError(
+        f"the mesh is tangled: {text}. Such tets overlap their neighbours (a node moved through the opposite face of "
+        "its tets), so volumes and integrals count the overlap twice; untangle the mesh (move the nodes back or "
+        "re-mesh the region)"
+    )
+
+
+def _check_wound(points: np.ndarray, tets: np.ndarray, boundary: np.ndarray) -> None:
+    """Refuse an interior node (one on no boundary face; ``boundary`` its sorted ids) whose tets wind
+    around it more than once: the solid angles of its tets at it sum to 4 pi k, k the number of
+    times they cover the directions around it (:func:`cutfem.kernels.vertex_solid_angles`), 4 pi
+    for a mesh that covers its domain once.  With every interior face between tets on opposite
+    sides (:func:`_check_folded`) k is a whole number, so the threshold 6 pi is far from round-off.
+    Such a star passes the face test and has no boundary near it for :func:`_check_overlap`."""
+    from . import kernels
+
+    total = np.zeros(len(points))
+    kernels.vertex_solid_angles(points, np.ascontiguousarray(tets), total)
+    total[boundary] = 0.0
+    wound = np.flatnonzero(total > 6.0 * np.pi)
+    if not wound.size:
+        return
+    node = int(wound[0])
+    star = np.flatnonzero(np.any(tets == node, axis=1))
+    raise ValueError(
+        f"the mesh winds around {wound.size} interior nodes more than once (first: node {node} at "
+        f"{points[node].tolist()}, whose {star.size} tets {star[:5].tolist()}{', ...' if star.size > 5 else ''} cover "
+        f"the directions around it {total[node] / (4 * np.pi):.3g} times: solid angles summing to "
+        f"{total[node]:.4g} instead of 4 pi), so the domain is covered more than once there; re-mesh the region"
+    )
+
+
+def _check_overlap(points: np.ndarray, tets: np.ndarray, triangles: np.ndarray) -> None:
+    """Refuse a mesh with a point of its boundary strictly inside one of its tets (all barycentric
+    coordinates above :data:`OVERLAP_TOLERANCE`).  In a mesh that covers each point of its domain
+    once, the boundary faces (``triangles``, (b, 3)) lie on the domain's boundary and meet no tet's
+    interior; when two parts overlap (two meshes stacked, or a part wound over another), the
+    boundary of one runs through the tets of the other.  The probes are the boundary nodes and the
+    boundary faces' centroids, sorted into a uniform grid of cells about the median tet size; one
+    compiled pass over the tets tests the probes in the cells their bounding box meets
+    (:func:`cutfem.kernels.points_inside_tets`).  The interior face check (:func:`_check_folded`)
+    sees folds; this sees overlap at a distance."""
+    from . import kernels
+
+    if not len(triangles):
+        return
+    nodes = unique_keys(triangles.reshape(-1))
+    probes = np.concatenate([points[nodes], points[triangles].mean(axis=1)])
+    lower = probes.min(axis=0)
+    span = probes.max(axis=0) - lower
+    # the cell: the median largest bounding-box side of a sample of the tets
+    xs = points[tets[:: max(1, len(tets) // 65536)]]
+    cell = float(np.median(np.max(xs.max(axis=1) - xs.min(axis=1), axis=1)))
+    cell = max(cell, 1e-9 * float(span.max()), np.finfo(float).tiny)
+    while True:
+        dims = np.floor(span / cell).astype(np.int64) + 1
+        if math.prod(int(d) for d in dims) <= max(len(tets) // 2, 1_000_000):  # Python ints: no wrap
+            break
+        cell *= 2.0
+    pc = np.minimum(np.floor((probes - lower) / cell).astype(np.int64), dims - 1)
+    pkey = pc[:, 0] + dims[0] * (pc[:, 1] + dims[1] * pc[:, 2])
+    cell_probes = np.argsort(pkey, kind="stable")
+    cell_start = np.zeros(int(np.prod(dims)) + 1, dtype=np.int64)
+    np.cumsum(np.bincount(pkey, minlength=int(np.prod(dims))), out=cell_start[1:])
+    # the cell of every point, clipped to [-1, dims] (outside the probes' box on that side)
+    node_cells = np.empty(points.shape, dtype=np.int32)
+    with np.errstate(invalid="ignore"):  # points no tet uses may be NaN; they are never read
+        for a in range(3):
+            node_cells[:, a] = np.clip(np.floor((points[:, a] - lower[a]) / cell), -1, dims[a])
+    hits = np.empty((64, 2), dtype=np.int64)
+    found = kernels.points_inside_tets(points, np.ascontiguousarray(tets), node_cells, probes, dims, cell_start,
+                                       cell_probes, OVERLAP_TOLERANCE, hits)
+    if not found:
+        return
+    hits = hits[: min(found, len(hits))]
+    t, q = (int(v) for v in hits[0])
+    where = (f"boundary node {int(nodes[q])}" if q < len(nodes)
+             else f"the centroid of the boundary face {triangles[q - len(nodes)].tolist()}")
+    raise ValueError(
+        f"the mesh overlaps itself: {found} (point of its boundary, tet) pairs have the point strictly inside the tet "
+        f"(first: {where} at {np.round(probes[q], 12).tolist()} inside tet {t}; overlapping tets "
+        f"{unique_keys(hits[:, 0])[:5].tolist()}), so parts of the domain are covered twice and volumes and integrals "
+        "count them twice (two meshes stacked, or a part wound over another). Give one conforming mesh of the domain: "
+        "remove the duplicated part, or merge the parts with a mesher"
+    )
+
+
 class TetMesh:
     """A conforming tetrahedral mesh.
 
@@ -464,9 +603,17 @@ class TetMesh:
     tets : (M, 4) int, vertex indices of each tetrahedron
     orient : if True, tets with negative volume are reordered (two vertices swapped); if False
         (default), negative volumes are an error.
-    check : validate finiteness, index range, non-degeneracy (volume > 1e-12 * mean |volume|) and
+    check : validate finiteness, index range, non-degeneracy (volume > 1e-12 * mean |volume|),
         that no two nodes of the tets coincide (closer than :data:`COINCIDENT_TOLERANCE` = 1e-10
-        times the diagonal of their box: a crack, see :func:`_check_coincident`).
+        times the diagonal of their box: a crack, see :func:`_check_coincident`), and that the
+        tets cover each point of their domain once: no face in more than two tets, the two tets
+        of every interior face on opposite sides of it (:func:`_check_folded`; reordering inverted
+        tets with ``orient`` is accepted only where that makes them agree with their neighbours),
+        no interior node wound round more than once (:func:`_check_wound`), and no boundary point
+        strictly inside a tet (:func:`_check_overlap`).  At least one tet.  Not seen: tets wound
+        twice around an edge whose two ends are both on the boundary when, by symmetry, every
+        boundary point of one turn lies on a face of the other (a perturbed ring is seen by the
+        overlap test; an edge test would need a sort of the 6 M edges).
 
     Cached topology: ``faces`` (F, 3) sorted node triples, ``face_tets`` (F, 2) with -1 for the
     missing neighbour of a boundary face (the first entry is always a tet), ``tet_faces`` (M, 4)
@@ -481,6 +628,11 @@ class TetMesh:
             raise ValueError(f"points must have shape (N, 3), got {points.shape}")
         if tets.ndim != 2 or tets.shape[1] != 4:
             raise ValueError(f"tets must have shape (M, 4), got {tets.shape}")
+        if len(tets) == 0:
+            raise ValueError(
+                f"a TetMesh needs at least one tet; got 0 tets (on {len(points)} points): give the tets' vertex indices "
+                "(M, 4), or read the mesh file with read_mesh"
+            )
         if check:
             if tets.size and (tets.min() < 0 or tets.max() >= len(points)):
                 raise ValueError(f"tet vertex indices must lie in [0, {len(points)}); got range [{tets.min()}, {tets.max()}]")
@@ -501,16 +653,25 @@ class TetMesh:
             _check_coincident(points, used)
             inverted = vol < 0
             if np.any(inverted):
-                if not orient:
-                    k = np.flatnonzero(inverted)
-                    raise ValueError(
-                        f"{k.size} inverted (negatively oriented) tetrahedra, first: tet {k[0]}; "
-                        "swap two vertices of each, or pass orient=True to reorder them"
-                    )
                 tets = tets.copy()
                 tets[inverted, 2], tets[inverted, 3] = tets[inverted, 3], tets[inverted, 2].copy()
         self.points = points
         self.tets = tets
+        if check:
+            # a valid mesh covers each point of its domain once: no fold, no overlap (the faces
+            # found here are kept for the topology).  Folds first: a tangled mesh is named as such
+            # even without orient, where reordering its inverted tets would not help
+            face_rows = self._face_topology[3]
+            _check_folded(tets, face_rows, inverted if np.any(inverted) else None)
+            if np.any(inverted) and not orient:
+                k = np.flatnonzero(inverted)
+                raise ValueError(
+                    f"{k.size} inverted (negatively oriented) tetrahedra, first: tet {k[0]}; "
+                    "swap two vertices of each, or pass orient=True to reorder them"
+                )
+            boundary_faces = self._face_topology[0][face_rows[:, 1] < 0]
+            _check_wound(points, tets, unique_keys(boundary_faces.reshape(-1)))
+            _check_overlap(points, tets, boundary_faces)
 
     @staticmethod
     def _signed_volumes(points, tets):
@@ -561,20 +722,30 @@ class TetMesh:
     # -- topology ------------------------------------------------------------------------
     @cached_property
     def _face_topology(self):
+        """(faces, face_tets, tet_faces, face_rows): face_rows (F, 2) the rows 4 t + k (face
+        opposite to local vertex k of tet t) of each face, -1 for the missing one."""
         m, n = self.n_tets, self.n_points
         keys = tet_face_keys(self.tets, n)
         order, starts, counts = pair_up(keys)
         if np.any(counts > 2):
-            raise ValueError(f"{int(np.sum(counts > 2))} faces are shared by more than two tets: the mesh is not conforming")
+            many = np.flatnonzero(counts > 2)
+            g = many[0]
+            tets = (order[starts[g] : starts[g] + counts[g]] // 4).tolist()
+            raise ValueError(
+                f"{many.size} faces are shared by more than two tets (first: face {[int(c[order[starts[g]]]) for c in keys]} "
+                f"of tets {tets}): the mesh is not conforming, tets overlap there (a tet given twice, or two meshes "
+                "stacked); give each tet once and one conforming mesh of the domain"
+            )
         first = order[starts]
         faces = np.stack([col[first] for col in keys], axis=1).astype(np.int64)
-        face_tets = np.full((len(starts), 2), -1, dtype=np.int64)
-        face_tets[:, 0] = first // 4
+        face_rows = np.full((len(starts), 2), -1, dtype=np.int64)
+        face_rows[:, 0] = first
         two = counts == 2
-        face_tets[two, 1] = order[starts[two] + 1] // 4
+        face_rows[two, 1] = order[starts[two] + 1]
+        face_tets = np.where(face_rows >= 0, face_rows // 4, -1)
         face_of_row = np.empty(4 * m, dtype=np.int64)
         face_of_row[order] = np.repeat(np.arange(len(starts)), counts)
-        return faces, face_tets, face_of_row.reshape(m, 4)
+        return faces, face_tets, face_of_row.reshape(m, 4), face_rows
 
     @property
     def faces(self) -> np.ndarray:
@@ -629,6 +800,61 @@ class TetMesh:
         return f"{type(self).__name__}(n_points={self.n_points}, n_tets={self.n_tets})"
 
 
+#: :func:`structured_box` keeps the box when (upper - lower) / spacing is within this relative
+#: amount of a whole number, and :class:`StructuredBox` accepts a spacing that differs from
+#: (upper - lower) / cells by this relative amount (plus the round-off of the corners): round-off
+#: of a spacing written in decimal, never a different mesh.
+SPACING_TOLERANCE = 1e-9
+
+#: the largest node or tet id of a structured box: ids are int64
+_LARGEST_ID = 2**63 - 1
+
+
+def _readable_count(n) -> str:
+    """An exact (Python) integer for a message: '3,000,000' below a billion, '2.70e+19' above, at
+    any size (a float would overflow past 1.8e308 and int64 wraps past 9.2e18)."""
+    n = int(n)
+    if abs(n) < 10**9:
+        return f"{n:,}"
+    digits = str(abs(n))
+    return f"{'-' if n < 0 else ''}{digits[0]}.{digits[1:3]}e+{len(digits) - 1}"
+
+
+def _whole_cells(cells) -> tuple:
+    """The three cell counts as Python ints (exact, whatever their size)."""
+    a = np.asarray(cells)
+    if a.dtype.kind == "f":
+        return tuple(int(v) for v in np.broadcast_to(a, (3,)))
+    return tuple(int(v) for v in np.broadcast_to(a, (3,)).tolist())
+
+
+def _check_box_size(cells, what: str, fix: str) -> None:
+    """Refuse a structured box whose node or tet ids do not fit in int64 (more than 9.2e18 nodes or
+    tets) with :class:`cutfem.memory.InsufficientMemoryError`, stating the real counts (exact
+    Python integers) and the memory of the band search's node bitmap (a quarter byte a node, the
+    least any use of the box needs).  Such a box cannot be numbered, let alone held."""
+    n_points = math.prod(c + 1 for c in cells)
+    n_tets = 6 * math.prod(cells)
+    if max(n_points, n_tets) <= _LARGEST_ID:
+        return
+    from .memory import BYTES_PER_BOX_NODE, InsufficientMemoryError, available_memory, format_bytes
+
+    available, source = available_memory()
+    need = n_points * int(4 * BYTES_PER_BOX_NODE) // 4  # exact: BYTES_PER_BOX_NODE is a quarter byte
+    raise InsufficientMemoryError(
+        f"{what} has {_readable_count(n_points)} nodes and {_readable_count(n_tets)} tets: their ids do not fit in "
+        f"64-bit integers (at most {_readable_count(_LARGEST_ID)}), and the band search's node bitmap alone needs about "
+        f"{_readable_count(need)} bytes of memory, more than the {format_bytes(available)} available ({source}); {fix}"
+    )
+
+
+def _spacing_whose_ids_fit(extent) -> float:
+    """The smallest spacing at which a box of the given side lengths has fewer than 2**63 / 6 cells
+    (so that its tet ids fit in int64), from logarithms (the product of the sides may overflow)."""
+    logs = sum(math.log(float(e)) for e in extent)
+    return math.exp((logs + math.log(6.0) - math.log(_LARGEST_ID)) / 3.0)
+
+
 class StructuredBox(TetMesh):
     """Tetrahedral mesh of the box ``[lower, upper]`` with ``cells = (nx, ny, nz)`` cuboids, six
     Kuhn tets per cuboid (all sharing the cuboid's main diagonal).
@@ -643,26 +869,42 @@ class StructuredBox(TetMesh):
     def __init__(self, lower, upper, cells, spacing=None):
         lower = np.asarray(lower, dtype=float).reshape(3)
         upper = np.asarray(upper, dtype=float).reshape(3)
-        cells = np.asarray(cells, dtype=np.int64).reshape(3)
         if not (np.all(np.isfinite(lower)) and np.all(np.isfinite(upper))):
             raise ValueError("box corners must be finite")
         if np.any(upper <= lower):
             raise ValueError(f"box must have upper > lower in every axis, got lower={lower}, upper={upper}")
-        if np.any(cells < 1):
-            raise ValueError(f"need at least one cell per axis, got cells={cells.tolist()}")
+        cells = _whole_cells(cells)
+        if min(cells) < 1:
+            raise ValueError(f"need at least one cell per axis, got cells={list(cells)}")
+        _check_box_size(cells, f"a structured box of {' x '.join(_readable_count(c) for c in cells)} cells",
+                        "give fewer cells")
+        cells = np.array(cells, dtype=np.int64)
         self.lower, self.upper, self.cells = lower, upper, cells
         # the spacing as requested when known (structured_box), not recomputed from the corners
-        self.spacing = (upper - lower) / cells if spacing is None else np.broadcast_to(np.asarray(spacing, float), (3,)).copy()
+        implied = (upper - lower) / cells
+        if spacing is None:
+            self.spacing = implied
+        else:
+            self.spacing = np.broadcast_to(np.asarray(spacing, float), (3,)).copy()
+            # node (i, j, k) is at lower + (i, j, k) * spacing: the last one must be upper (to round-off)
+            slack = SPACING_TOLERANCE * np.abs(self.spacing) + 8 * np.finfo(float).eps * np.maximum(np.abs(lower), np.abs(upper)) / cells
+            if not (np.all(np.isfinite(self.spacing)) and np.all(np.abs(implied - self.spacing) <= slack)):
+                raise ValueError(
+                    f"spacing={self.spacing.tolist()} does not match the corners and cells: lower + cells * spacing = "
+                    f"{(lower + cells * self.spacing).tolist()}, not upper = {upper.tolist()}. The consistent spacing "
+                    f"is (upper - lower) / cells = {implied.tolist()}: pass that, or leave spacing out, or use "
+                    "structured_box(lower, upper, spacing=...), which fits the cells to a spacing"
+                )
         self.node_shape = cells + 1
 
     # sizes without building anything
     @property
     def n_points(self) -> int:
-        return int(np.prod(self.node_shape))
+        return math.prod(int(n) for n in self.node_shape)  # Python ints: exact at any size
 
     @property
     def n_cells(self) -> int:
-        return int(np.prod(self.cells))
+        return math.prod(int(c) for c in self.cells)
 
     @property
     def n_tets(self) -> int:
@@ -812,6 +1054,12 @@ def _per_axis(name: str, value, scalar: bool, integral: bool = False) -> np.ndar
     if integral:
         if not (np.all(np.isfinite(a)) and np.all(a == np.rint(a))):
             raise ValueError(f"{name} must be {what}, got {value!r}")
+        if np.any(np.abs(a) >= 2.0**62):  # would wrap in int64: refuse with the exact counts
+            exact = _whole_cells(a)
+            if min(exact) >= 1:
+                _check_box_size(exact, f"a structured box of {' x '.join(_readable_count(c) for c in exact)} cells",
+                                "give fewer cells")
+            raise ValueError(f"{name} must be {what} of at least 1, got {value!r}")
         return np.broadcast_to(a.astype(np.int64), (3,))
     return np.broadcast_to(a.astype(float), (3,))
 
@@ -844,10 +1092,23 @@ def structured_box(lower, upper, spacing=None, cells=None) -> StructuredBox:
     spacing = _per_axis("spacing", spacing, scalar=True)
     if np.any(~np.isfinite(spacing)) or np.any(spacing <= 0):
         raise ValueError(f"spacing must be a positive finite number, got {spacing.tolist()}; give e.g. spacing=0.1")
-    ratio = (upper - lower) / spacing
-    whole = np.rint(ratio)
-    fits = (np.abs(ratio - whole) <= 1e-9 * np.maximum(ratio, 1)) & (whole >= 1)
-    cells = np.where(fits, whole, np.ceil(ratio)).astype(np.int64)
+    with np.errstate(over="ignore"):
+        ratio = (upper - lower) / spacing  # inf when the quotient (or the extent) overflows
+    huge = not np.all(ratio < 2.0**62)  # then 6 n_x n_y n_z > 2**63: refused below
+    if huge:  # count the cells exactly (rationals of the floats) for the message
+        exact = tuple(max(math.ceil((Fraction(float(u)) - Fraction(float(l))) / Fraction(float(h))), 1)
+                      for l, u, h in zip(lower, upper, spacing))
+    else:
+        whole = np.rint(ratio)
+        fits = (np.abs(ratio - whole) <= SPACING_TOLERANCE * np.maximum(ratio, 1)) & (whole >= 1)
+        cells = np.where(fits, whole, np.ceil(ratio)).astype(np.int64)
+        exact = tuple(int(c) for c in cells)
+    # a box too large to number is refused here, in words about the spacing
+    text = f"{spacing[0]:.3g}" if np.all(spacing == spacing[0]) else str(spacing.tolist())
+    extent = [Fraction(float(u)) - Fraction(float(l)) for l, u in zip(lower, upper)]
+    _check_box_size(exact, f"the structured box [{lower.tolist()}, {upper.tolist()}] at spacing={text}",
+                    f"use a coarser spacing: at least {_spacing_whose_ids_fit(extent):.3g} for the ids to fit, and in "
+                    "practice a spacing whose cut fits the memory (the cut checks that and names one), or a smaller box")
     if not fits.all():
         centre = 0.5 * (lower + upper)
         grown = ~fits
@@ -926,7 +1187,10 @@ def read_mesh(path) -> TetMesh:
     points that no tet uses (they count nowhere, e.g. not in ``h``).  Points, lines and surface
     cells (the boundary triangles and physical groups of a gmsh file) are left out.  A file with
     other volume cells (hexahedra, wedges, pyramids) is refused: the tets alone would leave holes
-    where those cells are.  So is a file without tets (a surface or 2-D mesh).
+    where those cells are.  So is a file without tets (a surface or 2-D mesh).  Tets written with
+    negative volume are reordered, and the mesh is then checked as every :class:`TetMesh` is: a
+    tangled mesh (a node moved through a face of its tets) or one that overlaps itself (two meshes
+    in one file) is refused, naming the tets.
     """
     import meshio
 

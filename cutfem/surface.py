@@ -1231,10 +1231,10 @@ def sphere_mesh(level: int = 3, radius: float = 1.0, center=(0.0, 0.0, 0.0)) -> 
 # ---------------------------------------------------------------------------------------------
 
 
-def _merge_points(points: np.ndarray, triangles: np.ndarray):
+def _merge_points(points: np.ndarray, triangles: np.ndarray, tolerance: float = MERGE_TOLERANCE):
     """Drop points used by no triangle and merge coincident points.
 
-    With r = MERGE_TOLERANCE * (diagonal of the bounding box of the used points), two points are
+    With r = tolerance * (diagonal of the bounding box of the used points), two points are
     one node when a chain of points, each within distance r of the next, joins them (single
     linkage; exact duplicates, as in STL, which stores every vertex once per facet, always merge).
     Distances, not coordinates rounded to a grid of step r: two copies of a vertex 1e-11 apart on
@@ -1258,7 +1258,7 @@ def _merge_points(points: np.ndarray, triangles: np.ndarray):
     # exact duplicates first (the bulk of an STL's copies), then the pairs within r among the rest
     distinct, label = np.unique(points, axis=0, return_inverse=True)
     label = label.reshape(-1)
-    pairs = close_pairs(distinct, MERGE_TOLERANCE * diagonal)
+    pairs = close_pairs(distinct, tolerance * diagonal)
     if len(pairs):
         graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(distinct),) * 2)
         label = connected_components(graph, directed=False)[1][label]
@@ -1268,6 +1268,43 @@ def _merge_points(points: np.ndarray, triangles: np.ndarray):
     rank = np.empty_like(order)
     rank[order] = np.arange(order.size)
     return points[first[order]], rank[label][triangles]
+
+
+def _unmerged_soup_message(points: np.ndarray, triangles: np.ndarray, tolerance: float) -> str | None:
+    """The message for an open surface whose boundary edges are mostly copies of one another: a
+    facet soup (STL stores every vertex once per facet) whose copies of a vertex lie further apart
+    than the merge distance (``tolerance`` times the bounding-box diagonal).  Boundary vertices
+    within 1e-3 of the median edge length of each other are taken as one (single linkage), and a
+    boundary edge is a copy when another boundary edge joins the same two: a real hole's rim has
+    one edge each.  None when no boundary edge is a copy (the surface has real holes)."""
+    edges, _, counts, _ = _halfedge_table(triangles, len(points))
+    boundary = edges[counts == 1]
+    if not len(boundary):
+        return None
+    ends = unique_keys(boundary.reshape(-1))
+    lengths = np.linalg.norm(points[edges[:, 0]] - points[edges[:, 1]], axis=1)
+    reach = 1e-3 * float(np.median(lengths))
+    pairs = close_pairs(points[ends], reach)
+    if not len(pairs):
+        return None
+    graph = sp.coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(len(ends),) * 2)
+    label = connected_components(graph, directed=False)[1][np.searchsorted(ends, boundary)]
+    _, _, twins = pair_up((np.min(label, axis=1), np.max(label, axis=1)))
+    copies = int(twins[twins > 1].sum())
+    if not copies:
+        return None
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    gap = float(np.max(np.linalg.norm(points[ends[pairs[:, 0]]] - points[ends[pairs[:, 1]]], axis=1)))
+    suggest = float(f"{10 * gap / diagonal:.0e}")
+    rest = len(boundary) - copies
+    return (
+        f"the surface is an unmerged triangle soup: {copies} of its {len(boundary)} boundary edges have both ends "
+        f"within {gap:.2g} of another vertex (copies of one vertex, as an STL file stores them, that were not merged: "
+        f"points are merged when closer than {tolerance:g} times the bounding-box diagonal, {tolerance * diagonal:.2g} "
+        f"here){f'; the other {rest} boundary edges are holes' if rest else ''}. Merge the coincident vertices: "
+        f"read_surface(path, merge_tolerance={suggest:g}), or in the mesh tool that wrote the file (e.g. pyvista "
+        "PolyData.clean(tolerance=...), MeshLab 'Merge Close Vertices'), and write it with shared vertices."
+    )
 
 
 def _is_polydata(path: Path) -> bool:
@@ -1304,7 +1341,7 @@ def _read_polydata(path: Path):
     return SimpleNamespace(points=np.asarray(grid.points), cells=cells)
 
 
-def read_surface(path) -> SurfaceMesh:
+def read_surface(path, merge_tolerance: float = MERGE_TOLERANCE) -> SurfaceMesh:
     """Read a closed triangle surface: STL, OBJ, PLY, OFF, VTK, VTU, Gmsh, ... with meshio, VTK
     polygonal data (``.vtp``, and legacy ``.vtk`` files of ``DATASET POLYDATA``, which pyvista and
     ParaView write for surfaces) with pyvista.
@@ -1314,8 +1351,9 @@ def read_surface(path) -> SurfaceMesh:
     without triangles.
     Points used by no triangle are dropped (whatever their coordinates, NaN included; a non-finite
     point that a triangle uses is refused with its row in the file) and coincident points are
-    merged (see :func:`_merge_points`: closer than MERGE_TOLERANCE times the bounding-box
-    diagonal), so that STL facet soups become a connected mesh.  The result is validated and oriented outward
+    merged (see :func:`_merge_points`: closer than ``merge_tolerance``, by default MERGE_TOLERANCE,
+    times the bounding-box diagonal), so that STL facet soups become a connected mesh; a soup whose
+    copies of a vertex lie further apart is named as such, with the tolerance that would merge it.  The result is validated and oriented outward
     as in :class:`SurfaceMesh`, which includes the test that distinct closed components neither
     intersect nor nest (a model made of overlapping closed parts is refused with the pairs of
     components named: its signed distance would be wrong inside the overlaps).
@@ -1325,6 +1363,9 @@ def read_surface(path) -> SurfaceMesh:
     """
     import meshio
 
+    if not (isinstance(merge_tolerance, (int, float, np.floating, np.integer)) and 0 <= merge_tolerance < 1e-2):
+        raise ValueError(f"merge_tolerance must be a number in [0, 0.01) (relative to the bounding-box diagonal), "
+                         f"got {merge_tolerance!r}")
     path = Path(path)
     if not path.exists():
         raise FileNotFoundError(f"surface mesh file not found: '{path}'")
@@ -1366,8 +1407,14 @@ def read_surface(path) -> SurfaceMesh:
     try:
         if triangles.min() < 0 or triangles.max() >= len(points):
             raise ValueError(f"triangle node indices outside [0, {len(points)})")
-        points, triangles = _merge_points(points, triangles)
-        return SurfaceMesh(points, triangles)
+        points, triangles = _merge_points(points, triangles, float(merge_tolerance))
+        try:
+            return SurfaceMesh(points, triangles)
+        except ValueError as err:
+            soup = _unmerged_soup_message(points, triangles, float(merge_tolerance)) if str(err).startswith("the surface is open") else None
+            if soup is None:
+                raise
+            raise ValueError(soup) from err
     except ValueError as err:
         raise ValueError(f"'{path}': {err}") from err
 
