@@ -24,7 +24,7 @@ Torus             signed distance to a ring torus with axis z
 Ellipsoid         the quadratic (x/a)^2 + (y/b)^2 + (z/c)^2 - 1 (not a distance)
 FunctionLevelSet  user callables, a text expression in x, y, z, or a Python file; derivatives by
                   central differences when not given
-SignedDistance    signed distance to a closed triangle mesh, evaluated by VTK
+SignedDistance    signed distance to a closed triangle mesh (a compiled nearest-triangle search)
 
 and the function :func:`interpolate` (nodal values of a level set, with a finiteness check).
 """
@@ -1168,12 +1168,6 @@ def _surface_arrays(surface):
     return pts[used], np.searchsorted(used, tris)
 
 
-#: beyond this many bounding-box diagonals outside a mesh's bounding box, :class:`SignedDistance`
-#: takes its value from its own nearest-point search instead of VTK's (exact up to 1e7 diagonals on
-#: a unit sphere mesh, wrong from 1e8)
-FAR_DIAGONALS = 100.0
-
-
 class SignedDistance(LevelSet):
     """Signed distance to a closed triangle mesh (negative inside).
 
@@ -1186,12 +1180,12 @@ class SignedDistance(LevelSet):
     out, has every sphere's inside negative).  Each failure is a ValueError naming the offenders
     and the fix.
 
-    Values come from VTK's vtkImplicitPolyDataDistance (closest point on the triangles, signed by
-    the outward normals) evaluated on a whole vtk array at once (C++ loop, no Python loop), except
-    at points more than :data:`FAR_DIAGONALS` bounding-box diagonals outside the mesh's bounding
-    box: there VTK's value loses its digits (-2e8 instead of 1e8 at (1e8, 0, 0) from a unit
-    sphere mesh, NaN off the axes), and the value is the distance to the nearest point of the
-    triangles (:meth:`closest_point`), positive since the point is outside.
+    Values come from one compiled nearest-point pass over a bounding-volume hierarchy of the
+    triangles built once (:meth:`cutfem.surface.SurfaceMesh.signed_distance`, :mod:`cutfem.closest`):
+    |phi(x)| is the exact distance to the nearest point of the triangles, and the sign is that of
+    (x - p) . N with N the angle-weighted pseudo-normal of the face, edge or vertex the nearest
+    point p lies on (exact for a closed, outward oriented manifold mesh); points outside the mesh's
+    bounding box are outside.  Points farther than 1e150 from the mesh are refused (ValueError).
 
     gradient: central differences of value with h = 1e-6 * (mesh bounding-box diagonal); this is
     the exact gradient wherever the distance is smooth over the stencil (away from the medial set
@@ -1209,9 +1203,6 @@ class SignedDistance(LevelSet):
     lipschitz = 1.0
 
     def __init__(self, surface):
-        import pyvista as pv
-        import vtk
-
         mesh = surface if isinstance(surface, SurfaceMesh) else SurfaceMesh(*_surface_arrays(surface))
         pts, tris = np.asarray(mesh.points), np.asarray(mesh.triangles)
         self.mesh = mesh
@@ -1220,10 +1211,6 @@ class SignedDistance(LevelSet):
         self.area = mesh.area
         self.volume = mesh.enclosed_volume
         self._diag = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
-        cells = np.hstack([np.full((len(tris), 1), 3, dtype=np.int64), tris]).ravel()
-        self._mesh = pv.PolyData(pts, faces=cells)
-        self._implicit = vtk.vtkImplicitPolyDataDistance()
-        self._implicit.SetInput(self._mesh)
 
     def __repr__(self) -> str:
         return f"SignedDistance(<{len(self.points)} points, {len(self.triangles)} triangles>)"
@@ -1234,22 +1221,11 @@ class SignedDistance(LevelSet):
 
     def value(self, x):
         """Signed distance to the mesh (negative inside), shape (...)."""
-        import vtk
-        from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
-
         x = _as_points(x)
-        flat = np.ascontiguousarray(x.reshape(-1, 3))
+        flat = x.reshape(-1, 3)
         if flat.shape[0] == 0:
             return np.zeros(x.shape[:-1])
-        out = vtk.vtkDoubleArray()
-        self._implicit.FunctionValue(numpy_to_vtk(flat, deep=True), out)
-        values = vtk_to_numpy(out).astype(float, copy=True)
-        lo, hi = self.bounds()
-        far = np.flatnonzero(np.any((flat < lo - FAR_DIAGONALS * self._diag) | (flat > hi + FAR_DIAGONALS * self._diag), axis=1))
-        if far.size:  # outside the bounding box, so outside the surface: the distance to the nearest point
-            near = self.mesh.closest_points(flat[far])[0]
-            values[far] = np.linalg.norm(flat[far] - near, axis=1)
-        return values.reshape(x.shape[:-1])
+        return self.mesh.signed_distance(flat)[0].reshape(x.shape[:-1])
 
     def gradient(self, x):
         """Central differences of value, h = 1e-6 * bounding-box diagonal; shape (..., 3)."""
