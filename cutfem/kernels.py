@@ -2848,3 +2848,51 @@ def grid_weights(X, n, m, drop):
             s = sx / se
             w[p, 0], w[p, e], w[p, f], w[p, g] = 1.0 - s, s, 0.0, 0.0
     return cols, w
+
+
+# ---------------------------------------------------------------------------------------------
+# the difference stencil of a user level set (cutfem.levelset.FunctionLevelSet)
+# ---------------------------------------------------------------------------------------------
+
+
+@njit(cache=True, error_model="numpy")
+def difference_stencil(x, h1, h2, hessian_offsets, out):
+    """The 25 points at which one call of a user's phi gives phi, its difference gradient and its
+    difference Hessian at each point x[i] (n, 3): rows 0-2 x + h1 e_j, rows 3-5 x - h1 e_j (the
+    gradient's steps h1[i]), rows 6-24 x + h2[i] s_k with s_k the offsets (19, 3) of the Hessian's
+    stencil (row 6 is x itself, s = 0).  Each coordinate is formed as numpy forms
+    ``x + h * e`` and ``x - h * e``, so the values are those of the separate calls, bit for bit.
+    One thread: it runs per chunk of :meth:`cutfem.levelset.LevelSet.closest_point`, between calls
+    of the user's numpy phi, and moves a few MB (threads would only wait for each other)."""
+    for i in range(x.shape[0]):
+        for j in range(3):
+            for k in range(3):
+                e = 1.0 if j == k else 0.0
+                out[i, j, k] = x[i, k] + h1[i] * e
+                out[i, 3 + j, k] = x[i, k] - h1[i] * e
+        for r in range(hessian_offsets.shape[0]):
+            for k in range(3):
+                out[i, 6 + r, k] = x[i, k] + h2[i] * hessian_offsets[r, k]
+
+
+@njit(cache=True, error_model="numpy")
+def difference_derivatives(f, h1, h2, pairs, value, gradient, hessian):
+    """phi, the central-difference gradient and Hessian at each point from phi at its 25 points
+    ``f`` (n, 25) (:func:`difference_stencil`): g_j = (f(x + h1 e_j) - f(x - h1 e_j)) / (2 h1),
+    H_ii = (f(x + 2 h2 e_i) - 2 f(x) + f(x - 2 h2 e_i)) / (4 h2^2) and
+    H_ij = (f(++) - f(+-) - f(-+) + f(--)) / (4 h2^2) for the pairs (i, j) (3, 2), the same
+    operations in the same order as :meth:`cutfem.levelset.FunctionLevelSet.gradient` and
+    ``hessian``."""
+    for i in range(f.shape[0]):
+        value[i] = f[i, 6]
+        for j in range(3):
+            gradient[i, j] = (f[i, j] - f[i, 3 + j]) / (2.0 * h1[i])
+        d = 4.0 * (h2[i] * h2[i])
+        for j in range(3):
+            hessian[i, j, j] = (f[i, 7 + j] - 2.0 * f[i, 6] + f[i, 10 + j]) / d
+        for q in range(3):
+            a, b = pairs[q, 0], pairs[q, 1]
+            o = 13 + 4 * q
+            v = (f[i, o] - f[i, o + 1] - f[i, o + 2] + f[i, o + 3]) / d
+            hessian[i, a, b] = v
+            hessian[i, b, a] = v

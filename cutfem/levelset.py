@@ -48,6 +48,10 @@ __all__ = [
 
 _EPS = np.finfo(float).eps
 
+#: points per chunk of :meth:`LevelSet.closest_point`: each chunk's Newton iteration runs on its own,
+#: with difference stencils of 25 points per point (a few MB) that stay in cache
+NEWTON_CHUNK = 1 << 14
+
 
 # ----------------------------------------------------------------------------------------------
 # input checking helpers
@@ -334,6 +338,11 @@ class LevelSet:
         """Hess phi(x) (symmetric) for points x of shape (..., 3); returns shape (..., 3, 3)."""
         raise NotImplementedError(f"{type(self).__name__} must implement hessian(x)")
 
+    def _value_gradient_hessian(self, x):
+        """(phi, grad phi, Hess phi) at points x (n, 3): what each Newton step of
+        :meth:`closest_point` needs (subclasses may get them from one evaluation)."""
+        return self.value(x), self.gradient(x), self.hessian(x)
+
     def closest_point(self, x) -> np.ndarray:
         """Closest point p(x) on S for points x of shape (..., 3) near S; returns shape (..., 3).
 
@@ -370,21 +379,52 @@ class LevelSet:
         y = x.reshape(-1, 3)
         if len(y) == 0:
             return x.copy()
+        p = np.empty_like(y)
+        bad = np.zeros(len(y), dtype=bool)
+        saddle = np.zeros(len(y), dtype=bool)
+        singular = np.zeros(len(y), dtype=bool)
+        for start in range(0, len(y), NEWTON_CHUNK):  # chunks: the stencils' temporaries stay in cache
+            part = slice(start, start + NEWTON_CHUNK)
+            p[part], bad[part], saddle[part], singular[part] = self._newton(y[part])
+        _raise_if_singular(singular, y, "the closest-point projection", "where grad phi = 0")
+        if bad.any():
+            first = y[bad][0]
+            raise ValueError(
+                f"the closest-point projection of {type(self).__name__} did not converge in "
+                f"{self.newton_steps} Newton steps for {int(bad.sum())} of {len(y)} point(s) "
+                f"(first: {first}, phi there {float(self.value(first))!r}); it is meant for points "
+                "near the surface (closer than its smallest curvature radius): evaluate the exact "
+                "fields only near S, or check that phi is smooth and has a nonzero gradient on S"
+            )
+        if saddle.any():
+            first = y[saddle][0]
+            raise ValueError(
+                f"the closest-point projection of {type(self).__name__} reached a point of S that is "
+                f"not nearest for {int(saddle.sum())} of {len(y)} point(s) (first: {first}): these "
+                "points lie beyond a focal point of S (too far from the surface for its curvature); "
+                "evaluate the exact fields only near S"
+            )
+        return p.reshape(x.shape)
+
+    def _newton(self, y):
+        """Newton's method of :meth:`closest_point` for the points y (n, 3): (p (n, 3), failed (n,),
+        saddle (n,), singular (n,)), failed where it did not converge or the step was not finite,
+        saddle where the point reached is not a local minimizer of the distance, singular where
+        grad phi(y) = 0 (no start)."""
         scale = np.maximum(1.0, np.max(np.abs(y), axis=-1))
         f = self.value(y)
         g = self.gradient(y)
         gg = np.einsum("ij,ij->i", g, g)
-        _raise_if_singular(gg == 0.0, y, "the closest-point projection", "where grad phi = 0")
-        mu = f / gg
-        p = y - mu[:, None] * g
-        todo = np.arange(len(y))
+        singular = gg == 0.0
+        with np.errstate(divide="ignore", invalid="ignore"):  # the singular points are left out below
+            mu = f / gg
+            p = y - mu[:, None] * g
+        todo = np.flatnonzero(~singular)
         saddle = np.zeros(len(y), dtype=bool)
         failed = np.zeros(len(y), dtype=bool)
         for _ in range(self.newton_steps + 1):
             pt, yt, mt, st = p[todo], y[todo], mu[todo], scale[todo]
-            f = self.value(pt)
-            g = self.gradient(pt)
-            hess = self.hessian(pt)
+            f, g, hess = self._value_gradient_hessian(pt)
             r = pt - yt + mt[:, None] * g
             gnorm = np.linalg.norm(g, axis=-1)
             done = (np.abs(f) <= 1e-12 * gnorm * st) & (
@@ -411,26 +451,8 @@ class LevelSet:
             todo = todo[ok & ~done]
             if len(todo) == 0:
                 break
-        bad = failed.copy()
-        bad[todo] = True
-        if bad.any():
-            first = y[bad][0]
-            raise ValueError(
-                f"the closest-point projection of {type(self).__name__} did not converge in "
-                f"{self.newton_steps} Newton steps for {int(bad.sum())} of {len(y)} point(s) "
-                f"(first: {first}, phi there {float(self.value(first))!r}); it is meant for points "
-                "near the surface (closer than its smallest curvature radius): evaluate the exact "
-                "fields only near S, or check that phi is smooth and has a nonzero gradient on S"
-            )
-        if saddle.any():
-            first = y[saddle][0]
-            raise ValueError(
-                f"the closest-point projection of {type(self).__name__} reached a point of S that is "
-                f"not nearest for {int(saddle.sum())} of {len(y)} point(s) (first: {first}): these "
-                "points lie beyond a focal point of S (too far from the surface for its curvature); "
-                "evaluate the exact fields only near S"
-            )
-        return p.reshape(x.shape)
+        failed[todo] = True
+        return p, failed, saddle, singular
 
     def bounds(self):
         """Axis-aligned bounding box of S as (lower (3,), upper (3,)), or None when not known."""
@@ -1081,6 +1103,33 @@ class FunctionLevelSet(LevelSet):
             return np.full(x.shape[:-1], self.step)
         scale = np.maximum(1.0, np.max(np.abs(x), axis=-1))
         return _EPS**power * scale
+
+    def _value_gradient_hessian(self, x):
+        """(phi, grad phi, Hess phi) at points x (n, 3) with as few calls of the user's callables as
+        the given derivatives allow: without derivatives one call of phi on the 25 points of both
+        difference stencils per point (:func:`cutfem.kernels.difference_stencil`; phi at x is the
+        Hessian stencil's centre), with a gradient but no Hessian one call of it at x and its 6
+        neighbours; the same numbers as :meth:`value`, :meth:`gradient` and :meth:`hessian`."""
+        from . import kernels
+
+        if self._hessian is not None:
+            return self.value(x), self.gradient(x), self.hessian(x)
+        x = np.ascontiguousarray(x, dtype=float)
+        h1 = np.ascontiguousarray(self._h(x, 1.0 / 3.0))
+        if self._gradient is not None:
+            offsets = h1[:, None, None] * np.eye(3)
+            xs = np.concatenate([x[:, None, :], x[:, None, :] + offsets, x[:, None, :] - offsets], axis=1)
+            g = self._call(self._gradient, xs, (3,), "gradient")  # (n, 7, 3)
+            hj = (g[:, 1:4, :] - g[:, 4:7, :]) / (2.0 * h1[:, None, None])
+            hess = np.swapaxes(hj, -1, -2)
+            return self.value(x), g[:, 0], 0.5 * (hess + np.swapaxes(hess, -1, -2))
+        h2 = np.ascontiguousarray(self._h(x, 0.25))
+        xs = np.empty((len(x), 25, 3))
+        kernels.difference_stencil(x, h1, h2, _HESSIAN_STENCIL, xs)
+        f = np.ascontiguousarray(self._call(self._value, xs, (), "value"))
+        value, gradient, hessian = np.empty(len(x)), np.empty((len(x), 3)), np.empty((len(x), 3, 3))
+        kernels.difference_derivatives(f, h1, h2, _PAIRS, value, gradient, hessian)
+        return value, gradient, hessian
 
     def value(self, x):
         """phi(x) from the user callable, shape (...); ValueError on a wrong output shape."""

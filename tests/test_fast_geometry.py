@@ -62,3 +62,73 @@ def test_signed_distance_needs_no_vtk():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=600)
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip() == "[]"
+
+
+# ------------------------------------------------------------------------------------------
+# closest-point Newton of a user level set
+# ------------------------------------------------------------------------------------------
+TORUS_TEXT = "(sqrt(x**2 + y**2) - 1.0)**2 + z**2 - 0.25"  # R = 1, r = 0.5, not a distance
+
+
+def _near_torus(n, seed=5):
+    from cutfem.levelset import Torus
+
+    rng = np.random.default_rng(seed)
+    u, v = rng.uniform(0, 2 * np.pi, (2, n))
+    on = Torus(1.0, 0.5).closest_point(np.stack([(1 + 0.5 * np.cos(v)) * np.cos(u), (1 + 0.5 * np.cos(v)) * np.sin(u), 0.5 * np.sin(v)], axis=1))
+    return on + 1e-2 * rng.normal(size=on.shape)
+
+
+@pytest.mark.parametrize("derivatives", ["none", "gradient"])
+def test_newton_calls_phi_once_per_step_with_the_same_numbers(derivatives):
+    """One call of the user's callables per Newton step (was three: value, gradient, Hessian), with
+    the numbers of the separate calls bit for bit, and the projection equal to the torus's closed
+    form."""
+    from cutfem.levelset import FunctionLevelSet, Torus
+
+    calls = []
+
+    def phi(x):
+        calls.append("value")
+        r = np.sqrt(x[..., 0] ** 2 + x[..., 1] ** 2)
+        return (r - 1.0) ** 2 + x[..., 2] ** 2 - 0.25
+
+    def grad(x):
+        calls.append("gradient")
+        r = np.sqrt(x[..., 0] ** 2 + x[..., 1] ** 2)
+        return np.stack([2 * (r - 1) * x[..., 0] / r, 2 * (r - 1) * x[..., 1] / r, 2 * x[..., 2]], axis=-1)
+
+    ls = FunctionLevelSet(phi, gradient=grad if derivatives == "gradient" else None)
+    x = _near_torus(500)
+    f, g, h = ls._value_gradient_hessian(x)
+    assert np.array_equal(f, ls.value(x)) and np.array_equal(g, ls.gradient(x)) and np.array_equal(h, ls.hessian(x))
+    calls.clear()
+    p = ls.closest_point(x)
+    np.testing.assert_allclose(p, Torus(1.0, 0.5).closest_point(x), atol=1e-12)
+    if derivatives == "none":  # phi and its difference gradient at x, then one call per step
+        assert 3 <= len(calls) <= 6, calls  # was 2 + 3 per step: 11 for the 3 steps these points take
+    else:  # phi and grad at x, then per step phi and one call of grad on 7 points
+        steps = calls.count("value") - 1
+        assert 1 <= steps <= 4 and calls.count("gradient") == 1 + steps, calls  # was 1 + 2 per step
+
+
+def test_newton_chunks_give_the_same_points_and_messages(monkeypatch):
+    """Chunks of points run their Newton iterations apart: the same bits as one chunk, and the
+    refusals count and name the points over all chunks."""
+    import cutfem.levelset as L
+
+    ls = L.FunctionLevelSet.from_expression(TORUS_TEXT)
+    x = _near_torus(300)
+    whole = ls.closest_point(x)
+    monkeypatch.setattr(L, "NEWTON_CHUNK", 7)
+    assert np.array_equal(ls.closest_point(x), whole)
+    # the axis (grad phi = 0 on it for a torus written this way... at z = 0, x = y = 0 phi is 0.75 and
+    # the gradient is (0, 0, 0) by symmetry): two such points in different chunks
+    bad = x.copy()
+    bad[3] = bad[250] = [0.0, 0.0, 0.0]
+    with pytest.raises(ValueError, match=r"undefined at 2 point\(s\) where grad phi = 0"):
+        ls.closest_point(bad)
+    far = x.copy()
+    far[[5, 200, 201]] = [[0.0, 0.0, 0.6], [0.0, 0.0, -0.6], [0.0, 0.0, 0.7]]
+    with pytest.raises(ValueError, match=r"for 3 of 300 point\(s\)|not nearest for 3 of 300"):
+        ls.closest_point(far)
