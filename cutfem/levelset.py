@@ -269,7 +269,10 @@ def _expression_function(text):
                          "(FunctionLevelSet.from_file)") from None
 
     def expression(x):
-        x = np.asarray(x, dtype=float)
+        from .intervals import Interval
+
+        if not isinstance(x, Interval):  # intervals: the band search's enclosures (cutfem.intervals)
+            x = np.asarray(x, dtype=float)
         names = {"__builtins__": {}, **_EXPRESSION_FUNCTIONS, **_EXPRESSION_CONSTANTS, "_integer_power": _integer_power,
                  "x": x[..., 0], "y": x[..., 1], "z": x[..., 2]}
         with np.errstate(all="ignore"):  # NaN/inf values are reported by the callers, with the points
@@ -277,6 +280,8 @@ def _expression_function(text):
                 out = eval(code, names)  # noqa: S307 - the tree was checked above
             except ArithmeticError as exc:  # constants alone: '1/0', '10.0**400' (arrays give inf or NaN)
                 raise ValueError(f"the level-set expression {text!r} cannot be evaluated: {exc} in its constants") from None
+        if isinstance(x, Interval):
+            return out
         if np.iscomplexobj(out):  # '(-8)**(1/3)': Python's power of a negative number is complex
             raise ValueError(f"the level-set expression {text!r} gives complex values (a negative number to a fractional "
                              "power?); a level set is real: write cbrt(-8) or -(8**(1/3))")
