@@ -427,33 +427,15 @@ class LevelSet:
         todo = np.flatnonzero(~singular)
         saddle = np.zeros(len(y), dtype=bool)
         failed = np.zeros(len(y), dtype=bool)
+        from . import kernels
+
         for _ in range(self.newton_steps + 1):
-            pt, yt, mt, st = p[todo], y[todo], mu[todo], scale[todo]
-            f, g, hess = self._value_gradient_hessian(pt)
-            r = pt - yt + mt[:, None] * g
-            gnorm = np.linalg.norm(g, axis=-1)
-            done = (np.abs(f) <= 1e-12 * gnorm * st) & (
-                np.linalg.norm(r, axis=-1) <= 1e-12 * st + 1e-9 * np.linalg.norm(yt - pt, axis=-1)
-            )
-            if done.any():
-                # second-order condition: n n^T + P (I + mu Hess) P positive definite
-                n = g[done] / gnorm[done, None]
-                nn = n[:, :, None] * n[:, None, :]
-                proj = np.eye(3) - nn
-                m = proj @ (np.eye(3) + mt[done, None, None] * hess[done]) @ proj + nn
-                saddle[todo[done]] = ~_positive_definite_3x3(m)
-            # one Newton step for every point, also the converged ones (a last, polishing step that
-            # costs no evaluation: their residual is squared once more)
-            jac = np.zeros((len(todo), 4, 4))
-            jac[:, :3, :3] = np.eye(3) + mt[:, None, None] * hess
-            jac[:, :3, 3] = g
-            jac[:, 3, :3] = g
-            d = _batched_solve(jac, -np.concatenate([r, f[:, None]], axis=1))
-            ok = np.all(np.isfinite(d), axis=-1)
-            p[todo[ok]] += d[ok, :3]
-            mu[todo[ok]] += d[ok, 3]
-            failed[todo[~ok & ~done]] = True
-            todo = todo[ok & ~done]
+            f, g, hess = self._value_gradient_hessian(p[todo])
+            keep = np.empty(len(todo), dtype=bool)
+            kernels.closest_point_newton_step(todo, p, y, mu, scale, np.ascontiguousarray(f, dtype=float),
+                                              np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(hess, dtype=float),
+                                              saddle, failed, keep)
+            todo = todo[keep]
             if len(todo) == 0:
                 break
         failed[todo] = True
