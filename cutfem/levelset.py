@@ -466,10 +466,24 @@ class LevelSet:
         """
         return self._curvature_and_normal(_as_points(x))[0]
 
+    def _gradient_hessian(self, x):
+        """(grad phi, Hess phi) at points x (n, 3) (subclasses may get both from one evaluation)."""
+        return self.gradient(x), self.hessian(x)
+
     def _curvature_and_normal(self, x):
-        """(div n, n) at the points x (..., 3) from one gradient and one Hessian evaluation."""
-        g = self.gradient(x)
-        hess = self.hessian(x)
+        """(div n, n) at the points x (..., 3) from one gradient and one Hessian evaluation, by
+        chunks of :data:`NEWTON_CHUNK` points (the difference stencils of a FunctionLevelSet stay
+        in cache)."""
+        flat = x.reshape(-1, 3)
+        if len(flat) > NEWTON_CHUNK:
+            g, hess = np.empty((len(flat), 3)), np.empty((len(flat), 3, 3))
+            for start in range(0, len(flat), NEWTON_CHUNK):
+                part = slice(start, start + NEWTON_CHUNK)
+                g[part], hess[part] = self._gradient_hessian(flat[part])
+            g, hess = g.reshape(x.shape), hess.reshape(x.shape + (3,))
+        else:
+            g, hess = self._gradient_hessian(flat)
+            g, hess = g.reshape(x.shape), hess.reshape(x.shape + (3,))
         norm = np.linalg.norm(g, axis=-1)
         _raise_if_singular(norm == 0.0, x, "the mean curvature", "where grad phi = 0")
         n = g / norm[..., None]
@@ -1090,6 +1104,10 @@ class FunctionLevelSet(LevelSet):
             return np.full(x.shape[:-1], self.step)
         scale = np.maximum(1.0, np.max(np.abs(x), axis=-1))
         return _EPS**power * scale
+
+    def _gradient_hessian(self, x):
+        """(grad phi, Hess phi) at points x (n, 3) from :meth:`_value_gradient_hessian`."""
+        return self._value_gradient_hessian(x)[1:]
 
     def _value_gradient_hessian(self, x):
         """(phi, grad phi, Hess phi) at points x (n, 3) with as few calls of the user's callables as

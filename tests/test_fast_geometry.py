@@ -120,8 +120,13 @@ def test_newton_chunks_give_the_same_points_and_messages(monkeypatch):
     ls = L.FunctionLevelSet.from_expression(TORUS_TEXT)
     x = _near_torus(300)
     whole = ls.closest_point(x)
+    kappa = ls.exact_mean_curvature_vector(x)
     monkeypatch.setattr(L, "NEWTON_CHUNK", 7)
     assert np.array_equal(ls.closest_point(x), whole)
+    assert np.array_equal(ls.exact_mean_curvature_vector(x), kappa)
+    from cutfem.levelset import Torus
+
+    np.testing.assert_allclose(kappa, Torus(1.0, 0.5).exact_mean_curvature_vector(x), atol=1e-6)
     # the axis (grad phi = 0 on it for a torus written this way... at z = 0, x = y = 0 phi is 0.75 and
     # the gradient is (0, 0, 0) by symmetry): two such points in different chunks
     bad = x.copy()
