@@ -3,7 +3,7 @@
 The triangles are put in a bounding-volume hierarchy once: a complete binary tree in heap order
 (node k has children 2k and 2k + 1; root 1) with leaves of :data:`LEAF` triangles, built top down
 by median splits of the triangles' centroids along the longest side of each node's box (one
-vectorized sort per level), and boxes that are the unions of their children's.
+vectorized partition per level), and boxes that are the unions of their children's.
 
 A query walks the tree from the root, nearer child first, and skips a subtree whose box is farther
 than the nearest triangle found so far (the box contains its triangles, so none of them can be
@@ -36,23 +36,25 @@ LEAF = 4
 
 def _median_split_order(c: np.ndarray, slots: int) -> np.ndarray:
     """The order of the triangles (centroids c (M, 3)) in the leaves of the complete tree of
-    ``slots`` = 2**depth * LEAF places: top down, each node's places are sorted by the centroids'
-    coordinate along the longest side of their bounding box and halved (a median split), one
-    vectorized sort per level over all its nodes.  The empty places (NaN centroids, sorted last) are
-a suffix of the root's places and stay a suffix of the order at every level, so the triangles fill
-the places 0 to M - 1."""
+    ``slots`` = 2**depth * LEAF places: top down, each node's places are split at their middle by
+    the centroids' coordinate along the longest side of their bounding box (a median split by
+    ``argpartition``, one vectorized call per level over all its nodes).  The empty places (NaN
+    centroids, which partition after every number) go right at each split, so at every level one
+    node at most holds both triangles and empty places, with only triangles to its left; sorting
+    that leaf's places puts the triangles in the places 0 to M - 1."""
     m = len(c)
     ids = np.concatenate([np.arange(m), np.full(slots - m, -1)])
     cc = np.concatenate([c, np.full((slots - m, 3), np.nan)])
     nodes = 1
     while slots // nodes > LEAF:
-        seg = cc[ids].reshape(nodes, slots // nodes, 3)  # padding is NaN: ignored by the bounds
-        real = ~np.isnan(seg)
-        extent = np.where(real, seg, -np.inf).max(axis=1) - np.where(real, seg, np.inf).min(axis=1)
-        axis = np.argmax(np.where(np.isfinite(extent), extent, -1.0), axis=1)  # (nodes,)
-        key = np.take_along_axis(seg, axis[:, None, None], axis=2)[..., 0]  # NaN sorts last
-        ids = np.take_along_axis(ids.reshape(nodes, -1), np.argsort(key, axis=1, kind="stable"), axis=1).ravel()
+        size = slots // nodes
+        seg = cc[ids].reshape(nodes, size, 3)
+        extent = np.fmax.reduce(seg, axis=1) - np.fmin.reduce(seg, axis=1)  # fmax, fmin skip the NaN
+        axis = np.argmax(np.where(np.isnan(extent), -1.0, extent), axis=1)  # (nodes,)
+        key = np.take_along_axis(seg, axis[:, None, None], axis=2)[..., 0]
+        ids = np.take_along_axis(ids.reshape(nodes, size), np.argpartition(key, size // 2 - 1, axis=1), axis=1).ravel()
         nodes *= 2
+    ids = np.take_along_axis(ids.reshape(-1, LEAF), np.argsort(ids.reshape(-1, LEAF) < 0, axis=1, kind="stable"), axis=1).ravel()
     return ids[ids >= 0]
 
 

@@ -570,7 +570,8 @@ def _closest_on_triangles(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nda
     d5 = ab.(x - c), d6 = ac.(x - c), the Voronoi region of x among the three vertices, the three
     edges and the face is decided by signs, and the point is a vertex, a + t ab, a + t ac,
     b + t (c - b) with t in [0, 1], or a + v ab + w ac with v, w >= 0, v + w <= 1.  The result lies
-    on the triangle to rounding of its corners' coordinates, whatever |x| is (no squares of x)."""
+    on the triangle to rounding of its corners' coordinates, whatever |x| is (no squares of x).  The
+    vectorized form of the region test that :mod:`cutfem.closest` compiles; the tests' reference."""
     dot = lambda u, v: np.einsum("...i,...i->...", u, v)  # noqa: E731
     ab, ac = b - a, c - a
     d1, d2 = dot(ab, x - a), dot(ac, x - a)
@@ -604,11 +605,6 @@ def _check_near(x: np.ndarray, origin: np.ndarray) -> None:
             f"the nearest points of {int(huge.sum())} point(s) farther than 1e150 from the mesh (first: {x[huge][0]}) "
             "are not computed: the squared distances of the search overflow there."
         )
-
-
-def _lengths(v: np.ndarray) -> np.ndarray:
-    """|v| along the last axis by ``hypot`` (no squares that overflow or underflow)."""
-    return np.hypot(np.hypot(v[..., 0], v[..., 1]), v[..., 2])
 
 
 # ---------------------------------------------------------------------------------------------
