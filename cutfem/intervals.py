@@ -3,7 +3,7 @@
 An :class:`Interval` is a pair of arrays ``lo <= hi`` standing for the sets [lo, hi] elementwise.
 Passed to a user's phi in place of the points (x[..., k] gives the interval of coordinate k), the
 arithmetic of phi (``+ - * /``, integer powers, ``sqrt exp log abs``, ``minimum maximum``, ``sin
-cos``) is carried out on intervals, each result rounded outward (one ulp for the exactly rounded
+cos``, ``numpy.sum``) is carried out on intervals, each result rounded outward (one ulp for the exactly rounded
 operations + - * / sqrt, four ulps for the library functions exp log sin cos), so the result
 encloses every value phi takes on the box: if 0 is not in it, phi has no zero in the box.  That is
 the natural interval extension (Moore, Interval Analysis, 1966): a rigorous enclosure, and its width
@@ -144,7 +144,17 @@ class Interval:
         raise NoEnclosure(f"no interval version of numpy.{ufunc.__name__}")
 
     def __array_function__(self, func, types, args, kwargs):
+        if func is np.sum and len(args) == 1 and set(kwargs) <= {"axis"}:
+            return self._sum(kwargs.get("axis"))
         raise NoEnclosure(f"no interval version of numpy.{func.__name__}")
+
+    def _sum(self, axis):
+        """The sum along ``axis``, widened by 2 n eps times the sum of the ends' magnitudes (n terms):
+        more than the rounding of any order of summation."""
+        lo, hi = self.lo.sum(axis=axis), self.hi.sum(axis=axis)
+        n = self.lo.size // max(lo.size, 1)
+        slack = 2.0 * n * np.finfo(float).eps * np.maximum(np.abs(self.lo).sum(axis=axis), np.abs(self.hi).sum(axis=axis))
+        return Interval(_down(lo - slack), _up(hi + slack))
 
     def __bool__(self):
         raise NoEnclosure("an interval has no truth value (phi branches on its argument)")

@@ -212,7 +212,7 @@ def test_genus2_memory_estimate_uses_the_local_bound():
     assert banded.n_tets == full.n_tets and banded.area == pytest.approx(full.area, rel=1e-14)
 
 
-@pytest.mark.parametrize("name", ["polynomial", "rational", "transcendental", "minmax-abs"])
+@pytest.mark.parametrize("name", ["polynomial", "rational", "transcendental", "minmax-abs", "sum"])
 def test_interval_enclosure_contains_every_sampled_value(name):
     """The enclosure of phi over random boxes contains phi at 40 random points of each box and at
     its corners, and shrinks with the box (independent reference: the point values)."""
@@ -224,6 +224,7 @@ def test_interval_enclosure_contains_every_sampled_value(name):
         "transcendental": lambda x: np.sin(3 * x[..., 0]) * np.cos(2 * x[..., 1]) + np.exp(x[..., 2]) - np.log(2 + x[..., 0] ** 2)
                                     + np.sqrt(x[..., 1] ** 2 + x[..., 2] ** 2),
         "minmax-abs": lambda x: np.maximum(np.abs(x[..., 0]) - 1, np.minimum(x[..., 1], -x[..., 2])) ** 2 - 0.1,
+        "sum": lambda x: np.sum(x**2, axis=-1) - 1.0 + np.sum(x, axis=-1) ** 3,
     }
     fn = fns[name]
     rng = np.random.default_rng(3)
