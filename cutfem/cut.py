@@ -54,6 +54,15 @@ cells are refined coarse to fine, and a block with centre c and half-diagonal r 
 ``|phi(c)| > L r``, which proves phi has no zero there.  Only the cells that survive to the finest
 level have their corner values evaluated.  Without a bound every node is evaluated.
 
+A global bound is generous where |grad phi| is small against it (the genus-2 polynomial has
+L = 450 on [-2, 2]^3 and |grad phi| of order 1-30 on S), and the band grows by L / |grad phi| cells.
+The local bound: for a user's phi (:class:`~cutfem.levelset.FunctionLevelSet`) each kept block is
+also evaluated on its closed box in interval arithmetic with outward rounding
+(:mod:`cutfem.intervals`); when the enclosure lies above tol or below -tol (the zero rule's snap),
+every node of the block keeps one sign after the snap, so none of its cells is cut and the block
+is dropped.  This is a proof, not a sample: a cell with a sign change is never dropped by it.
+Where phi uses an operation without an interval version, the global bound alone decides.
+
 Trust at the edges: a bound that is too small would drop cut cells silently.  The bound is checked
 where it is relied on, at no extra evaluation: each kept block's value against its 8 children's
 (centres r / 2 apart) and each band cell's centre value against its 8 corners' (|spacing| / 2
@@ -480,6 +489,11 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0, surve
     r / 2 from the block's centre, so |phi(child) - phi(parent)| <= L r / 2 must hold; a violation
     raises CutError (see :func:`_lipschitz_broken`) instead of silently dropping cells.  This costs
     one comparison per evaluated centre; it samples the bound, it does not prove it.
+
+    With ``enclose`` (:func:`_enclosure_function`) a block kept by the bound is dropped when phi's
+    enclosure over the block's closed box (its cells inside the box) lies above ``tol`` or below
+    ``-tol``: every node of its cells then has the enclosure's sign after the zero rule's snap, so
+    no cell of the block has corners of both signs (see the module docstring).
 
     The memory was estimated before the search from a survey of the surface
     (:func:`_check_cut_memory`).  ``survey`` = ``(area, edge, per_tet)``, the survey's area and
