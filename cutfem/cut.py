@@ -55,7 +55,7 @@ cells are refined coarse to fine, and a block with centre c and half-diagonal r 
 level have their corner values evaluated.  Without a bound every node is evaluated.
 
 A global bound is generous where |grad phi| is small against it (the genus-2 polynomial has
-L = 450 on [-2, 2]^3 and |grad phi| of order 1-30 on S), and the band grows by L / |grad phi| cells.
+L = 450 on [-2, 2]^3 and |grad phi| between 2 and 16 on S), and the band grows by L / |grad phi| cells.
 The local bound: for a user's phi (:class:`~cutfem.levelset.FunctionLevelSet`) each kept block is
 also evaluated on its closed box in interval arithmetic with outward rounding
 (:mod:`cutfem.intervals`); when the enclosure lies above tol or below -tol (the zero rule's snap),
