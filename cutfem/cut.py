@@ -59,6 +59,15 @@ cells are refined coarse to fine, and a block with centre c and half-diagonal r 
 ``|phi(c)| > L r``, which proves phi has no zero there.  Only the cells that survive to the finest
 level have their corner values evaluated.  Without a bound every node is evaluated.
 
+A global bound is generous where |grad phi| is small against it (the genus-2 polynomial has
+L = 450 on [-2, 2]^3 and |grad phi| between 2 and 16 on S), and the band grows by L / |grad phi| cells.
+The local bound: for a user's phi (:class:`~cutfem.levelset.FunctionLevelSet`) each kept block is
+also evaluated on its closed box in interval arithmetic with outward rounding
+(:mod:`cutfem.intervals`); when the enclosure lies above tol or below -tol (the zero rule's snap),
+every node of the block keeps one sign after the snap, so none of its cells is cut and the block
+is dropped.  This is a proof, not a sample: a cell with a sign change is never dropped by it.
+Where phi uses an operation without an interval version, the global bound alone decides.
+
 Trust at the edges: a bound that is too small would drop cut cells silently.  The bound is checked
 where it is relied on, at no extra evaluation: each kept block's value against its 8 children's
 (centres r / 2 apart) and each band cell's centre value against its 8 corners' (|spacing| / 2
@@ -174,6 +183,43 @@ def _as_values_function(levelset):
 
         return FunctionLevelSet(levelset).value
     raise TypeError("levelset must be a LevelSet, a callable f(x) with x of shape (..., 3), or an array of nodal values")
+
+
+def _enclosure_function(levelset):
+    """``enclose(lower (k, 3), upper (k, 3)) -> (lo (k,), hi (k,)) or None``: enclosures of the user's
+    phi over boxes by interval arithmetic (:mod:`cutfem.intervals`), for a FunctionLevelSet or a
+    plain callable; None for the other level sets.  After the first failure (phi uses an operation
+    with no interval version) it answers None at once: the band search then relies on the global
+    Lipschitz bound alone."""
+    from .intervals import enclosure
+    from .levelset import FunctionLevelSet, LevelSet
+
+    if isinstance(levelset, FunctionLevelSet):
+        fn = levelset._value
+    elif callable(levelset) and not isinstance(levelset, LevelSet):
+        fn = levelset
+    else:
+        return None
+    works = [True]
+
+    def enclose(lower, upper):
+        out = enclosure(fn, lower, upper) if works[0] else None
+        works[0] = out is not None
+        return out
+
+    return enclose
+
+
+def _enclosed_away(enclose, lower, upper, tol: float):
+    """Whether phi is proved to keep one sign on each box [lower, upper] (k, 3): its enclosure
+    (``enclose``, see :func:`_enclosure_function`) lies above ``tol`` or below ``-tol`` (the zero
+    rule's snap: every value in the box is then nonzero after the snap, of the enclosure's sign).
+    All False without an enclosure."""
+    out = None if enclose is None else enclose(lower, upper)
+    if out is None:
+        return np.zeros(len(lower), dtype=bool)
+    lo, hi = out
+    return (lo > tol) | (hi < -tol)
 
 
 def _check_finite(values, where):
@@ -304,7 +350,7 @@ SURVEY_BLOCKS = 1 << 14
 SURVEY_MAX_BLOCKS = 1 << 18
 
 
-def _surface_survey(box: StructuredBox, f, lipschitz: float) -> tuple[float, float]:
+def _surface_survey(box: StructuredBox, f, lipschitz: float, enclose=None) -> tuple[float, float]:
     """``(area, edge)``: the area of S as the band search sees it, ``A = L * integral over S of
     1 / |grad phi|`` (the area itself for a signed distance), and the edge of the survey's finest cubes.
 
@@ -323,7 +369,8 @@ def _surface_survey(box: StructuredBox, f, lipschitz: float) -> tuple[float, flo
     spacings 0.04-0.005, spheres of radius 0.05 and 0.1 at 0.004-0.001): 0.96-1.03 times it, and
     0.92 for the thin torus at 0.04 (five cells across its tube); the same A at every spacing;
     about 60-150 thousand evaluations, 10-50 ms.  Non-finite values keep their cube (the band
-    search names them)."""
+    search names them).  With ``enclose`` (:func:`_enclosure_function`) a cube whose enclosure keeps
+    one sign is dropped too, as the band search drops it."""
     lo, hi = box.lower.astype(float), box.upper.astype(float)
     extent = float(np.max(hi - lo))
     edge = 2.0 ** np.ceil(np.log2(extent / 8))
@@ -337,6 +384,9 @@ def _surface_survey(box: StructuredBox, f, lipschitz: float) -> tuple[float, flo
         r = 0.5 * np.sqrt(3.0) * edge + np.linalg.norm(centre - point, axis=1)
         phi = np.asarray(f(point), dtype=float).reshape(-1)
         keep = ~(np.abs(phi) > _lipschitz_slack(r, lipschitz, tol))
+        if enclose is not None and keep.any():
+            ids = np.flatnonzero(keep)
+            keep[ids[_enclosed_away(enclose, np.clip(blocks[ids] * edge, lo, hi), np.clip((blocks[ids] + 1) * edge, lo, hi), tol)]] = False
         kept = int(np.count_nonzero(keep))
         previous, area = area, kept * edge**2 / np.sqrt(3.0)
         if kept == 0 or kept >= SURVEY_MAX_BLOCKS or edge < 1e-6 * extent or (kept >= SURVEY_BLOCKS and area <= 1.1 * previous):
@@ -380,7 +430,7 @@ def _cut_bytes(cells, spacing, area, per_tet=None) -> tuple[float, float, float,
     return cut, (0.0 if per_tet is None else M.SOLVE_BASE_BYTES + per_tet * tets), band, tets
 
 
-def _check_cut_memory(box: StructuredBox, f, lipschitz, per_tet=None, survey=None):
+def _check_cut_memory(box: StructuredBox, f, lipschitz, per_tet=None, survey=None, enclose=None):
     """Refuse, before anything large is allocated, the cut of ``box`` (and, with ``per_tet``, the
     run after it) when :func:`_cut_bytes` exceeds :func:`cutfem.memory.available_memory`.  Returns
     the survey ``(area, edge)`` that the band search's levels check against (:func:`_band_cells`),
@@ -401,7 +451,7 @@ def _check_cut_memory(box: StructuredBox, f, lipschitz, per_tet=None, survey=Non
     if lipschitz is not None and survey is None:
         if max(_cut_bytes(cells, h, np.inf, per_tet)[:2]) <= available:
             return None
-        survey = _surface_survey(box, f, float(lipschitz))
+        survey = _surface_survey(box, f, float(lipschitz), enclose)
     area = None if lipschitz is None else survey[0]
     cut, after, band, tets = _cut_bytes(cells, h, area, per_tet)
     if cut <= available and after <= available:
@@ -425,7 +475,8 @@ def cut_memory_estimate(background: StructuredBox, levelset, solve_bytes_per_tet
     band).  Surveys the surface when the level set declares a Lipschitz bound
     (:func:`_surface_survey`: tens of thousands of evaluations); see :func:`_cut_bytes`."""
     lipschitz = _declared_lipschitz(levelset)
-    area = None if lipschitz is None else _surface_survey(background, _as_values_function(levelset), float(lipschitz))[0]
+    area = None if lipschitz is None else _surface_survey(background, _as_values_function(levelset), float(lipschitz),
+                                                          _enclosure_function(levelset))[0]
     return _cut_bytes(background.cells, background.spacing, area, solve_bytes_per_tet)[:2]
 
 
@@ -483,7 +534,7 @@ def _mesh_distance_message(levelset, seen: str, crossing_only: bool = False) -> 
             "closed surface without self-intersections (e.g. remesh it, or merge the overlapping parts).")
 
 
-def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0, survey=None):
+def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0, survey=None, enclose=None):
     """Cells that may contain a zero of phi, by coarse-to-fine block pruning.
 
     Returns ``(cell ids (k,), phi at their centres (k,))``.  A block of ``size`` cells (centre c,
@@ -492,6 +543,11 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0, surve
     r / 2 from the block's centre, so |phi(child) - phi(parent)| <= L r / 2 must hold; a violation
     raises CutError (see :func:`_lipschitz_broken`) instead of silently dropping cells.  This costs
     one comparison per evaluated centre; it samples the bound, it does not prove it.
+
+    With ``enclose`` (:func:`_enclosure_function`) a block kept by the bound is dropped when phi's
+    enclosure over the block's closed box (its cells inside the box) lies above ``tol`` or below
+    ``-tol``: every node of its cells then has the enclosure's sign after the zero rule's snap, so
+    no cell of the block has corners of both signs (see the module docstring).
 
     The memory was estimated before the search from a survey of the surface
     (:func:`_check_cut_memory`).  ``survey`` = ``(area, edge, per_tet)``, the survey's area and
@@ -527,6 +583,12 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0, surve
             _check_finite(phi, "block centres of the band search")
         if broken:
             _lipschitz_broken(broken, ratio, lipschitz)
+        if enclose is not None and kept:
+            ids = np.flatnonzero(keep)
+            first = blocks[ids]
+            away = _enclosed_away(enclose, box.coordinates(first), box.coordinates(np.minimum(first + size, cells)), tol)
+            keep[ids[away]] = False
+            kept -= int(np.count_nonzero(away))
         if survey is not None and size * float(np.max(box.spacing)) <= survey[1]:
             area = kept * float(size) ** 2 * float(np.prod(box.spacing)) / float(np.linalg.norm(box.spacing))
             if area > BAND_MARGIN * survey[0]:
@@ -553,7 +615,7 @@ _KUHN_MIXED = (KUHN_CORNER_COUNTS > 0) & (KUHN_CORNER_COUNTS < 4)
 cube corners with phi < 0 (bit c for corner c)."""
 
 
-def _candidates_structured(box: StructuredBox, f, lipschitz, survey=None):
+def _candidates_structured(box: StructuredBox, f, lipschitz, survey=None, enclose=None):
     """Candidates of a structured box.  With a Lipschitz bound only the corners of the band cells
     (:func:`_band_cells`, which checks the memory at its levels against ``survey``) are evaluated,
     each distinct node once (labels = their rank among those nodes); the corner
@@ -574,7 +636,7 @@ def _candidates_structured(box: StructuredBox, f, lipschitz, survey=None):
                                                             _KUHN_MIXED, KUHN_TETS)
     else:
         tol = _zero_tolerance(box, lipschitz)  # the band search's slack, not the snap's tolerance
-        cell_ids, centre_phi = _band_cells(box, f, float(lipschitz), tol, survey)
+        cell_ids, centre_phi = _band_cells(box, f, float(lipschitz), tol, survey, enclose)
         label_ids, corner = dense_unique(box.cell_corner_ids(cell_ids), box.n_points)
         values = np.asarray(f(box.node_coordinates(label_ids)), dtype=float)
         _check_finite(values, "background nodes near the surface")
@@ -1008,9 +1070,10 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
         cand = _candidates_full(background, values)
     elif structured:
         f = _as_values_function(levelset)
-        survey = _check_cut_memory(background, f, lipschitz, solve_bytes_per_tet)
+        enclose = _enclosure_function(levelset) if band else None
+        survey = _check_cut_memory(background, f, lipschitz, solve_bytes_per_tet, enclose=enclose)
         try:
-            cand = _candidates_structured(background, f, lipschitz, None if survey is None else (*survey, solve_bytes_per_tet))
+            cand = _candidates_structured(background, f, lipschitz, None if survey is None else (*survey, solve_bytes_per_tet), enclose)
         except _BoundBroken as exc:
             if mesh_distance:  # its bound 1 is no declaration of the user's: say what is wrong with the mesh
                 raise CutError(_mesh_distance_message(

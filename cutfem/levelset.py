@@ -24,7 +24,7 @@ Torus             signed distance to a ring torus with axis z
 Ellipsoid         the quadratic (x/a)^2 + (y/b)^2 + (z/c)^2 - 1 (not a distance)
 FunctionLevelSet  user callables, a text expression in x, y, z, or a Python file; derivatives by
                   central differences when not given
-SignedDistance    signed distance to a closed triangle mesh, evaluated by VTK
+SignedDistance    signed distance to a closed triangle mesh (a compiled nearest-triangle search)
 
 and the function :func:`interpolate` (nodal values of a level set, with a finiteness check).
 """
@@ -47,6 +47,10 @@ __all__ = [
 ]
 
 _EPS = np.finfo(float).eps
+
+#: points per chunk of :meth:`LevelSet.closest_point`: each chunk's Newton iteration runs on its own,
+#: with difference stencils of 25 points per point (a few MB) that stay in cache
+NEWTON_CHUNK = 1 << 14
 
 
 # ----------------------------------------------------------------------------------------------
@@ -267,7 +271,10 @@ def _expression_function(text):
                          "(FunctionLevelSet.from_file)") from None
 
     def expression(x):
-        x = np.asarray(x, dtype=float)
+        from .intervals import Interval
+
+        if not isinstance(x, Interval):  # intervals: the band search's enclosures (cutfem.intervals)
+            x = np.asarray(x, dtype=float)
         names = {"__builtins__": {}, **_EXPRESSION_FUNCTIONS, **_EXPRESSION_CONSTANTS, "_integer_power": _integer_power,
                  "x": x[..., 0], "y": x[..., 1], "z": x[..., 2]}
         with np.errstate(all="ignore"):  # NaN/inf values are reported by the callers, with the points
@@ -275,6 +282,8 @@ def _expression_function(text):
                 out = eval(code, names)  # noqa: S307 - the tree was checked above
             except ArithmeticError as exc:  # constants alone: '1/0', '10.0**400' (arrays give inf or NaN)
                 raise ValueError(f"the level-set expression {text!r} cannot be evaluated: {exc} in its constants") from None
+        if isinstance(x, Interval):
+            return out
         if np.iscomplexobj(out):  # '(-8)**(1/3)': Python's power of a negative number is complex
             raise ValueError(f"the level-set expression {text!r} gives complex values (a negative number to a fractional "
                              "power?); a level set is real: write cbrt(-8) or -(8**(1/3))")
@@ -336,6 +345,11 @@ class LevelSet:
         """Hess phi(x) (symmetric) for points x of shape (..., 3); returns shape (..., 3, 3)."""
         raise NotImplementedError(f"{type(self).__name__} must implement hessian(x)")
 
+    def _value_gradient_hessian(self, x):
+        """(phi, grad phi, Hess phi) at points x (n, 3): what each Newton step of
+        :meth:`closest_point` needs (subclasses may get them from one evaluation)."""
+        return self.value(x), self.gradient(x), self.hessian(x)
+
     def closest_point(self, x) -> np.ndarray:
         """Closest point p(x) on S for points x of shape (..., 3) near S; returns shape (..., 3).
 
@@ -372,49 +386,14 @@ class LevelSet:
         y = x.reshape(-1, 3)
         if len(y) == 0:
             return x.copy()
-        scale = np.maximum(1.0, np.max(np.abs(y), axis=-1))
-        f = self.value(y)
-        g = self.gradient(y)
-        gg = np.einsum("ij,ij->i", g, g)
-        _raise_if_singular(gg == 0.0, y, "the closest-point projection", "where grad phi = 0")
-        mu = f / gg
-        p = y - mu[:, None] * g
-        todo = np.arange(len(y))
+        p = np.empty_like(y)
+        bad = np.zeros(len(y), dtype=bool)
         saddle = np.zeros(len(y), dtype=bool)
-        failed = np.zeros(len(y), dtype=bool)
-        for _ in range(self.newton_steps + 1):
-            pt, yt, mt, st = p[todo], y[todo], mu[todo], scale[todo]
-            f = self.value(pt)
-            g = self.gradient(pt)
-            hess = self.hessian(pt)
-            r = pt - yt + mt[:, None] * g
-            gnorm = np.linalg.norm(g, axis=-1)
-            done = (np.abs(f) <= 1e-12 * gnorm * st) & (
-                np.linalg.norm(r, axis=-1) <= 1e-12 * st + 1e-9 * np.linalg.norm(yt - pt, axis=-1)
-            )
-            if done.any():
-                # second-order condition: n n^T + P (I + mu Hess) P positive definite
-                n = g[done] / gnorm[done, None]
-                nn = n[:, :, None] * n[:, None, :]
-                proj = np.eye(3) - nn
-                m = proj @ (np.eye(3) + mt[done, None, None] * hess[done]) @ proj + nn
-                saddle[todo[done]] = ~_positive_definite_3x3(m)
-            # one Newton step for every point, also the converged ones (a last, polishing step that
-            # costs no evaluation: their residual is squared once more)
-            jac = np.zeros((len(todo), 4, 4))
-            jac[:, :3, :3] = np.eye(3) + mt[:, None, None] * hess
-            jac[:, :3, 3] = g
-            jac[:, 3, :3] = g
-            d = _batched_solve(jac, -np.concatenate([r, f[:, None]], axis=1))
-            ok = np.all(np.isfinite(d), axis=-1)
-            p[todo[ok]] += d[ok, :3]
-            mu[todo[ok]] += d[ok, 3]
-            failed[todo[~ok & ~done]] = True
-            todo = todo[ok & ~done]
-            if len(todo) == 0:
-                break
-        bad = failed.copy()
-        bad[todo] = True
+        singular = np.zeros(len(y), dtype=bool)
+        for start in range(0, len(y), NEWTON_CHUNK):  # chunks: the stencils' temporaries stay in cache
+            part = slice(start, start + NEWTON_CHUNK)
+            p[part], bad[part], saddle[part], singular[part] = self._newton(y[part])
+        _raise_if_singular(singular, y, "the closest-point projection", "where grad phi = 0")
         if bad.any():
             first = y[bad][0]
             raise ValueError(
@@ -433,6 +412,36 @@ class LevelSet:
                 "evaluate the exact fields only near S"
             )
         return p.reshape(x.shape)
+
+    def _newton(self, y):
+        """Newton's method of :meth:`closest_point` for the points y (n, 3): (p (n, 3), failed (n,),
+        saddle (n,), singular (n,)), failed where it did not converge or the step was not finite,
+        saddle where the point reached is not a local minimizer of the distance, singular where
+        grad phi(y) = 0 (no start)."""
+        scale = np.maximum(1.0, np.max(np.abs(y), axis=-1))
+        f = self.value(y)
+        g = self.gradient(y)
+        gg = np.einsum("ij,ij->i", g, g)
+        singular = gg == 0.0
+        with np.errstate(divide="ignore", invalid="ignore"):  # the singular points are left out below
+            mu = f / gg
+            p = y - mu[:, None] * g
+        todo = np.flatnonzero(~singular)
+        saddle = np.zeros(len(y), dtype=bool)
+        failed = np.zeros(len(y), dtype=bool)
+        from . import kernels
+
+        for _ in range(self.newton_steps + 1):
+            f, g, hess = self._value_gradient_hessian(p[todo])
+            keep = np.empty(len(todo), dtype=bool)
+            kernels.closest_point_newton_step(todo, p, y, mu, scale, np.ascontiguousarray(f, dtype=float),
+                                              np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(hess, dtype=float),
+                                              saddle, failed, keep)
+            todo = todo[keep]
+            if len(todo) == 0:
+                break
+        failed[todo] = True
+        return p, failed, saddle, singular
 
     def bounds(self):
         """Axis-aligned bounding box of S as (lower (3,), upper (3,)), or None when not known."""
@@ -459,10 +468,24 @@ class LevelSet:
         """
         return self._curvature_and_normal(_as_points(x))[0]
 
+    def _gradient_hessian(self, x):
+        """(grad phi, Hess phi) at points x (n, 3) (subclasses may get both from one evaluation)."""
+        return self.gradient(x), self.hessian(x)
+
     def _curvature_and_normal(self, x):
-        """(div n, n) at the points x (..., 3) from one gradient and one Hessian evaluation."""
-        g = self.gradient(x)
-        hess = self.hessian(x)
+        """(div n, n) at the points x (..., 3) from one gradient and one Hessian evaluation, by
+        chunks of :data:`NEWTON_CHUNK` points (the difference stencils of a FunctionLevelSet stay
+        in cache)."""
+        flat = x.reshape(-1, 3)
+        if len(flat) > NEWTON_CHUNK:
+            g, hess = np.empty((len(flat), 3)), np.empty((len(flat), 3, 3))
+            for start in range(0, len(flat), NEWTON_CHUNK):
+                part = slice(start, start + NEWTON_CHUNK)
+                g[part], hess[part] = self._gradient_hessian(flat[part])
+            g, hess = g.reshape(x.shape), hess.reshape(x.shape + (3,))
+        else:
+            g, hess = self._gradient_hessian(flat)
+            g, hess = g.reshape(x.shape), hess.reshape(x.shape + (3,))
         norm = np.linalg.norm(g, axis=-1)
         _raise_if_singular(norm == 0.0, x, "the mean curvature", "where grad phi = 0")
         n = g / norm[..., None]
@@ -1119,6 +1142,37 @@ class FunctionLevelSet(LevelSet):
         scale = np.maximum(1.0, np.max(np.abs(x), axis=-1))
         return _EPS**power * scale
 
+    def _gradient_hessian(self, x):
+        """(grad phi, Hess phi) at points x (n, 3) from :meth:`_value_gradient_hessian`."""
+        return self._value_gradient_hessian(x)[1:]
+
+    def _value_gradient_hessian(self, x):
+        """(phi, grad phi, Hess phi) at points x (n, 3) with as few calls of the user's callables as
+        the given derivatives allow: without derivatives one call of phi on the 25 points of both
+        difference stencils per point (:func:`cutfem.kernels.difference_stencil`; phi at x is the
+        Hessian stencil's centre), with a gradient but no Hessian one call of it at x and its 6
+        neighbours; the same numbers as :meth:`value`, :meth:`gradient` and :meth:`hessian`."""
+        from . import kernels
+
+        if self._hessian is not None:
+            return self.value(x), self.gradient(x), self.hessian(x)
+        x = np.ascontiguousarray(x, dtype=float)
+        h1 = np.ascontiguousarray(self._h(x, 1.0 / 3.0))
+        if self._gradient is not None:
+            offsets = h1[:, None, None] * np.eye(3)
+            xs = np.concatenate([x[:, None, :], x[:, None, :] + offsets, x[:, None, :] - offsets], axis=1)
+            g = self._call(self._gradient, xs, (3,), "gradient")  # (n, 7, 3)
+            hj = (g[:, 1:4, :] - g[:, 4:7, :]) / (2.0 * h1[:, None, None])
+            hess = np.swapaxes(hj, -1, -2)
+            return self.value(x), g[:, 0], 0.5 * (hess + np.swapaxes(hess, -1, -2))
+        h2 = np.ascontiguousarray(self._h(x, 0.25))
+        xs = np.empty((len(x), 25, 3))
+        kernels.difference_stencil(x, h1, h2, _HESSIAN_STENCIL, xs)
+        f = np.ascontiguousarray(self._call(self._value, xs, (), "value"))
+        value, gradient, hessian = np.empty(len(x)), np.empty((len(x), 3)), np.empty((len(x), 3, 3))
+        kernels.difference_derivatives(f, h1, h2, _PAIRS, value, gradient, hessian)
+        return value, gradient, hessian
+
     def value(self, x):
         """phi(x) from the user callable, shape (...); ValueError on a wrong output shape."""
         x = _as_points(x)
@@ -1205,12 +1259,6 @@ def _surface_arrays(surface):
     return pts[used], np.searchsorted(used, tris)
 
 
-#: beyond this many bounding-box diagonals outside a mesh's bounding box, :class:`SignedDistance`
-#: takes its value from its own nearest-point search instead of VTK's (exact up to 1e7 diagonals on
-#: a unit sphere mesh, wrong from 1e8)
-FAR_DIAGONALS = 100.0
-
-
 class SignedDistance(LevelSet):
     """Signed distance to a closed triangle mesh (negative inside).
 
@@ -1223,12 +1271,12 @@ class SignedDistance(LevelSet):
     out, has every sphere's inside negative).  Each failure is a ValueError naming the offenders
     and the fix.
 
-    Values come from VTK's vtkImplicitPolyDataDistance (closest point on the triangles, signed by
-    the outward normals) evaluated on a whole vtk array at once (C++ loop, no Python loop), except
-    at points more than :data:`FAR_DIAGONALS` bounding-box diagonals outside the mesh's bounding
-    box: there VTK's value loses its digits (-2e8 instead of 1e8 at (1e8, 0, 0) from a unit
-    sphere mesh, NaN off the axes), and the value is the distance to the nearest point of the
-    triangles (:meth:`closest_point`), positive since the point is outside.
+    Values come from one compiled nearest-point pass over a bounding-volume hierarchy of the
+    triangles built once (:meth:`cutfem.surface.SurfaceMesh.signed_distance`, :mod:`cutfem.closest`):
+    |phi(x)| is the exact distance to the nearest point of the triangles, and the sign is that of
+    (x - p) . N with N the angle-weighted pseudo-normal of the face, edge or vertex the nearest
+    point p lies on (exact for a closed, outward oriented manifold mesh); points outside the mesh's
+    bounding box are outside.  Points farther than 1e150 from the mesh are refused (ValueError).
 
     gradient: central differences of value with h = 1e-6 * (mesh bounding-box diagonal); this is
     the exact gradient wherever the distance is smooth over the stencil (away from the medial set
@@ -1246,9 +1294,6 @@ class SignedDistance(LevelSet):
     lipschitz = 1.0
 
     def __init__(self, surface):
-        import pyvista as pv
-        import vtk
-
         mesh = surface if isinstance(surface, SurfaceMesh) else SurfaceMesh(*_surface_arrays(surface))
         pts, tris = np.asarray(mesh.points), np.asarray(mesh.triangles)
         self.mesh = mesh
@@ -1257,10 +1302,6 @@ class SignedDistance(LevelSet):
         self.area = mesh.area
         self.volume = mesh.enclosed_volume
         self._diag = float(np.linalg.norm(pts.max(axis=0) - pts.min(axis=0)))
-        cells = np.hstack([np.full((len(tris), 1), 3, dtype=np.int64), tris]).ravel()
-        self._mesh = pv.PolyData(pts, faces=cells)
-        self._implicit = vtk.vtkImplicitPolyDataDistance()
-        self._implicit.SetInput(self._mesh)
 
     def __repr__(self) -> str:
         return f"SignedDistance(<{len(self.points)} points, {len(self.triangles)} triangles>)"
@@ -1271,22 +1312,11 @@ class SignedDistance(LevelSet):
 
     def value(self, x):
         """Signed distance to the mesh (negative inside), shape (...)."""
-        import vtk
-        from vtk.util.numpy_support import numpy_to_vtk, vtk_to_numpy
-
         x = _as_points(x)
-        flat = np.ascontiguousarray(x.reshape(-1, 3))
+        flat = x.reshape(-1, 3)
         if flat.shape[0] == 0:
             return np.zeros(x.shape[:-1])
-        out = vtk.vtkDoubleArray()
-        self._implicit.FunctionValue(numpy_to_vtk(flat, deep=True), out)
-        values = vtk_to_numpy(out).astype(float, copy=True)
-        lo, hi = self.bounds()
-        far = np.flatnonzero(np.any((flat < lo - FAR_DIAGONALS * self._diag) | (flat > hi + FAR_DIAGONALS * self._diag), axis=1))
-        if far.size:  # outside the bounding box, so outside the surface: the distance to the nearest point
-            near = self.mesh.closest_points(flat[far])[0]
-            values[far] = np.linalg.norm(flat[far] - near, axis=1)
-        return values.reshape(x.shape[:-1])
+        return self.mesh.signed_distance(flat)[0].reshape(x.shape[:-1])
 
     def gradient(self, x):
         """Central differences of value, h = 1e-6 * bounding-box diagonal; shape (..., 3)."""

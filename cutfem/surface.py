@@ -570,7 +570,8 @@ def _closest_on_triangles(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nda
     d5 = ab.(x - c), d6 = ac.(x - c), the Voronoi region of x among the three vertices, the three
     edges and the face is decided by signs, and the point is a vertex, a + t ab, a + t ac,
     b + t (c - b) with t in [0, 1], or a + v ab + w ac with v, w >= 0, v + w <= 1.  The result lies
-    on the triangle to rounding of its corners' coordinates, whatever |x| is (no squares of x)."""
+    on the triangle to rounding of its corners' coordinates, whatever |x| is (no squares of x).  The
+    vectorized form of the region test that :mod:`cutfem.closest` compiles; the tests' reference."""
     dot = lambda u, v: np.einsum("...i,...i->...", u, v)  # noqa: E731
     ab, ac = b - a, c - a
     d1, d2 = dot(ab, x - a), dot(ac, x - a)
@@ -595,9 +596,15 @@ def _closest_on_triangles(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.nda
     return np.select([r[..., None] for r in regions], choices, face)
 
 
-def _lengths(v: np.ndarray) -> np.ndarray:
-    """|v| along the last axis by ``hypot`` (no squares that overflow or underflow)."""
-    return np.hypot(np.hypot(v[..., 0], v[..., 1]), v[..., 2])
+def _check_near(x: np.ndarray, origin: np.ndarray) -> None:
+    """ValueError for points farther than 1e150 from ``origin`` (a point of the mesh): the squared
+    distances of the nearest-point search overflow there."""
+    huge = np.max(np.abs(x - origin), axis=1) > 1e150
+    if huge.any():
+        raise ValueError(
+            f"the nearest points of {int(huge.sum())} point(s) farther than 1e150 from the mesh (first: {x[huge][0]}) "
+            "are not computed: the squared distances of the search overflow there."
+        )
 
 
 # ---------------------------------------------------------------------------------------------
@@ -902,62 +909,45 @@ class SurfaceMesh:
     # -- nearest points --------------------------------------------------------------------------
 
     @cached_property
-    def _centroid_tree(self):
-        """(k-d tree of the centroids, rho): rho is the largest distance from a triangle's centroid
-        to its corners, so |x - centroid(T)| - rho <= dist(x, T) for every triangle T."""
-        from scipy.spatial import cKDTree
+    def _triangle_tree(self):
+        """The bounding-volume hierarchy of the triangles (:class:`cutfem.closest.TriangleTree`),
+        with the edge tables for the pseudo-normal sign of the signed distance."""
+        from .closest import TriangleTree
 
-        corners = self.points[self.triangles]
-        rho = float(_lengths(corners - self.centroids[:, None, :]).max())
-        return cKDTree(self.centroids), rho
+        return TriangleTree(self.points, self.triangles, self.edge_triangles, self.triangle_edges)
 
-    def closest_points(self, x, block: int = 2**18):
+    def closest_points(self, x):
         """Nearest points of the mesh: ``(p, triangle, distance)`` for points x (n, 3), with p (n, 3)
         on triangle ``triangle`` (n,) and ``distance`` = |x - p| (n,).
 
-        For each point the k triangles of nearest centroids are compared exactly
-        (:func:`_closest_on_triangles`) and the smallest distance d is certified when the k-th
-        centroid is farther than d + rho (rho: the largest centroid-to-corner distance), since
-        every other triangle is then at least as far; points not certified are redone with 2k
-        triangles, up to all of them.  k starts at 8; the pairs (point, triangle) are compared in
-        blocks of at most ``block`` (loops over blocks and doublings only).  Where the nearest point
-        is not unique (x equidistant from several triangles, e.g. the centre of a sphere mesh, whose
-        points are certified only with all the triangles) the one of the lowest triangle index among
-        the equally near is returned.  Points farther than 1e150 from the mesh are refused
-        (ValueError): the k-d tree's squared distances overflow there.
+        Exact over all the triangles: a compiled walk of a bounding-volume hierarchy built once
+        (:mod:`cutfem.closest`) skips only the boxes farther than the nearest triangle found, and
+        each triangle it reaches is compared exactly (Ericson's region test, as
+        :func:`_closest_on_triangles`).  Where the nearest point is not unique (x equidistant from
+        several triangles, e.g. the centre of a sphere mesh) one of them is returned.  Points
+        farther than 1e150 from the mesh are refused (ValueError): the squared distances of the
+        search overflow there.
         """
         x = np.ascontiguousarray(x, dtype=float)
         if x.ndim != 2 or x.shape[1] != 3 or not np.isfinite(x).all():
             raise ValueError(f"x must be finite points of shape (n, 3); got shape {x.shape}")
-        tree, rho = self._centroid_tree
-        m = self.n_triangles
-        huge = np.max(np.abs(x - self.points[0]), axis=1) > 1e150
-        if huge.any():
-            raise ValueError(
-                f"the nearest points of {int(huge.sum())} point(s) farther than 1e150 from the mesh (first: {x[huge][0]}) "
-                "are not computed: the squared distances of the search overflow there."
-            )
-        p = np.empty_like(x)
-        triangle = np.empty(len(x), dtype=np.int64)
-        distance = np.empty(len(x))
-        todo, k = np.arange(len(x)), min(8, m)
-        while todo.size:
-            rows = max(1, block // k)
-            left = []
-            for start in range(0, todo.size, rows):  # blocks of points, each vectorized
-                ids = todo[start:start + rows]
-                far, cand = tree.query(x[ids], k=k)
-                far, cand = far.reshape(len(ids), k), cand.reshape(len(ids), k)
-                corners = self.points[self.triangles[cand]]  # (n, k, 3, 3)
-                near = _closest_on_triangles(x[ids, None, :], corners[..., 0, :], corners[..., 1, :], corners[..., 2, :])
-                dist = _lengths(x[ids, None, :] - near)
-                best = np.argmin(dist, axis=1)
-                row = np.arange(len(ids))
-                p[ids], triangle[ids], distance[ids] = near[row, best], cand[row, best], dist[row, best]
-                sure = (k == m) | (far[:, -1] - rho > distance[ids] * (1.0 + 1e-12))
-                left.append(ids[~sure])
-            todo, k = np.concatenate(left), min(2 * k, m)
-        return p, triangle, distance
+        _check_near(x, self.points[0])
+        return self._triangle_tree.nearest(x)
+
+    def signed_distance(self, x):
+        """``(value (n,), p (n, 3))``: the distance from x (n, 3) to the mesh, negative inside, and
+        the nearest points p.  The sign is that of (x - p) . N with N the angle-weighted
+        pseudo-normal of the face, edge or vertex p lies on (:mod:`cutfem.closest`), exact for a
+        closed outward oriented manifold mesh; points outside the mesh's bounding box are outside.
+        Same checks as :meth:`closest_points`."""
+        x = np.ascontiguousarray(x, dtype=float)
+        if x.ndim != 2 or x.shape[1] != 3 or not np.isfinite(x).all():
+            raise ValueError(f"x must be finite points of shape (n, 3); got shape {x.shape}")
+        _check_near(x, self.points[0])
+        value, p = self._triangle_tree.signed_distance(x)
+        lo, hi = self.points.min(axis=0), self.points.max(axis=0)
+        outside = np.any((x < lo) | (x > hi), axis=1)
+        return np.where(outside, np.abs(value), value), p
 
     # -- conversion ----------------------------------------------------------------------------
 
