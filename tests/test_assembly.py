@@ -430,7 +430,7 @@ def test_assembly_benchmark_runs_and_records(tmp_path):
     (row,) = json.loads((tmp_path / "assembly_benchmark.json").read_text())["rows"]
     assert row == pytest.approx(data["rows"][0], rel=1e-5)  # the JSON holds six significant digits (studies.common.save_json)
     assert row["background_nodes"] == 9 * 9 * 4  # 8 x 8 x 3 cubes of side 0.4
-    assert row["h"] == pytest.approx(324 ** (-1 / 3))
+    assert row["h"] == pytest.approx(324 ** (-1 / 3), rel=1e-5)
     assert row["mass_nnz"] == row["stiffness_nnz"] < row["face_jump_nnz"]  # J_F couples face neighbours
     assert all(row[k] > 0 for k in row if k.endswith(("_cold", "_warm", "_seconds")))
     assert row["together_cold_per_million_tets"] == pytest.approx(row["together_cold"] / row["active_tets"] * 1e6)
