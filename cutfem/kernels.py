@@ -37,7 +37,7 @@ with the rows in their order).  The whole solve there: 0.63-0.67 s on the two co
 2.13 s (medians of six interleaved pairs, 2026-12-03); with the Galerkin products, the error sums,
 the face penalty's lattice sums and the cut's maps on both cores as well, 1.75 s against 2.16 s.  Splitting only the products had gained
 7 %.  numba starts its threads at the first parallel kernel.  Each call takes the team
-:mod:`cutfem.threads` gives it: the calling thread alone for arrays under 1 MiB or on busy cores
+:mod:`cutfem.threads` gives it: the calling thread alone for arrays under 256 KiB or on busy cores
 (beside one busy process a parallel loop waits for its second thread's time slice at every join).
 GNU OpenMP (numba's layer on Linux) cannot serve a process forked after its threads started, and
 numba ends such a process at its first parallel loop: ``multiprocessing`` forks by default on

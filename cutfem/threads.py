@@ -10,7 +10,8 @@ against 1.1 s.  And on an idle machine a loop that holds a few microseconds of w
 waking the team.  So each call of a kernel (:class:`cutfem.kernels._Kernel`) asks :func:`team` for
 its number of threads, and runs on the calling thread alone when
 
-* its arrays hold less than :data:`PARALLEL_MIN_BYTES` (the work is smaller than waking a team), or
+* its arrays hold less than :data:`PARALLEL_MIN_BYTES` (256 KiB: the work is not worth waking a
+  team), or
 * the cores it may use (``os.sched_getaffinity``, and never more than numba's own thread count,
   so that ``NUMBA_NUM_THREADS=1`` or ``numba.set_num_threads`` keep their meaning) are not free:
   :func:`free_cores` is the usable cores less the load of the other processes on them.
@@ -37,10 +38,12 @@ import math
 import os
 import time
 
-#: the arrays of a call below which it runs on the calling thread (bytes); measured on the 2-core
-#: machine (idle): a parallel loop pays 10-60 us to wake and join its team, the time a core needs
-#: to stream about 0.5-1 MB
-PARALLEL_MIN_BYTES = 1 << 20
+#: the arrays of a call below which it runs on the calling thread (bytes).  Measured on the idle
+#: 2-core machine with ``kernels.matmul`` (a 15-diagonal float32 matrix times 3 columns, best of
+#: two rounds, 2026-12-06): two threads against one 1.35 at 0.01 MiB, 1.25 at 0.04 MiB, 0.76 at
+#: 0.10 MiB, 0.72 at 0.21 MiB, 0.67 at 0.42 MiB, 0.80 at 1.1 MiB, 0.53 at 2.8 MiB; the threshold
+#: leaves a margin above the crossing for a team that has gone to sleep between calls
+PARALLEL_MIN_BYTES = 1 << 18
 
 #: the least time between two samples of the machine's load (seconds)
 SAMPLE_SECONDS = 0.1
