@@ -254,6 +254,19 @@ def check_nitsche_penalty(gamma, flag="--gamma") -> list:
     return []
 
 
+def _coefficient_and_power(tau, flag, power, power_flag) -> tuple[float, float]:
+    """A stabilization's coefficient (finite, >= 0) and its power of h (finite) as floats, or
+    ProblemError naming the flag."""
+    value = _finite_nonnegative(tau, flag)
+    try:
+        a = float(power)
+    except (TypeError, ValueError):
+        raise ProblemError(f"{power_flag}: cannot read {power!r} as a number") from None
+    if not math.isfinite(a):
+        raise ProblemError(f"{power_flag}: {power!r} must be a finite number")
+    return value, a
+
+
 def check_normal_stabilization(tau_n, normal_h_power, spacing, length_scale=1.0, flag="--tau-n",
                                power_flag="--normal-h-power") -> list:
     """Refuse (ProblemError) or warn (RuntimeWarning) about the normal-gradient stabilization
@@ -261,13 +274,7 @@ def check_normal_stabilization(tau_n, normal_h_power, spacing, length_scale=1.0,
     against the surface terms: refused below :data:`NORMAL_WEIGHT_MIN` or above
     :data:`NORMAL_WEIGHT_MAX`, a warning above :data:`NORMAL_WEIGHT_WARN`; tau_N = 0 (none) is left
     to the solver, which reports phi_h as a null vector.  Returns the warnings given."""
-    tau = _finite_nonnegative(tau_n, flag)
-    try:
-        a = float(normal_h_power)
-    except (TypeError, ValueError):
-        raise ProblemError(f"{power_flag}: cannot read {normal_h_power!r} as a number") from None
-    if not math.isfinite(a):
-        raise ProblemError(f"{power_flag}: {normal_h_power!r} must be a finite number")
+    tau, a = _coefficient_and_power(tau_n, flag, normal_h_power, power_flag)
     if tau == 0:
         return []
     s = float(spacing) / float(length_scale)
@@ -314,13 +321,7 @@ def check_face_stabilization(tau_f, face_h_power, spacing, length_scale=1.0, fla
     :data:`FACE_RATIO_MAX`; tau_F and a finite, tau_F >= 0 (0: no stabilization, which the solver
     reports).  The messages name the flags (the power when it is not 0) and the values that fit.
     Returns the warnings given, for the record."""
-    tau = _finite_nonnegative(tau_f, flag)
-    try:
-        a = float(face_h_power)
-    except (TypeError, ValueError):
-        raise ProblemError(f"{power_flag}: cannot read {face_h_power!r} as a number") from None
-    if not math.isfinite(a):
-        raise ProblemError(f"{power_flag}: {face_h_power!r} must be a finite number")
+    tau, a = _coefficient_and_power(tau_f, flag, face_h_power, power_flag)
     if tau == 0:
         return []
     s = float(spacing) / float(length_scale)  # the spacing in units of L, where the surface has size about 1
