@@ -213,12 +213,9 @@ def _cmd_reproduce(argv) -> int:
 def main(argv=None) -> int:
     """Run the ``cutfem`` command with ``argv`` (default: the process's arguments); returns the exit status.
 
-    The command opts the process into the allocation settings of :mod:`cutfem.memory` (large runs
-    are faster with them; ``CUTFEM_ALLOCATOR=system`` keeps the system's defaults).
+    ``run`` solves inside :func:`cutfem.memory.large_run`, as :func:`cutfem.run` does from a script
+    (``CUTFEM_ALLOCATOR=system`` keeps the system's allocation defaults).
     """
-    from .memory import configure
-
-    configure()
     argv = list(sys.argv[1:] if argv is None else argv)
     debug = "--debug" in argv
     parser = _Parser(prog="cutfem", description="unfitted finite element methods on surfaces: problems, runs, studies")

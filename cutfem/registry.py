@@ -41,6 +41,8 @@ from typing import Any, Callable
 
 import numpy as np
 
+from .memory import large_run
+
 __all__ = [
     "Param",
     "Problem",
@@ -772,7 +774,7 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
         t0 = time.perf_counter()
         token = _STAGE_LISTENER.set(_StageLine() if progress is True else None)
         try:
-            with compile_notice() if progress is True else contextlib.nullcontext():
+            with large_run(), (compile_notice() if progress is True else contextlib.nullcontext()):
                 rec = problem.solve_level(level, **p)
             if not isinstance(rec, dict) or "h" not in rec:
                 raise TypeError(f"{problem.name}: the level {level!r} returned {type(rec).__name__} "

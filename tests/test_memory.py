@@ -84,14 +84,26 @@ def _after_command(argv, **env) -> dict:
 
 
 @pytest.mark.skipif(not LINUX_GLIBC, reason="the glibc thresholds exist on Linux with glibc only")
-def test_the_command_line_configures():
-    s = _after_command(["list"])
-    assert s["status"] == 0
+def test_a_run_allocates_like_the_command_line_and_puts_the_settings_back():
+    """cutfem.run (from a script or the command line alike) solves its levels with the allocation
+    settings applied, and leaves numpy's huge-page advice and cutfem.memory.SETTINGS as they were."""
+    code = _HUGEPAGE_GETTER + (
+        "import json, cutfem, cutfem.memory\n"
+        "seen = {}\n"
+        "@cutfem.register('probe-settings', levels=[1], level_name='n')\n"
+        "def probe(n):\n"
+        "    seen.update(dict(cutfem.memory.SETTINGS), inside=bool(get_hp()))\n"
+        "    return {'h': 1.0}\n"
+        "before = bool(get_hp())\n"
+        "cutfem.run('probe-settings')\n"
+        "print(json.dumps(dict(seen, before=before, after=bool(get_hp()), settings_after=cutfem.memory.SETTINGS)))\n"
+    )
+    s = _fresh_process(code)
     assert s["malloc"] is True and "skipped" not in s
     if s["thp_defrag"] in STALLING:
-        assert s["numpy_hugepage"] is False and s["numpy_now"] is False
-    else:
-        assert s["numpy_hugepage"] == s["numpy_now"]
+        assert s["inside"] is False
+    assert s["after"] == s["before"] and s["settings_after"] == {}
+    assert "malloc" not in _fresh_process(code, CUTFEM_ALLOCATOR="system")  # the system's defaults kept
 
 
 def test_the_command_line_leaves_the_wait_policy_alone():
@@ -109,14 +121,9 @@ def test_the_command_line_leaves_the_wait_policy_alone():
     assert _fresh_process(code, OMP_WAIT_POLICY="active")["omp"] == "active"
 
 
-def test_the_command_line_respects_the_opt_out():
-    s = _after_command(["list"], CUTFEM_ALLOCATOR="system")
-    assert s["status"] == 0
-    assert s["skipped"] == "CUTFEM_ALLOCATOR=system" and s["malloc"] is False and s["numpy_hugepage"] is None
-
-
 def test_users_numpy_hugepage_choice_is_respected():
-    s = _after_command(["list"], NUMPY_MADVISE_HUGEPAGE="1")
+    code = _HUGEPAGE_GETTER + "import json, cutfem.memory\nprint(json.dumps(dict(cutfem.memory.configure(), numpy_now=bool(get_hp()))))\n"
+    s = _fresh_process(code, NUMPY_MADVISE_HUGEPAGE="1")
     assert s["numpy_now"] is True and s["numpy_hugepage"] is True
 
 
