@@ -52,8 +52,11 @@ def main(spacing=0.2, a_in=1.0, a_out=10.0, gamma=10.0, gamma_g=0.1):
     x, info = cf.solve(K, b, space=W)
 
     errors = {"h": W.h, "dofs": W.n_dofs}
-    for name, k, side, u in (("in", 0, cf.NEG, W.split(x)[0]), ("out", 1, cf.POS, W.split(x)[1])):
-        exact = lambda p, s=side: (psi_w(p)[0] / a[s], psi_w(p)[1] / a[s])  # noqa: E731
+    for k, (name, side, u) in enumerate(zip(("in", "out"), (cf.NEG, cf.POS), W.split(x))):
+        def exact(p, a_side=a[side]):  # (u, grad u) = (psi w, grad(psi w)) / a on this side
+            value, grad, _ = psi_w(p)
+            return value / a_side, grad / a_side
+
         errors[f"l2_{name}"], errors[f"h1_{name}"] = cf.l2_h1_errors(W[k], u, exact, cut.dx(side))
     return errors
 
