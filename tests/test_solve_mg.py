@@ -3,12 +3,13 @@
 References: the direct solver (SuperLU) computed in the test, exact linear functions.
 """
 
+import importlib
+
 import numpy as np
 import pytest
 import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve_triangular
 
-import cutfem.solve as solve_module
 from cutfem.cut import cut_mesh
 from cutfem.levelset import Sphere, Torus
 from cutfem.markers import CUT
@@ -29,6 +30,9 @@ from cutfem.solve import (
 from cutfem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.surface import SurfaceMesh, sphere_mesh, torus_mesh
 from surface_matrices import edge_matrix, face_matrix, mass_matrix, stiffness_matrix
+
+# the module itself: the attribute cutfem.solve is the public function solve (cutfem/__init__.py)
+solve_module = importlib.import_module("cutfem.solve")
 
 
 @pytest.fixture(scope="module")

@@ -1,0 +1,97 @@
+"""The flat face: ``import cutfem as cf`` gives the public names, lazily, and nothing else changes."""
+
+import importlib
+import pkgutil
+import subprocess
+import sys
+
+import pytest
+
+import cutfem
+
+# the defining module of each public name, written out here (not read from cutfem._NAMES)
+EXPECTED = {
+    "cutfem.mesh": "structured_box read_mesh write_mesh",
+    "cutfem.surface": "read_surface write_surface sphere_mesh torus_mesh",
+    "cutfem.levelset": "Sphere Torus Ellipsoid FunctionLevelSet SignedDistance",
+    "cutfem.cut": "cut_mesh CutMesh",
+    "cutfem.markers": "NEG POS CUT",
+    "cutfem.spaces": "CutP1Space SurfaceP1Space ProductSpace",
+    "cutfem.forms": "bilinear_form linear_form dot jump avg ZERO assemble apply_dirichlet mass stiffness "
+                    "tangential_stiffness load position_load basis_integrals nitsche nitsche_load interface_nitsche "
+                    "face_jump_penalty edge_jump_penalty normal_gradient_penalty",
+    "cutfem.solve": "solve SolverError DirectSolver CGSolver GeometricMultigrid",
+    "cutfem.errors": "l2_error h1_error l2_h1_errors rates fitted_rate",
+    "cutfem.registry": "register Param Problem run available_problems get_problem",
+}
+
+
+def test_all_lists_exactly_the_expected_names():
+    expected = {name for names in EXPECTED.values() for name in names.split()} | {"__version__"}
+    assert set(cutfem.__all__) == expected
+    assert len(cutfem.__all__) == len(expected)  # no name twice
+
+
+@pytest.mark.parametrize("module, name", [(m, n) for m, names in EXPECTED.items() for n in names.split()])
+def test_each_name_is_the_object_of_its_module(module, name):
+    assert getattr(cutfem, name) is getattr(importlib.import_module(module), name)
+
+
+def test_solve_stays_the_function_after_its_module_is_imported():
+    import cutfem.solve  # noqa: F401  (binds the submodule on the package, which the face overrides)
+
+    solve_module = sys.modules["cutfem.solve"]
+    assert cutfem.solve is solve_module.solve and callable(cutfem.solve)
+    with pytest.raises(AttributeError, match="public function solve"):
+        cutfem.solve = lambda *a: None
+
+
+def test_no_other_public_name_is_a_submodule():
+    submodules = {info.name for info in pkgutil.iter_modules(cutfem.__path__)}
+    assert submodules & set(cutfem.__all__) == set(cutfem._SHADOWED) == {"solve"}
+
+
+def test_dir_lists_the_public_names():
+    assert set(cutfem.__all__) <= set(dir(cutfem))
+
+
+def test_unknown_name_raises_attribute_error_naming_it_and_the_close_match():
+    with pytest.raises(AttributeError, match=r"no attribute 'stifness'; did you mean cutfem\.stiffness\?"):
+        cutfem.stifness
+    with pytest.raises(AttributeError, match=r"no attribute 'qwertyuiop'$"):
+        cutfem.qwertyuiop
+    assert not hasattr(cutfem, "not_a_name")
+
+
+def test_submodules_still_import_by_from():
+    from cutfem import memory, registry
+
+    assert registry.register is cutfem.register and callable(memory.configure)
+
+
+def _fresh(code):
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    return out.stdout
+
+
+def test_import_is_light_and_changes_nothing_process_wide():
+    out = _fresh(
+        "import os, sys\n"
+        "env = dict(os.environ)\n"
+        "import cutfem\n"
+        "heavy = [m for m in ('numba', 'scipy', 'scipy.sparse.linalg', 'matplotlib', 'cutfem.kernels', 'cutfem.registry')"
+        " if m in sys.modules]\n"
+        "print(heavy, dict(os.environ) == env)\n"
+    )
+    assert out.strip() == "[] True"
+
+
+def test_star_import_gives_every_public_name():
+    out = _fresh(
+        "from cutfem import *\n"
+        "import cutfem\n"
+        "missing = [n for n in cutfem.__all__ if n not in globals()]\n"
+        "print(missing, solve is cutfem.solve, NEG is cutfem.NEG)\n"
+    )
+    assert out.strip() == "[] True True"
