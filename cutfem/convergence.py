@@ -6,7 +6,7 @@ figures) is touched.  Text sizes come from :data:`STYLE`, applied with :func:`st
 drawing *and* the saving (matplotlib reads some font sizes only when it draws).
 
 The rate of a curve is the least-squares slope of ``log e`` against ``log h`` over all points with
-``e > 0`` (:func:`fitted_rate`).  A rate triangle (:func:`rate_triangle`) is a right triangle whose
+``e > 0`` (:func:`cutfem.errors.fitted_rate`, the project's one fit).  A rate triangle (:func:`rate_triangle`) is a right triangle whose
 hypotenuse has slope ``order`` on the log-log axes, with its legs labelled ``1`` and ``order``.
 """
 
@@ -18,10 +18,11 @@ from pathlib import Path
 
 import numpy as np
 
+from .errors import fitted_rate
+
 __all__ = [
     "STYLE",
     "convergence_plot",
-    "fitted_rate",
     "log_ticks",
     "loglog_with_rates",
     "new_figure",
@@ -144,23 +145,14 @@ def save_reproducible(fig, path, dpi: int = 200) -> Path:
     return path
 
 
-def fitted_rate(h, errors) -> float:
-    """Least-squares slope of ``log e`` against ``log h`` over the points with finite ``e > 0``;
-    NaN with fewer than two such points."""
-    h = np.asarray(h, float)
-    e = np.asarray(errors, float)
-    ok = np.isfinite(e) & (e > 0) & np.isfinite(h) & (h > 0)
-    return float(np.polyfit(np.log(h[ok]), np.log(e[ok]), 1)[0]) if ok.sum() >= 2 else float("nan")
-
-
 def loglog_with_rates(ax, h, errors, label, marker="o", **kw):
     """Plot one error curve on ``ax`` (log-log) with its fitted rate in the legend label,
     ``"label (rate 1.23)"``, or the label alone when there is no rate (fewer than two points);
     points with ``e <= 0`` or NaN are left out.  Returns the rate (NaN without one)."""
     h = np.asarray(h, float)
     e = np.asarray(errors, float)
-    ok = np.isfinite(e) & (e > 0)
-    rate = fitted_rate(h, e)
+    ok = np.isfinite(e) & (e > 0) & np.isfinite(h) & (h > 0)
+    rate = fitted_rate(h[ok], e[ok]) if len(np.unique(h[ok])) >= 2 else float("nan")
     ax.loglog(h[ok], e[ok], marker=marker, label=f"{label} (rate {rate:.2f})" if np.isfinite(rate) else label, **kw)
     return rate
 

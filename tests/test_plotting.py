@@ -190,3 +190,17 @@ def test_convergence_plot_leaves_out_keys_without_a_finite_error(tmp_path, monke
     plot = tmp_path / "nan.png"
     assert main(["run", "test-nan-errors", "--plot", str(plot), "--quiet"]) == 0
     assert "--plot: nothing written" in capsys.readouterr().err and not plot.exists()
+
+
+def test_a_curves_rate_is_the_one_fit_over_its_positive_errors():
+    """loglog_with_rates fits with cutfem.errors.fitted_rate over the points it draws (e > 0 and
+    finite): e = h^2 with a zero and a NaN among them has rate 2; one point left has none."""
+    from cutfem.convergence import loglog_with_rates, new_figure
+
+    fig, ax = new_figure(3, 2)
+    h = np.array([0.4, 0.2, 0.1, 0.05, 0.025])
+    e = h ** 2
+    e[1], e[3] = 0.0, np.nan
+    assert loglog_with_rates(ax, h, e, "e") == pytest.approx(2.0, abs=1e-12)
+    assert ax.get_legend_handles_labels()[1] == ["e (rate 2.00)"]
+    assert np.isnan(loglog_with_rates(ax, h[:2], [1e-3, 0.0], "one point"))
