@@ -358,9 +358,8 @@ def large_run():
     """The allocation settings of :func:`configure` for the duration of the block, put back after it.
 
     :func:`cutfem.run` (and so the command line) solves its levels inside it, so a script that calls
-    ``cutfem.run`` allocates as the command does without opting in: beside a busy process,
-    ``cutfem.run("poisson-cut", levels=[0.05, 0.025])`` spent 0.61 s of system time in page faults
-    against 0.30 s for the command (5 interleaved pairs, 2026-12-06).  After the block glibc's
+    ``cutfem.run`` allocates as the command does without opting in (without it a script's run paid
+    twice the command's system time in page faults).  After the block glibc's
     thresholds are its defaults again (128 KiB; the one trace left is that glibc no longer raises
     its mmap threshold by itself) and numpy's huge-page advice is as it was.  Does nothing when
     :func:`configure` has run (the process opted in for good), inside another such block, or with

@@ -3,11 +3,9 @@
 A parallel loop (numba's ``prange`` on GNU OpenMP) hands its iterations to a team of threads and
 waits at its end for the slowest.  On a core that another process keeps busy, a member of the team
 runs only when the scheduler gives it a time slice, and every loop then waits for that slice (a
-millisecond or more), however little work it holds.  Beside one busy process on the 2-core machine
-a loop over 1,000 numbers took 433 us on two threads against 6 us on one, and one over a million
-8.3 ms against 1.8 ms; a MINRES solve preconditioned by multigrid at 12.6k unknowns took 29 s
-against 1.1 s.  And on an idle machine a loop that holds a few microseconds of work is dominated by
-waking the team.  So each call of a kernel (:class:`cutfem.kernels._Kernel`) asks :func:`team` for
+millisecond or more), however little work it holds: beside one busy process a loop over a
+thousand numbers took seventy times as long on two threads as on one.  And on an idle machine a
+loop that holds a few microseconds of work is dominated by waking the team.  So each call of a kernel (:class:`cutfem.kernels._Kernel`) asks :func:`team` for
 its number of threads, and runs on the calling thread alone when
 
 * its arrays hold less than :data:`PARALLEL_MIN_BYTES` (256 KiB: the work is not worth waking a
@@ -38,11 +36,9 @@ import math
 import os
 import time
 
-#: the arrays of a call below which it runs on the calling thread (bytes).  Measured on the idle
-#: 2-core machine with ``kernels.matmul`` (a 15-diagonal float32 matrix times 3 columns, best of
-#: two rounds, 2026-12-06): two threads against one 1.35 at 0.01 MiB, 1.25 at 0.04 MiB, 0.76 at
-#: 0.10 MiB, 0.72 at 0.21 MiB, 0.67 at 0.42 MiB, 0.80 at 1.1 MiB, 0.53 at 2.8 MiB; the threshold
-#: leaves a margin above the crossing for a team that has gone to sleep between calls
+#: the arrays of a call below which it runs on the calling thread (bytes): on an idle 2-core machine
+#: two threads beat one from about 0.1 MiB (``kernels.matmul``, docs/performance.md "On a shared
+#: machine"); the threshold leaves a margin for a team that has gone to sleep between calls
 PARALLEL_MIN_BYTES = 1 << 18
 
 #: the least time between two samples of the machine's load (seconds)
