@@ -11,7 +11,11 @@ research script needs, listed in ``__all__`` (``docs/examples/`` shows them at w
     cut = cf.cut_mesh(cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=0.2), cf.Sphere(1.0))
     V = cf.CutP1Space(cut, cf.NEG)
 
-Everything else is reachable through its module (``cutfem.kernels``, ``cutfem.memory``, ...).
+Everything else is reachable through its subpackage: :mod:`cutfem.geometry` (meshes, level sets,
+surfaces, the cut, measures, quadrature), :mod:`cutfem.fem` (spaces, forms, assembly, norms),
+:mod:`cutfem.solvers`, :mod:`cutfem.runs` (registry, command line, convergence, plots),
+:mod:`cutfem.problems`, :mod:`cutfem.studies`, and :mod:`cutfem.memory`.  The compiled kernels
+(``*_kernels.py`` beside each stage, and :mod:`cutfem.jit`) are private.
 
 Import laziness lives here and only here: :data:`_NAMES` maps each public name to the module that
 defines it, and the module-level ``__getattr__`` (PEP 562) imports that module on the first use of
@@ -19,91 +23,80 @@ the name.  So ``import cutfem`` imports no numba, scipy or matplotlib (a CLI sta
 or ``cutfem --version`` pays only for what it uses), and changes nothing process-wide.  The
 ``cutfem`` command and the benchmark studies tune how the process allocates large arrays
 (:func:`cutfem.memory.configure`); a script that builds large problems may call it too.
-
-One public name is also a module's name: ``solve`` is the function :func:`cutfem.solve.solve`.  The
-import system binds a package's submodule as its attribute, which would make ``cutfem.solve`` the
-function or the module depending on what was imported before; the package's type keeps it the
-function (:class:`_Face`), and the module is ``sys.modules["cutfem.solve"]`` or ``from cutfem.solve
-import ...``.
 """
 
 import importlib
-import sys
-import types
 
 __version__ = "0.1.0"
 
 #: public name -> the module defining it (relative to this package): the one table of the flat face
 _NAMES = {
     # backgrounds and surface meshes, and their files
-    "structured_box": ".mesh",
-    "read_mesh": ".mesh",
-    "write_mesh": ".mesh",
-    "read_surface": ".surface",
-    "write_surface": ".surface",
-    "sphere_mesh": ".surface",
-    "torus_mesh": ".surface",
+    "structured_box": ".geometry.mesh",
+    "read_mesh": ".geometry.mesh",
+    "write_mesh": ".geometry.mesh",
+    "read_surface": ".geometry.surface",
+    "write_surface": ".geometry.surface",
+    "sphere_mesh": ".geometry.surface",
+    "torus_mesh": ".geometry.surface",
     # level sets
-    "Sphere": ".levelset",
-    "Torus": ".levelset",
-    "Ellipsoid": ".levelset",
-    "FunctionLevelSet": ".levelset",
-    "SignedDistance": ".levelset",
+    "Sphere": ".geometry.levelset",
+    "Torus": ".geometry.levelset",
+    "Ellipsoid": ".geometry.levelset",
+    "FunctionLevelSet": ".geometry.levelset",
+    "SignedDistance": ".geometry.levelset",
     # the cut and its sides
-    "cut_mesh": ".cut",
-    "CutMesh": ".cut",
-    "NEG": ".markers",
-    "POS": ".markers",
-    "CUT": ".markers",
+    "cut_mesh": ".geometry.cut",
+    "CutMesh": ".geometry.cut",
+    "NEG": ".geometry.markers",
+    "POS": ".geometry.markers",
+    "CUT": ".geometry.markers",
     # spaces
-    "CutP1Space": ".spaces",
-    "SurfaceP1Space": ".spaces",
-    "ProductSpace": ".spaces",
+    "CutP1Space": ".fem.spaces",
+    "SurfaceP1Space": ".fem.spaces",
+    "ProductSpace": ".fem.spaces",
     # the form language
-    "bilinear_form": ".forms",
-    "linear_form": ".forms",
-    "dot": ".forms",
-    "jump": ".forms",
-    "avg": ".forms",
-    "ZERO": ".forms",
-    "assemble": ".forms",
-    "apply_dirichlet": ".forms",
+    "bilinear_form": ".fem.forms",
+    "linear_form": ".fem.forms",
+    "dot": ".fem.forms",
+    "jump": ".fem.forms",
+    "avg": ".fem.forms",
+    "ZERO": ".fem.forms",
+    "assemble": ".fem.forms",
+    "apply_dirichlet": ".fem.forms",
     # the built-in terms
-    "mass": ".forms",
-    "stiffness": ".forms",
-    "tangential_stiffness": ".forms",
-    "load": ".forms",
-    "position_load": ".forms",
-    "basis_integrals": ".forms",
-    "nitsche": ".forms",
-    "nitsche_load": ".forms",
-    "interface_nitsche": ".forms",
-    "face_jump_penalty": ".forms",
-    "edge_jump_penalty": ".forms",
-    "normal_gradient_penalty": ".forms",
+    "mass": ".fem.forms",
+    "stiffness": ".fem.forms",
+    "tangential_stiffness": ".fem.forms",
+    "load": ".fem.forms",
+    "position_load": ".fem.forms",
+    "basis_integrals": ".fem.forms",
+    "nitsche": ".fem.forms",
+    "nitsche_load": ".fem.forms",
+    "interface_nitsche": ".fem.forms",
+    "face_jump_penalty": ".fem.forms",
+    "edge_jump_penalty": ".fem.forms",
+    "normal_gradient_penalty": ".fem.forms",
     # solvers
-    "solve": ".solve",
-    "SolverError": ".solve",
-    "DirectSolver": ".solve",
-    "CGSolver": ".solve",
-    "GeometricMultigrid": ".solve",
+    "solve": ".solvers.solve",
+    "SolverError": ".solvers.solve",
+    "DirectSolver": ".solvers.solve",
+    "CGSolver": ".solvers.solve",
+    "GeometricMultigrid": ".solvers.solve",
     # error norms and convergence rates
-    "l2_error": ".errors",
-    "h1_error": ".errors",
-    "l2_h1_errors": ".errors",
-    "rates": ".errors",
-    "fitted_rate": ".errors",
+    "l2_error": ".fem.norms",
+    "h1_error": ".fem.norms",
+    "l2_h1_errors": ".fem.norms",
+    "rates": ".fem.norms",
+    "fitted_rate": ".fem.norms",
     # registered problems and runs
-    "register": ".registry",
-    "Param": ".registry",
-    "Problem": ".registry",
-    "run": ".registry",
-    "available_problems": ".registry",
-    "get_problem": ".registry",
+    "register": ".runs.registry",
+    "Param": ".runs.registry",
+    "Problem": ".runs.registry",
+    "run": ".runs.registry",
+    "available_problems": ".runs.registry",
+    "get_problem": ".runs.registry",
 }
-
-#: public names that are also the names of submodules (see the module docstring)
-_SHADOWED = ("solve",)
 
 __all__ = [*_NAMES, "__version__"]
 
@@ -122,32 +115,9 @@ def __getattr__(name):
         hint = f"; did you mean cutfem.{close[0]}?" if close else ""
         raise AttributeError(f"module 'cutfem' has no attribute {name!r}{hint}")
     value = _resolve(name)
-    if name not in _SHADOWED:
-        globals()[name] = value
+    globals()[name] = value
     return value
 
 
 def __dir__():
     return sorted({*globals(), *__all__})
-
-
-def _shadowed_property(name):
-    def get(module):
-        return _resolve(name)
-
-    def set_(module, value):
-        # the import system binds the submodule here after ``import cutfem.<name>``; the public
-        # name stays the function, the module stays in sys.modules
-        if not (isinstance(value, types.ModuleType) and value.__name__ == f"{__name__}.{name}"):
-            raise AttributeError(f"cutfem.{name} is the public function {name}; it cannot be rebound")
-
-    return property(get, set_)
-
-
-class _Face(types.ModuleType):
-    """The package's type: a module whose names in :data:`_SHADOWED` always give the public object."""
-
-    solve = _shadowed_property("solve")
-
-
-sys.modules[__name__].__class__ = _Face

@@ -31,15 +31,15 @@ import math
 import numpy as np
 from numba import prange
 
-from cutfem.cut import cut_mesh
-from cutfem.errors import h1_error, l2_error, l2_h1_errors
-from cutfem.forms import assemble, bilinear_form, face_jump_penalty, load, mass, normal_gradient_penalty, stiffness, tangential_stiffness
-from cutfem.kernels import parallel_kernel
-from cutfem.levelset import Sphere
-from cutfem.markers import CUT, NEG
-from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
-from cutfem.solve import solve
-from cutfem.spaces import CutP1Space, ProductSpace
+from cutfem.geometry.cut import cut_mesh
+from cutfem.fem.norms import h1_error, l2_error, l2_h1_errors
+from cutfem.fem.forms import assemble, bilinear_form, face_jump_penalty, load, mass, normal_gradient_penalty, stiffness, tangential_stiffness
+from cutfem.jit import parallel_kernel
+from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.markers import CUT, NEG
+from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
+from cutfem.solvers.solve import solve
+from cutfem.fem.spaces import CutP1Space, ProductSpace
 
 from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_normal_stabilization, check_resolution, cut_record, value_and_gradient, with_point_data
 

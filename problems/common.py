@@ -9,11 +9,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.levelset import Ellipsoid, FunctionLevelSet, LevelSet, SignedDistance, Sphere, Torus
-from cutfem.markers import NEG, POS
-from cutfem.mesh import structured_box, unique_keys, unstructured_box
-from cutfem.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
-from cutfem.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
+from cutfem.geometry.levelset import Ellipsoid, FunctionLevelSet, LevelSet, SignedDistance, Sphere, Torus
+from cutfem.geometry.markers import NEG, POS
+from cutfem.geometry.mesh import structured_box, unique_keys, unstructured_box
+from cutfem.runs.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
+from cutfem.geometry.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
 
 SURFACES = ("torus", "sphere", "ellipsoid")
 
@@ -76,7 +76,7 @@ def is_file(surface) -> bool:
 #: how a user surface is given (the help of --surface and the error for a surface not understood)
 USER_SURFACES = (
     "a closed mesh file (STL, OBJ, PLY, VTK, ...: signed distance), a Python file NAME.py defining phi(x) "
-    "and optionally grad, hessian, lipschitz, box, area (cutfem.levelset.FunctionLevelSet.from_file), or an "
+    "and optionally grad, hessian, lipschitz, box, area (cutfem.geometry.levelset.FunctionLevelSet.from_file), or an "
     "expression in x, y, z such as 'x**4 - 5*x**2 + y**4 - 5*y**2 + z**4 - 5*z**2 + 11.8' "
     "(numpy functions sin, cos, exp, sqrt, ...; FunctionLevelSet.from_expression)"
 )
@@ -139,7 +139,7 @@ def levelset_for(surface, R=1.0, r=0.5, radius=1.0, axes="1.0,0.8,0.6") -> Level
 
 
 def nitsche_hint(gamma: float, gamma_g: float) -> str:
-    """The advice for an indefinite Nitsche system (:func:`cutfem.solve.solve`'s ``indefinite_hint``):
+    """The advice for an indefinite Nitsche system (:func:`cutfem.solvers.solve.solve`'s ``indefinite_hint``):
     the penalty ``gamma`` is below its stability bound, which holds uniformly in the cut only with
     the ghost penalty; with ``gamma_g`` = 0 the bound grows without limit on small cut elements."""
     hint = f"raise the Nitsche penalty (--gamma {gamma:g} is below its stability bound)"
@@ -202,7 +202,7 @@ EDGE_WARN = 1.0
 
 def _finite_nonnegative(value, flag) -> float:
     """``value`` as a float >= 0, or ProblemError naming ``flag`` (the problem functions are also
-    called directly from Python, past the checks of :class:`~cutfem.registry.Param`)."""
+    called directly from Python, past the checks of :class:`~cutfem.runs.registry.Param`)."""
     try:
         v = float(value)
     except (TypeError, ValueError):
@@ -370,7 +370,7 @@ def pin_unseen_nodes(K, B, space):
     face at the node is shared by two active tets, the face stabilization does not reach it either:
     its row and column of K are zero, or round-off (1.8e-32 against a median diagonal of 0.57 for
     nodes inside a cube on grid planes at spacing 0.1, exactly 0 outside), whatever tau_F
-    (cutfem.solve names this for a system solved directly).  Its value changes nothing on S_h, so
+    (cutfem.solvers.solve names this for a system solved directly).  Its value changes nothing on S_h, so
     these unknowns are removed by fixing them at 0: their rows and columns (round-off at most)
     replaced by a diagonal entry (the mean diagonal, to keep K's scale for the iterative solvers)
     and a zero right-hand side, the numbering unchanged for the multigrid.  Only rows whose
@@ -483,7 +483,7 @@ def surface_mesh_for(surface, n, family="structured", seed=0, R=1.0, r=0.5, radi
 def box_for(levelset, spacing, box=None, anchored=False):
     """The background box: given as 'x0,y0,z0,x1,y1,z1', or the surface's bounding box grown by
     0.1 (the paper's margin: the paper's box [-1.6,1.6]^2 x [-0.6,0.6] for the torus), the same at
-    every spacing; :func:`background_for` (:func:`cutfem.mesh.structured_box`) grows it symmetrically
+    every spacing; :func:`background_for` (:func:`cutfem.geometry.mesh.structured_box`) grows it symmetrically
     to whole cells where the spacing does not divide it.
 
     Choice: the box does not follow the spacing.  Rounded outward to multiples of each spacing, it
@@ -519,7 +519,7 @@ def background_for(levelset, spacing, kind="structured", box=None, anchored=Fals
     of the box :func:`box_for` (``anchored`` there).
 
     The structured mesh has exactly the given spacing: a box that is not a whole number of cells is
-    grown symmetrically to the next whole number (:func:`cutfem.mesh.structured_box`); the record of
+    grown symmetrically to the next whole number (:func:`cutfem.geometry.mesh.structured_box`); the record of
     the level keeps the box used (:func:`cut_record`)."""
     lo, hi = box_for(levelset, spacing, box, anchored)
     if kind == "structured":
@@ -610,7 +610,7 @@ def check_cut_memory(cut, bytes_per_tet: float | None = None, spacing: float | N
     spacing**-2 from ``spacing`` (default: the structured background's), times
     :data:`cutfem.memory.ACTIVE_TETS_MARGIN`, and the fixed part does not scale
     (:func:`cutfem.memory.spacing_that_fits`).  The problems also give their cost to
-    :func:`cutfem.cut.cut_mesh` (``solve_bytes_per_tet``), which refuses such a spacing before the
+    :func:`cutfem.geometry.cut.cut_mesh` (``solve_bytes_per_tet``), which refuses such a spacing before the
     cut from the active tets it predicts; this check on the real ones catches the rest (a level set
     without a Lipschitz bound, an unstructured background)."""
     from cutfem import memory

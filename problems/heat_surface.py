@@ -18,7 +18,7 @@ The steps' solver (``solver``): ``direct`` factorizes M_h + theta dt A_h once an
 factor at every step; ``cg-jacobi`` builds CG with the inverse diagonal once and starts each step
 from the polynomial through the last three solutions, extrapolated to the new time (the first
 steps from the ones there are), to the relative residual :data:`STEP_TOL`; ``cg-mg`` is the same
-with the geometric multigrid (:class:`cutfem.solve.GeometricMultigrid` on the nested lattices of
+with the geometric multigrid (:class:`cutfem.solvers.solve.GeometricMultigrid` on the nested lattices of
 the box); ``auto`` is direct up to :data:`STEP_DIRECT_LIMIT` unknowns, above it cg-jacobi for
 backward Euler and cg-mg for Crank-Nicolson.  Why Jacobi suffices for backward Euler: with dt = c h^2 the matrix M_h + dt A_h is spectrally equivalent to the mass M_h
 (A_h <= C h^-2 M_h), so CG's iterations do not grow with 1/h; and the solution is smooth in time,
@@ -55,17 +55,17 @@ import math
 
 import numpy as np
 
-from cutfem import kernels
-from cutfem.cut import cut_mesh
-from cutfem.errors import l2_error
-from cutfem.forms import assemble, load, mass, normal_gradient_penalty, tangential_stiffness
-from cutfem.levelset import Sphere
-from cutfem.markers import CUT
-from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
-from cutfem.solve import CGSolver, DirectSolver, multigrid_hierarchy
-from cutfem.spaces import CutP1Space
+from cutfem.geometry.cut import cut_mesh
+from cutfem.fem.norms import l2_error
+from cutfem.fem.forms import assemble, load, mass, normal_gradient_penalty, tangential_stiffness
+from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.markers import CUT
+from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
+from cutfem.solvers.solve import CGSolver, DirectSolver, multigrid_hierarchy
+from cutfem.fem.spaces import CutP1Space
 
 from .common import Timer, background_for, check_cut_memory, check_normal_stabilization, check_resolution, cut_record, with_point_data
+from cutfem.solvers import sparse_kernels
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -161,7 +161,7 @@ def theta_steps(M, A, u0, G, amplitude, final_time, steps, theta, step):
         t_n, t_before = final_time * n / steps, final_time * (n - 1) / steps
         weight = dt * (theta * amplitude(t_n) + (1.0 - theta) * amplitude(t_before))
         # b = explicit u + dt F^n (the compiled product on both cores: 1 ms against scipy's 3 ms at 190k unknowns)
-        kernels.matmul(explicit, u.reshape(-1, 1), out=b)
+        sparse_kernels.matmul(explicit, u.reshape(-1, 1), out=b)
         b[:, 0] += weight * G
         u, its = step(b[:, 0], history)
         iterations += its

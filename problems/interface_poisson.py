@@ -7,7 +7,7 @@ u_h = (u_NEG, u_POS) in V_h^NEG x V_h^POS:
     sum_i (a_i grad u_i, grad v_i)_i - ({a n . grad u}, [v]) - ([u], {a n . grad v}) + (lambda / h) ([u], [v])
         + sum_i a_i gamma_g g_i(u_i, v_i) = sum_i (f, v_i)_i
 
-(:func:`cutfem.forms.interface_nitsche`; harmonic or cut-volume weights).
+(:func:`cutfem.fem.forms.interface_nitsche`; harmonic or cut-volume weights).
 
 Manufactured solution (smooth on each side, not a polynomial): with psi = |x|^2 - R^2 and
 w = sin(x) exp(y / 2) + 2,
@@ -29,15 +29,15 @@ import math
 import numpy as np
 from numba import prange
 
-from cutfem.cut import cut_mesh
-from cutfem.errors import l2_h1_errors
-from cutfem.forms import apply_dirichlet, assemble, face_jump_penalty, interface_nitsche, load, stiffness
-from cutfem.kernels import parallel_kernel
-from cutfem.levelset import Sphere
-from cutfem.markers import NEG, POS
-from cutfem.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
-from cutfem.solve import SolverError, solve
-from cutfem.spaces import CutP1Space, ProductSpace
+from cutfem.geometry.cut import cut_mesh
+from cutfem.fem.norms import l2_h1_errors
+from cutfem.fem.forms import apply_dirichlet, assemble, face_jump_penalty, interface_nitsche, load, stiffness
+from cutfem.jit import parallel_kernel
+from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.markers import NEG, POS
+from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
+from cutfem.solvers.solve import SolverError, solve
+from cutfem.fem.spaces import CutP1Space, ProductSpace
 
 from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
 

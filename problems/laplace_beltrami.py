@@ -23,17 +23,17 @@ import math
 import numpy as np
 from numba import prange
 
-from cutfem.cut import cut_mesh
-from cutfem.errors import h1_error, l2_error
-from cutfem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
-from cutfem.kernels import parallel_kernel
-from cutfem.levelset import Sphere, Torus
-from cutfem.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
-from cutfem.solve import SolverError, solve
-from cutfem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.markers import CUT
+from cutfem.geometry.cut import cut_mesh
+from cutfem.fem.norms import h1_error, l2_error
+from cutfem.fem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
+from cutfem.jit import parallel_kernel
+from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
+from cutfem.solvers.solve import SolverError, solve
+from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.geometry.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
-from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
+from cutfem.geometry.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
 from .common import BACKGROUND_PARAM, SHAPE_PARAMS, check_cut_memory, check_face_stabilization, check_normal_stabilization, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
 
@@ -151,7 +151,7 @@ def _solve_and_measure(space, surface, K, sol, t, solver, multigrid=None, stabil
     and so on), so they are evaluated at the quadrature points of S_h directly.
 
     ``stabilization``: the stabilization form contained in K (tau J), or None.  It is assembled
-    only when the solver refuses K, to name the cause (:func:`cutfem.solve.diagnose`): a
+    only when the solver refuses K, to name the cause (:func:`cutfem.solvers.solve.diagnose`): a
     stabilization too weak on phi_h (tau_F = 1e-12) or so strong that its null space, which holds
     the constants, swamps the mass term (tau_F = 1e300).  K itself stays one assembly of the whole
     form, so the numbers of a run do not depend on this."""
@@ -269,7 +269,7 @@ class LaplaceBeltramiCut(Problem):
         if stab is not None:
             # the multigrid's coarse spaces also hold phi_h v: the normally linear functions phi_h g
             # are near-null vectors of A_Gamma + M + tau_F J_F that the coarse lattices alone
-            # represent worse and worse (cutfem.solve.augmented_hierarchy).  Unit sphere, spacings
+            # represent worse and worse (cutfem.solvers.solve.augmented_hierarchy).  Unit sphere, spacings
             # 0.05, 0.025, 0.0125: CG iterations 11, 11, 11 instead of 27, 38, 51.  The coarsest level
             # at most 400 unknowns: the doubled coarse spaces can be singular there, and the
             # pseudo-inverse of a 1 500-unknown level cost 0.3 s (solve at spacing 0.05: 0.11 s

@@ -6,7 +6,7 @@ Find H_h in [V_h]^3 with, for all v in [V_h]^3,
 
 Component k: (M + J) H_k = A x_k with M the surface mass matrix, A the tangential stiffness and x_k
 the nodal values of the coordinate k; one matrix, one factorization, three right-hand sides.
-A x_k is formed without A: b_i = sum_K |S_K| grad_{S_h} phi_i (:func:`cutfem.forms.position_load`).
+A x_k is formed without A: b_i = sum_K |S_K| grad_{S_h} phi_i (:func:`cutfem.fem.forms.position_load`).
 Stabilization: meshed J = tau_E J_E (edge conormal-gradient jumps, weighted by the global
 h = N^(-1/2)); cut J = tau_E J_E + tau_F J_F (face normal-gradient jumps of the active mesh, times
 h^a, a = ``face_h_power``, 0 in the paper).  Exact field for errors: H^e = H o p.
@@ -26,14 +26,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from cutfem.cut import cut_mesh
-from cutfem.errors import discrete_error, l2_error
-from cutfem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, mass, position_load
-from cutfem.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
-from cutfem.solve import solve
-from cutfem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.markers import CUT
-from cutfem.surface import RANDOM_FAMILIES, TORUS_FAMILIES
+from cutfem.geometry.cut import cut_mesh
+from cutfem.fem.norms import discrete_error, l2_error
+from cutfem.fem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, mass, position_load
+from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
+from cutfem.solvers.solve import solve
+from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.geometry.markers import CUT
+from cutfem.geometry.surface import RANDOM_FAMILIES, TORUS_FAMILIES
 
 from .common import BACKGROUND_PARAM, SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, mesh_file_notes, surface_mesh_for
 from .common import check_edge_stabilization, check_face_stabilization, pin_unseen_nodes
@@ -49,7 +49,7 @@ SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 #: K-cycles; 23 instead of 31 with W-cycles).
 SOLVER_TOL = 1e-6
 #: what the stages after the cut add to the resident memory per active tet, for the memory checks
-#: before the cut (:func:`cutfem.cut.cut_mesh`'s ``solve_bytes_per_tet``, on the predicted active
+#: before the cut (:func:`cutfem.geometry.cut.cut_mesh`'s ``solve_bytes_per_tet``, on the predicted active
 #: tets) and before the space is built (:func:`~cutfem.problems.common.check_cut_memory`); measured
 #: 152, 155, 162 and about 157 bytes at spacings 0.0125 to 0.0015625, see :mod:`cutfem.memory`
 BYTES_PER_ACTIVE_TET = 200
@@ -88,7 +88,7 @@ def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=
 
 def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0):
     """(K, B): the matrix of :func:`mean_curvature_form` on ``space`` and the right-hand sides
-    B = A X, (n, 3), computed without A (:func:`cutfem.forms.position_load`)."""
+    B = A X, (n, 3), computed without A (:func:`cutfem.fem.forms.position_load`)."""
     K = assemble(mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power, length_scale), space)
     return K, assemble(position_load(surface), space)
 
@@ -119,7 +119,7 @@ def lumped_guess(B, ones_M):
     structured torus grid it is close, residual 1.4e-4 |B| at n = 768 (CG with the multigrid: 8
     iterations against 17 from zero; 12 against 18 at n = 256); on the flipped and perturbed
     families it is noisy (residuals 2.6e3-7e3 |B|), and the solver starts those columns from zero
-    (:func:`cutfem.solve.solve`).  None when a node has no mass (a cut surface's nearly empty
+    (:func:`cutfem.solvers.solve.solve`).  None when a node has no mass (a cut surface's nearly empty
     pieces: the guess would be unbounded)."""
     ones_M = np.asarray(ones_M, dtype=float)
     return B / ones_M[:, None] if np.all(ones_M > 0) else None
@@ -127,7 +127,7 @@ def lumped_guess(B, ones_M):
 
 def _common_record(space, ones_M, H, levelset, solve_info):
     """The record entries of both kinds; ``ones_M`` = 1^T M, the integrals of the basis functions
-    over S_h (:func:`cutfem.forms.basis_integrals`)."""
+    over S_h (:func:`cutfem.fem.forms.basis_integrals`)."""
     rec = {
         "h": space.h,
         "dofs": int(space.n_dofs),

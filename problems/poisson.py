@@ -19,14 +19,14 @@ import math
 import numpy as np
 from numba import prange
 
-from cutfem.cut import cut_mesh
-from cutfem.errors import l2_h1_errors
-from cutfem.forms import assemble, face_jump_penalty, load, nitsche, nitsche_load, stiffness
-from cutfem.kernels import parallel_kernel
-from cutfem.markers import NEG
-from cutfem.registry import H_BACKGROUND, LazyFields, Param, register
-from cutfem.solve import solve
-from cutfem.spaces import CutP1Space
+from cutfem.geometry.cut import cut_mesh
+from cutfem.fem.norms import l2_h1_errors
+from cutfem.fem.forms import assemble, face_jump_penalty, load, nitsche, nitsche_load, stiffness
+from cutfem.jit import parallel_kernel
+from cutfem.geometry.markers import NEG
+from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, register
+from cutfem.solvers.solve import solve
+from cutfem.fem.spaces import CutP1Space
 
 from .common import BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for, nitsche_hint, value_and_gradient
 

@@ -6,14 +6,14 @@
 spacings above).
 
 Setting: the structured Kuhn background mesh of the box [-1.6, 1.6] x [-1.6, 1.6] x [-0.6, 0.6]
-with the given cube spacing, cut by the torus R = 1, r = 1/2 (:class:`cutfem.levelset.Torus`).
+with the given cube spacing, cut by the torus R = 1, r = 1/2 (:class:`cutfem.geometry.levelset.Torus`).
 For each spacing we record the sizes (background nodes, h = N^(-1/3), active tets, active nodes,
 interior faces, triangles of S_h, non-zeros) and wall-clock times (``time.perf_counter``) of
 
-* ``cut``: :func:`cutfem.cut.cut_mesh` (band search, marching tetrahedra, active mesh), best of
+* ``cut``: :func:`cutfem.geometry.cut.cut_mesh` (band search, marching tetrahedra, active mesh), best of
   all the cuts made;
 * ``mass``, ``stiffness``, ``face_jump``: the surface mass matrix, the tangential stiffness matrix
-  and J_F (:mod:`cutfem.forms`), each
+  and J_F (:mod:`cutfem.fem.forms`), each
   - *cold*: the first assembly on a freshly cut mesh and a new space, so it includes everything the
     form needs the first time (quadrature on S_h, basis gradients, interior faces, the sparsity
     pattern and its scatter map); best of ``cold_repeat`` fresh cuts;
@@ -46,13 +46,13 @@ from pathlib import Path
 import numpy as np
 import scipy
 
-from cutfem.cut import CUT, cut_mesh
-from cutfem.forms import assemble, face_jump_penalty, mass, tangential_stiffness
-from cutfem.levelset import Torus
+from cutfem.geometry.cut import CUT, cut_mesh
+from cutfem.fem.forms import assemble, face_jump_penalty, mass, tangential_stiffness
+from cutfem.geometry.levelset import Torus
 from cutfem.memory import InsufficientMemoryError
-from cutfem.mesh import structured_box
-from cutfem.registry import ProblemError, check_output, text_table
-from cutfem.spaces import CutP1Space
+from cutfem.geometry.mesh import structured_box
+from cutfem.runs.registry import ProblemError, check_output, text_table
+from cutfem.fem.spaces import CutP1Space
 
 from .common import PAGE_WIDTH, Progress, add_size_arguments, figure_style, pick, save_csv, save_json
 
@@ -174,7 +174,7 @@ def format_table(rows: list[dict]) -> str:
 
 @figure_style
 def plot(rows: list[dict], out: Path) -> Path:
-    from cutfem.convergence import new_figure, save_reproducible
+    from cutfem.runs.convergence import new_figure, save_reproducible
 
     fig, ax = new_figure(PAGE_WIDTH, 4.0)
     n = np.array([r["active_tets"] for r in rows], dtype=float)

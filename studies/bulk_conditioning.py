@@ -17,7 +17,7 @@ the congruence keeps the inertia), and
 
 * ``kappa`` = max |lambda| / min |lambda|, the 2-norm condition number of S (lambda_max / lambda_min
   when S is positive definite);
-* ``indefinite``: S (and K) has a negative eigenvalue (:func:`cutfem.solve.condition_number`: the
+* ``indefinite``: S (and K) has a negative eigenvalue (:func:`cutfem.solvers.solve.condition_number`: the
   signs of the symmetric LDL^T pivots, or the dense spectrum for small matrices).
 
 Indefinite matrices keep their finite condition number in the tables and figures, and are marked
@@ -50,12 +50,12 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.cut import cut_mesh
-from cutfem.forms import assemble, face_jump_penalty, nitsche, stiffness
-from cutfem.levelset import Sphere
-from cutfem.markers import NEG
-from cutfem.solve import condition_number
-from cutfem.spaces import CutP1Space
+from cutfem.geometry.cut import cut_mesh
+from cutfem.fem.forms import assemble, face_jump_penalty, nitsche, stiffness
+from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.markers import NEG
+from cutfem.solvers.solve import condition_number
+from cutfem.fem.spaces import CutP1Space
 from cutfem.problems.common import background_for
 
 from .common import PAGE_WIDTH, figure_style, new_figure, pick, save_csv, save_figure, save_json, study_main
@@ -103,7 +103,7 @@ class PoissonParts:
         self._nitsche = {}
 
     def nitsche(self, gamma: float):
-        """N_gamma (n x n CSR) of :func:`cutfem.forms.nitsche`, assembled once per gamma."""
+        """N_gamma (n x n CSR) of :func:`cutfem.fem.forms.nitsche`, assembled once per gamma."""
         if gamma not in self._nitsche:
             self._nitsche[gamma] = assemble(nitsche(self.cut.ds(), gamma), self.space).tocsr()
         return self._nitsche[gamma]
@@ -115,7 +115,7 @@ class PoissonParts:
 
 
 def spectrum_record(K) -> dict:
-    """The record of one matrix from :func:`cutfem.solve.condition_number`: ``kappa`` (the 2-norm
+    """The record of one matrix from :func:`cutfem.solvers.solve.condition_number`: ``kappa`` (the 2-norm
     condition number of |D|^{-1/2} K |D|^{-1/2}), ``indefinite``, ``singular``, the eigenvalue of
     least magnitude and the largest one (of the scaled matrix), and how many diagonal entries are
     negative (basis functions of negative energy)."""

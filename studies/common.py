@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.convergence import SIGNIFICANT_DIGITS, new_figure, significant  # noqa: F401  (the studies' figures and tables)
+from cutfem.runs.convergence import SIGNIFICANT_DIGITS, new_figure, significant  # noqa: F401  (the studies' figures and tables)
 from cutfem.memory import configure
-from cutfem.registry import ProblemError, check_output, compile_notice, jsonable, text_table
+from cutfem.runs.registry import ProblemError, check_output, compile_notice, jsonable, text_table
 
 SIZES = ("tiny", "quick", "full")
 
@@ -77,7 +77,7 @@ INPUT_KEYS = frozenset({"spacing", "spacings", "levels", "shift", "dt", "box", "
 
 def save_json(out: Path, name: str, data, digits: int = SIGNIFICANT_DIGITS) -> Path:
     """``data`` as ``OUT/name.json``: every float to ``digits`` significant digits
-    (:func:`cutfem.convergence.significant`: six, the digits that do not depend on the machine or
+    (:func:`cutfem.runs.convergence.significant`: six, the digits that do not depend on the machine or
     the thread count) but the inputs under :data:`INPUT_KEYS`, keys sorted, two-space indent,
     trailing newline, so that the same measurement gives the same bytes on every machine."""
     path = Path(out) / f"{name}.json"
@@ -140,13 +140,13 @@ PAGE_WIDTH = 6.3
 
 
 def figure_style(plot):
-    """Decorator: run a plotting function with the 8 pt fonts of :data:`cutfem.convergence.STYLE`
+    """Decorator: run a plotting function with the 8 pt fonts of :data:`cutfem.runs.convergence.STYLE`
     (a ``matplotlib.rc_context``; the settings before it are restored)."""
     import functools
 
     @functools.wraps(plot)
     def styled(*args, **kwargs):
-        from cutfem.convergence import style
+        from cutfem.runs.convergence import style
 
         with style():
             return plot(*args, **kwargs)
@@ -171,7 +171,7 @@ def save_figure(fig, out: Path, name: str) -> list[Path]:
     """Save a figure as PNG (200 dpi) and PDF at its own size (the size it prints at: no tight
     bounding box), without dates or version strings, so that an unchanged figure gives unchanged
     files."""
-    from cutfem.convergence import save_reproducible
+    from cutfem.runs.convergence import save_reproducible
 
     out = Path(out)
     return [save_reproducible(fig, out / f"{name}.png", dpi=200), save_reproducible(fig, out / f"{name}.pdf", dpi=200)]
@@ -192,7 +192,7 @@ def add_size_arguments(parser) -> None:
 def torus_family(family: str, seed: int) -> dict:
     """The parameters of a meshed torus family for ``cutfem.run``: the family, and the seed for the
     families drawn at random (the structured grid takes none)."""
-    from cutfem.surface import RANDOM_FAMILIES
+    from cutfem.geometry.surface import RANDOM_FAMILIES
 
     return {"family": family, **({"seed": seed} if family in RANDOM_FAMILIES else {})}
 

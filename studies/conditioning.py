@@ -2,7 +2,7 @@
 
 The system matrix of docs/math.md §3 on a cut surface is K = M + tau_F J_F (tau_E = 0, face term without a
 power of h as in the paper).  We report the 2-norm condition number of the diagonally scaled matrix
-D^{-1/2} K D^{-1/2} (:func:`cutfem.solve.condition_number`), for tau_F = 1/10 (stabilized) and
+D^{-1/2} K D^{-1/2} (:func:`cutfem.solvers.solve.condition_number`), for tau_F = 1/10 (stabilized) and
 tau_F = 0 (K = M, the surface mass matrix on the active nodes).
 
 1. Against h: the torus (R, r) = (1, 1/2) on the paper's box [-1.6,1.6]^2 x [-0.6,0.6] cut into
@@ -21,12 +21,12 @@ for the largest, shift-invert Lanczos at a small negative shift for the six smal
 small matrices) and report
 
 * ``kappa``: lambda_max / lambda_min, infinite when lambda_min <= 1e-13 lambda_max (numerically
-  singular: 1e-13 is the relative pivot threshold of :class:`cutfem.solve.DirectSolver`);
+  singular: 1e-13 is the relative pivot threshold of :class:`cutfem.solvers.solve.DirectSolver`);
 * ``kernel_dimension``: the number of such eigenvalues, and for tau_F = 0 the alignment
   |<v_min, phi_h>| (in the scaled coordinates) of the null vector with phi_h;
 * ``kappa_effective``: lambda_max over the smallest eigenvalue above the threshold, the condition
   number on the complement of the kernel (what CG sees on a consistent system);
-* ``kappa_solve_module``: :func:`cutfem.solve.condition_number` for comparison.  For the stabilized
+* ``kappa_solve_module``: :func:`cutfem.solvers.solve.condition_number` for comparison.  For the stabilized
   matrix it agrees with ``kappa``; for the singular unstabilized matrix it returns a finite number,
   sometimes huge (~1e17, written as infinite: beyond 1e13 it is 1 over round-off) and sometimes
   equal to ``kappa_effective`` (its shift-invert Lanczos at 0 on a singular factorization can miss
@@ -48,11 +48,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.cut import CUT, cut_mesh
-from cutfem.forms import assemble, face_jump_penalty, mass
-from cutfem.levelset import Sphere, Torus
-from cutfem.solve import condition_number, scaled
-from cutfem.spaces import CutP1Space
+from cutfem.geometry.cut import CUT, cut_mesh
+from cutfem.fem.forms import assemble, face_jump_penalty, mass
+from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.solvers.solve import condition_number, scaled
+from cutfem.fem.spaces import CutP1Space
 from cutfem.problems.common import background_for
 
 from .common import PAGE_WIDTH, figure_style, pick, save_figure, save_json, save_latex_table, significant, study_main
@@ -271,7 +271,7 @@ def _infinity_line(ax, cap, text):
 def _plot_h(out, rows, growth):
     from matplotlib.ticker import NullFormatter
 
-    from cutfem.convergence import new_figure
+    from cutfem.runs.convergence import new_figure
 
     fig, ax = new_figure(4.2, 3.4)
     h = np.array([r["h"] for r in rows])
@@ -302,7 +302,7 @@ def _plot_h(out, rows, growth):
 
 @figure_style
 def _plot_shifts(out, rows, spacing):
-    from cutfem.convergence import new_figure
+    from cutfem.runs.convergence import new_figure
 
     fig, (ax1, ax2) = new_figure(PAGE_WIDTH, 3.2, nrows=1, ncols=2)
     cap = _cap([r[k] for r in rows for k in ("kappa_stabilized", "kappa_effective_unstabilized")])

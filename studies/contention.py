@@ -61,20 +61,20 @@ def block_solve(spacing: float = 0.125) -> dict:
     solve stage's seconds.
 
     The system is [[A, B^T], [B, -C]] with A = diag(K, K, K), K the Nitsche-ghost-penalty Laplacian of
-    a CutP1Space on the ball (:func:`cutfem.forms.stiffness`, :func:`~cutfem.forms.nitsche`,
-    :func:`~cutfem.forms.face_jump_penalty`), B_i = -(d_i u, q) and C = h^2 (grad p, grad q)
+    a CutP1Space on the ball (:func:`cutfem.fem.forms.stiffness`, :func:`~cutfem.fem.forms.nitsche`,
+    :func:`~cutfem.fem.forms.face_jump_penalty`), B_i = -(d_i u, q) and C = h^2 (grad p, grad q)
     (Brezzi-Pitkaeranta); the preconditioner applies one cycle of :class:`GeometricMultigrid` on K to
     the three velocity components at once and the inverse lumped pressure mass."""
     import numpy as np
     import scipy.sparse as sp
     import scipy.sparse.linalg as spla
 
-    from cutfem.cut import NEG, cut_mesh
-    from cutfem.forms import assemble, bilinear_form, face_jump_penalty, mass, nitsche, stiffness
-    from cutfem.levelset import Sphere
-    from cutfem.mesh import structured_box
-    from cutfem.solve import GeometricMultigrid, lattice_indices
-    from cutfem.spaces import CutP1Space
+    from cutfem.geometry.cut import NEG, cut_mesh
+    from cutfem.fem.forms import assemble, bilinear_form, face_jump_penalty, mass, nitsche, stiffness
+    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.mesh import structured_box
+    from cutfem.solvers.solve import GeometricMultigrid, lattice_indices
+    from cutfem.fem.spaces import CutP1Space
 
     cut = cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), Sphere(1.0))
     V = CutP1Space(cut, NEG)
@@ -109,9 +109,9 @@ def small_cuts(count: int = 200, spacing: float = 0.2, seed: int = 0) -> float:
     small cuts, each a few thousand tets)."""
     import numpy as np
 
-    from cutfem.cut import cut_mesh
-    from cutfem.levelset import Sphere
-    from cutfem.mesh import structured_box
+    from cutfem.geometry.cut import cut_mesh
+    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.mesh import structured_box
 
     box = structured_box([-1.6] * 3, [1.6] * 3, spacing=spacing)
     centres = np.random.default_rng(seed).uniform(-0.3, 0.3, (count, 3))
@@ -127,7 +127,7 @@ def _python(code: str) -> list[str]:
 
 
 def _cli(*args: str) -> list[str]:
-    return _python("import sys; from cutfem.cli import entry; sys.argv = ['cutfem', *sys.argv[1:]]; entry()") + list(args)
+    return _python("import sys; from cutfem.runs.cli import entry; sys.argv = ['cutfem', *sys.argv[1:]]; entry()") + list(args)
 
 
 def _environment(one_thread: bool) -> dict:

@@ -4,7 +4,7 @@ On the four torus families of docs/math.md §6.1 (structured, flipped, perturbed
 we compute the mean curvature vector at the nodes by
 
 * ``cotan-voronoi``: the cotangent Laplacian with the mixed Voronoi lumped mass,
-  H_i = (L X)_i / m_i (:mod:`cutfem.baselines`);
+  H_i = (L X)_i / m_i (:mod:`cutfem.studies.baselines`);
 * ``cotan-barycentric``: the same with the barycentric lumped mass (|K|/3 per corner);
 * ``pyvista``: ``PolyData.curvature("mean")`` (VTK), which is (k1 + k2)/2, turned into a vector
   2 c_i n_i with area-weighted vertex normals;
@@ -31,11 +31,11 @@ from pathlib import Path
 import numpy as np
 
 import cutfem
-from cutfem.baselines import cotangent_mean_curvature, pyvista_mean_curvature_vector
-from cutfem.errors import discrete_error, fitted_rate
-from cutfem.levelset import Torus
-from cutfem.spaces import SurfaceP1Space
-from cutfem.surface import TORUS_FAMILIES, torus_mesh
+from cutfem.studies.baselines import cotangent_mean_curvature, pyvista_mean_curvature_vector
+from cutfem.fem.norms import discrete_error, fitted_rate
+from cutfem.geometry.levelset import Torus
+from cutfem.fem.spaces import SurfaceP1Space
+from cutfem.geometry.surface import TORUS_FAMILIES, torus_mesh
 
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, significant, study_main, torus_family
 
@@ -156,7 +156,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
 
 @figure_style
 def _plot_errors(out, rows):
-    from cutfem.convergence import log_ticks, new_figure, rate_triangle
+    from cutfem.runs.convergence import log_ticks, new_figure, rate_triangle
 
     fig, axes = new_figure(PAGE_WIDTH, 4.6, nrows=2, ncols=len(TORUS_FAMILIES), sharex=True, sharey="row")
     for j, family in enumerate(TORUS_FAMILIES):
@@ -183,7 +183,7 @@ def _plot_errors(out, rows):
 
 @figure_style
 def _plot_time(out, rows):
-    from cutfem.convergence import new_figure
+    from cutfem.runs.convergence import new_figure
 
     fig, ax = new_figure(4.2, 3.2)
     for m in METHODS:

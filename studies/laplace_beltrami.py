@@ -23,7 +23,7 @@ from pathlib import Path
 
 
 import cutfem
-from cutfem.errors import fitted_rate
+from cutfem.fem.norms import fitted_rate
 
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, significant, study_main
 
@@ -100,7 +100,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
 
 @figure_style
 def _plot(out, results):
-    from cutfem.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
+    from cutfem.runs.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
 
     fig, axes = new_figure(PAGE_WIDTH, 5.4, nrows=2, ncols=2)
     style = {"meshed": dict(color="C0"), "cut, face": dict(color="C1"), "cut, normal": dict(color="C2", ls="--")}

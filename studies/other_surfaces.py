@@ -13,7 +13,7 @@
    smoothed union phi = a + b - sqrt(a^2 + b^2 + delta^2) of the distances a, b to two ring tori
    (R, r) = (1, 0.4) centred at (-+1.05, 0, 0), delta = 0.4, with analytic gradient and Hessian
    and exact closest points by the vectorized Newton iteration on the closest-point system of
-   :class:`cutfem.levelset.FunctionLevelSet`.  Passed to ``cutfem.run`` as a LevelSet object.  Checked: Euler
+   :class:`cutfem.geometry.levelset.FunctionLevelSet`.  Passed to ``cutfem.run`` as a LevelSet object.  Checked: Euler
    characteristic -2 of S_h, integral of H_h ~ 0, L2 error against the exact H at the closest point.
 
 Outputs (prefix ``other_surfaces``): ``.json``, ``_convergence.png/.pdf`` (errors and invariants
@@ -28,9 +28,9 @@ from pathlib import Path
 import numpy as np
 
 import cutfem
-from cutfem.errors import fitted_rate
-from cutfem.levelset import FunctionLevelSet, Sphere, Torus
-from cutfem.surface import sphere_mesh, write_surface
+from cutfem.fem.norms import fitted_rate
+from cutfem.geometry.levelset import FunctionLevelSet, Sphere, Torus
+from cutfem.geometry.surface import sphere_mesh, write_surface
 
 from .common import ROUNDOFF_INTEGRAL, PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_figure, save_json, save_latex_table, significant, study_main
 
@@ -61,9 +61,9 @@ class DoubleTorus(FunctionLevelSet):
         grad phi = (1 - a/S) grad a + (1 - b/S) grad b,
         Hess phi = (1 - a/S) Hess a + (1 - b/S) Hess b - (grad a grad a^T + grad b grad b^T)/S + w w^T/S^3,
 
-    from the exact torus data of :class:`cutfem.levelset.Torus`.  |grad phi| < 4 (both weights lie
+    from the exact torus data of :class:`cutfem.geometry.levelset.Torus`.  |grad phi| < 4 (both weights lie
     in (0, 2)): lipschitz 4.  Not a distance; exact H = (trace(P Hess phi)/|grad phi|) n at the closest
-    point, found by the Newton projection of :meth:`cutfem.levelset.LevelSet.closest_point`.
+    point, found by the Newton projection of :meth:`cutfem.geometry.levelset.LevelSet.closest_point`.
     """
 
     def __init__(self, d: float = 1.05, R: float = 1.0, r: float = 0.4, delta: float = 0.4):
@@ -145,8 +145,8 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     write_surface(sphere_mesh(5, radius=STL_RADIUS, center=STL_CENTER), stl)
     sphere = Sphere(radius=STL_RADIUS, center=STL_CENTER)
     res = cutfem.run("mean-curvature-cut", levels=stl_levels, surface=str(stl), solver=SOLVER)
-    from cutfem.levelset import SignedDistance
-    from cutfem.surface import read_surface
+    from cutfem.geometry.levelset import SignedDistance
+    from cutfem.geometry.surface import read_surface
 
     polyhedron = SignedDistance(read_surface(stl))
     recs = []
@@ -205,7 +205,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
 
 @figure_style
 def _plot_convergence(out, results):
-    from cutfem.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
+    from cutfem.runs.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
 
     fig, (ax1, ax2) = new_figure(PAGE_WIDTH, 3.6, nrows=1, ncols=2)
     e, s, g = results["ellipsoid"]["records"], results["stl_sphere"]["records"], results["genus2"]["records"]
@@ -248,7 +248,7 @@ def _picture(out, surfaces: dict) -> str | None:
     from matplotlib.cm import ScalarMappable
     from matplotlib.colors import Normalize
 
-    from cutfem.convergence import new_figure, style
+    from cutfem.runs.convergence import new_figure, style
 
     pv.OFF_SCREEN = True
     names = list(surfaces)

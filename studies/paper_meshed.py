@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 
 import cutfem
-from cutfem.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
-from cutfem.surface import TORUS_FAMILIES, torus_mesh
+from cutfem.runs.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
+from cutfem.geometry.surface import TORUS_FAMILIES, torus_mesh
 
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, roundoff_zero, save_csv, save_figure, save_json, save_latex_table, significant, study_main, torus_family
 
@@ -41,7 +41,7 @@ FAMILY_LABEL = {
 PICTURE_N = 24  # resolution of the mesh pictures (24 x 12 cells)
 #: the exact discrete solutions, so that the tables and the zero-integral identity are those of the
 #: method and not of a solver tolerance; "auto" (CG with the grid multigrid above 5 000 nodes, i.e.
-#: n >= 128) is faster there and gives the same L2 errors to 6 digits at n = 768 (see cutfem.solve)
+#: n >= 128) is faster there and gives the same L2 errors to 6 digits at n = 768 (see cutfem.solvers.solve)
 SOLVER = "direct"
 
 #: every file a run writes (tiny, quick and full alike)
@@ -69,9 +69,9 @@ def isoline_n(size: str) -> int:
 
 def offscreen_plotter(shape=(1, 1), window_size=(1200, 900)):
     """A pyvista Plotter that renders off-screen (a headless OpenGL window when there is no display:
-    chosen by :func:`cutfem.plotting.offscreen_backend`, else EGL)."""
+    chosen by :func:`cutfem.runs.plotting.offscreen_backend`, else EGL)."""
     try:
-        from cutfem.plotting import offscreen_backend
+        from cutfem.runs.plotting import offscreen_backend
     except ImportError:
         if not os.environ.get("DISPLAY"):
             os.environ.setdefault("VTK_DEFAULT_OPENGL_WINDOW", "vtkEGLRenderWindow")

@@ -4,7 +4,7 @@ The cut problem (docs/math.md §3, §6.3)
 -------------------------------
 Both codes solve, on the paper's box [-1.6,1.6]^2 x [-0.6,0.6] with the torus R = 1, r = 1/2:
 
-* the same tetrahedra: the NGSolve mesh is built from cutfem's :class:`~cutfem.mesh.StructuredBox`
+* the same tetrahedra: the NGSolve mesh is built from cutfem's :class:`~cutfem.geometry.mesh.StructuredBox`
   ``points``/``tets`` (six Kuhn tets per cube) with ``netgen.meshing.Mesh.AddPoints/AddElements``:
   point k of cutfem = vertex k of NGSolve, tet k = element k.  Netgen's tetrahedra are negatively
   oriented in the usual sense (checked on ``netgen.csg.unit_cube``: all its tets have det < 0), so
@@ -13,7 +13,7 @@ Both codes solve, on the paper's box [-1.6,1.6]^2 x [-0.6,0.6] with the torus R 
   one face descriptor.  Volume integrals, the facet normal (outward either way, and it enters
   squared) and so the discrete problem do not depend on the orientation;
 * the same P1 level set: the nodal values of rho computed and snapped exactly as cutfem's cut does
-  (``cutfem.cut.nodal_values`` + the zero rule's snap) are copied into an order-1 ``H1``
+  (``cutfem.geometry.cut.nodal_values`` + the zero rule's snap) are copied into an order-1 ``H1``
   GridFunction (its dofs are the vertices);
 * the same active mesh and form: ``CutInfo(mesh, lset)``, the ``IF`` elements, the H1 space with
   ``dgjumps=True`` (without it the facet couplings are missing from the sparsity pattern and
@@ -46,7 +46,7 @@ degree 4.  The study repeats the ngsxfem solve in cutfem's vertex order at spaci
 Zero nodal values
 -----------------
 At spacing 0.1 and finer, nodes of the paper's box lie exactly on the torus (after cutfem's snap:
-96 nodes at 0.1).  cutfem counts them as outside (see :mod:`cutfem.cut`).  ngsxfem 2.1 refuses such
+96 nodes at 0.1).  cutfem counts them as outside (see :mod:`cutfem.geometry.cut`).  ngsxfem 2.1 refuses such
 a level set: ``CutInfo`` raises "You tried to cut a simplex with a plain geometry lset function"
 (after printing the values of the offending sub-simplex; the study captures that output).  So on
 the paper's own levels the peer has no answer; the study records the message and runs three
@@ -73,12 +73,12 @@ space), ``assembly`` (bilinear form and the three linear forms), ``solve`` (fact
 solves; NGSolve's default ``sparsecholesky``), ``errors``.  NGSolve runs single-threaded (no
 ``TaskManager``); at spacings >= 0.025 the pipeline is timed once more inside ``TaskManager()``
 (all cores, mesh build reused).  cutfem: the problem's own stages ``geometry`` (box, level set,
-cut, space), ``assembly``, ``solve`` (:class:`~cutfem.solve.DirectSolver`: banded Cholesky after
+cut, space), ``assembly``, ``solve`` (:class:`~cutfem.solvers.solve.DirectSolver`: banded Cholesky after
 reverse Cuthill-McKee, or SuperLU for wide bands), ``errors``; its total is their sum (the run's wall
 time, which also builds pyvista output fields, is recorded as ``wall``).  Same-solver comparison:
-the NGSolve matrix exported (CSR) and factorized by cutfem's :class:`~cutfem.solve.DirectSolver`
+the NGSolve matrix exported (CSR) and factorized by cutfem's :class:`~cutfem.solvers.solve.DirectSolver`
 (the same factorization choice), ``solve_superlu``.  Ratios are ngsxfem / cutfem.  Where cutfem's
-default solver ("auto") is not the direct one (more than ``cutfem.solve.DIRECT_LIMIT`` unknowns)
+default solver ("auto") is not the direct one (more than ``cutfem.solvers.solve.DIRECT_LIMIT`` unknowns)
 cutfem is timed once more with it (``cutfem_auto``).  The structural
 difference: ngsxfem's mesh, CutInfo, facet search and element/facet loops visit the whole
 background mesh (8 times more per halving of the spacing) while cutfem visits only a band around
@@ -91,7 +91,7 @@ memory is skipped for ngsxfem with the reason recorded (``ngsxfem_skipped``).
 The meshed case
 ---------------
 On the flipped and perturbed torus families (seed 0) the cotangent Laplacian with the mixed
-Voronoi lumped mass (:func:`cutfem.baselines.cotangent_mean_curvature`) against the stabilized
+Voronoi lumped mass (:func:`cutfem.studies.baselines.cotangent_mean_curvature`) against the stabilized
 method (tau_E = 1/10): discrete error ||pi_h H - H_h||_{S_h} (P1 mass matrix), nodal maximum
 error, and times (cotangent: the formula on a given mesh, best of three; stabilized: assembly +
 solve from the problem's timer; both also end to end including the mesh), with the ratios
@@ -172,7 +172,7 @@ def _say(progress, msg):
 def kuhn_boundary_triangles(box) -> np.ndarray:
     """(k, 3) node ids of the boundary triangles of a StructuredBox, outward oriented (right-hand
     rule), found among the Kuhn tets of the boundary cells only."""
-    from cutfem.numbering import TET_FACES
+    from cutfem.geometry.numbering import TET_FACES
 
     tris = []
     nc = box.cells
@@ -241,7 +241,7 @@ def torus_exact_cf(torus):
 
 def cutfem_nodal_values(box, levelset) -> np.ndarray:
     """phi at every node of ``box``, with cutfem's snap of near-zero values to exactly zero."""
-    from cutfem.cut import snapped_nodal_values
+    from cutfem.geometry.cut import snapped_nodal_values
 
     return snapped_nodal_values(box, levelset)
 
@@ -306,7 +306,7 @@ def _superlu_same_as_cutfem(mat):
     """Factorize an NGSolve sparse matrix with cutfem's DirectSolver; (solver, CSR matrix)."""
     import scipy.sparse as sp
 
-    from cutfem.solve import DirectSolver
+    from cutfem.solvers.solve import DirectSolver
 
     vals, cols, rows = mat.CSR()
     A = sp.csr_matrix((np.array(vals), np.array(cols), np.array(rows)), shape=(mat.height, mat.width))
@@ -482,7 +482,7 @@ def cutfem_mean_curvature(spacing, levelset="torus", box=None, tau_f=TAU_F, solv
 
 def _direct_limit():
     try:
-        from cutfem.solve import DIRECT_LIMIT
+        from cutfem.solvers.solve import DIRECT_LIMIT
 
         return DIRECT_LIMIT
     except ImportError:
@@ -521,7 +521,7 @@ def compare_level(spacing, variant="paper", progress=None, taskmanager=False, re
 
     import ngsolve
 
-    from cutfem.levelset import Torus
+    from cutfem.geometry.levelset import Torus
     from cutfem.problems.common import background_for
 
     if variant == "shifted":
@@ -653,7 +653,7 @@ def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON
     from ngsolve import H1, L2, GridFunction, InnerProduct, Integrate, LinearForm, grad, specialcf, sqrt
     from xfem import HASNEG, IF, NEG, CutInfo, GetDofsOfElements, GetFacetsWithNeighborTypes, RestrictedBilinearForm, dCut
 
-    from cutfem.levelset import Sphere
+    from cutfem.geometry.levelset import Sphere
 
     levelset = Sphere() if levelset is None else levelset
     T = {}
@@ -773,9 +773,9 @@ def cutfem_poisson(spacing, solver="auto") -> dict:
 def cutfem_poisson_sets(spacing, levelset=None) -> dict:
     """The sizes of cutfem's Poisson problem that ngsxfem reports too: the tets of NEG (the active
     set) and its ghost faces (untimed: one cut of the background)."""
-    from cutfem.cut import cut_mesh
-    from cutfem.levelset import Sphere
-    from cutfem.markers import NEG
+    from cutfem.geometry.cut import cut_mesh
+    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.markers import NEG
     from cutfem.problems.common import background_for
 
     levelset = Sphere() if levelset is None else levelset
@@ -795,7 +795,7 @@ def compare_poisson_level(spacing, progress=None, repeat=1, also_direct=False) -
     ``also_direct``: the first ngsxfem run also times NGSolve's sparse Cholesky (``solve_direct``)."""
     import os
 
-    from cutfem.levelset import Sphere
+    from cutfem.geometry.levelset import Sphere
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     cfs, ngs_ = [], []
@@ -881,10 +881,10 @@ def poisson_table(rows) -> str:
 def meshed_level(family, n) -> list[dict]:
     """Two rows (cotangent + Voronoi lumped mass, stabilized tau_E = 1/10) on one torus mesh."""
     import cutfem
-    from cutfem.baselines import cotangent_mean_curvature
-    from cutfem.levelset import Torus
-    from cutfem.spaces import SurfaceP1Space
-    from cutfem.surface import torus_mesh
+    from cutfem.studies.baselines import cotangent_mean_curvature
+    from cutfem.geometry.levelset import Torus
+    from cutfem.fem.spaces import SurfaceP1Space
+    from cutfem.geometry.surface import torus_mesh
 
     t0 = time.perf_counter()
     mesh = torus_mesh(n, family=family, seed=SEED)
@@ -911,7 +911,7 @@ def meshed_level(family, n) -> list[dict]:
 
 
 def _meshed_row(family, n, mesh, method, H, He, space, secs, end_to_end, wall=None):
-    from cutfem.errors import discrete_error
+    from cutfem.fem.norms import discrete_error
 
     e = H - He
     row = {
@@ -1040,7 +1040,7 @@ def _xfem_version():
 def _plot(out, rows, meshed):
     from matplotlib.ticker import NullFormatter
 
-    from cutfem.convergence import new_figure
+    from cutfem.runs.convergence import new_figure
 
     fig, axes = new_figure(PAGE_WIDTH, 5.6, nrows=2, ncols=2)
     ax = axes[0, 0]

@@ -7,13 +7,13 @@ spacings 0.1 ... 0.0125 (down to 0.003125 with ``--full``), and the meshed torus
 perturbed families, tau_E = 0.1) at n = 64 ... 768.  Every level runs in a fresh Python process, so
 that its peak resident memory (VmHWM) is its own; the stages are timed with ``perf_counter``:
 
-* cut: background mesh (a :class:`~cutfem.mesh.StructuredBox`, nothing stored), cut (band search,
+* cut: background mesh (a :class:`~cutfem.geometry.mesh.StructuredBox`, nothing stored), cut (band search,
   level-set values near the surface, marching tets), topology (interior faces of the active mesh);
 * assembly: the matrix K = M + tau J (``matrix``: one form,
   :func:`~cutfem.problems.mean_curvature.mean_curvature_form`, as ``cutfem run`` assembles it; on
   the structured box the piece mass and the face penalty sum into one set of lattice slots) and the
-  right-hand sides A x_k (``rhs``, :func:`~cutfem.forms.position_load`, without A);
-* solve: :func:`cutfem.solve.solve` with the automatic choice (setup and iterations together,
+  right-hand sides A x_k (``rhs``, :func:`~cutfem.fem.forms.position_load`, without A);
+* solve: :func:`cutfem.solvers.solve.solve` with the automatic choice (setup and iterations together,
   with the method and iteration count recorded);
 * errors: the L2 error on S_h (degree-4 quadrature).
 
@@ -46,7 +46,7 @@ through main memory, and its bound is bytes / B, with B the machine's sustained 
 once per run (:func:`memory_bandwidth`: numpy copy ``a[:] = b`` and triad ``a = b + s c`` on three
 arrays of 200 MiB, cut into one slice per thread of the kernels and streamed on all of them at
 once, best of 5 each; the copy moves 2, the triad, two numpy passes, 5 array sizes; B is the
-larger of the two rates).  The solver's kernels run on all the cores (:mod:`cutfem.kernels`), so
+larger of the two rates).  The solver's kernels run on all the cores (:mod:`cutfem.jit`), so
 the bound is that of the whole machine; the stages that run on one core are held to it too.  The ratio measured / bound says how far a stage is from
 streaming its data once; the flop counts are not modelled.  With N unknowns (per component), T active
 tets (one surface piece each), S triangles of S_h, F interior faces, nnz(K) the nonzeros of
@@ -167,8 +167,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.registry import Timer
+from cutfem.runs.registry import Timer
 from cutfem.studies.common import PAGE_WIDTH, Progress, figure_style, pick, save_figure, save_json, study_main
+from cutfem.fem import element_kernels
+from cutfem.solvers import multigrid_kernels
+from cutfem.solvers import sparse_kernels
 
 OUTPUTS = ["performance", "performance_scaling", "performance_bounds"]
 
@@ -203,7 +206,7 @@ BULK_FULL = [0.1, 0.05, 0.025, 0.0125, 0.01]
 
 
 class StageTimer(Timer):
-    """:class:`~cutfem.registry.Timer` that also keeps, per stage, the process's user and system
+    """:class:`~cutfem.runs.registry.Timer` that also keeps, per stage, the process's user and system
     CPU seconds and minor page faults (``getrusage`` before and after): ``cpu[stage] = {"user",
     "system", "faults"}``.  On the 2-core virtual machine a first touch of memory costs 1.4-10 us
     of system time a page, so the faults say how much of a stage is the kernel's, not the code's
@@ -236,10 +239,10 @@ def _timed_system_solve_error(t, space, surface, form, torus):
     entries}, ``l2_error``, ``solver``, ``iterations``, ``exact_time``: the seconds of the errors
     stage spent in the exact field's own evaluation at the quadrature points) and the times
     of all the stages of ``t``."""
-    from cutfem.errors import l2_error
-    from cutfem.forms import assemble, position_load
+    from cutfem.fem.norms import l2_error
+    from cutfem.fem.forms import assemble, position_load
     from cutfem.problems.mean_curvature import SOLVER_TOL
-    from cutfem.solve import solve
+    from cutfem.solvers.solve import solve
 
     with t("matrix"):
         K = assemble(form, space)
@@ -267,11 +270,11 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     """One cut-torus level, timed stage by stage (runs in the calling process).  The record has
     the sizes the bounds need: ``dofs`` (N), ``active_tets`` (T), ``surface_triangles`` (S),
     ``interior_faces`` (F), ``iterations`` and ``nnz`` ({"K"})."""
-    from cutfem.cut import CUT, cut_mesh
-    from cutfem.levelset import Torus
+    from cutfem.geometry.cut import CUT, cut_mesh
+    from cutfem.geometry.levelset import Torus
     from cutfem.problems.mean_curvature import mean_curvature_form
-    from cutfem.mesh import structured_box
-    from cutfem.spaces import CutP1Space
+    from cutfem.geometry.mesh import structured_box
+    from cutfem.fem.spaces import CutP1Space
 
     t = StageTimer()
     with t("background"):
@@ -298,10 +301,10 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
 
 def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     """One meshed-torus level, timed stage by stage."""
-    from cutfem.levelset import Torus
+    from cutfem.geometry.levelset import Torus
     from cutfem.problems.mean_curvature import mean_curvature_form
-    from cutfem.spaces import SurfaceP1Space
-    from cutfem.surface import torus_mesh
+    from cutfem.fem.spaces import SurfaceP1Space
+    from cutfem.geometry.surface import torus_mesh
 
     t = StageTimer()
     with t("mesh"):
@@ -316,7 +319,7 @@ def ngsxfem_level(spacing: float) -> dict:
     with the zeros of the level set moved to +1e-14 and the collapsed tets left out: cutfem's
     discrete problem; NGSolve's sparse Cholesky, no TaskManager).  ``time`` has the stages mesh,
     levelset, cut, assembly, solve, errors; ``total`` is their sum."""
-    from cutfem.levelset import Torus
+    from cutfem.geometry.levelset import Torus
     from cutfem.studies.peers import ngsxfem_mean_curvature
 
     r = ngsxfem_mean_curvature(spacing, Torus(1.0, 0.5), zero_rule="+eps-cutfem-active", superlu=False)
@@ -349,7 +352,7 @@ import cutfem.memory
 cutfem.memory.configure()
 from cutfem.studies.performance import cut_level, meshed_level, ngsxfem_level
 kind, level, warm = {kind!r}, {level!r}, {warm!r}
-import pyamg, threadpoolctl, cutfem.cut, cutfem.errors, cutfem.forms, cutfem.levelset, cutfem.mesh, cutfem.solve, cutfem.spaces, cutfem.surface
+import pyamg, threadpoolctl, cutfem.geometry.cut, cutfem.fem.norms, cutfem.fem.forms, cutfem.geometry.levelset, cutfem.geometry.mesh, cutfem.solvers.solve, cutfem.fem.spaces, cutfem.geometry.surface
 if kind == 'ngsxfem':
     import ngsolve, xfem, cutfem.studies.peers
 r0 = resource.getrusage(resource.RUSAGE_SELF)
@@ -436,7 +439,7 @@ def memory_bandwidth(mebibytes: int = 200, repeat: int = 5, threads: int | None 
     """The sustained memory bandwidth of the cores the kernels run on, in bytes per second.
 
     Three float64 arrays of ``mebibytes`` MiB each (touched before timing), cut into ``threads``
-    slices (default: numba's thread count, the threads of :mod:`cutfem.kernels`), each slice on its
+    slices (default: numba's thread count, the threads of :mod:`cutfem.jit`), each slice on its
     own thread at the same time (numpy releases the interpreter's lock on such arrays); best of
     ``repeat`` of a copy ``a[:] = b`` (2 array sizes moved) and of a triad ``a = b + s c`` done as
     two numpy passes, ``a = s c`` then ``a += b`` (5 array sizes moved; write-allocate traffic not
@@ -549,35 +552,35 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     torus at ``spacing`` and its matrix K = M + tau_F J_F (as :func:`cut_level` assembles it),
     three columns.
 
-    * ``K X`` (double precision): :func:`cutfem.kernels.matmul` against scipy's CSR product
+    * ``K X`` (double precision): :func:`cutfem.solvers.sparse_kernels.matmul` against scipy's CSR product
       (C++, one thread);
-    * one forward Gauss-Seidel sweep from zero, rows in their order: :func:`cutfem.kernels.gauss_seidel`
+    * one forward Gauss-Seidel sweep from zero, rows in their order: :func:`cutfem.solvers.sparse_kernels.gauss_seidel`
       with one chunk (so on one thread) against pyamg's ``gauss_seidel`` (C++), column by column;
-    * the Galerkin product P^T K P of the first coarse level: :func:`cutfem.kernels.galerkin`
+    * the Galerkin product P^T K P of the first coarse level: :func:`cutfem.solvers.multigrid_kernels.galerkin`
       against scipy's ``R @ K @ P`` (two sparse products, C++, one thread; its result is not made
       exactly symmetric);
     * the numbering of the active nodes (the background ids of the cut tets' nodes, their sorted
-      distinct values and the inverse): :func:`cutfem.mesh.dense_unique` against
+      distinct values and the inverse): :func:`cutfem.geometry.mesh.dense_unique` against
       ``numpy.unique(..., return_inverse=True)`` (C, a sort);
-    * the whole cut stage (:func:`cutfem.cut.cut_mesh` from the lazy box: the band search, the
+    * the whole cut stage (:func:`cutfem.geometry.cut.cut_mesh` from the lazy box: the band search, the
       level set at the band's nodes, the numbering, marching tets and S_h with its normals and
       areas) against VTK's contour filter (C++, pyvista's ``contour``, one thread in the VTK of
       the wheels) on the active tets and their level-set values, given in memory: only the
       marching tets of that stage; ``difference`` is that of the two surfaces' areas, relative;
-    * the whole matrix stage (:func:`cutfem.forms.assemble` of the form, element matrices and
+    * the whole matrix stage (:func:`cutfem.fem.forms.assemble` of the form, element matrices and
       sums) against scipy's conversion of the element matrices, given, from COO to CSR (C++, one
       thread), which only sums them: the exact piece mass matrices (4 x 4 a cut tet, from
-      :func:`cutfem.kernels.piece_moments`) and the Gram matrices c_F c_F^T of the face jumps
-      (8 x 8 a face, from :func:`cutfem.kernels.jump_rows`; a node shared by the two tets summed by
+      :func:`cutfem.fem.element_kernels.piece_moments`) and the Gram matrices c_F c_F^T of the face jumps
+      (8 x 8 a face, from :func:`cutfem.fem.element_kernels.jump_rows`; a node shared by the two tets summed by
       the conversion): 104 million entries at spacing 0.0125.
-    * the whole topology stage (the field on the cut tets, :class:`cutfem.spaces.CutP1Space`, and
-      the interior faces of the active mesh, :func:`cutfem.markers.interior_facets`) against VTK's
+    * the whole topology stage (the field on the cut tets, :class:`cutfem.fem.spaces.CutP1Space`, and
+      the interior faces of the active mesh, :func:`cutfem.geometry.markers.interior_facets`) against VTK's
       geometry filter (vtkGeometryFilter, C++, pyvista's ``extract_surface``, one thread) on the
       active tets: it matches every face of the tets with its twin and keeps those met once (the
       boundary), the same matching; ``difference`` is |its boundary faces - (4 T - 2 F)|, T tets
       and F interior faces;
-    * the whole right-hand-side stage (:func:`cutfem.forms.assemble` of
-      :func:`cutfem.forms.position_load`: b_i = sum_K |S_K| P_h grad phi_i, element vectors and
+    * the whole right-hand-side stage (:func:`cutfem.fem.forms.assemble` of
+      :func:`cutfem.fem.forms.position_load`: b_i = sum_K |S_K| P_h grad phi_i, element vectors and
       sums in one compiled pass) against ``numpy.bincount`` (C) summing the element vectors |S_K|
       P_h grad phi_i, given (made in numpy before the timing), one column at a time: the sums alone.
 
@@ -592,15 +595,14 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     import scipy.sparse as sp
     from pyamg.relaxation.relaxation import gauss_seidel as pyamg_gauss_seidel
 
-    from cutfem import kernels
-    from cutfem.cut import CUT, cut_mesh
-    from cutfem.forms import assemble, position_load
-    from cutfem.levelset import Torus
-    from cutfem.markers import interior_facets
-    from cutfem.mesh import dense_unique, structured_box
+    from cutfem.geometry.cut import CUT, cut_mesh
+    from cutfem.fem.forms import assemble, position_load
+    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.markers import interior_facets
+    from cutfem.geometry.mesh import dense_unique, structured_box
     from cutfem.problems.mean_curvature import mean_curvature_form
-    from cutfem.solve import lattice_hierarchy, lattice_indices
-    from cutfem.spaces import CutP1Space
+    from cutfem.solvers.solve import lattice_hierarchy, lattice_indices
+    from cutfem.fem.spaces import CutP1Space
 
     import pyvista as pv
 
@@ -628,7 +630,7 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     del vectors
 
     def sweep():
-        return kernels.gauss_seidel(K, np.zeros((n, COLUMNS)), B)
+        return sparse_kernels.gauss_seidel(K, np.zeros((n, COLUMNS)), B)
 
     def pyamg_sweep():
         out = np.zeros((n, COLUMNS))
@@ -660,9 +662,9 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
         return float(np.max(np.abs(a - b)))
 
     cases = [
-        ("K X, 3 columns, double", lambda: kernels.matmul(K, X), "scipy.sparse CSR product (C++)", lambda: K @ X),
+        ("K X, 3 columns, double", lambda: sparse_kernels.matmul(K, X), "scipy.sparse CSR product (C++)", lambda: K @ X),
         ("Gauss-Seidel sweep from zero, 3 columns", sweep, "pyamg gauss_seidel (C++), a column at a time", pyamg_sweep),
-        ("Galerkin P^T K P, first level", lambda: kernels.galerkin(K, P, R), "scipy R @ K @ P (C++)", lambda: R @ K @ P),
+        ("Galerkin P^T K P, first level", lambda: multigrid_kernels.galerkin(K, P, R), "scipy R @ K @ P (C++)", lambda: R @ K @ P),
         ("active-node numbering", lambda: dense_unique(ids, box.n_points), "numpy.unique with inverse (C)",
          lambda: np.unique(ids, return_inverse=True)),
         ("the cut stage (band, S_h), whole", lambda: cut_mesh(box, torus), "VTK contour of the active tets (C++)",
@@ -693,17 +695,16 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
 def _element_triplets(cut, space, faces, tau_f: float):
     """(values, (rows, columns)) of the element matrices of K = M + tau_F J_F on the cut space ``space``,
     for :func:`compiled_references`: the exact piece mass matrix of each cut tet (its diagonal and
-    both triangles of its 4 x 4, :func:`cutfem.kernels.piece_moments`) and tau_F c_F c_F^T of each
-    interior face in ``faces`` (8 x 8, c_F the jump row of :func:`cutfem.kernels.jump_rows` on the
+    both triangles of its 4 x 4, :func:`cutfem.fem.element_kernels.piece_moments`) and tau_F c_F c_F^T of each
+    interior face in ``faces`` (8 x 8, c_F the jump row of :func:`cutfem.fem.element_kernels.jump_rows` on the
     dofs of both tets, a shared node twice); their sum is K."""
-    from cutfem import kernels
-    from cutfem.cut import CUT
-    from cutfem.numbering import TET_EDGES, index_dtype
+    from cutfem.geometry.cut import CUT
+    from cutfem.geometry.numbering import TET_EDGES, index_dtype
 
     dofs = np.asarray(space.element_dofs)
     table, types = space.gradient_lookup()
     es = cut.elements(CUT)
-    edges, diagonal, _ = kernels.piece_moments(cut.vertices, cut.triangles, cut.triangle_tets, cut.triangle_areas,
+    edges, diagonal, _ = element_kernels.piece_moments(cut.vertices, cut.triangles, cut.triangle_tets, cut.triangle_areas,
                                                es.points, es.tets, table, types)
     a, b = TET_EDGES[:, 0], TET_EDGES[:, 1]
     mass_rows = np.concatenate([dofs, dofs[:, a], dofs[:, b]], axis=1)
@@ -713,7 +714,7 @@ def _element_triplets(cut, space, faces, tau_f: float):
     pairs = np.ascontiguousarray(faces.pairs)
     index = index_dtype(space.n_dofs)
     face_dofs, face_vals = np.empty((len(pairs), 8), dtype=index), np.empty((len(pairs), 8))
-    kernels.jump_rows(pairs, normals, normals, -1.0, np.ascontiguousarray(tau_f * weights, dtype=float), dofs, table, types,
+    element_kernels.jump_rows(pairs, normals, normals, -1.0, np.ascontiguousarray(tau_f * weights, dtype=float), dofs, table, types,
                       face_dofs, face_vals)
     shape = (len(pairs), 8, 8)
     rows = np.concatenate([mass_rows.ravel(), np.broadcast_to(face_dofs[:, :, None], shape).ravel()]).astype(index)
@@ -874,7 +875,7 @@ def _available_gib():
 
 _COMMAND_CODE = _PEAK_CODE + """\
 import atexit
-from cutfem.cli import entry
+from cutfem.runs.cli import entry
 atexit.register(lambda: print(f'PEAK {_peak()!r}', flush=True))
 entry()
 """
@@ -882,7 +883,7 @@ entry()
 
 def command_run(args) -> dict:
     """``cutfem ARGS --json F --quiet`` in a fresh process (the command's own entry,
-    :func:`cutfem.cli.entry`, and at exit a print of the process's peak resident memory, VmHWM):
+    :func:`cutfem.runs.cli.entry`, and at exit a print of the process's peak resident memory, VmHWM):
     {"record": the first level's JSON record, "process_wall": the wall time of the whole process
     (interpreter start, imports and numba's start included), "peak_memory_gib", "cpu_user",
     "cpu_system" (``os.wait4``)}."""
@@ -921,7 +922,7 @@ def command_targets(size: str) -> list:
     """The end-to-end targets, as (cutfem arguments, seconds or None): the cut torus at spacing
     0.0125 in 2 s and the meshed torus 768 x 384 of every family in 1 s (with ``full`` also the cut
     torus at spacing 0.003125 in 40 s); at the tiny size the coarse levels, without a target."""
-    from cutfem.surface import TORUS_FAMILIES
+    from cutfem.geometry.surface import TORUS_FAMILIES
 
     cut, n = pick(size, ("0.1", "32"), ("0.0125", "768"), ("0.0125", "768"))
     targets = [(["run", "mean-curvature-cut", "--spacing", cut], None if size == "tiny" else 2.0)]
@@ -968,7 +969,7 @@ def _peer_missing():
 
 def _peers(cut_records, memory_gib, down_to, progress) -> dict:
     """ngsxfem at the cut levels that ran (see the module docstring), with the ratio of totals."""
-    from cutfem.mesh import structured_box
+    from cutfem.geometry.mesh import structured_box
     from cutfem.studies.peers import BYTES_PER_TET
 
     missing = _peer_missing()
@@ -1218,7 +1219,7 @@ def _print_tables(records, summary):
 
 @figure_style
 def _plot(out, records, summary):
-    from cutfem.convergence import new_figure
+    from cutfem.runs.convergence import new_figure
 
     fig, axes = new_figure(PAGE_WIDTH, 3.2, nrows=1, ncols=2)
     ng = [p["ngsxfem"] for p in summary.get("peers", {}).get("levels", []) if "ngsxfem" in p]
@@ -1247,7 +1248,7 @@ def _plot_bounds(out, cut, summary):
     """The stage's own time (run again in its process) / bound per stage of the cut levels; with
     the compiled references, the target per stage (:func:`stage_targets`: both ratios of each
     stage against the line at 2); with bulk levels, their time and memory per million unknowns."""
-    from cutfem.convergence import new_figure
+    from cutfem.runs.convergence import new_figure
 
     bulk = [r for r in summary.get("bulk", []) if "failed" not in r]
     targets = summary.get("stage_targets") or {}

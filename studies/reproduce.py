@@ -389,7 +389,7 @@ def main(argv=None) -> int:
             return 2
         selected = [n for n in STUDY_NAMES if n in a.only]
 
-    from cutfem.registry import ProblemError, check_output, compile_notice
+    from cutfem.runs.registry import ProblemError, check_output, compile_notice
 
     try:
         check_output("--out", a.out, folder=True)

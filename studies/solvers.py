@@ -4,8 +4,8 @@ For every registered problem with a ``solver`` parameter (:func:`cutfem.availabl
 heat equation on the cut surface, whose solver solves one system a time step, is left out: its
 module docstring has its own table) and each of its choices
 
-* ``auto``: direct up to :data:`cutfem.solve.DIRECT_LIMIT` unknowns, then CG with geometric
-  multigrid where there is a hierarchy, else direct up to :data:`cutfem.solve.DIRECT_LIMIT_NO_MG`
+* ``auto``: direct up to :data:`cutfem.solvers.solve.DIRECT_LIMIT` unknowns, then CG with geometric
+  multigrid where there is a hierarchy, else direct up to :data:`cutfem.solvers.solve.DIRECT_LIMIT_NO_MG`
   and CG with smoothed-aggregation AMG above;
 * ``direct`` (banded Cholesky or SuperLU of the diagonally scaled matrix), ``cg-mg`` (CG with the
   geometric multigrid), ``cg-amg`` (CG with pyamg's smoothed aggregation), ``cg-jacobi`` (CG with
@@ -185,7 +185,7 @@ def solve_row(case: dict, solver: str, level) -> dict:
 
 
 def _is_error_key(key: str, value) -> bool:
-    """An error of the record (as :meth:`cutfem.registry.RunResult.error_keys`: ``*_error`` and
+    """An error of the record (as :meth:`cutfem.runs.registry.RunResult.error_keys`: ``*_error`` and
     ``*_error_<field>``, not the solver's entries)."""
     return "_error" in key and not key.startswith("solver") and isinstance(value, (int, float)) and not isinstance(value, bool)
 
@@ -248,7 +248,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     todo = cases(size)
     warm_up()
     from cutfem.problems.mean_curvature import SOLVER_TOL
-    from cutfem.solve import DEFAULT_TOL, DIRECT_LIMIT, DIRECT_LIMIT_NO_MG
+    from cutfem.solvers.solve import DEFAULT_TOL, DIRECT_LIMIT, DIRECT_LIMIT_NO_MG
 
     rows = []
     summary = {

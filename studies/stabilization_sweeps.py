@@ -26,11 +26,11 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.errors import fitted_rate, l2_error
-from cutfem.cut import CUT
-from cutfem.forms import assemble, face_jump_penalty, position_load
-from cutfem.levelset import Torus
-from cutfem.solve import SolverError, solve
+from cutfem.fem.norms import fitted_rate, l2_error
+from cutfem.geometry.cut import CUT
+from cutfem.fem.forms import assemble, face_jump_penalty, position_load
+from cutfem.geometry.levelset import Torus
+from cutfem.solvers.solve import SolverError, solve
 
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, significant, study_main
 from .conditioning import PAPER_BOX, matrices, scaled_condition
@@ -129,7 +129,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
 
 @figure_style
 def _plot(out, settings, taus):
-    from cutfem.convergence import log_ticks, new_figure
+    from cutfem.runs.convergence import log_ticks, new_figure
 
     fig, axes = new_figure(PAGE_WIDTH, 2.6, nrows=1, ncols=3)
     colors = {a: f"C{i}" for i, a in enumerate(POWERS)}

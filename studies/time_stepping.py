@@ -111,7 +111,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
 
 @figure_style
 def _plot(out, rows):
-    from cutfem.convergence import log_ticks, new_figure
+    from cutfem.runs.convergence import log_ticks, new_figure
 
     fig, axes = new_figure(PAGE_WIDTH, 4.2, nrows=2, ncols=len(SCHEMES), sharex="col")
     marks = {"direct": "s", "cg-jacobi": "o", "cg-mg": "^"}

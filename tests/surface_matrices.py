@@ -1,9 +1,9 @@
 """The surface matrices of a trace or meshed field, assembled from the public forms: shared by the
 tests (imported as a plain module from this folder)."""
 
-from cutfem.forms import assemble, edge_jump_penalty, face_jump_penalty, load, mass, tangential_stiffness
-from cutfem.markers import CUT
-from cutfem.measures import surface_measure
+from cutfem.fem.forms import assemble, edge_jump_penalty, face_jump_penalty, load, mass, tangential_stiffness
+from cutfem.geometry.markers import CUT
+from cutfem.geometry.measures import surface_measure
 
 
 def dF(V):

@@ -7,15 +7,15 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from cutfem.cut import CUT, NEG, POS, cut_mesh
-from cutfem.errors import fitted_rate, h1_error, l2_error, l2_h1_errors, rates
-from cutfem.forms import assemble, face_jump_penalty, mass
-from cutfem.levelset import Sphere
-from cutfem.markers import ElementSet
-from cutfem.mesh import structured_box
-from cutfem.solve import CGSolver, DirectSolver, condition_number, solve
-from cutfem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
-from cutfem.surface import sphere_mesh
+from cutfem.geometry.cut import CUT, NEG, POS, cut_mesh
+from cutfem.fem.norms import fitted_rate, h1_error, l2_error, l2_h1_errors, rates
+from cutfem.fem.forms import assemble, face_jump_penalty, mass
+from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.markers import ElementSet
+from cutfem.geometry.mesh import structured_box
+from cutfem.solvers.solve import CGSolver, DirectSolver, condition_number, solve
+from cutfem.fem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
+from cutfem.geometry.surface import sphere_mesh
 
 X = lambda p: p[..., 0]  # noqa: E731
 GRAD_X = lambda p: np.broadcast_to(np.array([1.0, 0.0, 0.0]), p.shape)  # noqa: E731
@@ -260,7 +260,7 @@ def test_condition_number_refuses_a_nonsymmetric_matrix():
 def test_errors_name_what_is_not_finite(cut):
     """l2_error / h1_error returned nan when the exact function or the coefficients held a nan or
     inf (a load refuses them); the cause is now named, and only checked when a sum is not finite."""
-    from cutfem.errors import h1_error, l2_error
+    from cutfem.fem.norms import h1_error, l2_error
 
     V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
     u = np.ones(V.n_dofs)

@@ -11,18 +11,18 @@ import cutfem
 
 # the defining module of each public name, written out here (not read from cutfem._NAMES)
 EXPECTED = {
-    "cutfem.mesh": "structured_box read_mesh write_mesh",
-    "cutfem.surface": "read_surface write_surface sphere_mesh torus_mesh",
-    "cutfem.levelset": "Sphere Torus Ellipsoid FunctionLevelSet SignedDistance",
-    "cutfem.cut": "cut_mesh CutMesh",
-    "cutfem.markers": "NEG POS CUT",
-    "cutfem.spaces": "CutP1Space SurfaceP1Space ProductSpace",
-    "cutfem.forms": "bilinear_form linear_form dot jump avg ZERO assemble apply_dirichlet mass stiffness "
+    "cutfem.geometry.mesh": "structured_box read_mesh write_mesh",
+    "cutfem.geometry.surface": "read_surface write_surface sphere_mesh torus_mesh",
+    "cutfem.geometry.levelset": "Sphere Torus Ellipsoid FunctionLevelSet SignedDistance",
+    "cutfem.geometry.cut": "cut_mesh CutMesh",
+    "cutfem.geometry.markers": "NEG POS CUT",
+    "cutfem.fem.spaces": "CutP1Space SurfaceP1Space ProductSpace",
+    "cutfem.fem.forms": "bilinear_form linear_form dot jump avg ZERO assemble apply_dirichlet mass stiffness "
                     "tangential_stiffness load position_load basis_integrals nitsche nitsche_load interface_nitsche "
                     "face_jump_penalty edge_jump_penalty normal_gradient_penalty",
-    "cutfem.solve": "solve SolverError DirectSolver CGSolver GeometricMultigrid",
-    "cutfem.errors": "l2_error h1_error l2_h1_errors rates fitted_rate",
-    "cutfem.registry": "register Param Problem run available_problems get_problem",
+    "cutfem.solvers.solve": "solve SolverError DirectSolver CGSolver GeometricMultigrid",
+    "cutfem.fem.norms": "l2_error h1_error l2_h1_errors rates fitted_rate",
+    "cutfem.runs.registry": "register Param Problem run available_problems get_problem",
 }
 
 
@@ -37,18 +37,16 @@ def test_each_name_is_the_object_of_its_module(module, name):
     assert getattr(cutfem, name) is getattr(importlib.import_module(module), name)
 
 
-def test_solve_stays_the_function_after_its_module_is_imported():
-    import cutfem.solve  # noqa: F401  (binds the submodule on the package, which the face overrides)
+def test_solve_is_the_function_after_the_solver_modules_are_imported():
+    import cutfem.solvers.solve  # noqa: F401  (binds cutfem.solvers, not cutfem.solve)
 
-    solve_module = sys.modules["cutfem.solve"]
-    assert cutfem.solve is solve_module.solve and callable(cutfem.solve)
-    with pytest.raises(AttributeError, match="public function solve"):
-        cutfem.solve = lambda *a: None
+    assert cutfem.solve is sys.modules["cutfem.solvers.solve"].solve and callable(cutfem.solve)
 
 
-def test_no_other_public_name_is_a_submodule():
+def test_no_public_name_is_a_submodule():
     submodules = {info.name for info in pkgutil.iter_modules(cutfem.__path__)}
-    assert submodules & set(cutfem.__all__) == set(cutfem._SHADOWED) == {"solve"}
+    assert submodules == {"fem", "geometry", "jit", "memory", "runs", "solvers"}
+    assert not submodules & set(cutfem.__all__)
 
 
 def test_dir_lists_the_public_names():
@@ -64,7 +62,8 @@ def test_unknown_name_raises_attribute_error_naming_it_and_the_close_match():
 
 
 def test_submodules_still_import_by_from():
-    from cutfem import memory, registry
+    from cutfem import memory
+    from cutfem.runs import registry
 
     assert registry.register is cutfem.register and callable(memory.configure)
 
@@ -80,7 +79,7 @@ def test_import_is_light_and_changes_nothing_process_wide():
         "import os, sys\n"
         "env = dict(os.environ)\n"
         "import cutfem\n"
-        "heavy = [m for m in ('numba', 'scipy', 'scipy.sparse.linalg', 'matplotlib', 'cutfem.kernels', 'cutfem.registry')"
+        "heavy = [m for m in ('numba', 'scipy', 'scipy.sparse.linalg', 'matplotlib', 'cutfem.jit', 'cutfem.runs.registry')"
         " if m in sys.modules]\n"
         "print(heavy, dict(os.environ) == env)\n"
     )

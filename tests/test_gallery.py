@@ -18,7 +18,7 @@ import pytest
 
 import cutfem as cf
 
-EXAMPLES = Path(__file__).resolve().parent.parent / "docs" / "examples"
+EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
 SCRIPTS = ["poisson_ball", "interface", "bulk_surface", "laplace_beltrami", "mean_curvature_user_surface", "heat_surface"]
 
 

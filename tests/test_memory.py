@@ -44,19 +44,19 @@ def test_import_changes_nothing_process_wide(tmp_path):
         "matplotlib.use('svg')\n"
         "before = {'hugepage': bool(get_hp()), 'backend': matplotlib.get_backend()}\n"
         "import cutfem, cutfem.memory\n"
-        "from cutfem.registry import RunResult\n"
+        "from cutfem.runs.registry import RunResult\n"
         "problems = sorted(cutfem.available_problems())\n"
-        "from cutfem.convergence import convergence_plot\n"
+        "from cutfem.runs.convergence import convergence_plot\n"
         "rec = [{'h': 0.2, 'l2_error': 0.1}, {'h': 0.1, 'l2_error': 0.026}]\n"
         f"convergence_plot(RunResult('p', {{}}, [0.2, 0.1], rec), {str(tmp_path / 'conv.png')!r})\n"
-        "from cutfem.convergence import new_figure\n"
+        "from cutfem.runs.convergence import new_figure\n"
         "from cutfem.studies.common import save_figure\n"
         "fig, ax = new_figure(3, 2)\n"
         "ax.plot([0, 1], [1, 0])\n"
         f"save_figure(fig, {str(tmp_path)!r}, 'study')\n"
-        "import cutfem.kernels, numpy as np, scipy.sparse as sp\n"
+        "import cutfem.solvers.sparse_kernels, numpy as np, scipy.sparse as sp\n"
         "A = sp.identity(600, format='csr') * 2.0\n"
-        "cutfem.kernels.matmul(A, np.ones((600, 3)))\n"  # a parallel kernel: numba's threads start
+        "cutfem.solvers.sparse_kernels.matmul(A, np.ones((600, 3)))\n"  # a parallel kernel: numba's threads start
         "after = {'hugepage': bool(get_hp()), 'backend': matplotlib.get_backend()}\n"
         "import os\n"
         "print(json.dumps({'before': before, 'after': after, 'settings': cutfem.memory.SETTINGS, 'problems': problems,\n"
@@ -75,9 +75,9 @@ def test_import_changes_nothing_process_wide(tmp_path):
 def _after_command(argv, **env) -> dict:
     code = _HUGEPAGE_GETTER + (
         "import contextlib, io, json\n"
-        "import cutfem.cli, cutfem.memory\n"
+        "import cutfem.runs.cli, cutfem.memory\n"
         "with contextlib.redirect_stdout(io.StringIO()):\n"
-        f"    status = cutfem.cli.main({argv!r})\n"
+        f"    status = cutfem.runs.cli.main({argv!r})\n"
         "print(json.dumps(dict(cutfem.memory.SETTINGS, status=status, numpy_now=bool(get_hp()))))\n"
     )
     return _fresh_process(code, **env)
@@ -108,13 +108,13 @@ def test_a_run_allocates_like_the_command_line_and_puts_the_settings_back():
 
 def test_the_command_line_leaves_the_wait_policy_alone():
     """The command runs its kernels as a script does: OpenMP's wait policy is not set (each kernel
-    call's team follows the free cores instead, cutfem.threads), and a policy the user set stays."""
+    call's team follows the free cores instead, cutfem.jit), and a policy the user set stays."""
     assert "threads" not in _after_command(["list"])
     code = (
         "import contextlib, io, json, os\n"
-        "import cutfem.cli\n"
+        "import cutfem.runs.cli\n"
         "with contextlib.redirect_stdout(io.StringIO()):\n"
-        "    cutfem.cli.main(['list'])\n"
+        "    cutfem.runs.cli.main(['list'])\n"
         "print(json.dumps({'omp': os.environ.get('OMP_WAIT_POLICY')}))\n"
     )
     assert _fresh_process(code)["omp"] is None
@@ -213,17 +213,17 @@ def test_cut_torus_beyond_two_million_active_nodes():
     """The cut torus at spacing 0.0042 (about 2.6 million active nodes: past 2**21, where the old
     single-integer face key overflowed) through the cut and the face topology: each interior face is
     a face of both its (distinct) tets, and there are at most 2 T of them.  Peak about 6 GiB."""
-    from cutfem.cut import cut_mesh
-    from cutfem.levelset import Torus
+    from cutfem.geometry.cut import cut_mesh
+    from cutfem.geometry.levelset import Torus
     from cutfem.memory import available_memory
-    from cutfem.mesh import structured_box
+    from cutfem.geometry.mesh import structured_box
 
     if available_memory()[0] < 12 * 2**30:
         pytest.skip("needs about 12 GiB free")
     cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.0042), Torus(1.0, 0.5))
     assert cut.n_nodes > 2**21
-    from cutfem.markers import CUT
-    from cutfem.numbering import TET_FACES
+    from cutfem.geometry.markers import CUT
+    from cutfem.geometry.numbering import TET_FACES
 
     facets = cut.interior_facets(CUT)
     face_tets = facets.pairs
@@ -266,7 +266,7 @@ def _refusal(call) -> tuple[str, float]:
 
 
 def _cut_cases():
-    from cutfem.levelset import Ellipsoid, Sphere, Torus
+    from cutfem.geometry.levelset import Ellipsoid, Sphere, Torus
 
     return {  # level set, box, limit, a spacing refused, the part that decides
         "torus": (Torus(1.0, 0.5), TORUS_BOX, "256MiB", 0.0005, "cells near the surface"),
@@ -282,9 +282,9 @@ def test_cut_refusal_names_a_spacing_that_fits(monkeypatch, case):
     the limit, and a spacing 1.3 times finer than that is refused, naming the same spacing: the
     band of a surface (spacing**-2), the nodes and the boundary of a large box around a small
     surface (spacing**-3 and **-2), every node evaluated without a Lipschitz bound."""
-    from cutfem.cut import cut_memory_estimate, cut_mesh
+    from cutfem.geometry.cut import cut_memory_estimate, cut_mesh
     from cutfem.memory import available_memory
-    from cutfem.mesh import structured_box
+    from cutfem.geometry.mesh import structured_box
 
     levelset, (lo, hi), limit, refused, part = _cut_cases()[case]
     monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", limit)
@@ -333,10 +333,10 @@ def test_problem_refusal_names_a_spacing_that_runs(monkeypatch, problem, surface
 def test_check_after_the_cut_names_a_spacing_that_passes(monkeypatch):
     """check_cut_memory, on the real active tets of a cut that fits, names a spacing at which it
     passes, and refuses a spacing 1.3 times finer than that (tets scaled like spacing**-2)."""
-    from cutfem.cut import cut_mesh
-    from cutfem.levelset import Sphere
+    from cutfem.geometry.cut import cut_mesh
+    from cutfem.geometry.levelset import Sphere
     from cutfem.memory import SOLVE_BASE_BYTES, available_memory
-    from cutfem.mesh import structured_box
+    from cutfem.geometry.mesh import structured_box
     from cutfem.problems.common import check_cut_memory
 
     monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "512MiB")
@@ -357,9 +357,9 @@ def test_cut_estimate_grows_as_the_spacing_shrinks():
     """For one surface and box the estimate never shrinks with the spacing: not between the cut's
     parts (the spacing 0.0014 of the torus was refused at 2.41 GiB from the box's nodes and 0.0016
     at 13.1 GiB from the band), not between close spacings, not for the later stages."""
-    from cutfem.cut import cut_memory_estimate
-    from cutfem.levelset import Ellipsoid, Sphere, Torus
-    from cutfem.mesh import structured_box
+    from cutfem.geometry.cut import cut_memory_estimate
+    from cutfem.geometry.levelset import Ellipsoid, Sphere, Torus
+    from cutfem.geometry.mesh import structured_box
     from cutfem.problems.common import background_for
 
     spacings = [0.05, 0.02, 0.01, 0.0046, 0.0045, 0.0044, 0.004, 0.0016, 0.0014, 0.0005]
@@ -377,9 +377,9 @@ def test_cut_estimate_grows_as_the_spacing_shrinks():
 def test_predicted_band_and_tets_cover_the_cut(surface):
     """The band cells and active tets predicted before the cut (the survey's area at every spacing)
     are at least the cut's, by at most 1.35 times."""
-    from cutfem.cut import _band_cells, _surface_survey, _cut_bytes, _zero_tolerance, cut_mesh
-    from cutfem.levelset import Sphere, Torus
-    from cutfem.mesh import structured_box
+    from cutfem.geometry.cut import _band_cells, _surface_survey, _cut_bytes, _zero_tolerance, cut_mesh
+    from cutfem.geometry.levelset import Sphere, Torus
+    from cutfem.geometry.mesh import structured_box
 
     levelset, box = (Torus(1.0, 0.5), TORUS_BOX) if surface == "torus" else (Sphere(1.0), SPHERE_BOX)
     areas = []

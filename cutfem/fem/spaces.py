@@ -1,0 +1,412 @@
+"""Continuous P1 fields: on a triangulated surface, and on an element set of a cut.
+
+Every space exposes the same plain arrays, so that forms are written once:
+
+``n_dofs``; ``element_dofs`` (n_el, k) global dof numbers of each element (triangles, k = 3, or
+tets, k = 4); ``element_gradients`` (n_el, k, 3) the constant gradients of the P1 basis functions
+(on a surface triangle this is already the surface gradient); ``element_normals`` (n_el, 3) the
+discrete normal n_h (surface and trace spaces; None for bulk fields); ``elements`` the element set
+(or surface mesh) the field lives on, which :mod:`cutfem.fem.forms` matches against the elements of a
+measure; ``h`` the global mesh size, the abscissa of convergence tables (docs/math.md §2).
+
+Measures are not owned by spaces: see :mod:`cutfem.geometry.measures`.  Vector-valued fields [V_h]^c are
+(n, c) arrays of coefficients sharing the scalar matrices; several fields together form a
+:class:`ProductSpace` with a block numbering of their dofs.
+"""
+
+from __future__ import annotations
+
+from functools import cached_property
+
+import numpy as np
+
+from .assembly import SymmetricPattern
+from ..geometry.markers import CUT, ElementSet, same_background
+from ..geometry.surface import positive_number
+from . import element_kernels
+
+__all__ = ["SurfaceP1Space", "CutP1Space", "ProductSpace", "triangle_gradients", "barycentric_at"]
+
+
+def triangle_gradients(vertices: np.ndarray):
+    """Surface gradients of the barycentric coordinates of triangles in R^3.
+
+    ``vertices`` (m, 3, 3).  With unit normal n and area A, ``grad lambda_i = n x (x_{i+2} - x_{i+1}) / (2A)``
+    (indices mod 3): tangent to the triangle, orthogonal to the opposite edge, of length 1/height.
+    Returns ``(grads (m, 3, 3), normals (m, 3), areas (m,))``; one compiled pass
+    (:func:`cutfem.fem.element_kernels.triangle_gradients`).
+    """
+
+    v = np.ascontiguousarray(vertices, dtype=float)
+    if v.ndim != 3 or v.shape[1:] != (3, 3):
+        raise ValueError(f"vertices must have shape (m, 3, 3), got {v.shape}")
+    m = len(v)
+    grads, normals, areas = np.empty((m, 3, 3)), np.empty((m, 3)), np.empty(m)
+    element_kernels.triangle_gradients(v, grads, normals, areas)
+    return grads, normals, areas
+
+
+def barycentric_at(points: np.ndarray, origin: np.ndarray, grads: np.ndarray) -> np.ndarray:
+    """P1 basis values at ``points`` (m, q, 3) of elements with first vertex ``origin`` (m, 3) and
+    basis gradients ``grads`` (m, k, 3): ``lambda_k(x) = delta_k0 + grad lambda_k . (x - x_0)``."""
+
+    points = np.ascontiguousarray(points, dtype=float)
+    grads = np.ascontiguousarray(grads, dtype=float)
+    lam = np.empty(points.shape[:2] + grads.shape[1:2])
+    # compiled: numpy's batched matmul took 0.27 s against 0.05 s for the 73 cut-cell blocks of the
+    # fictitious-domain Poisson problem's load and errors at spacing 0.025
+    element_kernels.barycentric_values(points, np.ascontiguousarray(origin, dtype=float), grads, lam)
+    return lam
+
+
+def _mesh_size(h, default) -> float:
+    """The global mesh size ``h`` of a space (``default`` when None): a positive finite number."""
+    return float(default) if h is None else positive_number(h, "h (the mesh size)")
+
+
+class _P1Space:
+    """Shared machinery: cached sparsity patterns (surface meshes) and evaluation of discrete functions."""
+
+    element_dofs: np.ndarray
+    n_dofs: int
+
+    def _patterns(self):
+        if "_pattern_cache" not in self.__dict__:
+            self.__dict__["_pattern_cache"] = {}
+        return self.__dict__["_pattern_cache"]
+
+    def gradients_of(self, elements) -> np.ndarray:
+        """The basis gradients of the given elements, ``element_gradients[elements]``."""
+        return self.element_gradients[elements]
+
+    def _coefficients(self, coeffs) -> np.ndarray:
+        """``coeffs`` as an array of shape (n_dofs,) or (n_dofs, c), or a ValueError naming the shapes
+        (and, for a longer vector, the block of a product space's vector, which is the usual cause)."""
+        coeffs = np.asarray(coeffs)
+        if coeffs.ndim not in (1, 2) or len(coeffs) != self.n_dofs:
+            hint = ""
+            if coeffs.ndim in (1, 2) and len(coeffs) > self.n_dofs:
+                hint = ("; a vector of a ProductSpace holds the coefficients of all its fields: pass this field's block, "
+                        "W.split(x)[k]")
+            raise ValueError(f"coefficients of this space have shape ({self.n_dofs},) or ({self.n_dofs}, c), got {coeffs.shape}{hint}")
+        return coeffs
+
+    def gradient_lookup(self):
+        """(table, types) with ``gradients_of(i) = table[types[i]]``, for compiled kernels: here the
+        element gradients and 0..n_el-1."""
+        return self.element_gradients, np.arange(self.n_elements)
+
+    def basis_at(self, points: np.ndarray, parent: np.ndarray) -> np.ndarray:
+        """(m, j, k) P1 basis values of element ``parent[i]`` at ``points[i]`` (m, j, 3)."""
+        return barycentric_at(points, self.dof_points[self.element_dofs[parent, 0]], self.gradients_of(parent))
+
+    @property
+    def tangential_gradients(self) -> np.ndarray:
+        """(n_el, k, 3) P_h grad of the basis functions, P_h = I - n_h n_h^T per element; computed on
+        each access, not kept (as large as the gradients); :meth:`tangential_gradients_of` for a
+        block of elements."""
+        return self.tangential_gradients_of(slice(None))
+
+    def tangential_gradients_of(self, elements) -> np.ndarray:
+        """P_h grad of the basis functions on the given elements: (b, k, 3)."""
+        G, n = self.gradients_of(elements), self.element_normals[elements]
+        return G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
+
+    def local_elements(self, measure, parent=None) -> np.ndarray:
+        """The field's element of each cell of ``measure`` (its ``quadrature().parent``, or the given
+        ``parent`` ids of the measure's elements); a clear error where the field does not live, and
+        for a measure on another background mesh (:meth:`~cutfem.geometry.markers.ElementSet.locate_set`: tet
+        ids are compared only on one background)."""
+        if parent is None:
+            parent = measure.quadrature(0).parent
+        if measure.elements is self.elements:
+            return parent
+        if not isinstance(measure.elements, ElementSet) or not isinstance(self.elements, ElementSet):
+            raise ValueError(f"the field on {getattr(self.elements, 'name', self.elements)!r} does not live on the measure {measure.name!r}")
+        return self.elements.locate_set(measure.elements, parent, f"the measure {measure.name!r}")
+
+    def basis_on(self, measure, quad, elements) -> np.ndarray:
+        """(m, q, k) basis values at the points of ``quad`` (a quadrature of ``measure``) in the field's
+        ``elements``.  Cells that are whole elements of the field (``quad.whole``, the first cells of
+        a side's volume, when the measure's elements are the field's) take the reference barycentric
+        coordinates of the rule as they are (a broadcast view when all cells are whole); the others
+        are mapped."""
+        whole = quad.whole if measure.elements is self.elements and quad.bary is not None else 0
+        m = quad.n_elements
+        if whole == 0:
+            return self.basis_at(quad.points, elements)
+        if whole == m:
+            return np.broadcast_to(quad.bary, (m,) + quad.bary.shape)
+        phi = np.empty(quad.points.shape[:2] + (self.element_dofs.shape[1],))
+        phi[:whole] = quad.bary
+        phi[whole:] = self.basis_at(quad.points[whole:], elements[whole:])
+        return phi
+
+    def evaluate(self, coeffs: np.ndarray, measure, degree: int = 4) -> np.ndarray:
+        """Values of the discrete function with ``coeffs`` (n,) or (n, c) at the quadrature points of
+        ``measure`` (cell measures): (m, q) or (m, q, c)."""
+        quad = measure.quadrature(degree)
+        el = self.local_elements(measure, quad.parent)
+        phi = self.basis_on(measure, quad, el)
+        local = np.asarray(coeffs)[self.element_dofs[el]]  # (m, k) or (m, k, c)
+        if local.ndim == 2:
+            return np.einsum("mqk,mk->mq", phi, local)
+        return np.einsum("mqk,mkc->mqc", phi, local)
+
+    def element_gradient_of(self, coeffs: np.ndarray) -> np.ndarray:
+        """Constant gradient per element of a discrete function: (n_el, 3) or (n_el, c, 3)."""
+        local = np.asarray(coeffs)[self.element_dofs]
+        if local.ndim == 2:
+            return np.einsum("mk,mkd->md", local, self.element_gradients)
+        return np.einsum("mkc,mkd->mcd", local, self.element_gradients)
+
+    def interpolate(self, f) -> np.ndarray:
+        """Nodal interpolant: f evaluated at the dof points, (n,) or (n, c)."""
+        return np.asarray(f(self.dof_points), dtype=float)
+
+
+class SurfaceP1Space(_P1Space):
+    """Continuous P1 on a closed triangle surface mesh (meshed case); dofs are the mesh nodes.
+
+    ``h`` defaults to the global ``N**(-1/2)`` of docs/math.md §2 (N = number of nodes); a given
+    ``h`` must be a positive finite number.
+
+    The geometry is computed on demand: the mass, stiffness and edge penalty of
+    :mod:`cutfem.fem.forms` use closed forms in the areas and the edge-vector dot products of the
+    mesh (:attr:`~cutfem.geometry.surface.SurfaceMesh.triangle_edge_dots`) on the node graph
+    (:meth:`node_pattern`, :meth:`edge_stencil_pattern`), and need no basis gradients.
+    """
+
+    def __init__(self, mesh, h: float | None = None):
+        self.mesh = mesh
+        self.n_dofs = int(len(mesh.points))
+        self.element_dofs = np.asarray(mesh.triangles, dtype=np.int64)
+        self.dof_points = np.asarray(mesh.points, dtype=float)
+        self.h = _mesh_size(h, self.n_dofs ** -0.5)
+        self.elements = mesh
+
+    @cached_property
+    def element_gradients(self) -> np.ndarray:
+        """(M, 3, 3) surface gradients of the barycentric coordinates (:func:`triangle_gradients`)."""
+        return triangle_gradients(self.dof_points[self.element_dofs])[0]
+
+    @cached_property
+    def element_normals(self) -> np.ndarray:
+        """(M, 3) unit normals n_h of the triangles (those of the mesh)."""
+        return self.mesh.normals
+
+    @cached_property
+    def element_areas(self) -> np.ndarray:
+        """(M,) triangle areas (those of the mesh)."""
+        return self.mesh.areas
+
+    @property
+    def tangential_gradients(self) -> np.ndarray:
+        """The basis gradients themselves: on a flat triangle they are already tangent,
+        grad lambda_i = n x (x_{i+2} - x_{i+1}) / (2|T|)."""
+        return self.element_gradients
+
+    def tangential_gradients_of(self, elements) -> np.ndarray:
+        return self.element_gradients[elements]
+
+    def node_pattern(self):
+        """:class:`~cutfem.fem.assembly.SymmetricPattern` of the nodes and the mesh edges (cached):
+        the sparsity of the mass and stiffness matrices."""
+        cache = self._patterns()
+        if "node graph" not in cache:
+            cache["node graph"] = SymmetricPattern(self.mesh.edges, self.n_dofs, presorted=True)
+        return cache["node graph"]
+
+    def edge_stencil_pattern(self):
+        """:class:`~cutfem.fem.assembly.SymmetricPattern` of the edge penalty (cached): the mesh edges
+        (first E pairs) and, per edge, the pair of the two vertices opposite to it (next E pairs),
+        i.e. all pairs of nodes of the two triangles of an edge."""
+        cache = self._patterns()
+        if "edge stencil" not in cache:
+            pairs = np.concatenate([self.mesh.edges, self.mesh.edge_opposite_vertices])
+            cache["edge stencil"] = SymmetricPattern(pairs, self.n_dofs)
+        return cache["edge stencil"]
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.element_dofs)
+
+    @property
+    def element_surface_areas(self) -> np.ndarray:
+        return self.element_areas
+
+    def surface_triangles(self):
+        """(vertices (m, 3, 3), parent element (m,), areas (m,)) of the triangles of S_h."""
+        return self.dof_points[self.element_dofs], np.arange(self.n_elements), self.element_areas
+
+    def surface_vertex_data(self, coeffs):
+        """(points (V, 3), triangles (T, 3), values at the points) of a discrete function on S_h."""
+        return self.dof_points, self.element_dofs, self._coefficients(coeffs)
+
+    def edges(self):
+        """Edges for the edge stabilization: (element pairs (E, 2), conormals (E, 2, 3), lengths (E,))."""
+        m = self.mesh
+        return m.edge_triangles, m.edge_conormals, m.edge_lengths
+
+
+class CutP1Space(_P1Space):
+    """Continuous P1 on an element set of a cut: ``on=CUT`` (default) the cut tets, whose traces
+    live on S_h (TraceFEM); ``on=NEG`` or ``POS`` the tets of one side (a bulk field of CutFEM);
+    or any :class:`~cutfem.geometry.markers.ElementSet` of the cut.  Dofs are the nodes of the set, numbered
+    by increasing background id; ``node_ids`` maps them back.  ``h`` is the background ``N**(-1/3)``
+    unless given (a positive finite number).  An element set given as ``on`` must lie on the cut's
+    background mesh (:func:`~cutfem.geometry.markers.same_background`).
+    """
+
+    def __init__(self, cut, on=CUT, h: float | None = None):
+        es = cut.elements(on)
+        if not same_background(es.background, cut.background):
+            raise ValueError(f"the element set {es.name!r} lies on another background mesh than the cut "
+                             f"({es.background!r}, the cut's: {cut.background!r}); build it on the cut's background")
+        self.cut = cut
+        self.elements = es
+        self.n_dofs = es.n_nodes
+        self.element_dofs = es.tets
+        self.dof_points = es.points
+        self.element_normals = es.normals
+        self.node_ids = es.node_ids
+        self.h = _mesh_size(h, cut.h)
+
+    def __repr__(self) -> str:
+        return f"CutP1Space(on={self.elements.name!r}, dofs={self.n_dofs})"
+
+    @property
+    def element_volumes(self) -> np.ndarray:
+        """(n_el,) the volumes of the elements (:attr:`cutfem.geometry.markers.ElementSet.volumes`: on a
+        structured box built on each access)."""
+        return self.elements.volumes
+
+    @property
+    def element_gradients(self) -> np.ndarray:
+        """(n_el, 4, 3) the basis gradients (:attr:`cutfem.geometry.markers.ElementSet.gradients`: on a
+        structured box built on each access; :meth:`gradients_of` for a subset)."""
+        return self.elements.gradients
+
+    def gradients_of(self, elements) -> np.ndarray:
+        return self.elements.gradients_of(elements)
+
+    def gradient_lookup(self):
+        """(table, types) of the element set (:meth:`~cutfem.geometry.markers.ElementSet.gradient_lookup`):
+        on a structured box the Kuhn table and the Kuhn types, no gathered gradients."""
+        return self.elements.gradient_lookup()
+
+    @property
+    def n_elements(self) -> int:
+        return len(self.element_dofs)
+
+    @property
+    def is_trace(self) -> bool:
+        """True for the field on the cut tets (traces on S_h)."""
+        return self.elements is self.cut.elements(CUT)
+
+    def _require_trace(self, what):
+        if not self.is_trace:
+            raise ValueError(f"{what} needs the field on the cut tets (CutP1Space(cut, CUT)); this field lives on {self.elements.name!r}")
+
+    @cached_property
+    def boundary_dofs(self) -> np.ndarray:
+        """Dofs on the boundary of the background box (for strong Dirichlet conditions)."""
+        return self.elements.boundary_nodes
+
+    @property
+    def element_surface_areas(self) -> np.ndarray:
+        """(n_el,) area of the piece of S_h in each active tet."""
+        return self.cut.piece_areas
+
+    def surface_triangles(self):
+        """(vertices (m, 3, 3), parent active tet (m,), areas (m,)) of the triangles of S_h."""
+        self._require_trace("surface_triangles")
+        c = self.cut
+        return c.triangle_points, c.triangle_tets, c.triangle_areas
+
+    def surface_vertex_data(self, coeffs):
+        """(points (V, 3), triangles (T, 3), values at the points) of a discrete function on S_h."""
+        self._require_trace("surface_vertex_data")
+        return self.cut.vertices, self.cut.triangles, self.surface_vertex_values(coeffs)
+
+    def surface_vertex_values(self, coeffs) -> np.ndarray:
+        """Trace of a discrete function at the vertices of S_h: (V,) or (V, c) (for plots, VTK and the
+        errors on S_h).  Each vertex is valued in the tet of the last triangle (in triangle order)
+        that has it: the trace is continuous, any of them would do (one compiled pass,
+        :func:`cutfem.fem.element_kernels.vertex_values`)."""
+
+        c = self.cut
+        coeffs = self._coefficients(coeffs)
+        table, types = self.gradient_lookup()
+        values = element_kernels.vertex_values(c.vertices, c.triangles, c.triangle_tets, self.dof_points, self.element_dofs, table,
+                                       types, self.element_dofs, coeffs.reshape(len(coeffs), -1))
+        return values.reshape((len(values),) + coeffs.shape[1:])
+
+    def edges(self):
+        """Edges of S_h between pieces: (element pairs (E, 2), conormals (E, 2, 3), lengths (E,))."""
+        c = self.cut
+        return c.surface_edge_tets, c.surface_edge_conormals, c.surface_edge_lengths
+
+
+class ProductSpace:
+    """Several fields together, with a block numbering: field k has the global dofs
+    ``offsets[k] : offsets[k + 1]``.  Forms on a product space see tuples of basis functions
+    (:mod:`cutfem.fem.forms`), and assemble to one block matrix.
+
+    ``ProductSpace(V_neg, V_pos)`` or with names, ``ProductSpace(bulk=V_B, surface=V_S)``.
+    """
+
+    def __init__(self, *fields, **named):
+        if fields and named:
+            raise ValueError("give the fields either all by position or all by name")
+        self.names = list(named) if named else [f"u{k}" for k in range(len(fields))]
+        self.fields = list(named.values()) if named else list(fields)
+        if not self.fields:
+            raise ValueError("a product space needs at least one field")
+        for f in self.fields:
+            if isinstance(f, ProductSpace):
+                raise TypeError("nest product spaces by listing their fields instead")
+        self.offsets = np.concatenate([[0], np.cumsum([f.n_dofs for f in self.fields])]).astype(np.int64)
+        self.n_dofs = int(self.offsets[-1])
+        self.h = self.fields[0].h
+
+    def __repr__(self) -> str:
+        return "ProductSpace(" + ", ".join(f"{n}={f!r}" for n, f in zip(self.names, self.fields)) + ")"
+
+    def __len__(self) -> int:
+        return len(self.fields)
+
+    def __getitem__(self, k):
+        return self.fields[self.index(k)]
+
+    def index(self, k) -> int:
+        """The position of a field given by its position (an int, 0 <= k < number of fields; no
+        negative positions, no floats, no bools) or its name.  A KeyError for an unknown name, a
+        ValueError for any other position, naming the fields."""
+        if isinstance(k, str):
+            if k not in self.names:
+                raise KeyError(f"no field named {k!r}; the fields are {self.names}")
+            return self.names.index(k)
+        ok = isinstance(k, (int, np.integer)) and not isinstance(k, (bool, np.bool_))
+        if not ok or not 0 <= k < len(self.fields):
+            raise ValueError(f"a field is given by its position 0..{len(self.fields) - 1} or its name; got {k!r}, and "
+                             f"the fields are {self.names}")
+        return int(k)
+
+    def split(self, x) -> list:
+        """The coefficient blocks of each field of a global vector (n,) or (n, c)."""
+        x = np.asarray(x)
+        if x.shape[0] != self.n_dofs:
+            raise ValueError(f"a vector of the product space has {self.n_dofs} rows, got {x.shape[0]}")
+        return [x[a:b] for a, b in zip(self.offsets[:-1], self.offsets[1:])]
+
+    def join(self, parts) -> np.ndarray:
+        """The global vector of per-field blocks (the inverse of :meth:`split`)."""
+        if len(parts) != len(self.fields):
+            raise ValueError(f"need {len(self.fields)} blocks, got {len(parts)}")
+        return np.concatenate([np.asarray(p, dtype=float) for p in parts])
+
+    def dofs(self, k) -> np.ndarray:
+        """Global dof numbers of field k."""
+        k = self.index(k)
+        return np.arange(self.offsets[k], self.offsets[k + 1])
