@@ -83,6 +83,8 @@ _NAMES = {
     "DirectSolver": ".solvers.solve",
     "CGSolver": ".solvers.solve",
     "GeometricMultigrid": ".solvers.solve",
+    # exact fields from sympy (manufactured solutions and their data)
+    "Exact": ".fem.exact",
     # error norms and convergence rates
     "l2_error": ".fem.norms",
     "h1_error": ".fem.norms",
