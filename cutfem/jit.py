@@ -231,6 +231,17 @@ def _add_blocks(part, out):
             out[l] += part[b, l]
 
 
+@njit(cache=True, error_model="numpy", inline="always")
+def _ordered_sum(values):
+    """The sum of ``values`` (1-d) in index order.  In a parallel kernel ``values.sum()`` is not
+    that: numba splits an array reduction between the threads, so its last bits depend on their
+    number."""
+    total = 0.0
+    for i in range(values.shape[0]):
+        total += values[i]
+    return total
+
+
 @parallel_kernel
 def _chunk_spans(dofs, owners, bounds, lo, hi):
     """lo[ch], hi[ch]: the least and largest dof the elements of chunk ch read (``owners`` (E, r), or

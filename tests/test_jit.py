@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from cutfem import jit
+from cutfem.fem import element_kernels
 from cutfem.solvers import sparse_kernels
 
 
@@ -95,6 +96,23 @@ def test_a_kernel_call_puts_numbas_thread_count_back(load):
     with pytest.raises(numba.core.errors.TypingError):  # a small call that fails: no version for these types
         sparse_kernels._column_dots(x[:10], x[:10], "not an array", np.zeros(3), np.zeros(3))
     assert numba.get_num_threads() == before
+
+
+def test_the_error_sums_are_the_same_bits_on_one_thread_and_on_two(load):
+    """The error norms' block sums end in a sum over the quadrature points: an array reduction
+    (``total.sum()``) there was split between the threads by numba, and the H1 error of poisson-cut
+    changed in its last digit with the thread count."""
+    rng = np.random.default_rng(0)
+    b, nq = 20000, 11
+    table, types = rng.random((6, 4, 3)), rng.integers(0, 6, b)
+    local, exact, w = rng.random((b, 4)), rng.random((b, nq, 3)), rng.random((b, nq))
+    phi = rng.random((b, nq, 4))
+    results = []
+    for others in (0.0, 1.0):  # two threads, then the calling thread alone
+        load["others"] = others
+        results.append((element_kernels.cell_gradient_error(table, types, local, exact, w, np.zeros((0, 3))),
+                        element_kernels.cell_value_error(phi, local[:, :, None], exact[:, :, :1], w)))
+    assert results[0] == results[1]
 
 
 def test_the_policy_is_used_by_every_kernel_call(load, monkeypatch):

@@ -15,7 +15,7 @@ from numba import njit, prange
 
 from ..geometry.mesh_kernels import _area
 from ..geometry.numbering import TET_EDGES
-from ..jit import SUM_BLOCK, _add_blocks, parallel_kernel
+from ..jit import SUM_BLOCK, _add_blocks, _ordered_sum, parallel_kernel
 
 @njit(cache=True, error_model="numpy", inline="always")
 def _barycentric(x, points, tets, g, k, lam):
@@ -222,7 +222,7 @@ def cell_value_error(phi, local, exact, weights):
                     acc[blk, i] += weights[e, i] * (d * d)
     total = np.zeros(nq)
     _add_blocks(acc, total)
-    return total.sum()
+    return _ordered_sum(total)
 
 
 @parallel_kernel
@@ -257,7 +257,7 @@ def cell_gradient_error(table, types, local, exact, weights, normals):
                     acc[blk, i] += weights[e, i] * (d0 * d0 + d1 * d1 + d2 * d2)
     total = np.zeros(nq)
     _add_blocks(acc, total)
-    return total.sum()
+    return _ordered_sum(total)
 
 
 @njit(cache=True, error_model="numpy")
