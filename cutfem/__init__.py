@@ -32,7 +32,7 @@ __version__ = "0.1.0"
 #: public name -> the module defining it (relative to this package): the one table of the flat face
 _NAMES = {
     # backgrounds and surface meshes, and their files
-    "structured_box": ".geometry.mesh",
+    "structured_box": ".geometry.box",
     "read_mesh": ".geometry.mesh",
     "write_mesh": ".geometry.mesh",
     "read_surface": ".geometry.surface",

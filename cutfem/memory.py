@@ -27,7 +27,7 @@ item, fitted to the peak resident memory of fresh ``cutfem run`` processes (``/p
   0.0125 and coarser, where the fixed part is most of the cut: that refused spacing 0.002 on a
   24 GiB machine as needing 34.8 GiB, where the whole run is predicted at about 14 GiB;
 * :data:`BYTES_PER_BOX_NODE`: what the band search keeps per node of the structured box: a bitmap
-  of the band's nodes and a running count per 64-bit word of it (:func:`cutfem.geometry.mesh.dense_unique`,
+  of the band's nodes and a running count per 64-bit word of it (:func:`cutfem.geometry.keys.dense_unique`,
   a quarter byte a node; 101 MB for the 404 million nodes of the box at spacing 0.003125).  It was
   5 bytes, from the marker and lookup arrays the bitmap replaced, and refused spacing 0.0015625 on
   a 24 GiB machine as needing 28.5 GiB, 16 of them for node markers that are no longer made.  With

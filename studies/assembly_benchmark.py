@@ -50,7 +50,7 @@ from cutfem.geometry.cut import CUT, cut_mesh
 from cutfem.fem.forms import assemble, face_jump_penalty, mass, tangential_stiffness
 from cutfem.geometry.levelset import Torus
 from cutfem.memory import InsufficientMemoryError
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.runs.registry import ProblemError, check_output, text_table
 from cutfem.fem.spaces import CutP1Space
 

@@ -273,7 +273,7 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     from cutfem.geometry.cut import CUT, cut_mesh
     from cutfem.geometry.levelset import Torus
     from cutfem.problems.mean_curvature import mean_curvature_form
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.fem.spaces import CutP1Space
 
     t = StageTimer()
@@ -599,7 +599,8 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     from cutfem.fem.forms import assemble, position_load
     from cutfem.geometry.levelset import Torus
     from cutfem.geometry.markers import interior_facets
-    from cutfem.geometry.mesh import dense_unique, structured_box
+    from cutfem.geometry.box import structured_box
+    from cutfem.geometry.keys import dense_unique
     from cutfem.problems.mean_curvature import mean_curvature_form
     from cutfem.solvers.solve import lattice_hierarchy, lattice_indices
     from cutfem.fem.spaces import CutP1Space
@@ -969,7 +970,7 @@ def _peer_missing():
 
 def _peers(cut_records, memory_gib, down_to, progress) -> dict:
     """ngsxfem at the cut levels that ran (see the module docstring), with the ratio of totals."""
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.studies.peers import BYTES_PER_TET
 
     missing = _peer_missing()

@@ -12,7 +12,7 @@ from cutfem.fem.norms import fitted_rate, h1_error, l2_error, l2_h1_errors, rate
 from cutfem.fem.forms import assemble, face_jump_penalty, mass
 from cutfem.geometry.levelset import Sphere
 from cutfem.geometry.markers import ElementSet
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import CGSolver, DirectSolver, condition_number, solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
 from cutfem.geometry.surface import sphere_mesh

@@ -11,7 +11,8 @@ import cutfem
 
 # the defining module of each public name, written out here (not read from cutfem._NAMES)
 EXPECTED = {
-    "cutfem.geometry.mesh": "structured_box read_mesh write_mesh",
+    "cutfem.geometry.box": "structured_box",
+    "cutfem.geometry.mesh": "read_mesh write_mesh",
     "cutfem.geometry.surface": "read_surface write_surface sphere_mesh torus_mesh",
     "cutfem.geometry.levelset": "Sphere Torus Ellipsoid FunctionLevelSet SignedDistance",
     "cutfem.geometry.cut": "cut_mesh CutMesh",

@@ -216,7 +216,7 @@ def test_cut_torus_beyond_two_million_active_nodes():
     from cutfem.geometry.cut import cut_mesh
     from cutfem.geometry.levelset import Torus
     from cutfem.memory import available_memory
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     if available_memory()[0] < 12 * 2**30:
         pytest.skip("needs about 12 GiB free")
@@ -284,7 +284,7 @@ def test_cut_refusal_names_a_spacing_that_fits(monkeypatch, case):
     surface (spacing**-3 and **-2), every node evaluated without a Lipschitz bound."""
     from cutfem.geometry.cut import cut_memory_estimate, cut_mesh
     from cutfem.memory import available_memory
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     levelset, (lo, hi), limit, refused, part = _cut_cases()[case]
     monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", limit)
@@ -336,7 +336,7 @@ def test_check_after_the_cut_names_a_spacing_that_passes(monkeypatch):
     from cutfem.geometry.cut import cut_mesh
     from cutfem.geometry.levelset import Sphere
     from cutfem.memory import SOLVE_BASE_BYTES, available_memory
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.problems.common import check_cut_memory
 
     monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "512MiB")
@@ -359,7 +359,7 @@ def test_cut_estimate_grows_as_the_spacing_shrinks():
     at 13.1 GiB from the band), not between close spacings, not for the later stages."""
     from cutfem.geometry.cut import cut_memory_estimate
     from cutfem.geometry.levelset import Ellipsoid, Sphere, Torus
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.problems.common import background_for
 
     spacings = [0.05, 0.02, 0.01, 0.0046, 0.0045, 0.0044, 0.004, 0.0016, 0.0014, 0.0005]
@@ -379,7 +379,7 @@ def test_predicted_band_and_tets_cover_the_cut(surface):
     are at least the cut's, by at most 1.35 times."""
     from cutfem.geometry.cut import _band_cells, _surface_survey, _cut_bytes, _zero_tolerance, cut_mesh
     from cutfem.geometry.levelset import Sphere, Torus
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     levelset, box = (Torus(1.0, 0.5), TORUS_BOX) if surface == "torus" else (Sphere(1.0), SPHERE_BOX)
     areas = []

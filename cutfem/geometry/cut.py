@@ -53,7 +53,7 @@ background, which the band search does not evaluate; they are computed when firs
 
 Band search
 -----------
-On a :class:`~cutfem.geometry.mesh.StructuredBox` with a level set that declares a Lipschitz bound ``L``
+On a :class:`~cutfem.geometry.box.StructuredBox` with a level set that declares a Lipschitz bound ``L``
 (``levelset.lipschitz``; 1 for signed distances), the cut never visits the whole box: blocks of
 cells are refined coarse to fine, and a block with centre c and half-diagonal r is dropped when
 ``|phi(c)| > L r``, which proves phi has no zero there.  Only the cells that survive to the finest
@@ -89,20 +89,10 @@ import numpy as np
 
 from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet, interior_facets
 from .measures import ElementVolume, FacetMeasure, SideVolume, SurfacePieces
-from .mesh import (
-    CUBE_CORNERS,
-    KUHN_EDGE_CODES,
-    KUHN_CORNER_COUNTS,
-    KUHN_TETS,
-    StructuredBox,
-    TetMesh,
-    barycentric_gradients,
-    dense_unique,
-    index_dtype,
-    pair_up,
-    triangle_areas,
-    unique_keys,
-)
+from .box import KUHN_CORNER_COUNTS, KUHN_EDGE_CODES, KUHN_TETS, StructuredBox
+from .keys import dense_unique, pair_up, unique_keys
+from .mesh import TetMesh, barycentric_gradients, triangle_areas
+from .numbering import CUBE_CORNERS, index_dtype
 from . import cut_kernels
 from . import mesh_kernels
 
@@ -289,7 +279,7 @@ NODE_BLOCK = 1 << 20
 
 def nodal_values(mesh: TetMesh, levelset) -> np.ndarray:
     """phi at every node of ``mesh`` (N,), with a clear error for NaN/inf values.  On a
-    :class:`~cutfem.geometry.mesh.StructuredBox` the nodes go by blocks of :data:`NODE_BLOCK` ids, their
+    :class:`~cutfem.geometry.box.StructuredBox` the nodes go by blocks of :data:`NODE_BLOCK` ids, their
     coordinates made per block: the box's (N, 3) coordinates are never formed (300 MB, and 700 MB
     while being made, for the 12.5 million nodes of the solid torus's box at spacing 0.01).
     Points that no tet uses (a file's stray points, the mid-edge nodes of quadratic tets) are not
@@ -1140,7 +1130,7 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     # surface vertices: key = active node (on-node vertex) or an edge key, numbered by key.  On a
     # structured box the lattice edge {v, v + e_S} (v = min: the active nodes increase with the
     # background ids) has the key p - 1 + 7 v + c(S) in [p, 8p), ordered as (v, max) (see
-    # mesh.KUHN_EDGE_CODES): numbered by a marker array, with no sort
+    # box.KUHN_EDGE_CODES): numbered by a marker array, with no sort
     key = cut_kernels.slot_keys(tets, code, vals, _EDGE_I, _EDGE_J, p, lattice=(KUHN_EDGE_CODES, types) if structured else None)
     del types
     vkeys, vinv = dense_unique(key, 8 * p) if structured else unique_keys(key.reshape(-1), return_inverse=True)

@@ -33,7 +33,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .mesh import unique_keys
+from .keys import unique_keys
 from .surface import SurfaceMesh, check_length, positive_number
 from . import levelset_kernels
 

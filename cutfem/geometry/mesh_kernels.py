@@ -259,7 +259,7 @@ def face_normals_areas(pairs, opposite, table, types, volumes, normals, areas):
 @njit(cache=True, error_model="numpy", inline="always")
 def _kuhn_face_key(tets, kinds, low, ftype, r):
     """The lattice key 12 v + type of face row r = 4 t + k (the face opposite to local vertex k of
-    tet t), see :func:`cutfem.geometry.mesh.kuhn_face_keys`."""
+    tet t), see :func:`cutfem.geometry.box.kuhn_face_keys`."""
     t, k = r >> 2, r & 3
     l = kinds[t]
     return 12 * np.int64(tets[t, low[l, k]]) + ftype[l, k]
@@ -302,7 +302,7 @@ def _collect_pairs(first, second, pairs, opposite):
 
 def kuhn_face_pairs(tets, kinds, low, ftype, n_keys: int):
     """The interior faces of Kuhn tets ``tets`` (m, 4) (node numbers below n_keys / 12, types
-    ``kinds`` (m,), key tables ``low``, ``ftype`` (6, 4) of :func:`cutfem.geometry.mesh.kuhn_face_keys`):
+    ``kinds`` (m,), key tables ``low``, ``ftype`` (6, 4) of :func:`cutfem.geometry.box.kuhn_face_keys`):
     ``(pairs (F, 2), opposite (F, 2) int8)``, the two tets of each face whose key occurs exactly
     twice (first the earlier row) and the local vertex opposite to it in each, in increasing key
     order.  The keys are computed on the fly and paired by two marker arrays of length n_keys: no

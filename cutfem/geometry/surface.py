@@ -28,7 +28,8 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse.csgraph import connected_components
 
-from .mesh import COINCIDENT_TOLERANCE, close_pairs, pair_up, unique_keys
+from .keys import pair_up, unique_keys
+from .mesh import COINCIDENT_TOLERANCE, close_pairs
 from . import mesh_kernels
 
 __all__ = [
@@ -122,7 +123,7 @@ def _halfedge_table(triangles: np.ndarray, n_points: int):
     * ``forward`` (3M,) bool, whether the half-edge runs from the smaller to the larger index.
 
     The edge {i, j} is encoded as the integer key i * N + j (i < j), so one stable sort of 1-d
-    integer keys does all the work (:func:`cutfem.geometry.mesh.pair_up`).
+    integer keys does all the work (:func:`cutfem.geometry.keys.pair_up`).
     """
     start = triangles.reshape(-1)
     end = triangles[:, _NEXT].reshape(-1)

@@ -31,7 +31,8 @@ from cutfem.fem.forms import (
 )
 from cutfem.geometry.levelset import Sphere, Torus
 from cutfem.geometry.markers import NEG
-from cutfem.geometry.mesh import structured_box, unstructured_box
+from cutfem.geometry.box import structured_box
+from cutfem.geometry.mesh import unstructured_box
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.surface import SurfaceMesh, sphere_mesh, torus_mesh
 from cutfem.geometry.measures import surface_measure as ds

@@ -40,7 +40,7 @@ from cutfem.fem.forms import (
 )
 from cutfem.geometry.levelset import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
 from cutfem.geometry.surface import SurfaceMesh, sphere_mesh, torus_mesh

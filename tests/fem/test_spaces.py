@@ -13,7 +13,7 @@ import pytest
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.levelset import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space, barycentric_at, triangle_gradients
 from cutfem.geometry.surface import torus_mesh
 

@@ -13,7 +13,8 @@ import pytest
 from cutfem.geometry.cut import CutError, CutMesh, cut_mesh, snapped_nodal_values
 from cutfem.geometry.levelset import Sphere, Torus
 from cutfem.geometry.markers import CUT, NEG, POS
-from cutfem.geometry.mesh import TetMesh, structured_box
+from cutfem.geometry.box import structured_box
+from cutfem.geometry.mesh import TetMesh
 from cutfem.geometry.numbering import TET_FACES
 from cutfem.geometry import cut_kernels
 
@@ -664,7 +665,7 @@ def test_mixed_kuhn_tets_in_chunks_against_numpy(monkeypatch, cells_per_chunk):
     tets of a cell-order pass (a numpy reference: the corner values gathered and snapped, the
     table's mask of each cell, cell by cell, then Kuhn type), the corners that break a bound
     against their cell's centre counted with the largest ratio, also with no cell at all."""
-    from cutfem.geometry.mesh import KUHN_TETS
+    from cutfem.geometry.box import KUHN_TETS
 
     monkeypatch.setattr(cut_kernels, "COUNT_FILL_CHUNK", cells_per_chunk)
     rng = np.random.default_rng(5)

@@ -164,7 +164,7 @@ def _sign_change_cells(box, f, tol):
 def test_band_search_keeps_every_cell_with_a_sign_change(case):
     from cutfem.geometry import cut as C
     from cutfem.geometry.levelset import FunctionLevelSet
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     if case.startswith("genus2"):
         ls = (FunctionLevelSet.from_expression(GENUS2_TEXT, lipschitz=GENUS2_L) if case == "genus2-expression"
@@ -201,7 +201,7 @@ def test_genus2_memory_estimate_uses_the_local_bound():
     the same with and without them."""
     from cutfem.geometry.cut import cut_memory_estimate, cut_mesh
     from cutfem.geometry.levelset import FunctionLevelSet
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     ls = FunctionLevelSet.from_expression(GENUS2_TEXT, lipschitz=GENUS2_L)
     cut, _ = cut_memory_estimate(structured_box([-2.0] * 3, [2.0] * 3, spacing=0.003125), ls)

@@ -15,7 +15,7 @@ import pytest
 
 from cutfem.geometry.cut import NEG, POS, CutError, cut_mesh
 from cutfem.geometry.levelset import FunctionLevelSet, Sphere
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 
 pytestmark = pytest.mark.slow
 

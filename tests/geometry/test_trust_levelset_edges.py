@@ -7,7 +7,7 @@ import pytest
 
 from cutfem.geometry.cut import CutError, cut_mesh, snapped_nodal_values
 from cutfem.geometry.levelset import FunctionLevelSet
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 
 
 def _norm_minus_one(x):

@@ -10,7 +10,8 @@ import pytest
 
 from cutfem.runs.cli import main
 from cutfem.memory import InsufficientMemoryError
-from cutfem.geometry.mesh import StructuredBox, TetMesh, read_mesh, structured_box
+from cutfem.geometry.box import StructuredBox, structured_box
+from cutfem.geometry.mesh import TetMesh, read_mesh
 
 # -- 2c: a spacing that contradicts the corners and the cells -------------------------------------
 

@@ -17,7 +17,7 @@ import cutfem
 from cutfem.runs.cli import main
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.levelset import Ellipsoid, FunctionLevelSet, Sphere
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 
 ROOT = Path(__file__).resolve().parents[2]
 TANGLE = "x**4 - 5*x**2 + y**4 - 5*y**2 + z**4 - 5*z**2 + 11.8"

@@ -311,7 +311,7 @@ def test_records_count_the_active_tets_of_the_fields():
     from cutfem.geometry.cut import cut_mesh
     from cutfem.geometry.levelset import Sphere
     from cutfem.geometry.markers import CUT
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.problems.common import cut_record
     from cutfem.fem.spaces import CutP1Space, ProductSpace
 

@@ -91,7 +91,7 @@ def _sphere_matrices(spacing=0.4, tau_n=1.0):
     from cutfem.fem.forms import assemble, load, mass, normal_gradient_penalty, tangential_stiffness
     from cutfem.geometry.levelset import Sphere
     from cutfem.geometry.markers import CUT
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.problems.heat_surface import HeatSolution
     from cutfem.fem.spaces import CutP1Space
 
@@ -180,7 +180,7 @@ def test_the_fastest_time_scale_is_about_9_over_h_squared(spacing):
     from cutfem.geometry.cut import CUT, cut_mesh
     from cutfem.fem.forms import assemble, mass, normal_gradient_penalty, tangential_stiffness
     from cutfem.geometry.levelset import Sphere
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.fem.spaces import CutP1Space
 
     cut = cut_mesh(structured_box([-1.1] * 3, [1.1] * 3, spacing=spacing), Sphere(1.0))

@@ -425,7 +425,7 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     from cutfem.fem.forms import apply_dirichlet, assemble, bilinear_form, dot, face_jump_penalty, interface_nitsche, linear_form, load
     from cutfem.fem.forms import mass, nitsche, nitsche_load, stiffness
     from cutfem.geometry.levelset import Sphere
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.solvers.solve import solve
     from cutfem.fem.spaces import CutP1Space, ProductSpace
     from cutfem.geometry.surface import sphere_mesh

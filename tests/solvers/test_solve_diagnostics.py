@@ -13,7 +13,7 @@ from threadpoolctl import threadpool_limits
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.levelset import Sphere
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import (
     ConditionNumber,
     DirectSolver,

@@ -13,7 +13,7 @@ from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.levelset import Sphere, Torus
 from cutfem.geometry.markers import CUT
 from cutfem.fem.forms import assemble, mass
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import (
     DirectSolver,
     GeometricMultigrid,

@@ -8,7 +8,7 @@ import pytest
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import l2_error
 from cutfem.geometry.levelset import Torus
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.studies import performance
@@ -339,7 +339,7 @@ def test_the_topology_reference_matches_the_same_faces():
     from cutfem.geometry.cut import CUT, cut_mesh
     from cutfem.geometry.levelset import Torus
     from cutfem.geometry.markers import interior_facets
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.geometry.numbering import TET_FACES
 
     es = cut_mesh(structured_box(*performance.BOX, spacing=0.2), Torus(1.0, 0.5)).elements(CUT)
