@@ -37,8 +37,8 @@ _NAMES = {
     "write_mesh": ".geometry.mesh",
     "read_surface": ".geometry.surface",
     "write_surface": ".geometry.surface",
-    "sphere_mesh": ".geometry.surface",
-    "torus_mesh": ".geometry.surface",
+    "sphere_mesh": ".geometry.surface_meshes",
+    "torus_mesh": ".geometry.surface_meshes",
     # level sets
     "Sphere": ".geometry.levelset",
     "Torus": ".geometry.levelset",

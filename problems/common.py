@@ -15,7 +15,8 @@ from cutfem.geometry.box import structured_box
 from cutfem.geometry.keys import unique_keys
 from cutfem.geometry.mesh import unstructured_box
 from cutfem.runs.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
-from cutfem.geometry.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
+from cutfem.geometry.surface import read_surface
+from cutfem.geometry.surface_meshes import TORUS_FAMILIES, sphere_mesh, torus_mesh
 
 SURFACES = ("torus", "sphere", "ellipsoid")
 

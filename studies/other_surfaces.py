@@ -30,7 +30,8 @@ import numpy as np
 import cutfem
 from cutfem.fem.norms import fitted_rate
 from cutfem.geometry.levelset import FunctionLevelSet, Sphere, Torus
-from cutfem.geometry.surface import sphere_mesh, write_surface
+from cutfem.geometry.surface import write_surface
+from cutfem.geometry.surface_meshes import sphere_mesh
 
 from .common import ROUNDOFF_INTEGRAL, PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_figure, save_json, save_latex_table, significant, study_main
 

@@ -884,7 +884,7 @@ def meshed_level(family, n) -> list[dict]:
     from cutfem.studies.baselines import cotangent_mean_curvature
     from cutfem.geometry.levelset import Torus
     from cutfem.fem.spaces import SurfaceP1Space
-    from cutfem.geometry.surface import torus_mesh
+    from cutfem.geometry.surface_meshes import torus_mesh
 
     t0 = time.perf_counter()
     mesh = torus_mesh(n, family=family, seed=SEED)

@@ -304,7 +304,7 @@ def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     from cutfem.geometry.levelset import Torus
     from cutfem.problems.mean_curvature import mean_curvature_form
     from cutfem.fem.spaces import SurfaceP1Space
-    from cutfem.geometry.surface import torus_mesh
+    from cutfem.geometry.surface_meshes import torus_mesh
 
     t = StageTimer()
     with t("mesh"):
@@ -923,7 +923,7 @@ def command_targets(size: str) -> list:
     """The end-to-end targets, as (cutfem arguments, seconds or None): the cut torus at spacing
     0.0125 in 2 s and the meshed torus 768 x 384 of every family in 1 s (with ``full`` also the cut
     torus at spacing 0.003125 in 40 s); at the tiny size the coarse levels, without a target."""
-    from cutfem.geometry.surface import TORUS_FAMILIES
+    from cutfem.geometry.surface_meshes import TORUS_FAMILIES
 
     cut, n = pick(size, ("0.1", "32"), ("0.0125", "768"), ("0.0125", "768"))
     targets = [(["run", "mean-curvature-cut", "--spacing", cut], None if size == "tiny" else 2.0)]

@@ -15,7 +15,7 @@ from cutfem.geometry.markers import ElementSet
 from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import CGSolver, DirectSolver, condition_number, solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
-from cutfem.geometry.surface import sphere_mesh
+from cutfem.geometry.surface_meshes import sphere_mesh
 
 X = lambda p: p[..., 0]  # noqa: E731
 GRAD_X = lambda p: np.broadcast_to(np.array([1.0, 0.0, 0.0]), p.shape)  # noqa: E731

@@ -13,7 +13,8 @@ import cutfem
 EXPECTED = {
     "cutfem.geometry.box": "structured_box",
     "cutfem.geometry.mesh": "read_mesh write_mesh",
-    "cutfem.geometry.surface": "read_surface write_surface sphere_mesh torus_mesh",
+    "cutfem.geometry.surface": "read_surface write_surface",
+    "cutfem.geometry.surface_meshes": "sphere_mesh torus_mesh",
     "cutfem.geometry.levelset": "Sphere Torus Ellipsoid FunctionLevelSet SignedDistance",
     "cutfem.geometry.cut": "cut_mesh CutMesh",
     "cutfem.geometry.markers": "NEG POS CUT",

@@ -505,9 +505,9 @@ def _mesh_distance_message(levelset, seen: str, crossing_only: bool = False) -> 
     distance (``seen``: what showed it): nobody declared its bound 1, it is the bound of every
     distance, and a closed mesh whose distance breaks it crosses itself.  With ``crossing_only``, ""
     unless two triangles cross (an open S_h has other causes too).  Names the first pair of
-    crossing triangles that share no vertex (found by :func:`cutfem.geometry.surface._crossing_triangles`
+    crossing triangles that share no vertex (found by :func:`cutfem.geometry.surface_checks._crossing_triangles`
     with each triangle its own component: a grid of candidates and exact segment-triangle tests)."""
-    from .surface import _crossing_triangles
+    from .surface_checks import _crossing_triangles
 
     points, tri = np.asarray(levelset.mesh.points, dtype=float), np.asarray(levelset.mesh.triangles)
     x = points[tri]

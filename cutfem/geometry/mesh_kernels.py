@@ -472,7 +472,7 @@ def dense_unique(ids, n: int, inverse_dtype=None):
 @parallel_kernel
 def triangle_geometry(points, tri):
     """Cross products, their lengths and edge-vector dot products of triangles, for
-    :func:`cutfem.geometry.surface._triangle_geometry` (which states them): ``(cross (M, 3), twice_area (M,),
+    :func:`cutfem.geometry.surface_checks._triangle_geometry` (which states them): ``(cross (M, 3), twice_area (M,),
     dots (2, M, 3), longest (M,))``.  One pass over the triangles, where numpy gathered coordinate
     columns and made two dozen temporaries a block."""
     M = tri.shape[0]
@@ -530,7 +530,7 @@ def _rows_sorted(lo, key, n, order):
 def closed_halfedges(tri, n):
     """The half-edges of a triangle mesh with n nodes in the order of the key
     2 (min(a, b) n + max(a, b)) + [a > b] of half-edge a -> b, for
-    :func:`cutfem.geometry.surface._closed_halfedge_table` (which states what it is for): a stable counting
+    :func:`cutfem.geometry.surface_checks._closed_halfedge_table` (which states what it is for): a stable counting
     sort on min(a, b), then an insertion sort on the rest of the key within each node's few
     half-edges (numpy: an argsort of the keys).  Returns ``(closed, order (3 M,), edges (3 M / 2,
     2), halfedge_edge (3 M,))``: ``closed`` is whether the sorted keys come in pairs

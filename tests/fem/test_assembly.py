@@ -36,7 +36,7 @@ from cutfem.geometry.markers import CUT, NEG
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.mesh import TetMesh
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.geometry.surface import sphere_mesh, torus_mesh
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 from cutfem import jit
 
 # ----------------------------------------------------------------------------------------------

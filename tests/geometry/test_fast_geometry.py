@@ -9,7 +9,10 @@ import numpy as np
 import pytest
 
 from cutfem.geometry.levelset import SignedDistance
-from cutfem.geometry.surface import SurfaceMesh, _closest_on_triangles, _winding_number, sphere_mesh, torus_mesh
+from cutfem.geometry.closest import _closest_on_triangles
+from cutfem.geometry.surface import SurfaceMesh
+from cutfem.geometry.surface_checks import _winding_number
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 
 
 def _cube_mesh():
@@ -55,7 +58,7 @@ def test_signed_distance_matches_brute_force(mesh):
 def test_signed_distance_needs_no_vtk():
     """The distance is one compiled pass: it no longer loads VTK (1.5 s of a run's geometry stage,
     and vtkImplicitPolyDataDistance was 5 times slower than the compiled search on a box of points)."""
-    code = ("import sys, numpy as np\nfrom cutfem.geometry.levelset import SignedDistance\nfrom cutfem.geometry.surface import sphere_mesh\n"
+    code = ("import sys, numpy as np\nfrom cutfem.geometry.levelset import SignedDistance\nfrom cutfem.geometry.surface_meshes import sphere_mesh\n"
             "v = SignedDistance(sphere_mesh(2)).value(np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]))\n"
             "assert abs(v[1] - 1.0) < 1e-12 and v[0] < -0.9, v\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('vtk', 'vtkmodules', 'pyvista')))")

@@ -14,7 +14,8 @@ from cutfem.runs.cli import main
 from cutfem.geometry.cut import CutError, _check_closed, cut_mesh
 from cutfem.geometry.levelset import FunctionLevelSet, SignedDistance, Sphere, Torus
 from cutfem.geometry.box import structured_box
-from cutfem.geometry.surface import SurfaceMesh, read_surface, sphere_mesh
+from cutfem.geometry.surface import SurfaceMesh, read_surface
+from cutfem.geometry.surface_meshes import sphere_mesh
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -80,7 +80,8 @@ def test_a_level_set_touching_the_box_on_its_boundary_is_not_told_to_refine(expr
 
 def _self_intersecting_sphere():
     """A sphere mesh whose north pole is pulled through the south: its fan crosses the far side."""
-    from cutfem.geometry.surface import SurfaceMesh, sphere_mesh
+    from cutfem.geometry.surface import SurfaceMesh
+    from cutfem.geometry.surface_meshes import sphere_mesh
 
     m = sphere_mesh(2)
     points = np.array(m.points)

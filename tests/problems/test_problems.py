@@ -189,7 +189,8 @@ def _mean_curvature_field(res):
 
 
 def _scaled_sphere_file(tmp_path, scale):
-    from cutfem.geometry.surface import SurfaceMesh, sphere_mesh, write_surface
+    from cutfem.geometry.surface import SurfaceMesh, write_surface
+    from cutfem.geometry.surface_meshes import sphere_mesh
 
     mesh = sphere_mesh(2)
     path = tmp_path / f"sphere_{scale:g}.stl"

@@ -26,7 +26,7 @@ from cutfem.solvers.solve import (
     solve,
 )
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.geometry.surface import sphere_mesh
+from cutfem.geometry.surface_meshes import sphere_mesh
 from surface_matrices import face_matrix, mass_matrix, stiffness_matrix
 
 

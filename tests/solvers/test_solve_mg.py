@@ -27,7 +27,8 @@ from cutfem.solvers.solve import (
     surface_lattice_prolongation,
 )
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.geometry.surface import SurfaceMesh, sphere_mesh, torus_mesh
+from cutfem.geometry.surface import SurfaceMesh
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 from surface_matrices import edge_matrix, face_matrix, mass_matrix, stiffness_matrix
 from cutfem.solvers import sparse_kernels
 

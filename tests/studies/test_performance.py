@@ -318,7 +318,7 @@ def test_iterative_and_direct_solves_agree(spacing):
 def test_meshed_multigrid_and_direct_errors_agree(family):
     """The meshed torus with the default tolerance (1e-8): CG with the grid multigrid and SuperLU
     give L2 errors that agree to at least 5 significant digits (3 are asked for)."""
-    from cutfem.geometry.surface import torus_mesh
+    from cutfem.geometry.surface_meshes import torus_mesh
 
     V = SurfaceP1Space(torus_mesh(128, family, seed=1))
     K = mass_matrix(V) + 0.1 * edge_matrix(V)
