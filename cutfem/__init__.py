@@ -40,11 +40,11 @@ _NAMES = {
     "sphere_mesh": ".geometry.surface_meshes",
     "torus_mesh": ".geometry.surface_meshes",
     # level sets
-    "Sphere": ".geometry.levelset",
-    "Torus": ".geometry.levelset",
-    "Ellipsoid": ".geometry.levelset",
+    "Sphere": ".geometry.shapes",
+    "Torus": ".geometry.shapes",
+    "Ellipsoid": ".geometry.shapes",
     "FunctionLevelSet": ".geometry.levelset",
-    "SignedDistance": ".geometry.levelset",
+    "SignedDistance": ".geometry.signed_distance",
     # the cut and its sides
     "cut_mesh": ".geometry.cut",
     "CutMesh": ".geometry.cut",

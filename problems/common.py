@@ -9,7 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.geometry.levelset import Ellipsoid, FunctionLevelSet, LevelSet, SignedDistance, Sphere, Torus
+from cutfem.geometry.levelset import FunctionLevelSet, LevelSet
+from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
+from cutfem.geometry.signed_distance import SignedDistance
 from cutfem.geometry.markers import NEG, POS
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.keys import unique_keys

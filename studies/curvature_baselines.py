@@ -33,7 +33,7 @@ import numpy as np
 import cutfem
 from cutfem.studies.baselines import cotangent_mean_curvature, pyvista_mean_curvature_vector
 from cutfem.fem.norms import discrete_error, fitted_rate
-from cutfem.geometry.levelset import Torus
+from cutfem.geometry.shapes import Torus
 from cutfem.fem.spaces import SurfaceP1Space
 from cutfem.geometry.surface_meshes import TORUS_FAMILIES, torus_mesh
 

@@ -271,7 +271,7 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     the sizes the bounds need: ``dofs`` (N), ``active_tets`` (T), ``surface_triangles`` (S),
     ``interior_faces`` (F), ``iterations`` and ``nnz`` ({"K"})."""
     from cutfem.geometry.cut import CUT, cut_mesh
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.problems.mean_curvature import mean_curvature_form
     from cutfem.geometry.box import structured_box
     from cutfem.fem.spaces import CutP1Space
@@ -301,7 +301,7 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
 
 def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     """One meshed-torus level, timed stage by stage."""
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.problems.mean_curvature import mean_curvature_form
     from cutfem.fem.spaces import SurfaceP1Space
     from cutfem.geometry.surface_meshes import torus_mesh
@@ -319,7 +319,7 @@ def ngsxfem_level(spacing: float) -> dict:
     with the zeros of the level set moved to +1e-14 and the collapsed tets left out: cutfem's
     discrete problem; NGSolve's sparse Cholesky, no TaskManager).  ``time`` has the stages mesh,
     levelset, cut, assembly, solve, errors; ``total`` is their sum."""
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.studies.peers import ngsxfem_mean_curvature
 
     r = ngsxfem_mean_curvature(spacing, Torus(1.0, 0.5), zero_rule="+eps-cutfem-active", superlu=False)
@@ -597,7 +597,7 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
 
     from cutfem.geometry.cut import CUT, cut_mesh
     from cutfem.fem.forms import assemble, position_load
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.geometry.markers import interior_facets
     from cutfem.geometry.box import structured_box
     from cutfem.geometry.keys import dense_unique

@@ -10,7 +10,7 @@ import scipy.sparse as sp
 from cutfem.geometry.cut import CUT, NEG, POS, cut_mesh
 from cutfem.fem.norms import fitted_rate, h1_error, l2_error, l2_h1_errors, rates
 from cutfem.fem.forms import assemble, face_jump_penalty, mass
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import ElementSet
 from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import CGSolver, DirectSolver, condition_number, solve

@@ -214,7 +214,7 @@ def test_cut_torus_beyond_two_million_active_nodes():
     single-integer face key overflowed) through the cut and the face topology: each interior face is
     a face of both its (distinct) tets, and there are at most 2 T of them.  Peak about 6 GiB."""
     from cutfem.geometry.cut import cut_mesh
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.memory import available_memory
     from cutfem.geometry.box import structured_box
 
@@ -266,7 +266,7 @@ def _refusal(call) -> tuple[str, float]:
 
 
 def _cut_cases():
-    from cutfem.geometry.levelset import Ellipsoid, Sphere, Torus
+    from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
 
     return {  # level set, box, limit, a spacing refused, the part that decides
         "torus": (Torus(1.0, 0.5), TORUS_BOX, "256MiB", 0.0005, "cells near the surface"),
@@ -334,7 +334,7 @@ def test_check_after_the_cut_names_a_spacing_that_passes(monkeypatch):
     """check_cut_memory, on the real active tets of a cut that fits, names a spacing at which it
     passes, and refuses a spacing 1.3 times finer than that (tets scaled like spacing**-2)."""
     from cutfem.geometry.cut import cut_mesh
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
     from cutfem.memory import SOLVE_BASE_BYTES, available_memory
     from cutfem.geometry.box import structured_box
     from cutfem.problems.common import check_cut_memory
@@ -358,7 +358,7 @@ def test_cut_estimate_grows_as_the_spacing_shrinks():
     parts (the spacing 0.0014 of the torus was refused at 2.41 GiB from the box's nodes and 0.0016
     at 13.1 GiB from the band), not between close spacings, not for the later stages."""
     from cutfem.geometry.cut import cut_memory_estimate
-    from cutfem.geometry.levelset import Ellipsoid, Sphere, Torus
+    from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
     from cutfem.geometry.box import structured_box
     from cutfem.problems.common import background_for
 
@@ -378,7 +378,7 @@ def test_predicted_band_and_tets_cover_the_cut(surface):
     """The band cells and active tets predicted before the cut (the survey's area at every spacing)
     are at least the cut's, by at most 1.35 times."""
     from cutfem.geometry.cut import _band_cells, _surface_survey, _cut_bytes, _zero_tolerance, cut_mesh
-    from cutfem.geometry.levelset import Sphere, Torus
+    from cutfem.geometry.shapes import Sphere, Torus
     from cutfem.geometry.box import structured_box
 
     levelset, box = (Torus(1.0, 0.5), TORUS_BOX) if surface == "torus" else (Sphere(1.0), SPHERE_BOX)

@@ -63,10 +63,9 @@ __all__ = [
 #: box) (:func:`_merge_points`): the tolerance at which a tetrahedral mesh's nodes coincide.
 MERGE_TOLERANCE = COINCIDENT_TOLERANCE
 
-#: The lengths (radii, semi-axes) accepted by the analytic surfaces of :mod:`cutfem.geometry.levelset`
+#: The lengths (radii, semi-axes) accepted by the analytic surfaces of :mod:`cutfem.geometry.shapes`
 #: (Sphere, Torus, Ellipsoid) and by :func:`~cutfem.geometry.surface_meshes.sphere_mesh` and
-#: :func:`~cutfem.geometry.surface_meshes.torus_mesh`, as (smallest,
-#: largest).  Within it every quantity formed from the lengths up to the fourth power stays a
+#: :func:`~cutfem.geometry.surface_meshes.torus_mesh`, as (smallest, largest).  Within it every quantity formed from the lengths up to the fourth power stays a
 #: normal float64 (2.2e-308 to 1.8e308), with room for a factor 1e5 of mesh refinement: areas
 #: (L**2), volumes (L**3), curvatures (1/L), Hessians (1/L**2), the squared cross products of the
 #: triangles' edges in the degeneracy test (L**4), the squared gradient of an ellipsoid.  Outside,

@@ -31,7 +31,7 @@ from cutfem.fem.forms import (
     stiffness,
     tangential_stiffness,
 )
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import CUT, NEG
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.mesh import TetMesh

@@ -29,7 +29,7 @@ from cutfem.fem.forms import (
     stiffness,
     tangential_stiffness,
 )
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.mesh import TetMesh

@@ -29,7 +29,7 @@ from cutfem.fem.forms import (
     position_load,
     stiffness,
 )
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import NEG
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.mesh import unstructured_box

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cutfem.fem.norms import l2_error
-from cutfem.geometry.levelset import Torus
+from cutfem.geometry.shapes import Torus
 from cutfem.fem.spaces import SurfaceP1Space
 from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 

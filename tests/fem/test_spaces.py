@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
 from cutfem.geometry.box import structured_box
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space, barycentric_at, triangle_gradients

@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 
 from cutfem.geometry.cut import CutError, CutMesh, cut_mesh, snapped_nodal_values
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import CUT, NEG, POS
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.mesh import TetMesh

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from cutfem.geometry.levelset import SignedDistance
+from cutfem.geometry.signed_distance import SignedDistance
 from cutfem.geometry.closest import _closest_on_triangles
 from cutfem.geometry.surface import SurfaceMesh
 from cutfem.geometry.surface_checks import _winding_number
@@ -58,7 +58,7 @@ def test_signed_distance_matches_brute_force(mesh):
 def test_signed_distance_needs_no_vtk():
     """The distance is one compiled pass: it no longer loads VTK (1.5 s of a run's geometry stage,
     and vtkImplicitPolyDataDistance was 5 times slower than the compiled search on a box of points)."""
-    code = ("import sys, numpy as np\nfrom cutfem.geometry.levelset import SignedDistance\nfrom cutfem.geometry.surface_meshes import sphere_mesh\n"
+    code = ("import sys, numpy as np\nfrom cutfem.geometry.signed_distance import SignedDistance\nfrom cutfem.geometry.surface_meshes import sphere_mesh\n"
             "v = SignedDistance(sphere_mesh(2)).value(np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]))\n"
             "assert abs(v[1] - 1.0) < 1e-12 and v[0] < -0.9, v\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('vtk', 'vtkmodules', 'pyvista')))")
@@ -74,7 +74,7 @@ TORUS_TEXT = "(sqrt(x**2 + y**2) - 1.0)**2 + z**2 - 0.25"  # R = 1, r = 0.5, not
 
 
 def _near_torus(n, seed=5):
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
 
     rng = np.random.default_rng(seed)
     u, v = rng.uniform(0, 2 * np.pi, (2, n))
@@ -87,7 +87,8 @@ def test_newton_calls_phi_once_per_step_with_the_same_numbers(derivatives):
     """One call of the user's callables per Newton step (was three: value, gradient, Hessian), with
     the numbers of the separate calls bit for bit, and the projection equal to the torus's closed
     form."""
-    from cutfem.geometry.levelset import FunctionLevelSet, Torus
+    from cutfem.geometry.levelset import FunctionLevelSet
+    from cutfem.geometry.shapes import Torus
 
     calls = []
 
@@ -127,7 +128,7 @@ def test_newton_chunks_give_the_same_points_and_messages(monkeypatch):
     monkeypatch.setattr(L, "NEWTON_CHUNK", 7)
     assert np.array_equal(ls.closest_point(x), whole)
     assert np.array_equal(ls.exact_mean_curvature_vector(x), kappa)
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
 
     np.testing.assert_allclose(kappa, Torus(1.0, 0.5).exact_mean_curvature_vector(x), atol=1e-6)
     # the axis (grad phi = 0 on it for a torus written this way... at z = 0, x = y = 0 phi is 0.75 and

@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from cutfem.geometry.cut import NEG, POS, CutError, cut_mesh
-from cutfem.geometry.levelset import FunctionLevelSet, Sphere
+from cutfem.geometry.levelset import FunctionLevelSet
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.box import structured_box
 
 pytestmark = pytest.mark.slow

@@ -8,7 +8,8 @@ import re
 import numpy as np
 import pytest
 
-from cutfem.geometry.levelset import Ellipsoid, SignedDistance, Sphere, Torus
+from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
+from cutfem.geometry.signed_distance import SignedDistance
 from cutfem.memory import InsufficientMemoryError
 from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 

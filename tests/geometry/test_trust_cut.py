@@ -12,7 +12,9 @@ import pytest
 
 from cutfem.runs.cli import main
 from cutfem.geometry.cut import CutError, _check_closed, cut_mesh
-from cutfem.geometry.levelset import FunctionLevelSet, SignedDistance, Sphere, Torus
+from cutfem.geometry.levelset import FunctionLevelSet
+from cutfem.geometry.shapes import Sphere, Torus
+from cutfem.geometry.signed_distance import SignedDistance
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.surface import SurfaceMesh, read_surface
 from cutfem.geometry.surface_meshes import sphere_mesh

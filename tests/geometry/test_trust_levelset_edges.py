@@ -60,7 +60,7 @@ BOX = structured_box([-1.25] * 3, [1.25] * 3, spacing=0.25)
 @pytest.mark.parametrize("bound", [np.inf, np.nan, 0.0, -1.0])
 def test_a_lipschitz_bound_must_be_finite_and_positive(bound):
     """inf or NaN once gave "does not cut the background mesh" (NaN drops every cell of the band)."""
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
 
     sphere = Sphere(1.0)
     sphere.lipschitz = bound
@@ -90,7 +90,7 @@ def _self_intersecting_sphere():
 
 
 def test_a_self_intersecting_surface_mesh_is_named_not_its_lipschitz_bound():
-    from cutfem.geometry.levelset import SignedDistance
+    from cutfem.geometry.signed_distance import SignedDistance
 
     box = structured_box([-1.3] * 3, [1.3] * 3, spacing=0.2)
     with pytest.raises(CutError) as info:
@@ -177,7 +177,7 @@ def _uv_sphere(n):
 def test_mesh_file_notes_below_the_facet_size():
     """A 48 x 48 sphere mesh (median edge 0.074): the L2 error against the sphere grows from 0.018 at
     spacing 0.0375 to 0.070 at 0.0125; below half the median edge the run says so."""
-    from cutfem.geometry.levelset import SignedDistance
+    from cutfem.geometry.signed_distance import SignedDistance
     from cutfem.problems.common import mesh_file_notes
 
     distance = SignedDistance(_uv_sphere(48))

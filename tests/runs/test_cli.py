@@ -425,7 +425,7 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     from cutfem.geometry.cut import CUT, NEG, POS
     from cutfem.fem.forms import apply_dirichlet, assemble, bilinear_form, dot, face_jump_penalty, interface_nitsche, linear_form, load
     from cutfem.fem.forms import mass, nitsche, nitsche_load, stiffness
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.box import structured_box
     from cutfem.solvers.solve import solve
     from cutfem.fem.spaces import CutP1Space, ProductSpace
@@ -644,7 +644,7 @@ def test_failing_last_level_keeps_the_finished_ones(tmp_path, capsys):
 
 
 def test_failing_level_in_python_raises_unless_kept(monkeypatch):
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
 
     calls = []
 

@@ -12,7 +12,7 @@ import scipy.sparse.linalg as spla
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import discrete_error, fitted_rate, h1_error, l2_error, l2_h1_errors, rates, surface_integral
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import NEG
 from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import CGSolver, DirectSolver, SolverError, cg_solve, condition_number, solve

@@ -12,7 +12,7 @@ import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import (
     ConditionNumber,

@@ -10,7 +10,7 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve_triangular
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import CUT
 from cutfem.fem.forms import assemble, mass
 from cutfem.geometry.box import structured_box

@@ -71,7 +71,7 @@ def test_collapsed_tets_are_the_difference_of_the_zero_rules():
 def test_ngsolve_mesh_is_the_structured_box(ngsxfem):
     import ngsolve
 
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.problems.common import background_for
 
     box = background_for(Torus(), 0.4)
@@ -87,7 +87,7 @@ def test_ngsolve_mesh_is_the_structured_box(ngsxfem):
 def test_exact_field_matches_cutfem(ngsxfem):
     import ngsolve
 
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.problems.common import background_for
 
     torus = Torus(center=tuple(peers.SHIFT))

@@ -7,7 +7,7 @@ import pytest
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import l2_error
-from cutfem.geometry.levelset import Torus
+from cutfem.geometry.shapes import Torus
 from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
@@ -337,7 +337,7 @@ def test_the_topology_reference_matches_the_same_faces():
     import pyvista as pv
 
     from cutfem.geometry.cut import CUT, cut_mesh
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.geometry.markers import interior_facets
     from cutfem.geometry.box import structured_box
     from cutfem.geometry.numbering import TET_FACES
