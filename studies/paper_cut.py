@@ -14,7 +14,7 @@ tau_F = 1/10 (no power of h) and tau_E = 0.
   figure with least-squares rates.
 
 At spacings 0.1 and finer some background nodes lie exactly on the torus (e.g. (1.5, 0, 0)): the
-cut's zero rule (cutfem.geometry.cut) is exercised; the number of such nodes is recorded per level.
+cut's zero rule (cutfem.geometry.nodal_values) is exercised; the number of such nodes is recorded per level.
 """
 
 from __future__ import annotations

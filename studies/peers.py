@@ -241,7 +241,7 @@ def torus_exact_cf(torus):
 
 def cutfem_nodal_values(box, levelset) -> np.ndarray:
     """phi at every node of ``box``, with cutfem's snap of near-zero values to exactly zero."""
-    from cutfem.geometry.cut import snapped_nodal_values
+    from cutfem.geometry.nodal_values import snapped_nodal_values
 
     return snapped_nodal_values(box, levelset)
 

@@ -282,7 +282,8 @@ def test_cut_refusal_names_a_spacing_that_fits(monkeypatch, case):
     the limit, and a spacing 1.3 times finer than that is refused, naming the same spacing: the
     band of a surface (spacing**-2), the nodes and the boundary of a large box around a small
     surface (spacing**-3 and **-2), every node evaluated without a Lipschitz bound."""
-    from cutfem.geometry.cut import cut_memory_estimate, cut_mesh
+    from cutfem.geometry.band_search import cut_memory_estimate
+    from cutfem.geometry.cut import cut_mesh
     from cutfem.memory import available_memory
     from cutfem.geometry.box import structured_box
 
@@ -357,7 +358,7 @@ def test_cut_estimate_grows_as_the_spacing_shrinks():
     """For one surface and box the estimate never shrinks with the spacing: not between the cut's
     parts (the spacing 0.0014 of the torus was refused at 2.41 GiB from the box's nodes and 0.0016
     at 13.1 GiB from the band), not between close spacings, not for the later stages."""
-    from cutfem.geometry.cut import cut_memory_estimate
+    from cutfem.geometry.band_search import cut_memory_estimate
     from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
     from cutfem.geometry.box import structured_box
     from cutfem.problems.common import background_for
@@ -377,7 +378,9 @@ def test_cut_estimate_grows_as_the_spacing_shrinks():
 def test_predicted_band_and_tets_cover_the_cut(surface):
     """The band cells and active tets predicted before the cut (the survey's area at every spacing)
     are at least the cut's, by at most 1.35 times."""
-    from cutfem.geometry.cut import _band_cells, _surface_survey, _cut_bytes, _zero_tolerance, cut_mesh
+    from cutfem.geometry.band_search import _band_cells, _cut_bytes, _surface_survey
+    from cutfem.geometry.cut import cut_mesh
+    from cutfem.geometry.nodal_values import _zero_tolerance
     from cutfem.geometry.shapes import Sphere, Torus
     from cutfem.geometry.box import structured_box
 

@@ -333,7 +333,7 @@ def label_scales(values, corner, cap):
     """(L,): for each label l with |values[l]| <= ``cap``, the largest |values[m]| over the labels m
     of the cells ``corner`` (k, 8) that have l as a corner: the scale of the level set's values
     around a node, from its own cells (the local scale of the zero rule,
-    :func:`cutfem.geometry.cut._zero_tolerance`); 0 for the other labels.  With cap >= 1e-12 max |values|
+    :func:`cutfem.geometry.nodal_values._zero_tolerance`); 0 for the other labels.  With cap >= 1e-12 max |values|
     no other label can be snapped (its value exceeds 1e-12 times any maximum around it), so only
     the cells with such a corner are reduced: one read-mostly serial pass, 0.04 s for the torus's
     0.9 million band cells at spacing 0.00625 (0.08-0.16 s scattering to every label); the (k, 8)

@@ -2,7 +2,8 @@
 
 One P1 level set phi_h splits the background box into two sides, ``NEG = {phi_h < 0}`` (inside) and
 ``POS = {phi_h > 0}`` (outside), with the interface Gamma_h = {phi_h = 0} between them.  Nodal values
-that are exactly zero follow the zero rule of :mod:`cutfem.geometry.cut`: they count as outside.  Per tet T:
+that are exactly zero follow the zero rule of :mod:`cutfem.geometry.nodal_values`: they count as
+outside.  Per tet T:
 
 * all nodes < 0: T lies in NEG;  all nodes >= 0: T lies in POS (also when every node is zero);
 * otherwise (mixed signs) T is split by the plane of its piece of Gamma_h into the two sides.

@@ -166,8 +166,9 @@ def _sign_change_cells(box, f, tol):
 
 @pytest.mark.parametrize("case", ["genus2-expression", "genus2-callable", "torus", "thin-torus", "fallback"])
 def test_band_search_keeps_every_cell_with_a_sign_change(case):
-    from cutfem.geometry import cut as C
+    from cutfem.geometry.band_search import _band_cells, _enclosure_function
     from cutfem.geometry.levelset import FunctionLevelSet
+    from cutfem.geometry.nodal_values import _zero_tolerance
     from cutfem.geometry.box import structured_box
 
     if case.startswith("genus2"):
@@ -182,10 +183,10 @@ def test_band_search_keeps_every_cell_with_a_sign_change(case):
         else:
             ls = FunctionLevelSet.from_expression(text, lipschitz=4.0)
         box = structured_box([-1.7, -1.7, -0.7], [1.7, 1.7, 0.7], spacing=0.05 if r == 0.5 else 0.025)
-    tol = C._zero_tolerance(box, ls.lipschitz)
-    enclose = C._enclosure_function(ls)
-    band, _ = C._band_cells(box, ls.value, ls.lipschitz, tol, None, enclose)
-    every, _ = C._band_cells(box, ls.value, ls.lipschitz, tol, None, None)  # the global bound alone
+    tol = _zero_tolerance(box, ls.lipschitz)
+    enclose = _enclosure_function(ls)
+    band, _ = _band_cells(box, ls.value, ls.lipschitz, tol, None, enclose)
+    every, _ = _band_cells(box, ls.value, ls.lipschitz, tol, None, None)  # the global bound alone
     crossed = _sign_change_cells(box, ls.value, tol)
     assert len(crossed) > 100
     assert np.isin(crossed, band).all()  # never a crossed cell dropped
@@ -203,7 +204,8 @@ def test_genus2_memory_estimate_uses_the_local_bound():
     cut's estimate was 106.7 GiB (the band grown by L times the cell size, 113 million cells); the
     enclosures keep a band of about 11 million cells (11.7 GiB), and the cut at a coarse spacing is
     the same with and without them."""
-    from cutfem.geometry.cut import cut_memory_estimate, cut_mesh
+    from cutfem.geometry.band_search import cut_memory_estimate
+    from cutfem.geometry.cut import cut_mesh
     from cutfem.geometry.levelset import FunctionLevelSet
     from cutfem.geometry.box import structured_box
 

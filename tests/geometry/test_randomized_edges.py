@@ -13,7 +13,8 @@ import math
 import numpy as np
 import pytest
 
-from cutfem.geometry.cut import NEG, POS, CutError, cut_mesh
+from cutfem.geometry.cut import NEG, POS, cut_mesh
+from cutfem.geometry.nodal_values import CutError
 from cutfem.geometry.levelset import FunctionLevelSet
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.box import structured_box

@@ -5,7 +5,8 @@ through Python and the command line."""
 import numpy as np
 import pytest
 
-from cutfem.geometry.cut import CutError, cut_mesh, snapped_nodal_values
+from cutfem.geometry.cut import cut_mesh
+from cutfem.geometry.nodal_values import CutError, snapped_nodal_values
 from cutfem.geometry.levelset import FunctionLevelSet
 from cutfem.geometry.box import structured_box
 
