@@ -176,10 +176,12 @@ def _cut_bytes(cells, spacing, area, per_tet=None) -> tuple[float, float, float,
     n = cells + 1.0
     nodes, boundary = float(np.prod(n)), 2.0 * float(n[0] * n[1] + n[1] * n[2] + n[0] * n[2])
     if area is None:
-        return memory.CUT_BASE_BYTES + memory.BYTES_PER_EVALUATED_NODE * nodes + memory.BYTES_PER_BOUNDARY_NODE * boundary, 0.0, float(np.prod(cells)), 0.0
+        cut = memory.CUT_BASE_BYTES + memory.BYTES_PER_EVALUATED_NODE * nodes + memory.BYTES_PER_BOUNDARY_NODE * boundary
+        return cut, 0.0, float(np.prod(cells)), 0.0
     band = min(float(np.prod(cells)), memory.BAND_MARGIN * float(np.linalg.norm(spacing)) * area / float(np.prod(spacing)))
     tets = memory.TETS_PER_BAND_CELL * band
-    cut = memory.CUT_BASE_BYTES + memory.BYTES_PER_BOX_NODE * nodes + memory.BYTES_PER_BOUNDARY_NODE * boundary + memory.BYTES_PER_BAND_CELL * band
+    cut = (memory.CUT_BASE_BYTES + memory.BYTES_PER_BOX_NODE * nodes + memory.BYTES_PER_BOUNDARY_NODE * boundary
+           + memory.BYTES_PER_BAND_CELL * band)
     return cut, (0.0 if per_tet is None else memory.SOLVE_BASE_BYTES + per_tet * tets), band, tets
 
 
@@ -207,21 +209,22 @@ def _check_cut_memory(box: StructuredBox, f, lipschitz, per_tet=None, survey=Non
     cut, after, band, tets = _cut_bytes(cells, h, area, per_tet)
     if cut <= available and after <= available:
         return survey
-    fix = memory.coarser_spacing_fix(lambda t: max(_cut_bytes(cells / t + 2.0, h * t, area, per_tet)[:2]), float(np.max(h)), available,
-                              " or a smaller box")
+    fix = memory.coarser_spacing_fix(lambda t: max(_cut_bytes(cells / t + 2.0, h * t, area, per_tet)[:2]), float(np.max(h)),
+                                     available, " or a smaller box")
     box_text = f"the {' x '.join(map(str, box.cells.tolist()))}-cell box at spacing {_spacing_text(box)}"
     nodes = float(np.prod(box.node_shape.astype(float)))
     if cut > available:
         detail = ("every node evaluated: the level set declares no Lipschitz bound" if area is None
                   else f"{nodes:.3g} nodes, about {band:.3g} cells near the surface")
         memory.check_memory(cut, f"the cut of {box_text} ({detail})", fix)
-    memory.check_memory(after, f"the matrices and the solve of about {tets:.3g} active tets (predicted for the cut of {box_text})", fix)
+    memory.check_memory(after, f"the matrices and the solve of about {tets:.3g} active tets (predicted for the cut of {box_text})",
+                        fix)
 
 
 def cut_memory_estimate(background: StructuredBox, levelset, solve_bytes_per_tet: float | None = None) -> tuple[float, float]:
-    """``(cut, after)``: the bytes that :func:`cut_mesh` estimates for the cut of the structured box
+    """``(cut, after)``: the bytes that :func:`~cutfem.geometry.cut.cut_mesh` estimates for the cut of the structured box
     ``background`` by ``levelset``, and those that the stages after it add with
-    ``solve_bytes_per_tet`` bytes per active tet (0 without).  What :func:`cut_mesh` refuses when it
+    ``solve_bytes_per_tet`` bytes per active tet (0 without).  What :func:`~cutfem.geometry.cut.cut_mesh` refuses when it
     exceeds the memory available (it skips the survey when the box fits with every cell in the
     band).  Surveys the surface when the level set declares a Lipschitz bound
     (:func:`_surface_survey`: tens of thousands of evaluations); see :func:`_cut_bytes`."""

@@ -506,16 +506,18 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
 
     ``levelset``: a LevelSet (``value``, optional ``lipschitz``), a callable ``f(x)`` with x (..., 3),
     or an array of nodal values (N,) (not with a structured box's band search).
-    Raises :class:`CutError` when the level set does not cut the mesh, the surface reaches the box
-    boundary (unless ``check_boundary=False``), the declared Lipschitz bound is seen to be broken
-    (:func:`_band_cells`) or S_h is not closed and edge-manifold (:func:`_check_closed`: every
-    edge of its triangles in exactly two triangles; with ``check_boundary=False`` S_h may end on
-    the faces of the box); ValueError for NaN/inf values.  See the module docstring for the zero rule.
+    Raises :class:`~cutfem.geometry.nodal_values.CutError` when the level set does not cut the mesh,
+    the surface reaches the box boundary (unless ``check_boundary=False``), the declared Lipschitz
+    bound is seen to be broken (:func:`~cutfem.geometry.band_search._band_cells`) or S_h is not
+    closed and edge-manifold (:func:`_check_closed`: every edge of its triangles in exactly two
+    triangles; with ``check_boundary=False`` S_h may end on the faces of the box); ValueError for
+    NaN/inf values.  See :mod:`cutfem.geometry.nodal_values` for the zero rule.
 
     :class:`cutfem.memory.InsufficientMemoryError` is raised before any large allocation when the
-    cut of a structured box would not fit in memory (:func:`cut_memory_estimate`), naming a spacing
-    that fits.  ``solve_bytes_per_tet``: what the stages after the cut (space, matrices, solve) add
-    per active tet, as :func:`cutfem.problems.common.check_cut_memory` counts it.  When given (the
+    cut of a structured box would not fit in memory
+    (:func:`~cutfem.geometry.band_search.cut_memory_estimate`), naming a spacing that fits.
+    ``solve_bytes_per_tet``: what the stages after the cut (space, matrices, solve) add per active
+    tet, as :func:`cutfem.problems.common.check_cut_memory` counts it.  When given (the
     problems give theirs), the cut also refuses up front a spacing whose later stages would not fit,
     from the active tets it predicts, and its advice is a spacing at which the cut and those stages
     both fit: one estimate before the cut, with its one advice, instead of a cut that is made and then
@@ -687,7 +689,7 @@ def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
     the background's bounding box (within 1e-9 of its diagonal).  The P1 zero set of values at
     every node is always closed inside the mesh, so an open S_h means that the band search
     (``band``) dropped cut cells: phi changes faster than its declared Lipschitz bound somewhere
-    it was not sampled (see :func:`_band_cells`)."""
+    it was not sampled (see :func:`~cutfem.geometry.band_search._band_cells`)."""
     if cut.is_closed:
         return
     t = cut.triangles

@@ -109,7 +109,7 @@ def _zero_tolerance(mesh: TetMesh, lipschitz, values=None):
 
     Without ``values`` and with a bound ``lipschitz`` (a number): ``1e-12 * L * diam`` (diam the
     diagonal of the bounding box), not a snap tolerance but the slack that the band search adds to
-    its tests (:func:`_lipschitz_slack`): it bounds every node's tolerance when L is a true bound
+    its tests (:func:`~cutfem.geometry.band_search._lipschitz_slack`): it bounds every node's tolerance when L is a true bound
     (the node's neighbours lie within a cell diagonal, so max |phi_j| <= |phi_i| + L |spacing|),
     so a cell with a corner that the snap may zero is never dropped."""
     if values is None:

@@ -65,12 +65,13 @@ MERGE_TOLERANCE = COINCIDENT_TOLERANCE
 
 #: The lengths (radii, semi-axes) accepted by the analytic surfaces of :mod:`cutfem.geometry.shapes`
 #: (Sphere, Torus, Ellipsoid) and by :func:`~cutfem.geometry.surface_meshes.sphere_mesh` and
-#: :func:`~cutfem.geometry.surface_meshes.torus_mesh`, as (smallest, largest).  Within it every quantity formed from the lengths up to the fourth power stays a
-#: normal float64 (2.2e-308 to 1.8e308), with room for a factor 1e5 of mesh refinement: areas
-#: (L**2), volumes (L**3), curvatures (1/L), Hessians (1/L**2), the squared cross products of the
-#: triangles' edges in the degeneracy test (L**4), the squared gradient of an ellipsoid.  Outside,
-#: they overflow to inf (the area of a sphere of radius 1e200) or underflow to 0 (the triangles of a
-#: sphere of radius 1e-160 "have zero area"); rescale the unit of length instead.
+#: :func:`~cutfem.geometry.surface_meshes.torus_mesh`, as (smallest, largest).  Within it every
+#: quantity formed from the lengths up to the fourth power stays a normal float64 (2.2e-308 to
+#: 1.8e308), with room for a factor 1e5 of mesh refinement: areas (L**2), volumes (L**3), curvatures
+#: (1/L), Hessians (1/L**2), the squared cross products of the triangles' edges in the degeneracy
+#: test (L**4), the squared gradient of an ellipsoid.  Outside, they overflow to inf (the area of a
+#: sphere of radius 1e200) or underflow to 0 (the triangles of a sphere of radius 1e-160 "have zero
+#: area"); rescale the unit of length instead.
 LENGTH_RANGE = (1e-50, 1e50)
 
 _READ_EXTENSIONS_HINT = ".stl, .obj, .ply, .off, .vtk, .vtp, .vtu, .msh (Gmsh), .mesh (Medit)"
