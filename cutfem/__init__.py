@@ -32,19 +32,19 @@ __version__ = "0.1.0"
 #: public name -> the module defining it (relative to this package): the one table of the flat face
 _NAMES = {
     # backgrounds and surface meshes, and their files
-    "structured_box": ".geometry.mesh",
+    "structured_box": ".geometry.box",
     "read_mesh": ".geometry.mesh",
     "write_mesh": ".geometry.mesh",
     "read_surface": ".geometry.surface",
     "write_surface": ".geometry.surface",
-    "sphere_mesh": ".geometry.surface",
-    "torus_mesh": ".geometry.surface",
+    "sphere_mesh": ".geometry.surface_meshes",
+    "torus_mesh": ".geometry.surface_meshes",
     # level sets
-    "Sphere": ".geometry.levelset",
-    "Torus": ".geometry.levelset",
-    "Ellipsoid": ".geometry.levelset",
+    "Sphere": ".geometry.shapes",
+    "Torus": ".geometry.shapes",
+    "Ellipsoid": ".geometry.shapes",
     "FunctionLevelSet": ".geometry.levelset",
-    "SignedDistance": ".geometry.levelset",
+    "SignedDistance": ".geometry.signed_distance",
     # the cut and its sides
     "cut_mesh": ".geometry.cut",
     "CutMesh": ".geometry.cut",

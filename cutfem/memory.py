@@ -18,16 +18,16 @@ item, fitted to the peak resident memory of fresh ``cutfem run`` processes (``/p
   Measured on the cut torus, the resident memory the cut adds: 116, 150, 279, 828 and 3062 MB for
   14,024, 55,120, 219,912, 879,968 and about 3.5 million band cells (spacings 0.05 to 0.003125):
   about 100 MB and 831-846 bytes a cell from spacing 0.0125 on.  The estimate, 150 MiB and 1000
-  bytes a cell, is checked once before the band search (:func:`cutfem.geometry.cut.cut_memory_estimate`),
+  bytes a cell, is checked once before the band search (:func:`cutfem.geometry.band_search.cut_memory_estimate`),
   on :data:`BAND_MARGIN` times the cells predicted from the surface's area as the band search sees
-  it, measured once by a survey of a few ten thousand cubes (:func:`cutfem.geometry.cut._surface_survey`:
+  it, measured once by a survey of a few ten thousand cubes (:func:`cutfem.geometry.band_search._surface_survey`:
   the band at spacing h is about sqrt(3) A / h**2 cells for a signed distance; the final band 0.92
   to 1.05 times the survey's on tori and spheres at spacings 0.04-0.001, the predicted cells 1.14
   to 1.3 times the final ones).  It was 3000 bytes a cell with no fixed part, fitted at spacing
   0.0125 and coarser, where the fixed part is most of the cut: that refused spacing 0.002 on a
   24 GiB machine as needing 34.8 GiB, where the whole run is predicted at about 14 GiB;
 * :data:`BYTES_PER_BOX_NODE`: what the band search keeps per node of the structured box: a bitmap
-  of the band's nodes and a running count per 64-bit word of it (:func:`cutfem.geometry.mesh.dense_unique`,
+  of the band's nodes and a running count per 64-bit word of it (:func:`cutfem.geometry.keys.dense_unique`,
   a quarter byte a node; 101 MB for the 404 million nodes of the box at spacing 0.003125).  It was
   5 bytes, from the marker and lookup arrays the bitmap replaced, and refused spacing 0.0015625 on
   a 24 GiB machine as needing 28.5 GiB, 16 of them for node markers that are no longer made.  With

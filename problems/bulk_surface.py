@@ -35,7 +35,7 @@ from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import h1_error, l2_error, l2_h1_errors
 from cutfem.fem.forms import assemble, bilinear_form, face_jump_penalty, load, mass, normal_gradient_penalty, stiffness, tangential_stiffness
 from cutfem.jit import parallel_kernel
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
 from cutfem.solvers.solve import solve

@@ -9,11 +9,16 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.geometry.levelset import Ellipsoid, FunctionLevelSet, LevelSet, SignedDistance, Sphere, Torus
+from cutfem.geometry.levelset import FunctionLevelSet, LevelSet
+from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
+from cutfem.geometry.signed_distance import SignedDistance
 from cutfem.geometry.markers import NEG, POS
-from cutfem.geometry.mesh import structured_box, unique_keys, unstructured_box
+from cutfem.geometry.box import structured_box
+from cutfem.geometry.keys import unique_keys
+from cutfem.geometry.mesh import unstructured_box
 from cutfem.runs.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
-from cutfem.geometry.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
+from cutfem.geometry.surface import read_surface
+from cutfem.geometry.surface_meshes import TORUS_FAMILIES, sphere_mesh, torus_mesh
 
 SURFACES = ("torus", "sphere", "ellipsoid")
 
@@ -483,7 +488,7 @@ def surface_mesh_for(surface, n, family="structured", seed=0, R=1.0, r=0.5, radi
 def box_for(levelset, spacing, box=None, anchored=False):
     """The background box: given as 'x0,y0,z0,x1,y1,z1', or the surface's bounding box grown by
     0.1 (the paper's margin: the paper's box [-1.6,1.6]^2 x [-0.6,0.6] for the torus), the same at
-    every spacing; :func:`background_for` (:func:`cutfem.geometry.mesh.structured_box`) grows it symmetrically
+    every spacing; :func:`background_for` (:func:`cutfem.geometry.box.structured_box`) grows it symmetrically
     to whole cells where the spacing does not divide it.
 
     Choice: the box does not follow the spacing.  Rounded outward to multiples of each spacing, it
@@ -519,7 +524,7 @@ def background_for(levelset, spacing, kind="structured", box=None, anchored=Fals
     of the box :func:`box_for` (``anchored`` there).
 
     The structured mesh has exactly the given spacing: a box that is not a whole number of cells is
-    grown symmetrically to the next whole number (:func:`cutfem.geometry.mesh.structured_box`); the record of
+    grown symmetrically to the next whole number (:func:`cutfem.geometry.box.structured_box`); the record of
     the level keeps the box used (:func:`cut_record`)."""
     lo, hi = box_for(levelset, spacing, box, anchored)
     if kind == "structured":

@@ -33,7 +33,7 @@ from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import l2_h1_errors
 from cutfem.fem.forms import apply_dirichlet, assemble, face_jump_penalty, interface_nitsche, load, stiffness
 from cutfem.jit import parallel_kernel
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import NEG, POS
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
 from cutfem.solvers.solve import SolverError, solve

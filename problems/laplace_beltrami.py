@@ -27,13 +27,13 @@ from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import h1_error, l2_error
 from cutfem.fem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.jit import parallel_kernel
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
 from cutfem.solvers.solve import SolverError, solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
-from cutfem.geometry.surface import RANDOM_FAMILIES, TORUS_FAMILIES
+from cutfem.geometry.surface_meshes import RANDOM_FAMILIES, TORUS_FAMILIES
 
 from .common import BACKGROUND_PARAM, SHAPE_PARAMS, check_cut_memory, check_face_stabilization, check_normal_stabilization, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
 

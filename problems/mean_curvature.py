@@ -33,7 +33,7 @@ from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Pro
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.markers import CUT
-from cutfem.geometry.surface import RANDOM_FAMILIES, TORUS_FAMILIES
+from cutfem.geometry.surface_meshes import RANDOM_FAMILIES, TORUS_FAMILIES
 
 from .common import BACKGROUND_PARAM, SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, mesh_file_notes, surface_mesh_for
 from .common import check_edge_stabilization, check_face_stabilization, pin_unseen_nodes

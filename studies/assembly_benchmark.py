@@ -6,7 +6,7 @@
 spacings above).
 
 Setting: the structured Kuhn background mesh of the box [-1.6, 1.6] x [-1.6, 1.6] x [-0.6, 0.6]
-with the given cube spacing, cut by the torus R = 1, r = 1/2 (:class:`cutfem.geometry.levelset.Torus`).
+with the given cube spacing, cut by the torus R = 1, r = 1/2 (:class:`cutfem.geometry.shapes.Torus`).
 For each spacing we record the sizes (background nodes, h = N^(-1/3), active tets, active nodes,
 interior faces, triangles of S_h, non-zeros) and wall-clock times (``time.perf_counter``) of
 
@@ -48,9 +48,9 @@ import scipy
 
 from cutfem.geometry.cut import CUT, cut_mesh
 from cutfem.fem.forms import assemble, face_jump_penalty, mass, tangential_stiffness
-from cutfem.geometry.levelset import Torus
+from cutfem.geometry.shapes import Torus
 from cutfem.memory import InsufficientMemoryError
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.runs.registry import ProblemError, check_output, text_table
 from cutfem.fem.spaces import CutP1Space
 

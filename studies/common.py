@@ -192,7 +192,7 @@ def add_size_arguments(parser) -> None:
 def torus_family(family: str, seed: int) -> dict:
     """The parameters of a meshed torus family for ``cutfem.run``: the family, and the seed for the
     families drawn at random (the structured grid takes none)."""
-    from cutfem.geometry.surface import RANDOM_FAMILIES
+    from cutfem.geometry.surface_meshes import RANDOM_FAMILIES
 
     return {"family": family, **({"seed": seed} if family in RANDOM_FAMILIES else {})}
 

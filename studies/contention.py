@@ -71,8 +71,8 @@ def block_solve(spacing: float = 0.125) -> dict:
 
     from cutfem.geometry.cut import NEG, cut_mesh
     from cutfem.fem.forms import assemble, bilinear_form, face_jump_penalty, mass, nitsche, stiffness
-    from cutfem.geometry.levelset import Sphere
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.shapes import Sphere
+    from cutfem.geometry.box import structured_box
     from cutfem.solvers.solve import GeometricMultigrid, lattice_indices
     from cutfem.fem.spaces import CutP1Space
 
@@ -110,8 +110,8 @@ def small_cuts(count: int = 200, spacing: float = 0.2, seed: int = 0) -> float:
     import numpy as np
 
     from cutfem.geometry.cut import cut_mesh
-    from cutfem.geometry.levelset import Sphere
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.shapes import Sphere
+    from cutfem.geometry.box import structured_box
 
     box = structured_box([-1.6] * 3, [1.6] * 3, spacing=spacing)
     centres = np.random.default_rng(seed).uniform(-0.3, 0.3, (count, 3))

@@ -33,9 +33,9 @@ import numpy as np
 import cutfem
 from cutfem.studies.baselines import cotangent_mean_curvature, pyvista_mean_curvature_vector
 from cutfem.fem.norms import discrete_error, fitted_rate
-from cutfem.geometry.levelset import Torus
+from cutfem.geometry.shapes import Torus
 from cutfem.fem.spaces import SurfaceP1Space
-from cutfem.geometry.surface import TORUS_FAMILIES, torus_mesh
+from cutfem.geometry.surface_meshes import TORUS_FAMILIES, torus_mesh
 
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, significant, study_main, torus_family
 

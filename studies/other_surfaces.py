@@ -29,8 +29,10 @@ import numpy as np
 
 import cutfem
 from cutfem.fem.norms import fitted_rate
-from cutfem.geometry.levelset import FunctionLevelSet, Sphere, Torus
-from cutfem.geometry.surface import sphere_mesh, write_surface
+from cutfem.geometry.levelset import FunctionLevelSet
+from cutfem.geometry.shapes import Sphere, Torus
+from cutfem.geometry.surface import write_surface
+from cutfem.geometry.surface_meshes import sphere_mesh
 
 from .common import ROUNDOFF_INTEGRAL, PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_figure, save_json, save_latex_table, significant, study_main
 
@@ -61,7 +63,7 @@ class DoubleTorus(FunctionLevelSet):
         grad phi = (1 - a/S) grad a + (1 - b/S) grad b,
         Hess phi = (1 - a/S) Hess a + (1 - b/S) Hess b - (grad a grad a^T + grad b grad b^T)/S + w w^T/S^3,
 
-    from the exact torus data of :class:`cutfem.geometry.levelset.Torus`.  |grad phi| < 4 (both weights lie
+    from the exact torus data of :class:`cutfem.geometry.shapes.Torus`.  |grad phi| < 4 (both weights lie
     in (0, 2)): lipschitz 4.  Not a distance; exact H = (trace(P Hess phi)/|grad phi|) n at the closest
     point, found by the Newton projection of :meth:`cutfem.geometry.levelset.LevelSet.closest_point`.
     """
@@ -145,7 +147,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     write_surface(sphere_mesh(5, radius=STL_RADIUS, center=STL_CENTER), stl)
     sphere = Sphere(radius=STL_RADIUS, center=STL_CENTER)
     res = cutfem.run("mean-curvature-cut", levels=stl_levels, surface=str(stl), solver=SOLVER)
-    from cutfem.geometry.levelset import SignedDistance
+    from cutfem.geometry.signed_distance import SignedDistance
     from cutfem.geometry.surface import read_surface
 
     polyhedron = SignedDistance(read_surface(stl))

@@ -24,7 +24,7 @@ import numpy as np
 
 import cutfem
 from cutfem.runs.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
-from cutfem.geometry.surface import TORUS_FAMILIES, torus_mesh
+from cutfem.geometry.surface_meshes import TORUS_FAMILIES, torus_mesh
 
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, roundoff_zero, save_csv, save_figure, save_json, save_latex_table, significant, study_main, torus_family
 

@@ -241,7 +241,7 @@ def torus_exact_cf(torus):
 
 def cutfem_nodal_values(box, levelset) -> np.ndarray:
     """phi at every node of ``box``, with cutfem's snap of near-zero values to exactly zero."""
-    from cutfem.geometry.cut import snapped_nodal_values
+    from cutfem.geometry.nodal_values import snapped_nodal_values
 
     return snapped_nodal_values(box, levelset)
 
@@ -521,7 +521,7 @@ def compare_level(spacing, variant="paper", progress=None, taskmanager=False, re
 
     import ngsolve
 
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.problems.common import background_for
 
     if variant == "shifted":
@@ -653,7 +653,7 @@ def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON
     from ngsolve import H1, L2, GridFunction, InnerProduct, Integrate, LinearForm, grad, specialcf, sqrt
     from xfem import HASNEG, IF, NEG, CutInfo, GetDofsOfElements, GetFacetsWithNeighborTypes, RestrictedBilinearForm, dCut
 
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
 
     levelset = Sphere() if levelset is None else levelset
     T = {}
@@ -774,7 +774,7 @@ def cutfem_poisson_sets(spacing, levelset=None) -> dict:
     """The sizes of cutfem's Poisson problem that ngsxfem reports too: the tets of NEG (the active
     set) and its ghost faces (untimed: one cut of the background)."""
     from cutfem.geometry.cut import cut_mesh
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.markers import NEG
     from cutfem.problems.common import background_for
 
@@ -795,7 +795,7 @@ def compare_poisson_level(spacing, progress=None, repeat=1, also_direct=False) -
     ``also_direct``: the first ngsxfem run also times NGSolve's sparse Cholesky (``solve_direct``)."""
     import os
 
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     cfs, ngs_ = [], []
@@ -882,9 +882,9 @@ def meshed_level(family, n) -> list[dict]:
     """Two rows (cotangent + Voronoi lumped mass, stabilized tau_E = 1/10) on one torus mesh."""
     import cutfem
     from cutfem.studies.baselines import cotangent_mean_curvature
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.fem.spaces import SurfaceP1Space
-    from cutfem.geometry.surface import torus_mesh
+    from cutfem.geometry.surface_meshes import torus_mesh
 
     t0 = time.perf_counter()
     mesh = torus_mesh(n, family=family, seed=SEED)

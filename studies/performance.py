@@ -271,9 +271,9 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     the sizes the bounds need: ``dofs`` (N), ``active_tets`` (T), ``surface_triangles`` (S),
     ``interior_faces`` (F), ``iterations`` and ``nnz`` ({"K"})."""
     from cutfem.geometry.cut import CUT, cut_mesh
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.problems.mean_curvature import mean_curvature_form
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.fem.spaces import CutP1Space
 
     t = StageTimer()
@@ -301,10 +301,10 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
 
 def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
     """One meshed-torus level, timed stage by stage."""
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.problems.mean_curvature import mean_curvature_form
     from cutfem.fem.spaces import SurfaceP1Space
-    from cutfem.geometry.surface import torus_mesh
+    from cutfem.geometry.surface_meshes import torus_mesh
 
     t = StageTimer()
     with t("mesh"):
@@ -319,7 +319,7 @@ def ngsxfem_level(spacing: float) -> dict:
     with the zeros of the level set moved to +1e-14 and the collapsed tets left out: cutfem's
     discrete problem; NGSolve's sparse Cholesky, no TaskManager).  ``time`` has the stages mesh,
     levelset, cut, assembly, solve, errors; ``total`` is their sum."""
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.studies.peers import ngsxfem_mean_curvature
 
     r = ngsxfem_mean_curvature(spacing, Torus(1.0, 0.5), zero_rule="+eps-cutfem-active", superlu=False)
@@ -597,9 +597,10 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
 
     from cutfem.geometry.cut import CUT, cut_mesh
     from cutfem.fem.forms import assemble, position_load
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.geometry.markers import interior_facets
-    from cutfem.geometry.mesh import dense_unique, structured_box
+    from cutfem.geometry.box import structured_box
+    from cutfem.geometry.keys import dense_unique
     from cutfem.problems.mean_curvature import mean_curvature_form
     from cutfem.solvers.solve import lattice_hierarchy, lattice_indices
     from cutfem.fem.spaces import CutP1Space
@@ -922,7 +923,7 @@ def command_targets(size: str) -> list:
     """The end-to-end targets, as (cutfem arguments, seconds or None): the cut torus at spacing
     0.0125 in 2 s and the meshed torus 768 x 384 of every family in 1 s (with ``full`` also the cut
     torus at spacing 0.003125 in 40 s); at the tiny size the coarse levels, without a target."""
-    from cutfem.geometry.surface import TORUS_FAMILIES
+    from cutfem.geometry.surface_meshes import TORUS_FAMILIES
 
     cut, n = pick(size, ("0.1", "32"), ("0.0125", "768"), ("0.0125", "768"))
     targets = [(["run", "mean-curvature-cut", "--spacing", cut], None if size == "tiny" else 2.0)]
@@ -969,7 +970,7 @@ def _peer_missing():
 
 def _peers(cut_records, memory_gib, down_to, progress) -> dict:
     """ngsxfem at the cut levels that ran (see the module docstring), with the ratio of totals."""
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.studies.peers import BYTES_PER_TET
 
     missing = _peer_missing()

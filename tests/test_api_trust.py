@@ -10,12 +10,12 @@ import scipy.sparse as sp
 from cutfem.geometry.cut import CUT, NEG, POS, cut_mesh
 from cutfem.fem.norms import fitted_rate, h1_error, l2_error, l2_h1_errors, rates
 from cutfem.fem.forms import assemble, face_jump_penalty, mass
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import ElementSet
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import CGSolver, DirectSolver, condition_number, solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
-from cutfem.geometry.surface import sphere_mesh
+from cutfem.geometry.surface_meshes import sphere_mesh
 
 X = lambda p: p[..., 0]  # noqa: E731
 GRAD_X = lambda p: np.broadcast_to(np.array([1.0, 0.0, 0.0]), p.shape)  # noqa: E731

@@ -11,9 +11,13 @@ import cutfem
 
 # the defining module of each public name, written out here (not read from cutfem._NAMES)
 EXPECTED = {
-    "cutfem.geometry.mesh": "structured_box read_mesh write_mesh",
-    "cutfem.geometry.surface": "read_surface write_surface sphere_mesh torus_mesh",
-    "cutfem.geometry.levelset": "Sphere Torus Ellipsoid FunctionLevelSet SignedDistance",
+    "cutfem.geometry.box": "structured_box",
+    "cutfem.geometry.mesh": "read_mesh write_mesh",
+    "cutfem.geometry.surface": "read_surface write_surface",
+    "cutfem.geometry.surface_meshes": "sphere_mesh torus_mesh",
+    "cutfem.geometry.shapes": "Sphere Torus Ellipsoid",
+    "cutfem.geometry.levelset": "FunctionLevelSet",
+    "cutfem.geometry.signed_distance": "SignedDistance",
     "cutfem.geometry.cut": "cut_mesh CutMesh",
     "cutfem.geometry.markers": "NEG POS CUT",
     "cutfem.fem.spaces": "CutP1Space SurfaceP1Space ProductSpace",

@@ -214,9 +214,9 @@ def test_cut_torus_beyond_two_million_active_nodes():
     single-integer face key overflowed) through the cut and the face topology: each interior face is
     a face of both its (distinct) tets, and there are at most 2 T of them.  Peak about 6 GiB."""
     from cutfem.geometry.cut import cut_mesh
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.memory import available_memory
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     if available_memory()[0] < 12 * 2**30:
         pytest.skip("needs about 12 GiB free")
@@ -266,7 +266,7 @@ def _refusal(call) -> tuple[str, float]:
 
 
 def _cut_cases():
-    from cutfem.geometry.levelset import Ellipsoid, Sphere, Torus
+    from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
 
     return {  # level set, box, limit, a spacing refused, the part that decides
         "torus": (Torus(1.0, 0.5), TORUS_BOX, "256MiB", 0.0005, "cells near the surface"),
@@ -282,9 +282,10 @@ def test_cut_refusal_names_a_spacing_that_fits(monkeypatch, case):
     the limit, and a spacing 1.3 times finer than that is refused, naming the same spacing: the
     band of a surface (spacing**-2), the nodes and the boundary of a large box around a small
     surface (spacing**-3 and **-2), every node evaluated without a Lipschitz bound."""
-    from cutfem.geometry.cut import cut_memory_estimate, cut_mesh
+    from cutfem.geometry.band_search import cut_memory_estimate
+    from cutfem.geometry.cut import cut_mesh
     from cutfem.memory import available_memory
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     levelset, (lo, hi), limit, refused, part = _cut_cases()[case]
     monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", limit)
@@ -334,9 +335,9 @@ def test_check_after_the_cut_names_a_spacing_that_passes(monkeypatch):
     """check_cut_memory, on the real active tets of a cut that fits, names a spacing at which it
     passes, and refuses a spacing 1.3 times finer than that (tets scaled like spacing**-2)."""
     from cutfem.geometry.cut import cut_mesh
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
     from cutfem.memory import SOLVE_BASE_BYTES, available_memory
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.problems.common import check_cut_memory
 
     monkeypatch.setenv("CUTFEM_MEMORY_LIMIT", "512MiB")
@@ -357,9 +358,9 @@ def test_cut_estimate_grows_as_the_spacing_shrinks():
     """For one surface and box the estimate never shrinks with the spacing: not between the cut's
     parts (the spacing 0.0014 of the torus was refused at 2.41 GiB from the box's nodes and 0.0016
     at 13.1 GiB from the band), not between close spacings, not for the later stages."""
-    from cutfem.geometry.cut import cut_memory_estimate
-    from cutfem.geometry.levelset import Ellipsoid, Sphere, Torus
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.band_search import cut_memory_estimate
+    from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
+    from cutfem.geometry.box import structured_box
     from cutfem.problems.common import background_for
 
     spacings = [0.05, 0.02, 0.01, 0.0046, 0.0045, 0.0044, 0.004, 0.0016, 0.0014, 0.0005]
@@ -377,9 +378,11 @@ def test_cut_estimate_grows_as_the_spacing_shrinks():
 def test_predicted_band_and_tets_cover_the_cut(surface):
     """The band cells and active tets predicted before the cut (the survey's area at every spacing)
     are at least the cut's, by at most 1.35 times."""
-    from cutfem.geometry.cut import _band_cells, _surface_survey, _cut_bytes, _zero_tolerance, cut_mesh
-    from cutfem.geometry.levelset import Sphere, Torus
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.band_search import _band_cells, _cut_bytes, _surface_survey
+    from cutfem.geometry.cut import cut_mesh
+    from cutfem.geometry.nodal_values import _zero_tolerance
+    from cutfem.geometry.shapes import Sphere, Torus
+    from cutfem.geometry.box import structured_box
 
     levelset, box = (Torus(1.0, 0.5), TORUS_BOX) if surface == "torus" else (Sphere(1.0), SPHERE_BOX)
     areas = []

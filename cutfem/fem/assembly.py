@@ -158,10 +158,10 @@ class LatticeSum(_RunningSum):
     of tets and face-adjacent pairs of tets, in 13 slots a node (compiled: :mod:`cutfem.fem.assembly_kernels`).
 
     ``node_ids`` (n,) the increasing background ids of the dofs, ``box`` the
-    :class:`~cutfem.geometry.mesh.StructuredBox`.  Two nodes of one Kuhn tet, or of two tets sharing a face,
-    differ by one of 13 lattice vectors (:func:`~cutfem.geometry.mesh.kuhn_neighbour_offsets`), so the entry
+    :class:`~cutfem.geometry.box.StructuredBox`.  Two nodes of one Kuhn tet, or of two tets sharing a face,
+    differ by one of 13 lattice vectors (:func:`~cutfem.geometry.box.kuhn_neighbour_offsets`), so the entry
     (a, b), a < b, has the slot 13 a + the rank of ids[b] - ids[a] among the box's
-    :attr:`~cutfem.geometry.mesh.StructuredBox.neighbour_id_offsets`; the ranks follow the column order, and
+    :attr:`~cutfem.geometry.box.StructuredBox.neighbour_id_offsets`; the ranks follow the column order, and
     :meth:`matrix` writes the CSR arrays from the slots (:func:`cutfem.fem.assembly_kernels.lattice_csr`): no sort, no sparse product,
     exactly symmetric.  Pairs whose sum is exactly zero are left out of the pattern (as a sparse
     product leaves them out: on a uniform lattice the P1 stiffness of the diagonal edges cancels);

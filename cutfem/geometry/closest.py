@@ -19,6 +19,8 @@ of the two triangles' unit normals on an edge, and at a vertex the sum of its tr
 normals weighted by their angles there.  That choice makes the sign exact for every point not on
 the mesh, also where the nearest point is an edge or a vertex (the face normal of one of the
 triangles there can point the wrong way).
+
+:func:`_closest_on_triangles` is the same region test in numpy, over arrays of rows: the tests' reference.
 """
 
 from __future__ import annotations
@@ -61,7 +63,7 @@ def _median_split_order(c: np.ndarray, slots: int) -> np.ndarray:
 @njit(cache=True, error_model="numpy", inline="always")
 def _closest_on_triangle(x0, x1, x2, a0, a1, a2, b0, b1, b2, c0, c1, c2):
     """(p0, p1, p2, feature): Ericson's region test (Real-Time Collision Detection, 5.1.5) for one
-    point and one triangle abc, as :func:`cutfem.geometry.surface._closest_on_triangles`; feature 0 for the
+    point and one triangle abc, as :func:`_closest_on_triangles`; feature 0 for the
     face, 1 2 3 for the vertices a b c, 4 5 6 for the edges ab bc ca."""
     ab0, ab1, ab2 = b0 - a0, b1 - a1, b2 - a2
     ac0, ac1, ac2 = c0 - a0, c1 - a1, c2 - a2
@@ -264,3 +266,38 @@ class TriangleTree:
             face, edge, vertex = self._normals
             _signs(x, p, t, f, face, edge, vertex, self.triangles, sign)
         return sign * d, p
+
+
+def _closest_on_triangles(x: np.ndarray, a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """The point of triangle abc nearest to x, row by row (all (..., 3)).
+
+    Ericson's region test (Real-Time Collision Detection, 5.1.5): with ab = b - a, ac = c - a and
+    the dot products d1 = ab.(x - a), d2 = ac.(x - a), d3 = ab.(x - b), d4 = ac.(x - b),
+    d5 = ab.(x - c), d6 = ac.(x - c), the Voronoi region of x among the three vertices, the three
+    edges and the face is decided by signs, and the point is a vertex, a + t ab, a + t ac,
+    b + t (c - b) with t in [0, 1], or a + v ab + w ac with v, w >= 0, v + w <= 1.  The result lies
+    on the triangle to rounding of its corners' coordinates, whatever |x| is (no squares of x).  The
+    vectorized form of the region test that :func:`_closest_on_triangle` compiles (numpy, for any
+    shape of rows); the tests' reference."""
+    dot = lambda u, v: np.einsum("...i,...i->...", u, v)  # noqa: E731
+    ab, ac = b - a, c - a
+    d1, d2 = dot(ab, x - a), dot(ac, x - a)
+    d3, d4 = dot(ab, x - b), dot(ac, x - b)
+    d5, d6 = dot(ab, x - c), dot(ac, x - c)
+    vc, vb, va = d1 * d4 - d3 * d2, d5 * d2 - d1 * d6, d3 * d6 - d5 * d4
+    with np.errstate(divide="ignore", invalid="ignore"):  # the ratios of the other regions are not used
+        t_ab, t_ac = d1 / (d1 - d3), d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+        total = va + vb + vc
+        v, w = vb / total, vc / total
+        choices = [a, b, c, a + t_ab[..., None] * ab, a + t_ac[..., None] * ac, b + t_bc[..., None] * (c - b)]
+        face = a + v[..., None] * ab + w[..., None] * ac
+    regions = [
+        (d1 <= 0) & (d2 <= 0),  # vertex a
+        (d3 >= 0) & (d4 <= d3),  # vertex b
+        (d6 >= 0) & (d5 <= d6),  # vertex c
+        (vc <= 0) & (d1 >= 0) & (d3 <= 0),  # edge ab
+        (vb <= 0) & (d2 >= 0) & (d6 <= 0),  # edge ac
+        (va <= 0) & (d4 >= d3) & (d5 >= d6),  # edge bc
+    ]
+    return np.select([r[..., None] for r in regions], choices, face)

@@ -219,7 +219,7 @@ def slot_keys(tets, code, vals, edge_i_table, edge_j_table, p, lattice=None):
     at a node (phi_j == 0), else a key of its edge {a, b} = the active nodes of (i, j), lo = min:
     ``p + lo p + hi`` in general, or with ``lattice = (edge_codes (6, 4, 4), types (m,))`` on a
     structured box ``p - 1 + 7 lo + c(S)``, c(S) in 1..7 the lattice code of the edge
-    (:data:`~cutfem.geometry.mesh.KUHN_EDGE_CODES` of the Kuhn type), keys below 8p when the active nodes
+    (:data:`~cutfem.geometry.box.KUHN_EDGE_CODES` of the Kuhn type), keys below 8p when the active nodes
     increase with the background ids."""
     m = len(tets)
     key = np.empty((m, 4), dtype=np.int64)
@@ -333,7 +333,7 @@ def label_scales(values, corner, cap):
     """(L,): for each label l with |values[l]| <= ``cap``, the largest |values[m]| over the labels m
     of the cells ``corner`` (k, 8) that have l as a corner: the scale of the level set's values
     around a node, from its own cells (the local scale of the zero rule,
-    :func:`cutfem.geometry.cut._zero_tolerance`); 0 for the other labels.  With cap >= 1e-12 max |values|
+    :func:`cutfem.geometry.nodal_values._zero_tolerance`); 0 for the other labels.  With cap >= 1e-12 max |values|
     no other label can be snapped (its value exceeds 1e-12 times any maximum around it), so only
     the cells with such a corner are reduced: one read-mostly serial pass, 0.04 s for the torus's
     0.9 million band cells at spacing 0.00625 (0.08-0.16 s scattering to every label); the (k, 8)
@@ -380,7 +380,7 @@ def mixed_kuhn_tets(values, corner, cell_ids, mixed_table, kuhn_tets, tol=0.0, c
     most ``tol`` (the zero rule's snap: one number, or one per label, (L,), see
     :func:`label_scales`).  Returns ``(tet_ids (n,), nodes (n, 4), vals (n, 4), broken,
     ratio)``: the tets in cell order, then Kuhn type, the nodes (labels) and snapped values in
-    :data:`~cutfem.geometry.mesh.KUHN_TETS` order; with ``centre`` (k,), the value at each cell's centre,
+    :data:`~cutfem.geometry.box.KUHN_TETS` order; with ``centre`` (k,), the value at each cell's centre,
     also the count ``broken`` of corners whose unsnapped value differs from their cell's centre
     value by more than ``bound``, and the largest |value - centre| / ``dist`` (a Lipschitz bound
     checked where the band search relies on it; 0 and 0.0 without ``centre``).  Two passes over

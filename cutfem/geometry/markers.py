@@ -2,7 +2,8 @@
 
 One P1 level set phi_h splits the background box into two sides, ``NEG = {phi_h < 0}`` (inside) and
 ``POS = {phi_h > 0}`` (outside), with the interface Gamma_h = {phi_h = 0} between them.  Nodal values
-that are exactly zero follow the zero rule of :mod:`cutfem.geometry.cut`: they count as outside.  Per tet T:
+that are exactly zero follow the zero rule of :mod:`cutfem.geometry.nodal_values`: they count as
+outside.  Per tet T:
 
 * all nodes < 0: T lies in NEG;  all nodes >= 0: T lies in POS (also when every node is zero);
 * otherwise (mixed signs) T is split by the plane of its piece of Gamma_h into the two sides.
@@ -34,7 +35,9 @@ from functools import cached_property
 
 import numpy as np
 
-from .mesh import StructuredBox, barycentric_gradients, dense_unique, kuhn_face_pairs, pair_up, tet_face_keys, unique_keys
+from .box import StructuredBox, kuhn_face_pairs
+from .keys import dense_unique, pair_up, tet_face_keys, unique_keys
+from .mesh import barycentric_gradients
 from .numbering import TET_FACES, index_dtype
 from . import cut_kernels
 from . import mesh_kernels
@@ -79,10 +82,10 @@ def interior_facets(tets: np.ndarray, n_nodes: int, kuhn=None):
     Returns ``(pairs (F, 2), opposite (F, 2))``: the two tets of each face (first the one that comes
     first in ``tets``) and, in each, the local index of the vertex opposite to the face; faces in
     increasing order of their sorted node triples.  The face keys: the sorted node triples
-    (:func:`~cutfem.geometry.mesh.tet_face_keys`, grouped by one sort), or, for tets of a structured box
+    (:func:`~cutfem.geometry.keys.tet_face_keys`, grouped by one sort), or, for tets of a structured box
     given with their Kuhn types ``kuhn`` (m,) (background tet id % 6), the lattice keys
-    :func:`~cutfem.geometry.mesh.kuhn_face_keys`, below 12 ``n_nodes``, computed on the fly and paired by two
-    marker arrays (:func:`~cutfem.geometry.mesh.kuhn_face_pairs`, no sort); both give the same faces in the
+    :func:`~cutfem.geometry.box.kuhn_face_keys`, below 12 ``n_nodes``, computed on the fly and paired by two
+    marker arrays (:func:`~cutfem.geometry.box.kuhn_face_pairs`, no sort); both give the same faces in the
     same order when
     the node numbers increase with the background ids.
     """
@@ -181,7 +184,7 @@ class ElementSet:
     @property
     def gradients(self) -> np.ndarray:
         """(m, 4, 3) gradients of the barycentric coordinates.  On a structured box they are the
-        Kuhn table of each tet's type over the spacing (:attr:`~cutfem.geometry.mesh.StructuredBox.gradient_table`),
+        Kuhn table of each tet's type over the spacing (:attr:`~cutfem.geometry.box.StructuredBox.gradient_table`),
         built on each access and not kept (96 bytes a tet: 1.25 GiB for the 13.7 million cut tets of
         the torus at spacing 0.003125); for a subset use :meth:`gradients_of`."""
         return self.gradients_of(slice(None))

@@ -259,7 +259,7 @@ def face_normals_areas(pairs, opposite, table, types, volumes, normals, areas):
 @njit(cache=True, error_model="numpy", inline="always")
 def _kuhn_face_key(tets, kinds, low, ftype, r):
     """The lattice key 12 v + type of face row r = 4 t + k (the face opposite to local vertex k of
-    tet t), see :func:`cutfem.geometry.mesh.kuhn_face_keys`."""
+    tet t), see :func:`cutfem.geometry.box.kuhn_face_keys`."""
     t, k = r >> 2, r & 3
     l = kinds[t]
     return 12 * np.int64(tets[t, low[l, k]]) + ftype[l, k]
@@ -302,7 +302,7 @@ def _collect_pairs(first, second, pairs, opposite):
 
 def kuhn_face_pairs(tets, kinds, low, ftype, n_keys: int):
     """The interior faces of Kuhn tets ``tets`` (m, 4) (node numbers below n_keys / 12, types
-    ``kinds`` (m,), key tables ``low``, ``ftype`` (6, 4) of :func:`cutfem.geometry.mesh.kuhn_face_keys`):
+    ``kinds`` (m,), key tables ``low``, ``ftype`` (6, 4) of :func:`cutfem.geometry.box.kuhn_face_keys`):
     ``(pairs (F, 2), opposite (F, 2) int8)``, the two tets of each face whose key occurs exactly
     twice (first the earlier row) and the local vertex opposite to it in each, in increasing key
     order.  The keys are computed on the fly and paired by two marker arrays of length n_keys: no
@@ -472,7 +472,7 @@ def dense_unique(ids, n: int, inverse_dtype=None):
 @parallel_kernel
 def triangle_geometry(points, tri):
     """Cross products, their lengths and edge-vector dot products of triangles, for
-    :func:`cutfem.geometry.surface._triangle_geometry` (which states them): ``(cross (M, 3), twice_area (M,),
+    :func:`cutfem.geometry.surface_checks._triangle_geometry` (which states them): ``(cross (M, 3), twice_area (M,),
     dots (2, M, 3), longest (M,))``.  One pass over the triangles, where numpy gathered coordinate
     columns and made two dozen temporaries a block."""
     M = tri.shape[0]
@@ -530,7 +530,7 @@ def _rows_sorted(lo, key, n, order):
 def closed_halfedges(tri, n):
     """The half-edges of a triangle mesh with n nodes in the order of the key
     2 (min(a, b) n + max(a, b)) + [a > b] of half-edge a -> b, for
-    :func:`cutfem.geometry.surface._closed_halfedge_table` (which states what it is for): a stable counting
+    :func:`cutfem.geometry.surface_checks._closed_halfedge_table` (which states what it is for): a stable counting
     sort on min(a, b), then an insertion sort on the rest of the key within each node's few
     half-edges (numpy: an argsort of the keys).  Returns ``(closed, order (3 M,), edges (3 M / 2,
     2), halfedge_edge (3 M,))``: ``closed`` is whether the sorted keys come in pairs

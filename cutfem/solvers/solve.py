@@ -167,7 +167,7 @@ import numpy as np
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
-from ..geometry.mesh import dense_unique, unique_keys
+from ..geometry.keys import dense_unique, unique_keys
 from ..geometry.numbering import index_dtype
 from . import multigrid_kernels
 from . import sparse_kernels
@@ -996,7 +996,7 @@ def lattice_indices(space):
     Works for spaces whose dofs are background nodes (``node_ids``) of a
     :class:`~cutfem.geometry.mesh.StructuredBox` (``space.cut.background`` or ``space.background``).
     """
-    from ..geometry.mesh import StructuredBox
+    from ..geometry.box import StructuredBox
 
     node_ids = getattr(space, "node_ids", None)
     cut = getattr(space, "cut", None)

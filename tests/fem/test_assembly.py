@@ -31,11 +31,12 @@ from cutfem.fem.forms import (
     stiffness,
     tangential_stiffness,
 )
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import CUT, NEG
-from cutfem.geometry.mesh import TetMesh, structured_box
+from cutfem.geometry.box import structured_box
+from cutfem.geometry.mesh import TetMesh
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.geometry.surface import sphere_mesh, torus_mesh
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 from cutfem import jit
 
 # ----------------------------------------------------------------------------------------------
@@ -500,7 +501,7 @@ def test_lattice_sum_refuses_pairs_that_are_not_lattice_neighbours():
     tets has no slot, and is reported instead of dropped; the Gram rows it sums otherwise equal the
     sparse product's, exactly symmetric, with the 13 offsets those of the box's node ids."""
     from cutfem.fem.assembly import LatticeSum, gram
-    from cutfem.geometry.mesh import kuhn_neighbour_offsets
+    from cutfem.geometry.box import kuhn_neighbour_offsets
 
     box = structured_box([0, 0, 0], [1, 1, 1], cells=4)
     offsets = kuhn_neighbour_offsets()

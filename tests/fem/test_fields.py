@@ -29,9 +29,10 @@ from cutfem.fem.forms import (
     stiffness,
     tangential_stiffness,
 )
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
-from cutfem.geometry.mesh import TetMesh, structured_box
+from cutfem.geometry.box import structured_box
+from cutfem.geometry.mesh import TetMesh
 from cutfem.fem.spaces import CutP1Space, ProductSpace
 
 # a sphere in general position: no nodal value is zero, no two values of a tet coincide

@@ -29,11 +29,13 @@ from cutfem.fem.forms import (
     position_load,
     stiffness,
 )
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import NEG
-from cutfem.geometry.mesh import structured_box, unstructured_box
+from cutfem.geometry.box import structured_box
+from cutfem.geometry.mesh import unstructured_box
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.geometry.surface import SurfaceMesh, sphere_mesh, torus_mesh
+from cutfem.geometry.surface import SurfaceMesh
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 from cutfem.geometry.measures import surface_measure as ds
 from surface_matrices import dF, edge_matrix, face_matrix, load_vector, mass_matrix, stiffness_matrix
 

@@ -38,12 +38,13 @@ from cutfem.fem.forms import (
     stiffness,
     tangential_stiffness,
 )
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
-from cutfem.geometry.surface import SurfaceMesh, sphere_mesh, torus_mesh
+from cutfem.geometry.surface import SurfaceMesh
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 
 LINEAR = lambda x: x[..., 0] + 2 * x[..., 1] + 3  # harmonic: P1 reproduces it
 SMOOTH = lambda x: np.sin(x[..., 0]) * np.exp(x[..., 1] / 2)  # -Laplace SMOOTH = 0.75 SMOOTH

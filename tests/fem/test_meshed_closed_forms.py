@@ -8,9 +8,9 @@ import numpy as np
 import pytest
 
 from cutfem.fem.norms import l2_error
-from cutfem.geometry.levelset import Torus
+from cutfem.geometry.shapes import Torus
 from cutfem.fem.spaces import SurfaceP1Space
-from cutfem.geometry.surface import sphere_mesh, torus_mesh
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 
 
 def test_torus_mean_curvature_vector_closed_form_matches_frame():
@@ -57,7 +57,8 @@ def test_l2_error_blocks_match_quadrature(chunk):
 # topology by one sort, validation messages
 # ----------------------------------------------------------------------------------------------
 
-from cutfem.geometry.surface import SurfaceMesh, _halfedge_table, _pair_halfedges  # noqa: E402
+from cutfem.geometry.surface import SurfaceMesh  # noqa: E402
+from cutfem.geometry.surface_checks import _halfedge_table, _pair_halfedges  # noqa: E402
 
 MESHES = {
     "sphere": lambda: sphere_mesh(2),

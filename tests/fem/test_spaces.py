@@ -11,11 +11,11 @@ import numpy as np
 import pytest
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space, barycentric_at, triangle_gradients
-from cutfem.geometry.surface import torus_mesh
+from cutfem.geometry.surface_meshes import torus_mesh
 
 
 def unit(v):

@@ -10,10 +10,12 @@ least squares in log-log scale over at least four spacings.
 import numpy as np
 import pytest
 
-from cutfem.geometry.cut import CutError, CutMesh, cut_mesh, snapped_nodal_values
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.cut import CutMesh, cut_mesh
+from cutfem.geometry.nodal_values import CutError, snapped_nodal_values
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import CUT, NEG, POS
-from cutfem.geometry.mesh import TetMesh, structured_box
+from cutfem.geometry.box import structured_box
+from cutfem.geometry.mesh import TetMesh
 from cutfem.geometry.numbering import TET_FACES
 from cutfem.geometry import cut_kernels
 
@@ -216,34 +218,8 @@ def test_paper_torus_box_has_nodes_that_are_zero_up_to_rounding():
 
 
 # ----------------------------------------------------------------------------------------------
-# band search on a structured box and the plain TetMesh path give the same cut
+# the lattice numbering of a structured box and the sorted numbering of a plain TetMesh agree
 # ----------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize(
-    "box, levelset",
-    [
-        (SPHERE_BOX, Sphere(1.1, center=(0.07, -0.03, 0.11))),
-        (SPHERE_BOX, Sphere(1.25)),  # exact zero nodal values
-        (TORUS_BOX, Torus(1.0, 0.5)),  # exact and rounding-size zero values
-    ],
-    ids=["sphere", "sphere-zeros", "torus-zeros"],
-)
-def test_band_search_and_plain_mesh_agree(box, levelset):
-    band = cut_mesh(box, levelset)
-    plain = cut_mesh(TetMesh(box.points, box.tets), levelset)
-    everything = cut_mesh(box, PlainFunction(levelset.value))  # structured, no Lipschitz bound
-    nodal = cut_mesh(box, levelset.value(box.points))  # an array of nodal values
-    for other in (plain, everything, nodal):
-        assert np.array_equal(np.sort(band.tet_ids), np.sort(other.tet_ids))
-        assert other.n_triangles == band.n_triangles
-        assert other.area == pytest.approx(band.area, rel=1e-13)
-        assert other.enclosed_volume == pytest.approx(band.enclosed_volume, rel=1e-13)
-        ob, oo = np.argsort(band.tet_ids), np.argsort(other.tet_ids)
-        np.testing.assert_allclose(band.piece_areas[ob], other.piece_areas[oo], rtol=1e-12, atol=1e-15)
-        # the structured box takes the basis gradients from the Kuhn table, the plain mesh from the
-        # vertex coordinates: equal up to rounding
-        np.testing.assert_allclose(band.normals[ob], other.normals[oo], rtol=0, atol=1e-14)
 
 
 @pytest.mark.parametrize(
@@ -514,30 +490,6 @@ def test_nan_values():
         cut_mesh(SPHERE_BOX, values)
 
 
-def test_nodal_values_of_a_structured_box_go_by_blocks(monkeypatch):
-    """On a structured box the level set is evaluated block by block of node ids, never on the
-    box's (N, 3) coordinates: the same values as on those coordinates, and no coordinates kept."""
-    import cutfem.geometry.cut as cutmod
-    from cutfem.geometry.cut import nodal_values
-
-    monkeypatch.setattr(cutmod, "NODE_BLOCK", 97)
-    box = structured_box([-1.4, -1.4, -0.7], [1.4, 1.4, 0.7], cells=(9, 8, 5))
-    torus = Torus(1.0, 0.5)
-    values = nodal_values(box, torus)
-    assert "points" not in box.__dict__
-    np.testing.assert_array_equal(values, torus.value(box.points))
-    with pytest.raises(ValueError, match="background nodes"):
-        nodal_values(box, lambda x: np.where(x[..., 0] > 1.3, np.nan, 1.0))
-
-
-def test_nodal_values_of_the_wrong_length():
-    values = Sphere(1.0).value(SPHERE_BOX.points)
-    with pytest.raises(ValueError, match=f"got {values.size - 1} nodal values for a mesh of {values.size} nodes"):
-        cut_mesh(SPHERE_BOX, values[:-1])
-    with pytest.raises(ValueError, match="nodal values"):
-        snapped_nodal_values(SPHERE_BOX, np.append(values, 1.0))
-
-
 # ----------------------------------------------------------------------------------------------
 # the orientation of the triangles by the sign table
 # ----------------------------------------------------------------------------------------------
@@ -645,57 +597,3 @@ def test_element_set_volumes_on_a_box_and_on_a_tet_mesh():
     np.testing.assert_allclose(es.volumes_of(slice(3, 9)), es.volumes[3:9], rtol=0)
     np.testing.assert_allclose(plain.tet_volumes.sum(), cut.tet_volumes.sum(), rtol=1e-12)
 
-
-def test_band_search_and_cut_in_small_chunks_are_the_same(monkeypatch):
-    """The count-then-fill kernels (the band search's refinement, the mixed tets) give the same cut
-    with chunks of 7 rows as with one chunk: the same arrays, in the same order."""
-
-    box = structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1)
-    one = cut_mesh(box, Torus(1.0, 0.5))
-    monkeypatch.setattr(cut_kernels, "COUNT_FILL_CHUNK", 7)
-    small = cut_mesh(box, Torus(1.0, 0.5))
-    for name in ("tet_ids", "tets", "node_ids", "values", "vertices", "triangles", "triangle_tets", "normals"):
-        np.testing.assert_array_equal(getattr(small, name), getattr(one, name))
-
-
-@pytest.mark.parametrize("cells_per_chunk", [7, 1 << 14])
-def test_mixed_kuhn_tets_in_chunks_against_numpy(monkeypatch, cells_per_chunk):
-    """The mixed Kuhn tets of cells, counted and filled chunk by chunk on all cores: exactly the
-    tets of a cell-order pass (a numpy reference: the corner values gathered and snapped, the
-    table's mask of each cell, cell by cell, then Kuhn type), the corners that break a bound
-    against their cell's centre counted with the largest ratio, also with no cell at all."""
-    from cutfem.geometry.mesh import KUHN_TETS
-
-    monkeypatch.setattr(cut_kernels, "COUNT_FILL_CHUNK", cells_per_chunk)
-    rng = np.random.default_rng(5)
-    k, p = 1000, 3000
-    values = rng.standard_normal(p)
-    values[rng.random(p) < 0.3] = 1.0  # some cells without a sign change
-    values[:40] = rng.uniform(-1e-3, 1e-3, 40)  # snapped to zero below
-    corner = rng.integers(0, p, size=(k, 8)).astype(np.int32)
-    corner[:5] = np.arange(40).reshape(5, 8)
-    cell_ids = np.sort(rng.choice(10**7, size=k, replace=False))
-    table = rng.random((256, 6)) < 0.5
-    table[0] = table[255] = False
-    centre = rng.standard_normal(k)
-    tol, bound, dist = 2e-3, 2.5, 0.7
-    tet_ids, nodes, vals, broken, ratio = cut_kernels.mixed_kuhn_tets(values, corner, cell_ids, table, KUHN_TETS, tol=tol,
-                                                                  centre=centre, bound=bound, dist=dist)
-    cv = values[corner]
-    dphi = np.abs(cv - centre[:, None])
-    assert broken == np.count_nonzero(dphi > bound) > 0 and ratio == np.max(dphi) / dist
-    cv[np.abs(cv) <= tol] = 0.0
-    assert np.count_nonzero(cv[:5] == 0.0) == 40
-    signs = ((cv < 0) * (1 << np.arange(8))).sum(axis=1)
-    mask = table[signs]
-    kt = np.asarray(KUHN_TETS)
-    np.testing.assert_array_equal(tet_ids, (6 * cell_ids[:, None] + np.arange(6))[mask])
-    np.testing.assert_array_equal(nodes, corner[:, kt][mask])
-    np.testing.assert_array_equal(vals, cv[:, kt][mask])
-    assert nodes.dtype == corner.dtype
-    plain = cut_kernels.mixed_kuhn_tets(values, corner, cell_ids, table, KUHN_TETS, tol=tol)  # no centre: no check
-    assert plain[3:] == (0, 0.0)
-    for a, b in zip(plain[:3], (tet_ids, nodes, vals)):
-        np.testing.assert_array_equal(a, b)
-    none = cut_kernels.mixed_kuhn_tets(values, corner[:0], cell_ids[:0], table, KUHN_TETS, centre=centre[:0])
-    assert [len(a) for a in none[:3]] == [0, 0, 0] and none[3:] == (0, 0.0)

@@ -8,8 +8,11 @@ import sys
 import numpy as np
 import pytest
 
-from cutfem.geometry.levelset import SignedDistance
-from cutfem.geometry.surface import SurfaceMesh, _closest_on_triangles, _winding_number, sphere_mesh, torus_mesh
+from cutfem.geometry.signed_distance import SignedDistance
+from cutfem.geometry.closest import _closest_on_triangles
+from cutfem.geometry.surface import SurfaceMesh
+from cutfem.geometry.surface_checks import _winding_number
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 
 
 def _cube_mesh():
@@ -55,7 +58,7 @@ def test_signed_distance_matches_brute_force(mesh):
 def test_signed_distance_needs_no_vtk():
     """The distance is one compiled pass: it no longer loads VTK (1.5 s of a run's geometry stage,
     and vtkImplicitPolyDataDistance was 5 times slower than the compiled search on a box of points)."""
-    code = ("import sys, numpy as np\nfrom cutfem.geometry.levelset import SignedDistance\nfrom cutfem.geometry.surface import sphere_mesh\n"
+    code = ("import sys, numpy as np\nfrom cutfem.geometry.signed_distance import SignedDistance\nfrom cutfem.geometry.surface_meshes import sphere_mesh\n"
             "v = SignedDistance(sphere_mesh(2)).value(np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]]))\n"
             "assert abs(v[1] - 1.0) < 1e-12 and v[0] < -0.9, v\n"
             "print(sorted(m for m in sys.modules if m.split('.')[0] in ('vtk', 'vtkmodules', 'pyvista')))")
@@ -71,7 +74,7 @@ TORUS_TEXT = "(sqrt(x**2 + y**2) - 1.0)**2 + z**2 - 0.25"  # R = 1, r = 0.5, not
 
 
 def _near_torus(n, seed=5):
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
 
     rng = np.random.default_rng(seed)
     u, v = rng.uniform(0, 2 * np.pi, (2, n))
@@ -84,7 +87,8 @@ def test_newton_calls_phi_once_per_step_with_the_same_numbers(derivatives):
     """One call of the user's callables per Newton step (was three: value, gradient, Hessian), with
     the numbers of the separate calls bit for bit, and the projection equal to the torus's closed
     form."""
-    from cutfem.geometry.levelset import FunctionLevelSet, Torus
+    from cutfem.geometry.levelset import FunctionLevelSet
+    from cutfem.geometry.shapes import Torus
 
     calls = []
 
@@ -124,7 +128,7 @@ def test_newton_chunks_give_the_same_points_and_messages(monkeypatch):
     monkeypatch.setattr(L, "NEWTON_CHUNK", 7)
     assert np.array_equal(ls.closest_point(x), whole)
     assert np.array_equal(ls.exact_mean_curvature_vector(x), kappa)
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
 
     np.testing.assert_allclose(kappa, Torus(1.0, 0.5).exact_mean_curvature_vector(x), atol=1e-6)
     # the axis (grad phi = 0 on it for a torus written this way... at z = 0, x = y = 0 phi is 0.75 and
@@ -162,9 +166,10 @@ def _sign_change_cells(box, f, tol):
 
 @pytest.mark.parametrize("case", ["genus2-expression", "genus2-callable", "torus", "thin-torus", "fallback"])
 def test_band_search_keeps_every_cell_with_a_sign_change(case):
-    from cutfem.geometry import cut as C
+    from cutfem.geometry.band_search import _band_cells, _enclosure_function
     from cutfem.geometry.levelset import FunctionLevelSet
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.nodal_values import _zero_tolerance
+    from cutfem.geometry.box import structured_box
 
     if case.startswith("genus2"):
         ls = (FunctionLevelSet.from_expression(GENUS2_TEXT, lipschitz=GENUS2_L) if case == "genus2-expression"
@@ -178,10 +183,10 @@ def test_band_search_keeps_every_cell_with_a_sign_change(case):
         else:
             ls = FunctionLevelSet.from_expression(text, lipschitz=4.0)
         box = structured_box([-1.7, -1.7, -0.7], [1.7, 1.7, 0.7], spacing=0.05 if r == 0.5 else 0.025)
-    tol = C._zero_tolerance(box, ls.lipschitz)
-    enclose = C._enclosure_function(ls)
-    band, _ = C._band_cells(box, ls.value, ls.lipschitz, tol, None, enclose)
-    every, _ = C._band_cells(box, ls.value, ls.lipschitz, tol, None, None)  # the global bound alone
+    tol = _zero_tolerance(box, ls.lipschitz)
+    enclose = _enclosure_function(ls)
+    band, _ = _band_cells(box, ls.value, ls.lipschitz, tol, None, enclose)
+    every, _ = _band_cells(box, ls.value, ls.lipschitz, tol, None, None)  # the global bound alone
     crossed = _sign_change_cells(box, ls.value, tol)
     assert len(crossed) > 100
     assert np.isin(crossed, band).all()  # never a crossed cell dropped
@@ -199,9 +204,10 @@ def test_genus2_memory_estimate_uses_the_local_bound():
     cut's estimate was 106.7 GiB (the band grown by L times the cell size, 113 million cells); the
     enclosures keep a band of about 11 million cells (11.7 GiB), and the cut at a coarse spacing is
     the same with and without them."""
-    from cutfem.geometry.cut import cut_memory_estimate, cut_mesh
+    from cutfem.geometry.band_search import cut_memory_estimate
+    from cutfem.geometry.cut import cut_mesh
     from cutfem.geometry.levelset import FunctionLevelSet
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     ls = FunctionLevelSet.from_expression(GENUS2_TEXT, lipschitz=GENUS2_L)
     cut, _ = cut_memory_estimate(structured_box([-2.0] * 3, [2.0] * 3, spacing=0.003125), ls)

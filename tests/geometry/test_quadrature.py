@@ -270,7 +270,7 @@ def test_map_triangles_normal():
 def test_map_triangles_of_a_mesh_with_its_areas_and_normals():
     """The nodes and triangles of a mesh with its areas and normals give the same rule as the
     gathered vertices; ``whole`` is kept; missing normal/areas or wrong shapes are errors."""
-    from cutfem.geometry.surface import torus_mesh
+    from cutfem.geometry.surface_meshes import torus_mesh
 
     mesh = torus_mesh(12, "perturbed", seed=1)
     ref = map_triangles(mesh.points[mesh.triangles], 4, normal=mesh.normals)

@@ -13,9 +13,11 @@ import math
 import numpy as np
 import pytest
 
-from cutfem.geometry.cut import NEG, POS, CutError, cut_mesh
-from cutfem.geometry.levelset import FunctionLevelSet, Sphere
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.cut import NEG, POS, cut_mesh
+from cutfem.geometry.nodal_values import CutError
+from cutfem.geometry.levelset import FunctionLevelSet
+from cutfem.geometry.shapes import Sphere
+from cutfem.geometry.box import structured_box
 
 pytestmark = pytest.mark.slow
 

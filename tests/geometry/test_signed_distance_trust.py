@@ -8,9 +8,10 @@ import re
 import numpy as np
 import pytest
 
-from cutfem.geometry.levelset import Ellipsoid, SignedDistance, Sphere, Torus
+from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
+from cutfem.geometry.signed_distance import SignedDistance
 from cutfem.memory import InsufficientMemoryError
-from cutfem.geometry.surface import sphere_mesh, torus_mesh
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 
 
 # ----------------------------------------------------------------------------------------------
@@ -155,7 +156,7 @@ def test_closest_point_lies_on_the_mesh_at_the_distance():
     np.testing.assert_allclose(p[-2], [1.0, 0.0, 0.0], atol=1e-15)
     # against all the triangles at once
     corners = mesh.points[mesh.triangles]
-    from cutfem.geometry.surface import _closest_on_triangles
+    from cutfem.geometry.closest import _closest_on_triangles
 
     every = _closest_on_triangles(x[:, None, :], corners[None, :, 0], corners[None, :, 1], corners[None, :, 2])
     # to rounding of the unit-size coordinates (the compiled pass sums the dot products in its own order)

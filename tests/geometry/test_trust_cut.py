@@ -11,10 +11,14 @@ import numpy as np
 import pytest
 
 from cutfem.runs.cli import main
-from cutfem.geometry.cut import CutError, _check_closed, cut_mesh
-from cutfem.geometry.levelset import FunctionLevelSet, SignedDistance, Sphere, Torus
-from cutfem.geometry.mesh import structured_box
-from cutfem.geometry.surface import SurfaceMesh, read_surface, sphere_mesh
+from cutfem.geometry.cut import _check_closed, cut_mesh
+from cutfem.geometry.nodal_values import CutError
+from cutfem.geometry.levelset import FunctionLevelSet
+from cutfem.geometry.shapes import Sphere, Torus
+from cutfem.geometry.signed_distance import SignedDistance
+from cutfem.geometry.box import structured_box
+from cutfem.geometry.surface import SurfaceMesh, read_surface
+from cutfem.geometry.surface_meshes import sphere_mesh
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -177,7 +181,8 @@ def test_surface_leaving_the_box_is_open_only_on_the_box_faces():
 def test_zero_rule_is_local_without_a_lipschitz_bound():
     """A level set whose values span many orders of magnitude: the snap scale is each node's
     neighbourhood, not the box's largest value (which zeroed values of 1e-10 and gave area 4.57)."""
-    from cutfem.geometry.cut import NEG, snapped_nodal_values
+    from cutfem.geometry.cut import NEG
+    from cutfem.geometry.nodal_values import snapped_nodal_values
 
     box = structured_box([-1, -1, -1], [1, 1, 1], spacing=0.1)
     scaled = FunctionLevelSet.from_expression("z * exp(20 * x)")

@@ -5,9 +5,10 @@ through Python and the command line."""
 import numpy as np
 import pytest
 
-from cutfem.geometry.cut import CutError, cut_mesh, snapped_nodal_values
+from cutfem.geometry.cut import cut_mesh
+from cutfem.geometry.nodal_values import CutError, snapped_nodal_values
 from cutfem.geometry.levelset import FunctionLevelSet
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 
 
 def _norm_minus_one(x):
@@ -60,7 +61,7 @@ BOX = structured_box([-1.25] * 3, [1.25] * 3, spacing=0.25)
 @pytest.mark.parametrize("bound", [np.inf, np.nan, 0.0, -1.0])
 def test_a_lipschitz_bound_must_be_finite_and_positive(bound):
     """inf or NaN once gave "does not cut the background mesh" (NaN drops every cell of the band)."""
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
 
     sphere = Sphere(1.0)
     sphere.lipschitz = bound
@@ -80,7 +81,8 @@ def test_a_level_set_touching_the_box_on_its_boundary_is_not_told_to_refine(expr
 
 def _self_intersecting_sphere():
     """A sphere mesh whose north pole is pulled through the south: its fan crosses the far side."""
-    from cutfem.geometry.surface import SurfaceMesh, sphere_mesh
+    from cutfem.geometry.surface import SurfaceMesh
+    from cutfem.geometry.surface_meshes import sphere_mesh
 
     m = sphere_mesh(2)
     points = np.array(m.points)
@@ -89,7 +91,7 @@ def _self_intersecting_sphere():
 
 
 def test_a_self_intersecting_surface_mesh_is_named_not_its_lipschitz_bound():
-    from cutfem.geometry.levelset import SignedDistance
+    from cutfem.geometry.signed_distance import SignedDistance
 
     box = structured_box([-1.3] * 3, [1.3] * 3, spacing=0.2)
     with pytest.raises(CutError) as info:
@@ -176,7 +178,7 @@ def _uv_sphere(n):
 def test_mesh_file_notes_below_the_facet_size():
     """A 48 x 48 sphere mesh (median edge 0.074): the L2 error against the sphere grows from 0.018 at
     spacing 0.0375 to 0.070 at 0.0125; below half the median edge the run says so."""
-    from cutfem.geometry.levelset import SignedDistance
+    from cutfem.geometry.signed_distance import SignedDistance
     from cutfem.problems.common import mesh_file_notes
 
     distance = SignedDistance(_uv_sphere(48))

@@ -10,7 +10,8 @@ import pytest
 
 from cutfem.runs.cli import main
 from cutfem.memory import InsufficientMemoryError
-from cutfem.geometry.mesh import StructuredBox, TetMesh, read_mesh, structured_box
+from cutfem.geometry.box import StructuredBox, structured_box
+from cutfem.geometry.mesh import TetMesh, read_mesh
 
 # -- 2c: a spacing that contradicts the corners and the cells -------------------------------------
 
@@ -226,7 +227,7 @@ def test_a_mesh_without_tets_is_refused():
 def _soup(path, gap=1e-7, drop_first=False):
     """An icosphere (level 2) written as a facet soup: every triangle with its own three vertices,
     each moved by up to ``gap`` per coordinate."""
-    from cutfem.geometry.surface import sphere_mesh
+    from cutfem.geometry.surface_meshes import sphere_mesh
 
     sphere = sphere_mesh(2)
     rng = np.random.default_rng(0)
@@ -263,7 +264,8 @@ def test_a_soup_with_a_real_hole_names_both(tmp_path):
 
 
 def test_a_real_hole_is_still_a_hole(tmp_path):
-    from cutfem.geometry.surface import read_surface, sphere_mesh
+    from cutfem.geometry.surface import read_surface
+    from cutfem.geometry.surface_meshes import sphere_mesh
 
     sphere = sphere_mesh(2)
     path = tmp_path / "open.stl"

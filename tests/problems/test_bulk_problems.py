@@ -309,9 +309,9 @@ def test_records_count_the_active_tets_of_the_fields():
     that carry their unknowns: counted here from the nodal values of phi_h (a side's tets are those
     with a node strictly on that side, the cut tets those with nodes on both)."""
     from cutfem.geometry.cut import cut_mesh
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.markers import CUT
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.problems.common import cut_record
     from cutfem.fem.spaces import CutP1Space, ProductSpace
 

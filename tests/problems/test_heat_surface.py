@@ -89,9 +89,9 @@ def _sphere_matrices(spacing=0.4, tau_n=1.0):
     """M_h, A_h, the load G of the problem's source profile and the space, as the problem builds them."""
     from cutfem.geometry.cut import cut_mesh
     from cutfem.fem.forms import assemble, load, mass, normal_gradient_penalty, tangential_stiffness
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.markers import CUT
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.problems.heat_surface import HeatSolution
     from cutfem.fem.spaces import CutP1Space
 
@@ -179,8 +179,8 @@ def test_the_fastest_time_scale_is_about_9_over_h_squared(spacing):
     9 h^-2 on the unit sphere (h the spacing), as its docstring says (it said 60 h^-2)."""
     from cutfem.geometry.cut import CUT, cut_mesh
     from cutfem.fem.forms import assemble, mass, normal_gradient_penalty, tangential_stiffness
-    from cutfem.geometry.levelset import Sphere
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.shapes import Sphere
+    from cutfem.geometry.box import structured_box
     from cutfem.fem.spaces import CutP1Space
 
     cut = cut_mesh(structured_box([-1.1] * 3, [1.1] * 3, spacing=spacing), Sphere(1.0))

@@ -143,7 +143,7 @@ def test_manufactured_solutions_are_extended_along_the_normals():
     """u, f and grad_S u at a point off the surface equal their values at its closest point
     (the extension f^e = f o p of docs/math.md §4); the torus's compiled angles agree with
     numpy's arctan2 and trigonometric functions; the angles' singular set is an error."""
-    from cutfem.geometry.levelset import Sphere, Torus
+    from cutfem.geometry.shapes import Sphere, Torus
     from cutfem.problems.laplace_beltrami import manufactured
     from cutfem.runs.registry import ProblemError
 
@@ -189,7 +189,8 @@ def _mean_curvature_field(res):
 
 
 def _scaled_sphere_file(tmp_path, scale):
-    from cutfem.geometry.surface import SurfaceMesh, sphere_mesh, write_surface
+    from cutfem.geometry.surface import SurfaceMesh, write_surface
+    from cutfem.geometry.surface_meshes import sphere_mesh
 
     mesh = sphere_mesh(2)
     path = tmp_path / f"sphere_{scale:g}.stl"
@@ -306,7 +307,7 @@ def test_the_default_box_is_the_same_at_every_level_and_anchored_where_asked():
     [-1.2, 1.2]^3 at 0.2 and the first rate read 2.47 for an error that fell by 4.10), so that
     h = N**(-1/3) halves with the spacing up to the node count (cells + 1 a side).  anchored=True
     puts the grid's nodes at multiples of the spacing, fixed in space for a moved surface."""
-    from cutfem.geometry.levelset import Sphere
+    from cutfem.geometry.shapes import Sphere
     from cutfem.problems.common import box_for
 
     res = cutfem.run("poisson-cut", levels=[0.2, 0.1])

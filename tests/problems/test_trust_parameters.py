@@ -13,9 +13,9 @@ import pytest
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.forms import ZERO, assemble, bilinear_form, linear_form, mass
-from cutfem.geometry.levelset import Sphere
+from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import NEG
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.fem.spaces import CutP1Space
 
 

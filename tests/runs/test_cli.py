@@ -148,7 +148,7 @@ def test_bad_input_is_one_line_and_exit_2(argv, pattern, capsys):
 
 
 def test_open_surface_file_is_reported(tmp_path, capsys):
-    from cutfem.geometry.surface import sphere_mesh
+    from cutfem.geometry.surface_meshes import sphere_mesh
 
     m = sphere_mesh(1)
     tris = m.triangles[1:]  # drop one triangle: the surface is open
@@ -161,7 +161,8 @@ def test_open_surface_file_is_reported(tmp_path, capsys):
 
 
 def test_closed_surface_file_runs(tmp_path, capsys):
-    from cutfem.geometry.surface import sphere_mesh, write_surface
+    from cutfem.geometry.surface import write_surface
+    from cutfem.geometry.surface_meshes import sphere_mesh
 
     path = tmp_path / "ball.obj"
     write_surface(sphere_mesh(3, radius=1.5), path)
@@ -424,11 +425,11 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     from cutfem.geometry.cut import CUT, NEG, POS
     from cutfem.fem.forms import apply_dirichlet, assemble, bilinear_form, dot, face_jump_penalty, interface_nitsche, linear_form, load
     from cutfem.fem.forms import mass, nitsche, nitsche_load, stiffness
-    from cutfem.geometry.levelset import Sphere
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.shapes import Sphere
+    from cutfem.geometry.box import structured_box
     from cutfem.solvers.solve import solve
     from cutfem.fem.spaces import CutP1Space, ProductSpace
-    from cutfem.geometry.surface import sphere_mesh
+    from cutfem.geometry.surface_meshes import sphere_mesh
 
     blocks = _forms_md_blocks()
     assert len(blocks) == 6
@@ -643,7 +644,7 @@ def test_failing_last_level_keeps_the_finished_ones(tmp_path, capsys):
 
 
 def test_failing_level_in_python_raises_unless_kept(monkeypatch):
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
 
     calls = []
 
@@ -897,7 +898,8 @@ def test_studies_and_reproduce_check_their_output_folder_first(tmp_path, capsys)
 def test_plot_without_errors_writes_nothing_and_says_so(tmp_path, capsys):
     import pyvista as pv
 
-    from cutfem.geometry.surface import sphere_mesh, write_surface
+    from cutfem.geometry.surface import write_surface
+    from cutfem.geometry.surface_meshes import sphere_mesh
 
     # a mesh file has no exact mean curvature: no error to plot (before: an empty figure, exit 0)
     path = tmp_path / "ball.obj"

@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.geometry.levelset import Sphere
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.shapes import Sphere
+from cutfem.geometry.box import structured_box
 from cutfem.runs.plotting import offscreen_backend, plot_cut, plot_surface_field, plot_surface_mesh
 
 SIZE = (320, 240)  # width, height in pixels

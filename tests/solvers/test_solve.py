@@ -12,12 +12,12 @@ import scipy.sparse.linalg as spla
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import discrete_error, fitted_rate, h1_error, l2_error, l2_h1_errors, rates, surface_integral
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import NEG
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import CGSolver, DirectSolver, SolverError, cg_solve, condition_number, solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.geometry.surface import sphere_mesh
+from cutfem.geometry.surface_meshes import sphere_mesh
 from surface_matrices import face_matrix, mass_matrix, stiffness_matrix
 
 
@@ -188,7 +188,7 @@ def test_lumped_guess_of_the_meshed_mean_curvature():
     from cutfem.fem.forms import assemble, basis_integrals
     from cutfem.problems.mean_curvature import SOLVER_TOL, lumped_guess, mean_curvature_system
     from cutfem.fem.spaces import SurfaceP1Space
-    from cutfem.geometry.surface import torus_mesh
+    from cutfem.geometry.surface_meshes import torus_mesh
 
     for family, fewer in (("structured", True), ("flipped", False)):
         mesh = torus_mesh(128, family=family, seed=0)

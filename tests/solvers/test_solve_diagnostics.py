@@ -12,8 +12,8 @@ import scipy.sparse as sp
 from threadpoolctl import threadpool_limits
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.geometry.levelset import Sphere
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.shapes import Sphere
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import (
     ConditionNumber,
     DirectSolver,
@@ -26,7 +26,7 @@ from cutfem.solvers.solve import (
     solve,
 )
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.geometry.surface import sphere_mesh
+from cutfem.geometry.surface_meshes import sphere_mesh
 from surface_matrices import face_matrix, mass_matrix, stiffness_matrix
 
 

@@ -10,10 +10,10 @@ import scipy.sparse as sp
 from scipy.sparse.linalg import spsolve_triangular
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.geometry.levelset import Sphere, Torus
+from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import CUT
 from cutfem.fem.forms import assemble, mass
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import (
     DirectSolver,
     GeometricMultigrid,
@@ -27,7 +27,8 @@ from cutfem.solvers.solve import (
     surface_lattice_prolongation,
 )
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.geometry.surface import SurfaceMesh, sphere_mesh, torus_mesh
+from cutfem.geometry.surface import SurfaceMesh
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 from surface_matrices import edge_matrix, face_matrix, mass_matrix, stiffness_matrix
 from cutfem.solvers import sparse_kernels
 

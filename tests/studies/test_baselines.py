@@ -18,9 +18,9 @@ from cutfem.studies.baselines import (
     vertex_normals,
 )
 from cutfem.fem.forms import assemble, tangential_stiffness
-from cutfem.geometry.levelset import Torus
+from cutfem.geometry.shapes import Torus
 from cutfem.fem.spaces import SurfaceP1Space
-from cutfem.geometry.surface import sphere_mesh, torus_mesh
+from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 
 R = 2.0
 

@@ -38,7 +38,7 @@ def test_run_without_peer_writes_a_note_and_skips(tmp_path, monkeypatch, capsys)
 
 
 def test_kuhn_boundary_triangles_cover_the_box_outward():
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     box = structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], cells=[4, 3, 2])
     tri = peers.kuhn_boundary_triangles(box)
@@ -55,7 +55,7 @@ def test_kuhn_boundary_triangles_cover_the_box_outward():
 def test_collapsed_tets_are_the_difference_of_the_zero_rules():
     """Tets with a negative node, zero nodes (one or two) and no positive node: found around the
     zero nodes only, and equal to the brute-force set."""
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     box = structured_box([0, 0, 0], [1, 1, 1], cells=3)
     rng = np.random.default_rng(1)
@@ -71,7 +71,7 @@ def test_collapsed_tets_are_the_difference_of_the_zero_rules():
 def test_ngsolve_mesh_is_the_structured_box(ngsxfem):
     import ngsolve
 
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.problems.common import background_for
 
     box = background_for(Torus(), 0.4)
@@ -87,7 +87,7 @@ def test_ngsolve_mesh_is_the_structured_box(ngsxfem):
 def test_exact_field_matches_cutfem(ngsxfem):
     import ngsolve
 
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.problems.common import background_for
 
     torus = Torus(center=tuple(peers.SHIFT))
@@ -148,7 +148,7 @@ def test_kuhn_face_h_is_the_longest_edge_of_each_facet(ngsxfem):
     longest edges of cutfem's face table."""
     import ngsolve
 
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
 
     box = structured_box([0, 0, 0], [0.75, 0.5, 0.5], spacing=0.25)
     got = ngsolve.Integrate(peers.kuhn_face_h(0.25) * ngsolve.dx(element_boundary=True), peers.ngsolve_mesh(box))

@@ -7,8 +7,8 @@ import pytest
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import l2_error
-from cutfem.geometry.levelset import Torus
-from cutfem.geometry.mesh import structured_box
+from cutfem.geometry.shapes import Torus
+from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.studies import performance
@@ -318,7 +318,7 @@ def test_iterative_and_direct_solves_agree(spacing):
 def test_meshed_multigrid_and_direct_errors_agree(family):
     """The meshed torus with the default tolerance (1e-8): CG with the grid multigrid and SuperLU
     give L2 errors that agree to at least 5 significant digits (3 are asked for)."""
-    from cutfem.geometry.surface import torus_mesh
+    from cutfem.geometry.surface_meshes import torus_mesh
 
     V = SurfaceP1Space(torus_mesh(128, family, seed=1))
     K = mass_matrix(V) + 0.1 * edge_matrix(V)
@@ -337,9 +337,9 @@ def test_the_topology_reference_matches_the_same_faces():
     import pyvista as pv
 
     from cutfem.geometry.cut import CUT, cut_mesh
-    from cutfem.geometry.levelset import Torus
+    from cutfem.geometry.shapes import Torus
     from cutfem.geometry.markers import interior_facets
-    from cutfem.geometry.mesh import structured_box
+    from cutfem.geometry.box import structured_box
     from cutfem.geometry.numbering import TET_FACES
 
     es = cut_mesh(structured_box(*performance.BOX, spacing=0.2), Torus(1.0, 0.5)).elements(CUT)
