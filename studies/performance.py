@@ -601,7 +601,7 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     from cutfem.geometry.markers import interior_facets
     from cutfem.geometry.mesh import dense_unique, structured_box
     from cutfem.problems.mean_curvature import mean_curvature_form
-    from cutfem.solvers.solve import lattice_hierarchy, lattice_indices
+    from cutfem.solvers.multigrid import lattice_hierarchy, lattice_indices
     from cutfem.fem.spaces import CutP1Space
 
     import pyvista as pv

@@ -15,7 +15,10 @@ from cutfem.fem.norms import discrete_error, fitted_rate, h1_error, l2_error, l2
 from cutfem.geometry.levelset import Sphere, Torus
 from cutfem.geometry.markers import NEG
 from cutfem.geometry.mesh import structured_box
-from cutfem.solvers.solve import CGSolver, DirectSolver, SolverError, cg_solve, condition_number, solve
+from cutfem.solvers.diagnose import SolverError, condition_number
+from cutfem.solvers.direct import DirectSolver
+from cutfem.solvers.krylov import CGSolver, cg_solve
+from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.surface import sphere_mesh
 from surface_matrices import face_matrix, mass_matrix, stiffness_matrix

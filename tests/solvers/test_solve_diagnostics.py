@@ -1,4 +1,4 @@
-"""Diagnostics of cutfem.solvers.solve: indefinite, singular and over-stabilized systems are told apart on
+"""Diagnostics of cutfem.solvers.diagnose: indefinite, singular and over-stabilized systems are told apart on
 every solver path, with advice that applies.
 
 References: dense numpy eigenvalues computed in the test (the number of negative eigenvalues),
@@ -14,17 +14,11 @@ from threadpoolctl import threadpool_limits
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.levelset import Sphere
 from cutfem.geometry.mesh import structured_box
-from cutfem.solvers.solve import (
-    ConditionNumber,
-    DirectSolver,
-    SolverError,
-    cg_solve,
-    condition_number,
-    diagnose,
-    lattice_indices,
-    mg_solve,
-    solve,
-)
+from cutfem.solvers.diagnose import ConditionNumber, SolverError, condition_number, diagnose
+from cutfem.solvers.direct import DirectSolver
+from cutfem.solvers.krylov import cg_solve, mg_solve
+from cutfem.solvers.multigrid import lattice_indices
+from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.surface import sphere_mesh
 from surface_matrices import face_matrix, mass_matrix, stiffness_matrix

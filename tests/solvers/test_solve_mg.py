@@ -1,4 +1,4 @@
-"""The geometric multigrid path of cutfem.solvers.solve against the direct solver and exact linear functions.
+"""The geometric multigrid path of cutfem.solvers against the direct solver and exact linear functions.
 
 References: the direct solver (SuperLU) computed in the test, exact linear functions.
 """
@@ -14,23 +14,26 @@ from cutfem.geometry.levelset import Sphere, Torus
 from cutfem.geometry.markers import CUT
 from cutfem.fem.forms import assemble, mass
 from cutfem.geometry.mesh import structured_box
-from cutfem.solvers.solve import (
-    DirectSolver,
+from cutfem.solvers.diagnose import SolverError
+from cutfem.solvers.direct import DirectSolver
+from cutfem.solvers.krylov import DEFAULT_TOL, mg_solve
+from cutfem.solvers.multigrid import (
     GeometricMultigrid,
-    SolverError,
+    augmented_hierarchy,
     grid_prolongation,
     kuhn_prolongation,
+    lattice_hierarchy,
     lattice_indices,
-    mg_solve,
     multigrid_hierarchy,
-    solve,
     surface_lattice_prolongation,
 )
+from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.surface import SurfaceMesh, sphere_mesh, torus_mesh
 from surface_matrices import edge_matrix, face_matrix, mass_matrix, stiffness_matrix
 from cutfem.solvers import sparse_kernels
 
+from cutfem.solvers import krylov
 from cutfem.solvers import solve as solve_module
 
 
@@ -326,7 +329,7 @@ def test_multigrid_solver_is_reused_and_freed_with_its_last_reference(torus_spac
     import gc
     import weakref
 
-    from cutfem.solvers.solve import CGSolver
+    from cutfem.solvers.krylov import CGSolver
 
     V = torus_space
     M, A, J = mass_matrix(V), stiffness_matrix(V), face_matrix(V)
@@ -375,7 +378,7 @@ def test_auto_picks_multigrid_above_the_limit(torus_space, monkeypatch):
     b = np.ones(V.n_dofs)
     monkeypatch.setattr(solve_module, "DIRECT_LIMIT", 1000)
     x, info = solve(K, b, space=V)
-    assert info.method == "cg-mg" and info.residual <= solve_module.DEFAULT_TOL
+    assert info.method == "cg-mg" and info.residual <= DEFAULT_TOL
     x2, info2 = solve(K, b)  # no space: no lattice, direct below DIRECT_LIMIT_NO_MG
     assert info2.method == "direct"
     np.testing.assert_allclose(x, x2, rtol=0, atol=1e-5 * np.abs(x2).max())
@@ -577,8 +580,8 @@ def test_simultaneous_cg_equals_column_by_column_and_direct(torus_space, monkeyp
     K = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
     B = np.column_stack([stiffness_matrix(V) @ V.dof_points, np.zeros(V.n_dofs)])  # (n, 4)
     products = []
-    matvec = solve_module._matvec
-    monkeypatch.setattr(solve_module, "_matvec", lambda A: (lambda X, out=None, dots=None: (products.append(X.shape[1]), matvec(A)(X, out, dots=dots))[1]))
+    matvec = krylov._matvec
+    monkeypatch.setattr(krylov, "_matvec", lambda A: (lambda X, out=None, dots=None: (products.append(X.shape[1]), matvec(A)(X, out, dots=dots))[1]))
     X, info = mg_solve(K, B, lattice_indices(V))
     block_products = sum(products)
     its = []
@@ -610,7 +613,7 @@ def test_default_tolerance_keeps_the_integral_of_H_at_round_off(surface):
         ds = V.mesh.ds()
         K, B = mean_curvature_system(V, ds, tau_e=0.1)
     H, info = solve(K, B, method="cg-mg", space=V)
-    assert info.method == "cg-mg" and info.residual <= solve_module.DEFAULT_TOL
+    assert info.method == "cg-mg" and info.residual <= DEFAULT_TOL
     ones_M = np.asarray(assemble(mass(ds), V).sum(axis=0)).ravel()
     assert np.abs(ones_M @ H).max() <= 1e-10 * ones_M.sum()
 
@@ -639,7 +642,7 @@ def test_augmented_hierarchy_doubles_the_coarse_spaces(torus_space):
     w = V.cut.values
     P0, c1 = kuhn_prolongation(ijk)
     P1, _ = kuhn_prolongation(c1)
-    hierarchy = solve_module.augmented_hierarchy(solve_module.lattice_hierarchy(ijk), w)
+    hierarchy = augmented_hierarchy(lattice_hierarchy(ijk), w)
     Q = [next(hierarchy), next(hierarchy)]
     assert Q[0].shape == (V.n_dofs, 2 * P0.shape[1]) and Q[1].shape == (2 * P1.shape[0], 2 * P1.shape[1])
     rng = np.random.default_rng(1)
@@ -697,7 +700,7 @@ def test_csr_diagonal_is_scipys():
 def test_single_precision_application_is_the_cycle_output(torus_space):
     """GeometricMultigrid.apply(R, single=True) (what mg_solve's CG uses) returns the float32
     values whose float64 copy apply(R) returns."""
-    from cutfem.solvers.solve import GeometricMultigrid, lattice_indices
+    from cutfem.solvers.multigrid import GeometricMultigrid, lattice_indices
 
     V = torus_space
     A = (mass_matrix(V) + 0.1 * face_matrix(V)).tocsr()
