@@ -110,9 +110,8 @@ class SolveInfo:
 
 def _matvec(A):
     """(n, c) -> (n, c) product with the sparse matrix A, one pass over A for up to three columns
-    (:func:`cutfem.solvers.sparse_kernels.matmul`, ``dots`` as there; the CG products of the cut torus at spacing
-    0.0125, three columns in double precision: 9.5 ms against 29-31 ms for scipy's three
-    products)."""
+    (:func:`cutfem.solvers.sparse_kernels.matmul`, ``dots`` as there; for three columns about a third
+    of the time of scipy's three products)."""
 
     A = sp.csr_matrix(A)
     return lambda X, out=None, dots=None: sparse_kernels.matmul(A, np.ascontiguousarray(X, dtype=A.dtype), out=out, dots=dots)
@@ -140,7 +139,8 @@ def _threadpoolctl():
 def _one_blas_thread():
     """Context limiting BLAS/LAPACK to one thread (threadpoolctl).  The banded factorizations are
     small level-3 kernels: OpenBLAS' threads gain little on them and, when the other core of this
-    2-core machine is busy, their synchronization made a 2 ms factorization take up to 0.5 s."""
+    2-core machine is busy, their synchronization can make a millisecond factorization take hundreds
+    of times as long."""
     global _BLAS_CONTROLLER
     if _BLAS_CONTROLLER is None:
         _BLAS_CONTROLLER = _threadpoolctl().ThreadpoolController()

@@ -35,8 +35,8 @@ __all__ = ["DirectSolver"]
 
 
 #: :class:`DirectSolver` uses a banded Cholesky when its work n (b + 1)^2 is at most this (b the
-#: bandwidth after reverse Cuthill-McKee): measured break-even with SuperLU at about 4e9 (cut torus
-#: at spacing 0.07, n = 9 588, b = 571: 114 against 116 ms)
+#: bandwidth after reverse Cuthill-McKee): a little below the measured break-even with SuperLU,
+#: about 4e9 (the cut torus at spacing 0.07)
 BANDED_MAX_WORK = 3e9
 
 #: ... and its band storage n (b + 1) at most this many entries (8 bytes each)

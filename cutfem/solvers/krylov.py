@@ -60,10 +60,9 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9, x0=None, c
     the usual z_new^T r_new / z_old^T r_old for a fixed SPD preconditioner in exact arithmetic
     and keeps each direction A-orthogonal to the previous one when the preconditioner varies
     from one application to the next (the multigrid's K-cycle); it costs one column dot more.
-    The columns are independent recurrences: each gives, bitwise, what it gives alone.  Why not a block CG, whose search directions the columns share:
-    it needed as many iterations (28 at spacing 0.025, tolerance 1e-8, on the cut torus) as three
-    independent recurrences, as the multigrid leaves no isolated small eigenvalues for the shared
-    space to remove.
+    The columns are independent recurrences: each gives, bitwise, what it gives alone.  (A block
+    CG, whose search directions the columns share, gains no iterations here: the multigrid leaves
+    no isolated small eigenvalues for the shared space to remove.)
 
     Stops when every column has a true relative residual <= tol (the recursive residual is checked
     against the true one, and CG restarted from the current iterate when they disagree).  A
@@ -74,7 +73,7 @@ def _pcg(A, precond, B, tol, maxiter, name, checks, warn_after=10**9, x0=None, c
     for later solves with A, holds the product A 1 it needs).  ``x0`` (n, c): the starting iterates
     (default zero); a column of x0 whose residual is larger than its right-hand side's norm starts
     from zero instead (a guess worse than none, as the lumped-mass guess of a mean curvature
-    vector on a perturbed mesh: residuals 4e3 times |b|, 38 iterations against 25 from zero).
+    vector on a perturbed mesh, costs iterations).
     Returns (X (n, c), iterations, residuals (c,)).
     """
 
@@ -152,9 +151,9 @@ def _constant_correction(A, x, r, nb, tol, cache=None):
     This is the A-orthogonal projection of the error onto span{1}, so it never increases the error in
     the energy norm, and it makes 1^T r = 0: the discrete solution's conservation laws that are sums
     of the residual hold to round-off whatever the tolerance.  For the mean curvature problem,
-    int_{S_h} H_h = 1^T M H = 1^T B - 1^T r with 1^T B = 0 and J 1 = 0 (docs/math.md §3): on the cut
-    torus at spacing 0.0125 it is 3e-13 after the correction at tolerance 1e-6, where it was 9e-10
-    at 1e-6 and 2e-11 at 1e-8 without it.  ``cache`` (a dict, or None): A 1 is taken from its
+    int_{S_h} H_h = 1^T M H = 1^T B - 1^T r with 1^T B = 0 and J 1 = 0 (docs/math.md §3): after
+    the correction it is at round-off, where without it it followed the tolerance.  ``cache`` (a
+    dict, or None): A 1 is taken from its
     "ones_product" (with the vector 1 in "ones") or computed and kept there.  Returns (r, rel) updated."""
 
     cache = {} if cache is None else cache
@@ -186,7 +185,7 @@ def _amg(A, points=None):
     import pyamg
 
     # the coarsest level by sparse LU: pyamg's default pseudo-inverse (an SVD of the dense coarsest
-    # matrix) took 9 s of a 5.7k-unknown solve whose hierarchy stopped at 1 728 unknowns
+    # matrix) took most of a solve whose hierarchy stopped at a few thousand unknowns
     kw = dict(symmetry="symmetric", max_coarse=500, coarse_solver="splu")
     if points is not None:
         # the near-kernel of the face penalty: the globally linear functions
@@ -209,9 +208,8 @@ class CGSolver:
 
     Sequences of systems with one matrix (time steps, continuation) pass a starting guess to
     :meth:`solve`: CG then only removes the guess's error.  A guess extrapolated from the previous
-    solutions of a smooth evolution is close (backward Euler for the surface heat equation at
-    spacing 0.025, Jacobi, tolerance 1e-12: 60 iterations a step from zero, 44 from the previous
-    solution, 12.4 on average from the quadratic through the last three; docs/math.md §11).
+    solutions of a smooth evolution is close (for the surface heat equation the quadratic through
+    the last three solutions needs a fraction of the iterations from zero; docs/math.md §11).
 
     Raises :class:`~cutfem.solvers.diagnose.SolverError` on a non-positive diagonal (here) or a breakdown (in
     :meth:`solve`), with the cause named by :func:`~cutfem.solvers.diagnose.diagnose` (``kernels``, ``stabilization``,

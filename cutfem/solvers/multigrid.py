@@ -97,9 +97,9 @@ def kuhn_prolongation(ijk):
     (:func:`cutfem.solvers.multigrid_kernels.kuhn_ends_bounds`, :func:`~cutfem.solvers.multigrid_kernels.kuhn_ends_codes`,
     :func:`~cutfem.solvers.multigrid_kernels.kuhn_prolongation_csr`) give the bounding box of the edge ends, their
     lexicographic numbers and the CSR arrays (one or two entries a row, the lower end first: its
-    number is the smaller), with the numbering between them (:func:`_number_lattice_codes`); numpy
-    needed a dozen (m, 3) integer arrays and axis reductions over them: 2.7 s of the 6.1 s of
-    multigrid setup at spacing 0.003125 (4.7 million unknowns), against 0.5-0.6 s.
+    number is the smaller), with the numbering between them (:func:`_number_lattice_codes`), where
+    numpy needed a dozen (m, 3) integer arrays and axis reductions over them, a large part of the
+    multigrid setup on the finest levels.
     """
 
     ijk = np.ascontiguousarray(ijk, dtype=np.int64)
@@ -203,11 +203,10 @@ def grid_prolongation(points, shape, drop: float = GRID_DROP):
     corners off the plane: 1e-3 on the torus 768 x 384, where the nodes of the perturbed families
     have 4.5e-2 in the median), yet they make every coarse operator a 25-point stencil.  Dropped,
     the node reproduces linear functions up to its offset from the edge, at most about
-    ``drop`` times the cell, and a planar grid stays exact where the node lies on its edge.
-    Measured on the meshed torus 768 x 384 (the mean curvature system, tolerance 1e-6, medians of
-    5): the same CG iterations in every family (17, 18, 25, 26); the solve of the structured and
-    flipped families 0.37 and 0.47 s against 0.49 and 0.60 s with ``drop=0``, the perturbed ones
-    unchanged (0.63 and 0.77 s).  ``drop=0`` keeps the minimum-norm weights everywhere.  Returns (P (n m, n m / 4) CSR, coarse points, coarse shape).
+    ``drop`` times the cell, and a planar grid stays exact where the node lies on its edge.  On the
+    meshed torus CG needs the same iterations as with ``drop=0`` in every family, and the
+    unperturbed families solve faster (sparser coarse operators).  ``drop=0`` keeps the
+    minimum-norm weights everywhere.  Returns (P (n m, n m / 4) CSR, coarse points, coarse shape).
     """
     n, m = (int(v) for v in shape)
     X = np.asarray(points, dtype=float)
@@ -258,16 +257,15 @@ def augmented_hierarchy(prolongations, w):
     smooth, are normally linear with zero trace on Gamma_h, so only the face penalty sees them,
     through the gradient jumps of their interpolant, O(h) times the curvature.  The coarse Kuhn
     lattice of spacing H interpolates them with jumps O(H) on its faces instead: their energy grows
-    with H / h and each level adds a cluster of small eigenvalues to the preconditioned operator.
-    Measured on the cut unit sphere at spacing 0.1 with A_Gamma + M + 0.1 J_F: smallest eigenvalue
-    of the V-cycle preconditioned matrix 0.21 with two levels, 0.074 with three, 0.044 with four,
-    its eigenvector 96 % face energy and correlated 0.99 with |phi_h|.  With the products w v in
-    the coarse spaces the w g are represented on every level (with g coarse P1) and CG needs 10, 11,
-    11 iterations at spacings 0.05, 0.025, 0.0125 instead of 27, 38, 51.  The price: the coarse
-    levels have twice the unknowns and four times the nonzeros (operator complexity 2.3 instead of
-    1.3).  Where the face penalty dominates the whole operator (M + tau_F J_F, the mean curvature
-    system) the plain hierarchy already needs 17-22 iterations and the larger coarse levels made it
-    slower, hence an option.
+    with H / h and each level adds a cluster of small eigenvalues to the preconditioned operator
+    (on the cut unit sphere the eigenvector of the smallest is nearly all face energy and follows
+    |phi_h|), so the CG iterations grow as h shrinks.  With the products w v in the coarse spaces
+    the w g are represented on every level (with g coarse P1) and the iterations stay flat
+    (docs/performance.md, "Iterations of the solvers").  The price: the coarse levels have twice
+    the unknowns and four times the nonzeros (operator complexity 2.3 instead of 1.3).  Where the
+    face penalty dominates the whole operator (M + tau_F J_F, the mean curvature system) the plain
+    hierarchy already needs few iterations and the larger coarse levels made it slower, hence an
+    option.
     """
     prolongations = iter(prolongations)
     P = next(prolongations, None)
@@ -304,10 +302,10 @@ class GeometricMultigrid:
     (Notay and Vassilevski, Numer. Linear Algebra Appl. 15, 2008): the two cycles are combined by
     two steps of flexible CG on level l+1 (:meth:`_krylov_correction`), where a W-cycle would add
     them as stationary iterations.  Default: V on the finest level, K below.  A K-cycle is not a
-    linear operator, so the CG it preconditions takes flexible directions (:func:`~cutfem.solvers.krylov._pcg`).  On the
-    cut torus (tolerance 1e-6) the K-cycle needs 20, 21 and 21 CG iterations at spacings 0.0125,
-    0.00625 and 0.003125 where the W-cycle needed 23, 25 and 28, at about the W-cycle's cost per
-    iteration (one coarse product more per visit).  ``apply(R)`` acts on (n, c).
+    linear operator, so the CG it preconditions takes flexible directions
+    (:func:`~cutfem.solvers.krylov._pcg`).  On the cut torus the K-cycle keeps the CG iterations
+    flat under refinement where the W-cycle's grew, at about the W-cycle's cost per iteration (one
+    coarse product more per visit).  ``apply(R)`` acts on (n, c).
 
     ``augment`` (n,), a nodal vector w: every coarse space holds, beside the prolongated coarse
     functions v, their products w v (:func:`augmented_hierarchy`).  For a surface operator on a cut
@@ -315,10 +313,9 @@ class GeometricMultigrid:
 
     The cycle runs in single precision: the smoothed levels' matrices, transfers and vectors are
     float32 (the Galerkin products and the coarsest solve stay in double).  A preconditioner's
-    rounding at 1e-7 relative is far below what CG asks of it: on the cut torus (spacings 0.0125 and
-    0.00625, tolerances 1e-6 and 1e-8) CG needs the same iterations as with a double-precision cycle,
-    and the cycle moves a third less memory (8 instead of 12 bytes a nonzero; solve 10-40 % faster,
-    measured on a loaded 2-core machine).
+    rounding at 1e-7 relative is far below what CG asks of it (on the cut torus CG needs the same
+    iterations as with a double-precision cycle, at tolerances 1e-6 and 1e-8), and the cycle moves a
+    third less memory (8 instead of 12 bytes a nonzero).
     """
 
     def __init__(self, A, lattice=None, coarse_size: int = 1500, visits=(1, 2), max_levels: int = 20, prolongations=None,
@@ -537,8 +534,8 @@ def multigrid_hierarchy(space):
     * any other surface space (dofs = the nodes of ``space.mesh``): the Kuhn lattice of spacing
       twice the mean edge length, then the nested lattices (:func:`surface_hierarchy`).  This
       needs a roughly uniform mesh: where the edges are much shorter than the mean, the first
-      coarse space is too coarse (the torus grid, whose edges vary 3:1, needs 50-60 iterations
-      this way against 18-23 with its grid).
+      coarse space is too coarse (the torus grid, whose edges vary 3:1, needs two to three times as
+      many iterations this way as with its grid).
     """
     fields = getattr(space, "fields", None)
     if fields is not None:  # a product space: one hierarchy per field, block-diagonal prolongations
