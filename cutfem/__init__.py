@@ -79,10 +79,10 @@ _NAMES = {
     "normal_gradient_penalty": ".fem.forms",
     # solvers
     "solve": ".solvers.solve",
-    "SolverError": ".solvers.solve",
-    "DirectSolver": ".solvers.solve",
-    "CGSolver": ".solvers.solve",
-    "GeometricMultigrid": ".solvers.solve",
+    "SolverError": ".solvers.diagnose",
+    "DirectSolver": ".solvers.direct",
+    "CGSolver": ".solvers.krylov",
+    "GeometricMultigrid": ".solvers.multigrid",
     # exact fields from sympy (manufactured solutions and their data)
     "Exact": ".fem.exact",
     # error norms and convergence rates

@@ -375,7 +375,7 @@ def pin_unseen_nodes(K, B, space):
     face at the node is shared by two active tets, the face stabilization does not reach it either:
     its row and column of K are zero, or round-off (1.8e-32 against a median diagonal of 0.57 for
     nodes inside a cube on grid planes at spacing 0.1, exactly 0 outside), whatever tau_F
-    (cutfem.solvers.solve names this for a system solved directly).  Its value changes nothing on S_h, so
+    (cutfem.solvers.diagnose names this for a system solved directly).  Its value changes nothing on S_h, so
     these unknowns are removed by fixing them at 0: their rows and columns (round-off at most)
     replaced by a diagonal entry (the mean diagonal, to keep K's scale for the iterative solvers)
     and a zero right-hand side, the numbering unchanged for the multigrid.  Only rows whose

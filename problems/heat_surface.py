@@ -18,7 +18,7 @@ The steps' solver (``solver``): ``direct`` factorizes M_h + theta dt A_h once an
 factor at every step; ``cg-jacobi`` builds CG with the inverse diagonal once and starts each step
 from the polynomial through the last three solutions, extrapolated to the new time (the first
 steps from the ones there are), to the relative residual :data:`STEP_TOL`; ``cg-mg`` is the same
-with the geometric multigrid (:class:`cutfem.solvers.solve.GeometricMultigrid` on the nested lattices of
+with the geometric multigrid (:class:`cutfem.solvers.multigrid.GeometricMultigrid` on the nested lattices of
 the box); ``auto`` is direct up to :data:`STEP_DIRECT_LIMIT` unknowns, above it cg-jacobi for
 backward Euler and cg-mg for Crank-Nicolson.  Why Jacobi suffices for backward Euler: with dt = c h^2 the matrix M_h + dt A_h is spectrally equivalent to the mass M_h
 (A_h <= C h^-2 M_h), so CG's iterations do not grow with 1/h; and the solution is smooth in time,
@@ -61,7 +61,9 @@ from cutfem.fem.forms import assemble, load, mass, normal_gradient_penalty, tang
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
-from cutfem.solvers.solve import CGSolver, DirectSolver, multigrid_hierarchy
+from cutfem.solvers.direct import DirectSolver
+from cutfem.solvers.krylov import CGSolver
+from cutfem.solvers.multigrid import multigrid_hierarchy
 from cutfem.fem.spaces import CutP1Space
 
 from .common import Timer, background_for, check_cut_memory, check_normal_stabilization, check_resolution, cut_record, with_point_data

@@ -36,7 +36,8 @@ from cutfem.jit import parallel_kernel
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import NEG, POS
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
-from cutfem.solvers.solve import SolverError, solve
+from cutfem.solvers.diagnose import SolverError
+from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace
 
 from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient

@@ -29,7 +29,8 @@ from cutfem.fem.forms import assemble, basis_integrals, edge_jump_penalty, face_
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
-from cutfem.solvers.solve import SolverError, solve
+from cutfem.solvers.diagnose import SolverError
+from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
@@ -151,7 +152,7 @@ def _solve_and_measure(space, surface, K, sol, t, solver, multigrid=None, stabil
     and so on), so they are evaluated at the quadrature points of S_h directly.
 
     ``stabilization``: the stabilization form contained in K (tau J), or None.  It is assembled
-    only when the solver refuses K, to name the cause (:func:`cutfem.solvers.solve.diagnose`): a
+    only when the solver refuses K, to name the cause (:func:`cutfem.solvers.diagnose.diagnose`): a
     stabilization too weak on phi_h (tau_F = 1e-12) or so strong that its null space, which holds
     the constants, swamps the mass term (tau_F = 1e300).  K itself stays one assembly of the whole
     form, so the numbers of a run do not depend on this."""
@@ -269,7 +270,7 @@ class LaplaceBeltramiCut(Problem):
         if stab is not None:
             # the multigrid's coarse spaces also hold phi_h v: the normally linear functions phi_h g
             # are near-null vectors of A_Gamma + M + tau_F J_F that the coarse lattices alone
-            # represent worse and worse (cutfem.solvers.solve.augmented_hierarchy).  Unit sphere, spacings
+            # represent worse and worse (cutfem.solvers.multigrid.augmented_hierarchy).  Unit sphere, spacings
             # 0.05, 0.025, 0.0125: CG iterations 11, 11, 11 instead of 27, 38, 51.  The coarsest level
             # at most 400 unknowns: the doubled coarse spaces can be singular there, and the
             # pseudo-inverse of a 1 500-unknown level cost 0.3 s (solve at spacing 0.05: 0.11 s

@@ -54,7 +54,7 @@ from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.forms import assemble, face_jump_penalty, nitsche, stiffness
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import NEG
-from cutfem.solvers.solve import condition_number
+from cutfem.solvers.diagnose import condition_number
 from cutfem.fem.spaces import CutP1Space
 from cutfem.problems.common import background_for
 

@@ -51,7 +51,7 @@ import numpy as np
 from cutfem.geometry.cut import CUT, cut_mesh
 from cutfem.fem.forms import assemble, face_jump_penalty, mass
 from cutfem.geometry.shapes import Sphere, Torus
-from cutfem.solvers.solve import condition_number, scaled
+from cutfem.solvers.diagnose import condition_number, scaled
 from cutfem.fem.spaces import CutP1Space
 from cutfem.problems.common import background_for
 

@@ -73,7 +73,7 @@ def block_solve(spacing: float = 0.125) -> dict:
     from cutfem.fem.forms import assemble, bilinear_form, face_jump_penalty, mass, nitsche, stiffness
     from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.box import structured_box
-    from cutfem.solvers.solve import GeometricMultigrid, lattice_indices
+    from cutfem.solvers.multigrid import GeometricMultigrid, lattice_indices
     from cutfem.fem.spaces import CutP1Space
 
     cut = cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), Sphere(1.0))

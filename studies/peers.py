@@ -306,7 +306,7 @@ def _superlu_same_as_cutfem(mat):
     """Factorize an NGSolve sparse matrix with cutfem's DirectSolver; (solver, CSR matrix)."""
     import scipy.sparse as sp
 
-    from cutfem.solvers.solve import DirectSolver
+    from cutfem.solvers.direct import DirectSolver
 
     vals, cols, rows = mat.CSR()
     A = sp.csr_matrix((np.array(vals), np.array(cols), np.array(rows)), shape=(mat.height, mat.width))

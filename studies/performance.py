@@ -602,7 +602,7 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     from cutfem.geometry.box import structured_box
     from cutfem.geometry.keys import dense_unique
     from cutfem.problems.mean_curvature import mean_curvature_form
-    from cutfem.solvers.solve import lattice_hierarchy, lattice_indices
+    from cutfem.solvers.multigrid import lattice_hierarchy, lattice_indices
     from cutfem.fem.spaces import CutP1Space
 
     import pyvista as pv

@@ -248,7 +248,8 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     todo = cases(size)
     warm_up()
     from cutfem.problems.mean_curvature import SOLVER_TOL
-    from cutfem.solvers.solve import DEFAULT_TOL, DIRECT_LIMIT, DIRECT_LIMIT_NO_MG
+    from cutfem.solvers.krylov import DEFAULT_TOL
+    from cutfem.solvers.solve import DIRECT_LIMIT, DIRECT_LIMIT_NO_MG
 
     rows = []
     summary = {

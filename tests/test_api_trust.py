@@ -13,7 +13,10 @@ from cutfem.fem.forms import assemble, face_jump_penalty, mass
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import ElementSet
 from cutfem.geometry.box import structured_box
-from cutfem.solvers.solve import CGSolver, DirectSolver, condition_number, solve
+from cutfem.solvers.diagnose import condition_number
+from cutfem.solvers.direct import DirectSolver
+from cutfem.solvers.krylov import CGSolver
+from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
 from cutfem.geometry.surface_meshes import sphere_mesh
 

@@ -24,10 +24,14 @@ EXPECTED = {
     "cutfem.fem.forms": "bilinear_form linear_form dot jump avg ZERO assemble apply_dirichlet mass stiffness "
                     "tangential_stiffness load position_load basis_integrals nitsche nitsche_load interface_nitsche "
                     "face_jump_penalty edge_jump_penalty normal_gradient_penalty",
-    "cutfem.solvers.solve": "solve SolverError DirectSolver CGSolver GeometricMultigrid",
-    "cutfem.fem.exact": "Exact",
     "cutfem.fem.norms": "l2_error h1_error l2_h1_errors rates fitted_rate",
     "cutfem.runs.registry": "register Param Problem run available_problems get_problem",
+    "cutfem.solvers.solve": "solve",
+    "cutfem.solvers.diagnose": "SolverError",
+    "cutfem.solvers.direct": "DirectSolver",
+    "cutfem.solvers.krylov": "CGSolver",
+    "cutfem.solvers.multigrid": "GeometricMultigrid",
+    "cutfem.fem.exact": "Exact",
 }
 
 

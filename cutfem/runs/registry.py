@@ -656,7 +656,7 @@ def _thread_info() -> dict:
                          "threading_layer": numba.threading_layer() if started else None,
                          "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")}
     try:
-        from ..solvers.solve import _threadpoolctl
+        from ..solvers.common import _threadpoolctl
 
         info["pools"] = [
             {k: p.get(k) for k in ("user_api", "internal_api", "num_threads", "version")}

@@ -16,7 +16,7 @@ from ..jit import parallel_kernel
 def kuhn_ends_bounds(ijk, bounds):
     """``bounds`` (2, 3) = the smallest and largest indices of the ends (ijk - o) / 2 and
     (ijk + o) / 2, o = ijk mod 2, of the coarse Kuhn edges of the fine nodes ``ijk`` (m, 3)
-    (:func:`cutfem.solvers.solve.kuhn_prolongation`)."""
+    (:func:`cutfem.solvers.multigrid.kuhn_prolongation`)."""
     for a in range(3):
         bounds[0, a] = (ijk[0, a] - (ijk[0, a] & 1)) >> 1
         bounds[1, a] = bounds[0, a]
@@ -50,7 +50,7 @@ def kuhn_ends_codes(ijk, base, dims, codes):
 
 @njit(cache=True, error_model="numpy")
 def kuhn_prolongation_csr(ijk, cols, indptr, indices, data):
-    """The CSR arrays of the Kuhn prolongation (:func:`cutfem.solvers.solve.kuhn_prolongation`): row i is 1
+    """The CSR arrays of the Kuhn prolongation (:func:`cutfem.solvers.multigrid.kuhn_prolongation`): row i is 1
     at column ``cols[i]`` when every index of ``ijk[i]`` is even, else 1/2 at ``cols[i]`` and at
     ``cols[m + i]`` (the two ends of its coarse edge, the lower first); ``indptr`` (m + 1,)."""
     m = ijk.shape[0]
@@ -222,7 +222,7 @@ def galerkin(A, P, R=None):
 @njit(cache=True, error_model="numpy")
 def grid_weights(X, n, m, drop):
     """The four coarse corners and weights of each node of a doubly periodic (n, m) surface grid,
-    for :func:`cutfem.solvers.solve.grid_prolongation` (which states the weights): node (i, j), index
+    for :func:`cutfem.solvers.multigrid.grid_prolongation` (which states the weights): node (i, j), index
     i m + j, in the coarse cell (2a, 2b) + {0, 2}^2, corners (a, b), (a + 1, b), (a + 1, b + 1),
     (a, b + 1) modulo (n/2, m/2).  Returns (cols (n m, 4), weights (n m, 4)); a coarse node gets
     the weights (1, 0, 0, 0).  A node on a coarse edge (one index odd) whose two weights off that

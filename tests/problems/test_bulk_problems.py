@@ -274,7 +274,7 @@ def test_heat_surface_cut_rates_four_levels(theta):
 def test_too_small_nitsche_penalty_is_reported_with_its_fix(solver):
     """gamma = 0.5 makes the fictitious-domain system indefinite: every solver path says so and
     names the Nitsche penalty, instead of returning a solution."""
-    from cutfem.solvers.solve import SolverError
+    from cutfem.solvers.diagnose import SolverError
 
     with pytest.raises(SolverError, match=r"raise the Nitsche penalty \(--gamma 0.5") as err:
         cutfem.run("poisson-cut", levels=[0.1], gamma=0.5, solver=solver)
@@ -334,7 +334,7 @@ def test_records_count_the_active_tets_of_the_fields():
 def test_bulk_surface_without_stabilization_names_the_null_vector(solver):
     """tau_N = 0 leaves the surface field the null vector phi_h (zero on S_h, the bulk field zero);
     the solvers said only 'numerically singular ... pass stabilization= and kernels='."""
-    from cutfem.solvers.solve import SolverError
+    from cutfem.solvers.diagnose import SolverError
 
     with pytest.raises(SolverError, match=r"the nodal vector of phi_h \(zero on S_h\) is a null vector.*"
                                           r"the normal-gradient term") as err:

@@ -69,7 +69,7 @@ def test_the_advice_of_a_refused_step_count_is_the_largest_step_that_runs():
 def test_no_stabilization_is_refused_naming_the_null_vector(solver):
     """tau_N = 0 leaves M_h and A_h the common null vector phi_h (the P1 level set, zero on S_h):
     the factorization and the multigrid say so and name the term that removes it."""
-    from cutfem.solvers.solve import SolverError
+    from cutfem.solvers.diagnose import SolverError
 
     with pytest.raises(SolverError, match=r"the nodal vector of phi_h \(zero on S_h\) is a null vector.*"
                                           r"Add a stabilization that acts on it \(.*the normal-gradient term") as err:
@@ -108,7 +108,7 @@ def test_the_integral_follows_the_source_and_the_energy_decays(theta):
     dt (theta a(t_n) + (1 - theta) a(t_{n-1})) 1^T G exactly; with G = 0 the integral is
     conserved and u^T M u does not grow, step by step."""
     from cutfem.problems.heat_surface import theta_steps
-    from cutfem.solvers.solve import DirectSolver
+    from cutfem.solvers.direct import DirectSolver
 
     M, A, G, V = _sphere_matrices()
     T, N = 0.5, 10

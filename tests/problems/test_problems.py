@@ -78,7 +78,7 @@ def test_torus_cut_stabilized_rate_at_least_one():
 
 
 def test_cut_unstabilized_is_reported_singular():
-    from cutfem.solvers.solve import SolverError
+    from cutfem.solvers.diagnose import SolverError
 
     with pytest.raises(SolverError):
         cutfem.run("mean-curvature-cut", levels=[0.1], tau_f=0.0, solver="direct")
@@ -278,7 +278,7 @@ def test_laplace_beltrami_names_a_stabilization_too_weak_or_too_strong(problem, 
     move it; before, the solver could only list both possibilities (it did not know the
     stabilization matrix).  (tau_F at 1e-12 and 1e300 and tau_N at 1e300 no longer reach the
     solver: the problem refuses them first, naming the flag and its range, see the next test.)"""
-    from cutfem.solvers.solve import SolverError
+    from cutfem.solvers.diagnose import SolverError
 
     with pytest.raises(SolverError) as e:
         cutfem.run(problem, levels=[level], **params)

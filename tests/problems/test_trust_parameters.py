@@ -217,7 +217,8 @@ def _cube_system():
 def test_zero_rows_of_a_surface_on_grid_planes_name_the_cause_and_the_fix():
     """147 nodes off S_h in no term although tau_F = 0.1.  The message said to add a stabilization;
     it now says why none reaches them and what helps."""
-    from cutfem.solvers.solve import SolverError, solve
+    from cutfem.solvers.diagnose import SolverError
+    from cutfem.solvers.solve import solve
 
     cube, V, K, B = _cube_system()
     words = (r"147 unknowns appear in no term .*nodes off S_h .*S_h runs along faces of the background mesh.*"

@@ -436,7 +436,8 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     ns = {}
     exec("from cutfem.geometry.cut import CUT, NEG, POS, cut_mesh\n"
          "from cutfem.fem.forms import *\n"
-         "from cutfem.solvers.solve import CGSolver, DirectSolver\n"
+         "from cutfem.solvers.direct import DirectSolver\n"
+         "from cutfem.solvers.krylov import CGSolver\n"
          "from cutfem.fem.spaces import CutP1Space, ProductSpace\n"
          "from cutfem.problems.heat_surface import extrapolated\n", ns)
 
