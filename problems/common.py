@@ -12,7 +12,8 @@ import numpy as np
 from cutfem.geometry.levelset import Ellipsoid, FunctionLevelSet, LevelSet, SignedDistance, Sphere, Torus
 from cutfem.geometry.markers import NEG, POS
 from cutfem.geometry.mesh import structured_box, unique_keys, unstructured_box
-from cutfem.runs.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
+from cutfem.runs.registry import Param, ProblemError
+from cutfem.runs.runner import Timer  # noqa: F401  (Timer re-exported for the problems)
 from cutfem.geometry.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
 
 SURFACES = ("torus", "sphere", "ellipsoid")

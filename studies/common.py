@@ -23,7 +23,8 @@ import numpy as np
 
 from cutfem.runs.convergence import SIGNIFICANT_DIGITS, new_figure, significant  # noqa: F401  (the studies' figures and tables)
 from cutfem.memory import configure
-from cutfem.runs.registry import ProblemError, check_output, compile_notice, jsonable, text_table
+from cutfem.runs.registry import ProblemError
+from cutfem.runs.runner import check_output, compile_notice, jsonable, text_table
 
 SIZES = ("tiny", "quick", "full")
 

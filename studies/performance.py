@@ -167,7 +167,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.runs.registry import Timer
+from cutfem.runs.runner import Timer
 from cutfem.studies.common import PAGE_WIDTH, Progress, figure_style, pick, save_figure, save_json, study_main
 from cutfem.fem import element_kernels
 from cutfem.solvers import multigrid_kernels
@@ -206,7 +206,7 @@ BULK_FULL = [0.1, 0.05, 0.025, 0.0125, 0.01]
 
 
 class StageTimer(Timer):
-    """:class:`~cutfem.runs.registry.Timer` that also keeps, per stage, the process's user and system
+    """:class:`~cutfem.runs.runner.Timer` that also keeps, per stage, the process's user and system
     CPU seconds and minor page faults (``getrusage`` before and after): ``cpu[stage] = {"user",
     "system", "faults"}``.  On the 2-core virtual machine a first touch of memory costs 1.4-10 us
     of system time a page, so the faults say how much of a stage is the kernel's, not the code's

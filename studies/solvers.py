@@ -185,7 +185,7 @@ def solve_row(case: dict, solver: str, level) -> dict:
 
 
 def _is_error_key(key: str, value) -> bool:
-    """An error of the record (as :meth:`cutfem.runs.registry.RunResult.error_keys`: ``*_error`` and
+    """An error of the record (as :meth:`cutfem.runs.runner.RunResult.error_keys`: ``*_error`` and
     ``*_error_<field>``, not the solver's entries)."""
     return "_error" in key and not key.startswith("solver") and isinstance(value, (int, float)) and not isinstance(value, bool)
 
