@@ -206,7 +206,7 @@ def write_pvd(path, entries) -> None:
 
 
 def _cmd_reproduce(argv) -> int:
-    from .studies.reproduce import main as reproduce_main
+    from ..studies.reproduce import main as reproduce_main
 
     return reproduce_main(argv)
 

@@ -504,6 +504,12 @@ def test_heat_writes_its_fields(tmp_path):
     assert surface.n_points > 100 and 0 < err < 0.1 * np.abs(surface.point_data["u_exact"]).max()
 
 
+def test_reproduce_is_a_command(capsys):
+    """``cutfem reproduce`` reaches the studies' reproduce (cutfem.studies.reproduce)."""
+    assert main(["reproduce", "--list"]) == 0
+    assert "paper_meshed" in capsys.readouterr().out
+
+
 def test_run_help_without_a_problem(capsys):
     assert main(["run", "--help"]) == 0
     assert "cutfem run PROBLEM" in capsys.readouterr().out
