@@ -57,8 +57,9 @@ from cutfem.geometry.markers import NEG
 from cutfem.solvers.solve import condition_number
 from cutfem.fem.spaces import CutP1Space
 from cutfem.problems.common import background_for
+from cutfem.runs.convergence import new_figure
 
-from .common import PAGE_WIDTH, figure_style, new_figure, pick, save_csv, save_figure, save_json, study_main
+from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, study_main
 
 NAME = "bulk_conditioning"
 OUTPUTS = [NAME, f"{NAME}_shifts", f"{NAME}_h"]

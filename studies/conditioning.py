@@ -54,8 +54,9 @@ from cutfem.geometry.levelset import Sphere, Torus
 from cutfem.solvers.solve import condition_number, scaled
 from cutfem.fem.spaces import CutP1Space
 from cutfem.problems.common import background_for
+from cutfem.runs.convergence import significant
 
-from .common import PAGE_WIDTH, figure_style, pick, save_figure, save_json, save_latex_table, significant, study_main
+from .common import PAGE_WIDTH, figure_style, pick, save_figure, save_json, save_latex_table, study_main
 
 NAME = "conditioning"
 OUTPUTS = [NAME, f"{NAME}_h", f"{NAME}_shifts", f"{NAME}_table"]

@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 import cutfem
-from cutfem.runs.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
+from cutfem.runs.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle, significant
 from cutfem.geometry.levelset import Torus
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_csv, save_figure, save_json, save_latex_table, significant, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_csv, save_figure, save_json, save_latex_table, study_main
 from .paper_meshed import offscreen_plotter
 
 NAME = "paper_cut"

@@ -62,11 +62,10 @@ import math
 import warnings
 from pathlib import Path
 
-import numpy as np
-
 import cutfem
+from cutfem.runs.convergence import new_figure
 
-from .common import PAGE_WIDTH, figure_style, new_figure, pick, save_csv, save_figure, save_json, study_main
+from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, study_main
 
 NAME = "solvers"
 OUTPUTS = [NAME]
