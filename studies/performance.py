@@ -107,7 +107,7 @@ caller's function at the quadrature points; for the torus a compiled pass) is gi
 
 Options of the command line (besides ``--out`` and the size flags)
 ------------------------------------------------------------------
-* ``--peers``: the same cut torus level in ngsxfem (:func:`cutfem.studies.peers.ngsxfem_mean_curvature`
+* ``--peers``: the same cut torus level in ngsxfem (:func:`cutfem.studies.peers_ngsxfem.ngsxfem_mean_curvature`
   on the same Kuhn tets, the same snapped level set, zeros to +1e-14 and the collapsed tets left
   out, so the same unknowns; NGSolve's sparse Cholesky, one thread), once per level in a fresh
   process, down to ``--peers-down-to`` (0.025: the NGSolve mesh of the whole background needs about
@@ -315,12 +315,12 @@ def meshed_level(n: int, family: str, tau_e: float = 0.1) -> dict:
 
 
 def ngsxfem_level(spacing: float) -> dict:
-    """The cut torus level of :func:`cut_level` in ngsxfem (:func:`cutfem.studies.peers.ngsxfem_mean_curvature`
+    """The cut torus level of :func:`cut_level` in ngsxfem (:func:`cutfem.studies.peers_ngsxfem.ngsxfem_mean_curvature`
     with the zeros of the level set moved to +1e-14 and the collapsed tets left out: cutfem's
     discrete problem; NGSolve's sparse Cholesky, no TaskManager).  ``time`` has the stages mesh,
     levelset, cut, assembly, solve, errors; ``total`` is their sum."""
     from cutfem.geometry.levelset import Torus
-    from cutfem.studies.peers import ngsxfem_mean_curvature
+    from cutfem.studies.peers_ngsxfem import ngsxfem_mean_curvature
 
     r = ngsxfem_mean_curvature(spacing, Torus(1.0, 0.5), zero_rule="+eps-cutfem-active", superlu=False)
     if "failed" in r:
@@ -354,7 +354,7 @@ from cutfem.studies.performance import cut_level, meshed_level, ngsxfem_level
 kind, level, warm = {kind!r}, {level!r}, {warm!r}
 import pyamg, threadpoolctl, cutfem.geometry.cut, cutfem.fem.norms, cutfem.fem.forms, cutfem.geometry.levelset, cutfem.geometry.mesh, cutfem.solvers.solve, cutfem.fem.spaces, cutfem.geometry.surface
 if kind == 'ngsxfem':
-    import ngsolve, xfem, cutfem.studies.peers
+    import ngsolve, xfem, cutfem.studies.peers_ngsxfem
 r0 = resource.getrusage(resource.RUSAGE_SELF)
 level_once = lambda: cut_level(level) if kind == 'cut' else ngsxfem_level(level) if kind == 'ngsxfem' else meshed_level(level, kind.split('-', 1)[1])
 rec = level_once()
@@ -862,7 +862,7 @@ def limit_search(runner, memory_gib: float, start: float = LIMIT_START, availabl
 
 
 def _available_gib():
-    from cutfem.studies.peers import available_memory
+    from cutfem.studies.peers_ngsxfem import available_memory
 
     avail = available_memory()
     return None if avail is None else avail / 2**30
@@ -960,7 +960,7 @@ def _peer_missing():
     import contextlib
     import io
 
-    from cutfem.studies.peers import INSTALL, peer_missing
+    from cutfem.studies.peers_ngsxfem import INSTALL, peer_missing
 
     with contextlib.redirect_stdout(io.StringIO()):  # xfem prints its version when imported
         why = peer_missing()
@@ -970,7 +970,7 @@ def _peer_missing():
 def _peers(cut_records, memory_gib, down_to, progress) -> dict:
     """ngsxfem at the cut levels that ran (see the module docstring), with the ratio of totals."""
     from cutfem.geometry.mesh import structured_box
-    from cutfem.studies.peers import BYTES_PER_TET
+    from cutfem.studies.peers_ngsxfem import BYTES_PER_TET
 
     missing = _peer_missing()
     if missing:
