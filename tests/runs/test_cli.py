@@ -216,11 +216,11 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     docs/math.md §10 at c_B = 0, and the heat steps keep the integral of u_h following the source."""
     from cutfem.geometry.cut import CUT, NEG, POS
     from cutfem.fem.forms import apply_dirichlet, assemble, bilinear_form, dot, face_jump_penalty, interface_nitsche, linear_form, load
-    from cutfem.fem.forms import mass, nitsche, nitsche_load, stiffness
+    from cutfem.fem.forms import nitsche, nitsche_load, stiffness
     from cutfem.geometry.levelset import Sphere
     from cutfem.geometry.mesh import structured_box
     from cutfem.solvers.solve import solve
-    from cutfem.fem.spaces import CutP1Space, ProductSpace
+    from cutfem.fem.spaces import CutP1Space
     from cutfem.geometry.surface import sphere_mesh
 
     blocks = _forms_md_blocks()

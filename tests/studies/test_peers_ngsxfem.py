@@ -56,8 +56,6 @@ def test_ngsolve_mesh_is_the_structured_box(ngsxfem):
 
 
 def test_exact_field_matches_cutfem(ngsxfem):
-    import ngsolve
-
     from cutfem.geometry.levelset import Torus
     from cutfem.problems.common import background_for
 
