@@ -13,7 +13,7 @@ research script needs, listed in ``__all__`` (``docs/examples/`` shows them at w
 
 Everything else is reachable through its subpackage: :mod:`cutfem.geometry` (meshes, level sets,
 surfaces, the cut, measures, quadrature), :mod:`cutfem.fem` (spaces, forms, assembly, norms),
-:mod:`cutfem.solvers`, :mod:`cutfem.runs` (registry, command line, convergence, plots),
+:mod:`cutfem.solvers`, :mod:`cutfem.runs` (registry, runner, command line, convergence, plots),
 :mod:`cutfem.problems`, :mod:`cutfem.studies`, and :mod:`cutfem.memory`.  The compiled kernels
 (``*_kernels.py`` beside each stage, and :mod:`cutfem.jit`) are private.
 
@@ -95,7 +95,7 @@ _NAMES = {
     "register": ".runs.registry",
     "Param": ".runs.registry",
     "Problem": ".runs.registry",
-    "run": ".runs.registry",
+    "run": ".runs.runner",
     "available_problems": ".runs.registry",
     "get_problem": ".runs.registry",
 }

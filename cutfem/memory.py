@@ -8,64 +8,36 @@ A run that cannot fit is refused before its large arrays exist, with a
 and the fix.  :func:`available_memory` is the kernel's ``MemAvailable`` (/proc/meminfo; else
 ``os.sysconf`` available, then physical pages), or the limit set by the environment variable
 ``CUTFEM_MEMORY_LIMIT`` (bytes, or a number with K, M, G, T, KiB, MiB, GiB, TiB; for tests and
-shared machines).  :func:`check_memory` compares.  The estimates are a fixed part plus a cost per
-item, fitted to the peak resident memory of fresh ``cutfem run`` processes (``/proc`` and
-``ru_maxrss``, 2026-12-02) and rounded up so that every measured size stays below its estimate by
-15-50 % (the margin is largest where the fixed part dominates):
+shared machines).  :func:`check_memory` compares.  Each estimate is a fixed part plus a cost per
+item, fitted to the peak resident memory of fresh ``cutfem run`` processes and rounded up so that
+every measured size stays below its estimate (by 15-50 %, most where the fixed part dominates):
 
 * :data:`CUT_BASE_BYTES` + :data:`BYTES_PER_BAND_CELL` per cell of the band: the cut (band search,
   level-set values, marching tets, surface; the compiled kernels' runtime is loaded during it).
-  Measured on the cut torus, the resident memory the cut adds: 116, 150, 279, 828 and 3062 MB for
-  14,024, 55,120, 219,912, 879,968 and about 3.5 million band cells (spacings 0.05 to 0.003125):
-  about 100 MB and 831-846 bytes a cell from spacing 0.0125 on.  The estimate, 150 MiB and 1000
-  bytes a cell, is checked once before the band search (:func:`cutfem.geometry.band_search.cut_memory_estimate`),
-  on :data:`BAND_MARGIN` times the cells predicted from the surface's area as the band search sees
-  it, measured once by a survey of a few ten thousand cubes (:func:`cutfem.geometry.band_search._surface_survey`:
-  the band at spacing h is about sqrt(3) A / h**2 cells for a signed distance; the final band 0.92
-  to 1.05 times the survey's on tori and spheres at spacings 0.04-0.001, the predicted cells 1.14
-  to 1.3 times the final ones).  It was 3000 bytes a cell with no fixed part, fitted at spacing
-  0.0125 and coarser, where the fixed part is most of the cut: that refused spacing 0.002 on a
-  24 GiB machine as needing 34.8 GiB, where the whole run is predicted at about 14 GiB;
-* :data:`BYTES_PER_BOX_NODE`: what the band search keeps per node of the structured box: a bitmap
-  of the band's nodes and a running count per 64-bit word of it (:func:`cutfem.geometry.keys.dense_unique`,
-  a quarter byte a node; 101 MB for the 404 million nodes of the box at spacing 0.003125).  It was
-  5 bytes, from the marker and lookup arrays the bitmap replaced, and refused spacing 0.0015625 on
-  a 24 GiB machine as needing 28.5 GiB, 16 of them for node markers that are no longer made.  With
-  it :data:`BYTES_PER_BOUNDARY_NODE` per boundary node (checked node by node when the band reaches
-  a face of the box), and without a Lipschitz bound :data:`BYTES_PER_EVALUATED_NODE` per node of
-  the box instead of the bitmap and the band (every node evaluated; both counted from the arrays);
+  It is checked once before the band search (:func:`cutfem.geometry.band_search.cut_memory_estimate`), on
+  :data:`BAND_MARGIN` times the cells predicted from the surface's area as a survey of a few ten
+  thousand cubes sees it (:func:`cutfem.geometry.band_search._surface_survey`: the band at spacing h is
+  about sqrt(3) A / h**2 cells for a signed distance);
+* :data:`BYTES_PER_BOX_NODE`: what the band search keeps per node of the structured box, a bitmap
+  of the band's nodes and a running count per 64-bit word of it
+  (:func:`cutfem.geometry.keys.dense_unique`, a quarter byte a node); with it
+  :data:`BYTES_PER_BOUNDARY_NODE` per boundary node (checked node by node when the band reaches a
+  face of the box), and without a Lipschitz bound :data:`BYTES_PER_EVALUATED_NODE` per node of the
+  box instead of the bitmap and the band (every node evaluated; both counted from the arrays);
 * :data:`SOLVE_BASE_BYTES` + bytes per active tet: what the stages after the cut (space, faces,
   mass, penalty, solve, errors) add to the resident memory at the check
   (:func:`cutfem.problems.common.check_cut_memory`; the cut's freed temporaries stay in the
-  allocator's heap and are reused).  Measured, the peak minus the resident memory at the check:
-  the mean curvature problem on the torus 857, 274, 225, 218 and 209 bytes a tet at spacings 0.05
-  to 0.003125 (52 thousand to 13.7 million tets; 2.7 GiB on top of 2.9 GiB at 0.003125), the cut
-  Laplace-Beltrami problem on the sphere (its augmented multigrid and three matrices) 969, 772 and
-  751 bytes at 0.025, 0.0125 and 0.00625: fits of about 16 MB plus 208 and 745 bytes a tet.  Since
-  the cut and the solve keep less (int32 node numbers, no volume arrays or polygon slots, a solve
-  that frees its directions before its last steps), the mean curvature problem adds 152, 155 and
-  162 bytes a tet at spacings 0.0125, 0.00625 and 0.003125, and about 157 at 0.0015625 (17.5 GiB
-  peak).  The estimates: 64 MiB plus 200 bytes a tet for the mean curvature problem (its own
-  constant; 250 before, which at 0.0015625 asked 13.8 GB where about 8.6 GB was needed) and plus
-  :data:`BYTES_PER_ACTIVE_TET`, 850 bytes, for the others.  The problems give their cost to the
-  cut, which checks it before cutting on :data:`TETS_PER_BAND_CELL` active tets per predicted band
-  cell (measured 3.70-4.24 on the torus, the thin torus and the sphere at spacings 0.04-0.01), and
-  check it again on the real active tets after the cut;
-* :data:`BYTES_PER_SURFACE_NODE`: a meshed surface problem per node (0.6 GiB for the meshed torus
-  with 295 thousand nodes: 2.2 KB).
+  allocator's heap and are reused): 64 MiB plus 200 bytes a tet for the mean curvature problem
+  (its own constant), plus :data:`BYTES_PER_ACTIVE_TET` for the others.  The problems give their
+  cost to the cut, which checks it before cutting on :data:`TETS_PER_BAND_CELL` active tets per
+  predicted band cell, and again on the real active tets after the cut;
+* :data:`BYTES_PER_SURFACE_NODE`: a meshed surface problem per node.
 
 A refusal names a spacing that fits: :func:`spacing_that_fits` solves the model of the estimate
 at t times the spacing, each part with its own scaling (the fixed parts not at all, the band, the
 box's boundary and the active tets like t**-2, the box's nodes like t**-3), for the smallest t at
 which every estimate of the run fits, and rounds the spacing up to two digits.  The same command
-at that spacing is not refused, and a spacing 1.3 times finer is (tests/test_memory.py).  The
-advice used to scale the whole of one estimate, fixed parts included, like spacing**-3 for the
-box's nodes (which knew nothing of the band) or spacing**-2 for the band predicted at a coarse
-level of the band search (1 to 1.44 times the final band, varying with the spacing), rounded to
-the nearest two digits: under a 2 GiB limit the cut torus at spacing 0.0005 was told 0.0014, which
-was told 0.0016 (2.41 GiB, the box's nodes alone), which was told 0.0045 (13.1 GiB, the band),
-and 0.004 and 0.0045 were still refused.  Now the five are all told 0.0048, the finest two-digit
-spacing whose estimate fits (1.96 GiB; 0.0047: 2.04 GiB).
+at that spacing is not refused, and a spacing 1.3 times finer is (tests/test_memory.py).
 
 Allocation settings
 -------------------
@@ -78,58 +50,21 @@ back after the run.  :func:`configure` applies them for good: the studies' comma
 benchmark call it, and a script that builds large problems from the pieces may call it, once,
 before the large arrays.
 
-A cut or meshed pipeline at a million elements allocates and frees hundreds of arrays of 1-300 MB.
-Two defaults of a Linux process make the first touch of that memory the dominant cost:
+A cut or meshed pipeline at a million elements allocates and frees hundreds of arrays of 1-300 MB,
+and two defaults of a Linux process make the first touch of that memory the dominant cost: glibc
+serves every allocation above its mmap threshold (128 KB, raised dynamically up to 32 MB) by a
+fresh ``mmap`` and unmaps it on free, so each new large array page-faults all its pages again; and
+numpy advises the kernel to back arrays of 4 MB and more by transparent huge pages, whose faults
+are slow (and may compact memory synchronously) when the kernel's THP defrag mode is ``madvise``,
+``always`` or ``defer+madvise``.
 
-* glibc serves every allocation above its mmap threshold (128 KB, raised dynamically up to 32 MB)
-  by a fresh ``mmap`` and unmaps it on free, so each new large array page-faults all its pages
-  again (2.4 million faults for the cut torus at spacing 0.0125, whose peak is 1.4 GB: 0.35
-  million pages);
-* numpy advises the kernel to back arrays of 4 MB and more by transparent huge pages (``madvise``).
-  When the kernel's THP defrag mode is ``madvise`` (or ``always``, ``defer+madvise``) a fault in
-  such an array may compact memory synchronously to find a huge page.  On the 2-core virtual
-  machine of the benchmarks no compaction happened (``compact_stall`` in /proc/vmstat stayed 0)
-  and the huge-page faults were still the slow part: about 800 of them per cut run at spacing
-  0.0125 (1.6 GB) took 2-3.6 s of system time, against 0.8-2.1 s for the same memory in 4 KB
-  pages (interleaved runs, three each; the cut stage alone 2.0-2.8 s against 0.9-1.1 s).
-
-The effect of :func:`configure` is to set glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` to
-:data:`MMAP_THRESHOLD` (2047 MiB, the largest whole MiB that ``mallopt``'s int parameter
-takes: smaller arrays come from the heap, and freed memory stays with the process until that much
-is free at its top) and to turn numpy's huge-page advice off when the defrag mode would stall.
-Measured end to end when the settings were introduced (with a 256 MB threshold;
-``studies/performance.py`` stages, seconds; runs interleaved, several each):
-
-==============================  ===========  ==============  =========
-case                            default      configured      peak
-==============================  ===========  ==============  =========
-cut torus 0.0125 (853k tets)    7.7-10.2     5.1-6.6         1.4 GiB
-  system time                   2.6-5.2      0.6-2.0
-meshed torus 768, perturbed     3.0-4.1      2.4-3.0         0.6 GiB
-  system time                   1.0-1.5      0.27-0.31
-==============================  ===========  ==============  =========
-
-Measured again on the current code (cut torus at spacing 0.0125, ``cut_level`` of
-``cutfem.studies.performance`` in fresh processes, three interleaved runs each, the machine shared
-with other jobs so that wall times were not meaningful): system time 1.96-2.36 s by default
-against 0.88-0.93 s configured, user time 9.9-10.2 s against 9.7-10.9 s (unchanged within the
-noise), peak resident memory 1.01 GiB against 1.08-1.09 GiB, minor page faults 52-54 thousand
-against 263-266 thousand (4 KB pages instead of huge pages).  So the gain is the system time of
-first touches of memory, about 1-1.4 s a run here, paid for by about 7 % more peak memory.
-
-The threshold was 256 MB until arrays of 0.3-1.3 GB became common (spacing 0.003125: 4.7 million
-unknowns, 13.7 million active tets).  Those were mapped fresh and unmapped on free, so each stage
-faulted the pages the previous one had just given back; on the heap the cut's freed arrays serve
-the matrix and the solve.  Measured with ``cutfem run`` in pairs, the two thresholds in turn
-(``/usr/bin/time``, 2026-12-02): the cut torus at spacing 0.003125, seven pairs, 1.56 million page
-faults against 2.10 million in every run, system time median 9.2 s against 11.1 s, wall median
-40.7 s against 44.9 s (pair ratios 0.75-1.11, median 0.96), peak 5.62 GiB both; fictitious-domain
-Poisson on the solid torus at spacing 0.0125 (2.7 million unknowns), three pairs, 0.96-1.03
-million faults against 1.73 million, wall 38.3, 38.7 and 46.9 s against 44.4, 42.5 and 44.9 s,
-peak 3.95-3.99 GiB against 3.96-3.98.  Below 256 MB nothing changes.  The fault count drops in
-every run, the wall time less surely: a fault costs 1.4-10 us of system time here, varying from
-run to run, and two later pairs of the whole command at 0.003125 (with other changes) gave 43.2
-and 49.4 s against 42.9 and 44.6 s.
+So :func:`configure` sets glibc's ``M_MMAP_THRESHOLD`` and ``M_TRIM_THRESHOLD`` to
+:data:`MMAP_THRESHOLD` (2047 MiB, the largest whole MiB that ``mallopt``'s int parameter takes:
+arrays below it come from the heap, and freed memory stays with the process until that much is
+free at its top, so the arrays one stage frees serve the next, up to the 0.3-1.3 GB arrays of the
+finest levels), and turns numpy's huge-page advice off when the defrag mode would stall.  The gain
+is the system time of the first touches of memory, paid for by a few per cent more peak memory
+(docs/performance.md).
 
 The settings are a trade: memory freed by the program stays with the process (up to the
 threshold) instead of returning to the system, which suits a run that allocates and frees large
@@ -142,14 +77,10 @@ a ``NUMPY_MADVISE_HUGEPAGE`` set by the user is respected.  ``SETTINGS`` records
 
 How threads wait
 ----------------
-Nothing here: OpenMP's wait policy is left as the environment has it.  The command line used to
-set ``OMP_WAIT_POLICY=PASSIVE``, because the threads that spin after a parallel loop took the core
-from the code between the loops beside a busy process (the cut torus's solve at spacing 0.0125:
-3.1-3.7 s instead of 0.96 s on one thread), which left scripts, which do not call
-:func:`configure`, 2.9 times slower than the same run through the command line.  Each kernel call
-now runs on the calling thread alone when the cores are busy or its arrays are small
-(:mod:`cutfem.jit`), so the team's threads are not woken then and the policy no longer matters;
-scripts and the command line run alike (``studies/contention.py``).
+Nothing here: OpenMP's wait policy is left as the environment has it.  Each kernel call runs on
+the calling thread alone when the cores are busy or its arrays are small (:mod:`cutfem.jit`), so
+the team's threads are not woken then and the policy does not matter; scripts and the command line
+run alike (``studies/contention.py``).
 """
 
 from __future__ import annotations
@@ -182,9 +113,9 @@ __all__ = [
     "ACTIVE_TETS_MARGIN",
 ]
 
-#: the fixed part of the cut's memory (measured about 100 MB, see the module docstring)
+#: the fixed part of the cut's memory (measured about 100 MB)
 CUT_BASE_BYTES = 150 * 2**20
-#: bytes of the cut per predicted cell of the band (measured 831-846 B at scale, see the module docstring)
+#: bytes of the cut per predicted cell of the band (measured 831-846 B at scale)
 BYTES_PER_BAND_CELL = 1_000
 #: bytes per node of a structured box for the band's node bitmap and its word counts (n / 4 bytes)
 BYTES_PER_BOX_NODE = 0.25
@@ -201,9 +132,9 @@ TETS_PER_BAND_CELL = 4.0
 #: the active tets of a cut scaled to another spacing as spacing**-2, times this (tets times
 #: spacing**2 measured within 4 % from spacing 0.04 to 0.01)
 ACTIVE_TETS_MARGIN = 1.1
-#: the fixed part of what the stages after the cut add (measured about 16 MB, see the module docstring)
+#: the fixed part of what the stages after the cut add (measured about 16 MB)
 SOLVE_BASE_BYTES = 64 * 2**20
-#: bytes the stages after the cut add per active tet, by default (measured up to 969 B, see the module docstring)
+#: bytes the stages after the cut add per active tet, by default (measured up to 969 B)
 BYTES_PER_ACTIVE_TET = 850
 #: peak bytes of a meshed surface problem per surface node (measured 2.2 KB)
 BYTES_PER_SURFACE_NODE = 2_500

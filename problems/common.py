@@ -9,16 +9,16 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.geometry.levelset import FunctionLevelSet, LevelSet
 from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
+from cutfem.geometry.levelset import FunctionLevelSet, LevelSet
 from cutfem.geometry.signed_distance import SignedDistance
 from cutfem.geometry.markers import NEG, POS
 from cutfem.geometry.box import structured_box
-from cutfem.geometry.keys import unique_keys
-from cutfem.geometry.mesh import unstructured_box
-from cutfem.runs.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
-from cutfem.geometry.surface import read_surface
+from cutfem.geometry.mesh import unique_keys, unstructured_box
+from cutfem.runs.registry import Param, ProblemError
+from cutfem.runs.runner import Timer  # noqa: F401  (Timer re-exported for the problems)
 from cutfem.geometry.surface_meshes import TORUS_FAMILIES, sphere_mesh, torus_mesh
+from cutfem.geometry.surface import read_surface
 
 SURFACES = ("torus", "sphere", "ellipsoid")
 
@@ -375,7 +375,7 @@ def pin_unseen_nodes(K, B, space):
     face at the node is shared by two active tets, the face stabilization does not reach it either:
     its row and column of K are zero, or round-off (1.8e-32 against a median diagonal of 0.57 for
     nodes inside a cube on grid planes at spacing 0.1, exactly 0 outside), whatever tau_F
-    (cutfem.solvers.diagnose names this for a system solved directly).  Its value changes nothing on S_h, so
+    (cutfem.solvers.solve names this for a system solved directly).  Its value changes nothing on S_h, so
     these unknowns are removed by fixing them at 0: their rows and columns (round-off at most)
     replaced by a diagonal entry (the mean diagonal, to keep K's scale for the iterative solvers)
     and a zero right-hand side, the numbering unchanged for the multigrid.  Only rows whose

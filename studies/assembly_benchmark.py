@@ -51,7 +51,8 @@ from cutfem.fem.forms import assemble, face_jump_penalty, mass, tangential_stiff
 from cutfem.geometry.shapes import Torus
 from cutfem.memory import InsufficientMemoryError
 from cutfem.geometry.box import structured_box
-from cutfem.runs.registry import ProblemError, check_output, text_table
+from cutfem.runs.registry import ProblemError
+from cutfem.runs.runner import check_output, text_table
 from cutfem.fem.spaces import CutP1Space
 
 from .common import PAGE_WIDTH, Progress, add_size_arguments, figure_style, pick, save_csv, save_json

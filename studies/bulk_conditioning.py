@@ -17,7 +17,7 @@ the congruence keeps the inertia), and
 
 * ``kappa`` = max |lambda| / min |lambda|, the 2-norm condition number of S (lambda_max / lambda_min
   when S is positive definite);
-* ``indefinite``: S (and K) has a negative eigenvalue (:func:`cutfem.solvers.solve.condition_number`: the
+* ``indefinite``: S (and K) has a negative eigenvalue (:func:`cutfem.solvers.diagnose.condition_number`: the
   signs of the symmetric LDL^T pivots, or the dense spectrum for small matrices).
 
 Indefinite matrices keep their finite condition number in the tables and figures, and are marked
@@ -57,8 +57,9 @@ from cutfem.geometry.markers import NEG
 from cutfem.solvers.diagnose import condition_number
 from cutfem.fem.spaces import CutP1Space
 from cutfem.problems.common import background_for
+from cutfem.runs.convergence import new_figure
 
-from .common import PAGE_WIDTH, figure_style, new_figure, pick, save_csv, save_figure, save_json, study_main
+from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, study_main
 
 NAME = "bulk_conditioning"
 OUTPUTS = [NAME, f"{NAME}_shifts", f"{NAME}_h"]
@@ -115,7 +116,7 @@ class PoissonParts:
 
 
 def spectrum_record(K) -> dict:
-    """The record of one matrix from :func:`cutfem.solvers.solve.condition_number`: ``kappa`` (the 2-norm
+    """The record of one matrix from :func:`cutfem.solvers.diagnose.condition_number`: ``kappa`` (the 2-norm
     condition number of |D|^{-1/2} K |D|^{-1/2}), ``indefinite``, ``singular``, the eigenvalue of
     least magnitude and the largest one (of the scaled matrix), and how many diagonal entries are
     negative (basis functions of negative energy)."""

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import functools
 import json
 import re
 import sys
@@ -21,9 +22,10 @@ from pathlib import Path
 
 import numpy as np
 
-from cutfem.runs.convergence import SIGNIFICANT_DIGITS, new_figure, significant  # noqa: F401  (the studies' figures and tables)
+from cutfem.runs.convergence import SIGNIFICANT_DIGITS, save_reproducible, significant, style
 from cutfem.memory import configure
-from cutfem.runs.registry import ProblemError, check_output, compile_notice, jsonable, text_table
+from cutfem.runs.registry import ProblemError
+from cutfem.runs.runner import check_output, compile_notice, jsonable, text_table
 
 SIZES = ("tiny", "quick", "full")
 
@@ -142,12 +144,9 @@ PAGE_WIDTH = 6.3
 def figure_style(plot):
     """Decorator: run a plotting function with the 8 pt fonts of :data:`cutfem.runs.convergence.STYLE`
     (a ``matplotlib.rc_context``; the settings before it are restored)."""
-    import functools
 
     @functools.wraps(plot)
     def styled(*args, **kwargs):
-        from cutfem.runs.convergence import style
-
         with style():
             return plot(*args, **kwargs)
 
@@ -171,8 +170,6 @@ def save_figure(fig, out: Path, name: str) -> list[Path]:
     """Save a figure as PNG (200 dpi) and PDF at its own size (the size it prints at: no tight
     bounding box), without dates or version strings, so that an unchanged figure gives unchanged
     files."""
-    from cutfem.runs.convergence import save_reproducible
-
     out = Path(out)
     return [save_reproducible(fig, out / f"{name}.png", dpi=200), save_reproducible(fig, out / f"{name}.pdf", dpi=200)]
 

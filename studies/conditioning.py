@@ -2,7 +2,7 @@
 
 The system matrix of docs/math.md §3 on a cut surface is K = M + tau_F J_F (tau_E = 0, face term without a
 power of h as in the paper).  We report the 2-norm condition number of the diagonally scaled matrix
-D^{-1/2} K D^{-1/2} (:func:`cutfem.solvers.solve.condition_number`), for tau_F = 1/10 (stabilized) and
+D^{-1/2} K D^{-1/2} (:func:`cutfem.solvers.diagnose.condition_number`), for tau_F = 1/10 (stabilized) and
 tau_F = 0 (K = M, the surface mass matrix on the active nodes).
 
 1. Against h: the torus (R, r) = (1, 1/2) on the paper's box [-1.6,1.6]^2 x [-0.6,0.6] cut into
@@ -26,7 +26,7 @@ small matrices) and report
   |<v_min, phi_h>| (in the scaled coordinates) of the null vector with phi_h;
 * ``kappa_effective``: lambda_max over the smallest eigenvalue above the threshold, the condition
   number on the complement of the kernel (what CG sees on a consistent system);
-* ``kappa_solve_module``: :func:`cutfem.solvers.solve.condition_number` for comparison.  For the stabilized
+* ``kappa_solve_module``: :func:`cutfem.solvers.diagnose.condition_number` for comparison.  For the stabilized
   matrix it agrees with ``kappa``; for the singular unstabilized matrix it returns a finite number,
   sometimes huge (~1e17, written as infinite: beyond 1e13 it is 1 over round-off) and sometimes
   equal to ``kappa_effective`` (its shift-invert Lanczos at 0 on a singular factorization can miss
@@ -54,8 +54,9 @@ from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.solvers.diagnose import condition_number, scaled
 from cutfem.fem.spaces import CutP1Space
 from cutfem.problems.common import background_for
+from cutfem.runs.convergence import significant
 
-from .common import PAGE_WIDTH, figure_style, pick, save_figure, save_json, save_latex_table, significant, study_main
+from .common import PAGE_WIDTH, figure_style, pick, save_figure, save_json, save_latex_table, study_main
 
 NAME = "conditioning"
 OUTPUTS = [NAME, f"{NAME}_h", f"{NAME}_shifts", f"{NAME}_table"]

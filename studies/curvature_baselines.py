@@ -36,8 +36,9 @@ from cutfem.fem.norms import discrete_error, fitted_rate
 from cutfem.geometry.shapes import Torus
 from cutfem.fem.spaces import SurfaceP1Space
 from cutfem.geometry.surface_meshes import TORUS_FAMILIES, torus_mesh
+from cutfem.runs.convergence import significant
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, significant, study_main, torus_family
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main, torus_family
 
 NAME = "curvature_baselines"
 OUTPUTS = [NAME, f"{NAME}_errors", f"{NAME}_time", f"{NAME}_rates"]

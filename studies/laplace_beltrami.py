@@ -24,8 +24,9 @@ from pathlib import Path
 
 import cutfem
 from cutfem.fem.norms import fitted_rate
+from cutfem.runs.convergence import significant
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, significant, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
 
 NAME = "laplace_beltrami"
 OUTPUTS = [NAME, f"{NAME}_table"]

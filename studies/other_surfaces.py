@@ -31,10 +31,11 @@ import cutfem
 from cutfem.fem.norms import fitted_rate
 from cutfem.geometry.levelset import FunctionLevelSet
 from cutfem.geometry.shapes import Sphere, Torus
-from cutfem.geometry.surface import write_surface
 from cutfem.geometry.surface_meshes import sphere_mesh
+from cutfem.geometry.surface import write_surface
+from cutfem.runs.convergence import significant
 
-from .common import ROUNDOFF_INTEGRAL, PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_figure, save_json, save_latex_table, significant, study_main
+from .common import ROUNDOFF_INTEGRAL, PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_figure, save_json, save_latex_table, study_main
 
 NAME = "other_surfaces"
 OUTPUTS = [NAME, f"{NAME}_convergence", f"{NAME}_pictures", f"{NAME}_table", f"{NAME}_sphere"]

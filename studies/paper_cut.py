@@ -14,7 +14,7 @@ tau_F = 1/10 (no power of h) and tau_E = 0.
   figure with least-squares rates.
 
 At spacings 0.1 and finer some background nodes lie exactly on the torus (e.g. (1.5, 0, 0)): the
-cut's zero rule (cutfem.geometry.nodal_values) is exercised; the number of such nodes is recorded per level.
+cut's zero rule (cutfem.geometry.cut) is exercised; the number of such nodes is recorded per level.
 """
 
 from __future__ import annotations
@@ -24,10 +24,10 @@ from pathlib import Path
 import numpy as np
 
 import cutfem
-from cutfem.runs.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
+from cutfem.runs.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle, significant
 from cutfem.geometry.shapes import Torus
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_csv, save_figure, save_json, save_latex_table, significant, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, fmt_roundoff, pick, read_png, roundoff_zero, save_csv, save_figure, save_json, save_latex_table, study_main
 from .paper_meshed import offscreen_plotter
 
 NAME = "paper_cut"

@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 
 import cutfem
-from cutfem.runs.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle
+from cutfem.runs.convergence import log_ticks, loglog_with_rates, new_figure, rate_triangle, significant
 from cutfem.geometry.surface_meshes import TORUS_FAMILIES, torus_mesh
 
-from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, roundoff_zero, save_csv, save_figure, save_json, save_latex_table, significant, study_main, torus_family
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, read_png, roundoff_zero, save_csv, save_figure, save_json, save_latex_table, study_main, torus_family
 
 NAME = "paper_meshed"
 R_MAJOR, R_MINOR = 1.0, 0.5

@@ -1,34 +1,11 @@
-"""Side by side with a peer: ngsxfem (NGSolve + xfem) on the identical cut mean curvature problem.
+"""Side by side with a peer: cutfem and ngsxfem (NGSolve + xfem) on the identical cut mean
+curvature and fictitious-domain Poisson problems, and the meshed torus against the cotangent
+Laplacian.
 
-The cut problem (docs/math.md §3, §6.3)
--------------------------------
-Both codes solve, on the paper's box [-1.6,1.6]^2 x [-0.6,0.6] with the torus R = 1, r = 1/2:
-
-* the same tetrahedra: the NGSolve mesh is built from cutfem's :class:`~cutfem.geometry.mesh.StructuredBox`
-  ``points``/``tets`` (six Kuhn tets per cube) with ``netgen.meshing.Mesh.AddPoints/AddElements``:
-  point k of cutfem = vertex k of NGSolve, tet k = element k.  Netgen's tetrahedra are negatively
-  oriented in the usual sense (checked on ``netgen.csg.unit_cube``: all its tets have det < 0), so
-  by default vertices 1 and 2 of each tet are swapped; the boundary triangles of the box (found
-  among the tets of the boundary cells, not from the whole face topology) are added, outward, in
-  one face descriptor.  Volume integrals, the facet normal (outward either way, and it enters
-  squared) and so the discrete problem do not depend on the orientation;
-* the same P1 level set: the nodal values of rho computed and snapped exactly as cutfem's cut does
-  (``cutfem.geometry.cut.nodal_values`` + the zero rule's snap) are copied into an order-1 ``H1``
-  GridFunction (its dofs are the vertices);
-* the same active mesh and form: ``CutInfo(mesh, lset)``, the ``IF`` elements, the H1 space with
-  ``dgjumps=True`` (without it the facet couplings are missing from the sparsity pattern and
-  assembly stops with "illegal dnums") compressed to the dofs of the IF elements,
-  ``RestrictedBilinearForm`` with the mass (H, v) on ``dCut(lset, IF)`` and the ghost penalty
-  tau_F ([n_F.grad u], [n_F.grad v]) on ``dx(skeleton=True)`` over the facets between two IF
-  elements (``GetFacetsWithNeighborTypes(..., bnd_val_a=False, bnd_val_b=False, use_and=True)``),
-  jump ``grad u - grad u.Other()`` dotted with ``specialcf.normal(3)``, tau_F = 0.1, no power of h;
-  right-hand side ((P_h grad v)_k, 1)_{S_h} = (grad_{S_h} x_k, grad_{S_h} v)_{S_h} with
-  P_h = I - n_h n_h^T, n_h = grad phi_h / |grad phi_h|;
-* the same error: the L2(S_h) norm of H_h - H^e, H^e = (k1 + k2)(p(x)) n(p(x)) written as an
-  NGSolve CoefficientFunction, by ``dCut`` quadrature of order 4 (cutfem: degree 4 on the triangles
-  of S_h).
-
-Each record checks that both codes have the same number of active tets, ghost faces and unknowns
+Both codes solve the same discrete problems: ngsxfem on cutfem's own tets, level set and penalties
+(:mod:`cutfem.studies.peers_ngsxfem` says how, and how it meets the exact zeros of the level set:
+the zero rules ``+eps`` and ``+eps-cutfem-active``, and the ``shifted`` torus).  Each record
+checks that both codes have the same number of active tets, ghost faces and unknowns
 (``same_problem``).  cutfem runs through ``cutfem.run("mean-curvature-cut", levels=[s], tau_f=0.1,
 solver="direct")``, so that both codes solve with a sparse direct factorization.
 
@@ -42,28 +19,6 @@ spacing 0.2: the difference is 2.4e-7, 2.1e-9, 6.3e-11 at quadrature degree 4, 6
 tets handed to NGSolve in cutfem's own vertex order (``orientation="cutfem"``) it is 5e-15 at
 degree 4.  The study repeats the ngsxfem solve in cutfem's vertex order at spacings >= 0.05
 (``same_vertex_order``).
-
-Zero nodal values
------------------
-At spacing 0.1 and finer, nodes of the paper's box lie exactly on the torus (after cutfem's snap:
-96 nodes at 0.1).  cutfem counts them as outside (see :mod:`cutfem.geometry.cut`).  ngsxfem 2.1 refuses such
-a level set: ``CutInfo`` raises "You tried to cut a simplex with a plain geometry lset function"
-(after printing the values of the offending sub-simplex; the study captures that output).  So on
-the paper's own levels the peer has no answer; the study records the message and runs three
-variants:
-
-* ``+eps``: the zero values replaced by +1e-14 (what "zero counts as outside" means in the limit).
-  ngsxfem then also activates the tets whose piece cutfem drops because it collapses to a point or
-  a segment (a negative node, no positive node, one or two zeros): more active tets and ghost
-  faces, a different discrete problem -- the errors differ by 4.9 % at 0.1 and 1.7 % at 0.05;
-* ``+eps-cutfem-active``: as above, with those collapsed tets removed from the IF elements (they
-  are found around the zero nodes only): cutfem's discrete problem up to O(eps); this is the
-  ngsxfem result reported for the paper levels;
-* ``shifted``: the torus moved by the tiny offset 1e-6 (sqrt 2, sqrt 3, sqrt 5)/3 in both codes (box
-  given explicitly), so that no node is zero and both codes run unchanged.  The shifted problem has
-  a different active set from the paper's (13056 against 12452 active tets at 0.1: the collapsed
-  tets come back), hence a different error (0.5031 against 0.4819 at 0.1), and the two codes agree
-  on it as closely as on the unshifted one.
 
 Timings (seconds; quick and full keep the faster of two runs at spacings >= 0.05, one run below)
 -----------------------------------------------------------------------------------------------
@@ -85,8 +40,9 @@ background mesh (8 times more per halving of the spacing) while cutfem visits on
 the surface (4 times more).
 
 Memory: the NGSolve side needs about 350 bytes per background tet (1.86 GB peak at 4.7M tets,
-spacing 0.025); a level whose estimate (:data:`BYTES_PER_TET`) exceeds 90 % of the available
-memory is skipped for ngsxfem with the reason recorded (``ngsxfem_skipped``).
+spacing 0.025); a level whose estimate (:data:`~cutfem.studies.peers_ngsxfem.BYTES_PER_TET`)
+exceeds 90 % of the available memory is skipped for ngsxfem with the reason recorded
+(``ngsxfem_skipped``).
 
 The meshed case
 ---------------
@@ -101,11 +57,10 @@ Fictitious-domain Poisson (``--problem poisson``; ``both`` runs the two comparis
 -----------------------------------------------------------------------------------
 ``cutfem.run("poisson-cut")`` (docs/math.md §8: unit ball in its default structured box, gamma = 10
 with h_T, gamma_g = 0.1 with h_F^1 on the ghost faces of NEG, u = sin(pi x/2) cos(pi y/3) exp(z/2))
-against :func:`ngsxfem_poisson` on the same tets, the same snapped P1 level set (zeros -> +EPS and
-the collapsed tets not counted as cut, as above), h_T from netgen's element table, h_F from the
-facet normal (:func:`kuhn_face_h`: exact on a Kuhn lattice, where NGSolve offers no longest edge
-of a facet), the same quadrature degrees (2 for the form and the volume load, 4 for the Nitsche
-load and the errors).  Solvers: each code's fastest for this SPD system -- cutfem's default, CG
+against :func:`~cutfem.studies.peers_ngsxfem.ngsxfem_poisson` on the same tets, the same snapped P1
+level set (zeros -> +EPS and the collapsed tets not counted as cut), the same h_T and h_F, the same
+quadrature degrees (2 for the form and the volume load, 4 for the Nitsche load and the errors).
+Solvers: each code's fastest for this SPD system -- cutfem's default, CG
 with the geometric multigrid on the nested Kuhn lattices; NGSolve's CG with Jacobi ("local"; its
 multigrid needs a mesh hierarchy that an imported mesh does not have, BDDC on P1 keeps every
 vertex in the coarse space, i.e. a direct solve, CG with h1amg stops at a wrong answer at 40k
@@ -127,17 +82,27 @@ from pathlib import Path
 
 import numpy as np
 
+import cutfem
+from cutfem.fem.norms import discrete_error
+from cutfem.fem.spaces import SurfaceP1Space
+from cutfem.geometry.cut import cut_mesh
+from cutfem.geometry.shapes import Sphere, Torus
+from cutfem.geometry.markers import NEG
+from cutfem.geometry.surface_meshes import torus_mesh
+from cutfem.problems.common import background_for
+from cutfem.runs.convergence import new_figure
+from cutfem.solvers.solve import DIRECT_LIMIT
+
+from .baselines import cotangent_mean_curvature
 from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, study_main, torus_family
+from .peers_ngsxfem import (BYTES_PER_TET, EPS, INSTALL, ORDER, POISSON_GAMMA, POISSON_GAMMA_G, TAU_F, NgBackground,
+                            available_memory, ngsxfem_mean_curvature, ngsxfem_poisson, peer_missing, peer_versions)
 
 NAME = "peers"
 OUTPUTS = [NAME, f"{NAME}_meshed"]  # peers.json/.csv/.png/.pdf, peers_meshed.csv
 POISSON_NAME = f"{NAME}_poisson"  # --problem poisson: peers_poisson.json/.csv
-INSTALL = 'install with pip install -e ".[peers]"'
 BOX = "-1.6,-1.6,-0.6,1.6,1.6,0.6"
-TAU_F = 0.1
 TAU_E = 0.1
-ORDER = 4
-EPS = 1e-14
 SHIFT = 1e-6 * np.sqrt([2.0, 3.0, 5.0]) / 3.0
 SEED = 0
 FAMILIES = ("flipped", "perturbed")
@@ -149,315 +114,9 @@ SAME_ORDER_DOWN_TO = 0.05
 REPEAT_DOWN_TO = 0.05
 
 
-def peer_missing() -> str | None:
-    """None when ngsolve and xfem import, else the import error message."""
-    try:
-        import ngsolve  # noqa: F401
-        import xfem  # noqa: F401
-    except Exception as exc:  # ImportError, or a broken binary install
-        return f"{type(exc).__name__}: {exc}"
-    return None
-
-
 def _say(progress, msg):
     if progress:
         progress(msg)
-
-
-# ---------------------------------------------------------------------------------------------
-# the NGSolve side
-# ---------------------------------------------------------------------------------------------
-
-
-def kuhn_boundary_triangles(box) -> np.ndarray:
-    """(k, 3) node ids of the boundary triangles of a StructuredBox, outward oriented (right-hand
-    rule), found among the Kuhn tets of the boundary cells only."""
-    from cutfem.geometry.numbering import TET_FACES
-
-    tris = []
-    nc = box.cells
-    for axis in range(3):
-        others = [d for d in range(3) if d != axis]
-        ga, gb = np.meshgrid(np.arange(nc[others[0]]), np.arange(nc[others[1]]), indexing="ij")
-        for side, cell_layer in ((0, 0), (1, nc[axis] - 1)):
-            ijk = np.empty(ga.shape + (3,), dtype=np.int64)
-            ijk[..., axis], ijk[..., others[0]], ijk[..., others[1]] = cell_layer, ga, gb
-            ijk = ijk.reshape(-1, 3)
-            cells = ijk[:, 0] + nc[0] * (ijk[:, 1] + nc[1] * ijk[:, 2])
-            tets = box.cell_tets(cells)
-            level = side * nc[axis]
-            for face in TET_FACES:
-                f = tets[:, face]
-                on = np.all(box.node_index(f)[..., axis] == level, axis=1)
-                tris.append(f[on])
-    tri = np.concatenate(tris)
-    p = box.node_coordinates(tri)
-    nrm = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
-    centre = 0.5 * (box.lower + box.upper)
-    inward = np.einsum("ij,ij->i", nrm, centre - p[:, 0]) > 0
-    tri[inward, 1], tri[inward, 2] = tri[inward, 2], tri[inward, 1].copy()
-    return tri
-
-
-def ngsolve_mesh(box, orientation="netgen"):
-    """The NGSolve mesh of exactly the tets of ``box`` (vertex k = point k, element k = tet k).
-
-    ``orientation``: "netgen" (netgen's convention, negative determinant: vertices 1 and 2 of
-    cutfem's positive tets swapped; boundary triangles outward by the right-hand rule) or "cutfem"
-    (cutfem's vertex order as is, boundary triangles reversed to match).  Volume integrals and the
-    form do not depend on it; the ngsxfem quadrature on S_h does, through the diagonal it picks to
-    split quadrilateral pieces (see the module docstring).
-    """
-    import netgen.meshing as nm
-    import ngsolve
-
-    if orientation not in ("netgen", "cutfem"):
-        raise ValueError(f"orientation must be 'netgen' or 'cutfem', got {orientation!r}")
-    tets = box.tets[:, [0, 2, 1, 3]] if orientation == "netgen" else box.tets
-    tri = kuhn_boundary_triangles(box)
-    if orientation == "cutfem":
-        tri = tri[:, ::-1]
-    ngmesh = nm.Mesh(dim=3)
-    ngmesh.AddPoints(np.ascontiguousarray(box.points, dtype=float))
-    fd = ngmesh.Add(nm.FaceDescriptor(surfnr=1, domin=1, domout=0, bc=1))
-    ngmesh.AddElements(dim=3, index=1, data=np.ascontiguousarray(tets, dtype=np.int32), base=0)
-    ngmesh.AddElements(dim=2, index=fd, data=np.ascontiguousarray(tri, dtype=np.int32), base=0)
-    return ngsolve.Mesh(ngmesh)
-
-
-def torus_exact_cf(torus):
-    """H^e = (k1 + k2)(p(x)) n(p(x)) of cutfem's Torus as an NGSolve CoefficientFunction."""
-    from ngsolve import CF, sqrt, x, y, z
-
-    R, r = torus.R, torus.r
-    cx, cy, cz = (float(c) for c in torus.center)
-    X, Y, Z = x - cx, y - cy, z - cz
-    s = sqrt(X * X + Y * Y)
-    d = sqrt(Z * Z + (s - R) * (s - R))
-    cosp = (s - R) / d
-    m = CF(((s - R) / d * X / s, (s - R) / d * Y / s, Z / d))
-    return (R + 2 * r * cosp) / (r * (R + r * cosp)) * m
-
-
-def cutfem_nodal_values(box, levelset) -> np.ndarray:
-    """phi at every node of ``box``, with cutfem's snap of near-zero values to exactly zero."""
-    from cutfem.geometry.nodal_values import snapped_nodal_values
-
-    return snapped_nodal_values(box, levelset)
-
-
-def tets_at_nodes(box, node_ids) -> np.ndarray:
-    """Ids of the tets of a StructuredBox that contain one of ``node_ids`` (from the <= 8 cells
-    around each node, without building the whole mesh)."""
-    ijk = box.node_index(np.asarray(node_ids, dtype=np.int64))
-    offsets = np.array([[(c >> 0) & 1, (c >> 1) & 1, (c >> 2) & 1] for c in range(8)]) - 1
-    cells = (ijk[:, None, :] + offsets[None, :, :]).reshape(-1, 3)
-    cells = cells[np.all((cells >= 0) & (cells < box.cells), axis=1)]
-    cell_ids = np.unique(cells[:, 0] + box.cells[0] * (cells[:, 1] + box.cells[1] * cells[:, 2]))
-    tet_ids = (6 * cell_ids[:, None] + np.arange(6)).reshape(-1)
-    nodes = box.cell_tets(cell_ids)
-    return tet_ids[np.isin(nodes, node_ids).any(axis=1)]
-
-
-def collapsed_tets(box, values) -> np.ndarray:
-    """Tets that ngsxfem (with the zeros of ``values`` made +eps) takes as cut but cutfem does not:
-    a negative node, no positive node, and one or two zero nodes (their piece collapses to a point
-    or a segment under cutfem's zero rule).  Only tets around zero nodes are visited."""
-    zero = np.flatnonzero(values == 0)
-    if zero.size == 0:
-        return np.zeros(0, dtype=np.int64)
-    ids = tets_at_nodes(box, zero)
-    v = values[box.cell_tets(ids // 6).reshape(-1, 6, 4)[np.arange(ids.size), ids % 6]]
-    nz = np.sum(v == 0, axis=1)
-    return ids[np.any(v < 0, axis=1) & ~np.any(v > 0, axis=1) & (nz >= 1) & (nz <= 2)]
-
-
-class _CapturedStdout:
-    """Capture what C++ code writes to file descriptor 1 (ngsxfem prints before it raises)."""
-
-    def __enter__(self):
-        import ctypes
-        import os
-        import sys
-        import tempfile
-
-        sys.stdout.flush()
-        self._libc = ctypes.CDLL(None)
-        self._libc.fflush(None)
-        self._file = tempfile.TemporaryFile()
-        self._saved = os.dup(1)
-        os.dup2(self._file.fileno(), 1)
-        self.text = ""
-        return self
-
-    def __exit__(self, *exc):
-        import os
-
-        self._libc.fflush(None)
-        os.dup2(self._saved, 1)
-        os.close(self._saved)
-        self._file.seek(0)
-        self.text = self._file.read().decode(errors="replace")
-        self._file.close()
-        return False
-
-
-def _superlu_same_as_cutfem(mat):
-    """Factorize an NGSolve sparse matrix with cutfem's DirectSolver; (solver, CSR matrix)."""
-    import scipy.sparse as sp
-
-    from cutfem.solvers.direct import DirectSolver
-
-    vals, cols, rows = mat.CSR()
-    A = sp.csr_matrix((np.array(vals), np.array(cols), np.array(rows)), shape=(mat.height, mat.width))
-    if sp.triu(A, 1).nnz == 0:  # symmetric storage: lower triangle only
-        A = (A + A.T - sp.diags(A.diagonal())).tocsr()
-    return DirectSolver(A), A
-
-
-#: bytes per background tet that the NGSolve side needs (measured: 1.86 GB peak for the whole pipeline at 4.7M tets,
-#: spacing 0.025, including cutfem's materialized points/tets), with a margin
-BYTES_PER_TET = 400
-
-
-def available_memory() -> float | None:
-    """MemAvailable in bytes (Linux), else None."""
-    try:
-        for line in Path("/proc/meminfo").read_text().splitlines():
-            if line.startswith("MemAvailable:"):
-                return float(line.split()[1]) * 1024
-    except OSError:
-        return None
-    return None
-
-
-class NgBackground:
-    """cutfem's structured background box and the NGSolve mesh of the same tets, with the time
-    spent building both (materializing points/tets included)."""
-
-    def __init__(self, spacing, levelset, box=None, orientation="netgen"):
-        from cutfem.problems.common import background_for
-
-        t0 = time.perf_counter()
-        self.box = background_for(levelset, spacing, "structured", box)  # a fresh box: nothing cached
-        self.mesh = ngsolve_mesh(self.box, orientation)
-        self.orientation = orientation
-        self.seconds = time.perf_counter() - t0
-        self.box.__dict__.pop("tets", None)  # free the materialized tets (NGSolve has its own copy)
-        gc.collect()
-
-
-def ngsxfem_mean_curvature(spacing, levelset, box=None, zero_rule="none", tau_f=TAU_F, order=ORDER,
-                           inverse="sparsecholesky", superlu=True, background=None, orientation="netgen") -> dict:
-    """Solve the cut mean curvature problem with ngsxfem on cutfem's structured background mesh.
-
-    ``zero_rule``: "none" (the snapped values as they are: ngsxfem 2.1 raises on exact zeros),
-    "+eps" (zeros -> +EPS), "+eps-cutfem-active" (and the IF elements restricted to cutfem's
-    active tets).  ``background``: a :class:`NgBackground` to reuse (its build time is reported as
-    the mesh time), else one is built with ``orientation``.  ``superlu``: also solve with cutfem's
-    DirectSolver on the exported matrix.  Returns a record with the error, sizes and stage times.
-    """
-    import ngsolve as ngs
-    from ngsolve import H1, GridFunction, Id, InnerProduct, Integrate, LinearForm, OuterProduct, grad, specialcf, sqrt
-    from xfem import IF, CutInfo, GetDofsOfElements, GetFacetsWithNeighborTypes, RestrictedBilinearForm, dCut
-
-    T = {}
-    reused = background is not None
-    if background is None:
-        background = NgBackground(spacing, levelset, box, orientation)
-    bg, mesh = background.box, background.mesh
-    T["mesh"] = background.seconds
-
-    t0 = time.perf_counter()
-    values = cutfem_nodal_values(bg, levelset)
-    zero_nodes = int(np.sum(values == 0))
-    snapped = values
-    if zero_rule != "none":
-        values = values.copy()
-        values[values == 0] = EPS
-    V = H1(mesh, order=1)
-    lset = GridFunction(V)
-    lset.vec.FV().NumPy()[:] = values
-    T["levelset"] = time.perf_counter() - t0
-
-    rec = {"zero_rule": zero_rule, "zero_nodes": zero_nodes, "background_nodes": int(mesh.nv),
-           "background_tets": int(mesh.ne), "mesh_reused": reused, "orientation": background.orientation}
-    t0 = time.perf_counter()
-    try:
-        with _CapturedStdout() as cap:
-            ci = CutInfo(mesh, lset)
-    except Exception as exc:  # ngsxfem refuses level sets with exact zeros on sub-simplices
-        T["cut"] = time.perf_counter() - t0
-        rec.update(failed=f"{type(exc).__name__}: {str(exc).strip()}", printed=cap.text.split(), time=T)
-        return rec
-    els = ci.GetElementsOfType(IF)
-    if zero_rule == "+eps-cutfem-active":
-        els = ngs.BitArray(els)
-        drop = collapsed_tets(bg, snapped)
-        for k in drop.tolist():
-            els.Clear(k)
-        rec["dropped_collapsed_tets"] = int(drop.size)
-    facets = GetFacetsWithNeighborTypes(mesh, a=els, b=els, bnd_val_a=False, bnd_val_b=False, use_and=True)
-    Vf = H1(mesh, order=1, dgjumps=True)
-    Vc = ngs.Compress(Vf, GetDofsOfElements(Vf, els))
-    T["cut"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    u, v = Vc.TnT()
-    g = grad(lset)
-    n = g / sqrt(InnerProduct(g, g))
-    P = Id(3) - OuterProduct(n, n)
-    ds = dCut(levelset=lset, domain_type=IF, definedonelements=els, order=2)
-    dw = ngs.dx(skeleton=True, definedonelements=facets)
-    nF = specialcf.normal(3)
-    a = RestrictedBilinearForm(Vc, element_restriction=els, facet_restriction=facets, symmetric=True, check_unused=False)
-    a += u * v * ds
-    a += tau_f * InnerProduct(grad(u) - grad(u.Other()), nF) * InnerProduct(grad(v) - grad(v.Other()), nF) * dw
-    a.Assemble()
-    rhs = []
-    for k in range(3):
-        f = LinearForm(Vc)
-        f += (P * grad(v))[k] * ds
-        f.Assemble()
-        rhs.append(f)
-    T["assembly"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    inv = a.mat.Inverse(Vc.FreeDofs(), inverse=inverse)
-    H = []
-    for k in range(3):
-        gf = GridFunction(Vc)
-        gf.vec.data = inv * rhs[k].vec
-        H.append(gf)
-    T["solve"] = time.perf_counter() - t0
-    del inv
-
-    t0 = time.perf_counter()
-    Hh = ngs.CF(tuple(H))
-    diff = Hh - torus_exact_cf(levelset)
-    err = math.sqrt(Integrate(InnerProduct(diff, diff) * dCut(levelset=lset, domain_type=IF, definedonelements=els, order=order), mesh))
-    T["errors"] = time.perf_counter() - t0
-    area = Integrate(ngs.CF(1.0) * dCut(levelset=lset, domain_type=IF, definedonelements=els, order=1), mesh)
-
-    rec.update(
-        l2_error=err,
-        area=area,
-        dofs=int(Vc.ndof),
-        active_tets=int(els.NumSet()),
-        interior_faces=int(facets.NumSet()),
-        solver=inverse,
-        time=T,
-        total=sum(T.values()),
-    )
-    if superlu:
-        B = np.stack([f.vec.FV().NumPy() for f in rhs], axis=1)
-        t0 = time.perf_counter()
-        solver, _ = _superlu_same_as_cutfem(a.mat)
-        X = solver.solve(B)
-        rec["solve_superlu"] = time.perf_counter() - t0
-        Xn = np.stack([gf.vec.FV().NumPy() for gf in H], axis=1)
-        rec["superlu_vs_native"] = float(np.abs(X - Xn).max() / np.abs(Xn).max())
-    return rec
 
 
 # ---------------------------------------------------------------------------------------------
@@ -466,8 +125,6 @@ def ngsxfem_mean_curvature(spacing, levelset, box=None, zero_rule="none", tau_f=
 
 
 def cutfem_mean_curvature(spacing, levelset="torus", box=None, tau_f=TAU_F, solver="direct") -> dict:
-    import cutfem
-
     kw = {} if box is None else {"box": box}
     t0 = time.perf_counter()
     res = cutfem.run("mean-curvature-cut", levels=[spacing], surface=levelset, tau_f=tau_f, solver=solver, **kw)
@@ -478,15 +135,6 @@ def cutfem_mean_curvature(spacing, levelset="torus", box=None, tau_f=TAU_F, solv
     rec["total"] = sum(r["time"].values())
     rec["wall"] = wall
     return rec
-
-
-def _direct_limit():
-    try:
-        from cutfem.solvers.solve import DIRECT_LIMIT
-
-        return DIRECT_LIMIT
-    except ImportError:
-        return 20_000
 
 
 def _rel(a, b):
@@ -512,7 +160,7 @@ def _stage_ratios(ng, cf):
 
 def compare_level(spacing, variant="paper", progress=None, taskmanager=False, repeat=1) -> dict:
     """Both codes at one spacing.  ``variant``: "paper" (the torus at the origin; when nodal values
-    are zero, ngsxfem with the zero rules of the module docstring, the reported one being
+    are zero, ngsxfem with the zero rules of :mod:`cutfem.studies.peers_ngsxfem`, the reported one being
     "+eps-cutfem-active") or "shifted" (torus moved by SHIFT, box given).  ``taskmanager``: time the
     ngsxfem pipeline once more inside ``ngsolve.TaskManager()`` (all cores; mesh build reused).
     ``repeat``: run both codes' pipelines this many times and keep the fastest run of each (the
@@ -520,9 +168,6 @@ def compare_level(spacing, variant="paper", progress=None, taskmanager=False, re
     import os
 
     import ngsolve
-
-    from cutfem.geometry.shapes import Torus
-    from cutfem.problems.common import background_for
 
     if variant == "shifted":
         torus, box = Torus(center=tuple(SHIFT)), BOX
@@ -533,7 +178,7 @@ def compare_level(spacing, variant="paper", progress=None, taskmanager=False, re
     cf = min((cutfem_mean_curvature(spacing, torus, box) for _ in range(repeat)), key=lambda r: r["total"])
     gc.collect()
     out = {"spacing": spacing, "variant": variant, "cutfem": cf, "load_average": load, "repeat": repeat}
-    if cf["dofs"] > _direct_limit():  # cutfem's default solver is not the direct one here: time it too
+    if cf["dofs"] > DIRECT_LIMIT:  # cutfem's default solver is not the direct one here: time it too
         _say(progress, f"cut {variant} spacing {spacing}: cutfem, solver auto")
         r = cutfem_mean_curvature(spacing, torus, box, solver="auto")
         out["cutfem_auto"] = dict(r, rel_diff_to_direct=_rel(r["l2_error"], cf["l2_error"]))
@@ -588,176 +233,9 @@ def compare_level(spacing, variant="paper", progress=None, taskmanager=False, re
 # fictitious-domain Poisson (docs/math.md §8) in both codes
 # ---------------------------------------------------------------------------------------------
 
-#: the Poisson comparison: unit ball in cutfem's default structured box, its default penalties
-POISSON_GAMMA = 10.0
-POISSON_GAMMA_G = 0.1
-
-
-def poisson_exact_cf():
-    """(u, grad u, f) of cutfem's manufactured Poisson solution as NGSolve CoefficientFunctions:
-    u = sin(pi x/2) cos(pi y/3) exp(z/2), f = -Lap u = (pi^2/4 + pi^2/9 - 1/4) u."""
-    from ngsolve import CF, cos, exp, sin, x, y, z
-
-    a, b, c = math.pi / 2, math.pi / 3, 0.5
-    u = sin(a * x) * cos(b * y) * exp(c * z)
-    grad = CF((a * cos(a * x) * cos(b * y) * exp(c * z), -b * sin(a * x) * sin(b * y) * exp(c * z), c * u))
-    return u, grad, (a * a + b * b - c * c) * u
-
-
-def kuhn_face_h(spacing):
-    """h_F = the longest edge of a facet of a Kuhn lattice of the given spacing, as an NGSolve
-    CoefficientFunction on the skeleton (NGSolve has no longest-edge-of-the-facet function and no
-    vectorized facet-to-vertex table to build one from).  A facet of a Kuhn tet either lies in a
-    face of its cube (half a square: longest edge sqrt(2) s, normal along an axis, sum n_i^4 = 1) or
-    contains the cube's diagonal (edges s, sqrt(2) s, sqrt(3) s, normal (0, 1, -1)/sqrt(2) up to
-    permutation and sign, sum n_i^4 = 1/2); the normal tells them apart."""
-    from ngsolve import IfPos, specialcf
-
-    n = specialcf.normal(3)
-    n4 = n[0] ** 4 + n[1] ** 4 + n[2] ** 4
-    return IfPos(n4 - 0.75, math.sqrt(2.0) * spacing, math.sqrt(3.0) * spacing)
-
-
-def element_longest_edges(mesh) -> np.ndarray:
-    """(ne,) longest edge h_T of each tet of an NGSolve mesh (vectorized over netgen's element table)."""
-    tets = mesh.ngmesh.Elements3D().NumPy()["nodes"].astype(np.int64) - 1  # netgen's nodes are 1-based
-    p = np.asarray(mesh.ngmesh.Coordinates())
-    h = np.zeros(len(tets))
-    for i, j in ((0, 1), (0, 2), (0, 3), (1, 2), (1, 3), (2, 3)):
-        h = np.maximum(h, np.linalg.norm(p[tets[:, i]] - p[tets[:, j]], axis=1))
-    return h
-
-
-def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON_GAMMA_G, inverse="cg-local",
-                    background=None, also_direct=False) -> dict:
-    """Fictitious-domain Poisson (docs/math.md §8) with ngsxfem on cutfem's structured background.
-
-    The same problem as ``cutfem.run("poisson-cut")``: P1 on the tets that meet Omega_h
-    (``HASNEG``; the H1 space with ``dgjumps=True`` compressed to their dofs), the form
-    (grad u, grad v)_{Omega_h} - (n.grad u, v)_Gamma - (u, n.grad v)_Gamma + (gamma/h_T)(u, v)_Gamma
-    + gamma_g sum_F h_F ([n_F.grad u], [n_F.grad v])_F, n = grad phi_h/|grad phi_h|, h_T the longest
-    edge of the cut tet (an order-0 L2 GridFunction from netgen's element table), h_F the longest
-    edge of the facet (:func:`kuhn_face_h`), the ghost facets the interior facets between two
-    HASNEG tets of which one is cut (``GetFacetsWithNeighborTypes(a=HASNEG, b=cut)``).  Quadrature:
-    order 2 for the form and the volume load (cutfem: degree 2), order 4 for the Nitsche load and
-    the errors (cutfem: degree 4).  Zero nodal values (nodes on the sphere) are made +EPS, and the
-    tets whose piece of Gamma_h collapses under cutfem's zero rule (:func:`collapsed_tets`) are not
-    counted as cut for the ghost facets (their Gamma pieces have area O(EPS)).  ``inverse``: an
-    NGSolve direct inverse ("sparsecholesky", ...) or "cg-" + an NGSolve preconditioner name: CG to
-    a relative residual of 1e-10 (default "cg-local", Jacobi: the fastest here; "cg-h1amg" stops at a
-    wrong answer at 40k unknowns, L2 error 1.1e-2 against 9.8e-4, "cg-bddc" on P1 is a direct solve and slower).  ``also_direct``: time NGSolve's
-    sparse Cholesky on the same system too (``solve_direct``, not in the total).  Returns errors,
-    sizes and stage times.
-    """
-    import ngsolve as ngs
-    from ngsolve import H1, L2, GridFunction, InnerProduct, Integrate, LinearForm, grad, specialcf, sqrt
-    from xfem import HASNEG, IF, NEG, CutInfo, GetDofsOfElements, GetFacetsWithNeighborTypes, RestrictedBilinearForm, dCut
-
-    from cutfem.geometry.shapes import Sphere
-
-    levelset = Sphere() if levelset is None else levelset
-    T = {}
-    if background is None:
-        background = NgBackground(spacing, levelset)
-    bg, mesh = background.box, background.mesh
-    T["mesh"] = background.seconds
-
-    t0 = time.perf_counter()
-    snapped = cutfem_nodal_values(bg, levelset)
-    values = snapped.copy()
-    values[values == 0] = EPS
-    lset = GridFunction(H1(mesh, order=1))
-    lset.vec.FV().NumPy()[:] = values
-    T["levelset"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    ci = CutInfo(mesh, lset)
-    hasneg = ci.GetElementsOfType(HASNEG)
-    cut = ngs.BitArray(ci.GetElementsOfType(IF))
-    drop = collapsed_tets(bg, snapped)
-    for k in drop.tolist():  # only around the nodes on the sphere
-        cut.Clear(k)
-    ghost = GetFacetsWithNeighborTypes(mesh, a=hasneg, b=cut, bnd_val_a=False, bnd_val_b=False, use_and=True)
-    Vf = H1(mesh, order=1, dgjumps=True)
-    V = ngs.Compress(Vf, GetDofsOfElements(Vf, hasneg))
-    hT = GridFunction(L2(mesh, order=0))
-    hT.vec.FV().NumPy()[:] = element_longest_edges(mesh)
-    T["cut"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    u_ex, grad_ex, f = poisson_exact_cf()
-    u, v = V.TnT()
-    g = grad(lset)
-    n = g / sqrt(InnerProduct(g, g))
-    dxn = dCut(levelset=lset, domain_type=NEG, definedonelements=hasneg, order=2)
-    ds = dCut(levelset=lset, domain_type=IF, definedonelements=cut, order=2)
-    ds4 = dCut(levelset=lset, domain_type=IF, definedonelements=cut, order=4)
-    dw = ngs.dx(skeleton=True, definedonelements=ghost)
-    nF = specialcf.normal(3)
-    a = RestrictedBilinearForm(V, element_restriction=hasneg, facet_restriction=ghost, symmetric=True, check_unused=False)
-    a += InnerProduct(grad(u), grad(v)) * dxn
-    a += (-InnerProduct(grad(u), n) * v - InnerProduct(grad(v), n) * u + gamma / hT * u * v) * ds
-    a += gamma_g * kuhn_face_h(spacing) * InnerProduct(grad(u) - grad(u.Other()), nF) * InnerProduct(grad(v) - grad(v.Other()), nF) * dw
-    pre = ngs.Preconditioner(a, inverse[3:]) if inverse.startswith("cg-") else None
-    a.Assemble()
-    b = LinearForm(V)
-    b += f * v * dxn
-    b += u_ex * (-InnerProduct(grad(v), n) + gamma / hT * v) * ds4
-    b.Assemble()
-    T["assembly"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    if pre is None:
-        inv = a.mat.Inverse(V.FreeDofs(), inverse=inverse)
-    else:
-        inv = ngs.solvers.CGSolver(a.mat, pre.mat, tol=1e-10, maxiter=5000)
-    uh = GridFunction(V)
-    uh.vec.data = inv * b.vec
-    T["solve"] = time.perf_counter() - t0
-    iterations = getattr(inv, "iterations", 0)
-    del inv
-    extra = {}
-    if also_direct:
-        t0 = time.perf_counter()
-        ud = GridFunction(V)
-        ud.vec.data = a.mat.Inverse(V.FreeDofs(), inverse="sparsecholesky") * b.vec
-        extra["solve_direct"] = time.perf_counter() - t0
-        x, xd = uh.vec.FV().NumPy(), ud.vec.FV().NumPy()
-        extra["direct_vs_solver"] = float(np.abs(x - xd).max() / np.abs(xd).max())
-        del ud
-
-    t0 = time.perf_counter()
-    dxe = dCut(levelset=lset, domain_type=NEG, definedonelements=hasneg, order=4)
-    e = uh - u_ex
-    eg = grad(uh) - grad_ex
-    l2 = math.sqrt(Integrate(e * e * dxe, mesh))
-    h1 = math.sqrt(Integrate(InnerProduct(eg, eg) * dxe, mesh))
-    T["errors"] = time.perf_counter() - t0
-    volume = Integrate(ngs.CF(1.0) * dxn, mesh)
-    return {
-        "l2_error": l2,
-        "h1_error": h1,
-        "volume": volume,
-        "dofs": int(V.ndof),
-        "active_tets": int(hasneg.NumSet()),
-        "cut_tets": int(cut.NumSet()),
-        "ghost_faces": int(ghost.NumSet()),
-        "zero_nodes": int(np.sum(snapped == 0)),
-        "dropped_collapsed_tets": int(drop.size),
-        "background_nodes": int(mesh.nv),
-        "background_tets": int(mesh.ne),
-        "solver": inverse,
-        "solver_iterations": int(iterations),
-        "time": T,
-        "total": sum(T.values()),
-        **extra,
-    }
-
 def cutfem_poisson(spacing, solver="auto") -> dict:
     """cutfem's ``poisson-cut`` at one spacing (unit sphere, its default box, gamma = 10, gamma_g = 0.1);
     stage times from the problem's timer, total = their sum, wall = the whole run."""
-    import cutfem
-
     t0 = time.perf_counter()
     res = cutfem.run("poisson-cut", levels=[spacing], gamma=POISSON_GAMMA, gamma_g=POISSON_GAMMA_G, solver=solver)
     wall = time.perf_counter() - t0
@@ -773,11 +251,6 @@ def cutfem_poisson(spacing, solver="auto") -> dict:
 def cutfem_poisson_sets(spacing, levelset=None) -> dict:
     """The sizes of cutfem's Poisson problem that ngsxfem reports too: the tets of NEG (the active
     set) and its ghost faces (untimed: one cut of the background)."""
-    from cutfem.geometry.cut import cut_mesh
-    from cutfem.geometry.shapes import Sphere
-    from cutfem.geometry.markers import NEG
-    from cutfem.problems.common import background_for
-
     levelset = Sphere() if levelset is None else levelset
     cut = cut_mesh(background_for(levelset, spacing), levelset)
     return {"active_tets": int(cut.elements(NEG).n_elements), "ghost_faces": int(cut.ghost_facets(NEG).n_facets)}
@@ -794,8 +267,6 @@ def compare_poisson_level(spacing, progress=None, repeat=1, also_direct=False) -
     alternating (cutfem, ngsxfem, cutfem, ...); the run with the median total is reported.
     ``also_direct``: the first ngsxfem run also times NGSolve's sparse Cholesky (``solve_direct``)."""
     import os
-
-    from cutfem.geometry.shapes import Sphere
 
     load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     cfs, ngs_ = [], []
@@ -840,7 +311,6 @@ def run_poisson(out: Path, size: str = "quick", progress=None) -> dict:
         print(f"peers: ngsolve/xfem not importable ({missing}); {INSTALL}")
         save_json(out, POISSON_NAME, {"size": size, "peer": "ngsxfem", "available": False, "reason": missing, "skipped": INSTALL})
         return {"skipped": INSTALL}
-    import ngsolve
 
     spacings = pick(size, [0.2], [0.1, 0.05], [0.05, 0.035, 0.025])
     levels = [compare_poisson_level(s, progress, repeat=1 if size == "tiny" or s < 0.05 else 3, also_direct=s >= 0.035)
@@ -848,7 +318,7 @@ def run_poisson(out: Path, size: str = "quick", progress=None) -> dict:
     rows = [_poisson_row(c) for c in levels]
     save_json(out, POISSON_NAME, {
         "size": size, "peer": "ngsxfem", "available": True,
-        "versions": {"ngsolve": ngsolve.__version__, "xfem": _xfem_version()},
+        "versions": peer_versions(),
         "problem": {"domain": "unit ball (cutfem's default structured box)", "gamma": POISSON_GAMMA, "gamma_g": POISSON_GAMMA_G,
                     "nitsche_h": "h_T, longest edge of the cut tet", "ghost_h": "h_F^1, longest edge of the facet",
                     "exact": "sin(pi x/2) cos(pi y/3) exp(z/2)", "zero_nodal_values": f"ngsxfem: +{EPS:g}, collapsed tets not cut"},
@@ -880,12 +350,6 @@ def poisson_table(rows) -> str:
 
 def meshed_level(family, n) -> list[dict]:
     """Two rows (cotangent + Voronoi lumped mass, stabilized tau_E = 1/10) on one torus mesh."""
-    import cutfem
-    from cutfem.studies.baselines import cotangent_mean_curvature
-    from cutfem.geometry.shapes import Torus
-    from cutfem.fem.spaces import SurfaceP1Space
-    from cutfem.geometry.surface_meshes import torus_mesh
-
     t0 = time.perf_counter()
     mesh = torus_mesh(n, family=family, seed=SEED)
     t_mesh = time.perf_counter() - t0
@@ -911,8 +375,6 @@ def meshed_level(family, n) -> list[dict]:
 
 
 def _meshed_row(family, n, mesh, method, H, He, space, secs, end_to_end, wall=None):
-    from cutfem.fem.norms import discrete_error
-
     e = H - He
     row = {
         "family": family,
@@ -990,8 +452,6 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
         save_json(out, NAME, {"size": size, "peer": "ngsxfem", "available": False, "reason": missing, "skipped": INSTALL})
         return {"skipped": INSTALL}
 
-    import ngsolve
-
     spacings = pick(size, [0.2], [0.2, 0.1, 0.05], [0.2, 0.1, 0.05, 0.025, 0.0125])
     shifted = pick(size, [], [0.1, 0.05], [0.1, 0.05, 0.025, 0.0125])
     levels_n = pick(size, [16, 32], [16, 32, 64, 128], [16, 32, 64, 128, 256, 512])
@@ -1010,7 +470,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
         "size": size,
         "peer": "ngsxfem",
         "available": True,
-        "versions": {"ngsolve": ngsolve.__version__, "xfem": _xfem_version()},
+        "versions": peer_versions(),
         "problem": {"box": BOX, "torus": {"R": 1.0, "r": 0.5}, "tau_f": TAU_F, "face_h_power": 0, "error_quadrature_order": ORDER,
                     "shift": SHIFT.tolist(), "eps": EPS},
         "solvers": {"cutfem": "DirectSolver on the diagonally scaled matrix: LAPACK banded Cholesky after RCM (SuperLU for wide bands)",
@@ -1027,20 +487,9 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
     return {"size": size, "table": rows, "meshed": [r for r in meshed if r["method"] == "stabilized"]}
 
 
-def _xfem_version():
-    try:
-        from importlib.metadata import version
-
-        return version("xfem")
-    except Exception:
-        return None
-
-
 @figure_style
 def _plot(out, rows, meshed):
     from matplotlib.ticker import NullFormatter
-
-    from cutfem.runs.convergence import new_figure
 
     fig, axes = new_figure(PAGE_WIDTH, 5.6, nrows=2, ncols=2)
     ax = axes[0, 0]

@@ -35,6 +35,9 @@ from pathlib import Path
 
 import numpy as np
 
+from cutfem.runs.registry import ProblemError
+from cutfem.runs.runner import check_output, compile_notice
+
 from .common import ROUNDOFF_INTEGRAL, Progress, fmt_roundoff, save_json
 
 #: the studies, in the order they run (the paper's own experiments first)
@@ -388,8 +391,6 @@ def main(argv=None) -> int:
             print(f"error: study {', '.join(missing)} is not available (module missing)", file=sys.stderr)
             return 2
         selected = [n for n in STUDY_NAMES if n in a.only]
-
-    from cutfem.runs.registry import ProblemError, check_output, compile_notice
 
     try:
         check_output("--out", a.out, folder=True)

@@ -62,11 +62,10 @@ import math
 import warnings
 from pathlib import Path
 
-import numpy as np
-
 import cutfem
+from cutfem.runs.convergence import new_figure
 
-from .common import PAGE_WIDTH, figure_style, new_figure, pick, save_csv, save_figure, save_json, study_main
+from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, study_main
 
 NAME = "solvers"
 OUTPUTS = [NAME]
@@ -185,7 +184,7 @@ def solve_row(case: dict, solver: str, level) -> dict:
 
 
 def _is_error_key(key: str, value) -> bool:
-    """An error of the record (as :meth:`cutfem.runs.registry.RunResult.error_keys`: ``*_error`` and
+    """An error of the record (as :meth:`cutfem.runs.runner.RunResult.error_keys`: ``*_error`` and
     ``*_error_<field>``, not the solver's entries)."""
     return "_error" in key and not key.startswith("solver") and isinstance(value, (int, float)) and not isinstance(value, bool)
 

@@ -44,7 +44,7 @@ def test_import_changes_nothing_process_wide(tmp_path):
         "matplotlib.use('svg')\n"
         "before = {'hugepage': bool(get_hp()), 'backend': matplotlib.get_backend()}\n"
         "import cutfem, cutfem.memory\n"
-        "from cutfem.runs.registry import RunResult\n"
+        "from cutfem.runs.runner import RunResult\n"
         "problems = sorted(cutfem.available_problems())\n"
         "from cutfem.runs.convergence import convergence_plot\n"
         "rec = [{'h': 0.2, 'l2_error': 0.1}, {'h': 0.1, 'l2_error': 0.026}]\n"

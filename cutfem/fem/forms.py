@@ -997,7 +997,7 @@ def _sums(space):
     """The running sum of the summed terms on ``space``: a :class:`~cutfem.fem.assembly.PairSum` on a
     triangulated surface (:class:`~cutfem.fem.spaces.SurfaceP1Space`), a
     :class:`~cutfem.fem.assembly.LatticeSum` when the dofs are nodes of a structured box (a cut space
-    on a :class:`~cutfem.geometry.mesh.StructuredBox`), else None."""
+    on a :class:`~cutfem.geometry.box.StructuredBox`), else None."""
     if hasattr(space, "edge_stencil_pattern"):
         return PairSum(space)
     es = getattr(space, "elements", None)

@@ -147,7 +147,7 @@ class SurfaceMesh:
     grid : (n, m) or None.  Set by generators of logically structured, doubly periodic meshes
         (:func:`~cutfem.geometry.surface_meshes.torus_mesh`): node (i, j) is node i m + j, its grid neighbours are (i +- 1, j) and
         (i, j +- 1) modulo (n, m).  The multigrid solver coarsens along it
-        (:func:`cutfem.solvers.solve.grid_hierarchy`); None for any other mesh.
+        (:func:`cutfem.solvers.multigrid.grid_hierarchy`); None for any other mesh.
 
     Both arrays are read-only because the cached properties depend on them; build a new mesh to
     change the geometry.

@@ -1,2 +1,2 @@
-"""Runs: the problem registry and its parameters, the run over levels and its records, the
-``cutfem`` command line, convergence tables and plots."""
+"""Runs: the problem registry and its parameters (registry), the run over levels and its records
+(runner), the ``cutfem`` command line, convergence tables and plots."""

@@ -108,7 +108,8 @@ def _level_flag(argv, problem) -> str:
 
 
 def _cmd_run(argv) -> int:
-    from .registry import ProblemError, check_levels, check_output, get_problem, run
+    from .registry import ProblemError, check_levels, get_problem
+    from .runner import check_output, run
 
     if not argv or argv[0].startswith("-"):
         raise ProblemError("usage: cutfem run PROBLEM [--param value ...]; 'cutfem list' shows the problems")
@@ -205,7 +206,7 @@ def write_pvd(path, entries) -> None:
 
 
 def _cmd_reproduce(argv) -> int:
-    from .studies.reproduce import main as reproduce_main
+    from ..studies.reproduce import main as reproduce_main
 
     return reproduce_main(argv)
 

@@ -264,7 +264,7 @@ def plotted_keys(result) -> list:
 
 
 def convergence_plot(result, path, title=None, width: float = 5.0, height: float = 3.8):
-    """Errors of a :class:`~cutfem.runs.registry.RunResult` against h, one curve per ``*_error`` key
+    """Errors of a :class:`~cutfem.runs.runner.RunResult` against h, one curve per ``*_error`` key
     with a finite positive error (:func:`plotted_keys`) with its fitted rate in the legend and a rate triangle (slope: the rate between the two finest
     levels rounded to the nearest 1/2, left out below 1/2; one triangle per slope, under the lowest curve with it) at the fine end; the title names the
     problem and its parameters (``title`` replaces it).  Written as PNG, PDF or SVG by the suffix

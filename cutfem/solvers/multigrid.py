@@ -78,7 +78,7 @@ def lattice_indices(space):
     """Integer lattice indices (n, 3) of the dofs of a space on a structured box, or None.
 
     Works for spaces whose dofs are background nodes (``node_ids``) of a
-    :class:`~cutfem.geometry.mesh.StructuredBox` (``space.cut.background`` or ``space.background``).
+    :class:`~cutfem.geometry.box.StructuredBox` (``space.cut.background`` or ``space.background``).
     """
     node_ids = getattr(space, "node_ids", None)
     cut = getattr(space, "cut", None)
@@ -136,7 +136,7 @@ def _number_lattice_nodes(ijk):
 def _number_lattice_codes(code, base, dims):
     """Number the distinct lattice nodes given by their lexicographic numbers ``code`` (m,) in the
     box ``base`` + [0, dims): returns (number of each (m,), the distinct nodes (mc, 3)).  A bitmap
-    over the box (:func:`~cutfem.geometry.mesh.dense_unique`, a bit a lattice point) when it is not much
+    over the box (:func:`~cutfem.geometry.keys.dense_unique`, a bit a lattice point) when it is not much
     larger than the input, else one sort (:func:`~cutfem.geometry.mesh.unique_keys`)."""
     if int(np.prod(dims)) <= 64 * code.size + 10_000_000:
         keys, cols = dense_unique(code, int(np.prod(dims)))
@@ -182,7 +182,7 @@ GRID_DROP = 0.01
 
 def grid_prolongation(points, shape, drop: float = GRID_DROP):
     """Prolongation on a logically structured, doubly periodic surface grid (e.g. the torus
-    families of :func:`~cutfem.geometry.surface.torus_mesh`).
+    families of :func:`~cutfem.geometry.surface_meshes.torus_mesh`).
 
     ``shape`` = (n, m), both even: node (i, j) has index i m + j and neighbours (i +- 1, j),
     (i, j +- 1) modulo (n, m).  The coarse grid keeps the nodes (2a, 2b), index a (m/2) + b.  A
@@ -529,9 +529,9 @@ def multigrid_hierarchy(space):
     """The geometric hierarchy of prolongations for the unknowns of ``space``, or None.
 
     * a space whose dofs are nodes of a structured Kuhn box (cut spaces on a
-      :class:`~cutfem.geometry.mesh.StructuredBox`): the nested Kuhn lattices (:func:`lattice_hierarchy`);
+      :class:`~cutfem.geometry.box.StructuredBox`): the nested Kuhn lattices (:func:`lattice_hierarchy`);
     * a surface space whose mesh carries a doubly periodic grid (``mesh.grid = (n, m)``, set by
-      :func:`~cutfem.geometry.surface.torus_mesh`): the coarser grids (:func:`grid_hierarchy`);
+      :func:`~cutfem.geometry.surface_meshes.torus_mesh`): the coarser grids (:func:`grid_hierarchy`);
     * any other surface space (dofs = the nodes of ``space.mesh``): the Kuhn lattice of spacing
       twice the mean edge length, then the nested lattices (:func:`surface_hierarchy`).  This
       needs a roughly uniform mesh: where the edges are much shorter than the mean, the first

@@ -1,4 +1,4 @@
-"""The cutfem command and the problem registry, as a user would use them."""
+"""The cutfem command, as a user would use it."""
 
 import json
 import re
@@ -11,7 +11,7 @@ import pytest
 
 import cutfem
 from cutfem.runs.cli import main
-from cutfem.runs.registry import Param, ProblemError, available_problems, register
+from cutfem.runs.registry import ProblemError, register
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -161,8 +161,8 @@ def test_open_surface_file_is_reported(tmp_path, capsys):
 
 
 def test_closed_surface_file_runs(tmp_path, capsys):
-    from cutfem.geometry.surface import write_surface
     from cutfem.geometry.surface_meshes import sphere_mesh
+    from cutfem.geometry.surface import write_surface
 
     path = tmp_path / "ball.obj"
     write_surface(sphere_mesh(3, radius=1.5), path)
@@ -193,213 +193,6 @@ def test_console_entry_exits_with_the_command_status():
     assert "no-such-problem" in bad.stderr and "Traceback" not in bad.stderr
 
 
-def test_register_function_problem_and_run():
-    @register("test-quadratic", levels=[0.5, 0.25], level_name="step", params=[Param("c", float, 2.0, "constant", minimum=0)])
-    def quad(step, c):
-        return {"h": step, "dofs": 1, "toy_error": c * step**2}
-
-    res = cutfem.run("test-quadratic", c=3.0)
-    assert res.rates["toy_error"] == pytest.approx([2.0])
-    assert res.records[0]["toy_error"] == pytest.approx(0.75)
-    assert "test-quadratic" in available_problems()
-    with pytest.raises(ProblemError):
-        cutfem.run("test-quadratic", c=-1)
-
-
-def test_a_level_after_a_long_one_starts_by_collecting_the_garbage(monkeypatch):
-    """run() collects the process's garbage before a level when the level before it (in this
-    process) ran COLLECT_AFTER seconds or more: the objects of a dropped result that refer to each
-    other (as a cut and its element sets do) are freed before the new level allocates; after a
-    short level, or with the collector turned off, nothing is collected."""
-    import gc
-    import weakref
-
-    from cutfem.runs import registry
-
-    @register("test-garbage", levels=[0.5], level_name="step")
-    def level(step):
-        return {"h": step, "dofs": 1}
-
-    class Cycle:
-        def __init__(self):
-            self.me = self
-
-    was_enabled, thresholds = gc.isenabled(), gc.get_threshold()
-    gc.set_threshold(10**9)  # no automatic collection: only run() may collect
-    try:
-        for threshold, enabled, freed in ((float("inf"), True, False), (0.0, False, False), (0.0, True, True)):
-            monkeypatch.setattr(registry, "COLLECT_AFTER", threshold)
-            (gc.enable if enabled else gc.disable)()
-            cutfem.run("test-garbage")  # sets the last level's time
-            c = Cycle()
-            ref = weakref.ref(c)
-            del c
-            cutfem.run("test-garbage")
-            assert (ref() is None) == freed, (threshold, enabled)
-    finally:
-        gc.set_threshold(*thresholds)
-        (gc.enable if was_enabled else gc.disable)()
-
-
-def test_keep_fields_false_frees_what_the_fields_are_built_from():
-    """run(keep_fields=False) drops each record's fields as its level finishes, so the objects they
-    would be built from are freed before the next level; by default the records keep them."""
-    import weakref
-
-    from cutfem.runs.registry import LazyFields
-
-    class Heavy:
-        pass
-
-    refs = []
-
-    @register("test-fields", levels=[0.5, 0.25], level_name="step")
-    def level(step):
-        heavy = Heavy()
-        refs.append(weakref.ref(heavy))
-        return {"h": step, "dofs": 1, "fields": LazyFields(lambda: {"heavy": heavy})}
-
-    kept = cutfem.run("test-fields")
-    assert [r["fields"]["heavy"] for r in kept.records] == [ref() for ref in refs] and all(ref() is not None for ref in refs)
-    refs.clear()
-    dropped = cutfem.run("test-fields", keep_fields=False)
-    assert all("fields" not in r for r in dropped.records)
-    assert [ref() for ref in refs] == [None, None]
-
-
-def test_progress_line_shows_the_stages_of_long_levels(monkeypatch, capsys):
-    """A level past STAGES_AFTER seconds lists its stages on its progress line, in order, with
-    their times; a shorter one keeps its short line; nothing is reported outside run()."""
-    import time
-
-    from cutfem.runs import registry
-
-    @register("test-stages", levels=[1.0, 2.0], level_name="n")
-    def staged(n):
-        t = registry.Timer()
-        with t("geometry"):
-            pass
-        with t("solve"):
-            time.sleep(0.25 * (n - 1))
-        return {"h": 1.0 / n, "dofs": 1, "time": dict(t)}
-
-    monkeypatch.setattr(registry, "STAGES_AFTER", 0.1)
-    cutfem.run("test-stages", progress=True)
-    lines = capsys.readouterr().err.splitlines()
-    assert re.fullmatch(r"\[1/2\] test-stages n=1\.0 \.\.\. done in \d+\.\d\d s", lines[0])  # at once: no stages
-    m = re.fullmatch(r"\[2/2\] test-stages n=2\.0 \.\.\. geometry \d+\.\d\d s, solve (\d+\.\d\d) s, done in \d+\.\d\d s", lines[1])
-    assert m and float(m.group(1)) >= 0.25
-    assert registry._STAGE_LISTENER.get() is None  # reset after the run
-
-    def line_of(name, stages):
-        """The progress line of a one-level problem that runs ``stages`` ((stage, seconds) in order)."""
-
-        @register(name, levels=[1.0], level_name="n")
-        def staged_again(n):
-            t = registry.Timer()
-            for stage, seconds in stages:
-                with t(stage):
-                    time.sleep(seconds)
-            return {"h": 1.0 / n, "dofs": 1, "time": dict(t)}
-
-        cutfem.run(name, progress=True)
-        return capsys.readouterr().err.strip()
-
-    # a stage entered again right after itself (the matrix, then the load) is one entry
-    line = line_of("test-stages-again", [("assembly", 0), ("assembly", 0.15), ("solve", 0), ("assembly", 0)])
-    assert re.fullmatch(r"\[1/1\] test-stages-again n=1\.0 \.\.\. assembly \d+\.\d\d s, solve \d+\.\d\d s, "
-                        r"assembly \d+\.\d\d s, done in \d+\.\d\d s", line), line
-    monkeypatch.setattr(registry, "STAGES_AFTER", 0.0)  # each stage printed as it ends: the second as "+ s"
-    line = line_of("test-stages-shown", [("assembly", 0), ("assembly", 0), ("solve", 0)])
-    assert re.fullmatch(r"\[1/1\] test-stages-shown n=1\.0 \.\.\. assembly \d+\.\d\d s, \+\d+\.\d\d s, solve \d+\.\d\d s, "
-                        r"done in \d+\.\d\d s", line), line
-    with registry.Timer()("outside"):
-        pass
-    assert capsys.readouterr().err == ""
-
-
-def test_the_progress_line_says_when_cutfem_compiles_its_kernels(monkeypatch, capsys):
-    """The first compilation of a function of the cutfem package (numba's cache is empty after an
-    install) is announced on the progress line, once a process; a user's own compiled function,
-    a function already compiled, and a run without progress say nothing."""
-    from numba import njit
-
-    from cutfem.runs import registry
-
-    def compiled(module):
-        def f(x):
-            return x + 1.0
-
-        f.__module__ = module
-        return njit(f)  # not cached: each call below with a new signature compiles
-
-    ours, theirs = compiled("cutfem.probe"), compiled("my_lab.kernels")
-
-    @register("test-compiles", levels=[1.0, 2.0], level_name="n")
-    def level(n):
-        theirs(n)  # a user's function first: no note
-        ours(n)  # compiled at n = 1 (a float), already compiled at n = 2
-        return {"h": 1.0 / n, "dofs": 1}
-
-    monkeypatch.setattr(registry, "_COMPILE_ANNOUNCED", False)
-    cutfem.run("test-compiles", progress=False)  # no progress: nothing said, and the note is still to come
-    assert capsys.readouterr().err == "" and not registry._COMPILE_ANNOUNCED
-    ours(1), theirs(1)  # compiled outside a run: nothing said
-    ours(np.float32(1.0)), ours(np.int8(0))
-    assert capsys.readouterr().err == "" and not registry._COMPILE_ANNOUNCED
-    cutfem.run("test-compiles", progress=True, levels=[np.int8(2)])  # only the user's function compiles (for int8)
-    assert registry.COMPILE_NOTE not in capsys.readouterr().err and not registry._COMPILE_ANNOUNCED
-    cutfem.run("test-compiles", progress=True, levels=[np.uint16(3), 4.0])  # ours compiles for uint16 at the first level
-    lines = capsys.readouterr().err.splitlines()
-    assert lines[0].startswith("[1/2] test-compiles n=3 ... (" + registry.COMPILE_NOTE + ") done in"), lines
-    assert lines[1].startswith("[2/2] test-compiles n=4.0 ... done in"), lines
-    ours(np.int32(5))  # a new compilation later in the process: said once only
-    cutfem.run("test-compiles", progress=True, levels=[np.int16(6)])
-    assert registry.COMPILE_NOTE not in capsys.readouterr().err
-    from numba.core import event
-
-    assert not event._registered["numba:compile"]  # the listener lives only while a run does
-
-
-def test_entry_point_plugins_are_loaded(monkeypatch, tmp_path):
-    import importlib.metadata as md
-
-    import cutfem.runs.registry as reg
-
-    (tmp_path / "my_plugin.py").write_text(
-        "from cutfem import register\n"
-        "@register('plugin-problem', levels=[1.0])\n"
-        "def p(level):\n    return {'h': level}\n"
-    )
-    monkeypatch.syspath_prepend(str(tmp_path))
-    ep = md.EntryPoint(name="plugin", value="my_plugin", group="cutfem.problems")
-    monkeypatch.setattr(md, "entry_points", lambda group=None: [ep] if group == "cutfem.problems" else [])
-    monkeypatch.setattr(reg, "_LOADED", False)
-    assert "plugin-problem" in available_problems()
-
-
-def test_problems_load_once_for_threads_that_ask_at_once():
-    """Two threads' first look at the registry, at the same moment in a fresh interpreter, both see
-    the built-in problems (the second used to find the registry empty while the first imported)."""
-    import subprocess
-    import sys
-
-    code = (
-        "import threading, cutfem\n"
-        "barrier, seen = threading.Barrier(4), []\n"
-        "def look():\n"
-        "    barrier.wait()\n"
-        "    seen.append('mean-curvature-cut' in cutfem.available_problems())\n"
-        "threads = [threading.Thread(target=look) for _ in range(4)]\n"
-        "[t.start() for t in threads]\n"
-        "[t.join() for t in threads]\n"
-        "print(seen)\n"
-    )
-    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
-    assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.strip() == "[True, True, True, True]"
-
-
 def test_readme_examples_run():
     """Every python block of the README runs (the worked Helmholtz example reaches rate ~2)."""
     blocks = re.findall(r"```python\n(.*?)```", (ROOT / "README.md").read_text(), re.S)
@@ -424,11 +217,11 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     docs/math.md §10 at c_B = 0, and the heat steps keep the integral of u_h following the source."""
     from cutfem.geometry.cut import CUT, NEG, POS
     from cutfem.fem.forms import apply_dirichlet, assemble, bilinear_form, dot, face_jump_penalty, interface_nitsche, linear_form, load
-    from cutfem.fem.forms import mass, nitsche, nitsche_load, stiffness
+    from cutfem.fem.forms import nitsche, nitsche_load, stiffness
     from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.box import structured_box
     from cutfem.solvers.solve import solve
-    from cutfem.fem.spaces import CutP1Space, ProductSpace
+    from cutfem.fem.spaces import CutP1Space
     from cutfem.geometry.surface_meshes import sphere_mesh
 
     blocks = _forms_md_blocks()
@@ -436,8 +229,8 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     ns = {}
     exec("from cutfem.geometry.cut import CUT, NEG, POS, cut_mesh\n"
          "from cutfem.fem.forms import *\n"
-         "from cutfem.solvers.direct import DirectSolver\n"
          "from cutfem.solvers.krylov import CGSolver\n"
+         "from cutfem.solvers.direct import DirectSolver\n"
          "from cutfem.fem.spaces import CutP1Space, ProductSpace\n"
          "from cutfem.problems.heat_surface import extrapolated\n", ns)
 
@@ -552,13 +345,6 @@ def test_bad_spacing_names_the_flag(flag, value, capsys):
     assert "box" not in err and "Traceback" not in err
 
 
-@pytest.mark.parametrize("value", [0, float("nan"), -0.1, float("inf")])
-def test_bad_spacing_names_the_parameter_in_python(value):
-    with pytest.raises(ProblemError, match=r"^levels: spacing .* is not a positive finite number"):
-        cutfem.run("mean-curvature-cut", levels=[0.2, value])
-    with pytest.raises(ProblemError, match=r"^levels: n .* is not a positive integer"):
-        cutfem.run("mean-curvature-meshed", levels=[value])
-
 def test_a_level_given_twice_is_refused(capsys, tmp_path):
     """A repeated level would compare a level with itself and write its VTK files twice under one
     name: refused before anything is solved, from the shell (0.2 and 0.20 are one level) and from
@@ -644,29 +430,6 @@ def test_failing_last_level_keeps_the_finished_ones(tmp_path, capsys):
     assert png.stat().st_size > 5000
 
 
-def test_failing_level_in_python_raises_unless_kept(monkeypatch):
-    from cutfem.geometry.shapes import Torus
-
-    calls = []
-
-    def boom(*a, **k):
-        calls.append(1)
-        if len(calls) == 2:
-            raise FloatingPointError("level two broke")
-        return orig(*a, **k)
-
-    problem = cutfem.get_problem("mean-curvature-cut")
-    orig = problem.solve_level
-    monkeypatch.setattr(problem, "solve_level", boom)
-    with pytest.raises(FloatingPointError):
-        cutfem.run("mean-curvature-cut", levels=[0.2, 0.1, 0.05])
-    calls.clear()
-    res = cutfem.run("mean-curvature-cut", levels=[0.2, 0.1, 0.05], keep_finished=True)
-    assert len(res.records) == 1 and res.failure == {"index": 1, "level": 0.1, "error_type": "FloatingPointError", "message": "level two broke"}
-    assert isinstance(res.exception, FloatingPointError) and len(calls) == 2
-    assert Torus  # the module of the problem is importable alongside
-
-
 def test_unexpected_error_in_a_level_exits_1(monkeypatch, tmp_path, capsys):
     problem = cutfem.get_problem("mean-curvature-meshed")
     monkeypatch.setattr(problem, "solve_level", lambda *a, **k: [][1])
@@ -705,7 +468,7 @@ def test_json_record_describes_itself(capsys):
 
     assert main(["run", "mean-curvature-cut", "--spacing", "0.2", "--json", "-"]) == 0
     data = json.loads(capsys.readouterr().out)
-    assert data["schema_version"] == cutfem.runs.registry.SCHEMA_VERSION == 2
+    assert data["schema_version"] == cutfem.runs.runner.SCHEMA_VERSION == 2
     assert data["failure"] is None and data["level_name"] == "spacing"
     assert set(data["definitions"]) == {"h", "dofs", "l2_error", "area_error"}
     assert "N**(-1/3)" in data["definitions"]["h"] and "H^e" in data["definitions"]["l2_error"]
@@ -721,112 +484,6 @@ def test_json_record_describes_itself(capsys):
     v = data["versions"]
     assert v["numpy"] == np.__version__ and v["scipy"] == scipy.__version__ and v["cutfem"] == cutfem.__version__
     assert v["pyvista"] and v["vtk"]
-
-
-def test_git_commit_is_none_without_git(monkeypatch):
-    import cutfem.runs.registry as reg
-
-    def no_git(*a, **k):
-        raise FileNotFoundError("git")
-
-    monkeypatch.setattr(subprocess, "run", no_git)
-    assert reg._git_state() == {"git_commit": None, "git_modified": None}
-    res = cutfem.run("test-quadratic") if "test-quadratic" in available_problems() else None
-    if res is not None:
-        assert res.to_json()["git_commit"] is None
-
-
-@pytest.mark.parametrize("value,expected", [(2, 2), (2.0, 2), ("3", 3), (np.int64(4), 4)])
-def test_int_parameter_reads_integral_values(value, expected):
-    v = Param("n", int, 1).convert(value)
-    assert v == expected and type(v) is int
-
-
-@pytest.mark.parametrize("param,value", [
-    (Param("n", int, 1), 2.5),
-    (Param("n", int, 1), True),
-    (Param("n", int, 1), "2.5"),
-    (Param("x", float, 1.0), False),
-    (Param("x", float, 1.0), float("inf")),
-    (Param("x", float, 1.0), "nan"),
-    (Param("theta", float, 1.0, choices=(1.0, 0.5)), 0.0),
-    (Param("kind", str, "a", choices=("a", "b")), "a.b"),
-])
-def test_parameter_refuses_values_it_cannot_take_as_given(param, value):
-    with pytest.raises(ProblemError, match=param.flag):
-        param.convert(value)
-
-
-def test_numeric_choices_compare_by_value_and_files_when_allowed(tmp_path):
-    assert Param("theta", float, 1.0, choices=(1.0, 0.5)).convert("0.5") == 0.5
-    mesh = tmp_path / "m.stl"
-    mesh.write_text("solid\nendsolid\n")
-    surface = Param("surface", str, "torus", choices=("torus", "sphere"), files=True)
-    assert surface.convert(str(mesh)) == str(mesh) and surface.convert("sphere") == "sphere"
-    with pytest.raises(ProblemError, match="neither torus, sphere nor an existing file"):
-        surface.convert(str(tmp_path / "missing.stl"))
-    with pytest.raises(ProblemError, match="is not one of torus, sphere"):
-        Param("surface", str, "torus", choices=("torus", "sphere")).convert(str(mesh))
-
-
-def test_builtin_problem_names_cannot_be_taken():
-    for name in ("mean-curvature-cut", "heat-surface-cut"):  # a class and a function problem
-        with pytest.raises(ValueError, match=f"'{name}' is the name of a built-in problem"):
-            @register(name, levels=[1.0])
-            def mine(level):
-                return {"h": level}
-    assert "stabilized mean curvature" in available_problems()["mean-curvature-cut"].summary
-
-
-def test_a_problem_registered_before_the_builtins_load_stays():
-    code = (
-        "from cutfem import register, available_problems\n"
-        "import cutfem.runs.registry as reg\n"
-        "assert not reg._LOADED\n"
-        "try:\n"
-        "    register('poisson-cut', levels=[1.0])(lambda level: {'h': level})\n"
-        "except ValueError as exc:\n"
-        "    print('refused:', exc)\n"
-        "register('early-problem', levels=[1.0], summary='mine')(lambda level: {'h': level})\n"
-        "problems = available_problems()\n"
-        "print(problems['early-problem'].summary, 'poisson-cut' in problems, problems['poisson-cut'].summary[:14])\n"
-        "register('early-problem', levels=[1.0], summary='again')(lambda level: {'h': level})\n"
-        "print(available_problems()['early-problem'].summary)\n"
-    )
-    assert _fresh_python(code).splitlines() == [
-        "refused: 'poisson-cut' is the name of a built-in problem; register yours under another name",
-        "mine True fictitious-dom",
-        "again",  # a cell run twice replaces the earlier one
-    ]
-
-
-def test_run_records_start_time_and_table_shows_wall_time(monkeypatch):
-    import time as _time
-
-    import cutfem.runs.registry as reg
-
-    stamps = iter(["2026-01-01T00:00:00Z", "2026-01-01T00:00:09Z"])
-    monkeypatch.setattr(reg, "_utc_now", lambda: next(stamps))
-
-    @register("test-sleepy", levels=[0.5], level_name="step")
-    def sleepy(step):
-        _time.sleep(0.05)
-        return {"h": step, "toy_error": step}
-
-    res = cutfem.run("test-sleepy")
-    assert res.created_utc == "2026-01-01T00:00:00Z"  # taken before the levels ran
-    wall = res.records[0]["wall_time"]
-    assert wall >= 0.05 and res.records[0]["time"] == {}
-    assert res.table().splitlines()[2].split()[-1] == f"{wall:.2f}"
-
-
-def test_a_level_without_h_fails_with_the_reason():
-    @register("test-no-h", levels=[0.5])
-    def no_h(level):
-        return {"dofs": 3}
-
-    with pytest.raises(TypeError, match="without the key h"):
-        cutfem.run("test-no-h")
 
 
 def test_vtk_of_a_problem_without_fields_says_nothing_was_written(tmp_path, capsys):
@@ -847,6 +504,12 @@ def test_heat_writes_its_fields(tmp_path):
     surface = pv.read(tmp_path / "heat-surface-cut_spacing0.4_surface.vtp")
     err = np.abs(surface.point_data["u_h"] - surface.point_data["u_exact"]).max()
     assert surface.n_points > 100 and 0 < err < 0.1 * np.abs(surface.point_data["u_exact"]).max()
+
+
+def test_reproduce_is_a_command(capsys):
+    """``cutfem reproduce`` reaches the studies' reproduce (cutfem.studies.reproduce)."""
+    assert main(["reproduce", "--list"]) == 0
+    assert "paper_meshed" in capsys.readouterr().out
 
 
 def test_run_help_without_a_problem(capsys):
@@ -876,15 +539,6 @@ def _fresh_python(code: str) -> str:
     return out.stdout
 
 
-def test_records_name_only_the_parameters_that_shape_the_run():
-    sphere = cutfem.run("mean-curvature-cut", levels=[0.4], surface="sphere", radius=0.9)
-    assert sphere.parameters["radius"] == 0.9 and not {"R", "r", "axes"} & set(sphere.parameters)
-    torus = cutfem.run("mean-curvature-meshed", levels=[8])
-    assert {"R", "r", "family"} <= set(torus.parameters) and not {"radius", "seed"} & set(torus.parameters)
-    flipped = cutfem.run("mean-curvature-meshed", levels=[8], family="flipped", seed=2)
-    assert flipped.parameters["seed"] == 2  # the seed shapes the random families only
-
-
 def test_studies_and_reproduce_check_their_output_folder_first(tmp_path, capsys):
     from cutfem.studies import conditioning
     from cutfem.studies.reproduce import main as reproduce
@@ -899,8 +553,8 @@ def test_studies_and_reproduce_check_their_output_folder_first(tmp_path, capsys)
 def test_plot_without_errors_writes_nothing_and_says_so(tmp_path, capsys):
     import pyvista as pv
 
-    from cutfem.geometry.surface import write_surface
     from cutfem.geometry.surface_meshes import sphere_mesh
+    from cutfem.geometry.surface import write_surface
 
     # a mesh file has no exact mean curvature: no error to plot (before: an empty figure, exit 0)
     path = tmp_path / "ball.obj"
@@ -919,57 +573,3 @@ def test_plot_without_errors_writes_nothing_and_says_so(tmp_path, capsys):
                                np.einsum("ij,ij->i", saved.point_data["H_h"], saved.points / np.linalg.norm(saved.points, axis=1)[:, None]),
                                rtol=0, atol=0.02)
     assert np.abs(saved.point_data["mean_curvature"] - 2.0).max() < 0.1
-
-
-def test_rates_skip_non_finite_errors_and_count_numpy_scalars():
-    """An infinite error (a diverged level) has no rate instead of crashing the run with
-    math.log(0); a NaN error has no rate (None in memory as in the JSON); an error held in a
-    numpy float32 is an error key like any float (table, rates), a bool is not."""
-
-    @register("test-odd-errors", levels=[1, 2, 4, 8], level_name="n", level_type=int)
-    def odd(n):
-        return {"h": 1.0 / n, "inf_error": float("inf") if n == 2 else 1.0 / n, "nan_error": float("nan") if n == 4 else n**-2.0,
-                "f32_error": np.float32(n**-3.0), "flag_error": True}
-
-    res = cutfem.run("test-odd-errors")
-    assert res.error_keys() == ["inf_error", "nan_error", "f32_error"]
-    assert res.rates["inf_error"][:2] == [None, None] and res.rates["inf_error"][2] == pytest.approx(1.0)
-    assert res.rates["nan_error"][0] == pytest.approx(2.0) and res.rates["nan_error"][1:] == [None, None]
-    assert res.rates["f32_error"] == pytest.approx([3.0, 3.0, 3.0])
-    data = json.loads(res.dumps())
-    assert data["rates"]["nan_error"][1:] == [None, None] and data["records"][2]["nan_error"] is None
-    # level 4 (blank cells drop out of split): inf_error 1/4 without a rate, nan_error nan without one, f32_error 1/64, rate 3
-    assert res.table().splitlines()[4].split()[:6] == ["4", "0.25", "2.5000e-01", "nan", "1.5625e-02", "3.00"]
-
-
-def test_table_shows_the_size_of_the_domain_its_records_have():
-    """The table's size column is the records' area (a surface) or volume (a bulk domain), left out
-    when no record has either (a blank 'area' column stood beside every bulk run)."""
-
-    @register("test-bulk-sizes", levels=[1, 2], level_name="n", level_type=int)
-    def bulk(n):
-        return {"h": 1.0 / n, "l2_error": n**-2.0, "volume": 4.0 + 0.1 / n}
-
-    @register("test-no-sizes", levels=[1], level_name="n", level_type=int)
-    def plain(n):
-        return {"h": 1.0, "l2_error": 1.0}
-
-    lines = cutfem.run("test-bulk-sizes").table().splitlines()
-    assert lines[0].split() == ["level", "h", "dofs", "l2_error", "rate", "volume", "time[s]"]
-    assert lines[3].split()[:5] == ["2", "0.5", "2.5000e-01", "2.00", "4.050000"]  # no dofs: blank
-    assert cutfem.run("test-no-sizes").table().splitlines()[0].split() == ["level", "h", "dofs", "l2_error", "rate", "time[s]"]
-
-
-def test_json_of_a_record_with_numpy_values():
-    """numpy scalars and arrays in a record are written as the JSON numbers and booleans they hold
-    (a numpy bool was the string "np.True_"), NaN and infinity as null: strict JSON."""
-
-    @register("test-numpy-record", levels=[0.5], level_name="step")
-    def numpy_record(step):
-        return {"h": step, "converged": np.bool_(True), "flags": np.array([True, False]), "n": np.int8(3),
-                "x_error": np.float32(0.25), "spread": np.array([1.5, np.nan, -np.inf])}
-
-    text = cutfem.run("test-numpy-record").dumps()
-    rec = json.loads(text, parse_constant=lambda c: pytest.fail(f"bare {c} in the JSON"))["records"][0]
-    assert rec["converged"] is True and rec["flags"] == [True, False] and rec["n"] == 3
-    assert rec["x_error"] == 0.25 and rec["spread"] == [1.5, None, None]

@@ -122,7 +122,7 @@ def test_convergence_plot_draws_the_records(tmp_path, monkeypatch):
     each label (none for a key with one point: no 'rate nan' in a figure), one rate triangle per
     slope of the two finest levels with legs of that slope on the log-log axes."""
     from cutfem.runs import convergence
-    from cutfem.runs.registry import RunResult
+    from cutfem.runs.runner import RunResult
 
     h = np.array([0.4, 0.2, 0.1])
     records = [{"h": x, "l2_error": 3 * x**2, "h1_error": 0.5 * x} for x in h]
@@ -149,7 +149,8 @@ def test_every_problem_defines_its_h_and_the_figure_names_it(tmp_path, monkeypat
     surface nodes (meshed), its records' h is that number, and the convergence figure's x label
     states it; a problem without its own definition gets h alone (see the toy above)."""
     from cutfem.runs import convergence
-    from cutfem.runs.registry import _ORIGIN, H_AXIS_LABELS, H_BACKGROUND, H_SURFACE, _is_builtin, available_problems, run
+    from cutfem.runs.registry import _ORIGIN, H_AXIS_LABELS, H_BACKGROUND, H_SURFACE, _is_builtin, available_problems
+    from cutfem.runs.runner import run
 
     drawn = []
     monkeypatch.setattr(convergence, "save_reproducible", lambda fig, path, dpi=200: drawn.append(fig) or path)
@@ -173,7 +174,8 @@ def test_convergence_plot_leaves_out_keys_without_a_finite_error(tmp_path, monke
     --plot writes nothing and says why (an empty figure would pass for a result)."""
     from cutfem.runs import convergence
     from cutfem.runs.cli import main
-    from cutfem.runs.registry import RunResult, register
+    from cutfem.runs.registry import register
+    from cutfem.runs.runner import RunResult
 
     records = [{"h": x, "l2_error": x**2, "nan_error": float("nan"), "zero_error": 0.0} for x in (0.5, 0.25)]
     assert convergence.plotted_keys(RunResult("toy", {}, [0.5, 0.25], records)) == ["l2_error"]

@@ -11,44 +11,8 @@ from cutfem.geometry.shapes import Torus
 from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
-from cutfem.studies import performance
+from cutfem.studies import performance, performance_levels
 from surface_matrices import edge_matrix, face_matrix, mass_matrix, stiffness_matrix
-
-
-def test_levels_record_stages_sizes_and_errors():
-    rec = performance.cut_level(0.2)
-    assert set(rec["time"]) == {"background", "cut", "topology", "matrix", "rhs", "solve", "errors"}
-    assert rec["background_nodes"] == 17 * 17 * 7
-    assert rec["active_tets"] > 0 and rec["interior_faces"] > rec["active_tets"] and rec["dofs"] > 0
-    assert 0 < rec["l2_error"] < 2.0
-    assert rec["total"] == pytest.approx(sum(rec["time"].values()))
-    m = performance.meshed_level(16, "flipped")
-    assert m["dofs"] == 16 * 8 and m["triangles"] == 2 * 16 * 8
-    assert set(m["time"]) == {"mesh", "matrix", "rhs", "solve", "errors"}
-
-
-def test_stage_timer_keeps_cpu_and_faults_per_stage():
-    """Per stage: the wall time, and user and system CPU time and minor page faults from getrusage.
-    A stage that writes 64 MiB of a fresh anonymous mapping faults at least once per 2 MiB (once
-    per 4 KiB page without transparent huge pages); a stage that only sleeps spends no CPU time."""
-    import mmap
-    import time
-
-    t = performance.StageTimer()
-    region = mmap.mmap(-1, 64 * 2**20)  # fresh pages, not the allocator's reused heap
-    with t("touch"):
-        np.frombuffer(region, dtype=np.float64)[:] = 1.0
-    with t("sleep"):
-        time.sleep(0.05)
-    with t("touch"):
-        np.frombuffer(region, dtype=np.float64)[::512] += 1.0  # pages already there: no new faults needed
-    assert set(t) == set(t.cpu) == {"touch", "sleep"}
-    assert t["sleep"] >= 0.05 and t.cpu["sleep"]["user"] + t.cpu["sleep"]["system"] < 0.04
-    assert t.cpu["touch"]["faults"] >= 64 // 2
-    assert t.cpu["touch"]["user"] + t.cpu["touch"]["system"] <= 2 * t["touch"] + 0.02  # two cores at most
-    assert np.frombuffer(region, dtype=np.float64)[512] == 2.0
-    rec = performance.cut_level(0.2)
-    assert set(rec["stage_cpu"]) == set(rec["time"])
 
 
 def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
@@ -93,126 +57,13 @@ def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
     for c in commands:
         assert len(c["walls"]) == 1 and c["median"] == c["min"] == c["max"] == c["walls"][0]
         assert 0.2 < c["median"] < 60 and c["peak_memory_gib"] > 0.05 and c["target"] is None and c["met"] is None
-    assert [t for _, t in performance.command_targets("quick")] == [2.0, 1.0, 1.0, 1.0, 1.0]
-    assert performance.command_targets("full")[-1] == (["run", "mean-curvature-cut", "--spacing", "0.003125"], 40.0)
+    assert [t for _, t in performance_levels.command_targets("quick")] == [2.0, 1.0, 1.0, 1.0, 1.0]
+    assert performance_levels.command_targets("full")[-1] == (["run", "mean-curvature-cut", "--spacing", "0.003125"], 40.0)
     for name in ("performance_scaling", "performance_bounds"):
         assert (tmp_path / f"{name}.png").stat().st_size > 10_000
     assert summary["levels"] == data["levels"]
     assert data["repeat"] == 1 and all(r["totals"] == [r["total"]] for r in data["levels"])
     assert performance.fitted_exponent([1, 10, 100], [2, 20, 200]) == pytest.approx(1.0)
-
-
-def test_peak_memory_is_the_level_process_own():
-    """A parent that once held 0.4 GiB: the child's ru_maxrss would start there (Linux), its VmHWM does not."""
-    import resource
-
-    a = np.ones(50_000_000)
-    a[1::512] = 2.0
-    del a
-    assert resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20 > 0.37
-    rec = performance._in_subprocess("meshed-flipped", 16)
-    assert 0.02 < rec["peak_memory_gib"] < 0.3
-    assert "warm" in rec and "warm" not in performance._in_subprocess("meshed-flipped", 16, warm=False)  # --limit: once
-
-
-def test_the_second_run_of_a_level_reuses_the_memory_of_the_first():
-    """The objects of a level refer to each other, so the level process collects them before its
-    second run: that run then takes its memory from the heap the first one freed, instead of
-    touching fresh pages beside the first run's (about 1550 faults at spacing 0.05 without the
-    collection, against about 20 thousand for the first run and a handful with it)."""
-    rec = performance._in_subprocess("cut", 0.05)
-    assert rec["page_faults"] > 5000
-    assert 0 <= rec["warm"]["page_faults"] < rec["page_faults"] / 20
-
-
-def _fabricated_level(**changes):
-    rec = {"level": 0.05, "dofs": 500, "active_tets": 1000, "surface_triangles": 1200, "interior_faces": 2000,
-           "iterations": 10, "nnz": {"K": 8000},
-           "time": {"background": 1e-5, "cut": 1.088e-4, "topology": 1.6e-4, "matrix": 4.184e-4, "rhs": 6.8e-5,
-                    "solve": 3.12e-3, "errors": 5.76e-4}}
-    rec.update(changes)
-    return rec
-
-
-def test_stage_targets_by_hand():
-    """Each stage's verdict from the finest level's own time / traffic bound and, where the stage
-    has compiled references, the largest cutfem-on-one-thread / reference time: the cut 0.5, the
-    topology 0.25, the matrix 3.0 and the right-hand sides 2.5 by their whole-stage rows, the solve
-    1.5 by the worst of its three kernels; the coarser level's ratios are not used; the errors
-    have no reference, and the share of their own (second-run) time in the exact field."""
-    coarse = _fabricated_level(level=0.1)
-    fine = _fabricated_level(level=0.05, time={k: v / 10 if k == "solve" else v for k, v in coarse["time"].items()})
-    fine["warm"] = {"time": {**fine["time"], "errors": 4e-4}, "exact_time": 1e-4}
-    for r in (coarse, fine):
-        r["bounds"] = performance.stage_bounds(r, 1e10)  # ratios 10 (the fine solve: 1)
-    coarse["bounds"]["cut"]["ratio"] = 1.0  # would pass the cut if the coarse level were used
-
-    def row(name, one_thread, reference):
-        return {"operation": name, "cutfem_one_thread": one_thread, "reference_time": reference,
-                "per_thread": reference / one_thread}
-
-    refs = [row("the cut stage (band, S_h), whole", 1.0, 2.0), row("the matrix stage, whole", 3.0, 1.0),
-            row("K X, 3 columns, double", 1.0, 2.0), row("Gauss-Seidel sweep from zero, 3 columns", 1.5, 1.0),
-            row("Galerkin P^T K P, first level", 1.0, 1.0), row("active-node numbering", 9.0, 1.0),
-            row("the topology stage (interior faces), whole", 1.0, 4.0), row("the right-hand sides, whole", 5.0, 2.0)]
-    t = performance.stage_targets([coarse, fine], refs)
-    assert list(t) == ["cut", "topology", "matrix", "rhs", "solve", "errors"]
-    assert all(v["level"] == 0.05 for v in t.values())
-    assert t["cut"]["compiled_ratio"] == pytest.approx(0.5) and t["cut"]["traffic_ratio"] == pytest.approx(10.0)
-    assert t["matrix"]["compiled_ratio"] == pytest.approx(3.0) and not t["matrix"]["within_2x"]
-    assert t["solve"]["compiled_ratio"] == pytest.approx(1.5) and len(t["solve"]["references"]) == 3
-    assert t["solve"]["traffic_ratio"] == pytest.approx(1.0) and t["solve"]["within_2x"]
-    assert t["topology"]["compiled_ratio"] == pytest.approx(0.25) and t["topology"]["within_2x"]
-    assert t["rhs"]["compiled_ratio"] == pytest.approx(2.5) and not t["rhs"]["within_2x"]
-    assert t["cut"]["within_2x"] and not t["errors"]["within_2x"]
-    assert t["errors"]["compiled_ratio"] is None and t["errors"]["references"] == []
-    assert t["errors"]["exact_share"] == pytest.approx(0.25) and "exact_share" not in t["cut"]
-    del fine["warm"]
-    assert "exact_share" not in performance.stage_targets([coarse, fine], refs)["errors"]  # not recorded
-    assert performance.stage_targets([], refs) == {}
-
-
-def test_stage_bounds_by_hand():
-    """N = 500, T = 1000, S = 1200, F = 2000, it = 10, nnz(K) = 8000 at 1e10 bytes/s; the times are
-    10 x the bounds worked out here."""
-    bytes_by_hand = {
-        "background": 0,
-        "cut": 16 * 500 + 72 * 1000 + 24 * 1200,  # 108 800
-        "topology": 96 * 1000 + 32 * 2000,  # 160 000
-        "matrix": 52 * 1200 + 48 * 2000 + 328 * 500 + 12 * 8000,  # 62 400 + 96 000 + 164 000 + 96 000 = 418 400
-        "rhs": 56 * 1000 + 24 * 500,  # 68 000
-        "solve": 10 * (24 * 8000 + 80 * 3 * 500),  # 3 120 000
-        "errors": 80 * 6 * 1200,  # 576 000
-    }
-    rec = _fabricated_level()
-    b = performance.stage_bounds(rec, 1e10)
-    assert set(b) == set(bytes_by_hand)
-    for stage, nbytes in bytes_by_hand.items():
-        assert b[stage]["bytes"] == pytest.approx(nbytes)
-        assert b[stage]["bound"] == pytest.approx(nbytes / 1e10)
-        assert b[stage]["bound_method"].startswith("memory traffic / 10.00 GB/s")
-    assert b["solve"]["bound"] == pytest.approx(3.12e-4)
-    for stage in ("cut", "topology", "matrix", "rhs", "solve", "errors"):
-        assert b[stage]["ratio"] == pytest.approx(10.0), stage
-    assert b["background"]["ratio"] is None
-    # a level run again in its process: its stages at half the time, compared with the same bounds
-    warm = performance.stage_bounds(_fabricated_level(warm={"time": {k: v / 2 for k, v in rec["time"].items()}}), 1e10)
-    for stage in ("cut", "topology", "matrix", "rhs", "solve", "errors"):
-        assert warm[stage]["ratio"] == pytest.approx(5.0) and warm[stage]["ratio_fresh"] == pytest.approx(10.0), stage
-        assert warm[stage]["measured"] == rec["time"][stage] / 2 and warm[stage]["measured_fresh"] == rec["time"][stage]
-    # a direct solve (no iterations): K read once and the 500 x 3 solution written
-    direct = performance.stage_bounds(_fabricated_level(iterations=0), 1e10)["solve"]
-    assert direct["bytes"] == 12 * 8000 + 24 * 500 and "direct" in direct["bound_method"]
-    with pytest.raises(ValueError, match="bandwidth"):
-        performance.stage_bounds(rec, 0.0)
-
-
-def test_memory_bandwidth_is_a_plausible_rate():
-    bw = performance.memory_bandwidth(16, repeat=2)
-    assert 1e8 < bw["copy"] < 1e12 and 1e8 < bw["triad"] < 1e12
-    assert bw["bandwidth"] == max(bw["copy"], bw["triad"]) and "best of 2" in bw["method"]
-    two = performance.memory_bandwidth(16, repeat=2, threads=2)
-    assert two["threads"] == 2 and "2 thread(s)" in two["method"] and 1e8 < two["copy"] < 1e12
 
 
 def test_scaling_exponents_over_the_three_finest_levels():
@@ -329,56 +180,3 @@ def test_meshed_multigrid_and_direct_errors_agree(family):
     exact = Torus().exact_mean_curvature_vector
     ed, ei = l2_error(V, Hd, exact), l2_error(V, Hi, exact)
     assert abs(ed - ei) <= 1e-5 * ed
-
-
-def test_the_topology_reference_matches_the_same_faces():
-    """VTK's geometry filter, the topology stage's reference, keeps exactly the faces of the active
-    tets that the interior faces leave unpaired (cut torus at spacing 0.2, as sorted node triples)."""
-    import pyvista as pv
-
-    from cutfem.geometry.cut import CUT, cut_mesh
-    from cutfem.geometry.shapes import Torus
-    from cutfem.geometry.markers import interior_facets
-    from cutfem.geometry.box import structured_box
-    from cutfem.geometry.numbering import TET_FACES
-
-    es = cut_mesh(structured_box(*performance.BOX, spacing=0.2), Torus(1.0, 0.5)).elements(CUT)
-    tets = np.asarray(es.tets)
-    pairs, opposite = interior_facets(es.tets, es.n_nodes, es.kuhn_types)
-    paired = np.zeros((len(tets), 4), dtype=bool)
-    paired[pairs[:, 0], opposite[:, 0]] = paired[pairs[:, 1], opposite[:, 1]] = True
-    tet, vertex = np.nonzero(~paired)  # face k of a tet is the one opposite to its local vertex k
-    ours = np.unique(np.sort(tets[tet[:, None], TET_FACES[vertex]], axis=1), axis=0)
-    grid = pv.UnstructuredGrid({pv.CellType.TETRA: tets}, np.asarray(es.points))
-    surface = grid.extract_surface(pass_pointid=True, pass_cellid=False, algorithm="geometry")
-    theirs = np.unique(np.sort(surface.point_data["vtkOriginalPointIds"][surface.regular_faces], axis=1), axis=0)
-    assert len(ours) == 4 * len(tets) - 2 * len(pairs) > 1000
-    np.testing.assert_array_equal(ours, theirs)
-
-
-def test_compiled_references_compute_what_their_kernels_compute():
-    """Each kernel and its compiled reference (scipy's CSR product and sparse products, pyamg's
-    Gauss-Seidel, numpy.unique, VTK's contour and geometry filters, scipy's COO to CSR,
-    numpy.bincount) give the same result on the cut torus at spacing 0.2: the product, the
-    numbering and the number of boundary faces exactly, the sweep, the Galerkin product, the
-    surface's area, the matrix and the right-hand sides to round-off; per thread is the reference's
-    time over cutfem's on one thread."""
-    rows = performance.compiled_references(0.2, repeat=1)
-    assert [r["operation"] for r in rows] == ["K X, 3 columns, double", "Gauss-Seidel sweep from zero, 3 columns",
-                                              "Galerkin P^T K P, first level", "active-node numbering",
-                                              "the cut stage (band, S_h), whole", "the matrix stage, whole",
-                                              "the topology stage (interior faces), whole", "the right-hand sides, whole"]
-    by = {r["operation"]: r for r in rows}
-    # VTK's marching tets on the active tets give the same surface (relative difference of the areas),
-    # and the element matrices summed by scipy's COO to CSR conversion give K
-    assert by["the cut stage (band, S_h), whole"]["difference"] < 1e-12
-    assert by["the matrix stage, whole"]["difference"] < 1e-12
-    assert by["the topology stage (interior faces), whole"]["difference"] == 0.0  # VTK's boundary: 4 T - 2 F faces
-    assert by["the right-hand sides, whole"]["difference"] < 1e-12
-    assert by["K X, 3 columns, double"]["difference"] == 0.0
-    assert by["active-node numbering"]["difference"] == 0.0
-    assert by["Gauss-Seidel sweep from zero, 3 columns"]["difference"] < 1e-12
-    assert by["Galerkin P^T K P, first level"]["difference"] < 1e-12
-    for r in rows:
-        assert r["unknowns"] > 1000 and r["cutfem"] > 0 and r["cutfem_one_thread"] > 0 and r["reference_time"] > 0
-        assert r["per_thread"] == pytest.approx(r["reference_time"] / r["cutfem_one_thread"])
