@@ -34,9 +34,8 @@ import time
 import warnings
 
 import numpy as np
-from numba import njit, prange
+from numba import njit
 
-from .geometry.numbering import index_dtype
 
 #: the arrays of a call below which it runs on the calling thread (bytes): on an idle 2-core machine
 #: two threads beat one from about 0.1 MiB (``sparse_kernels.matmul``, docs/performance.md "On a shared
@@ -218,7 +217,8 @@ def parallel_kernel(fn):
 SUM_BLOCK = 256
 
 
-#: the chunk counts :func:`sweep_chunks` tries, in order
+#: the chunk counts the lattice sweeps and sums try, in order (:func:`cutfem.solvers.sparse_kernels.sweep_chunks`,
+#: :func:`cutfem.fem.assembly_kernels.scatter_chunks`)
 SWEEP_CHUNKS = (8, 4)
 
 
@@ -240,55 +240,3 @@ def _ordered_sum(values):
     for i in range(values.shape[0]):
         total += values[i]
     return total
-
-
-@parallel_kernel
-def _chunk_spans(dofs, owners, bounds, lo, hi):
-    """lo[ch], hi[ch]: the least and largest dof the elements of chunk ch read (``owners`` (E, r), or
-    (0, 1) when element e reads row e of ``dofs``)."""
-    own = owners.shape[0] > 0
-    for ch in prange(bounds.shape[0] - 1):
-        a, b = np.int64(2**62), np.int64(-1)
-        for e in range(bounds[ch], bounds[ch + 1]):
-            for o in range(owners.shape[1]):
-                row = owners[e, o] if own else e
-                for i in range(dofs.shape[1]):
-                    d = np.int64(dofs[row, i])
-                    a = min(a, d)
-                    b = max(b, d)
-        lo[ch], hi[ch] = a, b
-
-
-def scatter_chunks(dofs, owners, counts=SWEEP_CHUNKS):
-    """Chunk bounds (k + 1,) of the elements of a lattice sum (:func:`lattice_add_elements`,
-    :func:`lattice_add_pieces`, :func:`lattice_add_rows`, :func:`lattice_add_face_jumps`): element e
-    adds into the nodes ``dofs[owners[e]]`` (``owners`` (E, r): the rows of ``dofs`` that element e
-    reads, e.g. its tet, the two tets of a face, or its own row of Gram dofs).  The first k of
-    ``counts`` for which k contiguous chunks of about equal elements give chunks of one parity
-    disjoint ranges of nodes (so the even chunks can add at the same time, then the odd ones);
-    [0, E] when none does.  Elements listed along the lattice pass: the whole tets of a side, the
-    interior faces of a cut, and the cut's tets and the triangles of S_h, since the band search
-    returns its cells in id order (in the order of its blocks, the cut's chunks spanned most node
-    numbers and got one chunk: the piece mass and the cut rows ran on one core).
-    The chunk order changes the order of the sums at nodes shared by two chunks: the same bits on
-    any number of threads, not those of one pass in element order.  ``owners`` None: element e reads
-    row e (no (E, 1) array of 0..E-1: 0.24 s for the 29 million tets of a side at spacing 0.01)."""
-    if owners is None:  # the empty placeholder has the type the callers' owners have at this size: one signature
-        owners, E = np.zeros((0, 1), index_dtype(len(dofs))), len(dofs)
-    else:
-        owners = np.ascontiguousarray(owners).reshape(len(owners), -1)
-        E = owners.shape[0]
-    for k in counts:
-        if k < 2 or k % 2 or E < 64 * k:
-            continue
-        bounds = (np.arange(k + 1, dtype=np.int64) * E) // k
-        lo, hi = np.empty(k, dtype=np.int64), np.empty(k, dtype=np.int64)
-        _chunk_spans(dofs, owners, bounds, lo, hi)
-        ok = True
-        for parity in (0, 1):
-            order = np.argsort(lo[parity::2])
-            a, b = lo[parity::2][order], hi[parity::2][order]
-            ok &= bool(np.all(a[1:] > b[:-1]))
-        if ok:
-            return bounds
-    return np.array([0, E], dtype=np.int64)

@@ -24,10 +24,8 @@ import scipy.sparse as sp
 
 from ..geometry.numbering import index_dtype
 from . import assembly_kernels
-from .. import jit
 
 __all__ = ["LatticeSum", "PairSum", "SymmetricPattern", "assemble_vector", "gram", "gram_sum", "row_operator"]
-
 
 class SymmetricPattern:
     """CSR structure of a symmetric n x n matrix: the full diagonal and the undirected ``pairs``.
@@ -86,7 +84,6 @@ class SymmetricPattern:
         out.has_canonical_format = True
         return out
 
-
 class _RunningSum:
     """Arrays that the terms of one form add into, each times :attr:`scale` (1; :meth:`scaled`
     gives a view of the same arrays with another), made on the first term added."""
@@ -108,7 +105,6 @@ class _RunningSum:
         out = copy.copy(self)
         out.scale = float(scale)
         return out
-
 
 class PairSum(_RunningSum):
     """A symmetric matrix on the nodes of a triangulated surface, summed from terms given as a
@@ -151,7 +147,6 @@ class PairSum(_RunningSum):
         if "opposite" in st:
             return space.edge_stencil_pattern().matrix(st["diagonal"], np.concatenate([st["edges"], st["opposite"]]))
         return space.node_pattern().matrix(st["diagonal"], st["edges"])
-
 
 class LatticeSum(_RunningSum):
     """A symmetric matrix over nodes of a structured box, summed from element matrices and Gram rows
@@ -216,21 +211,21 @@ class LatticeSum(_RunningSum):
             self.ids, self.code, dofs, elements, edges.reshape(-1, 6), diagonal.reshape(-1, 4),
             none_t if types is None else np.ascontiguousarray(types),
             none_f if weights is None else np.ascontiguousarray(weights, dtype=float), self.scale, *self._slots(),
-            jit.scatter_chunks(dofs, owners)),
+            assembly_kernels.scatter_chunks(dofs, owners)),
             "element matrices")
         return self
 
     def add_pieces(self, vertices, triangles, tets_of, areas, points, tets, table, types, dofs) -> "LatticeSum":
         """Add the exact P1 mass matrices of triangles lying in tets (the pieces of S_h), triangle by
         triangle (:func:`cutfem.fem.assembly_kernels.lattice_add_pieces`, same arguments; the triangles in the chunks of
-        :func:`cutfem.jit.scatter_chunks`, on all cores)."""
+        :func:`cutfem.assembly_kernels.scatter_chunks`, on all cores)."""
 
         c = np.ascontiguousarray
         tets_of, dofs = c(tets_of), c(dofs)
         self._check(assembly_kernels.lattice_add_pieces(self.ids, self.code, c(vertices, dtype=float), c(triangles), tets_of,
                                                c(areas, dtype=float), c(points, dtype=float), c(tets), c(table, dtype=float),
                                                c(types), dofs, self.scale, *self._slots(),
-                                               jit.scatter_chunks(dofs, tets_of[:, None])),
+                                               assembly_kernels.scatter_chunks(dofs, tets_of[:, None])),
                     "pieces")
         return self
 
@@ -241,7 +236,7 @@ class LatticeSum(_RunningSum):
         dofs = np.ascontiguousarray(dofs)
         self._check(assembly_kernels.lattice_add_rows(self.ids, self.code, dofs, np.ascontiguousarray(values, dtype=float),
                                              self.scale, *self._slots(),
-                                             jit.scatter_chunks(dofs, None)),
+                                             assembly_kernels.scatter_chunks(dofs, None)),
                     "rows")
         return self
 
@@ -249,13 +244,13 @@ class LatticeSum(_RunningSum):
         """Add the Gram matrix of the normal-gradient jumps across the faces between the tets ``pairs``
         (F, 2) with the opposite vertices ``opposite`` (F, 2), face by face
         (:func:`cutfem.fem.assembly_kernels.lattice_add_face_jumps`, same arguments; the faces in the chunks of
-        :func:`cutfem.jit.scatter_chunks`, on all cores)."""
+        :func:`cutfem.assembly_kernels.scatter_chunks`, on all cores)."""
 
         pairs = np.ascontiguousarray(pairs)
         self._check(assembly_kernels.lattice_add_face_jumps(self.ids, self.code, pairs,
                                                    np.ascontiguousarray(opposite), np.ascontiguousarray(factors, dtype=float),
                                                    np.ascontiguousarray(volumes, dtype=float), dofs, table, types, self.scale,
-                                                   *self._slots(), jit.scatter_chunks(dofs, pairs)), "face jump rows")
+                                                   *self._slots(), assembly_kernels.scatter_chunks(dofs, pairs)), "face jump rows")
         return self
 
     def matrix(self) -> sp.csr_matrix:
@@ -271,7 +266,6 @@ class LatticeSum(_RunningSum):
         out.has_sorted_indices = True
         out.has_canonical_format = True
         return out
-
 
 def assemble_vector(dofs: np.ndarray, local: np.ndarray, n: int, out: np.ndarray | None = None) -> np.ndarray:
     """Assemble local vectors (m, k) or (m, k, c) with dof numbers (m, k) into (n,) or (n, c): added
@@ -291,7 +285,6 @@ def assemble_vector(dofs: np.ndarray, local: np.ndarray, n: int, out: np.ndarray
     # out.reshape is a view of the contiguous out: the kernel writes into out
     assembly_kernels.scatter_add(np.ascontiguousarray(dofs).reshape(m, k), np.ascontiguousarray(local).reshape(m, k, -1), out.reshape(n, -1))
     return out
-
 
 def row_operator(dofs: np.ndarray, values: np.ndarray, n: int, overwrite: bool = False) -> sp.csr_matrix:
     """The sparse (r x n) matrix E whose row i has ``values[i]`` at columns ``dofs[i]`` (r, k);
@@ -318,10 +311,8 @@ def row_operator(dofs: np.ndarray, values: np.ndarray, n: int, overwrite: bool =
     E.sum_duplicates()
     return E
 
-
 #: rows of E per sparse product in :func:`gram`: larger operators are summed block by block
 GRAM_ROWS = 1 << 21
-
 
 def gram(dofs: np.ndarray, values: np.ndarray, n: int, overwrite: bool = False) -> sp.csr_matrix:
     """E^T E for the row operator E of (dofs, values): the matrix of the form sum_i (e_i.u)(e_i.v).
@@ -341,7 +332,6 @@ def gram(dofs: np.ndarray, values: np.ndarray, n: int, overwrite: bool = False) 
         return gram_sum(((take(dofs[s : s + GRAM_ROWS]), take(values[s : s + GRAM_ROWS])) for s in range(0, len(dofs), GRAM_ROWS)), n)
     return _gram(dofs, values, n, overwrite)
 
-
 def gram_sum(blocks, n: int) -> sp.csr_matrix:
     """sum_b E_b^T E_b over the row operators of ``blocks``, an iterable of (dofs, values) (see
     :func:`gram`; each block's arrays are handed over, so a generator can build them one block at a
@@ -351,7 +341,6 @@ def gram_sum(blocks, n: int) -> sp.csr_matrix:
         part = _gram(dofs, values, n, True)
         total = part if total is None else total + part
     return sp.csr_matrix((n, n)) if total is None else total.tocsr()
-
 
 def _gram(dofs, values, n, overwrite):
     E = row_operator(dofs, values, n, overwrite)

@@ -326,7 +326,7 @@ def _band_cells(box: StructuredBox, f, lipschitz: float, tol: float = 0.0, surve
         blocks, centre, parent_phi = cut_kernels.refine_blocks(blocks, phi, keep, size, cells, box.lower, box.spacing, CUBE_CORNERS)
     # in cell-id order (the search leaves them in block order): the cut's tets then come in id
     # order, so their nodes run through the box layer by layer and the lattice sums over the
-    # pieces split into chunks of disjoint node ranges (cutfem.jit.scatter_chunks)
+    # pieces split into chunks of disjoint node ranges (cutfem.assembly_kernels.scatter_chunks)
     ids, phi_kept = np.empty(kept, dtype=np.int64), np.empty(kept)
     cut_kernels.kept_cells(np.ascontiguousarray(blocks, dtype=np.int64), phi, keep, int(cells[0]), int(cells[1]), ids, phi_kept)
     phi = phi_kept

@@ -38,6 +38,7 @@ from cutfem.geometry.mesh import TetMesh
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 from cutfem import jit
+from cutfem.fem import assembly_kernels
 
 # ----------------------------------------------------------------------------------------------
 # assemble_vector on synthetic blocks
@@ -527,7 +528,7 @@ def test_lattice_sum_refuses_pairs_that_are_not_lattice_neighbours():
 
 
 def test_face_penalty_sums_on_all_cores(monkeypatch):
-    """The face penalty adds its faces in chunks (jit.scatter_chunks): chunks of one parity
+    """The face penalty adds its faces in chunks (assembly_kernels.scatter_chunks): chunks of one parity
     touch disjoint ranges of nodes, the matrix equals the one of a single pass in face order to
     round-off and is bitwise the same on one thread as on all; faces in random order get one
     chunk."""
@@ -538,8 +539,8 @@ def test_face_penalty_sums_on_all_cores(monkeypatch):
     V = CutP1Space(cut)
     dF = cut.dF(cut.interior_facets(CUT))
     seen = []
-    chunks = jit.scatter_chunks
-    monkeypatch.setattr(jit, "scatter_chunks", lambda dofs, owners, counts=jit.SWEEP_CHUNKS: seen.append(
+    chunks = assembly_kernels.scatter_chunks
+    monkeypatch.setattr(assembly_kernels, "scatter_chunks", lambda dofs, owners, counts=jit.SWEEP_CHUNKS: seen.append(
         (dofs, np.asarray(owners).reshape(len(owners), -1), chunks(dofs, owners, counts))) or seen[-1][2])
     J = assemble(face_jump_penalty(dF), V)
     dofs, pairs, bounds = seen[-1]
@@ -559,7 +560,7 @@ def test_face_penalty_sums_on_all_cores(monkeypatch):
         numba.set_num_threads(threads)
     for a, b in ((J.indptr, J1.indptr), (J.indices, J1.indices), (J.data, J1.data)):
         np.testing.assert_array_equal(a, b)
-    monkeypatch.setattr(jit, "scatter_chunks", lambda dofs, owners, counts=None: np.array([0, len(owners)]))
+    monkeypatch.setattr(assembly_kernels, "scatter_chunks", lambda dofs, owners, counts=None: np.array([0, len(owners)]))
     J0 = assemble(face_jump_penalty(dF), V)
     assert abs(J0 - J).max() <= 1e-14 * abs(J0).max()
 
@@ -570,9 +571,9 @@ def test_scatter_chunks_without_owners_is_each_element_its_own_row():
 
     base = np.arange(4000)[:, None] + np.array([0, 1, 7, 40])
     for dofs in (base, base[np.random.default_rng(1).permutation(len(base))]):
-        explicit = jit.scatter_chunks(dofs, np.arange(len(dofs))[:, None])
-        np.testing.assert_array_equal(jit.scatter_chunks(dofs, None), explicit)
-    assert len(jit.scatter_chunks(base, None)) > 2 and len(explicit) == 2
+        explicit = assembly_kernels.scatter_chunks(dofs, np.arange(len(dofs))[:, None])
+        np.testing.assert_array_equal(assembly_kernels.scatter_chunks(dofs, None), explicit)
+    assert len(assembly_kernels.scatter_chunks(base, None)) > 2 and len(explicit) == 2
 
 
 @pytest.mark.parametrize("threads", [1, 2])
