@@ -33,7 +33,8 @@ from numba import prange
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import h1_error, l2_error, l2_h1_errors
-from cutfem.fem.forms import assemble, bilinear_form, face_jump_penalty, load, mass, normal_gradient_penalty, stiffness, tangential_stiffness
+from cutfem.fem.forms import assemble, bilinear_form
+from cutfem.fem.terms import face_jump_penalty, load, mass, normal_gradient_penalty, stiffness, tangential_stiffness
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.levelset import Sphere
 from cutfem.geometry.markers import CUT, NEG

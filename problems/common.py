@@ -138,17 +138,6 @@ def levelset_for(surface, R=1.0, r=0.5, radius=1.0, axes="1.0,0.8,0.6") -> Level
         ) from None
 
 
-def nitsche_hint(gamma: float, gamma_g: float) -> str:
-    """The advice for an indefinite Nitsche system (:func:`cutfem.solvers.solve.solve`'s ``indefinite_hint``):
-    the penalty ``gamma`` is below its stability bound, which holds uniformly in the cut only with
-    the ghost penalty; with ``gamma_g`` = 0 the bound grows without limit on small cut elements."""
-    hint = f"raise the Nitsche penalty (--gamma {gamma:g} is below its stability bound)"
-    if gamma_g == 0:
-        hint += (" or restore the ghost penalty (--gamma-g is 0: without it the bound grows without limit on the "
-                 "small cut elements, default --gamma-g 0.1)")
-    return hint
-
-
 #: the meaningful range of the ghost penalty gamma_g (docs/math.md §7): g and the bulk form both
 #: scale as h^3 per tet, so gamma_g is a number, the same at every spacing.  It adds about
 #: gamma_g h^2 |u|_{H^2}^2 to the squared energy error (weak consistency), and as gamma_g grows it

@@ -57,7 +57,8 @@ import numpy as np
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import l2_error
-from cutfem.fem.forms import assemble, load, mass, normal_gradient_penalty, tangential_stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.geometry.levelset import Sphere
 from cutfem.geometry.markers import CUT
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register

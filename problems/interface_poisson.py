@@ -7,7 +7,7 @@ u_h = (u_NEG, u_POS) in V_h^NEG x V_h^POS:
     sum_i (a_i grad u_i, grad v_i)_i - ({a n . grad u}, [v]) - ([u], {a n . grad v}) + (lambda / h) ([u], [v])
         + sum_i a_i gamma_g g_i(u_i, v_i) = sum_i (f, v_i)_i
 
-(:func:`cutfem.fem.forms.interface_nitsche`; harmonic or cut-volume weights).
+(:func:`cutfem.fem.terms.interface_nitsche`; harmonic or cut-volume weights).
 
 Manufactured solution (smooth on each side, not a polynomial): with psi = |x|^2 - R^2 and
 w = sin(x) exp(y / 2) + 2,
@@ -31,7 +31,8 @@ from numba import prange
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import l2_h1_errors
-from cutfem.fem.forms import apply_dirichlet, assemble, face_jump_penalty, interface_nitsche, load, stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import apply_dirichlet, face_jump_penalty, interface_nitsche, load, stiffness
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.levelset import Sphere
 from cutfem.geometry.markers import NEG, POS
@@ -39,7 +40,7 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, 
 from cutfem.solvers.solve import SolverError, solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
+from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -172,7 +173,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
         K, b = apply_dirichlet(K, b, boundary, sol.u(POS)(outer.dof_points[outer.boundary_dofs]))
     with t("solve"):
         try:
-            x, info = solve(K, b, method=solver, space=W, indefinite_hint=nitsche_hint(gamma, gamma_g))
+            x, info = solve(K, b, method=solver, space=W, indefinite_hint=form.indefinite_hint)
         except (SolverError, RuntimeError) as exc:
             contrast = a_inside / a_outside
             if contrast < CONTRAST_LIMIT:

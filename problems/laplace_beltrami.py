@@ -25,7 +25,8 @@ from numba import prange
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import h1_error, l2_error
-from cutfem.fem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import basis_integrals, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.levelset import Sphere, Torus
 from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register

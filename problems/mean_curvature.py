@@ -6,7 +6,7 @@ Find H_h in [V_h]^3 with, for all v in [V_h]^3,
 
 Component k: (M + J) H_k = A x_k with M the surface mass matrix, A the tangential stiffness and x_k
 the nodal values of the coordinate k; one matrix, one factorization, three right-hand sides.
-A x_k is formed without A: b_i = sum_K |S_K| grad_{S_h} phi_i (:func:`cutfem.fem.forms.position_load`).
+A x_k is formed without A: b_i = sum_K |S_K| grad_{S_h} phi_i (:func:`cutfem.fem.terms.position_load`).
 Stabilization: meshed J = tau_E J_E (edge conormal-gradient jumps, weighted by the global
 h = N^(-1/2)); cut J = tau_E J_E + tau_F J_F (face normal-gradient jumps of the active mesh, times
 h^a, a = ``face_h_power``, 0 in the paper).  Exact field for errors: H^e = H o p.
@@ -28,7 +28,8 @@ import numpy as np
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import discrete_error, l2_error
-from cutfem.fem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, mass, position_load
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import basis_integrals, edge_jump_penalty, face_jump_penalty, mass, position_load
 from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
@@ -88,7 +89,7 @@ def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=
 
 def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0):
     """(K, B): the matrix of :func:`mean_curvature_form` on ``space`` and the right-hand sides
-    B = A X, (n, 3), computed without A (:func:`cutfem.fem.forms.position_load`)."""
+    B = A X, (n, 3), computed without A (:func:`cutfem.fem.terms.position_load`)."""
     K = assemble(mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power, length_scale), space)
     return K, assemble(position_load(surface), space)
 
@@ -127,7 +128,7 @@ def lumped_guess(B, ones_M):
 
 def _common_record(space, ones_M, H, levelset, solve_info):
     """The record entries of both kinds; ``ones_M`` = 1^T M, the integrals of the basis functions
-    over S_h (:func:`cutfem.fem.forms.basis_integrals`)."""
+    over S_h (:func:`cutfem.fem.terms.basis_integrals`)."""
     rec = {
         "h": space.h,
         "dofs": int(space.n_dofs),

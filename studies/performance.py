@@ -240,7 +240,8 @@ def _timed_system_solve_error(t, space, surface, form, torus):
     stage spent in the exact field's own evaluation at the quadrature points) and the times
     of all the stages of ``t``."""
     from cutfem.fem.norms import l2_error
-    from cutfem.fem.forms import assemble, position_load
+    from cutfem.fem.forms import assemble
+    from cutfem.fem.terms import position_load
     from cutfem.problems.mean_curvature import SOLVER_TOL
     from cutfem.solvers.solve import solve
 
@@ -596,7 +597,8 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     from pyamg.relaxation.relaxation import gauss_seidel as pyamg_gauss_seidel
 
     from cutfem.geometry.cut import CUT, cut_mesh
-    from cutfem.fem.forms import assemble, position_load
+    from cutfem.fem.forms import assemble
+    from cutfem.fem.terms import position_load
     from cutfem.geometry.levelset import Torus
     from cutfem.geometry.markers import interior_facets
     from cutfem.geometry.mesh import dense_unique, structured_box

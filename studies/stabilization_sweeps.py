@@ -28,7 +28,8 @@ import numpy as np
 
 from cutfem.fem.norms import fitted_rate, l2_error
 from cutfem.geometry.cut import CUT
-from cutfem.fem.forms import assemble, face_jump_penalty, position_load
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import face_jump_penalty, position_load
 from cutfem.geometry.levelset import Torus
 from cutfem.solvers.solve import SolverError, solve
 

@@ -18,17 +18,9 @@ import pytest
 import scipy.sparse as sp
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.fem.forms import (
-    assemble,
-    basis_integrals,
-    bilinear_form,
-    dot,
-    face_jump_penalty,
-    linear_form,
-    mass,
-    position_load,
-    stiffness,
-)
+from cutfem.fem.forms import assemble, bilinear_form, linear_form
+from cutfem.fem.pointwise import dot
+from cutfem.fem.terms import basis_integrals, face_jump_penalty, mass, position_load, stiffness
 from cutfem.geometry.levelset import Sphere, Torus
 from cutfem.geometry.markers import NEG
 from cutfem.geometry.mesh import structured_box, unstructured_box
@@ -140,7 +132,7 @@ def test_lattice_terms_of_a_form_sum_into_one_matrix():
 def test_cut_mass_by_piece_moments_equals_triangle_route(which):
     """The moment route of the cut mass (three rows per tet) against the per-triangle formula
     Lambda^T |T|/12 (I + 1 1^T) Lambda, and exactly symmetric; x^T M x = int |x|^2 on S_h."""
-    from cutfem.fem.forms import _simplex_mass
+    from cutfem.fem.exact import _simplex_mass
 
     space = SPACES[which]()
     M = mass_matrix(space)
@@ -464,7 +456,7 @@ def test_lattice_terms_that_go_elsewhere_allocate_nothing(monkeypatch):
     """The surface mass of a bulk field lives on other tets than the field's lattice: the form's
     LatticeSum gets no term, makes no slots and no matrix, and the result is the triangle route."""
     from cutfem.fem.assembly import LatticeSum
-    from cutfem.fem.forms import _simplex_mass
+    from cutfem.fem.exact import _simplex_mass
 
     cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02]))
     W = CutP1Space(cut, NEG)

@@ -18,26 +18,9 @@ import scipy.sparse as sp
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import l2_error
-from cutfem.fem.forms import (
-    apply_dirichlet,
-    assemble,
-    basis_integrals,
-    bilinear_form,
-    dot,
-    edge_jump_penalty,
-    face_jump_penalty,
-    interface_nitsche,
-    jump,
-    linear_form,
-    load,
-    mass,
-    nitsche,
-    nitsche_load,
-    normal_gradient_penalty,
-    position_load,
-    stiffness,
-    tangential_stiffness,
-)
+from cutfem.fem.forms import assemble, bilinear_form, linear_form
+from cutfem.fem.pointwise import dot, jump
+from cutfem.fem.terms import apply_dirichlet, basis_integrals, edge_jump_penalty, face_jump_penalty, interface_nitsche, load, mass, nitsche, normal_gradient_penalty, position_load, stiffness, tangential_stiffness
 from cutfem.geometry.levelset import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
 from cutfem.geometry.mesh import structured_box
@@ -69,8 +52,9 @@ def _poisson(cut, side, u, f):
     the box for the outer side): its L2 error."""
     V = CutP1Space(cut, side)
     dx, ds = cut.dx(side), cut.ds()
-    K = assemble(stiffness(dx) + nitsche(ds) + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(side)), h_power=1), V)
-    b = assemble(load(f, dx) + nitsche_load(u, ds), V)
+    N = nitsche(ds, g=u)
+    K = assemble(stiffness(dx) + N + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(side)), h_power=1), V)
+    b = assemble(load(f, dx) + N.load, V)
     if side == POS:
         bd = V.boundary_dofs
         K, b = apply_dirichlet(K, b, bd, u(V.dof_points[bd]))
@@ -106,12 +90,13 @@ def test_nitsche_on_pos_is_the_integrand_with_the_outward_normal(cut):
     def rhs(v, w):
         return w.at(SMOOTH) * (-dot(-w.n, v.grad) + (10.0 / w.h) * v)
 
-    _close(assemble(nitsche(cut.ds(), 10.0), V), assemble(terms * cut.ds(), V))
-    np.testing.assert_allclose(assemble(nitsche_load(SMOOTH, cut.ds(), 10.0), V), assemble(rhs * cut.ds(), V), rtol=1e-12, atol=1e-14)
+    N = nitsche(cut.ds(), 10.0, g=SMOOTH)
+    _close(assemble(N, V), assemble(terms * cut.ds(), V))
+    np.testing.assert_allclose(assemble(N.load, V), assemble(rhs * cut.ds(), V), rtol=1e-12, atol=1e-14)
 
 
 def test_nitsche_needs_a_field_of_one_side(cut):
-    for build in (lambda: nitsche(cut.ds()), lambda: nitsche_load(ONE, cut.ds())):
+    for build in (lambda: nitsche(cut.ds()), lambda: nitsche(cut.ds(), g=ONE).load):
         with pytest.raises(ValueError, match=r"CutP1Space\(cut, NEG\) or CutP1Space\(cut, POS\)"):
             assemble(build(), CutP1Space(cut, CUT))
         with pytest.raises(ValueError, match="same cut"):
@@ -121,12 +106,14 @@ def test_nitsche_needs_a_field_of_one_side(cut):
 def test_nitsche_load_takes_gamma_h_and_vector_data(cut):
     V = CutP1Space(cut, NEG)
     with pytest.raises(TypeError, match="SurfacePieces"):
-        nitsche_load(ONE, cut.dx(NEG))
+        nitsche(cut.dx(NEG), g=ONE)
     with pytest.raises(TypeError, match="function of the points"):
-        nitsche_load(1.0, cut.ds())
-    both = assemble(nitsche_load(lambda x: np.stack([LINEAR(x), SMOOTH(x)], -1), cut.ds()), V)
+        nitsche(cut.ds(), g=1.0)
+    with pytest.raises(ValueError, match="no boundary data"):
+        nitsche(cut.ds()).load
+    both = assemble(nitsche(cut.ds(), g=lambda x: np.stack([LINEAR(x), SMOOTH(x)], -1)).load, V)
     assert both.shape == (V.n_dofs, 2)
-    np.testing.assert_allclose(both[:, 1], assemble(nitsche_load(SMOOTH, cut.ds()), V), rtol=1e-13, atol=1e-15)
+    np.testing.assert_allclose(both[:, 1], assemble(nitsche(cut.ds(), g=SMOOTH).load, V), rtol=1e-13, atol=1e-15)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -187,8 +174,9 @@ def test_interface_nitsche_refuses_fields_that_are_not_neg_then_pos(cut):
 def outer_system(cut):
     """The outer problem with u = LINEAR: Nitsche on Gamma_h, the box's dofs still free."""
     V = CutP1Space(cut, POS)
-    K = assemble(stiffness(cut.dx(POS)) + nitsche(cut.ds()) + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(POS)), h_power=1), V)
-    return V, K, assemble(nitsche_load(LINEAR, cut.ds()), V)
+    N = nitsche(cut.ds(), g=LINEAR)
+    K = assemble(stiffness(cut.dx(POS)) + N + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(POS)), h_power=1), V)
+    return V, K, assemble(N.load, V)
 
 
 def test_apply_dirichlet_pairs_values_with_their_dofs_in_any_order(outer_system):
@@ -460,7 +448,7 @@ def test_apply_dirichlet_keeps_the_scale_of_the_system(outer_system):
     rows carry K's own diagonal instead, so the stopping test weighs every row alike."""
     V, K, b = outer_system
     bd, exact = V.boundary_dofs, 1e6 * LINEAR(V.dof_points)
-    Kb, bb = apply_dirichlet(1e-6 * K, b, bd, exact[bd])  # 1e-6 K x = nitsche_load(1e6 LINEAR) * 1e-6 = b
+    Kb, bb = apply_dirichlet(1e-6 * K, b, bd, exact[bd])  # 1e-6 K x = the Nitsche load of 1e6 LINEAR * 1e-6 = b
     np.testing.assert_array_equal(Kb.diagonal()[bd], 1e-6 * K.diagonal()[bd])
     assert abs(Kb - Kb.T).max() == 0
     for method in ("direct", "cg-jacobi", "cg-amg"):

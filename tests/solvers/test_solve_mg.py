@@ -12,7 +12,8 @@ from scipy.sparse.linalg import spsolve_triangular
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.levelset import Sphere, Torus
 from cutfem.geometry.markers import CUT
-from cutfem.fem.forms import assemble, mass
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import mass
 from cutfem.geometry.mesh import structured_box
 from cutfem.solvers.solve import (
     DirectSolver,
