@@ -12,8 +12,8 @@ import numpy as np
 from cutfem.geometry.levelset import Ellipsoid, FunctionLevelSet, LevelSet, SignedDistance, Sphere, Torus
 from cutfem.geometry.markers import NEG, POS
 from cutfem.geometry.mesh import structured_box, unique_keys, unstructured_box
-from cutfem.runs.registry import Param, ProblemError, Timer  # noqa: F401  (Timer re-exported for the problems)
-from cutfem.geometry.surface import TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
+from cutfem.runs.registry import Param, ProblemError
+from cutfem.geometry.surface import RANDOM_FAMILIES, TORUS_FAMILIES, read_surface, sphere_mesh, torus_mesh
 
 SURFACES = ("torus", "sphere", "ellipsoid")
 
@@ -30,6 +30,31 @@ BACKGROUND_PARAM = Param("background", str, "structured",
                          "background mesh: structured (Kuhn cells of the given spacing) or tetwild (pytetwild, "
                          "unstructured, target edge length = spacing; its meshing dominates the run: 9-25 s at "
                          "spacing 0.1 and 2 minutes at 0.05 on 2 cores)", choices=("structured", "tetwild"))
+
+#: the linear solvers of the problems (:func:`cutfem.solvers.solve.solve`'s methods), and their parameter
+SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
+SOLVER_PARAM = Param("solver", str, "auto", "linear solver", choices=SOLVERS)
+
+#: the background box of the cut surface problems
+SURFACE_BOX_PARAM = Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)")
+
+#: the family of a triangulated torus and the seed of its random families (the meshed surface problems)
+TORUS_MESH_PARAMS = [
+    Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
+    Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0,
+          only=(("surface", ("torus",)), ("family", RANDOM_FAMILIES))),
+]
+
+
+def face_stabilization_params(only=None) -> list:
+    """The face stabilization tau_F h^a J_F of a cut surface field, ``tau_f`` and ``face_h_power``
+    (checked by :func:`check_face_stabilization`), given only under the condition ``only`` when set
+    (:class:`~cutfem.runs.registry.Param`)."""
+    return [
+        Param("tau_f", float, 0.1, "face stabilization tau_F (its weight tau_F (s/L)^a: a warning below 1e-3, refused below "
+              "1e-6 and above 1e6 (s/L)^2)", minimum=0, only=only),
+        Param("face_h_power", float, 0.0, "power a of h in the face term h^a J_F (see --tau-f)", only=only),
+    ]
 
 
 def point_rows(x):

@@ -61,11 +61,11 @@ from cutfem.fem.forms import assemble
 from cutfem.fem.terms import load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.geometry.levelset import Sphere
 from cutfem.geometry.markers import CUT
-from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
+from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, Timer, register
 from cutfem.solvers.solve import CGSolver, DirectSolver, multigrid_hierarchy
 from cutfem.fem.spaces import CutP1Space
 
-from .common import Timer, background_for, check_cut_memory, check_normal_stabilization, check_resolution, cut_record, with_point_data
+from .common import background_for, check_cut_memory, check_normal_stabilization, check_resolution, cut_record, with_point_data
 from cutfem.solvers import sparse_kernels
 
 _D = np.array([0.6, 0.3, -0.4])

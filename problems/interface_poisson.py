@@ -36,11 +36,11 @@ from cutfem.fem.terms import apply_dirichlet, face_jump_penalty, interface_nitsc
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.levelset import Sphere
 from cutfem.geometry.markers import NEG, POS
-from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
+from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, Timer, register
 from cutfem.solvers.solve import SolverError, solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, point_rows, value_and_gradient
+from .common import BULK_BYTES_PER_TET, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -138,7 +138,7 @@ CONTRAST_LIMIT = 1e10
               "refused above 1e6)", minimum=0),
         Param("radius", float, 0.8, "radius of the interface sphere", positive=True),
         Param("box", str, "-1.2,-1.2,-1.2,1.2,1.2,1.2", "background box x0,y0,z0,x1,y1,z1"),
-        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
+        SOLVER_PARAM,
     ],
 )
 def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, radius, box, solver):

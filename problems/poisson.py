@@ -25,11 +25,11 @@ from cutfem.fem.forms import assemble
 from cutfem.fem.terms import face_jump_penalty, load, nitsche, stiffness
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.markers import NEG
-from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, register
+from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, Timer, register
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space
 
-from .common import BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for, value_and_gradient
+from .common import BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for, value_and_gradient
 
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
@@ -95,7 +95,7 @@ DEFINITIONS = {
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)"),
         Param("gamma", float, 10.0, "Nitsche penalty gamma (a warning above 1e3)", positive=True),
         Param("gamma_g", float, 0.1, "ghost penalty gamma_g (meaningful in [0.01, 1]: a warning above 1, refused above 1e6)", minimum=0),
-        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
+        SOLVER_PARAM,
         *SHAPE_PARAMS,
     ],
 )
