@@ -10,4 +10,7 @@
 * ``heat-surface-cut``: the heat equation on a cut sphere, theta-scheme (§11).
 """
 
-from . import bulk_surface, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson  # noqa: F401  (registration on import)
+from . import bulk_surface, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson
+
+#: the problem modules, each registering its problems on import
+__all__ = ["bulk_surface", "heat_surface", "interface_poisson", "laplace_beltrami", "mean_curvature", "poisson"]

@@ -33,15 +33,17 @@ from numba import prange
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import h1_error, l2_error, l2_h1_errors
-from cutfem.fem.forms import assemble, bilinear_form, face_jump_penalty, load, mass, normal_gradient_penalty, stiffness, tangential_stiffness
+from cutfem.fem.forms import assemble, bilinear_form
+from cutfem.fem.terms import face_jump_penalty, load, mass, normal_gradient_penalty, stiffness, tangential_stiffness
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
+from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_normal_stabilization, check_resolution, cut_record, value_and_gradient, with_point_data
+from .common import BULK_BYTES_PER_TET, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_normal_stabilization, check_resolution, cut_record, value_and_gradient, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -128,7 +130,7 @@ DEFINITIONS = {
               "above 1e6)", minimum=0),
         Param("radius", float, 1.0, "radius of the ball", positive=True),
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the ball's box grown by 0.1)"),
-        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
+        SOLVER_PARAM,
     ],
 )
 def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamma_g, tau_n, radius, box, solver):

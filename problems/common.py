@@ -16,8 +16,7 @@ from cutfem.geometry.markers import NEG, POS
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.mesh import unique_keys, unstructured_box
 from cutfem.runs.registry import Param, ProblemError
-from cutfem.runs.runner import Timer  # noqa: F401  (Timer re-exported for the problems)
-from cutfem.geometry.surface_meshes import TORUS_FAMILIES, sphere_mesh, torus_mesh
+from cutfem.geometry.surface_meshes import RANDOM_FAMILIES, TORUS_FAMILIES, sphere_mesh, torus_mesh
 from cutfem.geometry.surface import read_surface
 
 SURFACES = ("torus", "sphere", "ellipsoid")
@@ -35,6 +34,31 @@ BACKGROUND_PARAM = Param("background", str, "structured",
                          "background mesh: structured (Kuhn cells of the given spacing) or tetwild (pytetwild, "
                          "unstructured, target edge length = spacing; its meshing dominates the run: 9-25 s at "
                          "spacing 0.1 and 2 minutes at 0.05 on 2 cores)", choices=("structured", "tetwild"))
+
+#: the linear solvers of the problems (:func:`cutfem.solvers.solve.solve`'s methods), and their parameter
+SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
+SOLVER_PARAM = Param("solver", str, "auto", "linear solver", choices=SOLVERS)
+
+#: the background box of the cut surface problems
+SURFACE_BOX_PARAM = Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)")
+
+#: the family of a triangulated torus and the seed of its random families (the meshed surface problems)
+TORUS_MESH_PARAMS = [
+    Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
+    Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0,
+          only=(("surface", ("torus",)), ("family", RANDOM_FAMILIES))),
+]
+
+
+def face_stabilization_params(only=None) -> list:
+    """The face stabilization tau_F h^a J_F of a cut surface field, ``tau_f`` and ``face_h_power``
+    (checked by :func:`check_face_stabilization`), given only under the condition ``only`` when set
+    (:class:`~cutfem.runs.registry.Param`)."""
+    return [
+        Param("tau_f", float, 0.1, "face stabilization tau_F (its weight tau_F (s/L)^a: a warning below 1e-3, refused below "
+              "1e-6 and above 1e6 (s/L)^2)", minimum=0, only=only),
+        Param("face_h_power", float, 0.0, "power a of h in the face term h^a J_F (see --tau-f)", only=only),
+    ]
 
 
 def point_rows(x):
@@ -141,17 +165,6 @@ def levelset_for(surface, R=1.0, r=0.5, radius=1.0, axes="1.0,0.8,0.6") -> Level
             f"--surface: {_shorten(str(surface))!r} is none of {', '.join(SURFACES)}, an existing file, or a valid expression "
             f"({exc}); give a named surface or {USER_SURFACES}"
         ) from None
-
-
-def nitsche_hint(gamma: float, gamma_g: float) -> str:
-    """The advice for an indefinite Nitsche system (:func:`cutfem.solvers.solve.solve`'s ``indefinite_hint``):
-    the penalty ``gamma`` is below its stability bound, which holds uniformly in the cut only with
-    the ghost penalty; with ``gamma_g`` = 0 the bound grows without limit on small cut elements."""
-    hint = f"raise the Nitsche penalty (--gamma {gamma:g} is below its stability bound)"
-    if gamma_g == 0:
-        hint += (" or restore the ghost penalty (--gamma-g is 0: without it the bound grows without limit on the "
-                 "small cut elements, default --gamma-g 0.1)")
-    return hint
 
 
 #: the meaningful range of the ghost penalty gamma_g (docs/math.md §7): g and the bulk form both

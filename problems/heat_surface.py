@@ -57,16 +57,17 @@ import numpy as np
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import l2_error
-from cutfem.fem.forms import assemble, load, mass, normal_gradient_penalty, tangential_stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
-from cutfem.solvers.direct import DirectSolver
+from cutfem.runs.runner import Timer
 from cutfem.solvers.krylov import CGSolver
-from cutfem.solvers.multigrid import multigrid_hierarchy
+from cutfem.solvers.solve import DirectSolver, multigrid_hierarchy
 from cutfem.fem.spaces import CutP1Space
 
-from .common import Timer, background_for, check_cut_memory, check_normal_stabilization, check_resolution, cut_record, with_point_data
+from .common import background_for, check_cut_memory, check_normal_stabilization, check_resolution, cut_record, with_point_data
 from cutfem.solvers import sparse_kernels
 
 _D = np.array([0.6, 0.3, -0.4])

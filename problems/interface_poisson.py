@@ -7,7 +7,7 @@ u_h = (u_NEG, u_POS) in V_h^NEG x V_h^POS:
     sum_i (a_i grad u_i, grad v_i)_i - ({a n . grad u}, [v]) - ([u], {a n . grad v}) + (lambda / h) ([u], [v])
         + sum_i a_i gamma_g g_i(u_i, v_i) = sum_i (f, v_i)_i
 
-(:func:`cutfem.fem.forms.interface_nitsche`; harmonic or cut-volume weights).
+(:func:`cutfem.fem.terms.interface_nitsche`; harmonic or cut-volume weights).
 
 Manufactured solution (smooth on each side, not a polynomial): with psi = |x|^2 - R^2 and
 w = sin(x) exp(y / 2) + 2,
@@ -31,16 +31,18 @@ from numba import prange
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import l2_h1_errors
-from cutfem.fem.forms import apply_dirichlet, assemble, face_jump_penalty, interface_nitsche, load, stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import apply_dirichlet, face_jump_penalty, interface_nitsche, load, stiffness
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import NEG, POS
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
+from cutfem.runs.runner import Timer
 from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, nitsche_hint, point_rows, value_and_gradient
+from .common import BULK_BYTES_PER_TET, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -138,7 +140,7 @@ CONTRAST_LIMIT = 1e10
               "refused above 1e6)", minimum=0),
         Param("radius", float, 0.8, "radius of the interface sphere", positive=True),
         Param("box", str, "-1.2,-1.2,-1.2,1.2,1.2,1.2", "background box x0,y0,z0,x1,y1,z1"),
-        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
+        SOLVER_PARAM,
     ],
 )
 def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, radius, box, solver):
@@ -173,7 +175,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
         K, b = apply_dirichlet(K, b, boundary, sol.u(POS)(outer.dof_points[outer.boundary_dofs]))
     with t("solve"):
         try:
-            x, info = solve(K, b, method=solver, space=W, indefinite_hint=nitsche_hint(gamma, gamma_g))
+            x, info = solve(K, b, method=solver, space=W, indefinite_hint=form.indefinite_hint)
         except (SolverError, RuntimeError) as exc:
             contrast = a_inside / a_outside
             if contrast < CONTRAST_LIMIT:

@@ -25,18 +25,19 @@ from numba import prange
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import h1_error, l2_error
-from cutfem.fem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import basis_integrals, edge_jump_penalty, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
+from cutfem.runs.runner import Timer
 from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
-from cutfem.geometry.surface_meshes import RANDOM_FAMILIES, TORUS_FAMILIES
 
-from .common import BACKGROUND_PARAM, SHAPE_PARAMS, check_cut_memory, check_face_stabilization, check_normal_stabilization, check_sphere_levels, check_resolution, Timer, background_for, cut_record, levelset_for, point_rows, surface_mesh_for, with_point_data
+from .common import BACKGROUND_PARAM, SHAPE_PARAMS, SOLVER_PARAM, SURFACE_BOX_PARAM, TORUS_MESH_PARAMS, check_cut_memory, check_face_stabilization, check_normal_stabilization, check_sphere_levels, check_resolution, background_for, cut_record, face_stabilization_params, levelset_for, point_rows, surface_mesh_for, with_point_data
 
 
 #: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
@@ -187,11 +188,9 @@ class LaplaceBeltramiMeshed(Problem):
     default_levels = [16, 32, 64, 128]
     params = [
         Param("surface", str, "sphere", "sphere or torus", choices=("torus", "sphere")),
-        Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
-        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0,
-              only=(("surface", ("torus",)), ("family", RANDOM_FAMILIES))),
-        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
+        *TORUS_MESH_PARAMS,
+        SOLVER_PARAM,
         *SHAPE_PARAMS[:3],  # torus and sphere: no ellipsoid, no axes
     ]
 
@@ -231,17 +230,15 @@ class LaplaceBeltramiCut(Problem):
     params = [
         Param("surface", str, "sphere", "sphere or torus", choices=("torus", "sphere")),
         BACKGROUND_PARAM,
-        Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)"),
+        SURFACE_BOX_PARAM,
         Param("stabilization", str, "face", "cut stabilization (none: the system is singular, phi_h being a null "
               "vector, and every solver refuses it)", choices=("face", "normal", "none")),
         # each stabilization's parameters with it only: given with another, refused rather than ignored
-        Param("tau_f", float, 0.1, "face stabilization tau_F (its weight tau_F (s/L)^a: a warning below 1e-3, refused below "
-              "1e-6 and above 1e6 (s/L)^2)", minimum=0, only=("stabilization", ("face",))),
-        Param("face_h_power", float, 0.0, "power a of h in the face term", only=("stabilization", ("face",))),
+        *face_stabilization_params(only=("stabilization", ("face",))),
         Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N (its weight tau_N (s/L)^(a-1): a warning above 100, "
               "refused below 1e-8 and above 1e6)", minimum=0, only=("stabilization", ("normal",))),
         Param("normal_h_power", float, 1.0, "power a of h in the normal-gradient term", only=("stabilization", ("normal",))),
-        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
+        SOLVER_PARAM,
         *SHAPE_PARAMS[:3],  # torus and sphere: no ellipsoid, no axes
     ]
 

@@ -6,7 +6,7 @@ Find H_h in [V_h]^3 with, for all v in [V_h]^3,
 
 Component k: (M + J) H_k = A x_k with M the surface mass matrix, A the tangential stiffness and x_k
 the nodal values of the coordinate k; one matrix, one factorization, three right-hand sides.
-A x_k is formed without A: b_i = sum_K |S_K| grad_{S_h} phi_i (:func:`cutfem.fem.forms.position_load`).
+A x_k is formed without A: b_i = sum_K |S_K| grad_{S_h} phi_i (:func:`cutfem.fem.terms.position_load`).
 Stabilization: meshed J = tau_E J_E (edge conormal-gradient jumps, weighted by the global
 h = N^(-1/2)); cut J = tau_E J_E + tau_F J_F (face normal-gradient jumps of the active mesh, times
 h^a, a = ``face_h_power``, 0 in the paper).  Exact field for errors: H^e = H o p.
@@ -28,17 +28,16 @@ import numpy as np
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import discrete_error, l2_error
-from cutfem.fem.forms import assemble, basis_integrals, edge_jump_penalty, face_jump_penalty, mass, position_load
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import basis_integrals, edge_jump_penalty, face_jump_penalty, mass, position_load
 from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
+from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.markers import CUT
-from cutfem.geometry.surface_meshes import RANDOM_FAMILIES, TORUS_FAMILIES
 
-from .common import BACKGROUND_PARAM, SHAPE_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, Timer, background_for, cut_record, has_exact, levelset_for, mesh_file_notes, surface_mesh_for
+from .common import BACKGROUND_PARAM, SHAPE_PARAMS, SOLVER_PARAM, SURFACE_BOX_PARAM, TORUS_MESH_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, background_for, cut_record, face_stabilization_params, has_exact, levelset_for, mesh_file_notes, surface_mesh_for
 from .common import check_edge_stabilization, check_face_stabilization, pin_unseen_nodes
-
-SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 
 #: relative residual of the iterative solves (the library's default is 1e-8).  The invariant
 #: int_{S_h} H_h = 0 (docs/math.md §3) needs no tighter tolerance: the solvers end with the Galerkin
@@ -88,9 +87,9 @@ def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=
 
 def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0):
     """(K, B): the matrix of :func:`mean_curvature_form` on ``space`` and the right-hand sides
-    B = A X, (n, 3), computed without A (:func:`cutfem.fem.forms.position_load`)."""
-    K = assemble(mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power, length_scale), space)
-    return K, assemble(position_load(surface), space)
+    B = A X, (n, 3), computed without A (:func:`cutfem.fem.terms.position_load`)."""
+    form = mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power, length_scale)
+    return assemble(form, space), assemble(position_load(surface), space)
 
 
 def check_length_scale(area, length_scale, power, flag="--length-scale"):
@@ -127,7 +126,7 @@ def lumped_guess(B, ones_M):
 
 def _common_record(space, ones_M, H, levelset, solve_info):
     """The record entries of both kinds; ``ones_M`` = 1^T M, the integrals of the basis functions
-    over S_h (:func:`cutfem.fem.forms.basis_integrals`)."""
+    over S_h (:func:`cutfem.fem.terms.basis_integrals`)."""
     rec = {
         "h": space.h,
         "dofs": int(space.n_dofs),
@@ -154,11 +153,9 @@ class MeanCurvatureMeshed(Problem):
     definitions = {**DEFINITIONS, "h": H_SURFACE}
     params = [
         Param("surface", str, "torus", "torus, sphere, or a closed mesh file (STL, OBJ, PLY, VTK, ...)", choices=("torus", "sphere"), files=True),
-        Param("family", str, "structured", "torus mesh family", choices=TORUS_FAMILIES, only=("surface", ("torus",))),
         Param("tau_e", float, 0.1, "edge stabilization tau_E (a warning above 1)", minimum=0),
-        Param("seed", int, 0, "random seed of the flipped/perturbed families", minimum=0,
-              only=(("surface", ("torus",)), ("family", RANDOM_FAMILIES))),
-        Param("solver", str, "auto", "linear solver", choices=SOLVERS),
+        *TORUS_MESH_PARAMS,
+        SOLVER_PARAM,
         Param("length_scale", float, 1.0, "length L in which tau_E is given: tau_E h L^3 J_E (the surface's size, in its file's unit)", positive=True),
         *SHAPE_PARAMS,
     ]
@@ -219,12 +216,10 @@ class MeanCurvatureCut(Problem):
     params = [
         Param("surface", str, "torus", f"torus, sphere, ellipsoid, {USER_SURFACES}; H^e is exact at the closest point"),
         BACKGROUND_PARAM,
-        Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)"),
-        Param("tau_f", float, 0.1, "face stabilization tau_F (its weight tau_F (s/L)^a: a warning below 1e-3, refused below "
-              "1e-6 and above 1e6 (s/L)^2)", minimum=0),
+        SURFACE_BOX_PARAM,
+        *face_stabilization_params(),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
-        Param("face_h_power", float, 0.0, "power a of h in the face term h^a J_F (see --tau-f)"),
-        Param("solver", str, "auto", "linear solver", choices=SOLVERS),
+        SOLVER_PARAM,
         Param("length_scale", float, 1.0, "length L in which tau_F, tau_E are given: tau_F L^(2-a) J_F, tau_E L^3 J_E (the surface's size)", positive=True),
         *SHAPE_PARAMS,
     ]

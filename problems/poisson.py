@@ -21,14 +21,16 @@ from numba import prange
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import l2_h1_errors
-from cutfem.fem.forms import assemble, face_jump_penalty, load, nitsche, nitsche_load, stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import face_jump_penalty, load, nitsche, stiffness
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.markers import NEG
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, register
+from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space
 
-from .common import BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, Timer, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for, nitsche_hint, value_and_gradient
+from .common import BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for, value_and_gradient
 
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
@@ -94,7 +96,7 @@ DEFINITIONS = {
         Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)"),
         Param("gamma", float, 10.0, "Nitsche penalty gamma (a warning above 1e3)", positive=True),
         Param("gamma_g", float, 0.1, "ghost penalty gamma_g (meaningful in [0.01, 1]: a warning above 1, refused above 1e6)", minimum=0),
-        Param("solver", str, "auto", "linear solver", choices=("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")),
+        SOLVER_PARAM,
         *SHAPE_PARAMS,
     ],
 )
@@ -112,13 +114,14 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
         V = CutP1Space(cut, NEG)
         dx, ds = cut.dx(NEG), cut.ds()
     with t("assembly"):
-        a = stiffness(dx) + nitsche(ds, gamma)
+        N = nitsche(ds, gamma, g=exact_u)  # gamma's one home: the matrix, the load and the advice of the form
+        a = stiffness(dx) + N
         if gamma_g > 0:
             a = a + gamma_g * face_jump_penalty(cut.dF(cut.ghost_facets(NEG)), h_power=1)
         K = assemble(a, V)
-        b = assemble(load(source, dx, degree=2) + nitsche_load(exact_u, ds, gamma), V)
+        b = assemble(load(source, dx, degree=2) + N.load, V)
     with t("solve"):
-        u, info = solve(K, b, method=solver, space=V, indefinite_hint=nitsche_hint(gamma, gamma_g))
+        u, info = solve(K, b, method=solver, space=V, indefinite_hint=a.indefinite_hint)
     with t("errors"):
         rec = {
             "h": V.h,

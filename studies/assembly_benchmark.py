@@ -47,7 +47,8 @@ import numpy as np
 import scipy
 
 from cutfem.geometry.cut import CUT, cut_mesh
-from cutfem.fem.forms import assemble, face_jump_penalty, mass, tangential_stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import face_jump_penalty, mass, tangential_stiffness
 from cutfem.geometry.shapes import Torus
 from cutfem.memory import InsufficientMemoryError
 from cutfem.geometry.box import structured_box

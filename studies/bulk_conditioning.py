@@ -51,7 +51,8 @@ from pathlib import Path
 import numpy as np
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.fem.forms import assemble, face_jump_penalty, nitsche, stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import face_jump_penalty, nitsche, stiffness
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import NEG
 from cutfem.solvers.diagnose import condition_number
@@ -104,7 +105,7 @@ class PoissonParts:
         self._nitsche = {}
 
     def nitsche(self, gamma: float):
-        """N_gamma (n x n CSR) of :func:`cutfem.fem.forms.nitsche`, assembled once per gamma."""
+        """N_gamma (n x n CSR) of :func:`cutfem.fem.terms.nitsche`, assembled once per gamma."""
         if gamma not in self._nitsche:
             self._nitsche[gamma] = assemble(nitsche(self.cut.ds(), gamma), self.space).tocsr()
         return self._nitsche[gamma]

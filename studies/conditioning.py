@@ -49,7 +49,8 @@ from pathlib import Path
 import numpy as np
 
 from cutfem.geometry.cut import CUT, cut_mesh
-from cutfem.fem.forms import assemble, face_jump_penalty, mass
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import face_jump_penalty, mass
 from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.solvers.diagnose import condition_number, scaled
 from cutfem.fem.spaces import CutP1Space

@@ -61,8 +61,8 @@ def block_solve(spacing: float = 0.125) -> dict:
     solve stage's seconds.
 
     The system is [[A, B^T], [B, -C]] with A = diag(K, K, K), K the Nitsche-ghost-penalty Laplacian of
-    a CutP1Space on the ball (:func:`cutfem.fem.forms.stiffness`, :func:`~cutfem.fem.forms.nitsche`,
-    :func:`~cutfem.fem.forms.face_jump_penalty`), B_i = -(d_i u, q) and C = h^2 (grad p, grad q)
+    a CutP1Space on the ball (:func:`cutfem.fem.terms.stiffness`, :func:`~cutfem.fem.terms.nitsche`,
+    :func:`~cutfem.fem.terms.face_jump_penalty`), B_i = -(d_i u, q) and C = h^2 (grad p, grad q)
     (Brezzi-Pitkaeranta); the preconditioner applies one cycle of :class:`GeometricMultigrid` on K to
     the three velocity components at once and the inverse lumped pressure mass."""
     import numpy as np
@@ -70,7 +70,8 @@ def block_solve(spacing: float = 0.125) -> dict:
     import scipy.sparse.linalg as spla
 
     from cutfem.geometry.cut import NEG, cut_mesh
-    from cutfem.fem.forms import assemble, bilinear_form, face_jump_penalty, mass, nitsche, stiffness
+    from cutfem.fem.forms import assemble, bilinear_form
+    from cutfem.fem.terms import face_jump_penalty, mass, nitsche, stiffness
     from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.box import structured_box
     from cutfem.solvers.multigrid import GeometricMultigrid, lattice_indices

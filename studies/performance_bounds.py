@@ -77,7 +77,8 @@ import time
 import numpy as np
 
 from cutfem.fem import element_kernels
-from cutfem.fem.forms import assemble, position_load
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import position_load
 from cutfem.fem.spaces import CutP1Space
 from cutfem.geometry.cut import CUT, cut_mesh
 from cutfem.geometry.shapes import Torus
@@ -255,7 +256,7 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
       boundary), the same matching; ``difference`` is |its boundary faces - (4 T - 2 F)|, T tets
       and F interior faces;
     * the whole right-hand-side stage (:func:`cutfem.fem.forms.assemble` of
-      :func:`cutfem.fem.forms.position_load`: b_i = sum_K |S_K| P_h grad phi_i, element vectors and
+      :func:`cutfem.fem.terms.position_load`: b_i = sum_K |S_K| P_h grad phi_i, element vectors and
       sums in one compiled pass) against ``numpy.bincount`` (C) summing the element vectors |S_K|
       P_h grad phi_i, given (made in numpy before the timing), one column at a time: the sums alone.
 

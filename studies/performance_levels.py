@@ -13,7 +13,7 @@ its own; the stages are timed with ``perf_counter``:
 * assembly: the matrix K = M + tau J (``matrix``: one form,
   :func:`~cutfem.problems.mean_curvature.mean_curvature_form`, as ``cutfem run`` assembles it; on
   the structured box the piece mass and the face penalty sum into one set of lattice slots) and the
-  right-hand sides A x_k (``rhs``, :func:`~cutfem.fem.forms.position_load`, without A);
+  right-hand sides A x_k (``rhs``, :func:`~cutfem.fem.terms.position_load`, without A);
 * solve: :func:`cutfem.solvers.solve.solve` with the automatic choice (setup and iterations together,
   with the method and iteration count recorded);
 * errors: the L2 error on S_h (degree-4 quadrature).
@@ -65,7 +65,8 @@ from pathlib import Path
 import numpy as np
 
 import cutfem
-from cutfem.fem.forms import assemble, position_load
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import position_load
 from cutfem.fem.norms import l2_error
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.geometry.cut import CUT, cut_mesh

@@ -27,12 +27,13 @@ from pathlib import Path
 import numpy as np
 
 from cutfem.fem.norms import fitted_rate, l2_error
+from cutfem.runs.convergence import significant
 from cutfem.geometry.cut import CUT
-from cutfem.fem.forms import assemble, face_jump_penalty, position_load
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import face_jump_penalty, position_load
 from cutfem.geometry.shapes import Torus
 from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
-from cutfem.runs.convergence import significant
 
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
 from .conditioning import PAPER_BOX, matrices, scaled_condition

@@ -1,7 +1,8 @@
 """The surface matrices of a trace or meshed field, assembled from the public forms: shared by the
 tests (imported as a plain module from this folder)."""
 
-from cutfem.fem.forms import assemble, edge_jump_penalty, face_jump_penalty, load, mass, tangential_stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import edge_jump_penalty, face_jump_penalty, load, mass, tangential_stiffness
 from cutfem.geometry.markers import CUT
 from cutfem.geometry.measures import surface_measure
 

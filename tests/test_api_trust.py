@@ -9,7 +9,8 @@ import scipy.sparse as sp
 
 from cutfem.geometry.cut import CUT, NEG, POS, cut_mesh
 from cutfem.fem.norms import fitted_rate, h1_error, l2_error, l2_h1_errors, rates
-from cutfem.fem.forms import assemble, face_jump_penalty, mass
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import face_jump_penalty, mass
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import ElementSet
 from cutfem.geometry.box import structured_box

@@ -21,9 +21,10 @@ EXPECTED = {
     "cutfem.geometry.cut": "cut_mesh CutMesh",
     "cutfem.geometry.markers": "NEG POS CUT",
     "cutfem.fem.spaces": "CutP1Space SurfaceP1Space ProductSpace",
-    "cutfem.fem.forms": "bilinear_form linear_form dot jump avg ZERO assemble apply_dirichlet mass stiffness "
-                    "tangential_stiffness load position_load basis_integrals nitsche nitsche_load interface_nitsche "
-                    "face_jump_penalty edge_jump_penalty normal_gradient_penalty",
+    "cutfem.fem.forms": "bilinear_form linear_form assemble",
+    "cutfem.fem.pointwise": "dot jump avg ZERO",
+    "cutfem.fem.terms": "apply_dirichlet mass stiffness tangential_stiffness load position_load basis_integrals nitsche "
+                        "interface_nitsche face_jump_penalty edge_jump_penalty normal_gradient_penalty",
     "cutfem.fem.norms": "l2_error h1_error l2_h1_errors rates fitted_rate",
     "cutfem.runs.registry": "register Param Problem available_problems get_problem",
     "cutfem.runs.runner": "run",

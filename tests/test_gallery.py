@@ -52,13 +52,14 @@ def test_poisson_ball():
 
 def test_poisson_ball_integrands_are_the_built_in_terms():
     """The script's user integrands give the matrix and boundary load of the built-in stiffness,
-    nitsche and nitsche_load (their exact formulas), to round-off (measured 1e-15 and 3e-16)."""
+    nitsche and the Nitsche load (their exact formulas), to round-off (measured 1e-15 and 3e-16)."""
     m = load("poisson_ball")
     cut = cf.cut_mesh(cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=0.2), cf.Sphere(1.0))
     V, dx, ds = cf.CutP1Space(cut, cf.NEG), cut.dx(cf.NEG), cut.ds()
     K_user = cf.assemble(m.poisson * dx + m.poisson * ds, V, gamma=10.0)
-    K_built = cf.assemble(cf.stiffness(dx) + cf.nitsche(ds, 10.0), V)
-    b_user, b_built = cf.assemble(m.rhs * ds, V, gamma=10.0), cf.assemble(cf.nitsche_load(m.u_exact, ds, 10.0), V)
+    N = cf.nitsche(ds, 10.0, g=m.u_exact)
+    K_built = cf.assemble(cf.stiffness(dx) + N, V)
+    b_user, b_built = cf.assemble(m.rhs * ds, V, gamma=10.0), cf.assemble(N.load, V)
     assert abs(K_user - K_built).max() <= 1e-12 * abs(K_built).max()
     assert np.abs(b_user - b_built).max() <= 1e-12 * np.abs(b_built).max()
 

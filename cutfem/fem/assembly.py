@@ -9,15 +9,14 @@
   pair of opposite vertices, one CSR at the end.
 * :class:`LatticeSum`: element matrices and Gram rows of Kuhn tets and face-adjacent pairs of them
   on a structured box, summed in 13 slots a node by compiled kernels (no sort, no sparse product).
+* :func:`running_sum`: the one of these two that a field's exact terms add into, if any.
 * :func:`assemble_vector`: local vectors scattered by their dof numbers.
 
-The general route of user integrands (:func:`cutfem.fem.forms.assemble`) sums its local blocks through
+The quadrature route of integrands (:func:`cutfem.fem.forms.assemble`) sums its local blocks through
 one COO matrix per form.
 """
 
 from __future__ import annotations
-
-import copy
 
 import numpy as np
 import scipy.sparse as sp
@@ -25,7 +24,7 @@ import scipy.sparse as sp
 from ..geometry.numbering import index_dtype
 from . import assembly_kernels
 
-__all__ = ["LatticeSum", "PairSum", "SymmetricPattern", "assemble_vector", "gram", "gram_sum", "row_operator"]
+__all__ = ["LatticeSum", "PairSum", "SymmetricPattern", "assemble_vector", "gram", "gram_sum", "row_operator", "running_sum"]
 
 class SymmetricPattern:
     """CSR structure of a symmetric n x n matrix: the full diagonal and the undirected ``pairs``.
@@ -85,12 +84,12 @@ class SymmetricPattern:
         return out
 
 class _RunningSum:
-    """Arrays that the terms of one form add into, each times :attr:`scale` (1; :meth:`scaled`
-    gives a view of the same arrays with another), made on the first term added."""
+    """Arrays that the terms of one form add into, each times its own ``scale`` (its coefficient in
+    the form: c_1 a_1 + c_2 a_2 summed into one set of arrays, one CSR pass, no sparse sum of
+    matrices), made on the first term added."""
 
     def __init__(self):
-        self._store = {}  # the arrays, shared with the scaled views
-        self.scale = 1.0
+        self._store = {}  # the arrays
 
     @property
     def used(self) -> bool:
@@ -98,22 +97,15 @@ class _RunningSum:
         elsewhere allocates nothing and adds no matrix."""
         return bool(self._store)
 
-    def scaled(self, scale: float):
-        """The same sums (shared arrays), with every term added through the result multiplied by
-        ``scale``: several forms c_1 a_1 + c_2 a_2 summed into one set of arrays (one CSR pass, no
-        sparse sum of matrices)."""
-        out = copy.copy(self)
-        out.scale = float(scale)
-        return out
 
 class PairSum(_RunningSum):
     """A symmetric matrix on the nodes of a triangulated surface, summed from terms given as a
     diagonal (n,), one value per mesh edge (E,) and, for terms that reach across an edge (the edge
     penalty), one value per pair of vertices opposite an edge (E,).
 
-    ``space`` a :class:`~cutfem.fem.spaces.SurfaceP1Space`.  Terms are added times :attr:`scale` (1;
-    :meth:`scaled` gives a view of the same arrays with another), so :func:`cutfem.fem.forms.assemble`
-    sums c_1 a_1 + c_2 a_2 + ... (mass, stiffness, edge penalty) into one set of arrays, and
+    ``space`` a :class:`~cutfem.fem.spaces.SurfaceP1Space`.  Terms are added times their ``scale``, so
+    :func:`cutfem.fem.forms.assemble` sums c_1 a_1 + c_2 a_2 + ... (mass, stiffness, edge penalty) into
+    one set of arrays, and
     :meth:`matrix` writes one CSR matrix: on the node graph (:meth:`~cutfem.fem.spaces.SurfaceP1Space.node_pattern`)
     or, when a term gave opposite pairs, on the edge stencil
     (:meth:`~cutfem.fem.spaces.SurfaceP1Space.edge_stencil_pattern`), whose first E pairs are the edges.
@@ -124,8 +116,8 @@ class PairSum(_RunningSum):
         super().__init__()
         self.space = space
 
-    def add(self, diagonal, edges, opposite=None) -> "PairSum":
-        """Add scale * (``diagonal`` (n,), ``edges`` (E,), ``opposite`` (E,) or None)."""
+    def add(self, diagonal, edges, opposite=None, scale=1.0) -> "PairSum":
+        """Add ``scale`` * (``diagonal`` (n,), ``edges`` (E,), ``opposite`` (E,) or None)."""
         st, space = self._store, self.space
         n, E = space.n_dofs, space.mesh.n_edges
         if not st:
@@ -138,7 +130,7 @@ class PairSum(_RunningSum):
             values = np.asarray(values, dtype=float)
             if values.shape != (size,):
                 raise ValueError(f"PairSum.add: {key} must have shape ({size},), got {values.shape}")
-            st[key] += values if self.scale == 1.0 else self.scale * values
+            st[key] += values if scale == 1.0 else scale * values
         return self
 
     def matrix(self) -> sp.csr_matrix:
@@ -161,9 +153,8 @@ class LatticeSum(_RunningSum):
     exactly symmetric.  Pairs whose sum is exactly zero are left out of the pattern (as a sparse
     product leaves them out: on a uniform lattice the P1 stiffness of the diagonal edges cancels);
     the diagonal is always stored.  Memory: 13 slots of 12 bytes a node while summing, allocated
-    on the first term added.  Terms are added times :attr:`scale` (1; :meth:`scaled` gives a view
-    of the same slots with another): :func:`cutfem.fem.forms.assemble` sums all the lattice terms of a
-    form, c_1 a_1 + c_2 a_2 + ..., into one set of slots.
+    on the first term added.  Terms are added times their ``scale``: :func:`cutfem.fem.forms.assemble`
+    sums all the lattice terms of a form, c_1 a_1 + c_2 a_2 + ..., into one set of slots.
 
     Measured at spacing 0.0125 on the cut torus (853k cut tets, 293k nodes, 1.3M interior faces):
     the piece mass 0.5 s by the former numpy edge sums, the face penalty 1.3 s by rows and a sparse
@@ -192,12 +183,12 @@ class LatticeSum(_RunningSum):
             raise ValueError(f"LatticeSum: {outside} pairs of dofs in the {what} are not nodes of one Kuhn tet or of two "
                              "face-adjacent tets; sum these terms as a Gram product (cutfem.fem.assembly.gram) instead")
 
-    def add_elements(self, dofs, edges, diagonal, types=None, weights=None, elements=None) -> "LatticeSum":
+    def add_elements(self, dofs, edges, diagonal, types=None, weights=None, elements=None, scale=1.0) -> "LatticeSum":
         """Add symmetric 4 x 4 element matrices on the tets' dofs ``dofs`` (m, 4), given by their
         entries on the local edges (:data:`~cutfem.geometry.numbering.TET_EDGES` order) and on the diagonal: rows
         of the tables ``edges`` (L, 6) and ``diagonal`` (L, 4), row ``types[k]`` for element k, or
         with ``types`` None row k (L = m), or the one row of a one-row table; times ``weights[k]``
-        when given; for the elements ``elements`` only when given
+        when given; for the elements ``elements`` only when given; times ``scale``
         (:func:`cutfem.fem.assembly_kernels.lattice_add_elements`: no per-element arrays of the entries)."""
 
         # the empty placeholders take the types of the arrays they stand for (element ids int64, Kuhn
@@ -210,13 +201,13 @@ class LatticeSum(_RunningSum):
         self._check(assembly_kernels.lattice_add_elements(
             self.ids, self.code, dofs, elements, edges.reshape(-1, 6), diagonal.reshape(-1, 4),
             none_t if types is None else np.ascontiguousarray(types),
-            none_f if weights is None else np.ascontiguousarray(weights, dtype=float), self.scale, *self._slots(),
+            none_f if weights is None else np.ascontiguousarray(weights, dtype=float), float(scale), *self._slots(),
             assembly_kernels.scatter_chunks(dofs, owners)),
             "element matrices")
         return self
 
-    def add_pieces(self, vertices, triangles, tets_of, areas, points, tets, table, types, dofs) -> "LatticeSum":
-        """Add the exact P1 mass matrices of triangles lying in tets (the pieces of S_h), triangle by
+    def add_pieces(self, vertices, triangles, tets_of, areas, points, tets, table, types, dofs, scale=1.0) -> "LatticeSum":
+        """Add ``scale`` times the exact P1 mass matrices of triangles lying in tets (the pieces of S_h), triangle by
         triangle (:func:`cutfem.fem.assembly_kernels.lattice_add_pieces`, same arguments; the triangles in the chunks of
         :func:`cutfem.assembly_kernels.scatter_chunks`, on all cores)."""
 
@@ -224,24 +215,24 @@ class LatticeSum(_RunningSum):
         tets_of, dofs = c(tets_of), c(dofs)
         self._check(assembly_kernels.lattice_add_pieces(self.ids, self.code, c(vertices, dtype=float), c(triangles), tets_of,
                                                c(areas, dtype=float), c(points, dtype=float), c(tets), c(table, dtype=float),
-                                               c(types), dofs, self.scale, *self._slots(),
+                                               c(types), dofs, float(scale), *self._slots(),
                                                assembly_kernels.scatter_chunks(dofs, tets_of[:, None])),
                     "pieces")
         return self
 
-    def add_rows(self, dofs, values) -> "LatticeSum":
-        """Add the Gram matrix sum_r c_r c_r^T of the rows ``values`` (r, k) on ``dofs`` (r, k) (a dof
+    def add_rows(self, dofs, values, scale=1.0) -> "LatticeSum":
+        """Add ``scale`` times the Gram matrix sum_r c_r c_r^T of the rows ``values`` (r, k) on ``dofs`` (r, k) (a dof
         repeated in a row counts with the sum of its values), as :func:`gram` does."""
 
         dofs = np.ascontiguousarray(dofs)
         self._check(assembly_kernels.lattice_add_rows(self.ids, self.code, dofs, np.ascontiguousarray(values, dtype=float),
-                                             self.scale, *self._slots(),
+                                             float(scale), *self._slots(),
                                              assembly_kernels.scatter_chunks(dofs, None)),
                     "rows")
         return self
 
-    def add_face_jumps(self, pairs, opposite, factors, volumes, dofs, table, types) -> "LatticeSum":
-        """Add the Gram matrix of the normal-gradient jumps across the faces between the tets ``pairs``
+    def add_face_jumps(self, pairs, opposite, factors, volumes, dofs, table, types, scale=1.0) -> "LatticeSum":
+        """Add ``scale`` times the Gram matrix of the normal-gradient jumps across the faces between the tets ``pairs``
         (F, 2) with the opposite vertices ``opposite`` (F, 2), face by face
         (:func:`cutfem.fem.assembly_kernels.lattice_add_face_jumps`, same arguments; the faces in the chunks of
         :func:`cutfem.assembly_kernels.scatter_chunks`, on all cores)."""
@@ -249,7 +240,7 @@ class LatticeSum(_RunningSum):
         pairs = np.ascontiguousarray(pairs)
         self._check(assembly_kernels.lattice_add_face_jumps(self.ids, self.code, pairs,
                                                    np.ascontiguousarray(opposite), np.ascontiguousarray(factors, dtype=float),
-                                                   np.ascontiguousarray(volumes, dtype=float), dofs, table, types, self.scale,
+                                                   np.ascontiguousarray(volumes, dtype=float), dofs, table, types, float(scale),
                                                    *self._slots(), assembly_kernels.scatter_chunks(dofs, pairs)), "face jump rows")
         return self
 
@@ -266,6 +257,20 @@ class LatticeSum(_RunningSum):
         out.has_sorted_indices = True
         out.has_canonical_format = True
         return out
+
+
+def running_sum(space):
+    """The running sum that the exact terms of a form add into on ``space``: a :class:`PairSum` on a
+    triangulated surface (:class:`~cutfem.fem.spaces.SurfaceP1Space`), a :class:`LatticeSum` when the
+    dofs are nodes of a structured box (a cut space on a :class:`~cutfem.geometry.box.StructuredBox`),
+    else None."""
+    if hasattr(space, "edge_stencil_pattern"):
+        return PairSum(space)
+    es = getattr(space, "elements", None)
+    if getattr(es, "kuhn_types", None) is None or getattr(space, "node_ids", None) is None:
+        return None
+    return LatticeSum(space.node_ids, es.background)
+
 
 def assemble_vector(dofs: np.ndarray, local: np.ndarray, n: int, out: np.ndarray | None = None) -> np.ndarray:
     """Assemble local vectors (m, k) or (m, k, c) with dof numbers (m, k) into (n,) or (n, c): added

@@ -303,7 +303,7 @@ def tangential_entries(table, types, normals, areas, edges, diagonal):
     """The entries of |K| (P G)(P G)^T, P = I - n n^T, for tets whose gradients G (4, 3) are
     ``table[types[k]]``, with normal ``normals[k]`` and weight ``areas[k]``: on the local edges
     (:data:`~cutfem.geometry.numbering.TET_EDGES` order) into ``edges`` (m, 6) and on the diagonal into
-    ``diagonal`` (m, 4), for :func:`cutfem.fem.forms._kuhn_tangential_stiffness`:
+    ``diagonal`` (m, 4), for :func:`cutfem.fem.closed_forms._kuhn_tangential_stiffness`:
     |K| (G_a . G_b - (G_a . n)(G_b . n)).  One pass (numpy's masks per type, gathers and products
     took 0.17 s for the 853 thousand cut tets at spacing 0.0125)."""
     for k in prange(types.shape[0]):
@@ -322,7 +322,7 @@ def tangential_entries(table, types, normals, areas, edges, diagonal):
 @njit(cache=True, error_model="numpy")
 def meshed_position_load(points, tri, out):
     """out[v] += |T| grad lambda_v over the triangles T of a triangulated surface, for
-    :func:`cutfem.fem.forms.position_load`: with c = (x_1 - x_0) x (x_2 - x_0) = 2 |T| n_T,
+    :func:`cutfem.fem.terms.position_load`: with c = (x_1 - x_0) x (x_2 - x_0) = 2 |T| n_T,
 
         |T| grad lambda_k = (1/2) n_T x (x_{k+2} - x_{k+1}) = c x (x_{k+2} - x_{k+1}) / (2 |c|),
 
@@ -347,7 +347,7 @@ def meshed_position_load(points, tri, out):
 @njit(cache=True, error_model="numpy")
 def meshed_edge_penalty(tri, S, Q, areas, h, h1, h2, n):
     """The edge penalty J_E of a closed triangulated surface in closed form, for
-    :func:`cutfem.fem.forms._meshed_edge_penalty` (which derives it): per half-edge g = 3 t + k the
+    :func:`cutfem.fem.closed_forms._meshed_edge_penalty` (which derives it): per half-edge g = 3 t + k the
     scaled jump coefficients b_start, b_end, b_opp, then ``(diagonal (n,), on_edges (E,),
     opposite (E,))``: the values on the edges {i, j} and on the pairs {k, l} of vertices opposite
     them (:meth:`cutfem.fem.spaces.SurfaceP1Space.edge_stencil_pattern`).  ``S``, ``Q`` (M, 3) the edge-vector dot

@@ -22,8 +22,8 @@ from scipy.spatial import Delaunay
 
 from cutfem.fem.assembly import assemble_vector
 from cutfem.geometry.cut import cut_mesh
-from cutfem.fem.forms import (
-    assemble,
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import (
     edge_jump_penalty,
     face_jump_penalty,
     mass,
@@ -360,7 +360,7 @@ def test_volume_stiffness_on_a_structured_box_matches_reference(cells, monkeypat
     symmetric, with zero row sums (the gradients of the basis sum to zero), and the entries that
     cancel exactly on a uniform lattice left out of the pattern as the Gram product leaves them."""
     import cutfem.fem.assembly as assembly
-    from cutfem.fem.forms import _gradient_matrix
+    from cutfem.fem.closed_forms import _gradient_matrix
 
     monkeypatch.setattr(assembly, "GRAM_ROWS", 4 * 37)
     bg = structured_box([-1, -1, -1], [1, 1, 1], cells=cells)
@@ -393,7 +393,8 @@ def test_tangential_stiffness_on_a_structured_box_matches_the_gram_route():
     tangential gradients and against the simplex route of the same tets as a TetMesh: the same
     matrix to round-off, exactly symmetric, constants in its kernel, and a linear function x . g
     gives sum_K |K| |P_h g|^2."""
-    from cutfem.fem.forms import _gradient_matrix, tangential_stiffness
+    from cutfem.fem.terms import tangential_stiffness
+    from cutfem.fem.closed_forms import _gradient_matrix
 
     bg = structured_box([-1, -1, -1], [1, 1, 1], cells=(6, 5, 7))
     ls = Sphere(0.71, [0.05, -0.03, 0.02])

@@ -14,17 +14,14 @@ import scipy.sparse as sp
 from scipy.spatial import ConvexHull
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.fem.forms import (
-    assemble,
-    bilinear_form,
-    dot,
+from cutfem.fem.forms import assemble, bilinear_form
+from cutfem.fem.pointwise import dot, jump
+from cutfem.fem.terms import (
     face_jump_penalty,
     interface_nitsche,
-    jump,
     load,
     mass,
     nitsche,
-    nitsche_load,
     normal_gradient_penalty,
     stiffness,
     tangential_stiffness,
@@ -640,7 +637,7 @@ def test_non_positive_coefficients_raise(generic, bad):
     with pytest.raises(ValueError, match="gamma"):
         nitsche(ds, bad)
     with pytest.raises(ValueError, match="gamma"):
-        nitsche_load(lambda x: x[..., 0], ds, bad)
+        nitsche(ds, bad, g=lambda x: x[..., 0])
 
 
 def test_builtin_on_a_product_space_needs_a_field(generic):

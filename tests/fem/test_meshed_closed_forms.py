@@ -129,16 +129,9 @@ def test_non_manifold_vertex_of_high_degree_rejected():
 import scipy.sparse as sp  # noqa: E402
 
 from cutfem.fem.assembly import SymmetricPattern  # noqa: E402
-from cutfem.fem.forms import (  # noqa: E402
-    _gradient_matrix,
-    _jump_gram,
-    _simplex_mass,
-    assemble,
-    bilinear_form,
-    edge_jump_penalty,
-    mass,
-    tangential_stiffness,
-)
+from cutfem.fem.closed_forms import _gradient_matrix, _jump_gram, _simplex_mass  # noqa: E402
+from cutfem.fem.forms import assemble, bilinear_form  # noqa: E402
+from cutfem.fem.terms import edge_jump_penalty, mass, tangential_stiffness  # noqa: E402
 
 SPACES = {
     "sphere": lambda: SurfaceP1Space(sphere_mesh(2, 1.3, (0.1, 0.2, 0.3))),

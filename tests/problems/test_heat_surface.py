@@ -88,7 +88,8 @@ def test_jacobi_cg_without_stabilization_gives_the_surface_solution():
 def _sphere_matrices(spacing=0.4, tau_n=1.0):
     """M_h, A_h, the load G of the problem's source profile and the space, as the problem builds them."""
     from cutfem.geometry.cut import cut_mesh
-    from cutfem.fem.forms import assemble, load, mass, normal_gradient_penalty, tangential_stiffness
+    from cutfem.fem.forms import assemble
+    from cutfem.fem.terms import load, mass, normal_gradient_penalty, tangential_stiffness
     from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.markers import CUT
     from cutfem.geometry.box import structured_box
@@ -178,7 +179,8 @@ def test_the_fastest_time_scale_is_about_9_over_h_squared(spacing):
     """k = max row sum |A_h| / max (M_h 1), the scale check_final_time compares T with, is about
     9 h^-2 on the unit sphere (h the spacing), as its docstring says (it said 60 h^-2)."""
     from cutfem.geometry.cut import CUT, cut_mesh
-    from cutfem.fem.forms import assemble, mass, normal_gradient_penalty, tangential_stiffness
+    from cutfem.fem.forms import assemble
+    from cutfem.fem.terms import mass, normal_gradient_penalty, tangential_stiffness
     from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.box import structured_box
     from cutfem.fem.spaces import CutP1Space

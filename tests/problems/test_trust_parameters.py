@@ -12,7 +12,9 @@ import numpy as np
 import pytest
 
 from cutfem.geometry.cut import cut_mesh
-from cutfem.fem.forms import ZERO, assemble, bilinear_form, linear_form, mass
+from cutfem.fem.forms import assemble, bilinear_form, linear_form
+from cutfem.fem.pointwise import ZERO
+from cutfem.fem.terms import mass
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import NEG
 from cutfem.geometry.box import structured_box
@@ -71,7 +73,7 @@ def test_a_sum_of_zero_terms_is_zero_and_couples_nothing(cut):
     """sum() starts from the number 0, and 0 + ZERO was 0: the pair of fields (0, 1) then looked
     coupled and its integrand returned the integer 0, refused for its shape ().  Now the sum is
     ZERO and the matrix is the block-diagonal mass matrix of the two fields."""
-    from cutfem.fem.forms import mass
+    from cutfem.fem.terms import mass
     from cutfem.geometry.markers import POS
     from cutfem.fem.spaces import ProductSpace
 
@@ -274,7 +276,7 @@ def test_w_at_keeps_one_inline_function_per_code(cut):
     """The cache holds each function it was given; an inline lambda, made again for every basis
     pair, replaces the one of the same code before it instead of piling up (correct values, one
     array held)."""
-    from cutfem.fem.forms import QuadData
+    from cutfem.fem.pointwise import QuadData
 
     x = np.random.default_rng(0).normal(size=(5, 4, 3))
     w = QuadData(x, None, None, np.arange(5), {})

@@ -137,7 +137,7 @@ def test_cut_mean_curvature_vtk_holds_the_solution_at_its_points(tmp_path):
     (["run", "mean-curvature-meshed", "--surface", "sphere", "--family", "flipped"], "--family applies only with --surface torus"),
     (["run", "laplace-beltrami-cut", "--axes", "1,1,1"], "unknown argument.*--axes"),
     (["run", "mean-curvature-cut", "--levels", "0.2", "--spacing", "0.1"], "--spacing: not allowed with argument --levels"),
-    (["run", "poisson-cut", "--gamma-g", "0", "--levels", "0.2"], r"indefinite.*raise the Nitsche penalty .* or restore the ghost penalty \(--gamma-g is 0"),
+    (["run", "poisson-cut", "--gamma-g", "0", "--levels", "0.2"], r"indefinite.*raise the Nitsche penalty \(gamma 10 .* or add a ghost penalty \(the form has none"),
     (["run", "mean-curvature-cut", "--levels", "0.1", "--tau-f", "0", "--solver", "direct"], "singular"),
 ])
 def test_bad_input_is_one_line_and_exit_2(argv, pattern, capsys):
@@ -216,8 +216,9 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     coupling integrand is interface_nitsche, the bulk-surface form has the kernel (1/b_B, 1/b_S) of
     docs/math.md §10 at c_B = 0, and the heat steps keep the integral of u_h following the source."""
     from cutfem.geometry.cut import CUT, NEG, POS
-    from cutfem.fem.forms import apply_dirichlet, assemble, bilinear_form, dot, face_jump_penalty, interface_nitsche, linear_form, load
-    from cutfem.fem.forms import nitsche, nitsche_load, stiffness
+    from cutfem.fem.forms import assemble, bilinear_form, linear_form
+    from cutfem.fem.pointwise import dot
+    from cutfem.fem.terms import apply_dirichlet, face_jump_penalty, interface_nitsche, load, nitsche, stiffness
     from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.box import structured_box
     from cutfem.solvers.solve import solve
@@ -229,6 +230,8 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     ns = {}
     exec("from cutfem.geometry.cut import CUT, NEG, POS, cut_mesh\n"
          "from cutfem.fem.forms import *\n"
+         "from cutfem.fem.pointwise import *\n"
+         "from cutfem.fem.terms import *\n"
          "from cutfem.solvers.krylov import CGSolver\n"
          "from cutfem.solvers.direct import DirectSolver\n"
          "from cutfem.fem.spaces import CutP1Space, ProductSpace\n"
@@ -276,9 +279,10 @@ def test_forms_md_examples_run_and_mean_what_they_say():
         return dot(w.n, u.grad) * v + dot(w.n, v.grad) * u + 10.0 / w.h * u * v
 
     ghost_pos = 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(POS)), h_power=1)
-    Kp = assemble(stiffness(dxp) + nitsche(ds, gamma=10) + ghost_pos, Vp)
+    N = nitsche(ds, gamma=10, g=linear)
+    Kp = assemble(stiffness(dxp) + N + ghost_pos, Vp)
     assert abs(Kp - assemble(stiffness(dxp) + a_pos * ds + ghost_pos, Vp)).max() <= 1e-12 * abs(Kp).max()
-    bp = assemble(load(zero, dxp) + nitsche_load(linear, ds, gamma=10), Vp)
+    bp = assemble(load(zero, dxp) + N.load, Vp)
     box = Vp.boundary_dofs
     u, _ = solve(*apply_dirichlet(Kp, bp, box, linear(Vp.dof_points[box])), method="direct")
     assert np.abs(u - linear(Vp.dof_points)).max() < 1e-9

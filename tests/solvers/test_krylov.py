@@ -90,7 +90,8 @@ def test_lumped_guess_of_the_meshed_mean_curvature():
     """H_0 = M_L^{-1} A x: on the structured torus grid close (fewer multigrid iterations, the
     same solution to the tolerance), on the flipped family worse than zero (the solve from zero,
     bitwise); None when a node has no mass."""
-    from cutfem.fem.forms import assemble, basis_integrals
+    from cutfem.fem.forms import assemble
+    from cutfem.fem.terms import basis_integrals
     from cutfem.problems.mean_curvature import SOLVER_TOL, lumped_guess, mean_curvature_system
     from cutfem.fem.spaces import SurfaceP1Space
     from cutfem.geometry.surface_meshes import torus_mesh

@@ -16,7 +16,8 @@ from cutfem.geometry.markers import CUT
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.surface import SurfaceMesh
 from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
-from cutfem.fem.forms import assemble, mass
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import mass
 from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
 from cutfem.solvers import solve as solve_module
 from cutfem.solvers.diagnose import SolverError

@@ -17,7 +17,8 @@ from cutfem.studies.baselines import (
     pyvista_mean_curvature_vector,
     vertex_normals,
 )
-from cutfem.fem.forms import assemble, tangential_stiffness
+from cutfem.fem.forms import assemble
+from cutfem.fem.terms import tangential_stiffness
 from cutfem.geometry.shapes import Torus
 from cutfem.fem.spaces import SurfaceP1Space
 from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
