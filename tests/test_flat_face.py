@@ -34,6 +34,7 @@ EXPECTED = {
     "cutfem.solvers.krylov": "CGSolver",
     "cutfem.solvers.multigrid": "GeometricMultigrid",
     "cutfem.fem.exact": "Exact",
+    "cutfem.fem.moving": "ActiveDomain strip_width transfer",
 }
 
 
