@@ -1,4 +1,4 @@
-"""The built-in terms of linear elasticity on a vector field (docs/math.md §12, SPEC §12).
+"""The built-in terms of linear elasticity on a vector field.
 
 -div sigma(u) = f with sigma(u) = 2 mu eps(u) + lam (div u) I, eps(u) = (grad u + grad u^T) / 2:
 
@@ -123,7 +123,7 @@ _ELASTICITY_NITSCHE_LOAD = _integrand(
 
 
 def elasticity_nitsche(measure: SurfacePieces, mu: float, lam: float, gamma: float = 10.0, g=None, field=None) -> Nitsche:
-    """Symmetric Nitsche terms of u = g on Gamma for linear elasticity (SPEC §12):
+    """Symmetric Nitsche terms of u = g on Gamma for linear elasticity:
 
         -(sigma(u) n, v)_Gamma - (u, sigma(v) n)_Gamma + ((2 mu + lam) gamma / h) (u, v)_Gamma,
 

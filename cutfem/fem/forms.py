@@ -20,7 +20,10 @@ A form is a sum of terms, each an integrand over a measure (:mod:`cutfem.geometr
 An integrand is a plain function of arrays shaped (cells x quadrature points), called with the
 basis functions ``u``, ``v`` and the quadrature data ``w`` of :mod:`cutfem.fem.pointwise`:
 ``u.value`` (m, q), ``u.grad`` and ``u.tgrad`` (m, 1, 3), on facets ``u.minus``, ``u.plus`` with
-``jump`` and ``avg``; ``w.x``, ``w.n``, ``w.h``, ``w.parent``, ``w.at(f)`` and the parameters.
+``jump`` and ``avg``; ``w.x``, ``w.n``, ``w.h``, ``w.parent``, ``w.at(f)`` and the parameters.  On a
+vector field (:class:`~cutfem.fem.spaces.VectorSpace`) ``u.value`` is (m, q, 3), ``u.grad`` (m, 1, 3, 3)
+with ``u.div``, ``u.sym_grad``, ``u.curl``, and products are written ``dot`` and ``inner``; a
+:class:`~cutfem.fem.spaces.RealSpace` field is the constant 1.
 Quadrature: degree 2 for a bilinear integrand, 4 for a linear one (:func:`bilinear_form`,
 :func:`linear_form` say why; ``degree=`` changes it).
 
