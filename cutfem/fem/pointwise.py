@@ -143,24 +143,46 @@ class VectorBasisField:
     ``div`` (m, 1), ``sym_grad`` (m, 1, 3, 3) = (grad u + grad u^T) / 2, ``curl`` (m, 1, 3), and
     ``u[i]`` the component i (m, q).  Scaled by numbers and scalar values ((m, q), (m, 1) or a
     scalar basis function); added to vector values (m, q, 3); products of two vectors are written
-    :func:`dot` or :func:`inner`, so that a vector never enters a scalar form by broadcasting."""
+    :func:`dot` or :func:`inner`, so that a vector never enters a scalar form by broadcasting.
 
-    __slots__ = ("value", "grad", "tgrad", "component")
+    Made from the scalar ``phi`` (m, q), its gradient ``g`` (m, 1, 3) and tangential gradient; the
+    arrays with the zero components are made when first asked for, and kept for the other basis
+    pairs of the block (an integrand of ``u.div`` never allocates the 3 x 3 gradients)."""
+
+    __slots__ = ("phi", "g", "tg", "component", "_value", "_grad", "_tgrad")
     __array_ufunc__ = None  # ndarray op field defers to the reflected operators below (no broadcasting of (m, 1) against 3)
 
     def __init__(self, phi, grad, tgrad, component: int):
-        m = phi.shape[0]
-        self.component = component
-        self.value = np.zeros(phi.shape + (3,))
-        self.value[..., component] = phi
-        self.grad = np.zeros((m, 1, 3, 3))
-        self.grad[:, :, component] = grad
-        self.tgrad = np.zeros((m, 1, 3, 3))
-        self.tgrad[:, :, component] = tgrad
+        self.phi, self.g, self.tg, self.component = phi, grad, tgrad, component
+        self._value = self._grad = self._tgrad = None
+
+    @property
+    def value(self):
+        if self._value is None:
+            self._value = np.zeros(self.phi.shape + (3,))
+            self._value[..., self.component] = self.phi
+        return self._value
+
+    def _rows(self, g):
+        out = np.zeros(g.shape[:2] + (3, 3))
+        out[:, :, self.component] = g
+        return out
+
+    @property
+    def grad(self):
+        if self._grad is None:
+            self._grad = self._rows(self.g)
+        return self._grad
+
+    @property
+    def tgrad(self):
+        if self._tgrad is None:
+            self._tgrad = self._rows(self.tg)
+        return self._tgrad
 
     @property
     def div(self):
-        return self.grad[..., self.component, self.component]
+        return self.g[..., self.component]
 
     @property
     def sym_grad(self):
@@ -168,50 +190,61 @@ class VectorBasisField:
 
     @property
     def curl(self):
-        G = self.grad  # curl_i = eps_ijk d_j u_k = eps_ijk G_kj
-        return np.stack([G[..., 2, 1] - G[..., 1, 2], G[..., 0, 2] - G[..., 2, 0], G[..., 1, 0] - G[..., 0, 1]], axis=-1)
+        return np.cross(self.g, np.eye(3)[self.component])  # curl(phi e_c) = grad phi x e_c
 
     def __getitem__(self, i):
-        return self.value[..., i]
+        return self.phi if i == self.component else np.zeros_like(self.phi)
 
     def __array__(self, dtype=None, copy=None):
         return np.asarray(self.value, dtype=dtype)
 
-    def _scalar(self, other, op):
-        """``other`` as a factor for the value (m, q, 3): a number, or scalar values with a new last axis."""
+    @staticmethod
+    def _scalar(other):
+        """``other`` as a factor of the value (m, q, 3): a number, or scalar values with a new last axis."""
         if isinstance(other, BasisField):
             other = other.value
         if isinstance(other, numbers.Number):
             return other
         if isinstance(other, (VectorBasisField, _Traces)) or np.ndim(other) > 2:
-            raise TypeError(f"a vector basis function {op} {'a vector' if np.ndim(other) > 2 or isinstance(other, VectorBasisField) else type(other).__name__}: "
-                            "a product of two vectors is dot(u, v) or inner(u, v); scale a vector by numbers or scalar values (m, q)")
+            raise TypeError("a vector basis function times a vector: the products of two vectors are dot(u, v) and inner(u, v); "
+                            "a vector is scaled by numbers and scalar values (m, q) or (m, 1)")
         other = np.asarray(other)
         return other[..., None] if other.ndim == 2 else other
 
     def __mul__(self, other):
-        return self.value * self._scalar(other, "times")
+        if isinstance(other, _Zero):
+            return other * self
+        return self.value * self._scalar(other)
 
     __rmul__ = __mul__
 
     def __truediv__(self, other):
-        return self.value / self._scalar(other, "divided by")
+        if isinstance(other, _Zero):
+            return other * self
+        return self.value / self._scalar(other)
 
-    def _vector(self, other):
+    @staticmethod
+    def _vector(other):
         other = other.value if isinstance(other, VectorBasisField) else other
         if isinstance(other, (BasisField, numbers.Number)) or (np.ndim(other) != 1 and np.ndim(other) < 3):
             raise TypeError("a vector basis function is added to vector values (m, q, 3) or a constant vector (3,), not to scalars")
         return other
 
     def __add__(self, other):
+        if isinstance(other, _Zero):
+            return other + self
         return self.value + self._vector(other)
 
     __radd__ = __add__
 
     def __sub__(self, other):
+        if isinstance(other, _Zero):
+            return other + self  # the probe stays the probe, ZERO leaves self
         return self.value - self._vector(other)
 
     def __rsub__(self, other):
+        if isinstance(other, _Zero):
+            return other - self
         return self._vector(other) - self.value
 
     def __neg__(self):
@@ -537,6 +570,5 @@ def _zero_like(b):
         z = _zero_like(b.minus if not isinstance(b.minus, _Zero) else b.plus)
         return FacetField(z, z)
     if isinstance(b, VectorBasisField):
-        return VectorBasisField(np.zeros(b.value.shape[:2]), np.zeros((b.grad.shape[0], 1, 3)), np.zeros((b.grad.shape[0], 1, 3)),
-                                b.component)
+        return VectorBasisField(np.zeros_like(b.phi), np.zeros_like(b.g), np.zeros_like(b.tg), b.component)
     return BasisField(np.zeros_like(b.value), np.zeros_like(b.grad), np.zeros_like(b.tgrad))
