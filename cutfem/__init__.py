@@ -12,7 +12,7 @@ research script needs, listed in ``__all__`` (``docs/examples/`` shows them at w
     V = cf.CutP1Space(cut, cf.NEG)
 
 Everything else is reachable through its subpackage: :mod:`cutfem.geometry` (meshes, level sets,
-surfaces, the cut, measures, quadrature), :mod:`cutfem.fem` (spaces, forms and their pointwise values, terms, assembly, norms),
+surfaces, the cut, measures, quadrature), :mod:`cutfem.fem` (spaces, forms and their pointwise values, terms and elasticity, assembly, norms),
 :mod:`cutfem.solvers`, :mod:`cutfem.runs` (registry, runner, command line, convergence, plots),
 :mod:`cutfem.problems`, :mod:`cutfem.studies`, and :mod:`cutfem.memory`.  The compiled kernels
 (``*_kernels.py`` beside each stage, and :mod:`cutfem.jit`) are private.
@@ -54,12 +54,15 @@ _NAMES = {
     # spaces
     "CutP1Space": ".fem.spaces",
     "SurfaceP1Space": ".fem.spaces",
+    "VectorSpace": ".fem.spaces",
+    "RealSpace": ".fem.spaces",
     "ProductSpace": ".fem.spaces",
     # the form language
     "bilinear_form": ".fem.forms",
     "linear_form": ".fem.forms",
     "assemble": ".fem.forms",
     "dot": ".fem.pointwise",
+    "inner": ".fem.pointwise",
     "jump": ".fem.pointwise",
     "avg": ".fem.pointwise",
     "ZERO": ".fem.pointwise",
@@ -76,6 +79,8 @@ _NAMES = {
     "edge_jump_penalty": ".fem.terms",
     "normal_gradient_penalty": ".fem.terms",
     "apply_dirichlet": ".fem.terms",
+    "elasticity": ".fem.elasticity",
+    "elasticity_nitsche": ".fem.elasticity",
     # solvers
     "solve": ".solvers.solve",
     "SolverError": ".solvers.diagnose",

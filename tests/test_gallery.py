@@ -20,7 +20,7 @@ import cutfem as cf
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
 SCRIPTS = ["poisson_ball", "interface", "bulk_surface", "laplace_beltrami", "mean_curvature_user_surface", "heat_surface",
-           "heat_moving"]
+           "heat_moving", "elasticity"]
 
 
 def load(name):
@@ -111,12 +111,20 @@ def test_heat_moving():
     check(runs, {"l2": (5.349e-4, 1.305e-4)}, {"l2": 2})
 
 
+def test_elasticity():
+    runs = two_levels("elasticity", (0.2, 0.1))  # 1 s; mu = 1, lam = 2
+    # measured: L2 2.134e-2, 6.132e-3 (rate 1.91); H1 0.2799, 0.1359 (1.10); 2667 and 17247 unknowns, the
+    # second by CG with the multigrid in 13 iterations
+    check(runs, {"l2": (2.134e-2, 6.132e-3), "h1": (0.2799, 0.1359)}, {"l2": 2, "h1": 1})
+    assert [r["dofs"] for r in runs] == [2667, 17247] and runs[1]["iterations"] <= 16
+
+
 @pytest.mark.parametrize("name", SCRIPTS)
 def test_script_imports_only_cutfem_and_numpy(name):
     tree = ast.parse((EXAMPLES / f"{name}.py").read_text())
     imports = [(a.name, a.asname) for node in ast.walk(tree) if isinstance(node, ast.Import) for a in node.names]
     froms = [node.module for node in ast.walk(tree) if isinstance(node, ast.ImportFrom)]
-    assert sorted(imports) == [("cutfem", "cf"), ("numpy", "np")] and froms == []
+    assert ("cutfem", "cf") in imports and set(imports) <= {("cutfem", "cf"), ("numpy", "np")} and froms == []
 
 
 def test_readme_lists_every_script():

@@ -9,7 +9,9 @@
   pair of opposite vertices, one CSR at the end.
 * :class:`LatticeSum`: element matrices and Gram rows of Kuhn tets and face-adjacent pairs of them
   on a structured box, summed in 13 slots a node by compiled kernels (no sort, no sparse product).
-* :func:`running_sum`: the one of these two that a field's exact terms add into, if any.
+* :class:`VectorSum`: a vector field's sum, the scalar one for the terms that act per component
+  and 3 x 3 blocks per lattice slot for those that couple them; :func:`block_diagonal` kron(I_c, A).
+* :func:`running_sum`: the one that a field's exact terms add into, if any.
 * :func:`assemble_vector`: local vectors scattered by their dof numbers.
 
 The quadrature route of integrands (:func:`cutfem.fem.forms.assemble`) sums its local blocks through
@@ -24,7 +26,8 @@ import scipy.sparse as sp
 from ..geometry.numbering import index_dtype
 from . import assembly_kernels
 
-__all__ = ["LatticeSum", "PairSum", "SymmetricPattern", "assemble_vector", "gram", "gram_sum", "row_operator", "running_sum"]
+__all__ = ["LatticeSum", "PairSum", "VectorSum", "SymmetricPattern", "assemble_vector", "block_diagonal", "gram", "gram_sum",
+           "row_operator", "running_sum"]
 
 class SymmetricPattern:
     """CSR structure of a symmetric n x n matrix: the full diagonal and the undirected ``pairs``.
@@ -259,11 +262,83 @@ class LatticeSum(_RunningSum):
         return out
 
 
+class VectorSum(_RunningSum):
+    """The running sum of a vector field (:class:`~cutfem.fem.spaces.VectorSpace`, 3 n unknowns
+    component-major): the terms that act component by component add into ``scalar``, the running
+    sum of the scalar field (a :class:`LatticeSum` or a :class:`PairSum`), and count I_3 times;
+    the terms that couple the components (elasticity) add 3 x 3 blocks of element matrices per
+    lattice slot (:meth:`add_block_elements`, on a structured box).  :meth:`matrix` writes one CSR
+    matrix: kron(I_3, the scalar matrix) built as three diagonal blocks, or with blocks all of them
+    in one pass (:func:`cutfem.fem.assembly_kernels.vector_lattice_csr`)."""
+
+    def __init__(self, scalar):
+        super().__init__()
+        self.scalar = scalar
+
+    @property
+    def used(self) -> bool:
+        return self.scalar.used or bool(self._store)
+
+    @property
+    def lattice(self) -> bool:
+        """Whether element blocks can be added (the scalar sum is a :class:`LatticeSum`)."""
+        return isinstance(self.scalar, LatticeSum)
+
+    def add_block_elements(self, dofs, blocks, types=None, weights=None, scale=1.0) -> "VectorSum":
+        """Add ``scale`` times symmetric element matrices of the vector field on the tets' scalar dofs
+        ``dofs`` (m, 4): ``blocks`` (L, 4, 4, 3, 3), K[(l, node i), (k, node j)] at [r, i, j, l, k],
+        row r = ``types[t]`` of element t (or r = t with ``types`` None), times ``weights[t]``
+        (:func:`cutfem.fem.assembly_kernels.lattice_add_blocks`)."""
+        lattice = self.scalar
+        _, partner, _ = lattice._slots()
+        n = len(lattice.ids)
+        if not self._store:
+            self._store.update(bsums=np.zeros(9 * lattice._width * n), bdiag=np.zeros(9 * n))
+        dofs = np.ascontiguousarray(dofs)
+        blocks = np.ascontiguousarray(blocks, dtype=float).reshape(-1, 4, 4, 3, 3)
+        none_t, none_f = np.zeros(0, np.int8), np.zeros(0)
+        lattice._check(assembly_kernels.lattice_add_blocks(
+            lattice.ids, lattice.code, dofs, blocks, none_t if types is None else np.ascontiguousarray(types),
+            none_f if weights is None else np.ascontiguousarray(weights, dtype=float), float(scale), partner,
+            self._store["bsums"], self._store["bdiag"], assembly_kernels.scatter_chunks(dofs, None)), "element blocks")
+        return self
+
+    def matrix(self) -> sp.csr_matrix:
+        if not self._store:
+            return block_diagonal(self.scalar.matrix(), 3)
+        sums, partner, diag = self.scalar._slots()
+        n = len(diag)
+        width = 3 * n * (2 * self.scalar._width + 1) * 3
+        indptr, indices, data = assembly_kernels.vector_lattice_csr(sums, self._store["bsums"], partner, diag,
+                                                                    self._store["bdiag"], n, index_dtype(width))
+        out = sp.csr_matrix((data, indices, indptr), shape=(3 * n, 3 * n))
+        out.has_sorted_indices = True
+        out.has_canonical_format = True
+        return out
+
+
+def block_diagonal(A, c: int) -> sp.csr_matrix:
+    """kron(I_c, A) of a square matrix A as CSR, written from A's arrays (c copies, the columns
+    shifted): the matrix of a term acting on each of c components alike."""
+    A = sp.csr_matrix(A)
+    n, nnz = A.shape[0], A.nnz
+    index = index_dtype(max(c * n, c * nnz))
+    indptr = np.concatenate([np.zeros(1, dtype=index)] + [(A.indptr[1:] + k * nnz).astype(index) for k in range(c)])
+    indices = np.concatenate([(A.indices + k * n).astype(index) for k in range(c)])
+    out = sp.csr_matrix((np.tile(A.data, c), indices, indptr), shape=(c * n, c * n))
+    out.has_sorted_indices = A.has_sorted_indices
+    return out
+
+
 def running_sum(space):
     """The running sum that the exact terms of a form add into on ``space``: a :class:`PairSum` on a
     triangulated surface (:class:`~cutfem.fem.spaces.SurfaceP1Space`), a :class:`LatticeSum` when the
     dofs are nodes of a structured box (a cut space on a :class:`~cutfem.geometry.box.StructuredBox`),
-    else None."""
+    a :class:`VectorSum` around either for a vector field of such a space, else None."""
+    scalar = getattr(space, "scalar", None)
+    if scalar is not None:
+        inner = running_sum(scalar)
+        return None if inner is None else VectorSum(inner)
     if hasattr(space, "edge_stencil_pattern"):
         return PairSum(space)
     es = getattr(space, "elements", None)

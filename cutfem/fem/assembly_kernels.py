@@ -5,7 +5,9 @@ a symmetric matrix from tets and faces has at most 13 entries right of the diago
 ``lattice_add_*`` kernels add element matrices, Gram rows, surface pieces and face jumps, each times
 a scale, into 13 slots a node (the pair (a, b), a < b, goes to slot 13 a + the rank of b - a), and
 :func:`lattice_csr` writes CSR arrays from the slots on all cores at positions the slots fix: no
-sort, no sparse product, exactly symmetric (:class:`cutfem.fem.assembly.LatticeSum`).  A meshed
+sort, no sparse product, exactly symmetric (:class:`cutfem.fem.assembly.LatticeSum`).  A vector
+field's coupled terms (elasticity) add 3 x 3 blocks per slot (:func:`lattice_add_blocks`), written
+with the scalar slots by :func:`vector_lattice_csr` (:class:`cutfem.fem.assembly.VectorSum`).  A meshed
 surface's matrices share one :func:`symmetric_pattern`, built by a counting sort of the node pairs.
 """
 
@@ -271,27 +273,138 @@ def lattice_csr(sums, partner, diag, indptr, indices, data):
     mirrors (a, c) of the slots (c, a), c < a, in increasing c, the diagonal, then the slots of a
     in increasing partner.  Slots whose sum is exactly zero are left out.
 
-    On the available cores: a 13-bit mask per row of the slots that point at it (by chunks of rows
-    whose targets stay in the chunk or the next, even chunks at once, then odd; else one chunk),
-    the row pointers from the masks' bit counts, then every row and the mirrors of its slots,
-    each entry at a position fixed by the masks: the same arrays as one pass in row order, which
-    took 1.2 s at spacing 0.003125 (4.7 million rows)."""
-    n = diag.shape[0]
+    On the available cores: a 13-bit mask per row of the slots that point at it
+    (:func:`_lattice_pattern`), the row pointers from the masks' bit counts, then every row and the
+    mirrors of its slots, each entry at a position fixed by the masks: the same arrays as one pass
+    in row order, which took 1.2 s at spacing 0.003125 (4.7 million rows)."""
+    incoming, lengths = _lattice_pattern(sums, partner, diag.shape[0])
+    indptr[0] = 0
+    np.cumsum(lengths, out=indptr[1:])
+    _lattice_fill(sums, partner, diag, incoming, indptr, indices, data)
+
+
+def _lattice_pattern(present, partner, n):
+    """(incoming masks (n,), row lengths (n,)) of the slots with ``present`` != 0: the bits of the
+    slots that point at each row, found by chunks of rows whose targets stay in the chunk or the
+    next (even chunks at once, then odd; else one chunk), and each row's mirrors, diagonal and
+    slots."""
     incoming = np.zeros(n, dtype=np.uint16)
     bounds = np.array([0, n], dtype=np.int64)
     for k in SWEEP_CHUNKS:
         if n < 64 * k:
             break
         cand = (np.arange(k + 1, dtype=np.int64) * n) // k
-        last = _chunk_reach(partner, sums, cand)
+        last = _chunk_reach(partner, present, cand)
         if np.all(last[:-2] < cand[2:-1]):  # targets of chunk i stay below chunk i + 2
             bounds = cand
             break
     for parity in (0, 1):
-        _incoming_offsets(sums, partner, bounds, parity, incoming)
-    indptr[0] = 0
-    np.cumsum(_row_lengths(sums, incoming), out=indptr[1:])
-    _lattice_fill(sums, partner, diag, incoming, indptr, indices, data)
+        _incoming_offsets(present, partner, bounds, parity, incoming)
+    return incoming, _row_lengths(present, incoming)
+
+
+def vector_lattice_csr(sums, bsums, partner, diag, bdiag, n, index):
+    """(indptr, indices, data) of the symmetric 3 n x 3 n matrix of a vector field, numbered
+    component-major, held by scalar slots (``sums``, ``diag``: the terms acting component by
+    component, I_3 times them) and 3 x 3 blocks per slot (``bsums`` (13 n * 9,), ``bdiag``
+    (9 n,): block (l, k) of the pair (a, b) of slot s at 9 s + 3 l + k, K[(l, a), (k, b)]).  Row
+    (l, a) holds, for k = 0, 1, 2, the columns k n + those of scalar row a (mirrors, diagonal,
+    slots, as :func:`lattice_csr`); a slot is present when its scalar sum or any of its block
+    entries is nonzero (its other entries are then stored, zeros included).  ``index``: the dtype
+    of the index arrays."""
+    present = _present_slots(sums, bsums)
+    incoming, lengths = _lattice_pattern(present, partner, n)
+    indptr = np.zeros(3 * n + 1, dtype=index)
+    np.cumsum(np.tile(3 * lengths, 3), out=indptr[1:])
+    nnz = int(indptr[-1])
+    indices, data = np.empty(nnz, dtype=index), np.empty(nnz)
+    _vector_lattice_fill(present, sums, bsums, partner, diag, bdiag, incoming, lengths, indptr, indices, data)
+    return indptr, indices, data
+
+
+@parallel_kernel
+def _present_slots(sums, bsums):
+    """1.0 for the slots with a nonzero scalar sum or block entry, else 0.0."""
+    out = np.empty(sums.shape[0])
+    for s in prange(sums.shape[0]):
+        v = sums[s] != 0.0
+        for e in range(9):
+            v = v or bsums[9 * s + e] != 0.0
+        out[s] = 1.0 if v else 0.0
+    return out
+
+
+@parallel_kernel
+def _vector_lattice_fill(present, sums, bsums, partner, diag, bdiag, incoming, lengths, indptr, indices, data):
+    """The rows (l, a) of :func:`vector_lattice_csr` and the mirrors of their slots, each entry at
+    the position the masks fix (as :func:`_lattice_fill`, in each of the three column segments)."""
+    n = diag.shape[0]
+    S = 13
+    for a in prange(n):
+        L = lengths[a]
+        p0 = _popcount(np.uint64(incoming[a]))
+        for l in range(3):
+            for k in range(3):
+                pos = indptr[l * n + a] + k * L + p0
+                indices[pos] = k * n + a
+                data[pos] = (diag[a] if l == k else 0.0) + bdiag[9 * a + 3 * l + k]
+                pos += 1
+                for c in range(S):
+                    s = a * S + c
+                    if present[s] != 0.0:
+                        b = partner[s]
+                        v = (sums[s] if l == k else 0.0) + bsums[9 * s + 3 * l + k]
+                        indices[pos] = k * n + b
+                        data[pos] = v
+                        pos += 1
+                        m = indptr[k * n + b] + l * lengths[b] + _popcount(np.uint64(incoming[b]) >> np.uint64(c + 1))
+                        indices[m] = l * n + a
+                        data[m] = v
+
+
+@parallel_kernel
+def lattice_add_blocks(ids, code, dofs, blocks, types, weights, scale, partner, bsums, bdiag, bounds):
+    """Add ``scale`` times symmetric 12 x 12 element matrices of a vector field into 3 x 3 blocks of
+    the slots: element t (a row of ``dofs`` (m, 4)) adds ``weights[t] blocks[r]`` (``blocks``
+    (L, 4, 4, 3, 3): K[(l, node i), (k, node j)] at [r, i, j, l, k]), r = ``types[t]``, or r = t when
+    ``types`` is empty; ``weights`` empty: 1.  Returns the number of pairs outside the lattice
+    offsets.  The elements in the chunks ``bounds`` of :func:`scatter_chunks`: the even chunks at
+    once, then the odd ones."""
+    outside = 0
+    nch = bounds.shape[0] - 1
+    for color in range(2):
+        for h in prange((nch - color + 1) // 2):
+            ch = 2 * h + color
+            outside += _add_block_elements(ids, code, dofs, blocks, types, weights, scale, partner, bsums, bdiag, bounds[ch],
+                                   bounds[ch + 1])
+    return outside
+
+
+@njit(cache=True, error_model="numpy")
+def _add_block_elements(ids, code, dofs, blocks, types, weights, scale, partner, bsums, bdiag, start, stop):
+    outside = 0
+    for t in range(start, stop):
+        r = types[t] if types.shape[0] > 0 else t
+        w = scale * weights[t] if weights.shape[0] > 0 else scale
+        for e in range(6):
+            i, j = TET_EDGES[e, 0], TET_EDGES[e, 1]
+            a, b = dofs[t, i], dofs[t, j]
+            if a > b:
+                a, b, i, j = b, a, j, i
+            s = _slot(ids, code, a, b)
+            if s < 0:
+                outside += 1
+                continue
+            partner[s] = b
+            for l in range(3):
+                for k in range(3):
+                    bsums[9 * s + 3 * l + k] += w * blocks[r, i, j, l, k]
+        for i in range(4):
+            a = dofs[t, i]
+            for l in range(3):
+                for k in range(3):
+                    bdiag[9 * a + 3 * l + k] += w * blocks[r, i, i, l, k]
+    return outside
 
 
 @parallel_kernel

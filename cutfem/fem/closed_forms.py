@@ -276,3 +276,112 @@ def _meshed_edge_penalty(space, h: float):
     h1, h2 = mesh.edge_halfedges.T
     return element_kernels.meshed_edge_penalty(space.element_dofs, S, Q, space.element_areas, float(h), np.ascontiguousarray(h1),
                                        np.ascontiguousarray(h2), space.n_dofs)
+
+
+# ---------------------------------------------------------------------------------------------
+# Linear elasticity on a vector field (VectorSpace of a scalar space V, n = V.n_dofs, component-major).
+# For u = phi_a e_k, v = phi_b e_l with constant gradients g on a tet, 2 mu eps(u) : eps(v) + lam div u div v
+# is mu delta_kl g_a . g_b + mu (g_b)_k (g_a)_l + lam (g_b)_l (g_a)_k: the element matrix K[(l, b), (k, a)].
+# ---------------------------------------------------------------------------------------------
+
+
+def _elasticity_table(G, mu, lam):
+    """Element matrices (L, 4, 4, 3, 3) of 2 mu eps : eps + lam div div per unit volume for the
+    gradients G (L, 4, 3): [r, i, j, l, k] = mu delta_lk G_i . G_j + mu G_ik G_jl + lam G_il G_jk
+    (row: node i, component l; column: node j, component k)."""
+    dots = np.einsum("rid,rjd->rij", G, G)
+    out = mu * np.einsum("rik,rjl->rijlk", G, G) + lam * np.einsum("ril,rjk->rijlk", G, G)
+    out += mu * dots[..., None, None] * np.eye(3)
+    return out
+
+
+def _kuhn_elasticity(space, volumes, mu, lam, into, scale=1.0):
+    """sum_T |T ∩ side| (2 mu eps : eps + lam div div) over all the tets of a structured box's
+    element set into the 3 x 3 blocks of ``into`` (:class:`~cutfem.fem.assembly.VectorSum`), times
+    ``scale``: the gradients of Kuhn tet type r are a row of the (6, 4, 3) table
+    (:attr:`~cutfem.geometry.box.StructuredBox.gradient_table`), so the element matrices are a (6, 4,
+    4, 3, 3) table times the volumes (:func:`cutfem.fem.assembly_kernels.lattice_add_blocks`)."""
+    V = space.scalar
+    table = _elasticity_table(V.elements.background.gradient_table, mu, lam)
+    into.add_block_elements(V.element_dofs, table, types=V.elements.kuhn_types, weights=volumes, scale=scale)
+
+
+def _elasticity_gram(space, grads_of, weights, mu, lam, elements=None):
+    """The elasticity matrix as a Gram product E^T E, where E has per tet T (gradients G =
+    grads_of(cells), weight w = ``weights[T]``) the rows of 2 mu eps : eps + lam div div:
+    sqrt(2 mu w) eps_ii (4 entries, component i), sqrt(mu w) (d_j u_i + d_i u_j) for i < j (8
+    entries), sqrt(lam w) div u (12 entries); a block of tets at a time
+    (:func:`~cutfem.fem.assembly.gram_sum`).  Exactly symmetric; for any background."""
+    V = space.scalar
+    n, m = V.n_dofs, len(weights)
+    step = max(_assembly.GRAM_ROWS // 7, 1)
+    pairs = [(0, 1), (0, 2), (1, 2)]
+
+    def blocks():
+        for start in range(0, m, step):
+            cells = slice(start, start + step)
+            G = grads_of(cells)  # (b, 4, 3)
+            w = weights[cells][:, None]
+            d = V.element_dofs[cells] if elements is None else V.element_dofs[elements[cells]]
+            d = d.astype(index_dtype(3 * n), copy=False)
+            s = np.sqrt(2.0 * mu * w)
+            yield (np.concatenate([d + i * n for i in range(3)]), np.concatenate([s * G[:, :, i] for i in range(3)]))
+            s = np.sqrt(mu * w)
+            yield (np.concatenate([np.concatenate([d + i * n, d + j * n], axis=1) for i, j in pairs]),
+                   np.concatenate([np.concatenate([s * G[:, :, j], s * G[:, :, i]], axis=1) for i, j in pairs]))
+            if lam > 0:
+                yield np.concatenate([d + i * n for i in range(3)], axis=1), np.sqrt(lam * w) * G.transpose(0, 2, 1).reshape(len(d), 12)
+
+    return gram_sum(blocks(), 3 * n)
+
+
+def _traction_rows(G, normals, mu, lam):
+    """S (m, 4, 3, 3): S[t, a, l, k] the component l of sigma(phi_a e_k) n on tet t,
+    mu delta_kl g_a . n + mu (g_a)_l n_k + lam (g_a)_k n_l (G (m, 4, 3), n (m, 3))."""
+    gn = np.einsum("mad,md->ma", G, normals)
+    S = mu * np.einsum("mal,mk->malk", G, normals) + lam * np.einsum("mak,ml->malk", G, normals)
+    S += mu * gn[..., None, None] * np.eye(3)
+    return S
+
+
+def _elasticity_nitsche_blocks(space, measure, sign, mu, lam, gamma):
+    """(the field's cut tets el (m,), element matrices (m, 4, 4, 3, 3)) of the elasticity Nitsche
+    terms -(sigma(u) n, v) - (u, sigma(v) n) + ((2 mu + lam) gamma / h)(u, v) over the pieces S_K of
+    the cut tets, exact for P1: sigma(u) n is constant on S_K, so with p_b = int_{S_K} phi_b, the
+    traction rows S of :func:`_traction_rows` and the piece mass M_K,
+
+        K[(l, b), (k, a)] = -p_b S[a, l, k] - S[b, k, l] p_a + (2 mu + lam) gamma / h_K M_K[b, a] delta_lk,
+
+    n = ``sign`` n_h the outward normal of the field's side."""
+    V = space.scalar
+    cut = measure.cut
+    edges, diagonal, p = _piece_moments(cut)
+    es = cut.elements(CUT)
+    el = V.local_elements(measure, np.arange(es.n_elements))
+    S = _traction_rows(V.gradients_of(el), sign * es.normals, mu, lam)
+    M = np.zeros((len(el), 4, 4))
+    i, j = TET_EDGES[:, 0], TET_EDGES[:, 1]
+    M[:, i, j] = edges
+    M[:, j, i] = edges
+    M[:, np.arange(4), np.arange(4)] = diagonal
+    K = -np.einsum("mb,malk->mbalk", p, S) - np.einsum("mbkl,ma->mbalk", S, p)
+    K += ((2.0 * mu + lam) * gamma / es.h)[:, None, None, None, None] * M[..., None, None] * np.eye(3)
+    return el, K
+
+
+def _element_blocks(space, el, blocks, into=None, scale=1.0):
+    """sum_K of symmetric element matrices (m, 4, 4, 3, 3) of a vector field on the scalar field's
+    elements ``el``: into the 3 x 3 blocks of ``into`` (a :class:`~cutfem.fem.assembly.VectorSum` on
+    a structured box, times ``scale``; returns None), or as one COO matrix when ``into`` is None
+    (exactly symmetric either way)."""
+    V = space.scalar
+    dofs = V.element_dofs[el]
+    if into is not None:
+        into.add_block_elements(dofs, blocks, scale=scale)
+        return None
+    n = V.n_dofs
+    comp = np.arange(3) * n
+    rows = np.broadcast_to(dofs[:, :, None, None, None] + comp[None, None, None, :, None], blocks.shape)
+    cols = np.broadcast_to(dofs[:, None, :, None, None] + comp[None, None, None, None, :], blocks.shape)
+    A = sp.coo_matrix((blocks.ravel(), (rows.ravel(), cols.ravel())), shape=(3 * n, 3 * n)).tocsr()
+    return (0.5 * (A + A.T)).tocsr()

@@ -20,7 +20,10 @@ A form is a sum of terms, each an integrand over a measure (:mod:`cutfem.geometr
 An integrand is a plain function of arrays shaped (cells x quadrature points), called with the
 basis functions ``u``, ``v`` and the quadrature data ``w`` of :mod:`cutfem.fem.pointwise`:
 ``u.value`` (m, q), ``u.grad`` and ``u.tgrad`` (m, 1, 3), on facets ``u.minus``, ``u.plus`` with
-``jump`` and ``avg``; ``w.x``, ``w.n``, ``w.h``, ``w.parent``, ``w.at(f)`` and the parameters.
+``jump`` and ``avg``; ``w.x``, ``w.n``, ``w.h``, ``w.parent``, ``w.at(f)`` and the parameters.  On a
+vector field (:class:`~cutfem.fem.spaces.VectorSpace`) ``u.value`` is (m, q, 3), ``u.grad`` (m, 1, 3, 3)
+with ``u.div``, ``u.sym_grad``, ``u.curl``, and products are written ``dot`` and ``inner``; a
+:class:`~cutfem.fem.spaces.RealSpace` field is the constant 1.
 Quadrature: degree 2 for a bilinear integrand, 4 for a linear one (:func:`bilinear_form`,
 :func:`linear_form` say why; ``degree=`` changes it).
 
@@ -68,7 +71,7 @@ from .assembly import assemble_vector, running_sum
 from ..geometry.measures import Measure
 from .pointwise import (_PROBE, _QUAD_DATA_NAMES, _QUAD_DATA_NAMES_DOC, ZERO, _field_basis, _FieldTuple, _Params,
                         _quad_data, _value, _zero_like)
-from .spaces import ProductSpace
+from .spaces import ProductSpace, RealSpace, VectorSpace
 
 __all__ = ["Integrand", "Form", "bilinear_form", "linear_form", "assemble"]
 
@@ -281,7 +284,8 @@ class Term:
                 m, q = args[-1].x.shape[:2]
                 facets = self.measure.facets is not None
                 note(f"in the integrand {self.integrand.__name__!r} over {self.measure.name!r}: u.value, v.value have shape "
-                     f"(m, q) = {(m, q)}, u.grad, u.tgrad (m, 1, 3), w.x (m, q, 3), w.n (m, 1, 3) or None, w.h (m, 1)"
+                     f"(m, q) = {(m, q)}, u.grad, u.tgrad (m, 1, 3) (of a vector field (m, q, 3) and (m, 1, 3, 3), u.div (m, 1)), "
+                     "w.x (m, q, 3), w.n (m, 1, 3) or None, w.h (m, 1)"
                      + ("; on facets u.minus, u.plus with jump(u), avg(u)" if facets else "")
                      + ("; on a product space u and v are tuples, u[k]" if isinstance(args[0], _FieldTuple) else "")
                      + f"; the result must have shape {(m, q)} or (m, 1)" + (" or (m, q, c)" if self.integrand.linear else ""))
@@ -489,6 +493,15 @@ def _field(space, k):
     return space.fields[k] if isinstance(space, ProductSpace) else space
 
 
+def _p1_field(space, k, term):
+    """Field k of ``space`` for a built-in term: a P1 field (scalar or vector), not a real one."""
+    V = _field(space, k)
+    if isinstance(V, RealSpace):
+        raise TypeError(f"the built-in term {term.integrand.__name__!r} acts on P1 fields, and field {k} is a RealSpace (one "
+                        "constant): write the multiplier's terms as an integrand, e.g. u[0] * v[1] + u[1] * v[0] over dx")
+    return V
+
+
 def assemble(form: Form, space, **params):
     """The matrix (bilinear form: CSR, n x n over all fields of ``space``) or the vector (linear form:
     (n,) or (n, c)) of ``form`` on ``space`` (one field or a :class:`~cutfem.fem.spaces.ProductSpace`).
@@ -514,8 +527,9 @@ def assemble(form: Form, space, **params):
         if isinstance(space, Form):
             raise TypeError("assemble(form, space): the arguments are swapped")
         raise TypeError(f"assemble needs a form (a sum of integrand * measure and built-in terms), got {type(form).__name__}")
-    if not (isinstance(space, ProductSpace) or (hasattr(space, "n_dofs") and hasattr(space, "element_dofs"))):
-        raise TypeError(f"assemble(form, space) needs the space of the fields (CutP1Space, SurfaceP1Space or ProductSpace), got {space!r}")
+    if not (isinstance(space, (ProductSpace, VectorSpace, RealSpace)) or (hasattr(space, "n_dofs") and hasattr(space, "element_dofs"))):
+        raise TypeError(f"assemble(form, space) needs the space of the fields (CutP1Space, SurfaceP1Space, VectorSpace, RealSpace or "
+                        f"ProductSpace), got {space!r}")
     _check_names(params, "assemble()")
     if params and all(term.integrand.exact is not None for _, term in form.terms):
         raise ValueError(f"assemble(): the keyword(s) {', '.join(sorted(params))} are handed to integrands as w.<name>, and "
@@ -529,7 +543,7 @@ def assemble(form: Form, space, **params):
         for c, term in form.terms:
             if term.integrand.exact is not None:
                 k = _field_index(space, term.field)
-                parts = [(k, None, c * np.asarray(term.integrand.exact(term, _field(space, k)), dtype=float))]
+                parts = [(k, None, c * np.asarray(term.integrand.exact(term, _p1_field(space, k, term)), dtype=float))]
             else:
                 parts = [(j, dofs, c * local) for j, dofs, local in term.contributions(space, params)]
             for k, dofs, vals in parts:
@@ -555,7 +569,7 @@ def assemble(form: Form, space, **params):
     for c, term in form.terms:
         if term.integrand.exact is not None:
             k = _field_index(space, term.field)
-            V = _field(space, k)
+            V = _p1_field(space, k, term)
             if k not in sums:
                 sums[k] = running_sum(V)
             A = term.integrand.exact(term, V, sums[k], c)

@@ -11,10 +11,12 @@
 * :func:`rates`: ``log(e_i / e_{i+1}) / log(h_i / h_{i+1})``; :func:`fitted_rate`: least-squares
   slope of log e against log h.
 
-Every error takes one field (a :class:`~cutfem.fem.spaces.CutP1Space` or
-:class:`~cutfem.fem.spaces.SurfaceP1Space`, not a :class:`~cutfem.fem.spaces.ProductSpace`) and its
-coefficients of shape (n_dofs,) or (n_dofs, c) (:func:`_coefficients`, on every path): the block of
-a product's vector is ``W.split(x)[k]``.  A measure must lie on the field's background mesh
+Every error takes one field (a :class:`~cutfem.fem.spaces.CutP1Space`,
+:class:`~cutfem.fem.spaces.SurfaceP1Space` or :class:`~cutfem.fem.spaces.VectorSpace`, not a
+:class:`~cutfem.fem.spaces.ProductSpace`) and its coefficients of shape (n_dofs,) or (n_dofs, c)
+(:func:`_field_coefficients`, on every path): the block of a product's vector is ``W.split(x)[k]``.
+A vector field's coefficients (3 n,) are its scalar space's nodal vectors (n, 3), so its exact
+solution returns (m, q, 3) and its gradient (m, q, 3, 3), rows the components (grad u)_ij = d u_i / d x_j.  A measure must lie on the field's background mesh
 (:meth:`~cutfem.fem.spaces.CutP1Space.local_elements`).
 """
 
@@ -26,21 +28,23 @@ from ..geometry.measures import surface_measure
 from ..geometry.mesh import triangle_areas
 from ..geometry.quadrature import triangle_rule
 from . import element_kernels
+from .spaces import ProductSpace, VectorSpace
 
 __all__ = ["l2_error", "h1_error", "l2_h1_errors", "discrete_error", "rates", "fitted_rate", "surface_integral"]
 
 _ZERO = np.zeros((0, 0, 0))  # no exact field: element_kernels.squared_error gives the norm of u_h itself
 
 
-def _coefficients(space, coeffs) -> np.ndarray:
-    """``coeffs`` of the one field ``space`` as an array (n_dofs,) or (n_dofs, c); a ValueError for
-    a product space (errors are per field) or for any other shape (``space._coefficients``)."""
-    from .spaces import ProductSpace
-
+def _field_coefficients(space, coeffs):
+    """(scalar space, coefficients (n_dofs,) or (n_dofs, c)) of the one field ``space``: a vector
+    field's are its scalar space and nodal vectors (n, 3); a ValueError for a product space (errors
+    are per field) or for any other shape (``space._coefficients``)."""
     if isinstance(space, ProductSpace):
         raise ValueError(f"errors are computed per field, and this is a product space of the fields {space.names}: pass "
                          "one field and its block, e.g. l2_error(W[k], W.split(x)[k], exact, measure)")
-    return space._coefficients(coeffs)
+    if isinstance(space, VectorSpace):
+        return space.scalar, space.nodal(coeffs)
+    return space, space._coefficients(coeffs)
 
 
 def _not_finite(part: float, exact_values, coeffs, points, what: str) -> None:
@@ -82,8 +86,7 @@ def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1
     if degree < 4:
         raise ValueError("docs/math.md §5 asks for quadrature of degree >= 4 in error norms")
     if measure is None:
-
-        coeffs = _coefficients(space, coeffs)
+        space, coeffs = _field_coefficients(space, coeffs)
         surface_measure(space)  # a clear error for a bulk field
         points, triangles, values = space.surface_vertex_data(coeffs)
         points = np.ascontiguousarray(points, dtype=float)
@@ -111,17 +114,19 @@ CELL_CHUNK = 1 << 13
 
 
 def h1_error(space, coeffs, exact_gradient, measure=None, degree: int = 4, chunk: int = CELL_CHUNK) -> float:
-    """H1 seminorm error of a scalar discrete function: ``|| grad u^e - grad u_h ||`` over a volume
+    """H1 seminorm error of a discrete function: ``|| grad u^e - grad u_h ||`` over a volume
     measure, ``|| P_h (grad u^e - grad u_h) ||`` over a surface (``measure=None``: S_h of a trace or
-    meshed field).  ``exact_gradient(x)`` maps (m, q, 3) to (m, q, 3).  Cells in blocks of ``chunk``
-    (see :func:`l2_error`)."""
+    meshed field).  ``exact_gradient(x)`` maps (m, q, 3) to (m, q, 3), for a vector field (or
+    coefficients (n, c)) to (m, q, c, 3), the gradients of the components as rows.  Cells in blocks
+    of ``chunk`` (see :func:`l2_error`)."""
     return _cell_errors(space, coeffs, lambda x: (None, exact_gradient(x)), measure, degree, chunk)[1]
 
 
 def l2_h1_errors(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = CELL_CHUNK) -> tuple[float, float]:
-    """(L2 error, H1 seminorm error) of a scalar discrete function in one pass over the cells:
+    """(L2 error, H1 seminorm error) of a discrete function in one pass over the cells:
     the values of :func:`l2_error` and :func:`h1_error` (the same quadrature, the same sums), with
-    ``exact(x)`` returning the pair ``(u(x) (m, q), grad u(x) (m, q, 3))`` at points (m, q, 3).
+    ``exact(x)`` returning the pair ``(u(x) (m, q), grad u(x) (m, q, 3))`` at points (m, q, 3)
+    (of a vector field ``(u(x) (m, q, 3), grad u(x) (m, q, 3, 3))``).
 
     One pass maps each block's quadrature points once, and lets ``exact`` share its work between u
     and grad u (a product of sines, cosines and exponentials needs each factor once): on the
@@ -153,7 +158,7 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
     million points, they replace numpy work of about 0.6 s)."""
     if degree < 4:
         raise ValueError("docs/math.md §5 asks for quadrature of degree >= 4 in error norms")
-    coeffs = _coefficients(space, coeffs)
+    space, coeffs = _field_coefficients(space, coeffs)
     if measure is None:
         measure = surface_measure(space)
 
@@ -180,15 +185,18 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
         if ge is not None:
             x = quad.points
             ge = np.asarray(ge, dtype=float)
-            if ge.shape != x.shape:
-                raise ValueError(f"the exact gradient must have shape {x.shape}, got {ge.shape}")
-            if local.ndim != 2:
-                raise ValueError("the H1 error is for a scalar field: coeffs must have shape (n,)")
+            shape = x.shape[:2] + local.shape[2:] + (3,)
+            if ge.shape != shape:
+                raise ValueError(f"the exact gradient must have shape {shape} at points {x.shape} (the gradient of each "
+                                 f"component as a row), got {ge.shape}")
             normals = np.ascontiguousarray(quad.normal, dtype=float) if measure.surface else no_normals
-            part = element_kernels.cell_gradient_error(table, np.ascontiguousarray(types[e]), np.asarray(local, dtype=float),
-                                               np.ascontiguousarray(ge), weights, normals)
-            _not_finite(part, ge, coeffs, x, "exact gradient")
-            sums[1] += part
+            kinds = np.ascontiguousarray(types[e])
+            for c in range(1 if local.ndim == 2 else local.shape[2]):  # the components' errors, summed
+                lc, gc = (local, ge) if local.ndim == 2 else (local[:, :, c], ge[:, :, c])
+                part = element_kernels.cell_gradient_error(table, kinds, np.ascontiguousarray(lc, dtype=float),
+                                                           np.ascontiguousarray(gc), weights, normals)
+                _not_finite(part, gc, coeffs, x, "exact gradient")
+                sums[1] += part
     return float(np.sqrt(sums[0])), float(np.sqrt(sums[1]))
 
 
@@ -204,7 +212,7 @@ def discrete_error(space, e) -> float:
     (the P1 mass matrix of a triangle, |T| / 12 [[2, 1, 1], [1, 2, 1], [1, 1, 2]]) up to rounding, in
     one compiled pass over the triangles (:func:`cutfem.fem.element_kernels.squared_error` against zero).  For
     a cut space the values at the vertices are the traces of the field (:meth:`surface_vertex_data`)."""
-    e = _coefficients(space, e)
+    space, e = _field_coefficients(space, e)
     surface_measure(space)  # a clear error for a bulk field
 
     points, triangles, values = space.surface_vertex_data(np.asarray(e, dtype=float))
@@ -219,7 +227,7 @@ def discrete_error(space, e) -> float:
 def surface_integral(space, coeffs) -> np.ndarray:
     """Integral over S_h of a discrete function: scalar or (c,) vector.  Exact: a linear function
     integrates over a triangle to its area times the mean of its vertex values."""
-    coeffs = _coefficients(space, coeffs)
+    space, coeffs = _field_coefficients(space, coeffs)
     surface_measure(space)  # a clear error for a bulk field
     points, triangles, values = space.surface_vertex_data(coeffs)
     area = triangle_areas(points, triangles)

@@ -2,11 +2,14 @@
 
 An integrand (:mod:`cutfem.fem.forms`) is called on arrays shaped (cells x quadrature points): the
 basis functions ``u`` and ``v`` (:class:`BasisField`: ``value`` (m, q), ``grad`` and ``tgrad``
-(m, 1, 3)), on a facet their two traces (:class:`FacetField`, with :func:`jump` and :func:`avg`),
-on a product space a tuple with one entry per field, all :data:`ZERO` but one, and ``w``
-(:class:`QuadData`): the points, the measure's normal, the local size, ``w.at(f)`` and the term's
-parameters.  This module makes those values from a space, a measure and its quadrature, and
-checks what a user function returns at the points.
+(m, 1, 3); of a vector field :class:`VectorBasisField`: ``value`` (m, q, 3), ``grad`` (m, 1, 3, 3)
+with the components as rows, ``div``, ``sym_grad``, ``curl``), on a facet their two traces
+(:class:`FacetField`, with :func:`jump` and :func:`avg`), on a product space a tuple with one entry
+per field, all :data:`ZERO` but one, and ``w`` (:class:`QuadData`): the points, the measure's
+normal, the local size, ``w.at(f)`` and the term's parameters.  Every array keeps the two leading
+axes (cells, points; 1 for what is constant on a cell) before its tensor axes, so :func:`dot` and
+:func:`inner` read a value's rank from its number of axes.  This module makes those values from a
+space, a measure and its quadrature, and checks what a user function returns at the points.
 """
 
 from __future__ import annotations
@@ -16,8 +19,9 @@ import numbers
 import numpy as np
 
 from ..geometry.measures import Measure
+from .spaces import RealSpace, VectorSpace
 
-__all__ = ["ZERO", "BasisField", "FacetField", "QuadData", "dot", "jump", "avg"]
+__all__ = ["ZERO", "BasisField", "VectorBasisField", "FacetField", "QuadData", "dot", "inner", "jump", "avg"]
 
 
 def _is_number_zero(other) -> bool:
@@ -132,6 +136,121 @@ class BasisField:
         return -self.value
 
 
+class VectorBasisField:
+    """A basis function phi e_c of a vector field (component ``c`` of the P1 function ``phi``) at
+    quadrature points: ``value`` (m, q, 3), ``grad`` (m, 1, 3, 3) with the components as rows,
+    (grad u)_ij = d u_i / d x_j, ``tgrad`` the rows' tangential gradients (grad u P_h on a surface),
+    ``div`` (m, 1), ``sym_grad`` (m, 1, 3, 3) = (grad u + grad u^T) / 2, ``curl`` (m, 1, 3), and
+    ``u[i]`` the component i (m, q).  Scaled by numbers and scalar values ((m, q), (m, 1) or a
+    scalar basis function); added to vector values (m, q, 3); products of two vectors are written
+    :func:`dot` or :func:`inner`, so that a vector never enters a scalar form by broadcasting.
+
+    Made from the scalar ``phi`` (m, q), its gradient ``g`` (m, 1, 3) and tangential gradient; the
+    arrays with the zero components are made when first asked for, and kept for the other basis
+    pairs of the block (an integrand of ``u.div`` never allocates the 3 x 3 gradients)."""
+
+    __slots__ = ("phi", "g", "tg", "component", "_value", "_grad", "_tgrad")
+    __array_ufunc__ = None  # ndarray op field defers to the reflected operators below (no broadcasting of (m, 1) against 3)
+
+    def __init__(self, phi, grad, tgrad, component: int):
+        self.phi, self.g, self.tg, self.component = phi, grad, tgrad, component
+        self._value = self._grad = self._tgrad = None
+
+    @property
+    def value(self):
+        if self._value is None:
+            self._value = np.zeros(self.phi.shape + (3,))
+            self._value[..., self.component] = self.phi
+        return self._value
+
+    def _rows(self, g):
+        out = np.zeros(g.shape[:2] + (3, 3))
+        out[:, :, self.component] = g
+        return out
+
+    @property
+    def grad(self):
+        if self._grad is None:
+            self._grad = self._rows(self.g)
+        return self._grad
+
+    @property
+    def tgrad(self):
+        if self._tgrad is None:
+            self._tgrad = self._rows(self.tg)
+        return self._tgrad
+
+    @property
+    def div(self):
+        return self.g[..., self.component]
+
+    @property
+    def sym_grad(self):
+        return 0.5 * (self.grad + np.swapaxes(self.grad, -1, -2))
+
+    @property
+    def curl(self):
+        return np.cross(self.g, np.eye(3)[self.component])  # curl(phi e_c) = grad phi x e_c
+
+    def __getitem__(self, i):
+        return self.phi if i == self.component else np.zeros_like(self.phi)
+
+    def __array__(self, dtype=None, copy=None):
+        return np.asarray(self.value, dtype=dtype)
+
+    @staticmethod
+    def _scalar(other):
+        """``other`` as a factor of the value (m, q, 3): a number, or scalar values with a new last axis."""
+        if isinstance(other, BasisField):
+            other = other.value
+        if isinstance(other, numbers.Number):
+            return other
+        if isinstance(other, (VectorBasisField, _Traces)) or np.ndim(other) > 2:
+            raise TypeError("a vector basis function times a vector: the products of two vectors are dot(u, v) and inner(u, v); "
+                            "a vector is scaled by numbers and scalar values (m, q) or (m, 1)")
+        other = np.asarray(other)
+        return other[..., None] if other.ndim == 2 else other
+
+    def __mul__(self, other):
+        if isinstance(other, _Zero):
+            return other * self
+        return self.value * self._scalar(other)
+
+    __rmul__ = __mul__
+
+    def __truediv__(self, other):
+        if isinstance(other, _Zero):
+            return other * self
+        return self.value / self._scalar(other)
+
+    @staticmethod
+    def _vector(other):
+        other = other.value if isinstance(other, VectorBasisField) else other
+        if isinstance(other, (BasisField, numbers.Number)) or (np.ndim(other) != 1 and np.ndim(other) < 3):
+            raise TypeError("a vector basis function is added to vector values (m, q, 3) or a constant vector (3,), not to scalars")
+        return other
+
+    def __add__(self, other):
+        if isinstance(other, _Zero):
+            return other + self
+        return self.value + self._vector(other)
+
+    __radd__ = __add__
+
+    def __sub__(self, other):
+        if isinstance(other, _Zero):
+            return other + self  # the probe stays the probe, ZERO leaves self
+        return self.value - self._vector(other)
+
+    def __rsub__(self, other):
+        if isinstance(other, _Zero):
+            return other - self
+        return self._vector(other) - self.value
+
+    def __neg__(self):
+        return -self.value
+
+
 class _Traces:
     """A quantity with a value from each side of a facet: ``minus``, ``plus``."""
 
@@ -163,9 +282,21 @@ class FacetField(_Traces):
     def grad(self):
         return _Traces(self.minus.grad, self.plus.grad)
 
+    @property
+    def tgrad(self):
+        return _Traces(self.minus.tgrad, self.plus.tgrad)
+
+    @property
+    def div(self):
+        return _Traces(self.minus.div, self.plus.div)
+
+    @property
+    def sym_grad(self):
+        return _Traces(self.minus.sym_grad, self.plus.sym_grad)
+
 
 def _value(a):
-    return a.value if isinstance(a, BasisField) else a
+    return a.value if isinstance(a, (BasisField, VectorBasisField)) else a
 
 
 def jump(a):
@@ -182,11 +313,56 @@ def avg(a):
     return 0.5 * (_value(a.minus) + _value(a.plus))
 
 
-def dot(a, b):
-    """Dot product over the last axis (zero-aware)."""
+def _rank(a) -> int:
+    """The tensor rank of a value: its axes after the two leading ones (cells, points); a 1-d
+    array is a constant vector, a number a scalar."""
+    n = np.ndim(_value(a))
+    return n if n < 2 else n - 2
+
+
+def _zero_aware(a, b):
+    """ZERO when a factor is ZERO, the probe when a factor is the probe (finding the coupled fields), else None."""
     if isinstance(a, _Zero) or isinstance(b, _Zero):
         return ZERO if (a is ZERO or b is ZERO) else _PROBE
-    return np.einsum("...d,...d->...", a, b)
+    return None
+
+
+def dot(a, b):
+    """The contraction of the last axis of ``a`` with the first tensor axis of ``b`` (zero-aware):
+    u . v of vectors, A v and v A of a matrix and a vector, A B of matrices.  Vectors and scalar
+    values are contracted over their last axis as they always were (the same bits)."""
+    zero = _zero_aware(a, b)
+    if zero is not None:
+        return zero
+    ra, rb = _rank(a), _rank(b)
+    if ra <= 1 and rb <= 1:
+        return np.einsum("...d,...d->...", a, b)
+    a, b = _value(a), _value(b)
+    if ra == 2 and rb == 1:
+        return np.einsum("...ij,...j->...i", a, b)
+    if ra == 1 and rb == 2:
+        return np.einsum("...i,...ij->...j", a, b)
+    if ra == 2 and rb == 2:
+        return np.einsum("...ij,...jk->...ik", a, b)
+    raise TypeError(f"dot of values of ranks {ra} and {rb}: dot contracts vectors and matrices (at most rank 2)")
+
+
+def inner(a, b):
+    """The full contraction of two values of one rank (zero-aware): a b of scalars, u . v of
+    vectors, A : B = sum_ij A_ij B_ij of matrices."""
+    zero = _zero_aware(a, b)
+    if zero is not None:
+        return zero
+    ra, rb = _rank(a), _rank(b)
+    if ra != rb:
+        raise TypeError(f"inner of values of ranks {ra} and {rb}: both must be scalars, vectors or matrices (use dot for A v)")
+    if ra == 0:
+        return _value(a) * _value(b)
+    if ra == 1:
+        return np.einsum("...d,...d->...", _value(a), _value(b))
+    if ra == 2:
+        return np.einsum("...ij,...ij->...", _value(a), _value(b))
+    raise TypeError(f"inner of values of rank {ra}: at most rank 2 (matrices)")
 
 
 def _require_function(f, what: str) -> None:
@@ -317,7 +493,18 @@ def _quad_data(measure: Measure, quad, params, own=None):
 
 def _field_basis(space, measure: Measure, quad):
     """(dofs (m, k), basis fields [k]) of a field at a measure's quadrature points; on a facet
-    measure k = 8 (the minus tet's four, then the plus tet's four)."""
+    measure k = 8 (the minus tet's four, then the plus tet's four).  A vector field has the
+    scalar basis times each unit vector, component after component (k = 3 x the scalar k, its dofs
+    c n + the scalar dofs); a real field its one function, 1 everywhere (on a facet both traces)."""
+    if isinstance(space, RealSpace):
+        m = quad.weights.shape[0]
+        one = BasisField(np.ones((m, 1)), np.zeros((m, 1, 3)), np.zeros((m, 1, 3)))
+        return np.zeros((m, 1), dtype=np.int64), [FacetField(one, one) if measure.facets is not None else one]
+    if isinstance(space, VectorSpace):
+        dofs, fields = _field_basis(space.scalar, measure, quad)
+        n = space.scalar.n_dofs
+        return (np.concatenate([dofs + c * n for c in range(3)], axis=1),
+                [_component(b, c) for c in range(3) for b in fields])
     if measure.facets is not None:
         pairs = measure.facets.pairs[quad.parent]
         dofs, fields = [], []
@@ -367,10 +554,21 @@ class _FieldTuple(tuple):
     __pow__ = __neg__ = __matmul__ = __rmatmul__ = __array__ = _refuse
 
 
+def _component(b, c):
+    """The vector basis function b e_c of a scalar one (a :class:`FacetField` trace by trace)."""
+    if isinstance(b, FacetField):
+        return FacetField(_component(b.minus, c), _component(b.plus, c))
+    if b is ZERO:
+        return b
+    return VectorBasisField(b.value, b.grad, b.tgrad, c)
+
+
 def _zero_like(b):
     """The zero function in the shape of a basis function (numeric zeros, unlike :data:`ZERO`): both
     traces on a facet."""
     if isinstance(b, FacetField):
-        z = _zero_like(b.minus if isinstance(b.minus, BasisField) else b.plus)
+        z = _zero_like(b.minus if not isinstance(b.minus, _Zero) else b.plus)
         return FacetField(z, z)
+    if isinstance(b, VectorBasisField):
+        return VectorBasisField(np.zeros_like(b.phi), np.zeros_like(b.g), np.zeros_like(b.tg), b.component)
     return BasisField(np.zeros_like(b.value), np.zeros_like(b.grad), np.zeros_like(b.tgrad))

@@ -9,9 +9,11 @@ discrete normal n_h (surface and trace spaces; None for bulk fields); ``elements
 (or surface mesh) the field lives on, which :mod:`cutfem.fem.forms` matches against the elements of a
 measure; ``h`` the global mesh size, the abscissa of convergence tables (docs/math.md §2).
 
-Measures are not owned by spaces: see :mod:`cutfem.geometry.measures`.  Vector-valued fields [V_h]^c are
-(n, c) arrays of coefficients sharing the scalar matrices; several fields together form a
-:class:`ProductSpace` with a block numbering of their dofs.
+Measures are not owned by spaces: see :mod:`cutfem.geometry.measures`.  A vector field [V_h]^3 is
+:class:`VectorSpace` of a scalar space (one block of 3 n unknowns, component-major); a constant, one
+unknown (a Lagrange multiplier), is :class:`RealSpace`; several fields together form a
+:class:`ProductSpace` with a block numbering of their dofs.  (Several scalar right-hand sides at
+once are still (n, c) arrays of coefficients sharing one scalar matrix.)
 """
 
 from __future__ import annotations
@@ -25,7 +27,7 @@ from ..geometry.markers import CUT, ElementSet, same_background
 from ..geometry.surface import positive_number
 from . import element_kernels
 
-__all__ = ["SurfaceP1Space", "CutP1Space", "ProductSpace", "triangle_gradients", "barycentric_at"]
+__all__ = ["SurfaceP1Space", "CutP1Space", "VectorSpace", "RealSpace", "ProductSpace", "triangle_gradients", "barycentric_at"]
 
 
 def triangle_gradients(vertices: np.ndarray):
@@ -348,6 +350,92 @@ class CutP1Space(_P1Space):
         return c.surface_edge_tets, c.surface_edge_conormals, c.surface_edge_lengths
 
 
+class VectorSpace:
+    """The vector field [V]^3 of a scalar P1 space ``V`` (a :class:`CutP1Space` on any element set of
+    a cut, NEG, POS or CUT, or a :class:`SurfaceP1Space`): one block of 3 n unknowns numbered
+    component-major, component c's dofs are c n + V's dofs (:meth:`dofs`), a vector of coefficients
+    is read as nodal vectors (n, 3) by :meth:`nodal`.
+
+    Why a space of a space, not ``CutP1Space(..., components=3)``: it applies to every scalar space
+    alike (one class, not an option in each), and leaves the scalar space and its arrays as they
+    are, so that the built-in terms that act component by component (mass, stiffness, penalties,
+    Nitsche, loads) are the scalar term's matrix on V, kron(I_3, A), built by the scalar exact
+    implementations, and the multigrid sees three copies of V's hierarchy.  In an integrand a basis
+    function of a vector field is a :class:`~cutfem.fem.pointwise.VectorBasisField` (``value``
+    (m, q, 3), ``grad`` (m, 1, 3, 3), ``div``, ``sym_grad``, ``curl``, ``tgrad``).  A field of a
+    :class:`ProductSpace` like any other: ``ProductSpace(u=VectorSpace(V), p=Q)``."""
+
+    components = 3
+
+    def __init__(self, scalar):
+        if isinstance(scalar, (VectorSpace, ProductSpace, RealSpace)) or not isinstance(scalar, _P1Space):
+            raise TypeError(f"VectorSpace(V) takes a scalar P1 space (CutP1Space or SurfaceP1Space), got {scalar!r}")
+        self.scalar = scalar
+        self.n_dofs = 3 * scalar.n_dofs
+        self.h = scalar.h
+        self.elements = scalar.elements
+
+    def __repr__(self) -> str:
+        return f"VectorSpace({self.scalar!r})"
+
+    @property
+    def cut(self):
+        return self.scalar.cut
+
+    @property
+    def is_trace(self) -> bool:
+        return self.scalar.is_trace
+
+    def dofs(self, c: int) -> np.ndarray:
+        """The dofs of component c (0, 1 or 2)."""
+        if c not in (0, 1, 2):
+            raise ValueError(f"a vector field has the components 0, 1, 2, not {c!r}")
+        n = self.scalar.n_dofs
+        return np.arange(c * n, (c + 1) * n)
+
+    @property
+    def boundary_dofs(self) -> np.ndarray:
+        """The dofs of every component at the boundary of the background box."""
+        b, n = self.scalar.boundary_dofs, self.scalar.n_dofs
+        return np.concatenate([b + c * n for c in range(3)])
+
+    def nodal(self, coeffs) -> np.ndarray:
+        """The coefficients (3 n,) as nodal vectors (n, 3) (a view)."""
+        coeffs = np.asarray(coeffs)
+        if coeffs.shape != (self.n_dofs,):
+            raise ValueError(f"coefficients of this vector space have shape ({self.n_dofs},), got {coeffs.shape}")
+        return coeffs.reshape(3, -1).T
+
+    def flat(self, nodal) -> np.ndarray:
+        """Nodal vectors (n, 3) as the coefficients (3 n,) (the inverse of :meth:`nodal`)."""
+        nodal = np.asarray(nodal, dtype=float)
+        if nodal.shape != (self.scalar.n_dofs, 3):
+            raise ValueError(f"nodal vectors of this space have shape ({self.scalar.n_dofs}, 3), got {nodal.shape}")
+        return nodal.T.reshape(-1)
+
+    def interpolate(self, f) -> np.ndarray:
+        """Nodal interpolant of ``f`` (points (n, 3) -> values (n, 3)) as coefficients (3 n,)."""
+        return self.flat(self.scalar.interpolate(f))
+
+    def evaluate(self, coeffs, measure, degree: int = 4) -> np.ndarray:
+        """Values (m, q, 3) of the discrete field at the quadrature points of ``measure``."""
+        return self.scalar.evaluate(self.nodal(coeffs), measure, degree)
+
+
+class RealSpace:
+    """One unknown, a constant: a field of a :class:`ProductSpace` for a Lagrange multiplier (a
+    mean value, or another global constraint).  Its basis function is 1 on every measure (with
+    zero gradients; on a facet both traces), so a constraint is an ordinary integrand, e.g. the
+    mean-zero pressure ``p * lam + q * mu`` over ``dx`` (``u[k]``, ``v[k]`` for the fields'
+    positions), assembled like any field: block by block of cells, a row of the fields' dofs."""
+
+    n_dofs = 1
+    h = None
+
+    def __repr__(self) -> str:
+        return "RealSpace()"
+
+
 class ProductSpace:
     """Several fields together, with a block numbering: field k has the global dofs
     ``offsets[k] : offsets[k + 1]``.  Forms on a product space see tuples of basis functions
@@ -368,7 +456,7 @@ class ProductSpace:
                 raise TypeError("nest product spaces by listing their fields instead")
         self.offsets = np.concatenate([[0], np.cumsum([f.n_dofs for f in self.fields])]).astype(np.int64)
         self.n_dofs = int(self.offsets[-1])
-        self.h = self.fields[0].h
+        self.h = next((f.h for f in self.fields if f.h is not None), None)  # a real field has no mesh size
 
     def __repr__(self) -> str:
         return "ProductSpace(" + ", ".join(f"{n}={f!r}" for n, f in zip(self.names, self.fields)) + ")"

@@ -26,7 +26,7 @@ import numpy as np
 import scipy.sparse as sp
 
 from . import element_kernels
-from .assembly import gram
+from .assembly import block_diagonal, gram
 from .closed_forms import (_element_symmetric, _gradient_matrix, _jump_gram, _kuhn_stiffness, _kuhn_tangential_stiffness,
                     _kuhn_volume_mass, _meshed_edge_penalty, _meshed_mass, _meshed_stiffness, _piece_mass, _piece_moments,
                     _point_load, _simplex_mass)
@@ -34,8 +34,8 @@ from .forms import Form, Integrand, Term, _field_index, _number, assemble
 from ..geometry.measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from ..geometry.markers import CUT, NEG, POS, SIDES
 from ..geometry.numbering import TET_EDGES
-from .pointwise import _require_function, dot, jump
-from .spaces import ProductSpace
+from .pointwise import VectorBasisField, _require_function, _value, dot, inner, jump
+from .spaces import ProductSpace, VectorSpace
 
 __all__ = [
     "mass",
@@ -59,6 +59,37 @@ def _integrand(name, function, linear=False, **kwargs) -> Integrand:
     f = Integrand(function, linear, **kwargs)
     f.__name__ = name
     return f
+
+
+def _componentwise(exact):
+    """The exact implementation of a bilinear term that acts on each component of a vector field
+    alike: on a :class:`~cutfem.fem.spaces.VectorSpace` the scalar field's matrix, summed into the
+    scalar running sum (counted I_3 times by :class:`~cutfem.fem.assembly.VectorSum`) or returned as
+    kron(I_3, A); the scalar term itself on a scalar field."""
+
+    def on_field(term, space, into, scale):
+        if not isinstance(space, VectorSpace):
+            return exact(term, space, into, scale)
+        A = exact(term, space.scalar, None if into is None else into.scalar, scale)
+        return None if A is None else block_diagonal(A, 3)
+
+    return on_field
+
+
+def _componentwise_load(exact):
+    """The exact implementation of a linear term on a vector field: the scalar term's vector (n, 3)
+    of vector data (a function returning (m, q, 3)), one column per component, as (3 n,)."""
+
+    def on_field(term, space):
+        if not isinstance(space, VectorSpace):
+            return exact(term, space)
+        b = np.asarray(exact(term, space.scalar))
+        if b.shape != (space.scalar.n_dofs, 3):
+            raise ValueError(f"{term.integrand.__name__} on a vector field needs vector data, a function returning (m, q, 3) at "
+                             f"points (m, q, 3); it gave {b.shape[1:] or 'one value'} per node")
+        return b.T.reshape(-1)
+
+    return on_field
 
 
 def _same_elements(space, measure) -> bool:
@@ -113,7 +144,7 @@ def _mass_exact(term, space, into, scale):
     raise TypeError(f"mass integrates over cells (a surface or a volume), not over {measure!r}")
 
 
-_MASS = _integrand("mass", lambda u, v, w: u * v, symmetric=True, exact=_mass_exact)
+_MASS = _integrand("mass", lambda u, v, w: inner(u, v), symmetric=True, exact=_componentwise(_mass_exact))
 
 
 def mass(measure: Measure, field=None) -> Form:
@@ -137,7 +168,7 @@ def _stiffness_exact(term, space, into, scale):
     return _gradient_matrix(space, lambda cells: space.gradients_of(el[cells]), measure.part_volumes, el)
 
 
-_STIFFNESS = _integrand("stiffness", lambda u, v, w: dot(u.grad, v.grad), symmetric=True, exact=_stiffness_exact)
+_STIFFNESS = _integrand("stiffness", lambda u, v, w: inner(u.grad, v.grad), symmetric=True, exact=_componentwise(_stiffness_exact))
 
 
 def stiffness(measure: Measure, field=None) -> Form:
@@ -165,7 +196,8 @@ def _tangential_exact(term, space, into, scale):
     return _gradient_matrix(space, lambda cells: tG[cells], measure.piece_areas, el)
 
 
-_TANGENTIAL = _integrand("tangential_stiffness", lambda u, v, w: dot(u.tgrad, v.tgrad), symmetric=True, exact=_tangential_exact)
+_TANGENTIAL = _integrand("tangential_stiffness", lambda u, v, w: inner(u.tgrad, v.tgrad), symmetric=True,
+                         exact=_componentwise(_tangential_exact))
 
 
 def tangential_stiffness(measure: Measure, field=None) -> Form:
@@ -198,8 +230,14 @@ def _position_load_exact(term, space):
     return out
 
 
-# (P_h e_k, grad_S v) = (grad_S v)_k: the tangential gradient itself, one column per coordinate
-_POSITION_LOAD = _integrand("position_load", lambda v, w: v.tgrad, linear=True, degree=1, exact=_position_load_exact)
+def _position_integrand(v, w):
+    """(P_h e_k, grad_S v) = (grad_S v)_k: the tangential gradient itself, one column per coordinate;
+    of a vector test function the sum over k of (grad_S v_k)_k, the trace of its tangential gradient."""
+    return np.einsum("...kk->...", v.tgrad) if isinstance(v, VectorBasisField) else v.tgrad
+
+
+_POSITION_LOAD = _integrand("position_load", _position_integrand, linear=True, degree=1,
+                            exact=_componentwise_load(_position_load_exact))
 
 
 def position_load(measure: Measure, field=None) -> Form:
@@ -225,6 +263,9 @@ def position_load(measure: Measure, field=None) -> Form:
 
 def _basis_integrals_exact(term, space):
     measure = term.measure
+    if isinstance(space, VectorSpace):
+        raise TypeError("basis_integrals is (1, v) of a scalar field; on a vector field integrate the component you need, "
+                        "basis_integrals(measure) on its scalar space")
     if isinstance(measure, MeshedSurface):
         _same_mesh(space, measure, "basis_integrals")
         return np.bincount(space.element_dofs.reshape(-1), weights=np.repeat(space.element_areas / 3.0, 3),
@@ -254,7 +295,13 @@ def basis_integrals(measure: Measure, field=None) -> Form:
 
 
 def _times(g, x):
-    """g (m, q) or (m, q, c) times x (m, q): the data of a load times its test values."""
+    """The data of a load times its test values: g (m, q) or (m, q, c) times scalar values x (m, q)
+    (c loads at once), g . x for vector values x (m, q, 3) (g (m, q, 3), vector data)."""
+    x = _value(x)
+    if x.ndim == 3:
+        if g.ndim != 3 or g.shape[2] != 3:
+            raise ValueError(f"the data of a load on a vector field must be vectors, shape (m, q, 3); got {g.shape}")
+        return dot(g, x)
     return g * (x if g.ndim == 2 else x[..., None])
 
 
@@ -283,7 +330,8 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
     if isinstance(measure, FacetMeasure):
         raise TypeError("load integrates over cells (a volume or a surface); for a facet term write a linear_form integrand")
     _require(measure, Measure, "load")
-    integrand = _integrand("load", lambda v, w: _times(w.at(w.f), v.value), linear=True, degree=degree, exact=_load_exact)
+    integrand = _integrand("load", lambda v, w: _times(w.at(w.f), v), linear=True, degree=degree,
+                           exact=_componentwise_load(_load_exact))
     return integrand.on(measure, field, f=g)
 
 
@@ -312,9 +360,10 @@ def _face_jump_exact(term, space, into, scale):
     return _jump_gram(space, pairs, n, n, -1.0, factor)
 
 
-# [n_F . grad u] = n_F . (grad u^- - grad u^+), n_F from the minus to the plus tet
-_FACE_JUMP = _integrand("face_jump_penalty", lambda u, v, w: w.h**w.h_power * dot(w.n, jump(u.grad)) * dot(w.n, jump(v.grad)),
-                        symmetric=True, exact=_face_jump_exact)
+# [n_F . grad u] = n_F . (grad u^- - grad u^+), n_F from the minus to the plus tet (of each component: grad u n_F)
+_FACE_JUMP = _integrand("face_jump_penalty",
+                        lambda u, v, w: w.h**w.h_power * inner(dot(jump(u.grad), w.n), dot(jump(v.grad), w.n)),
+                        symmetric=True, exact=_componentwise(_face_jump_exact))
 
 
 def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -> Form:
@@ -361,7 +410,7 @@ def _edges_only(u, v, w):
                     "covers: it has its exact implementation only")
 
 
-_EDGE_JUMP = _integrand("edge_jump_penalty", _edges_only, symmetric=True, exact=_edge_jump_exact)
+_EDGE_JUMP = _integrand("edge_jump_penalty", _edges_only, symmetric=True, exact=_componentwise(_edge_jump_exact))
 
 
 def edge_jump_penalty(measure: Measure, h: float | None = None, field=None) -> Form:
@@ -389,8 +438,8 @@ def _normal_gradient_exact(term, space, into, scale):
 
 
 _NORMAL_GRADIENT = _integrand("normal_gradient_penalty",
-                              lambda u, v, w: w.h**w.h_power * dot(w.n, u.grad) * dot(w.n, v.grad), symmetric=True,
-                              exact=_normal_gradient_exact)
+                              lambda u, v, w: w.h**w.h_power * inner(dot(u.grad, w.n), dot(v.grad, w.n)), symmetric=True,
+                              exact=_componentwise(_normal_gradient_exact))
 
 
 def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=None) -> Form:
@@ -473,8 +522,8 @@ def _nitsche_exact(term, space, into, scale):
 
 
 def _nitsche_matrix(u, v, w):
-    n = w.outward * w.n
-    return -dot(n, u.grad) * v - dot(n, v.grad) * u + w.gamma / w.h * u * v
+    n = w.outward * w.n  # of a vector field, the normal derivative of each component: grad u n
+    return -inner(dot(u.grad, n), v) - inner(dot(v.grad, n), u) + inner(w.gamma / w.h * u, v)
 
 
 def _nitsche_load_exact(term, space):
@@ -489,34 +538,40 @@ def _nitsche_load_exact(term, space):
     return _point_load(space, measure, term.integrand.degree, term.params["g"], "nitsche: g(x)", local)
 
 
-_NITSCHE = _integrand("nitsche", _nitsche_matrix, symmetric=True, exact=_nitsche_exact, prepare=_nitsche_side,
+_NITSCHE = _integrand("nitsche", _nitsche_matrix, symmetric=True, exact=_componentwise(_nitsche_exact), prepare=_nitsche_side,
                       advice=_nitsche_advice)
 _NITSCHE_LOAD = _integrand("nitsche load",
-                           lambda v, w: _times(w.at(w.g), w.gamma / w.h * v - dot(w.outward * w.n, v.grad)),
-                           linear=True, exact=_nitsche_load_exact, prepare=_nitsche_side)
+                           lambda v, w: _times(w.at(w.g), w.gamma / w.h * v - dot(v.grad, w.outward * w.n)),
+                           linear=True, exact=_componentwise_load(_nitsche_load_exact), prepare=_nitsche_side)
 
 
 class Nitsche(Form):
     """The symmetric Nitsche terms of u = g on Gamma, a bilinear form, with their right-hand side
     :attr:`load`: one penalty ``gamma`` for both and for the advice on an indefinite matrix
-    (:attr:`~cutfem.fem.forms.Form.indefinite_hint`).  Made by :func:`nitsche`."""
+    (:attr:`~cutfem.fem.forms.Form.indefinite_hint`).  Made by :func:`nitsche` (``matrix`` and
+    ``rhs`` its integrands) and :func:`cutfem.fem.elasticity.elasticity_nitsche` (those of linear
+    elasticity, with their ``params`` mu and lam beside gamma)."""
 
-    def __init__(self, measure, gamma, g, field):
-        super().__init__([(1.0, Term(_NITSCHE, measure, field, {"gamma": gamma}))], False)
-        self.measure, self.gamma, self.g, self.field = measure, gamma, g, field
+    def __init__(self, measure, gamma, g, field, matrix=_NITSCHE, rhs=_NITSCHE_LOAD, params=None):
+        self.params = {"gamma": gamma, **(params or {})}
+        super().__init__([(1.0, Term(matrix, measure, field, self.params))], False)
+        self.measure, self.gamma, self.g, self.field, self._rhs = measure, gamma, g, field, rhs
 
     @property
     def load(self) -> Form:
         """The Nitsche right-hand side of u = g: -(g, n . grad v)_Gamma + (gamma / h) (g, v)_Gamma, with
         the same gamma, h and outward normal n as the matrix, ``g(x)`` evaluated at the quadrature
-        points of Gamma_h (degree 4; docs/math.md §8).  ``g`` returns (m, q) or, for a vector-valued
-        field, (m, q, c) (the vector is then (n, c)); its values must be real and finite.
+        points of Gamma_h (degree 4; docs/math.md §8).  ``g`` returns (m, q), or (m, q, c) for c
+        right-hand sides at once (the vector is then (n, c)); on a vector field
+        (:class:`~cutfem.fem.spaces.VectorSpace`) it returns vectors (m, q, 3) and the vector is
+        (3 n,).  Its values must be real and finite.  Of :func:`cutfem.fem.elasticity.elasticity_nitsche`:
+        -(g, sigma(v) n)_Gamma + ((2 mu + lam) gamma / h) (g, v)_Gamma.
 
         Block by block of the triangles of S_h, with weights w_q, basis values phi_k and the constant
         n . grad phi_k of the cut tet: b_k = sum_q w_q g(x_q) (gamma / h_T phi_k(x_q) - n . grad phi_k)."""
         if self.g is None:
             raise ValueError("this Nitsche term has no boundary data: make it with nitsche(measure, gamma, g=...) for its load")
-        return Form([(1.0, Term(_NITSCHE_LOAD, self.measure, self.field, {"gamma": self.gamma, "g": self.g}))], True)
+        return Form([(1.0, Term(self._rhs, self.measure, self.field, {**self.params, "g": self.g}))], True)
 
 
 def nitsche(measure: SurfacePieces, gamma: float = 10.0, g=None, field=None) -> Nitsche:
@@ -528,7 +583,9 @@ def nitsche(measure: SurfacePieces, gamma: float = 10.0, g=None, field=None) -> 
     comes from the field: n = n_h (from NEG to POS) for ``CutP1Space(cut, NEG)``, n = -n_h for
     ``CutP1Space(cut, POS)`` (the outer domain); any other field is refused (:func:`_outward_sign`).
     With the data ``g`` (a function of the points) the matching right-hand side is the returned
-    form's :attr:`~Nitsche.load`, with the same gamma.  gamma (a positive number) must exceed an
+    form's :attr:`~Nitsche.load`, with the same gamma.  On a vector field
+    (:class:`~cutfem.fem.spaces.VectorSpace`) the terms act on each component, -(grad u n, v) - ...,
+    and the matrix is kron(I_3, N) of the scalar one.  gamma (a positive number) must exceed an
     inverse-estimate constant, or the matrix is indefinite: the form's
     :attr:`~cutfem.fem.forms.Form.indefinite_hint` says so for the solver, with gamma's value.
 
@@ -589,6 +646,9 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
         if k[0] == k[1]:
             raise ValueError(f"interface_nitsche: fields={tuple(fields)!r} names the same field twice; give the NEG field, "
                              "then the POS field, e.g. fields=(0, 1)")
+        if any(isinstance(space.fields[i], VectorSpace) for i in k):
+            raise TypeError("interface_nitsche couples two scalar fields; for vector fields write the coupling as an integrand "
+                            "(dot(u.grad, w.n) is the normal derivative of each component)")
         sides = [_side_of(space.fields[i]) if getattr(space.fields[i], "cut", None) is measure.cut else None for i in k]
         if sides != [NEG, POS]:
             where = ", ".join(f"field {f!r} on {getattr(getattr(space.fields[i], 'elements', None), 'name', space.fields[i])!r}"

@@ -532,6 +532,8 @@ def multigrid_hierarchy(space):
       :class:`~cutfem.geometry.box.StructuredBox`): the nested Kuhn lattices (:func:`lattice_hierarchy`);
     * a surface space whose mesh carries a doubly periodic grid (``mesh.grid = (n, m)``, set by
       :func:`~cutfem.geometry.surface_meshes.torus_mesh`): the coarser grids (:func:`grid_hierarchy`);
+    * a vector field (:class:`~cutfem.fem.spaces.VectorSpace`): three copies of its scalar space's
+      hierarchy, block-diagonal prolongations (and a product space: its fields' hierarchies, block-diagonal);
     * any other surface space (dofs = the nodes of ``space.mesh``): the Kuhn lattice of spacing
       twice the mean edge length, then the nested lattices (:func:`surface_hierarchy`).  This
       needs a roughly uniform mesh: where the edges are much shorter than the mean, the first
@@ -542,6 +544,10 @@ def multigrid_hierarchy(space):
     if fields is not None:  # a product space: one hierarchy per field, block-diagonal prolongations
         hierarchies = [multigrid_hierarchy(f) for f in fields]
         return None if any(h is None for h in hierarchies) else _block_hierarchy(hierarchies)
+    scalar = getattr(space, "scalar", None)
+    if scalar is not None:  # a vector field: its components' hierarchy three times, kron(I_3, P)
+        hierarchy = multigrid_hierarchy(scalar)
+        return None if hierarchy is None else _repeated_hierarchy(hierarchy, space.components)
     ijk = lattice_indices(space)
     if ijk is not None:
         return lattice_hierarchy(ijk)
@@ -563,6 +569,13 @@ def _block_hierarchy(hierarchies):
         if any(P is None for P in Ps):
             return
         yield sp.block_diag(Ps, format="csr")
+
+
+def _repeated_hierarchy(hierarchy, c):
+    """kron(I_c, P) of each prolongation P of ``hierarchy``: the hierarchy of a vector field of c
+    components numbered component-major (each coarse space holds the coarse vector fields)."""
+    for P in hierarchy:
+        yield sp.block_diag([P] * c, format="csr")
 
 
 def _mean_edge_hierarchy(points, triangles):

@@ -91,7 +91,12 @@ def test_one_pass_errors_equal_the_separate_ones():
     lin = V.interpolate(lambda x: x @ g + 1.0)
     zero = l2_h1_errors(V, lin, lambda x: (x @ g + 1.0, np.broadcast_to(g, x.shape)), dx)
     assert zero[0] < 1e-13 and zero[1] < 1e-12
-    with pytest.raises(ValueError, match="scalar field"):
+    # two columns: a gradient per column (rows), the errors the root of the columns' squared sums
+    two = l2_h1_errors(V, np.stack([u, u], axis=1), lambda x: (np.stack([smooth(x)] * 2, axis=-1),
+                                                                np.stack([smooth_gradient(x)] * 2, axis=-2)), dx)
+    one = l2_h1_errors(V, u, lambda x: (smooth(x), smooth_gradient(x)), dx)
+    np.testing.assert_allclose(two, np.sqrt(2.0) * np.array(one), rtol=1e-13)
+    with pytest.raises(ValueError, match=r"exact gradient must have shape \(\d+, \d+, 2, 3\)"):
         l2_h1_errors(V, np.stack([u, u], axis=1), lambda x: (np.stack([smooth(x)] * 2, axis=-1), smooth_gradient(x)), dx)
 
 
