@@ -87,6 +87,10 @@ _NAMES = {
     "DirectSolver": ".solvers.direct",
     "CGSolver": ".solvers.krylov",
     "GeometricMultigrid": ".solvers.multigrid",
+    # moving domains: the extended domain of a time step, its strip width, the transfer of a solution
+    "ActiveDomain": ".fem.moving",
+    "strip_width": ".fem.moving",
+    "transfer": ".fem.moving",
     # exact fields from sympy (manufactured solutions and their data)
     "Exact": ".fem.exact",
     # error norms and convergence rates

@@ -20,6 +20,11 @@ sees a jump [u] = psi w (1/a_NEG - 1/a_POS) = O(h^2) only, bounded in the contra
 common to both sides, v with n . grad v = 0 on Gamma only, would add a flux jump
 (a_NEG - a_POS) n . grad v = O(contrast h^2) on Gamma_h, and errors that grow with the contrast.)
 f_i = -Lap(psi w) with Lap(psi w) = 6 w + 4 x . grad w + psi Lap w, Lap w = -3/4 (w - 2).
+
+Any other smooth interface {phi = 0} (``--surface``: an ellipsoid, a torus, an expression in x, y, z
+or a Python file) takes psi = phi itself: the same construction holds for every psi that vanishes on
+Gamma, with grad psi and Lap psi = trace(Hess phi) from the level set (:class:`LevelSetSolution`).
+A mesh file has no smooth phi, and is refused.
 """
 
 from __future__ import annotations
@@ -35,6 +40,7 @@ from cutfem.fem.forms import assemble
 from cutfem.fem.terms import apply_dirichlet, face_jump_penalty, interface_nitsche, load, stiffness
 from cutfem.jit import parallel_kernel
 from cutfem.geometry.shapes import Sphere
+from cutfem.geometry.signed_distance import SignedDistance
 from cutfem.geometry.markers import NEG, POS
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
 from cutfem.runs.runner import Timer
@@ -42,7 +48,7 @@ from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, point_rows, value_and_gradient
+from .common import BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, levelset_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -107,6 +113,42 @@ class InterfaceSolution:
         return value
 
 
+def _w(x):
+    """w = sin(x) exp(y/2) + 2, grad w and Lap w = -3/4 (w - 2) at the points x (..., 3)."""
+    ey = np.exp(0.5 * x[..., 1])
+    e = np.sin(x[..., 0]) * ey
+    grad = np.stack([np.cos(x[..., 0]) * ey, 0.5 * e, np.zeros_like(e)], axis=-1)
+    return e + 2.0, grad, -0.75 * e
+
+
+class LevelSetSolution:
+    """The manufactured solution u_i = phi w / a_i for the interface {phi = 0} of any smooth level
+    set (the module docstring): grad u_i = (w grad phi + phi grad w) / a_i and
+    f = -(w Lap phi + 2 grad phi . grad w + phi Lap w), Lap phi = trace(Hess phi)."""
+
+    def __init__(self, levelset, a_neg, a_pos):
+        self.phi, self.a = levelset, {NEG: float(a_neg), POS: float(a_pos)}
+
+    def solution(self, side):
+        def value(x):
+            w, gw, _ = _w(x)
+            p, gp = self.phi.value(x), self.phi.gradient(x)
+            return p * w / self.a[side], (w[..., None] * gp + p[..., None] * gw) / self.a[side]
+
+        return value
+
+    def u(self, side):
+        return lambda x: self.phi.value(x) * _w(x)[0] / self.a[side]
+
+    def f(self, side):
+        def value(x):
+            w, gw, lw = _w(x)
+            p, gp, H = self.phi.value(x), self.phi.gradient(x), self.phi.hessian(x)
+            return -(w * np.trace(H, axis1=-2, axis2=-1) + 2.0 * np.sum(gp * gw, axis=-1) + p * lw)
+
+        return value
+
+
 #: the record's entries (saved with the JSON)
 DEFINITIONS = {
     "h": H_BACKGROUND,
@@ -128,7 +170,7 @@ CONTRAST_LIMIT = 1e10
 @register(
     "interface-poisson-cut",
     definitions=DEFINITIONS,
-    summary="-div(a grad u) = f with a jump of a across a sphere, Nitsche-XFEM with ghost penalties (docs/math.md §9)",
+    summary="-div(a grad u) = f with a jump of a across a sphere or a user's surface, Nitsche-XFEM with ghost penalties (docs/math.md §9)",
     levels=[0.2, 0.1, 0.05, 0.025],
     level_name="spacing",
     params=[
@@ -138,12 +180,15 @@ CONTRAST_LIMIT = 1e10
         Param("gamma", float, 10.0, "Nitsche penalty gamma (a warning above 1e3)", positive=True),
         Param("gamma_g", float, 0.1, "ghost penalty gamma_g (times a_i on each side; meaningful in [0.01, 1]: a warning above 1, "
               "refused above 1e6)", minimum=0),
-        Param("radius", float, 0.8, "radius of the interface sphere", positive=True),
+        Param("surface", str, "sphere", "the interface: sphere (of --radius), torus, ellipsoid, an expression in x, y, z "
+              "or a Python file defining phi (u_i = phi w / a_i); not a mesh file"),
+        Param("radius", float, 0.8, "radius of the interface sphere", positive=True, only=("surface", ("sphere",))),
+        *[p for p in SHAPE_PARAMS if p.name != "radius"],
         Param("box", str, "-1.2,-1.2,-1.2,1.2,1.2,1.2", "background box x0,y0,z0,x1,y1,z1"),
         SOLVER_PARAM,
     ],
 )
-def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, radius, box, solver):
+def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, surface, radius, R, r, axes, box, solver):
     """One level of the interface problem; a spacing that does not resolve the sphere (S_h off its area by more
     than 25 %, :func:`~cutfem.problems.common.check_resolution`) is refused."""
     for name, value in (("--a-inside", a_inside), ("--a-outside", a_outside)):
@@ -152,10 +197,17 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
     notes = check_ghost_penalty(gamma_g)  # times a_i on each side: the same ratio to each side's stiffness
     notes += check_nitsche_penalty(gamma)
     t = Timer()
-    sol = InterfaceSolution(radius, a_inside, a_outside)
     a = {NEG: a_inside, POS: a_outside}
+    if surface == "sphere":
+        phi, sol = Sphere(radius), InterfaceSolution(radius, a_inside, a_outside)
+    else:
+        phi = levelset_for(surface, R, r, 1.0, axes)
+        if isinstance(phi, SignedDistance):
+            raise ProblemError(f"--surface {surface}: a mesh file gives a signed distance, which is not smooth enough for "
+                               "the manufactured solution u_i = phi w / a_i; give a named surface, an expression or a "
+                               "Python file")
+        sol = LevelSetSolution(phi, a_inside, a_outside)
     with t("geometry"):
-        phi = Sphere(radius)
         bg = background_for(phi, spacing, "structured", box)
         check_bulk_memory(bg, phi, (NEG, POS), BULK_BYTES_PER_TET["interface-poisson-cut"], spacing)
         cut = cut_mesh(bg, phi)

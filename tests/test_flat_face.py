@@ -35,6 +35,7 @@ EXPECTED = {
     "cutfem.solvers.krylov": "CGSolver",
     "cutfem.solvers.multigrid": "GeometricMultigrid",
     "cutfem.fem.exact": "Exact",
+    "cutfem.fem.moving": "ActiveDomain strip_width transfer",
 }
 
 

@@ -471,13 +471,21 @@ def _side_of(space):
 
 def _outward_sign(space, measure: SurfacePieces, what: str) -> float:
     """The outward unit normal of the field's side on Gamma_h is ``sign * n_h`` (n_h points from NEG
-    to POS): +1 for a field of NEG, -1 for a field of POS.  A clear error for a field that is not a
-    bulk field of one side of the measure's cut: its outward normal is not defined."""
+    to POS): +1 for a field of NEG, -1 for a field of POS.  A field on an extended domain, the NEG
+    side of another cut of the same background whose tets hold every cut tet of the measure (the
+    active mesh of a moving domain, :mod:`cutfem.fem.moving`), has the measure's NEG side as its
+    domain: +1.  A clear error for any other field: its outward normal is not defined."""
     side = _side_of(space)
-    if side is None or space.cut is not measure.cut:
-        raise ValueError(f"{what} imposes a condition on Gamma_h for a bulk field of one side of the same cut, "
-                         f"CutP1Space(cut, NEG) or CutP1Space(cut, POS); got {space!r}")
-    return 1.0 if side == NEG else -1.0
+    if side is not None and space.cut is measure.cut:
+        return 1.0 if side == NEG else -1.0
+    if side == NEG and space.cut is not measure.cut:
+        cut_tets = measure.cut.elements(CUT)
+        if np.all(space.elements.contains(cut_tets.tet_ids)):
+            return 1.0
+        raise ValueError(f"{what}: the field lives on the NEG side of another cut whose tets do not hold every cut tet of "
+                         f"the measure ({space!r}); extend its domain (a larger strip) so that it covers Gamma_h")
+    raise ValueError(f"{what} imposes a condition on Gamma_h for a bulk field of one side of the same cut, "
+                     f"CutP1Space(cut, NEG) or CutP1Space(cut, POS), or of an extended domain holding the cut; got {space!r}")
 
 
 def _nitsche_advice(params, form) -> str:

@@ -85,7 +85,8 @@ GENERIC_INDEFINITE_ADVICE = (
     "A symmetric positive definite system was expected. Check the signs of the terms (a negative zero-order term, "
     "as in -Lap u - k^2 u, is indefinite) and the penalty parameters (a Nitsche penalty gamma below its stability "
     "bound makes the Nitsche systems indefinite: raise gamma); pass indefinite_hint= to name the cause of a "
-    "specific system, or spd=False to the direct solver for a system that is indefinite by design."
+    "specific system; a saddle-point system (Stokes, a constraint) is indefinite by design: solve it with "
+    "solve(K, b, space=W, primal=..., schur=...)."
 )
 
 

@@ -48,6 +48,7 @@ from .diagnose import _Checks, _check_kernels
 from .direct import DirectSolver
 from .krylov import DEFAULT_TOL, cg_solve, mg_solve
 from .multigrid import multigrid_hierarchy
+from .saddle import saddle_solve
 
 __all__ = ["solve", "DIRECT_LIMIT", "DIRECT_LIMIT_NO_MG", "DIRECT_LIMIT_NO_MG_BULK"]
 
@@ -76,8 +77,13 @@ def _fills_volume(space) -> bool:
 
 
 def solve(A, B, method: str = "auto", tol: float | None = None, space=None, lattice=None, kernels=None,
-          stabilization=None, indefinite_hint=None, multigrid=None, x0=None):
+          stabilization=None, indefinite_hint=None, multigrid=None, x0=None, primal=None, schur=None):
     """Solve the SPD system A X = B (B (n,) or (n, c)); returns (X, SolveInfo).
+
+    ``primal`` (and ``schur``) declare a symmetric saddle-point system instead: ``primal`` the
+    fields of the positive definite block of the product space ``space``, ``schur`` {constraint
+    field: an SPD approximation of its Schur complement}; solved by block-preconditioned MINRES
+    ("minres") or, small, directly (:func:`~cutfem.solvers.saddle.saddle_solve`).
 
     ``method``: "direct", "cg-mg" (geometric multigrid), "cg-amg", "cg-jacobi" or "auto":
     direct up to :data:`DIRECT_LIMIT` unknowns; above it "cg-mg" when there is a geometric
@@ -110,6 +116,10 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
     if space is not None and getattr(space, "n_dofs", n) != n:
         raise ValueError(f"solve: the space has {space.n_dofs} unknowns and the matrix {n}: pass the space the system "
                          "was assembled on (space= gives the multigrid hierarchy, the dof coordinates and phi_h)")
+    if primal is not None:
+        return saddle_solve(A, B, space, primal, schur, tol=tol, method=method)
+    if schur is not None:
+        raise ValueError("solve: schur= belongs to a saddle-point system; name its positive definite fields with primal=")
     kernels = dict(kernels or {})
     phi = getattr(getattr(space, "cut", None), "values", None)
     if phi is not None and np.shape(phi) == (n,):

@@ -114,8 +114,11 @@ def test_nitsche_needs_a_field_of_one_side(cut):
     for build in (lambda: nitsche(cut.ds()), lambda: nitsche(cut.ds(), g=ONE).load):
         with pytest.raises(ValueError, match=r"CutP1Space\(cut, NEG\) or CutP1Space\(cut, POS\)"):
             assemble(build(), CutP1Space(cut, CUT))
+        # the NEG side of another cut is accepted only as an extended domain holding every cut tet
+        with pytest.raises(ValueError, match="another cut whose tets do not hold every cut tet"):
+            assemble(build(), CutP1Space(_cut(radius=0.3), NEG))
         with pytest.raises(ValueError, match="same cut"):
-            assemble(build(), CutP1Space(_cut(radius=0.7), NEG))
+            assemble(build(), CutP1Space(_cut(radius=1.0), POS))
 
 
 def test_nitsche_load_takes_gamma_h_and_vector_data(cut):

@@ -1,0 +1,180 @@
+"""Saddle-point solves: symmetric indefinite block systems
+
+    K = [[A, B^T], [B, -C]],
+
+A the symmetric positive definite block of the *primal* fields (a velocity, a displacement), B the
+constraint coupling, C >= 0 the constraint fields' own block (a pressure stabilization).  Stokes
+with equal-order P1-P1 (docs/math.md, SPEC §12) is the example: A = nu (grad u, grad v) + Nitsche +
+ghost penalty, B = -(div u, q) + (u . n, q)_Gamma, C the pressure stabilization and ghost penalty.
+
+The method is preconditioned MINRES (:mod:`cutfem.solvers.minres`) with the block-diagonal
+preconditioner diag(A~^{-1}, S~^{-1}): A~^{-1} one V-cycle of the geometric multigrid of the primal
+fields (symmetric: a forward and a backward Gauss-Seidel sweep around the coarse correction; the
+K-cycle CG uses is not a fixed operator, which MINRES needs), or of smoothed-aggregation AMG when
+the fields have no geometric hierarchy; S~ the caller's spectrally equivalent approximation of the
+Schur complement C + B A^{-1} B^T for each constraint field (for Stokes (1/nu) M_p plus the pressure
+stabilization), applied by one V-cycle too (or a factorization when small).  Then MINRES's
+iterations are bounded independently of h and of the cut position (Silvester and Wathen 1994; the
+ghost penalties make the blocks' constants uniform in the cut).
+
+A one-unknown field (a Lagrange multiplier for a mean value) needs no matrix: its Schur complement
+is the number b^T S~^{-1} b of its coupling row b, computed once.  A constraint field whose
+constants are a null vector of K (a pressure without its mean-value constraint) is refused with
+that cause, as is a constraint field without its own block C (equal-order pairs are unstable
+without a pressure stabilization).  Small systems (at most :data:`SADDLE_DIRECT_LIMIT` unknowns)
+are factorized directly (SuperLU with a minimum degree ordering on K + K^T).
+"""
+
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pyamg
+import scipy.sparse as sp
+
+from .common import SolveInfo
+from .diagnose import SolverError
+from .direct import DirectSolver
+from .minres import BlockDiagonal, minres
+from .multigrid import GeometricMultigrid, multigrid_hierarchy
+
+__all__ = ["saddle_solve", "SADDLE_DIRECT_LIMIT"]
+
+#: saddle systems with at most this many unknowns are factorized (SuperLU) by ``solve``'s "auto"
+SADDLE_DIRECT_LIMIT = 5_000
+
+#: V-cycles per application of a block's multigrid preconditioner: on the cut Stokes problem MINRES needs
+#: 75-83 iterations with one, 51-55 with two (spacings 0.1, 0.05), at the same time
+CYCLES = 2
+
+#: block preconditioners of at most this many unknowns are factorized instead of a V-cycle
+FACTOR_BLOCK_LIMIT = 2_000
+
+
+def _field_dofs(space, k):
+    return np.arange(space.offsets[k], space.offsets[k + 1])
+
+
+def _subspace(space, ks):
+    """The product space of the fields ``ks`` of ``space`` (for their multigrid hierarchy)."""
+    fields = [space.fields[k] for k in ks]
+    return fields[0] if len(fields) == 1 else type(space)(*fields)
+
+
+def _block_preconditioner(M, field_space, what):
+    """An SPD fixed approximation of M^{-1}: a factorization when small, else one V-cycle of the
+    geometric multigrid of ``field_space`` (or smoothed-aggregation AMG without a hierarchy)."""
+    M = sp.csr_matrix(M, dtype=float)
+    if M.shape[0] <= FACTOR_BLOCK_LIMIT:
+        return DirectSolver(M, where=what).solve
+    hierarchy = multigrid_hierarchy(field_space) if field_space is not None else None
+    if hierarchy is not None:
+        mg = GeometricMultigrid(M, prolongations=hierarchy, visits=(1,))
+        cycles = CYCLES
+
+        def apply(r):
+            z = mg.apply(r[:, None])[:, 0]
+            for _ in range(cycles - 1):  # B_2 = 2B - B M B: symmetric, and SPD while the cycle contracts
+                z += mg.apply((r - M @ z)[:, None])[:, 0]
+            return z
+
+        return apply
+    ml = pyamg.smoothed_aggregation_solver(M, symmetry="symmetric")
+    return lambda r: ml.solve(r, x0=np.zeros_like(r), maxiter=1, cycle="V", tol=1e-300)
+
+
+def _check_constraint_fields(K, space, primal, constraint):
+    """The causes of a singular saddle matrix that the blocks show at no cost."""
+    scale = float(np.abs(K.data).max()) if K.nnz else 0.0
+    for k in constraint:
+        dofs = _field_dofs(space, k)
+        name = space.names[k]
+        if len(dofs) == 1:
+            continue
+        C = K[dofs][:, dofs]
+        if C.nnz == 0 or not np.any(C.data):
+            raise SolverError(
+                f"the saddle system's field {name!r} has no block of its own (-C = 0): an equal-order pair (P1-P1) is "
+                f"unstable without a stabilization of {name!r}; add one (e.g. -beta/nu h^2 (grad p, grad q) over the "
+                "domain, or a face penalty on its jumps) and pass its Schur approximation in schur=", "singular")
+        z = np.zeros(K.shape[0])
+        z[dofs] = 1.0
+        Kz = K @ z
+        if np.linalg.norm(Kz) <= 1e-10 * scale * np.sqrt(len(dofs)):
+            raise SolverError(
+                f"the saddle system is singular: the constants of field {name!r} are a null vector (K z = 0 with z = 1 on "
+                f"{name!r}), so {name!r} is determined only up to a constant; add its mean-value constraint (a one-unknown "
+                f"field in the product space and the term {name} * lam + q * mu over the domain) or fix one value",
+                "singular", kernel=z)
+
+
+def saddle_solve(K, B, space, primal, schur=None, tol: float = 1e-8, maxiter: int = 1000, method: str = "auto"):
+    """Solve the symmetric saddle-point system K x = B on the product space ``space``.
+
+    ``primal``: the fields (names or positions) of the positive definite block A; the other fields
+    are the constraint fields.  ``schur``: {field: matrix}, for each constraint field with more
+    than one unknown an SPD matrix spectrally equivalent to its Schur complement (for a Stokes
+    pressure: (1/nu) M_p plus the pressure stabilization); a one-unknown field (a multiplier) needs
+    none.  ``method``: "minres" (block-preconditioned MINRES), "direct" (SuperLU) or "auto" (direct
+    up to :data:`SADDLE_DIRECT_LIMIT` unknowns).  Returns (x, SolveInfo); B of shape (n,) or (n, 1).
+    """
+    K = sp.csr_matrix(K, dtype=float)
+    n = K.shape[0]
+    b = np.asarray(B, dtype=float).reshape(n, -1)
+    if b.shape[1] != 1:
+        raise ValueError(f"a saddle-point solve takes one right-hand side, got {b.shape[1]} columns: solve them one by one")
+    b = b[:, 0]
+    fields = getattr(space, "fields", None)
+    if fields is None:
+        raise ValueError("a saddle-point solve needs space= a ProductSpace whose fields are the primal and the constraint "
+                         "fields (e.g. ProductSpace(u=V, p=Q, mean=RealSpace()))")
+    primal_k = sorted({space.index(k) for k in ([primal] if isinstance(primal, (str, int)) else primal)})
+    constraint = [k for k in range(len(fields)) if k not in primal_k]
+    if not primal_k or not constraint:
+        raise ValueError(f"primal= must name some but not all of the fields {space.names}; the others are the constraint "
+                         "fields (pressure, multipliers)")
+    schur = {space.index(k): v for k, v in (schur or {}).items()}
+    for k in constraint:
+        if space.offsets[k + 1] - space.offsets[k] > 1 and k not in schur:
+            raise ValueError(f"schur= needs a matrix for the constraint field {space.names[k]!r} (an SPD approximation of "
+                             "its Schur complement, for a Stokes pressure (1/nu) M_p plus its stabilization)")
+    _check_constraint_fields(K, space, primal_k, constraint)
+    t0 = time.perf_counter()
+    if method == "auto":
+        method = "direct" if n <= SADDLE_DIRECT_LIMIT else "minres"
+    if method == "direct":
+        solver = DirectSolver(K, spd=False, where="the saddle-point system")
+        t1 = time.perf_counter()
+        x = solver.solve(b)
+        res = float(np.linalg.norm(K @ x - b) / max(np.linalg.norm(b), 1e-300))
+        return x, SolveInfo("direct", 0, res, time.perf_counter() - t0, t1 - t0)
+    if method != "minres":
+        raise ValueError(f"unknown method {method!r} for a saddle-point system; use 'auto', 'minres' or 'direct'")
+    pdofs = np.concatenate([_field_dofs(space, k) for k in primal_k])
+    blocks = [(pdofs, _block_preconditioner(K[pdofs][:, pdofs], _subspace(space, primal_k), "the primal block"))]
+    applies = {}
+    for k in constraint:
+        dofs = _field_dofs(space, k)
+        if len(dofs) > 1:
+            S = sp.csr_matrix(schur[k], dtype=float)
+            if S.shape != (len(dofs), len(dofs)):
+                raise ValueError(f"schur[{space.names[k]!r}] has shape {S.shape}, the field has {len(dofs)} unknowns")
+            applies[k] = _block_preconditioner(S, fields[k], f"the Schur approximation of {space.names[k]!r}")
+            blocks.append((dofs, applies[k]))
+    for k in constraint:
+        dofs = _field_dofs(space, k)
+        if len(dofs) == 1:  # a multiplier: b^T S~^{-1} b of its coupling row, through the others' S~
+            row = np.asarray(K[dofs].todense()).reshape(-1)
+            value = 0.0
+            for j, apply in applies.items():
+                bj = row[_field_dofs(space, j)]
+                if np.any(bj):
+                    value += float(bj @ apply(bj))
+            if value <= 0:
+                raise SolverError(f"the multiplier {space.names[k]!r} couples to no constraint field with a Schur "
+                                  "approximation: constrain a field that has one", "singular")
+            blocks.append((dofs, lambda r, v=value: r / v))
+    t1 = time.perf_counter()
+    x, it, res = minres(K, b, BlockDiagonal(n, blocks), tol=tol, maxiter=maxiter, name="MINRES (saddle point)")
+    return x, SolveInfo("minres", it, res, time.perf_counter() - t0, t1 - t0)
