@@ -53,9 +53,10 @@ DEFINITIONS = {
 }
 
 
-@bilinear_form(symmetric=True)
+@bilinear_form(symmetric=True, degree=1)
 def _coupling(u, v, w):
-    """-(div v, p) - (div u, q) + the mean-value constraint (p, mu) + (q, lam) over the domain."""
+    """-(div v, p) - (div u, q) + the mean-value constraint (p, mu) + (q, lam) over the domain: a
+    constant times a linear function, exact with the centroid rule (degree 1)."""
     return -v[0].div * u[1] - u[0].div * v[1] + u[1] * v[2] + v[1] * u[2]
 
 
@@ -65,9 +66,9 @@ def _normal_coupling(u, v, w):
     return dot(v[0].value, w.n) * u[1] + dot(u[0].value, w.n) * v[1]
 
 
-@bilinear_form(symmetric=True)
+@bilinear_form(symmetric=True, degree=0)
 def _brezzi_pitkaranta(u, v, w):
-    """h_T^2 (grad p, grad q)."""
+    """h_T^2 (grad p, grad q): constant on each cell (degree 0)."""
     return w.h**2 * dot(u.grad, v.grad)
 
 
