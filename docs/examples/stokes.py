@@ -14,8 +14,6 @@ Exact solution from sympy: u = curl A (divergence free), p = x y z + x^2 - y^2.
 Run it: python docs/examples/stokes.py   (L2 rates about 2 for u, H1 1, pressure >= 1).
 """
 
-import numpy as np
-
 import cutfem as cf
 
 U = cf.Exact(["sin(y)*sin(z)", "sin(z)*sin(x)", "sin(x)*sin(y)"]).curl
