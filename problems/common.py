@@ -572,7 +572,7 @@ def check_resolution(cut, levelset, spacing) -> None:
 #: 0.0125 (its surface field and coupling on few tets)
 #: (the finer levels' figures, with the margin of the predicted active tets on top: the estimate is
 #: 1.17-1.35 times the measured peak at spacing 0.01-0.0125)
-BULK_BYTES_PER_TET = {"poisson-cut": 170, "interface-poisson-cut": 170, "bulk-surface-cut": 380, "stokes-cut": 1400}
+BULK_BYTES_PER_TET = {"poisson-cut": 170, "interface-poisson-cut": 170, "bulk-surface-cut": 380, "stokes-cut": 1400, "elasticity-cut": 900}
 #: the box-sized arrays of a side's element set (the level set at every node, the per-tet counts
 #: and marks), bytes per background tet
 BOX_BYTES_PER_TET = 4
