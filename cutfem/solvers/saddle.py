@@ -34,7 +34,7 @@ import pyamg
 import scipy.sparse as sp
 
 from .common import SolveInfo
-from .diagnose import SolverError
+from .diagnose import SolverError, _Checks
 from .direct import DirectSolver
 from .minres import BlockDiagonal, minres
 from .multigrid import GeometricMultigrid, multigrid_hierarchy
@@ -62,15 +62,18 @@ def _subspace(space, ks):
     return fields[0] if len(fields) == 1 else type(space)(*fields)
 
 
-def _block_preconditioner(M, field_space, what):
-    """An SPD fixed approximation of M^{-1}: a factorization when small, else one V-cycle of the
-    geometric multigrid of ``field_space`` (or smoothed-aggregation AMG without a hierarchy)."""
+def _block_preconditioner(M, field_space, what, indefinite_hint=None):
+    """An SPD fixed approximation of M^{-1}: a factorization when small, else V-cycles of the
+    geometric multigrid of ``field_space`` (or smoothed-aggregation AMG without a hierarchy).  A
+    block that is not positive definite raises SolverError with ``indefinite_hint`` (the form's
+    advice: a Nitsche penalty below its bound makes the primal block indefinite)."""
     M = sp.csr_matrix(M, dtype=float)
+    checks = _Checks.of(indefinite_hint=indefinite_hint)
     if M.shape[0] <= FACTOR_BLOCK_LIMIT:
-        return DirectSolver(M, where=what).solve
+        return DirectSolver(M, where=what, _checks=checks).solve
     hierarchy = multigrid_hierarchy(field_space) if field_space is not None else None
     if hierarchy is not None:
-        mg = GeometricMultigrid(M, prolongations=hierarchy, visits=(1,))
+        mg = GeometricMultigrid(M, prolongations=hierarchy, visits=(1,), _checks=checks)
         cycles = CYCLES
 
         def apply(r):
@@ -109,7 +112,8 @@ def _check_constraint_fields(K, space, primal, constraint):
                 "singular", kernel=z)
 
 
-def saddle_solve(K, B, space, primal, schur=None, tol: float = 1e-8, maxiter: int = 1000, method: str = "auto"):
+def saddle_solve(K, B, space, primal, schur=None, tol: float = 1e-8, maxiter: int = 1000, method: str = "auto",
+                 indefinite_hint=None):
     """Solve the symmetric saddle-point system K x = B on the product space ``space``.
 
     ``primal``: the fields (names or positions) of the positive definite block A; the other fields
@@ -117,7 +121,9 @@ def saddle_solve(K, B, space, primal, schur=None, tol: float = 1e-8, maxiter: in
     than one unknown an SPD matrix spectrally equivalent to its Schur complement (for a Stokes
     pressure: (1/nu) M_p plus the pressure stabilization); a one-unknown field (a multiplier) needs
     none.  ``method``: "minres" (block-preconditioned MINRES), "direct" (SuperLU) or "auto" (direct
-    up to :data:`SADDLE_DIRECT_LIMIT` unknowns).  Returns (x, SolveInfo); B of shape (n,) or (n, 1).
+    up to :data:`SADDLE_DIRECT_LIMIT` unknowns).  ``indefinite_hint``: the advice when the primal
+    block is not positive definite (e.g. the form's, naming its Nitsche penalty).  Returns (x,
+    SolveInfo); B of shape (n,) or (n, 1).
     """
     K = sp.csr_matrix(K, dtype=float)
     n = K.shape[0]
@@ -144,6 +150,10 @@ def saddle_solve(K, B, space, primal, schur=None, tol: float = 1e-8, maxiter: in
     if method == "auto":
         method = "direct" if n <= SADDLE_DIRECT_LIMIT else "minres"
     if method == "direct":
+        pdofs = np.concatenate([_field_dofs(space, k) for k in primal_k])
+        # the primal block must be positive definite (a Nitsche penalty below its bound is not): checked
+        # by its own factorization, which names the cause; the saddle matrix alone would not tell
+        DirectSolver(K[pdofs][:, pdofs], where="the primal block", _checks=_Checks.of(indefinite_hint=indefinite_hint))
         solver = DirectSolver(K, spd=False, where="the saddle-point system")
         t1 = time.perf_counter()
         x = solver.solve(b)
@@ -152,7 +162,8 @@ def saddle_solve(K, B, space, primal, schur=None, tol: float = 1e-8, maxiter: in
     if method != "minres":
         raise ValueError(f"unknown method {method!r} for a saddle-point system; use 'auto', 'minres' or 'direct'")
     pdofs = np.concatenate([_field_dofs(space, k) for k in primal_k])
-    blocks = [(pdofs, _block_preconditioner(K[pdofs][:, pdofs], _subspace(space, primal_k), "the primal block"))]
+    primal_block = K[pdofs][:, pdofs]
+    blocks = [(pdofs, _block_preconditioner(primal_block, _subspace(space, primal_k), "the primal block", indefinite_hint))]
     applies = {}
     for k in constraint:
         dofs = _field_dofs(space, k)

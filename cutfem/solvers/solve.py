@@ -117,7 +117,7 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
         raise ValueError(f"solve: the space has {space.n_dofs} unknowns and the matrix {n}: pass the space the system "
                          "was assembled on (space= gives the multigrid hierarchy, the dof coordinates and phi_h)")
     if primal is not None:
-        return saddle_solve(A, B, space, primal, schur, tol=tol, method=method)
+        return saddle_solve(A, B, space, primal, schur, tol=tol, method=method, indefinite_hint=indefinite_hint)
     if schur is not None:
         raise ValueError("solve: schur= belongs to a saddle-point system; name its positive definite fields with primal=")
     kernels = dict(kernels or {})

@@ -30,7 +30,7 @@ class _Multiplier:
     h = None
 
 
-def stokes(h, stabilize=True):
+def stokes(h, stabilize=True, gamma=GAMMA):
     cut = cf.cut_mesh(cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=h), cf.Sphere(1.0))
     V = CutP1Space(cut, cf.NEG)
     W = ProductSpace(u0=V, u1=V, u2=V, p=V)
@@ -47,7 +47,7 @@ def stokes(h, stabilize=True):
     @bilinear_form(symmetric=True)
     def boundary(u, v, w):
         n = w.n
-        t = sum(NU * (-dot(u[c].grad, n) * v[c] - dot(v[c].grad, n) * u[c] + GAMMA / w.h * u[c] * v[c]) for c in range(3))
+        t = sum(NU * (-dot(u[c].grad, n) * v[c] - dot(v[c].grad, n) * u[c] + gamma / w.h * u[c] * v[c]) for c in range(3))
         return t + sum(v[c] * n[..., c] for c in range(3)) * u[3] + sum(u[c] * n[..., c] for c in range(3)) * v[3]
 
     @linear_form
@@ -58,7 +58,7 @@ def stokes(h, stabilize=True):
     @linear_form
     def data(v, w):
         g, n = w.at(U), w.n
-        t = sum(NU * (-dot(v[c].grad, n) * g[..., c] + GAMMA / w.h * g[..., c] * v[c]) for c in range(3))
+        t = sum(NU * (-dot(v[c].grad, n) * g[..., c] + gamma / w.h * g[..., c] * v[c]) for c in range(3))
         return t + sum(g[..., c] * n[..., c] for c in range(3)) * v[3]
 
     @bilinear_form(symmetric=True)
@@ -141,3 +141,13 @@ def test_bad_declarations_are_refused(coarse):
         cf.solve(K, b, space=Wm, schur={"p": coarse["S"]})
     with pytest.raises(SolverError, match=r"saddle-point system .* primal="):  # the SPD path's advice names the fix
         cf.solve(K, b, space=Wm, method="direct")
+
+
+def test_a_nitsche_penalty_below_its_bound_is_named_on_both_paths():
+    """gamma = 0.05 makes the velocity block indefinite: both paths refuse with the caller's advice
+    (the saddle matrix itself stays nonsingular, so only the primal block can tell)."""
+    bad = stokes(0.2, gamma=0.05)
+    for method in ("direct", "minres"):
+        with pytest.raises(SolverError, match=r"raise the Nitsche penalty gamma \(0.05"):
+            cf.solve(bad["bordered"], bad["rhs"], space=bad["Wm"], primal=["u0", "u1", "u2"], schur={"p": bad["S"]},
+                     method=method, indefinite_hint="raise the Nitsche penalty gamma (0.05 is below its bound)")
