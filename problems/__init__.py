@@ -9,8 +9,8 @@
 * ``bulk-surface-cut``: coupled bulk-surface diffusion (§10).
 * ``heat-surface-cut``: the heat equation on a cut sphere, theta-scheme (§11).
 * ``heat-moving-cut``: the heat equation in a moving ball, Eulerian BDF1/BDF2 (§13).
-* ``elasticity-cut``: compressible linear elasticity in a cut domain, one vector field (§12).
-* ``stokes-cut``: Stokes flow in a cut domain, P1-P1, MINRES with a block preconditioner (§12).
+* ``elasticity-cut``: compressible linear elasticity in a cut domain, one vector field (§14).
+* ``stokes-cut``: Stokes flow in a cut domain, P1-P1, MINRES with a block preconditioner (§14).
 """
 
 from . import bulk_surface, elasticity, heat_moving, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson, stokes

@@ -1,5 +1,4 @@
-"""Compressible linear elasticity in a cut domain: Nitsche and a ghost penalty (docs/math.md §12,
-SPEC §12).
+"""Compressible linear elasticity in a cut domain: Nitsche and a ghost penalty (docs/math.md §14).
 
 -div sigma(u) = f in Omega = {phi < 0}, u = g on Gamma, sigma(u) = 2 mu eps(u) + lam (div u) I.
 Find u_h in [V_h^NEG]^3 (:class:`~cutfem.fem.spaces.VectorSpace`) with, for all v,
@@ -50,7 +49,7 @@ def load_of(mu: float, lam: float) -> Exact:
 
 @register(
     "elasticity-cut",
-    summary="compressible linear elasticity in {phi < 0}, one vector field, Nitsche and a ghost penalty by 2 mu + lam (docs/math.md §12)",
+    summary="compressible linear elasticity in {phi < 0}, one vector field, Nitsche and a ghost penalty by 2 mu + lam (docs/math.md §14)",
     levels=[0.2, 0.1, 0.05, 0.025],
     level_name="spacing",
     definitions=DEFINITIONS,

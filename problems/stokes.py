@@ -1,5 +1,5 @@
 """Stokes flow in a cut domain: equal-order P1-P1, Nitsche, ghost penalties, a pressure
-stabilization and a mean-value multiplier (Burman-Hansbo, M2AN 48, 2014; docs/math.md §12).
+stabilization and a mean-value multiplier (Burman-Hansbo, M2AN 48, 2014; docs/math.md §14).
 
 -nu Lap u + grad p = f, div u = 0 in Omega = {phi < 0}, u = g on Gamma.  Find (u_h, p_h, lam) in
 [V_h^NEG]^3 x V_h^NEG x R with, for all (v, q, mu),
@@ -80,7 +80,7 @@ def _normal_data(v, w):
 
 @register(
     "stokes-cut",
-    summary="Stokes flow in {phi < 0}, P1-P1 with Nitsche, ghost penalties and a pressure stabilization; MINRES (docs/math.md §12)",
+    summary="Stokes flow in {phi < 0}, P1-P1 with Nitsche, ghost penalties and a pressure stabilization; MINRES (docs/math.md §14)",
     levels=[0.2, 0.1, 0.05, 0.025],
     level_name="spacing",
     definitions=DEFINITIONS,

@@ -4,7 +4,7 @@
 
 A the symmetric positive definite block of the *primal* fields (a velocity, a displacement), B the
 constraint coupling, C >= 0 the constraint fields' own block (a pressure stabilization).  Stokes
-with equal-order P1-P1 (docs/math.md, SPEC §12) is the example: A = nu (grad u, grad v) + Nitsche +
+with equal-order P1-P1 (docs/math.md §14) is the example: A = nu (grad u, grad v) + Nitsche +
 ghost penalty, B = -(div u, q) + (u . n, q)_Gamma, C the pressure stabilization and ghost penalty.
 
 The method is preconditioned MINRES (:mod:`cutfem.solvers.minres`) with the block-diagonal

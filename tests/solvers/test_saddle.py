@@ -1,4 +1,4 @@
-"""Saddle-point solves (cutfem.solvers.saddle) on the cut Stokes system of SPEC §12, equal-order
+"""Saddle-point solves (cutfem.solvers.saddle) on the cut Stokes system of docs/math.md §14, equal-order
 P1-P1 with Nitsche, ghost penalties and a Brezzi-Pitkaranta pressure stabilization, written here as
 integrands over a product space of three velocity components and the pressure, bordered by a
 multiplier for the pressure's mean.  MINRES with the block preconditioner against the direct
