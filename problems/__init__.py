@@ -11,7 +11,7 @@
 * ``heat-moving-cut``: the heat equation in a moving ball, Eulerian BDF1/BDF2 (§13).
 * ``stokes-cut``: Stokes flow in a cut domain, P1-P1, MINRES with a block preconditioner (§12).
 * ``two-phase-stokes-cut``: the static bubble, two-phase Stokes with surface tension from the discrete
-  mean curvature vector or Laplace-Beltrami (§13).
+  mean curvature vector or Laplace-Beltrami (§14).
 """
 
 from . import bulk_surface, heat_moving, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson, stokes, two_phase_stokes

@@ -1,5 +1,5 @@
 """Two-phase Stokes flow with surface tension: the static bubble (Hansbo-Larson-Zahedi, APNUM 85,
-2014; docs/math.md §13).
+2014; docs/math.md §14).
 
 -div(2 mu_i eps(u)) + grad p = 0, div u = 0 in Omega_i (NEG inside the sphere |x| = R, POS outside,
 in the box), [u] = 0 and (sigma_POS - sigma_NEG) n = tau H on Gamma, u = 0 on the box, sigma =
@@ -161,7 +161,7 @@ def surface_tension_load(cut, W, curvature, tau, k_neg, k_pos, tau_f=0.1):
 @register(
     "two-phase-stokes-cut",
     summary="static bubble: two-phase Stokes with surface tension from the discrete mean curvature vector or Laplace-Beltrami, "
-            "Nitsche-XFEM (docs/math.md §13)",
+            "Nitsche-XFEM (docs/math.md §14)",
     levels=[0.2, 0.1, 0.05],
     level_name="spacing",
     definitions=DEFINITIONS,

@@ -1,7 +1,7 @@
 """The static bubble of two-phase Stokes with surface tension: spurious currents and the pressure jump
 against h, for both curvature routes and three viscosity ratios.
 
-:mod:`cutfem.problems.two_phase_stokes` (``two-phase-stokes-cut``, docs/math.md §13): a ball of
+:mod:`cutfem.problems.two_phase_stokes` (``two-phase-stokes-cut``, docs/math.md §14): a ball of
 radius 1/2 in [-1, 1]^3, tau = 1, exact u = 0 and p_NEG - p_POS = 2 tau / R = 4.  The surface
 tension is -tau (H_h, <v>)_Gamma_h with H_h the stabilized mean curvature vector of docs/math.md §3
 on the same cut (``discrete``), or -tau (grad_Gamma x, grad_Gamma <v>)_Gamma_h
