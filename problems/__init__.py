@@ -11,10 +11,13 @@
 * ``heat-moving-cut``: the heat equation in a moving ball, Eulerian BDF1/BDF2 (§13).
 * ``elasticity-cut``: compressible linear elasticity in a cut domain, one vector field (§14).
 * ``stokes-cut``: Stokes flow in a cut domain, P1-P1, MINRES with a block preconditioner (§14).
+* ``two-phase-stokes-cut``: the static bubble, two-phase Stokes with surface tension from the discrete
+  mean curvature vector or Laplace-Beltrami (§15).
 """
 
-from . import bulk_surface, elasticity, heat_moving, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson, stokes
+from . import (bulk_surface, elasticity, heat_moving, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson,
+               stokes, two_phase_stokes)
 
 #: the problem modules, each registering its problems on import
-__all__ = ["bulk_surface", "elasticity", "heat_moving", "heat_surface", "interface_poisson", "laplace_beltrami", "mean_curvature", "poisson",
-           "stokes"]
+__all__ = ["bulk_surface", "elasticity", "heat_moving", "heat_surface", "interface_poisson", "laplace_beltrami", "mean_curvature",
+           "poisson", "stokes", "two_phase_stokes"]
