@@ -30,7 +30,7 @@ from functools import cached_property
 
 import numpy as np
 
-from .markers import CUT, NEG, POS, longest_edges, side_subtetrahedra
+from .markers import CUT, NEG, POS, longest_edges
 from .quadrature import Quadrature, map_tetrahedra, map_triangles, signed_volumes
 
 __all__ = ["Measure", "SurfacePieces", "SideVolume", "ElementVolume", "FacetMeasure", "MeshedSurface", "surface_measure"]
@@ -133,7 +133,8 @@ class SurfacePieces(Measure):
 
 class SideVolume(Measure):
     """dx over one side (NEG or POS) of the cut: whole tets inside the side and, in the cut tets, the
-    side's part as sub-tetrahedra (:func:`cutfem.geometry.markers.side_subtetrahedra`)."""
+    side's part as sub-tetrahedra (from the cut's ``side_parts``: split by the plane of phi_h,
+    :func:`cutfem.geometry.markers.side_subtetrahedra`)."""
 
     def __init__(self, cut, side: str):
         if side not in (NEG, POS):
@@ -145,9 +146,8 @@ class SideVolume(Measure):
     @cached_property
     def _parts(self):
         """(whole (w,), sub (s, 4, 3), parent (s,)): the elements that lie in the side, and the side's
-        part of the cut elements as tetrahedra (:func:`~cutfem.geometry.markers.side_subtetrahedra`)."""
-        es = self.elements
-        return side_subtetrahedra(es.points, es.tets, self.cut.background_values[es.node_ids], self.side)
+        part of the cut elements as tetrahedra, from the cut (:meth:`cutfem.geometry.cut.CutMesh.side_parts`)."""
+        return self.cut.side_parts(self.side)
 
     @property
     def whole_cells(self) -> int:
