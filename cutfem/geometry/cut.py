@@ -37,6 +37,13 @@ edge counts that the Euler characteristic reuses), which also catches cut cells 
 small made the band search drop, and raises :class:`~cutfem.geometry.nodal_values.CutError` with the
 likely cause.
 
+Several level sets
+------------------
+A domain combined from several level sets (:mod:`cutfem.geometry.csg`: ``cf.intersection(ball,
+plane)``) is cut by :func:`cutfem.geometry.csg_cut.cut_domain`, which ``cut_mesh`` calls for it: the
+tets clipped by each plane, the boundary in parts with their own normals.  Parts of S_h of one level
+set are tagged by further level sets with ``cut.ds(where=...)``.
+
 Mesh size ``h = N**(-1/3)`` with N the number of background nodes (docs/math.md §2).
 """
 
@@ -57,9 +64,11 @@ from .band_search import (
 )
 from .box import KUHN_EDGE_CODES, StructuredBox
 from .keys import dense_unique, pair_up, unique_keys
+from .csg import Domain
+from .csg_cut import cut_domain, tagged_pieces
 from .marching import EDGE_I, EDGE_J, FLIP, NVERT, TRIANGLE_SLOTS
 from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet, ghost_facets, side_subtetrahedra
-from .measures import ElementVolume, FacetMeasure, SideVolume, SurfacePieces
+from .measures import BoundaryPart, ElementVolume, FacetMeasure, SideVolume, SurfacePieces
 from .mesh import TetMesh, barycentric_gradients, triangle_areas
 from .nodal_values import (
     CutError,
@@ -212,11 +221,26 @@ class CutMesh:
     def _measures(self) -> dict:
         return {}
 
-    def ds(self):
-        """The measure on S_h = Gamma_h (:class:`cutfem.geometry.measures.SurfacePieces`), normal from NEG to POS."""
-        if "ds" not in self._measures:
-            self._measures["ds"] = SurfacePieces(self)
-        return self._measures["ds"]
+    def ds(self, where=None):
+        """The measure on S_h = Gamma_h (:class:`cutfem.geometry.measures.SurfacePieces`), normal from NEG to POS.
+
+        ``where``: only the part of S_h in a further domain, a level set's inside {psi_h < 0} (a
+        plane, a ball, a callable) or a :class:`~cutfem.geometry.csg.Domain` of several: the pieces
+        clipped exactly by the P1 interpolants (:func:`cutfem.geometry.csg_cut.tagged_pieces`), each
+        with n_h, as a :class:`~cutfem.geometry.measures.BoundaryPart` (for mixed conditions on
+        parts of Gamma_h without hand-made tags; ``where=cf.complement(psi)`` is the rest)."""
+        if where is None:
+            if "ds" not in self._measures:
+                self._measures["ds"] = SurfacePieces(self)
+            return self._measures["ds"]
+        key = ("ds", id(where))
+        hit = self._measures.get(key)
+        if hit is None or hit[0] is not where:
+            es = self.elements(CUT)
+            points, tets, normals = tagged_pieces(es, self.triangle_points, self.triangle_tets, self.normals[self.triangle_tets], where)
+            name = "Gamma_h where " + (str(where) if isinstance(where, Domain) else f"{where!r} < 0")
+            hit = self._measures[key] = (where, BoundaryPart(es, points, tets, normals, name))
+        return hit[1]
 
     def dx(self, where=NEG):
         """The volume measure of a side (``NEG``/``POS``: the cut volume parts,
@@ -435,7 +459,10 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     """Cut a background tetrahedral mesh by the zero level set of the P1 interpolant of ``levelset``.
 
     ``levelset``: a LevelSet (``value``, optional ``lipschitz``), a callable ``f(x)`` with x (..., 3),
-    or an array of nodal values (N,) (not with a structured box's band search).
+    or an array of nodal values (N,) (not with a structured box's band search).  A
+    :class:`~cutfem.geometry.csg.Domain` of several level sets (``cf.intersection(ball, plane)``) is
+    cut by :func:`cutfem.geometry.csg_cut.cut_domain` into a :class:`~cutfem.geometry.csg_cut.CsgCut`
+    (its level sets evaluated at every node; no band search or memory estimate).
     Raises :class:`~cutfem.geometry.nodal_values.CutError` when the level set does not cut the mesh,
     the surface reaches the box boundary (unless ``check_boundary=False``), the declared Lipschitz
     bound is seen to be broken (:func:`~cutfem.geometry.band_search._band_cells`) or S_h is not
@@ -454,6 +481,8 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     refused.  The check after the cut, on the real active tets, stays for what the prediction does not
     cover (no Lipschitz bound, unstructured backgrounds).
     """
+    if isinstance(levelset, Domain):
+        return cut_domain(background, levelset, check_boundary=check_boundary)
     lipschitz = _declared_lipschitz(levelset)
     mesh_distance = getattr(levelset, "is_distance", False) and getattr(levelset, "mesh", None) is not None
     structured = isinstance(background, StructuredBox)
