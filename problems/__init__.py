@@ -5,12 +5,14 @@
 * ``laplace-beltrami-meshed`` / ``laplace-beltrami-cut``: -Lap_S u + u = f with manufactured
   solutions (docs/math.md §4).
 * ``poisson-cut``: fictitious-domain Poisson, Nitsche and ghost penalty (§8).
+* ``poisson-csg-cut``: Poisson on a domain of several level sets (a ball cut by a plane), Dirichlet
+  on some parts of its boundary and Neumann on others (§13).
 * ``interface-poisson-cut``: a coefficient jump across a sphere, Nitsche-XFEM (§9).
 * ``bulk-surface-cut``: coupled bulk-surface diffusion (§10).
 * ``heat-surface-cut``: the heat equation on a cut sphere, theta-scheme (§11).
 """
 
-from . import bulk_surface, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson
+from . import bulk_surface, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson, poisson_csg
 
 #: the problem modules, each registering its problems on import
-__all__ = ["bulk_surface", "heat_surface", "interface_poisson", "laplace_beltrami", "mean_curvature", "poisson"]
+__all__ = ["bulk_surface", "heat_surface", "interface_poisson", "laplace_beltrami", "mean_curvature", "poisson", "poisson_csg"]
