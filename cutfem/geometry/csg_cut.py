@@ -30,7 +30,7 @@ import numpy as np
 
 from .box import StructuredBox
 from .csg import Domain, intersection
-from .csg_kernels import clip_tets, clip_triangles
+from .csg_kernels import clip_tets, clip_triangles, tet_codes
 from .cut_kernels import COUNT_FILL_CHUNK
 from .keys import pair_up
 from .marching import EDGE_I, EDGE_J, FLIP, NVERT
@@ -153,10 +153,14 @@ class CsgCut:
         side's element set that lie wholly in the side and the side's sub-tets of the clipped ones
         (those of positive volume), as :class:`~cutfem.geometry.measures.SideVolume` takes them."""
         es = self.elements(side)
-        whole = es.locate(np.flatnonzero(self.state == (1 if side == NEG else 0)), "the whole tets of the side")
+        whole = np.flatnonzero(self.state[es.tet_ids] == (1 if side == NEG else 0))  # local numbers, increasing
         sel = (self.sub_inside if side == NEG else ~self.sub_inside) & (self._sub_volumes > 0)
-        parent = es.locate(self.clipped[self.sub_parent[sel]], "the clipped tets of the side")
-        return whole, self.sub_tets[sel], parent
+        parent = self.sub_parent[sel]
+        local = np.full(len(self.clipped), -1, dtype=np.int64)
+        used = np.zeros(len(self.clipped), dtype=bool)
+        used[parent] = True
+        local[used] = es.locate(self.clipped[used], "the clipped tets of the side")
+        return whole, self.sub_tets[sel], local[parent]
 
     # -- measures ---------------------------------------------------------------------------
     @cached_property
@@ -245,21 +249,20 @@ def cut_domain(background: TetMesh, domain: Domain, check_boundary: bool = True)
     levelsets, names, m = domain.levelsets, domain.names, len(domain.levelsets)
     table = domain.table()
     values = np.stack([_nodal_values(background, s, n) for s, n in zip(levelsets, names)])  # (m, N)
-    fixed = np.zeros(background.n_tets, dtype=np.int32)  # bit k: phi_k < 0 at all four nodes
-    mixed = np.zeros(background.n_tets, dtype=np.int32)  # bit k: phi_k changes sign in the tet
-    for k in range(m):  # the level sets, not the tets
-        count = background.tet_node_counts(values[k] < 0)
-        fixed |= (count == 4).astype(np.int32) << k
-        change = (count > 0) & (count < 4)
-        if not change.any():
+    counts = np.stack([background.tet_node_counts(values[k] < 0) for k in range(m)])  # (m, M): the level sets, not the tets
+    fixed, mixed = np.empty(background.n_tets, dtype=np.int32), np.empty(background.n_tets, dtype=np.int32)
+    state = np.empty(background.n_tets, dtype=np.int8)
+    tet_codes(counts, table, fixed, mixed, state)
+    del counts
+    changes = int(np.bitwise_or.reduce(mixed)) if len(mixed) else 0
+    for k in range(m):
+        if not (changes >> k) & 1:
             lo, hi = background.bounds
-            sign = "negative" if bool(count[0] == 4) else ">= 0"
+            sign = "negative" if np.nanmax(values[k]) < 0 else ">= 0"
             raise CutError(f"level set {names[k]} of the domain ({levelsets[k]!r}) does not cut the background mesh: it is {sign} "
                            f"at every node of the box [{np.round(lo, 6).tolist()}, {np.round(hi, 6).tolist()}], so its zero "
                            "set misses the box and Omega does not depend on it. Move it into the box, or leave it out "
                            "of the domain.")
-        mixed |= change.astype(np.int32) << k
-        del count, change
     if check_boundary:
         _check_domain_boundary(background, values, table, domain)
     clipped = np.flatnonzero(mixed)
@@ -267,7 +270,6 @@ def cut_domain(background: TetMesh, domain: Domain, check_boundary: bool = True)
     nodes = background.kuhn_tet_nodes(clipped) if structured else background.tets[clipped]
     x = background.node_coordinates(nodes) if structured else background.points[nodes]
     phi = np.moveaxis(values[:, nodes], 0, -1)  # (c, 4, m)
-    state = np.where(table[fixed], 1, 0).astype(np.int8)
     whole, sub_x, sub_in, sub_tet, tri_x, tri_key, tri_part, tri_normal, tri_tet = clip_tets(
         x, phi, nodes, fixed[clipped], mixed[clipped], table, EDGE_I, EDGE_J, NVERT, FLIP, COUNT_FILL_CHUNK)
     del x, phi, fixed, mixed
@@ -289,10 +291,11 @@ def cut_domain(background: TetMesh, domain: Domain, check_boundary: bool = True)
                        "level sets do not meet as the domain combines them) or fills the whole box. Check the signs of the "
                        "level sets (negative inside) and the domain's expression.")
     triangles, tri_part, tri_normal, tri_cand = triangles[keep], tri_part[keep], tri_normal[keep], tri_tet[keep]
-    cut_cand = np.unique(tri_cand)
-    tet_ids = clipped[cut_cand]
+    first = np.ones(len(tri_cand), dtype=bool)  # the triangles come in tet order: the cut tets by their first
+    first[1:] = tri_cand[1:] != tri_cand[:-1]
+    tet_ids = clipped[tri_cand[first]]
     return CsgCut(background=background, domain=domain, background_values=np.ascontiguousarray(values.T), tet_ids=tet_ids,
-                  vertices=vertices, triangles=triangles, triangle_tets=np.searchsorted(cut_cand, tri_cand),
+                  vertices=vertices, triangles=triangles, triangle_tets=np.cumsum(first) - 1,
                   triangle_parts=tri_part, triangle_normals=tri_normal, state=state, clipped=clipped, sub_tets=sub_x,
                   sub_inside=sub_in, sub_parent=sub_tet)
 

@@ -39,26 +39,25 @@ SCRATCH = 64
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _crossing(xa, pa, xb, pb, k, m, xo, po):
-    """The point where plane k crosses the segment from a (phi_k < 0) to b (phi_k >= 0): its
-    coordinates into ``xo`` (3,), the m level sets' values into ``po`` (m,).  Returns whether it is
-    b itself (phi_k(b) = 0: then b is copied, bit for bit)."""
-    if pb[k] == 0.0:
-        xo[:] = xb
-        po[:] = pb
-        return True
-    t = pa[k] / (pa[k] - pb[k])
+def _cross(px, pp, ps, a, b, k, m, o):
+    """The point where plane k crosses the segment of the pool points a (phi_k < 0) and b
+    (phi_k >= 0): b itself when phi_k(b) = 0 (returns b), else the new pool point o (returns o), its
+    support the union of a's and b's.  See the module docstring."""
+    if pp[b, k] == 0.0:
+        return b
+    t = pp[a, k] / (pp[a, k] - pp[b, k])
     for d in range(3):
-        xo[d] = xa[d] + t * (xb[d] - xa[d])
+        px[o, d] = px[a, d] + t * (px[b, d] - px[a, d])
     for j in range(m):
         if j == k:
-            po[j] = 0.0
+            pp[o, j] = 0.0
         else:
-            v = pa[j] + t * (pb[j] - pa[j])
-            if abs(v) <= SNAP * max(abs(pa[j]), abs(pb[j])):
+            v = pp[a, j] + t * (pp[b, j] - pp[a, j])
+            if abs(v) <= SNAP * max(abs(pp[a, j]), abs(pp[b, j])):
                 v = 0.0
-            po[j] = v
-    return False
+            pp[o, j] = v
+    ps[o] = ps[a] | ps[b]
+    return o
 
 
 # the sub-tets of a split, as local points: 0..3 the tet's nodes (in the order a, b, c, d below),
@@ -71,140 +70,120 @@ _SPLIT_3 = np.array([[0, 1, 2, 4], [1, 2, 4, 5], [2, 4, 5, 6], [3, 4, 5, 6]], dt
 _SPLIT_2 = np.array([[0, 4, 5, 1], [4, 5, 1, 6], [5, 1, 6, 7], [2, 4, 6, 3], [4, 6, 3, 5], [6, 3, 5, 7]], dtype=np.int64)
 
 
-@njit(cache=True, error_model="numpy")
-def _split_tet(cx, cp, cc, s, k, m, nx, np_, nc, n, lx, lp, order, split1, split2, split3):
-    """Sub-tet ``s`` of the buffers (cx, cp, cc) split by plane k into the buffers (nx, np_, nc)
-    from row ``n``: NEG pieces get bit k in their code.  Returns the new row count."""
+@njit(cache=True, error_model="numpy", inline="always")
+def _split_tet(cv, cc, s, k, m, nv, nc, n, px, pp, ps, npool, local, split1, split2, split3):
+    """Sub-tet ``s`` (pool points cv[s], code cc[s]) split by plane k into (nv, nc) from row ``n``:
+    the NEG pieces get bit k.  Returns (rows, pool points) after it."""
     bit = np.int64(1) << k
     ni = 0
-    for v in range(4):  # inside nodes first, then outside ones, each in local order
-        if cp[s, v, k] < 0.0:
-            order[ni] = v
+    for v in range(4):  # inside points first, then outside ones
+        if pp[cv[s, v], k] < 0.0:
+            local[ni] = cv[s, v]
             ni += 1
     no = ni
     for v in range(4):
-        if not cp[s, v, k] < 0.0:
-            order[no] = v
+        if not pp[cv[s, v], k] < 0.0:
+            local[no] = cv[s, v]
             no += 1
     if ni == 0 or ni == 4:
-        nx[n] = cx[s]
-        np_[n] = cp[s]
+        for v in range(4):
+            nv[n, v] = cv[s, v]
         nc[n] = cc[s] | (bit if ni == 4 else 0)
-        return n + 1
-    for v in range(4):
-        lx[v] = cx[s, order[v]]
-        lp[v] = cp[s, order[v]]
+        return n + 1, npool
     if ni == 1:
         for q in range(3):
-            _crossing(lx[0], lp[0], lx[1 + q], lp[1 + q], k, m, lx[4 + q], lp[4 + q])
+            local[4 + q] = _cross(px, pp, ps, local[0], local[1 + q], k, m, npool)
+            npool += local[4 + q] == npool
         table, negs = split1, 1
     elif ni == 3:
         for q in range(3):
-            _crossing(lx[q], lp[q], lx[3], lp[3], k, m, lx[4 + q], lp[4 + q])
+            local[4 + q] = _cross(px, pp, ps, local[q], local[3], k, m, npool)
+            npool += local[4 + q] == npool
         table, negs = split3, 3
     else:
-        _crossing(lx[0], lp[0], lx[2], lp[2], k, m, lx[4], lp[4])
-        _crossing(lx[0], lp[0], lx[3], lp[3], k, m, lx[5], lp[5])
-        _crossing(lx[1], lp[1], lx[2], lp[2], k, m, lx[6], lp[6])
-        _crossing(lx[1], lp[1], lx[3], lp[3], k, m, lx[7], lp[7])
+        for q in range(4):
+            local[4 + q] = _cross(px, pp, ps, local[q // 2], local[2 + q % 2], k, m, npool)
+            npool += local[4 + q] == npool
         table, negs = split2, 3
     for r in range(table.shape[0]):
         for v in range(4):
-            nx[n, v] = lx[table[r, v]]
-            np_[n, v] = lp[table[r, v]]
+            nv[n, v] = local[table[r, v]]
         nc[n] = cc[s] | (bit if r < negs else 0)
         n += 1
-    return n
+    return n, npool
 
 
-@njit(cache=True, error_model="numpy")
-def _split_polygon(q, j, m, cx, cp, cs, cn, cc, nx, np_, ns, nn, nc, n):
-    """Polygon ``q`` of the buffers (c*) split by plane j into the buffers (n*) from row ``n``,
-    each part in the polygon's cyclic order (Sutherland-Hodgman): the inside part (bit j in its
-    code) first.  A crossing point's support is the union of its ends' (or the outside end's, when
-    it is that end).  Returns the new row count."""
+@njit(cache=True, error_model="numpy", inline="always")
+def _split_polygon(q, j, m, cv, cn, cc, nv, nn, nc, n, px, pp, ps, npool):
+    """Polygon ``q`` (pool points cv[q, :cn[q]], code cc[q]) split by plane j into (nv, nn, nc) from
+    row ``n``, each part in the polygon's cyclic order (Sutherland-Hodgman), the inside part (bit
+    j in its code) first; a crossing point is one pool point of both parts.  Returns (rows, pool
+    points) after it."""
     bit = np.int64(1) << j
-    nv = cn[q]
+    count = cn[q]
     ins = 0
-    for v in range(nv):
-        if cp[q, v, j] < 0.0:
+    for v in range(count):
+        if pp[cv[q, v], j] < 0.0:
             ins += 1
-    if ins == 0 or ins == nv:
-        nx[n] = cx[q]
-        np_[n] = cp[q]
-        ns[n] = cs[q]
-        nn[n] = nv
-        nc[n] = cc[q] | (bit if ins == nv else 0)
-        return n + 1
+    if ins == 0 or ins == count:
+        for v in range(count):
+            nv[n, v] = cv[q, v]
+        nn[n] = count
+        nc[n] = cc[q] | (bit if ins == count else 0)
+        return n + 1, npool
     a_row, b_row = n, n + 1
     na = 0
     nb = 0
-    for v in range(nv):
-        w = (v + 1) % nv
-        vin = cp[q, v, j] < 0.0
-        win = cp[q, w, j] < 0.0
-        row, at = (a_row, na) if vin else (b_row, nb)
-        nx[row, at] = cx[q, v]
-        np_[row, at] = cp[q, v]
-        ns[row, at] = cs[q, v]
-        if vin:
+    for v in range(count):
+        p, w = cv[q, v], cv[q, (v + 1) % count]
+        pin = pp[p, j] < 0.0
+        if pin:
+            nv[a_row, na] = p
             na += 1
         else:
+            nv[b_row, nb] = p
             nb += 1
-        if vin != win:
-            i, o = (v, w) if vin else (w, v)
-            at_end = _crossing(cx[q, i], cp[q, i], cx[q, o], cp[q, o], j, m, nx[a_row, na], np_[a_row, na])
-            ns[a_row, na] = cs[q, o] if at_end else cs[q, i] | cs[q, o]
-            nx[b_row, nb] = nx[a_row, na]
-            np_[b_row, nb] = np_[a_row, na]
-            ns[b_row, nb] = ns[a_row, na]
+        if pin != (pp[w, j] < 0.0):
+            o = _cross(px, pp, ps, p if pin else w, w if pin else p, j, m, npool)
+            npool += o == npool
+            nv[a_row, na] = o
+            nv[b_row, nb] = o
             na += 1
             nb += 1
     nn[a_row], nc[a_row] = na, cc[q] | bit
     nn[b_row], nc[b_row] = nb, cc[q]
-    return n + 2
+    return n + 2, npool
 
 
-@njit(cache=True, error_model="numpy")
-def _polygon_buffers(cap, mv, m):
-    """Two sets of polygon buffers: coordinates (cap, mv, 3), values (cap, mv, m), supports
-    (cap, mv), vertex counts (cap,), codes (cap,)."""
-    return (np.empty((cap, mv, 3)), np.empty((cap, mv, m)), np.zeros((cap, mv), dtype=np.int64), np.empty(cap, dtype=np.int64),
-            np.empty(cap, dtype=np.int64), np.empty((cap, mv, 3)), np.empty((cap, mv, m)), np.zeros((cap, mv), dtype=np.int64),
-            np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64))
-
-
-@njit(cache=True, error_model="numpy")
-def _clip_polygons(planes, m, px, pp, ps, pn, pc, qx, qp, qs, qn, qc):
-    """The polygon in row 0 of (px, pp, ps, pn, pc) clipped by each plane of the bits ``planes``
-    in increasing order; the pieces end in the first buffers (swapped back when needed).  Returns
-    their number, or -1 when the buffers are too small."""
+@njit(cache=True, error_model="numpy", inline="always")
+def _clip_polygons(planes, m, pv, pn, pc, qv, qn, qc, px, pp, ps, npool):
+    """The polygon in row 0 of (pv, pn, pc) clipped by each plane of the bits ``planes`` in
+    increasing order, the pieces ending in (pv, pn, pc).  Returns (pieces, pool points), or
+    (-1, npool) when the buffers are too small."""
     npoly = 1
     flipped = False
     for j in range(m):
         if not (planes >> j) & 1:
             continue
-        if 2 * npoly > px.shape[0]:
-            return -1
+        if 2 * npoly > pv.shape[0] or npool + npoly * pv.shape[1] > px.shape[0]:
+            return -1, npool
         nq = 0
         for q in range(npoly):
             if flipped:
-                nq = _split_polygon(q, j, m, qx, qp, qs, qn, qc, px, pp, ps, pn, pc, nq)
+                nq, npool = _split_polygon(q, j, m, qv, qn, qc, pv, pn, pc, nq, px, pp, ps, npool)
             else:
-                nq = _split_polygon(q, j, m, px, pp, ps, pn, pc, qx, qp, qs, qn, qc, nq)
+                nq, npool = _split_polygon(q, j, m, pv, pn, pc, qv, qn, qc, nq, px, pp, ps, npool)
         flipped = not flipped
         npoly = nq
     if flipped:
         for q in range(npoly):
-            px[q] = qx[q]
-            pp[q] = qp[q]
-            ps[q] = qs[q]
-            pn[q] = qn[q]
-            pc[q] = qc[q]
-    return npoly
+            for v in range(qn[q]):
+                pv[q, v] = qv[q, v]
+            pn[q], pc[q] = qn[q], qc[q]
+    return npoly, npool
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _constant_over(table, fixed, free):
     """Whether the domain's ``table`` takes one value over the codes ``fixed | s``, s every subset
     of the bits ``free``."""
@@ -218,7 +197,7 @@ def _constant_over(table, fixed, free):
         s = (s - 1) & free
 
 
-@njit(cache=True, error_model="numpy")
+@njit(cache=True, error_model="numpy", inline="always")
 def _bounds_part(table, fixed, free, bit):
     """Whether plane ``bit`` bounds the domain for some code ``fixed | s`` (s a subset of ``free``):
     the domain changes across it there."""
@@ -231,123 +210,40 @@ def _bounds_part(table, fixed, free, bit):
         s = (s - 1) & free
 
 
-@njit(cache=True, error_model="numpy")
-def _unit_gradient(x, phi, k, out):
-    """grad phi_k / |grad phi_k| of the P1 interpolant on the tet x (4, 3) with values phi (4, m):
-    g = sum_i d_i c_i / det, d_i = phi_k(x_i) - phi_k(x_0), c_i the cross products of the other two
-    edges (Cramer's rule)."""
-    e = np.empty((3, 3))
+@njit(cache=True, error_model="numpy", inline="always")
+def _unit_gradient(x, phi, e, k, out):
+    """grad phi_k / |grad phi_k| of the P1 interpolant on tet e (x[e] (4, 3), phi[e] (4, m)) into
+    ``out`` (3,): g = sum_i d_i c_i / det, d_i = phi_k(x_i) - phi_k(x_0), c_i the cross product of
+    the other two edges (Cramer's rule).  Returns whether the tet is negatively oriented."""
+    g0 = 0.0
+    g1 = 0.0
+    g2 = 0.0
     for i in range(3):
-        for d in range(3):
-            e[i, d] = x[i + 1, d] - x[0, d]
-    g = np.zeros(3)
-    for i in range(3):
-        a, b = e[(i + 1) % 3], e[(i + 2) % 3]
-        c0, c1, c2 = a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]
-        di = phi[i + 1, k] - phi[0, k]
-        g[0] += di * c0
-        g[1] += di * c1
-        g[2] += di * c2
-    det = e[0, 0] * (e[1, 1] * e[2, 2] - e[1, 2] * e[2, 1]) - e[0, 1] * (e[1, 0] * e[2, 2] - e[1, 2] * e[2, 0]) \
-        + e[0, 2] * (e[1, 0] * e[2, 1] - e[1, 1] * e[2, 0])
-    norm = np.sqrt(g[0] ** 2 + g[1] ** 2 + g[2] ** 2)
-    for d in range(3):
-        out[d] = g[d] / norm * (1.0 if det > 0 else -1.0)
+        a, b = (i + 1) % 3 + 1, (i + 2) % 3 + 1
+        a0, a1, a2 = x[e, a, 0] - x[e, 0, 0], x[e, a, 1] - x[e, 0, 1], x[e, a, 2] - x[e, 0, 2]
+        b0, b1, b2 = x[e, b, 0] - x[e, 0, 0], x[e, b, 1] - x[e, 0, 1], x[e, b, 2] - x[e, 0, 2]
+        di = phi[e, i + 1, k] - phi[e, 0, k]
+        g0 += di * (a1 * b2 - a2 * b1)
+        g1 += di * (a2 * b0 - a0 * b2)
+        g2 += di * (a0 * b1 - a1 * b0)
+    e0, e1, e2 = x[e, 1, 0] - x[e, 0, 0], x[e, 1, 1] - x[e, 0, 1], x[e, 1, 2] - x[e, 0, 2]
+    c0 = (x[e, 2, 1] - x[e, 0, 1]) * (x[e, 3, 2] - x[e, 0, 2]) - (x[e, 2, 2] - x[e, 0, 2]) * (x[e, 3, 1] - x[e, 0, 1])
+    c1 = (x[e, 2, 2] - x[e, 0, 2]) * (x[e, 3, 0] - x[e, 0, 0]) - (x[e, 2, 0] - x[e, 0, 0]) * (x[e, 3, 2] - x[e, 0, 2])
+    c2 = (x[e, 2, 0] - x[e, 0, 0]) * (x[e, 3, 1] - x[e, 0, 1]) - (x[e, 2, 1] - x[e, 0, 1]) * (x[e, 3, 0] - x[e, 0, 0])
+    det = e0 * c0 + e1 * c1 + e2 * c2
+    scale = (1.0 if det > 0 else -1.0) / np.sqrt(g0 * g0 + g1 * g1 + g2 * g2)
+    out[0], out[1], out[2] = g0 * scale, g1 * scale, g2 * scale
     return det < 0
 
 
-@njit(cache=True, error_model="numpy")
-def _volume(e, x, phi, fixed, mixed, m, table, write, so, sub_x, sub_in, sub_tet, tx, tp, tc, ux, up, uc, lx, lp, order,
-            split1, split2, split3):
-    """The sub-tets of tet ``e`` by each plane that changes sign in it, in increasing order, written
-    (or counted) from row ``so``; -1 when the buffers are too small."""
-    cap = tx.shape[0]
-    tx[0] = x[e]
-    tp[0] = phi[e]
-    tc[0] = fixed[e]
-    n = 1
-    flipped = False
-    for k in range(m):
-        if not (mixed[e] >> k) & 1:
-            continue
-        if 6 * n > cap:
-            return -1
-        nn = 0
-        for s in range(n):
-            if flipped:
-                nn = _split_tet(ux, up, uc, s, k, m, tx, tp, tc, nn, lx, lp, order, split1, split2, split3)
-            else:
-                nn = _split_tet(tx, tp, tc, s, k, m, ux, up, uc, nn, lx, lp, order, split1, split2, split3)
-        flipped = not flipped
-        n = nn
-    if write:
-        for s in range(n):
-            sub_x[so + s] = ux[s] if flipped else tx[s]
-            sub_in[so + s] = table[uc[s] if flipped else tc[s]]
-            sub_tet[so + s] = e
-    return n
-
-
-@njit(cache=True, error_model="numpy")
-def _boundary(e, x, phi, nodes, fixed, mixed, m, table, edge_i, edge_j, nvert, flip, write, to,
-              tri_x, tri_key, tri_part, tri_normal, tri_tet, px, pp, ps, pn, pc, qx, qp, qs, qn, qc):
-    """The boundary pieces of tet ``e``: for each plane i that bounds the domain here, its polygon
-    (the marching tables; counterclockwise about grad phi_i) clipped by the other planes that change
-    sign in the tet, the pieces where the domain changes across plane i fanned into triangles,
-    counterclockwise about the outward normal.  Written (or counted) from row ``to``; -1 when the
-    buffers are too small."""
-    normal = np.empty(3)
-    key = np.empty(KEY_WIDTH, dtype=np.int64)
-    n_tri = 0
-    for i in range(m):
-        bit = np.int64(1) << i
-        if not (mixed[e] >> i) & 1 or not _bounds_part(table, fixed[e], mixed[e] & ~bit, bit):
-            continue
-        code = 0
-        for v in range(4):
-            if phi[e, v, i] < 0.0:
-                code |= 1 << v
-        negative = _unit_gradient(x[e], phi[e], i, normal)
-        nv = nvert[code]
-        reverse = flip[code] != negative
-        for s in range(nv):
-            a, b = edge_i[code, s], edge_j[code, s]
-            r = nv - 1 - s if reverse else s
-            at_end = _crossing(x[e, a], phi[e, a], x[e, b], phi[e, b], i, m, px[0, r], pp[0, r])
-            ps[0, r] = (1 << b) if at_end else (1 << a) | (1 << b)
-        pn[0], pc[0] = nv, fixed[e]
-        npoly = _clip_polygons(mixed[e] & ~bit, m, px, pp, ps, pn, pc, qx, qp, qs, qn, qc)
-        if npoly < 0:
-            return -1
-        for q in range(npoly):
-            inside = table[pc[q] | bit]
-            if inside == table[pc[q] & ~bit]:
-                continue
-            for f in range(1, pn[q] - 1):  # a fan from the polygon's first vertex
-                if write:
-                    t = to + n_tri
-                    for c in range(3):
-                        v = 0 if c == 0 else (f + c - 1 if inside else f + 2 - c)
-                        tri_x[t, c] = px[q, v]
-                        _vertex_key(ps[q, v], pp[q, v], nodes[e], key)
-                        tri_key[t, c] = key
-                    sign = 1.0 if inside else -1.0
-                    for d in range(3):
-                        tri_normal[t, d] = sign * normal[d]
-                    tri_part[t] = i
-                    tri_tet[t] = e
-                n_tri += 1
-    return n_tri
-
-
 @njit(cache=True, error_model="numpy", inline="always")
-def _vertex_key(support, values, nodes, key):
-    """The key of a vertex: the background ids of its support's nodes, sorted and padded with -1,
-    then the bits of the level sets that are zero there (the planes it lies on)."""
+def _vertex_key(px, pp, ps, o, nodes, e, key):
+    """The key of pool point o of tet e: the background ids of its support's nodes, sorted and
+    padded with -1, then the bits of the level sets that are zero there (the planes it lies on)."""
     c = 0
     for v in range(4):
-        if (support >> v) & 1:
-            g = nodes[v]
+        if (ps[o] >> v) & 1:
+            g = nodes[e, v]
             p = c
             while p > 0 and key[p - 1] > g:  # insertion sort of at most four ids
                 key[p] = key[p - 1]
@@ -357,48 +253,193 @@ def _vertex_key(support, values, nodes, key):
     for p in range(c, 4):
         key[p] = -1
     planes = 0
-    for k in range(values.shape[0]):
-        if values[k] == 0.0:
+    for k in range(pp.shape[1]):
+        if pp[o, k] == 0.0:
             planes |= 1 << k
     key[4] = planes
 
 
-@parallel_kernel
-def _clip_chunks(x, phi, nodes, fixed, mixed, table, edge_i, edge_j, nvert, flip, bounds, write, sub_start, tri_start,
-                 whole, sub_x, sub_in, sub_tet, tri_x, tri_key, tri_part, tri_normal, tri_tet, split1, split2, split3):
+@njit(cache=True, error_model="numpy")
+def _buffers(cap, mv, m):
+    """A tet's scratch: the pool of points (8 cap): coordinates, values, supports; the sub-tets
+    (cap) as pool points and codes, twice; the polygons (cap) as pool points (mv each), sizes and
+    codes, twice."""
+    return (np.empty((8 * cap, 3)), np.empty((8 * cap, m)), np.empty(8 * cap, dtype=np.int64),
+            np.empty((cap, 4), dtype=np.int64), np.empty(cap, dtype=np.int64), np.empty((cap, 4), dtype=np.int64),
+            np.empty(cap, dtype=np.int64), np.empty((cap, mv), dtype=np.int64), np.empty(cap, dtype=np.int64),
+            np.empty(cap, dtype=np.int64), np.empty((cap, mv), dtype=np.int64), np.empty(cap, dtype=np.int64),
+            np.empty(cap, dtype=np.int64))
+
+
+@njit(cache=True, error_model="numpy")
+def _slots(e, phi, mixed, nvert):
+    """The sub-tets and triangles of clipped tet ``e`` crossed by one plane, from its signs: one tet
+    and a prism (4), or two prisms (6); the polygon's triangles.  (-1, -1) for a tet crossed by more
+    planes (few: near the edges of the domain), which is counted by clipping it."""
+    p = 0
+    k = 0
+    for j in range(phi.shape[2]):
+        if (mixed[e] >> j) & 1:
+            p += 1
+            k = j
+    if p > 1:
+        return -1, -1
+    code = 0
+    ni = 0
+    for v in range(4):
+        if phi[e, v, k] < 0.0:
+            code |= 1 << v
+            ni += 1
+    return (6 if ni == 2 else 4), nvert[code] - 2
+
+
+@njit(cache=True, error_model="numpy")
+def _clip_range(lo, hi, x, phi, nodes, fixed, mixed, table, edge_i, edge_j, nvert, flip, write, sub_at, tri_at, sub_n, tri_n,
+                whole, sub_x, sub_in, sub_tet, tri_x, tri_key, tri_part, tri_normal, tri_tet, split1, split2, split3):
+    """The tets lo..hi-1 of :func:`_clip_chunks`, each clipped here (see :func:`clip_tets`): its
+    sub-tets by each plane that changes sign in it, in increasing order; for each plane i that
+    bounds the domain in it, its polygon (the marching tables, counterclockwise about grad phi_i)
+    clipped by the other planes, the pieces where the domain changes across plane i fanned into
+    triangles, counterclockwise about the outward normal.  The points live in one pool per tet
+    (coordinates, values, supports), the sub-tets and polygons as rows of pool points; a tet that
+    overflows the scratch is clipped again with four times more.  (The steps are written out in the
+    loop: a call per tet with forty arrays took a third of the time.)"""
     m = phi.shape[2]
-    for c in prange(bounds.shape[0] - 1):
-        cap = SCRATCH
-        so = sub_start[c] if write else 0
-        to = tri_start[c] if write else 0
-        tx, ux = np.empty((cap, 4, 3)), np.empty((cap, 4, 3))
-        tp, up = np.empty((cap, 4, m)), np.empty((cap, 4, m))
-        tc, uc = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
-        px, pp, ps, pn, pc, qx, qp, qs, qn, qc = _polygon_buffers(cap, 4 + m, m)
-        lx, lp, order = np.empty((8, 3)), np.empty((8, m)), np.empty(4, dtype=np.int64)
-        for e in range(bounds[c], bounds[c + 1]):
+    cap = SCRATCH
+    px, pp, ps, tv, tc, uv, uc, pv, pn, pc, qv, qn, qc = _buffers(cap, 4 + m, m)
+    local, normal, key = np.empty(8, dtype=np.int64), np.empty(3), np.empty(KEY_WIDTH, dtype=np.int64)
+    for e in range(lo, hi):
+        if not write:
             if _constant_over(table, fixed[e], mixed[e]):  # the domain does not depend on the planes here
                 whole[e] = 1 if table[fixed[e]] else 0
+                sub_at[e], tri_at[e] = 0, 0
                 continue
             whole[e] = -1
-            while True:
-                ns = _volume(e, x, phi, fixed, mixed, m, table, write, so, sub_x, sub_in, sub_tet, tx, tp, tc, ux, up, uc,
-                             lx, lp, order, split1, split2, split3)
-                nt = -1 if ns < 0 else _boundary(e, x, phi, nodes, fixed, mixed, m, table, edge_i, edge_j, nvert, flip, write,
-                                                 to, tri_x, tri_key, tri_part, tri_normal, tri_tet, px, pp, ps, pn, pc, qx, qp,
-                                                 qs, qn, qc)
-                if nt >= 0:
+            sub_at[e], tri_at[e] = _slots(e, phi, mixed, nvert)
+            if sub_at[e] >= 0:
+                continue
+        elif whole[e] >= 0:
+            continue
+        so, to = sub_at[e], tri_at[e]
+        while True:
+            ok = True
+            room = px.shape[0]
+            for v in range(4):  # the pool starts with the tet's nodes
+                for d in range(3):
+                    px[v, d] = x[e, v, d]
+                for j in range(m):
+                    pp[v, j] = phi[e, v, j]
+                ps[v] = 1 << v
+                tv[0, v] = v
+            npool = 4
+            tc[0] = fixed[e]
+            n = 1
+            flipped = False
+            for k in range(m):
+                if not (mixed[e] >> k) & 1:
+                    continue
+                if 6 * n > tv.shape[0] or npool + 4 * n > room:
+                    ok = False
                     break
-                cap *= 4  # a tet crossed by many planes: larger buffers, and the tet again
-                tx, ux = np.empty((cap, 4, 3)), np.empty((cap, 4, 3))
-                tp, up = np.empty((cap, 4, m)), np.empty((cap, 4, m))
-                tc, uc = np.empty(cap, dtype=np.int64), np.empty(cap, dtype=np.int64)
-                px, pp, ps, pn, pc, qx, qp, qs, qn, qc = _polygon_buffers(cap, 4 + m, m)
-            so += ns
-            to += nt
-        if not write:
-            sub_start[c] = so
-            tri_start[c] = to
+                nn = 0
+                for s in range(n):
+                    if flipped:
+                        nn, npool = _split_tet(uv, uc, s, k, m, tv, tc, nn, px, pp, ps, npool, local, split1, split2, split3)
+                    else:
+                        nn, npool = _split_tet(tv, tc, s, k, m, uv, uc, nn, px, pp, ps, npool, local, split1, split2, split3)
+                flipped = not flipped
+                n = nn
+            n_sub, n_tri = n, 0
+            if ok and write:
+                for s in range(n):
+                    for v in range(4):
+                        o = uv[s, v] if flipped else tv[s, v]
+                        for d in range(3):
+                            sub_x[so + s, v, d] = px[o, d]
+                    sub_in[so + s] = table[uc[s] if flipped else tc[s]]
+                    sub_tet[so + s] = e
+            for i in range(m if ok else 0):
+                bit = np.int64(1) << i
+                if not (mixed[e] >> i) & 1 or not _bounds_part(table, fixed[e], mixed[e] & ~bit, bit):
+                    continue
+                code = 0
+                for v in range(4):
+                    if phi[e, v, i] < 0.0:
+                        code |= 1 << v
+                negative = _unit_gradient(x, phi, e, i, normal)
+                count = nvert[code]
+                reverse = flip[code] != negative  # counterclockwise about grad phi_i after this
+                if npool + 4 > room:
+                    ok = False
+                    break
+                for s in range(count):
+                    o = _cross(px, pp, ps, edge_i[code, s], edge_j[code, s], i, m, npool)
+                    npool += o == npool
+                    pv[0, count - 1 - s if reverse else s] = o
+                pn[0], pc[0] = count, fixed[e]
+                npoly, npool = _clip_polygons(mixed[e] & ~bit, m, pv, pn, pc, qv, qn, qc, px, pp, ps, npool)
+                if npoly < 0:
+                    ok = False
+                    break
+                for q in range(npoly):
+                    inside = table[pc[q] | bit]
+                    if inside == table[pc[q] & ~bit]:
+                        continue
+                    for f in range(1, pn[q] - 1):  # a fan from the polygon's first vertex
+                        if write:
+                            t = to + n_tri
+                            for c in range(3):
+                                o = pv[q, 0 if c == 0 else (f + c - 1 if inside else f + 2 - c)]
+                                for d in range(3):
+                                    tri_x[t, c, d] = px[o, d]
+                                _vertex_key(px, pp, ps, o, nodes, e, key)
+                                for w in range(KEY_WIDTH):
+                                    tri_key[t, c, w] = key[w]
+                            sign = 1.0 if inside else -1.0
+                            for d in range(3):
+                                tri_normal[t, d] = sign * normal[d]
+                            tri_part[t] = i
+                            tri_tet[t] = e
+                        n_tri += 1
+            if ok:
+                break
+            cap *= 4  # a tet crossed by many planes: larger buffers, and the tet again
+            px, pp, ps, tv, tc, uv, uc, pv, pn, pc, qv, qn, qc = _buffers(cap, 4 + m, m)
+        if write:
+            sub_n[e], tri_n[e] = n_sub, n_tri
+        else:
+            sub_at[e], tri_at[e] = n_sub, n_tri
+
+
+@parallel_kernel
+def _clip_chunks(x, phi, nodes, fixed, mixed, table, edge_i, edge_j, nvert, flip, bounds, write, sub_at, tri_at, sub_n, tri_n,
+                 whole, sub_x, sub_in, sub_tet, tri_x, tri_key, tri_part, tri_normal, tri_tet, split1, split2, split3):
+    """Two passes over chunks of tets.  ``write`` False: each tet's rows into (sub_at, tri_at), 0
+    for a tet that the domain holds or misses whole (``whole``); True: each clipped tet written from
+    its rows (sub_at, tri_at) on, its counts into (sub_n, tri_n)."""
+    for c in prange(bounds.shape[0] - 1):
+        _clip_range(bounds[c], bounds[c + 1], x, phi, nodes, fixed, mixed, table, edge_i, edge_j, nvert, flip, write, sub_at, tri_at,
+                    sub_n, tri_n, whole, sub_x, sub_in, sub_tet, tri_x, tri_key, tri_part, tri_normal, tri_tet, split1, split2, split3)
+
+
+@parallel_kernel
+def tet_codes(counts, table, fixed, mixed, state):
+    """Per background tet t, from ``counts`` (m, M) (how many of its nodes each level set has
+    negative): the bits ``fixed`` of the level sets negative at all four nodes, the bits ``mixed``
+    of those that change sign in it, and ``state`` 1 (the domain ``table`` holds it whole), 0 (misses
+    it) or -1 (some level set changes sign in it: to be clipped).  One pass over the tets."""
+    for t in prange(counts.shape[1]):
+        f = 0
+        x = 0
+        for k in range(counts.shape[0]):
+            c = counts[k, t]
+            if c == 4:
+                f |= 1 << k
+            elif c > 0:
+                x |= 1 << k
+        fixed[t] = f
+        mixed[t] = x
+        state[t] = -1 if x else (1 if table[f] else 0)
 
 
 def clip_tets(x, phi, nodes, fixed, mixed, table, edge_i, edge_j, nvert, flip, chunk: int):
@@ -413,28 +454,33 @@ def clip_tets(x, phi, nodes, fixed, mixed, table, edge_i, edge_j, nvert, flip, c
     sub_in (s,) bool, sub_tet (s,))`` and their boundary triangles ``(tri_x (t, 3, 3), tri_key
     (t, 3, 5), tri_part (t,), tri_normal (t, 3), tri_tet (t,))``: counterclockwise about the outward
     normal grad phi_k / |grad phi_k| (or its negative where the domain lies on the side phi_k > 0) of
-    their part k, in tet order."""
+    their part k, in tet order.
+
+    One clipping pass for most tets: the first pass counts each tet's rows, from its signs for a tet
+    crossed by one plane (:func:`_slots`), by clipping it for the few crossed by more; the second
+    clips each tet into its rows."""
     c = len(x)
     bounds = np.append(np.arange(0, c, chunk, dtype=np.int64), np.int64(c))
-    nch = len(bounds) - 1
     args = (np.ascontiguousarray(x, dtype=float), np.ascontiguousarray(phi, dtype=float), np.ascontiguousarray(nodes, dtype=np.int64),
             np.ascontiguousarray(fixed, dtype=np.int64), np.ascontiguousarray(mixed, dtype=np.int64),
             np.ascontiguousarray(table, dtype=np.bool_), np.ascontiguousarray(edge_i, dtype=np.int64),
             np.ascontiguousarray(edge_j, dtype=np.int64), np.ascontiguousarray(nvert, dtype=np.int64),
             np.ascontiguousarray(flip, dtype=np.bool_), bounds)
     tables = (_SPLIT_1, _SPLIT_2, _SPLIT_3)
-    sub_count, tri_count = np.zeros(nch, dtype=np.int64), np.zeros(nch, dtype=np.int64)
+    sub_rows, tri_rows = np.empty(c, dtype=np.int64), np.empty(c, dtype=np.int64)
+    sub_n, tri_n = np.zeros(c, dtype=np.int64), np.zeros(c, dtype=np.int64)
     whole = np.empty(c, dtype=np.int8)
-    _clip_chunks(*args, False, sub_count, tri_count, whole, np.empty((0, 4, 3)), np.empty(0, dtype=np.bool_),
+    _clip_chunks(*args, False, sub_rows, tri_rows, sub_n, tri_n, whole, np.empty((0, 4, 3)), np.empty(0, dtype=np.bool_),
                  np.empty(0, dtype=np.int64), np.empty((0, 3, 3)), np.empty((0, 3, KEY_WIDTH), dtype=np.int64),
                  np.empty(0, dtype=np.int64), np.empty((0, 3)), np.empty(0, dtype=np.int64), *tables)
-    sub_start = np.concatenate([[0], np.cumsum(sub_count)[:-1]]).astype(np.int64)
-    tri_start = np.concatenate([[0], np.cumsum(tri_count)[:-1]]).astype(np.int64)
-    S, T = int(sub_count.sum()), int(tri_count.sum())
+    S, T = int(sub_rows.sum()), int(tri_rows.sum())
+    sub_at, tri_at = np.cumsum(sub_rows) - sub_rows, np.cumsum(tri_rows) - tri_rows
     out = (np.empty((S, 4, 3)), np.empty(S, dtype=np.bool_), np.empty(S, dtype=np.int64), np.empty((T, 3, 3)),
            np.empty((T, 3, KEY_WIDTH), dtype=np.int64), np.empty(T, dtype=np.int64), np.empty((T, 3)), np.empty(T, dtype=np.int64))
     if S or T:
-        _clip_chunks(*args, True, sub_start, tri_start, whole, *out, *tables)
+        _clip_chunks(*args, True, sub_at, tri_at, sub_n, tri_n, whole, *out, *tables)
+    if not (np.array_equal(sub_n[whole < 0], sub_rows[whole < 0]) and np.array_equal(tri_n[whole < 0], tri_rows[whole < 0])):
+        raise RuntimeError("clip_tets: the clipping wrote other rows than it counted")  # a broken invariant, not bad input
     return (whole, *out)
 
 
@@ -444,27 +490,32 @@ def _triangle_chunks(points, values, table, bounds, write, start, out_x, out_sou
     all_planes = (np.int64(1) << m) - 1
     for c in prange(bounds.shape[0] - 1):
         cap = SCRATCH
+        px, pp, ps, _, _, _, _, pv, pn, pc, qv, qn, qc = _buffers(cap, 3 + m, m)
         o = start[c] if write else 0
-        px, pp, ps, pn, pc, qx, qp, qs, qn, qc = _polygon_buffers(cap, 3 + m, m)
         for t in range(bounds[c], bounds[c + 1]):
             while True:
                 for v in range(3):
-                    px[0, v] = points[t, v]
-                    pp[0, v] = values[t, v]
+                    for d in range(3):
+                        px[v, d] = points[t, v, d]
+                    for j in range(m):
+                        pp[v, j] = values[t, v, j]
+                    ps[v] = 0
+                    pv[0, v] = v
                 pn[0], pc[0] = 3, 0
-                npoly = _clip_polygons(all_planes, m, px, pp, ps, pn, pc, qx, qp, qs, qn, qc)
+                npoly, _ = _clip_polygons(all_planes, m, pv, pn, pc, qv, qn, qc, px, pp, ps, 3)
                 if npoly >= 0:
                     break
                 cap *= 4
-                px, pp, ps, pn, pc, qx, qp, qs, qn, qc = _polygon_buffers(cap, 3 + m, m)
+                px, pp, ps, _, _, _, _, pv, pn, pc, qv, qn, qc = _buffers(cap, 3 + m, m)
             for q in range(npoly):
                 if not table[pc[q]]:
                     continue
                 for f in range(1, pn[q] - 1):  # a fan from the first vertex: the order kept
                     if write:
-                        out_x[o, 0] = px[q, 0]
-                        out_x[o, 1] = px[q, f]
-                        out_x[o, 2] = px[q, f + 1]
+                        for c3 in range(3):
+                            p = pv[q, 0 if c3 == 0 else f + c3 - 1]
+                            for d in range(3):
+                                out_x[o, c3, d] = px[p, d]
                         out_source[o] = t
                     o += 1
         if not write:
