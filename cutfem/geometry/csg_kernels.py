@@ -18,9 +18,11 @@ key names the point where it lies, not how it was made: two tets compute the sam
 of their common face, also when two planes meet on a face of the mesh (x = a and y = a on the
 Kuhn faces x = y), so the pieces of neighbouring tets share their vertices by key.
 
-Kernels whose output size is not known count it chunk by chunk, then fill from each chunk's offset
-on all cores (:data:`~cutfem.geometry.cut_kernels.COUNT_FILL_CHUNK`): the same arrays as one pass in
-tet order.  The scratch of a chunk grows when a tet needs more (a tet crossed by many planes).
+The points of a tet live in one pool (coordinates, values, supports), its sub-tets and polygons as
+rows of pool points.  Two passes over chunks of tets (:data:`~cutfem.geometry.cut_kernels.COUNT_FILL_CHUNK`)
+on all cores: the first counts each tet's output rows (from its signs when one plane crosses it),
+the second writes each tet from its first row: the same arrays as one pass in tet order.  The
+scratch of a chunk grows when a tet needs more (a tet crossed by many planes).
 """
 
 from __future__ import annotations
