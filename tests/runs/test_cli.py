@@ -219,14 +219,15 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     from cutfem.fem.forms import assemble, bilinear_form, linear_form
     from cutfem.fem.pointwise import dot
     from cutfem.fem.terms import apply_dirichlet, face_jump_penalty, interface_nitsche, load, nitsche, stiffness
-    from cutfem.geometry.shapes import Sphere
+    from cutfem.geometry.csg import intersection
+    from cutfem.geometry.shapes import Plane, Sphere
     from cutfem.geometry.box import structured_box
     from cutfem.solvers.solve import solve
     from cutfem.fem.spaces import CutP1Space
     from cutfem.geometry.surface_meshes import sphere_mesh
 
     blocks = _forms_md_blocks()
-    assert len(blocks) == 6
+    assert len(blocks) == 7
     ns = {}
     exec("from cutfem.geometry.cut import CUT, NEG, POS, cut_mesh\n"
          "from cutfem.fem.forms import *\n"
@@ -325,6 +326,12 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     expected = one @ M @ u0 + dt * (theta * F_new.sum() + (1 - theta) * F_old.sum()) + dt * F_new.sum()
     assert abs(one @ M @ u - expected) < 1e-10 * abs(expected)
     assert ns["info"].iterations > 0
+
+    # a domain of two level sets: Nitsche on the sphere, the flux on the disc; a linear u exactly
+    run(6, background=structured_box([-1.2] * 3, [1.2] * 3, spacing=0.3), intersection=intersection, ball=Sphere(1.0),
+        cap=Plane((0, 0, 1), (0, 0, 0.5)), f=zero, g=linear, g_n=lambda x: np.full(x.shape[:-1], g[2]))
+    u, _ = solve(ns["K"], ns["b"], method="direct")
+    assert np.abs(u - linear(ns["V"].dof_points)).max() < 1e-9
 
 
 def test_readme_commands_match_ci():
