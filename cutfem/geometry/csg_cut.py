@@ -90,7 +90,7 @@ class CsgCut:
 
     @property
     def values(self) -> np.ndarray:
-        """(n, m) phi_h of each level set at the nodes of the cut tets."""
+        """(p, m) phi_h of each level set at the p nodes of the cut tets."""
         return self.background_values[self.elements(CUT).node_ids]
 
     @cached_property
@@ -184,6 +184,8 @@ class CsgCut:
         set itself, its number 0..m-1 in ``levelsets`` or its name phi1..phim), or on several (a
         list of them).  ``where``: only the pieces in a further domain (a level set's inside, or a
         :class:`~cutfem.geometry.csg.Domain`), clipped exactly (:func:`tagged_pieces`)."""
+        if isinstance(part, (list, tuple)) and not part:
+            raise ValueError("ds([]) names no part: give a level set of the domain, several in a list, or None for all of Gamma_h")
         parts = None if part is None else tuple(sorted({self.domain.index(p) for p in (part if isinstance(part, (list, tuple)) else [part])}))
         key = ("ds", parts, id(where))
         hit = self._measures.get(key)

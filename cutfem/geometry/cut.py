@@ -65,7 +65,7 @@ from .band_search import (
 from .box import KUHN_EDGE_CODES, StructuredBox
 from .keys import dense_unique, pair_up, unique_keys
 from .csg import Domain
-from .csg_cut import cut_domain, tagged_pieces
+from .csg_cut import CsgCut, cut_domain, tagged_pieces
 from .marching import EDGE_I, EDGE_J, FLIP, NVERT, TRIANGLE_SLOTS
 from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet, ghost_facets, side_subtetrahedra
 from .measures import BoundaryPart, ElementVolume, FacetMeasure, SideVolume, SurfacePieces
@@ -455,7 +455,7 @@ def _marching(tet_ids, labels, vals):
     return tet_ids[:n], labels[:n], vals[:n], code
 
 
-def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solve_bytes_per_tet: float | None = None) -> CutMesh:
+def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solve_bytes_per_tet: float | None = None) -> CutMesh | CsgCut:
     """Cut a background tetrahedral mesh by the zero level set of the P1 interpolant of ``levelset``.
 
     ``levelset``: a LevelSet (``value``, optional ``lipschitz``), a callable ``f(x)`` with x (..., 3),

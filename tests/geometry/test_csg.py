@@ -273,6 +273,11 @@ def test_boundary_parts_by_level_set_number_and_name():
     np.testing.assert_allclose(q.normal, np.broadcast_to([0.0, 0, 1], q.normal.shape), atol=1e-14)
     with pytest.raises(ValueError, match=r"is not a level set of the domain"):
         cut.ds(Plane())
+    with pytest.raises(ValueError, match=r"ds\(\[\]\) names no part"):
+        cut.ds([])
+    # the built-in Nitsche term is exact on S_h of one level set (one normal per tet): a part is refused
+    with pytest.raises(TypeError, match=r"nitsche integrates over a SurfacePieces measure, got BoundaryPart\('Gamma_h on phi1'\)"):
+        cf.nitsche(cut.ds(ball))
 
 
 def test_a_part_of_the_sphere_tagged_by_a_plane():
