@@ -3,8 +3,10 @@
 A :class:`~cutfem.geometry.csg.Domain` Omega combines the insides {phi_k < 0} of level sets
 phi_1..phi_m, each P1 on the background (its nodal interpolant, with the zero rule of
 :mod:`cutfem.geometry.nodal_values` applied to each).  A tet on which every phi_k keeps its sign
-lies wholly in Omega or wholly outside, as the domain says for that sign pattern.  The others are
-clipped by the planes phi_k = 0 of the level sets that change sign in them, one after the other
+lies wholly in Omega or wholly outside, as the domain says for that sign pattern, and so does a tet
+where the domain does not depend on the level sets that change sign in it (a plane far from the
+ball it cuts).  The others are clipped by the planes phi_k = 0 of the level sets that change sign
+in them, one after the other
 (:mod:`cutfem.geometry.csg_kernels`): each piece of the tet then has one sign pattern, so the
 sub-tetrahedra of T ∩ Omega are exact for P1.  The boundary of Omega_h is made of its parts
 Gamma_k = {phi_k = 0} ∩ boundary: in each tet, the piece of the plane phi_k = 0 clipped by the
