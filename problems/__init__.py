@@ -5,6 +5,8 @@
 * ``laplace-beltrami-meshed`` / ``laplace-beltrami-cut``: -Lap_S u + u = f with manufactured
   solutions (docs/math.md §4).
 * ``poisson-cut``: fictitious-domain Poisson, Nitsche and ghost penalty (§8).
+* ``poisson-csg-cut``: Poisson on a domain of several level sets (a ball cut by a plane), Dirichlet
+  on some parts of its boundary and Neumann on others (§16).
 * ``interface-poisson-cut``: a coefficient jump across a sphere, Nitsche-XFEM (§9).
 * ``bulk-surface-cut``: coupled bulk-surface diffusion (§10).
 * ``heat-surface-cut``: the heat equation on a cut sphere, theta-scheme (§11).
@@ -16,8 +18,8 @@
 """
 
 from . import (bulk_surface, elasticity, heat_moving, heat_surface, interface_poisson, laplace_beltrami, mean_curvature, poisson,
-               stokes, two_phase_stokes)
+               poisson_csg, stokes, two_phase_stokes)
 
 #: the problem modules, each registering its problems on import
 __all__ = ["bulk_surface", "elasticity", "heat_moving", "heat_surface", "interface_poisson", "laplace_beltrami", "mean_curvature",
-           "poisson", "stokes", "two_phase_stokes"]
+           "poisson", "poisson_csg", "stokes", "two_phase_stokes"]

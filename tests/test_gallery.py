@@ -20,7 +20,7 @@ import cutfem as cf
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
 SCRIPTS = ["poisson_ball", "interface", "bulk_surface", "laplace_beltrami", "mean_curvature_user_surface", "heat_surface",
-           "heat_moving", "elasticity", "stokes"]
+           "heat_moving", "elasticity", "stokes", "poisson_csg"]
 
 
 def load(name):
@@ -94,6 +94,13 @@ def test_mean_curvature_user_surface():
     # cutfem run mean-curvature-cut --surface "x**4 + y**4 + z**4 - 1"); the rate within 0.15 of 0.81
     check(runs, {"l2": (2.97, 1.75)}, {"l2": 0.81}, tol=0.15)
     assert 17.0 < runs[1]["area"] < 17.7  # measured 17.14, 17.47, 17.56 at spacings 0.2, 0.1, 0.05
+
+
+def test_poisson_csg():
+    runs = two_levels("poisson_csg", (0.4, 0.2))  # 0.3 s
+    # measured: L2 6.21e-2, 1.93e-2 (rate 1.89); H1 0.515, 0.252 (1.16); the same errors as poisson-csg-cut at 0.4
+    check(runs, {"l2": (6.21e-2, 1.93e-2), "h1": (0.516, 0.252)}, {"l2": 2, "h1": 1})
+    assert runs[1]["disc"] == pytest.approx(0.75 * np.pi, rel=0.03)  # measured 2.307; the disc of radius sqrt(3)/2: 2.356
 
 
 @pytest.mark.parametrize("theta, measured, steps", [(1.0, (3.30e-2, 8.67e-3), (13, 50)), (0.5, (2.55e-2, 6.75e-3), (3, 5))])

@@ -37,6 +37,13 @@ edge counts that the Euler characteristic reuses), which also catches cut cells 
 small made the band search drop, and raises :class:`~cutfem.geometry.nodal_values.CutError` with the
 likely cause.
 
+Several level sets
+------------------
+A domain combined from several level sets (:mod:`cutfem.geometry.csg`: ``cf.intersection(ball,
+plane)``) is cut by :func:`cutfem.geometry.csg_cut.cut_domain`, which ``cut_mesh`` calls for it: the
+tets clipped by each plane, the boundary in parts with their own normals.  Parts of S_h of one level
+set are tagged by further level sets with ``cut.ds(where=...)``.
+
 Mesh size ``h = N**(-1/3)`` with N the number of background nodes (docs/math.md §2).
 """
 
@@ -57,8 +64,11 @@ from .band_search import (
 )
 from .box import KUHN_EDGE_CODES, StructuredBox
 from .keys import dense_unique, pair_up, unique_keys
-from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet, interior_facets
-from .measures import ElementVolume, FacetMeasure, SideVolume, SurfacePieces
+from .csg import Domain
+from .csg_cut import CsgCut, cut_domain, tagged_pieces
+from .marching import EDGE_I, EDGE_J, FLIP, NVERT, TRIANGLE_SLOTS
+from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet, ghost_facets, side_subtetrahedra
+from .measures import BoundaryPart, ElementVolume, FacetMeasure, SideVolume, SurfacePieces
 from .mesh import TetMesh, barycentric_gradients, triangle_areas
 from .nodal_values import (
     CutError,
@@ -76,67 +86,6 @@ from . import cut_kernels
 from . import mesh_kernels
 
 __all__ = ["CutMesh", "cut_mesh", "NEG", "POS", "CUT"]
-
-
-# For each sign pattern (bit k set when node k is inside, phi_k < 0) the polygon of the piece as a
-# cyclic list of tet edges (i, j) with i inside, j outside; quads have 4 edges, triangles 3.
-def _case_table():
-    table = {}
-    for mask in range(1, 15):
-        inside = [k for k in range(4) if mask >> k & 1]
-        outside = [k for k in range(4) if not mask >> k & 1]
-        if len(inside) == 1:
-            i = inside[0]
-            edges = [(i, o) for o in outside]
-        elif len(inside) == 3:
-            o = outside[0]
-            edges = [(i, o) for i in inside]
-        else:
-            a, b = inside
-            c, d = outside
-            edges = [(a, c), (a, d), (b, d), (b, c)]
-        table[mask] = edges
-    return table
-
-
-_CASES = _case_table()
-
-
-def _case_arrays():
-    """Lookup tables indexed by the sign code: edge endpoints (16, 4) and polygon size (16,).
-    Triangles repeat their last edge in the fourth slot.  The local node numbers are int8: the
-    (m, 4) slot arrays gathered from them are then 8 times smaller than in int64."""
-    ei = np.zeros((16, 4), dtype=np.int8)
-    ej = np.zeros((16, 4), dtype=np.int8)
-    nv = np.zeros(16, dtype=np.int8)
-    for code, edges in _CASES.items():
-        e = np.array(edges + edges[-1:] * (4 - len(edges)))
-        ei[code], ej[code], nv[code] = e[:, 0], e[:, 1], len(edges)
-    return ei, ej, nv
-
-
-_EDGE_I, _EDGE_J, _NVERT = _case_arrays()
-
-
-def _flip_table():
-    """(16,) bool: whether the triangles (0, 1, 2) and (0, 2, 3) of the piece, in the polygon order
-    of the case table, turn clockwise about grad phi_h in a positively oriented tet.
-
-    The orientation of the piece's polygon relative to grad phi_h cannot change while the nodal
-    values keep their signs (the polygon never degenerates), so it is fixed by the sign code; it is
-    read off once on the reference tet with values -1 (inside) and +1 (outside).  In a negatively
-    oriented tet it is the opposite."""
-    x = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], float)
-    flip = np.zeros(16, dtype=bool)
-    for code, edges in _CASES.items():
-        phi = np.where([code >> k & 1 for k in range(4)], -1.0, 1.0)
-        p = np.array([x[i] + phi[i] / (phi[i] - phi[j]) * (x[j] - x[i]) for i, j in edges])
-        grad = np.linalg.solve(np.c_[x, np.ones(4)], phi)[:3]
-        flip[code] = np.dot(np.cross(p[1] - p[0], p[2] - p[0]), grad) < 0
-    return flip
-
-
-_FLIP = _flip_table()
 
 
 # ---------------------------------------------------------------------------------------------
@@ -257,32 +206,41 @@ class CutMesh:
 
     def ghost_facets(self, side) -> FacetSet:
         """The ghost-penalty faces of a side: interior faces of its element set with at least one
-        tet cut (for the bulk ghost penalty of docs/math.md §7)."""
+        tet cut (for the bulk ghost penalty of docs/math.md §7; :func:`cutfem.geometry.markers.ghost_facets`)."""
+        return ghost_facets(self.elements(side), self.tet_ids, side)
 
+    def side_parts(self, side):
+        """The cells of ``dx(side)`` (:class:`~cutfem.geometry.measures.SideVolume`): ``(whole (w,),
+        sub (s, 4, 3), parent (s,))``, the tets of the side's element set that lie in the side and
+        the side's part of the others as sub-tets, by the sign of phi_h at their nodes
+        (:func:`~cutfem.geometry.markers.side_subtetrahedra`)."""
         es = self.elements(side)
-        cut_mark = np.zeros(es.n_elements, dtype=bool)
-        cut_mark[es.locate(self.tet_ids, "the cut tets")] = True
-        # both tets of such a face touch a node of a cut tet: look for faces only among those tets
-        # (a band around Gamma_h) instead of sorting every face of the side; the band in one compiled
-        # pass (numpy's gather of every tet's four flags took 0.085 s at spacing 0.02, 3.9 million tets)
-        near = np.empty(es.n_elements, dtype=bool)
-        cut_kernels.tets_near(es.tets, cut_mark, es.n_nodes, near)
-        band = np.flatnonzero(near)
-        kuhn = es.kuhn_types
-        pairs, opposite = interior_facets(es.tets[band], es.n_nodes, None if kuhn is None else kuhn[band])
-        pairs = band[pairs]
-        keep = cut_mark[pairs[:, 0]] | cut_mark[pairs[:, 1]]
-        return FacetSet(es, pairs[keep], opposite[keep], name=f"ghost faces of {side}")
+        return side_subtetrahedra(es.points, es.tets, self.background_values[es.node_ids], side)
 
     @cached_property
     def _measures(self) -> dict:
         return {}
 
-    def ds(self):
-        """The measure on S_h = Gamma_h (:class:`cutfem.geometry.measures.SurfacePieces`), normal from NEG to POS."""
-        if "ds" not in self._measures:
-            self._measures["ds"] = SurfacePieces(self)
-        return self._measures["ds"]
+    def ds(self, where=None):
+        """The measure on S_h = Gamma_h (:class:`cutfem.geometry.measures.SurfacePieces`), normal from NEG to POS.
+
+        ``where``: only the part of S_h in a further domain, a level set's inside {psi_h < 0} (a
+        plane, a ball, a callable) or a :class:`~cutfem.geometry.csg.Domain` of several: the pieces
+        clipped exactly by the P1 interpolants (:func:`cutfem.geometry.csg_cut.tagged_pieces`), each
+        with n_h, as a :class:`~cutfem.geometry.measures.BoundaryPart` (for mixed conditions on
+        parts of Gamma_h without hand-made tags; ``where=cf.complement(psi)`` is the rest)."""
+        if where is None:
+            if "ds" not in self._measures:
+                self._measures["ds"] = SurfacePieces(self)
+            return self._measures["ds"]
+        key = ("ds", id(where))
+        hit = self._measures.get(key)
+        if hit is None or hit[0] is not where:
+            es = self.elements(CUT)
+            points, tets, normals = tagged_pieces(es, self.triangle_points, self.triangle_tets, self.normals[self.triangle_tets], where)
+            name = "Gamma_h where " + (str(where) if isinstance(where, Domain) else f"{where!r} < 0")
+            hit = self._measures[key] = (where, BoundaryPart(es, points, tets, normals, name))
+        return hit[1]
 
     def dx(self, where=NEG):
         """The volume measure of a side (``NEG``/``POS``: the cut volume parts,
@@ -482,14 +440,10 @@ class CutMesh:
         )
 
 
-# the polygon slots of the triangles (0, 1, 2) and (0, 2, 3) of a piece, and the same turned over
-_TRIANGLE_SLOTS = np.array([[0, 1, 2, 0, 2, 3], [0, 2, 1, 0, 3, 2]], dtype=np.int64)
-
-
 def _marching(tet_ids, labels, vals):
     """Marching tetrahedra on the candidate (cut) tets, tet by tet; see the module docstring.
 
-    The polygon slots of a tet are the edges (i, j) (i inside, j outside) of the case table of its
+    The polygon slots of a tet are the edges (i, j) (i inside, j outside) of the case table (:mod:`cutfem.geometry.marching`) of its
     sign code (bit k: node k inside); a slot is the point ``x_i + t (x_j - x_i)``,
     ``t = phi_i / (phi_i - phi_j)``, or the node j itself when phi_j == 0.  Two slots of a tet are
     the same vertex when they are the same node or the same edge; a tet whose piece has fewer than
@@ -497,15 +451,18 @@ def _marching(tet_ids, labels, vals):
     (:func:`cutfem.geometry.cut_kernels.marching`) that compacts the three arrays in place; returns
     ``(tet_ids, labels, vals, code)`` of the kept tets."""
 
-    n, code = cut_kernels.marching(tet_ids, labels, vals, _EDGE_I, _EDGE_J)
+    n, code = cut_kernels.marching(tet_ids, labels, vals, EDGE_I, EDGE_J)
     return tet_ids[:n], labels[:n], vals[:n], code
 
 
-def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solve_bytes_per_tet: float | None = None) -> CutMesh:
+def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solve_bytes_per_tet: float | None = None) -> CutMesh | CsgCut:
     """Cut a background tetrahedral mesh by the zero level set of the P1 interpolant of ``levelset``.
 
     ``levelset``: a LevelSet (``value``, optional ``lipschitz``), a callable ``f(x)`` with x (..., 3),
-    or an array of nodal values (N,) (not with a structured box's band search).
+    or an array of nodal values (N,) (not with a structured box's band search).  A
+    :class:`~cutfem.geometry.csg.Domain` of several level sets (``cf.intersection(ball, plane)``) is
+    cut by :func:`cutfem.geometry.csg_cut.cut_domain` into a :class:`~cutfem.geometry.csg_cut.CsgCut`
+    (its level sets evaluated at every node; no band search or memory estimate).
     Raises :class:`~cutfem.geometry.nodal_values.CutError` when the level set does not cut the mesh,
     the surface reaches the box boundary (unless ``check_boundary=False``), the declared Lipschitz
     bound is seen to be broken (:func:`~cutfem.geometry.band_search._band_cells`) or S_h is not
@@ -524,6 +481,8 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     refused.  The check after the cut, on the real active tets, stays for what the prediction does not
     cover (no Lipschitz bound, unstructured backgrounds).
     """
+    if isinstance(levelset, Domain):
+        return cut_domain(background, levelset, check_boundary=check_boundary)
     lipschitz = _declared_lipschitz(levelset)
     mesh_distance = getattr(levelset, "is_distance", False) and getattr(levelset, "mesh", None) is not None
     structured = isinstance(background, StructuredBox)
@@ -611,7 +570,7 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     # structured box the lattice edge {v, v + e_S} (v = min: the active nodes increase with the
     # background ids) has the key p - 1 + 7 v + c(S) in [p, 8p), ordered as (v, max) (see
     # box.KUHN_EDGE_CODES): numbered by a marker array, with no sort
-    key = cut_kernels.slot_keys(tets, code, vals, _EDGE_I, _EDGE_J, p, lattice=(KUHN_EDGE_CODES, types) if structured else None)
+    key = cut_kernels.slot_keys(tets, code, vals, EDGE_I, EDGE_J, p, lattice=(KUHN_EDGE_CODES, types) if structured else None)
     del types
     vkeys, vinv = dense_unique(key, 8 * p) if structured else unique_keys(key.reshape(-1), return_inverse=True)
     n_vertices = len(vkeys)
@@ -620,9 +579,9 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     vinv = vinv.astype(index_dtype(n_vertices), copy=False).reshape(m, 4)
     # each vertex computed once, from its first slot; triangles (0,1,2) and, for quads, (0,2,3),
     # tet by tet, without those with repeated vertices; orientation by n_h from the sign code (see
-    # _flip_table)
-    vertices, tri, tri_tet = cut_kernels.surface(vinv, n_vertices, tets, code, vals, points, _EDGE_I, _EDGE_J, _NVERT, _FLIP,
-                                             _TRIANGLE_SLOTS, negative=negative)
+    # cutfem.geometry.marching.FLIP)
+    vertices, tri, tri_tet = cut_kernels.surface(vinv, n_vertices, tets, code, vals, points, EDGE_I, EDGE_J, NVERT, FLIP,
+                                             TRIANGLE_SLOTS, negative=negative)
     del vals, vinv
 
     cm = CutMesh(

@@ -42,8 +42,8 @@ from .numbering import TET_FACES, index_dtype
 from . import cut_kernels
 from . import mesh_kernels
 
-__all__ = ["NEG", "POS", "CUT", "SIDES", "ElementSet", "FacetSet", "interior_facets", "side_subtetrahedra", "longest_edges",
-           "same_background"]
+__all__ = ["NEG", "POS", "CUT", "SIDES", "ElementSet", "FacetSet", "interior_facets", "ghost_facets", "side_subtetrahedra",
+           "longest_edges", "same_background"]
 
 NEG = "neg"
 POS = "pos"
@@ -427,6 +427,27 @@ class FacetSet:
     def h(self) -> np.ndarray:
         """(F,) local size h_F: the longest edge of each face."""
         return longest_edges(self.elements.points, self.nodes)
+
+
+def ghost_facets(elements: ElementSet, cut_tet_ids, side: str) -> FacetSet:
+    """The ghost-penalty faces of a side (docs/math.md §7): the interior faces of its element set
+    ``elements`` with at least one of their two tets among the background tets ``cut_tet_ids``
+    (the cut tets, all of them in the set).
+
+    Both tets of such a face touch a node of a cut tet, so the faces are looked for only among
+    those tets (a band around the cut, marked in one compiled pass,
+    :func:`cutfem.geometry.cut_kernels.tets_near`) instead of sorting every face of the side."""
+    es = elements
+    cut_mark = np.zeros(es.n_elements, dtype=bool)
+    cut_mark[es.locate(cut_tet_ids, "the cut tets")] = True
+    near = np.empty(es.n_elements, dtype=bool)
+    cut_kernels.tets_near(es.tets, cut_mark, es.n_nodes, near)
+    band = np.flatnonzero(near)
+    kuhn = es.kuhn_types
+    pairs, opposite = interior_facets(es.tets[band], es.n_nodes, None if kuhn is None else kuhn[band])
+    pairs = band[pairs]
+    keep = cut_mark[pairs[:, 0]] | cut_mark[pairs[:, 1]]
+    return FacetSet(es, pairs[keep], opposite[keep], name=f"ghost faces of {side}")
 
 
 def side_subtetrahedra(points: np.ndarray, tets: np.ndarray, values: np.ndarray, side: str):

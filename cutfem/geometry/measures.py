@@ -8,6 +8,8 @@ in, the local size h and, where one exists, the normal.  Forms are written ``int
 measure               cells (quadrature)                          made by
 ====================  ==========================================  ===============================
 :class:`SurfacePieces`   the pieces of Gamma_h (S_h), triangles     ``cut.ds()``
+:class:`BoundaryPart`    triangles of (a part of) a boundary,       ``cut.ds(part, where=...)``
+                         each with its outward normal
 :class:`SideVolume`      the part of each tet on one side,          ``cut.dx(NEG)``, ``cut.dx(POS)``
                          sub-tetrahedra
 :class:`ElementVolume`   whole tets of an element set               ``cut.dx(cut.elements(CUT))``
@@ -30,10 +32,11 @@ from functools import cached_property
 
 import numpy as np
 
-from .markers import CUT, NEG, POS, longest_edges, side_subtetrahedra
+from .markers import CUT, NEG, POS, longest_edges
 from .quadrature import Quadrature, map_tetrahedra, map_triangles, signed_volumes
 
-__all__ = ["Measure", "SurfacePieces", "SideVolume", "ElementVolume", "FacetMeasure", "MeshedSurface", "surface_measure"]
+__all__ = ["Measure", "SurfacePieces", "BoundaryPart", "SideVolume", "ElementVolume", "FacetMeasure", "MeshedSurface",
+           "surface_measure"]
 
 
 #: cells per block of :meth:`Measure.blocks`: at degree 4 a block of tets holds 14 points a cell,
@@ -131,9 +134,45 @@ class SurfacePieces(Measure):
         return volume.part_volumes[local] / self.elements.volumes
 
 
+class BoundaryPart(Measure):
+    """ds over (a part of) the boundary of a cut domain: flat triangles ``points`` (T, 3, 3), each in
+    a cut tet ``parent`` (T,) of ``elements`` with its own outward unit normal ``normals`` (T, 3).
+    Several parts of a domain with edges meet in one tet at different normals, so the normal is the
+    triangle's, not the tet's (``w.n`` in an integrand).  Made by ``cut.ds(part, where=...)`` of a
+    cut by several level sets (:class:`cutfem.geometry.csg_cut.CsgCut`) and ``cut.ds(where=...)`` of
+    a cut by one (a tagged part of S_h)."""
+
+    surface = True
+
+    def __init__(self, elements, points, parent, normals, name: str):
+        super().__init__(elements, name)
+        self.points = np.asarray(points, dtype=float).reshape(-1, 3, 3)
+        self.parent = np.asarray(parent, dtype=np.int64)
+        self.triangle_normals = np.asarray(normals, dtype=float).reshape(-1, 3)
+
+    def _build(self, degree):
+        return map_triangles(self.points, degree, parent=self.parent, normal=self.triangle_normals)
+
+    @property
+    def n_cells(self) -> int:
+        return len(self.parent)
+
+    @cached_property
+    def areas(self) -> np.ndarray:
+        """(T,) the areas of the triangles."""
+        p = self.points
+        return 0.5 * np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=1)
+
+    @property
+    def size(self) -> float:
+        return float(self.areas.sum())
+
+
 class SideVolume(Measure):
     """dx over one side (NEG or POS) of the cut: whole tets inside the side and, in the cut tets, the
-    side's part as sub-tetrahedra (:func:`cutfem.geometry.markers.side_subtetrahedra`)."""
+    side's part as sub-tetrahedra (from the cut's ``side_parts``: split by one plane,
+    :func:`cutfem.geometry.markers.side_subtetrahedra`, or clipped by several,
+    :mod:`cutfem.geometry.csg_cut`)."""
 
     def __init__(self, cut, side: str):
         if side not in (NEG, POS):
@@ -145,9 +184,9 @@ class SideVolume(Measure):
     @cached_property
     def _parts(self):
         """(whole (w,), sub (s, 4, 3), parent (s,)): the elements that lie in the side, and the side's
-        part of the cut elements as tetrahedra (:func:`~cutfem.geometry.markers.side_subtetrahedra`)."""
-        es = self.elements
-        return side_subtetrahedra(es.points, es.tets, self.cut.background_values[es.node_ids], self.side)
+        part of the cut elements as tetrahedra, from the cut (:meth:`cutfem.geometry.cut.CutMesh.side_parts`,
+        :meth:`cutfem.geometry.csg_cut.CsgCut.side_parts`)."""
+        return self.cut.side_parts(self.side)
 
     @property
     def whole_cells(self) -> int:

@@ -1,8 +1,8 @@
-"""The named level sets with closed forms: :class:`Sphere`, :class:`Torus` and :class:`Ellipsoid`.
+"""The named level sets with closed forms: :class:`Sphere`, :class:`Torus`, :class:`Ellipsoid` and :class:`Plane`.
 
 Each overrides the general machinery of :class:`~cutfem.geometry.levelset.LevelSet` with its exact
 formulas: values, derivatives, the closest point and the exact normal and mean curvature there
-(docs/math.md §1).  Sphere and Torus are signed distances; the Ellipsoid is the quadratic
+(docs/math.md §1).  Sphere, Torus and Plane are signed distances; the Ellipsoid is the quadratic
 (x/a)^2 + (y/b)^2 + (z/c)^2 - 1, whose closest point comes from Newton's method on the Lagrange
 multiplier of the projection.  Their lengths must lie in :data:`cutfem.geometry.surface.LENGTH_RANGE`.
 """
@@ -15,14 +15,14 @@ from .levelset import _EPS, LevelSet, _as_points, _raise_if_singular
 from .surface import check_length
 from . import levelset_kernels
 
-__all__ = ["Sphere", "Torus", "Ellipsoid"]
+__all__ = ["Sphere", "Torus", "Ellipsoid", "Plane"]
 
 
-def _center(center) -> np.ndarray:
-    """Return ``center`` as a float array of shape (3,), ValueError otherwise."""
+def _center(center, name: str = "center") -> np.ndarray:
+    """Return ``center`` as a float array of shape (3,), ValueError naming it otherwise."""
     c = np.asarray(center, dtype=float)
     if c.shape != (3,) or not np.all(np.isfinite(c)):
-        raise ValueError(f"center must be 3 finite coordinates, got {center!r}")
+        raise ValueError(f"{name} must be 3 finite coordinates, got {center!r}")
     return c
 
 
@@ -115,6 +115,64 @@ class Sphere(LevelSet):
     def exact_mean_curvature_vector(self, x):
         """(2/R) (x - c)/|x - c|, shape (..., 3)."""
         return (2.0 / self.radius) * self._unit(x)[2]
+
+
+# ----------------------------------------------------------------------------------------------
+# plane
+# ----------------------------------------------------------------------------------------------
+class Plane(LevelSet):
+    """The plane through the point p with unit normal n, as its signed distance phi(x) = n . (x - p):
+    the half-space {phi < 0} lies behind the normal, which points out of it.
+
+    A P1 interpolant reproduces it exactly, so its cut is exact on any mesh.  grad phi = n,
+    Hess phi = 0, p(x) = x - phi(x) n, mean curvature 0; lipschitz 1.  A plane is not a closed
+    surface: it bounds a domain only together with other level sets (a ball cut by a half-space,
+    a cube from six planes: :func:`cutfem.geometry.csg.intersection`), and it has no bounding box.
+    ``normal``: any nonzero vector (normalized here); ``point``: a point of the plane.
+    """
+
+    is_distance = True
+    lipschitz = 1.0
+
+    def __init__(self, normal=(0.0, 0.0, 1.0), point=(0.0, 0.0, 0.0)):
+        n = _center(normal, "Plane: the normal")
+        length = float(np.linalg.norm(n))
+        if not length > 0:
+            raise ValueError(f"Plane: the normal must be a nonzero vector, got {normal!r}")
+        self.normal_vector = n / length
+        self.point = _center(point, "Plane: the point")
+
+    def __repr__(self) -> str:
+        return f"Plane(normal={tuple(self.normal_vector.tolist())!r}, point={tuple(self.point.tolist())!r})"
+
+    def value(self, x):
+        """n . (x - p), shape (...)."""
+        x = _as_points(x)
+        return (x - self.point) @ self.normal_vector
+
+    def gradient(self, x):
+        """n, shape (..., 3)."""
+        x = _as_points(x)
+        return np.broadcast_to(self.normal_vector, x.shape).copy()
+
+    def hessian(self, x):
+        """0, shape (..., 3, 3)."""
+        x = _as_points(x)
+        return np.zeros(x.shape + (3,))
+
+    def closest_point(self, x):
+        """x - phi(x) n, shape (..., 3)."""
+        x = _as_points(x)
+        return x - self.value(x)[..., None] * self.normal_vector
+
+    def exact_normal(self, x):
+        return self.gradient(x)
+
+    def exact_mean_curvature(self, x):
+        return np.zeros(_as_points(x).shape[:-1])
+
+    def exact_mean_curvature_vector(self, x):
+        return np.zeros(_as_points(x).shape)
 
 
 # ----------------------------------------------------------------------------------------------

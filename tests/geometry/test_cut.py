@@ -525,7 +525,8 @@ def test_marching_codes_collapsed_pieces_and_slot_keys_against_the_case_table():
     code, the tets kept (at least three distinct vertices, a slot being the node j when
     phi_j == 0 and its edge (i, j) otherwise) compacted in order, and the slot keys (node j, or
     p + min p + max of the edge's nodes); values drawn with many exact zeros."""
-    from cutfem.geometry.cut import _CASES, _EDGE_I, _EDGE_J, _marching
+    from cutfem.geometry.cut import _marching
+    from cutfem.geometry.marching import CASES, EDGE_I, EDGE_J
     from cutfem.geometry.cut_kernels import slot_keys
 
     rng = np.random.default_rng(11)
@@ -537,7 +538,7 @@ def test_marching_codes_collapsed_pieces_and_slot_keys_against_the_case_table():
     kept, expected_codes, expected_keys = [], [], []
     for t, v in enumerate(vals):
         c = sum(1 << k for k in range(4) if v[k] < 0)
-        edges = _CASES[c] + _CASES[c][-1:] * (4 - len(_CASES[c]))
+        edges = CASES[c] + CASES[c][-1:] * (4 - len(CASES[c]))
         vertices = {("node", j) if v[j] == 0 else ("edge", i, j) for i, j in edges}
         if len(vertices) >= 3:
             kept.append(t)
@@ -552,7 +553,7 @@ def test_marching_codes_collapsed_pieces_and_slot_keys_against_the_case_table():
     np.testing.assert_array_equal(lab, orig_labels[kept])
     np.testing.assert_array_equal(val, orig_vals[kept])
     np.testing.assert_array_equal(code, expected_codes)
-    np.testing.assert_array_equal(slot_keys(lab, code, val, _EDGE_I, _EDGE_J, p), expected_keys)
+    np.testing.assert_array_equal(slot_keys(lab, code, val, EDGE_I, EDGE_J, p), expected_keys)
 
 
 def test_edge_census_against_a_sort_of_the_edge_keys():

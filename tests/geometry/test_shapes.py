@@ -1,4 +1,4 @@
-"""Tests of cutfem.geometry.shapes (Sphere, Torus, Ellipsoid) against independent references.
+"""Tests of cutfem.geometry.shapes (Sphere, Torus, Ellipsoid, Plane) against independent references.
 
 References used (tests/levelset_references.py): central finite differences, closed forms of the
 sphere, first and second fundamental forms of explicit parametrizations (torus, ellipsoid),
@@ -9,7 +9,7 @@ over dense surface samples.
 import numpy as np
 import pytest
 
-from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
+from cutfem.geometry.shapes import Ellipsoid, Plane, Sphere, Torus
 from levelset_references import (
     ellipsoid_param,
     fd_gradient,
@@ -263,3 +263,23 @@ def test_torus_value_is_numpys_hypot_bit_for_bit():
         tor.value(x)
     with pytest.raises(ValueError, match="shape"):
         tor.value(np.zeros((4, 2)))
+
+
+def test_plane_is_the_signed_distance_to_its_plane():
+    """Plane(n, p): phi = n.(x - p) / |n|, grad the unit normal, Hessian 0, the closest point on the
+    plane along the normal, curvature 0; a zero normal or a bad point is refused."""
+    rng = np.random.default_rng(RNG_SEED)
+    x = rng.uniform(-1, 1, size=(20, 3))
+    plane = Plane((0.0, 3.0, 4.0), (0.1, 0.2, 0.3))
+    n = np.array([0.0, 0.6, 0.8])
+    np.testing.assert_allclose(plane.value(x), (x - [0.1, 0.2, 0.3]) @ n, rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(plane.gradient(x), np.broadcast_to(n, x.shape))
+    np.testing.assert_array_equal(plane.hessian(x), np.zeros((20, 3, 3)))
+    p = plane.closest_point(x)
+    np.testing.assert_allclose(plane.value(p), 0.0, atol=1e-15)
+    np.testing.assert_allclose(np.cross(x - p, n), 0.0, atol=1e-15)
+    assert np.all(plane.exact_mean_curvature(x) == 0) and plane.bounds() is None
+    with pytest.raises(ValueError, match="normal must be a nonzero vector"):
+        Plane((0, 0, 0))
+    with pytest.raises(ValueError, match="the point must be 3 finite coordinates"):
+        Plane((0, 0, 1), (0, np.nan, 0))

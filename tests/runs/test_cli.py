@@ -224,14 +224,15 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     from cutfem.fem.pointwise import dot
     from cutfem.fem.terms import (apply_dirichlet, basis_integrals, face_jump_penalty, interface_nitsche, load, nitsche,
                                   stiffness)
-    from cutfem.geometry.shapes import Sphere
+    from cutfem.geometry.csg import intersection
+    from cutfem.geometry.shapes import Plane, Sphere
     from cutfem.geometry.box import structured_box
     from cutfem.solvers.solve import solve
     from cutfem.fem.spaces import CutP1Space
     from cutfem.geometry.surface_meshes import sphere_mesh
 
     blocks = _forms_md_blocks()
-    assert len(blocks) == 8
+    assert len(blocks) == 9
     ns = {}
     exec("from cutfem.geometry.cut import CUT, NEG, POS, cut_mesh\n"
          "from cutfem.fem.forms import *\n"
@@ -348,6 +349,12 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     assert (K != K.T).nnz == 0 and K.shape == (Vn.n_dofs + 1,) * 2
     ones = assemble(basis_integrals(cut.dx(NEG)), Vn)
     assert np.abs(K[Vn.n_dofs, : Vn.n_dofs].toarray().ravel() - ones).max() < 1e-14 * ones.max()
+
+    # a domain of two level sets: Nitsche on the sphere, the flux on the disc; a linear u exactly
+    run(8, background=structured_box([-1.2] * 3, [1.2] * 3, spacing=0.3), intersection=intersection, ball=Sphere(1.0),
+        cap=Plane((0, 0, 1), (0, 0, 0.5)), f=zero, g=linear, g_n=lambda x: np.full(x.shape[:-1], g[2]))
+    u, _ = solve(ns["K"], ns["b"], method="direct")
+    assert np.abs(u - linear(ns["V"].dof_points)).max() < 1e-9
 
 
 def test_readme_commands_match_ci():
