@@ -39,6 +39,17 @@ BACKGROUND_PARAM = Param("background", str, "structured",
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 SOLVER_PARAM = Param("solver", str, "auto", "linear solver", choices=SOLVERS)
 
+#: the background box of the bulk problems
+DOMAIN_BOX_PARAM = Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)")
+
+#: the domain, background and box of the bulk problems whose data do not depend on the domain
+DOMAIN_PARAMS = [
+    Param("surface", str, "sphere", "domain: sphere (ball), torus (solid torus), ellipsoid, a closed mesh file, an expression "
+          "in x, y, z or a Python file defining phi"),
+    BACKGROUND_PARAM,
+    DOMAIN_BOX_PARAM,
+]
+
 #: the background box of the cut surface problems
 SURFACE_BOX_PARAM = Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the surface's box grown by 0.1)")
 

@@ -28,7 +28,7 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, 
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 
-from .common import (BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory,
+from .common import (DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory,
                      check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for)
 
 DISPLACEMENT = Exact(["sin(x) * exp(y / 2)", "cos(y) * z", "x * y * z + sin(z)"])
@@ -54,9 +54,7 @@ def load_of(mu: float, lam: float) -> Exact:
     level_name="spacing",
     definitions=DEFINITIONS,
     params=[
-        Param("surface", str, "sphere", "domain: sphere (ball), torus (solid torus), ellipsoid, an expression or a Python file"),
-        BACKGROUND_PARAM,
-        Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)"),
+        *DOMAIN_PARAMS,
         Param("mu", float, 1.0, "shear modulus mu", positive=True),
         Param("lam", float, 2.0, "Lame's first parameter lam (>= 0; P1 locks as lam / mu grows)", minimum=0),
         Param("gamma", float, 10.0, "Nitsche penalty gamma (times 2 mu + lam)", positive=True),

@@ -30,7 +30,7 @@ from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space
 
-from .common import BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for, value_and_gradient
+from .common import DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for, value_and_gradient
 
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
@@ -91,9 +91,7 @@ DEFINITIONS = {
     level_name="spacing",
     definitions=DEFINITIONS,
     params=[
-        Param("surface", str, "sphere", "domain: sphere (ball), torus (solid torus), ellipsoid or a closed mesh file"),
-        BACKGROUND_PARAM,
-        Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)"),
+        *DOMAIN_PARAMS,
         Param("gamma", float, 10.0, "Nitsche penalty gamma (a warning above 1e3)", positive=True),
         Param("gamma_g", float, 0.1, "ghost penalty gamma_g (meaningful in [0.01, 1]: a warning above 1, refused above 1e6)", minimum=0),
         SOLVER_PARAM,

@@ -44,7 +44,7 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, 
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 
-from .common import (BACKGROUND_PARAM, BULK_BYTES_PER_TET, SOLVER_PARAM, USER_SURFACES, background_for, check_bulk_memory,
+from .common import (BACKGROUND_PARAM, BULK_BYTES_PER_TET, DOMAIN_BOX_PARAM, SOLVER_PARAM, USER_SURFACES, background_for, check_bulk_memory,
                      check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for)
 
 #: the manufactured solution and its data
@@ -140,7 +140,7 @@ def parse_parts(text, domain: Domain) -> list:
               "Dirichlet (Nitsche)"),
         Param("radius", float, 1.0, "radius of a level set named sphere", positive=True),
         BACKGROUND_PARAM,
-        Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)"),
+        DOMAIN_BOX_PARAM,
         Param("gamma", float, 10.0, "Nitsche penalty gamma (a warning above 1e3); where two Dirichlet parts meet, a tet "
               "carries two pieces and the bound about doubles: 20 (the ball above z = 0.5, all Dirichlet)", positive=True),
         Param("gamma_g", float, 0.1, "ghost penalty gamma_g (meaningful in [0.01, 1]: a warning above 1, refused above 1e6)", minimum=0),

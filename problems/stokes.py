@@ -36,7 +36,7 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, register
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 
-from .common import (BACKGROUND_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, background_for, check_bulk_memory,
+from .common import (DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, background_for, check_bulk_memory,
                      check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for)
 
 _A = Exact(["sin(y)*sin(z)", "sin(z)*sin(x)", "sin(x)*sin(y)"])
@@ -85,9 +85,7 @@ def _normal_data(v, w):
     level_name="spacing",
     definitions=DEFINITIONS,
     params=[
-        Param("surface", str, "sphere", "domain: sphere (ball), torus (solid torus), ellipsoid, an expression or a Python file"),
-        BACKGROUND_PARAM,
-        Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)"),
+        *DOMAIN_PARAMS,
         Param("nu", float, 1.0, "viscosity nu", positive=True),
         Param("gamma", float, 20.0, "Nitsche penalty gamma (times nu)", positive=True),
         Param("gamma_u", float, 0.1, "ghost penalty of the velocity (times nu, h_F)", minimum=0),
