@@ -56,7 +56,8 @@ Fictitious-domain Poisson (docs/math.md §8)
 :func:`ngsxfem_poisson` solves ``cutfem.run("poisson-cut")``'s problem on the same tets, with the
 same snapped P1 level set (zeros -> +EPS and the collapsed tets not counted as cut, as above), h_T
 from netgen's element table and h_F from the facet normal (:func:`kuhn_face_h`: exact on a Kuhn
-lattice, where NGSolve offers no longest edge of a facet).
+lattice, where NGSolve offers no longest edge of a facet), the inside of the level set through
+:class:`NegSide`.
 """
 
 from __future__ import annotations
@@ -428,6 +429,50 @@ def element_longest_edges(mesh) -> np.ndarray:
     return h
 
 
+class NegSide:
+    """The inside {phi_h < 0} of cutfem's snapped P1 level set on an :class:`NgBackground`, as the
+    bulk problems see it in ngsxfem: the level set GridFunction (zeros -> +EPS), the tets that meet
+    it (``hasneg``), the cut tets without those whose piece collapses under cutfem's zero rule
+    (``cut``, :func:`collapsed_tets`: their pieces of Gamma_h have area O(EPS)), the ghost facets
+    (interior facets between a HASNEG tet and a cut one, cutfem's ``ghost_facets(NEG)``) and h_T
+    (the longest edge of each tet, an order-0 L2 GridFunction).  Fills the stages ``levelset``
+    (nodal values and GridFunction) and ``cut`` (the rest) of the timer dict ``T``."""
+
+    def __init__(self, background, levelset, T):
+        import ngsolve as ngs
+        from ngsolve import H1, L2, GridFunction
+        from xfem import HASNEG, IF, CutInfo, GetFacetsWithNeighborTypes
+
+        mesh = background.mesh
+        t0 = time.perf_counter()
+        self.snapped = cutfem_nodal_values(background.box, levelset)
+        values = self.snapped.copy()
+        values[values == 0] = EPS
+        self.lset = GridFunction(H1(mesh, order=1))
+        self.lset.vec.FV().NumPy()[:] = values
+        T["levelset"] = time.perf_counter() - t0
+
+        t0 = time.perf_counter()
+        ci = CutInfo(mesh, self.lset)
+        self.hasneg = ci.GetElementsOfType(HASNEG)
+        self.cut = ngs.BitArray(ci.GetElementsOfType(IF))
+        self.dropped = collapsed_tets(background.box, self.snapped)
+        for k in self.dropped.tolist():  # only around the nodes on the surface
+            self.cut.Clear(k)
+        self.ghost = GetFacetsWithNeighborTypes(mesh, a=self.hasneg, b=self.cut, bnd_val_a=False, bnd_val_b=False, use_and=True)
+        self.hT = GridFunction(L2(mesh, order=0))
+        self.hT.vec.FV().NumPy()[:] = element_longest_edges(mesh)
+        T["cut"] = time.perf_counter() - t0
+        self.mesh = mesh
+
+    def sizes(self) -> dict:
+        """The sizes a record carries: active (HASNEG) tets, cut tets, ghost faces, zero nodes, the
+        collapsed tets dropped from the cut ones, background nodes and tets."""
+        return {"active_tets": int(self.hasneg.NumSet()), "cut_tets": int(self.cut.NumSet()), "ghost_faces": int(self.ghost.NumSet()),
+                "zero_nodes": int(np.sum(self.snapped == 0)), "dropped_collapsed_tets": int(self.dropped.size),
+                "background_nodes": int(self.mesh.nv), "background_tets": int(self.mesh.ne)}
+
+
 def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON_GAMMA_G, inverse="cg-local",
                     background=None, also_direct=False) -> dict:
     """Fictitious-domain Poisson (docs/math.md §8) with ngsxfem on cutfem's structured background.
@@ -450,37 +495,20 @@ def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON
     sizes and stage times.
     """
     import ngsolve as ngs
-    from ngsolve import H1, L2, GridFunction, InnerProduct, Integrate, LinearForm, grad, specialcf, sqrt
-    from xfem import HASNEG, IF, NEG, CutInfo, GetDofsOfElements, GetFacetsWithNeighborTypes, RestrictedBilinearForm, dCut
+    from ngsolve import H1, GridFunction, InnerProduct, Integrate, LinearForm, grad, specialcf, sqrt
+    from xfem import IF, NEG, GetDofsOfElements, RestrictedBilinearForm, dCut
 
     levelset = Sphere() if levelset is None else levelset
     T = {}
     if background is None:
         background = NgBackground(spacing, levelset)
-    bg, mesh = background.box, background.mesh
-    T["mesh"] = background.seconds
-
+    mesh = background.mesh
+    side = NegSide(background, levelset, T)
+    lset, hasneg, cut, ghost, hT = side.lset, side.hasneg, side.cut, side.ghost, side.hT
     t0 = time.perf_counter()
-    snapped = cutfem_nodal_values(bg, levelset)
-    values = snapped.copy()
-    values[values == 0] = EPS
-    lset = GridFunction(H1(mesh, order=1))
-    lset.vec.FV().NumPy()[:] = values
-    T["levelset"] = time.perf_counter() - t0
-
-    t0 = time.perf_counter()
-    ci = CutInfo(mesh, lset)
-    hasneg = ci.GetElementsOfType(HASNEG)
-    cut = ngs.BitArray(ci.GetElementsOfType(IF))
-    drop = collapsed_tets(bg, snapped)
-    for k in drop.tolist():  # only around the nodes on the sphere
-        cut.Clear(k)
-    ghost = GetFacetsWithNeighborTypes(mesh, a=hasneg, b=cut, bnd_val_a=False, bnd_val_b=False, use_and=True)
     Vf = H1(mesh, order=1, dgjumps=True)
     V = ngs.Compress(Vf, GetDofsOfElements(Vf, hasneg))
-    hT = GridFunction(L2(mesh, order=0))
-    hT.vec.FV().NumPy()[:] = element_longest_edges(mesh)
-    T["cut"] = time.perf_counter() - t0
+    T["cut"] += time.perf_counter() - t0
 
     t0 = time.perf_counter()
     u_ex, grad_ex, f = poisson_exact_cf()
@@ -537,16 +565,11 @@ def ngsxfem_poisson(spacing, levelset=None, gamma=POISSON_GAMMA, gamma_g=POISSON
         "h1_error": h1,
         "volume": volume,
         "dofs": int(V.ndof),
-        "active_tets": int(hasneg.NumSet()),
-        "cut_tets": int(cut.NumSet()),
-        "ghost_faces": int(ghost.NumSet()),
-        "zero_nodes": int(np.sum(snapped == 0)),
-        "dropped_collapsed_tets": int(drop.size),
-        "background_nodes": int(mesh.nv),
-        "background_tets": int(mesh.ne),
+        **side.sizes(),
         "solver": inverse,
         "solver_iterations": int(iterations),
         "time": T,
         "total": sum(T.values()),
         **extra,
     }
+
