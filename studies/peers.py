@@ -1,6 +1,6 @@
 """Side by side with a peer: cutfem and ngsxfem (NGSolve + xfem) on the identical cut mean
-curvature and fictitious-domain Poisson problems, and the meshed torus against the cotangent
-Laplacian.
+curvature, fictitious-domain Poisson and cut Stokes problems, and the meshed torus against the
+cotangent Laplacian.
 
 Both codes solve the same discrete problems: ngsxfem on cutfem's own tets, level set and penalties
 (:mod:`cutfem.studies.peers_ngsxfem` says how, and how it meets the exact zeros of the level set:
@@ -67,6 +67,25 @@ vertex in the coarse space, i.e. a direct solve, CG with h1amg stops at a wrong 
 unknowns; its sparse Cholesky is timed once per level as ``solve_direct``).  Each level runs both codes ``repeat`` times,
 alternating, and reports the median.  Outputs ``peers_poisson.json``/``.csv`` and a table.
 
+Stokes in the cut ball (``--problem stokes``)
+---------------------------------------------
+``cutfem.run("stokes-cut")`` (docs/math.md §12: P1-P1 in the unit ball, its default box and
+parameters) against :func:`~cutfem.studies.peers_ngsxfem.ngsxfem_stokes`: the same tets, snapped
+level set, h_T and h_F as the Poisson comparison, the same form term by term (Nitsche with
+nu gamma / h_T, ghost penalties nu gamma_u h_F and gamma_p / nu h_F^3, Brezzi-Pitkaranta
+(beta / nu) h_T^2 (grad p, grad q) over the cut parts), the same manufactured solution and
+quadrature degrees.  What differs: the mean-value multiplier (cutfem a ``RealSpace`` field of the
+product space; ngsxfem the assembled matrix bordered by (q, 1), because its ``NumberSpace`` beside
+ghost facets makes the first assembly very slow), and the solvers, each code's fastest here.  cutfem:
+its default, MINRES with multigrid on the velocity block and the pressure Schur approximation
+(direct up to 5000 unknowns).  ngsxfem: NGSolve's MINRES with the block-diagonal preconditioner
+diag(A, (1/nu) M_p + stabilization, nu |Omega_h|) factorized by its sparse Cholesky (exact block
+solves: fewer iterations; cheaper than its direct solve of the whole matrix, which is timed once
+per level beside it, ``ngsxfem_direct``).  Every run is a fresh process (:func:`stokes_level`):
+stage times, the resident memory after the imports and the peak (VmHWM); ``repeat`` alternating
+runs per code and the median total and median peak.  Outputs ``peers_stokes.json``/``.csv`` and a
+table.
+
 Outputs (prefix ``peers``): ``peers.json``, ``peers.csv`` (cut levels), ``peers_meshed.csv``,
 ``peers.png/.pdf`` (time against active tets for both codes; errors of both codes and their relative
 difference; the meshed comparison).  Without ngsolve/xfem, ``run`` writes ``peers.json`` saying so
@@ -76,6 +95,7 @@ and returns ``{"skipped": 'install with pip install -e ".[peers]"'}``.
 from __future__ import annotations
 
 import gc
+import importlib
 import math
 import time
 from pathlib import Path
@@ -95,12 +115,17 @@ from cutfem.solvers.solve import DIRECT_LIMIT
 
 from .baselines import cotangent_mean_curvature
 from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, study_main, torus_family
-from .peers_ngsxfem import (BYTES_PER_TET, EPS, INSTALL, ORDER, POISSON_GAMMA, POISSON_GAMMA_G, TAU_F, NgBackground,
-                            available_memory, ngsxfem_mean_curvature, ngsxfem_poisson, peer_missing, peer_versions)
+from .peers_ngsxfem import (BYTES_PER_TET, EPS, INSTALL, MINRES_TOL, ORDER, POISSON_GAMMA, POISSON_GAMMA_G, STOKES_PARAMS, TAU_F,
+                            NgBackground, available_memory, ngsxfem_mean_curvature, ngsxfem_poisson, ngsxfem_stokes, peer_missing,
+                            peer_versions)
+from .performance_levels import _PEAK_CODE, fresh_process_result
 
 NAME = "peers"
 OUTPUTS = [NAME, f"{NAME}_meshed"]  # peers.json/.csv/.png/.pdf, peers_meshed.csv
 POISSON_NAME = f"{NAME}_poisson"  # --problem poisson: peers_poisson.json/.csv
+STOKES_NAME = f"{NAME}_stokes"  # --problem stokes: peers_stokes.json/.csv
+#: ngsxfem's Stokes solver (the fastest here: block-preconditioned MINRES) and the direct one timed beside it
+STOKES_SOLVER, STOKES_DIRECT = "minres", "sparsecholesky"
 BOX = "-1.6,-1.6,-0.6,1.6,1.6,0.6"
 TAU_E = 0.1
 SHIFT = 1e-6 * np.sqrt([2.0, 3.0, 5.0]) / 3.0
@@ -248,9 +273,9 @@ def cutfem_poisson(spacing, solver="auto") -> dict:
     return rec
 
 
-def cutfem_poisson_sets(spacing, levelset=None) -> dict:
-    """The sizes of cutfem's Poisson problem that ngsxfem reports too: the tets of NEG (the active
-    set) and its ghost faces (untimed: one cut of the background)."""
+def cutfem_neg_sets(spacing, levelset=None) -> dict:
+    """The sizes of cutfem's bulk problems (poisson-cut, stokes-cut) that ngsxfem reports too: the
+    tets of NEG (the active set) and its ghost faces (untimed: one cut of the background)."""
     levelset = Sphere() if levelset is None else levelset
     cut = cut_mesh(background_for(levelset, spacing), levelset)
     return {"active_tets": int(cut.elements(NEG).n_elements), "ghost_faces": int(cut.ghost_facets(NEG).n_facets)}
@@ -280,7 +305,7 @@ def compare_poisson_level(spacing, progress=None, repeat=1, also_direct=False) -
     cf, ng = _median_run(cfs), _median_run(ngs_)
     if also_direct:
         ng.update({k: ngs_[0][k] for k in ("solve_direct", "direct_vs_solver")})
-    cf.update(cutfem_poisson_sets(spacing))
+    cf.update(cutfem_neg_sets(spacing))
     out = {"spacing": spacing, "cutfem": cf, "ngsxfem": ng, "load_average": load, "repeat": repeat,
            "same_problem": all(ng[k] == cf[k] for k in ("dofs", "active_tets", "cut_tets", "ghost_faces")),
            "rel_diff_l2": _rel(ng["l2_error"], cf["l2_error"]), "rel_diff_h1": _rel(ng["h1_error"], cf["h1_error"]),
@@ -342,6 +367,159 @@ def poisson_table(rows) -> str:
         lines.append(f"{r['spacing']:>8g} {r['dofs']:>9d} {r['l2_cutfem']:>11.5e} {r['l2_ngsxfem']:>11.5e} {r['rel_diff_l2']:>8.1e} "
                      f"{r['h1_cutfem']:>10.5e} {r['h1_ngsxfem']:>10.5e} {r['time_cutfem']:>8.2f}s {r['time_ngsxfem']:>8.2f}s {r['time_ratio']:>6.1f}")
     return "\n".join(lines)
+
+# ---------------------------------------------------------------------------------------------
+# Stokes in the cut ball (docs/math.md §12) in both codes, each run in a fresh process
+# ---------------------------------------------------------------------------------------------
+
+_STOKES_CODE = _PEAK_CODE + """\
+import json
+from cutfem.studies.peers import stokes_level
+print('RESULT ' + json.dumps(stokes_level({code!r}, {spacing!r}, {solver!r}, _peak)))
+"""
+
+
+def _resident_gib() -> float | None:
+    """This process's resident memory now (VmRSS, GiB), None without /proc."""
+    try:
+        for line in Path("/proc/self/status").read_text().splitlines():
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) / 2**20
+    except OSError:
+        return None
+    return None
+
+
+def stokes_level(code, spacing, solver, peak) -> dict:
+    """One code's Stokes level (``code`` "cutfem": ``cutfem.run("stokes-cut")`` with ``solver``;
+    "ngsxfem": :func:`~cutfem.studies.peers_ngsxfem.ngsxfem_stokes` with ``inverse=solver``) in the
+    calling process, after its imports: the record with the resident memory before the level
+    (``start_memory_gib``) and the process's peak after it (``peak()``, ``peak_memory_gib``)."""
+    if code == "ngsxfem":  # imported before the level, as cutfem is
+        for module in ("ngsolve", "xfem"):
+            importlib.import_module(module)
+    start = _resident_gib()
+    if code == "cutfem":
+        t0 = time.perf_counter()
+        r = cutfem.run("stokes-cut", levels=[spacing], solver=solver).records[0]
+        keep = ("l2_error_velocity", "h1_error_velocity", "l2_error_pressure", "volume", "dofs", "active_tets", "solver", "solver_iterations")
+        rec = {k: r[k] for k in keep}
+        rec.update(time=dict(r["time"]), total=sum(r["time"].values()), wall=time.perf_counter() - t0)
+    else:
+        rec = ngsxfem_stokes(spacing, inverse=solver)
+    return dict(rec, start_memory_gib=start, peak_memory_gib=peak())
+
+
+def _stokes_process(code, spacing, solver) -> dict:
+    """:func:`stokes_level` in a fresh interpreter, with the wall time of the whole process
+    (``process_wall``: interpreter start and imports included)."""
+    t0 = time.perf_counter()
+    rec = fresh_process_result(_STOKES_CODE.format(code=code, spacing=spacing, solver=solver), f"stokes {code} spacing {spacing}")
+    return dict(rec, process_wall=time.perf_counter() - t0)
+
+
+def _median_memory_run(runs):
+    """:func:`_median_run`, with the median of the peaks (``peak_memory_gib``) and every peak kept."""
+    peaks = sorted(r["peak_memory_gib"] for r in runs)
+    return dict(_median_run(runs), peak_memory_gib=peaks[(len(peaks) - 1) // 2], peaks=[r["peak_memory_gib"] for r in runs])
+
+
+STOKES_ERRORS = ("l2_error_velocity", "h1_error_velocity", "l2_error_pressure")
+
+
+def compare_stokes_level(spacing, progress=None, repeat=1, direct=False) -> dict:
+    """Both codes on ``stokes-cut`` at one spacing, each run in a fresh process ``repeat`` times,
+    alternating (cutfem, ngsxfem, cutfem, ...); the run with the median total and the median peak
+    memory are reported.  ``direct``: ngsxfem once more with NGSolve's direct solver
+    (:data:`STOKES_DIRECT`, its own process: time and peak)."""
+    import os
+
+    load = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
+    cfs, ngs_ = [], []
+    for i in range(repeat):
+        _say(progress, f"stokes spacing {spacing}: cutfem ({i + 1}/{repeat})")
+        cfs.append(_stokes_process("cutfem", spacing, "auto"))
+        _say(progress, f"stokes spacing {spacing}: ngsxfem ({i + 1}/{repeat})")
+        ngs_.append(_stokes_process("ngsxfem", spacing, STOKES_SOLVER))
+    cf, ng = _median_memory_run(cfs), _median_memory_run(ngs_)
+    cf.update(cutfem_neg_sets(spacing))
+    out = {"spacing": spacing, "cutfem": cf, "ngsxfem": ng, "load_average": load, "repeat": repeat,
+           "same_problem": all(ng[k] == cf[k] for k in ("dofs", "active_tets", "ghost_faces")),
+           "rel_diff": {k: _rel(ng[k], cf[k]) for k in STOKES_ERRORS},
+           "time_ratio": ng["total"] / cf["total"], "memory_ratio": ng["peak_memory_gib"] / cf["peak_memory_gib"]}
+    if direct:
+        _say(progress, f"stokes spacing {spacing}: ngsxfem, {STOKES_DIRECT}")
+        d = _stokes_process("ngsxfem", spacing, STOKES_DIRECT)
+        out["ngsxfem_direct"] = {k: d[k] for k in ("time", "total", "peak_memory_gib", "residual", *STOKES_ERRORS)}
+    _say(progress, f"  L2 u {ng['l2_error_velocity']:.8g} (ngsxfem) {cf['l2_error_velocity']:.8g} (cutfem); "
+                   f"time {ng['total']:.2f} s / {cf['total']:.2f} s, peak {ng['peak_memory_gib']:.2f} / {cf['peak_memory_gib']:.2f} GiB")
+    return out
+
+
+def _stokes_row(c):
+    cf, ng, d = c["cutfem"], c["ngsxfem"], c.get("ngsxfem_direct", {})
+    row = {"spacing": c["spacing"], "dofs": cf["dofs"], "active_tets": cf["active_tets"], "ghost_faces": cf["ghost_faces"],
+           "same_problem": c["same_problem"]}
+    for k, short in zip(STOKES_ERRORS, ("l2u", "h1u", "l2p")):
+        row.update({f"{short}_cutfem": cf[k], f"{short}_ngsxfem": ng[k], f"rel_diff_{short}": c["rel_diff"][k]})
+    row.update(time_cutfem=cf["total"], time_ngsxfem=ng["total"], time_ratio=c["time_ratio"], memory_cutfem_gib=cf["peak_memory_gib"],
+               memory_ngsxfem_gib=ng["peak_memory_gib"], memory_ratio=c["memory_ratio"], start_memory_cutfem_gib=cf["start_memory_gib"],
+               start_memory_ngsxfem_gib=ng["start_memory_gib"], process_wall_cutfem=cf["process_wall"], process_wall_ngsxfem=ng["process_wall"],
+               cutfem_solver=cf["solver"], cutfem_iterations=cf["solver_iterations"], ngsxfem_solver=ng["solver"],
+               ngsxfem_iterations=ng["solver_iterations"], time_ngsxfem_direct=d.get("total"), memory_ngsxfem_direct_gib=d.get("peak_memory_gib"),
+               runs=c["repeat"], load_average=c["load_average"])
+    row.update({f"cutfem_{k}": v for k, v in cf["time"].items()})
+    row.update({f"ngsxfem_{k}": v for k, v in ng["time"].items()})
+    return row
+
+
+def run_stokes(out: Path, size: str = "quick", progress=None) -> dict:
+    """The Stokes comparison: ``peers_stokes.json`` / ``.csv`` and a table on standard output."""
+    out = Path(out)
+    missing = peer_missing()
+    if missing is not None:
+        print(f"peers: ngsolve/xfem not importable ({missing}); {INSTALL}")
+        save_json(out, STOKES_NAME, {"size": size, "peer": "ngsxfem", "available": False, "reason": missing, "skipped": INSTALL})
+        return {"skipped": INSTALL}
+
+    spacings = pick(size, [0.2], [0.2, 0.1], [0.2, 0.1, 0.075, 0.0625])
+    levels = [compare_stokes_level(s, progress, repeat=pick(size, 1, 3, 3), direct=size != "tiny") for s in spacings]
+    rows = [_stokes_row(c) for c in levels]
+    save_json(out, STOKES_NAME, {
+        "size": size, "peer": "ngsxfem", "available": True, "versions": peer_versions(),
+        "problem": {"domain": "unit ball (cutfem's default structured box)", **STOKES_PARAMS,
+                    "nitsche_h": "h_T, longest edge of the cut tet", "ghost_h": "h_F (velocity) and h_F^3 (pressure), longest edge of the facet",
+                    "pressure_stabilization": "Brezzi-Pitkaranta -(beta/nu) h_T^2 (grad p, grad q) over the cut part of each tet, in both",
+                    "mean_value": "cutfem: RealSpace multiplier; ngsxfem: the assembled matrix bordered by (q, 1) (a multiplier)",
+                    "exact": "u = curl (sin y sin z, sin z sin x, sin x sin y), p = x y z + x^2 - y^2",
+                    "zero_nodal_values": f"ngsxfem: +{EPS:g}, collapsed tets not cut"},
+        "solvers": {"cutfem": "solve(method='auto'): MINRES, block preconditioner of multigrid on the velocity block and the pressure "
+                              "Schur approximation (direct up to 5000 unknowns), rel. residual 1e-8",
+                    "ngsxfem": f"NGSolve MinResSolver (tol {MINRES_TOL:g}, preconditioned norm), preconditioner diag(A, (1/nu) M_p + "
+                               f"stabilization, nu |Omega_h|) factorized by sparsecholesky; direct: {STOKES_DIRECT} of the whole matrix"},
+        "threads": "NGSolve without TaskManager (one thread); cutfem numpy/scipy/numba",
+        "timing": "each run in a fresh process; median total and median peak (VmHWM) of the alternating runs; the machine was shared",
+        "levels": levels, "table": rows,
+    })
+    save_csv(out, STOKES_NAME, rows)
+    print(stokes_table(rows))
+    return {"size": size, "table": rows}
+
+
+def stokes_table(rows) -> str:
+    """The Stokes comparison as a fixed-width text table (errors of both codes, times, peak memory, ratios)."""
+    head = f"{'spacing':>8} {'unknowns':>9} {'L2 u cutfem':>12} {'ngsxfem':>12} {'H1 u cutfem':>12} {'ngsxfem':>12} " \
+           f"{'L2 p cutfem':>12} {'ngsxfem':>12} {'max rel':>8} {'t cutfem':>9} {'t ngsxfem':>9} {'ratio':>6} " \
+           f"{'GiB cutfem':>10} {'ngsxfem':>8} {'ratio':>6}"
+    lines = [head]
+    for r in rows:
+        rel = max(r["rel_diff_l2u"], r["rel_diff_h1u"], r["rel_diff_l2p"])
+        lines.append(f"{r['spacing']:>8g} {r['dofs']:>9d} {r['l2u_cutfem']:>12.6e} {r['l2u_ngsxfem']:>12.6e} {r['h1u_cutfem']:>12.6e} "
+                     f"{r['h1u_ngsxfem']:>12.6e} {r['l2p_cutfem']:>12.6e} {r['l2p_ngsxfem']:>12.6e} {rel:>8.1e} {r['time_cutfem']:>8.2f}s "
+                     f"{r['time_ngsxfem']:>8.2f}s {r['time_ratio']:>6.1f} {r['memory_cutfem_gib']:>10.2f} {r['memory_ngsxfem_gib']:>8.2f} "
+                     f"{r['memory_ratio']:>6.2f}")
+    return "\n".join(lines)
+
 
 # ---------------------------------------------------------------------------------------------
 # the meshed case: cotangent Laplacian with lumped mass against the stabilized method
@@ -571,12 +749,13 @@ def _plot(out, rows, meshed):
     save_figure(fig, out, NAME)
 
 
-PROBLEMS = ("mean-curvature", "poisson", "both")
+PROBLEMS = ("mean-curvature", "poisson", "stokes", "both")
 
 
 def main(argv=None) -> int:
-    """``python -m cutfem.studies.peers [--problem mean-curvature|poisson|both]`` plus the usual
-    study options (``--out``, the size flags).  Default: the mean curvature comparison."""
+    """``python -m cutfem.studies.peers [--problem mean-curvature|poisson|stokes|both]`` plus the usual
+    study options (``--out``, the size flags).  Default: the mean curvature comparison; ``both``: it
+    and the Poisson one."""
     import argparse
 
     p = argparse.ArgumentParser(add_help=False)
@@ -584,7 +763,7 @@ def main(argv=None) -> int:
                    help="which cut problem to compare with ngsxfem (default mean-curvature)")
 
     def run_selected(out, size, progress, problem):
-        runners = {"mean-curvature": [run], "poisson": [run_poisson], "both": [run, run_poisson]}[problem]
+        runners = {"mean-curvature": [run], "poisson": [run_poisson], "stokes": [run_stokes], "both": [run, run_poisson]}[problem]
         return [r(out, size, progress) for r in runners]
 
     return study_main(run_selected, NAME, p)(argv)

@@ -1,5 +1,5 @@
-"""cutfem.studies.peers: cutfem beside ngsxfem (NGSolve + xfem) on the identical cut mean curvature
-and fictitious-domain Poisson problems.
+"""cutfem.studies.peers: cutfem beside ngsxfem (NGSolve + xfem) on the identical cut mean curvature,
+fictitious-domain Poisson and cut Stokes problems.
 
 The comparisons need the optional peers (``pip install -e ".[peers]"``) and are skipped without
 them (the ``ngsxfem`` fixture, tests/studies/conftest.py); the "peer absent" path is tested always.
@@ -86,3 +86,27 @@ def test_poisson_study_tiny_writes_json_and_table(ngsxfem, tmp_path, capsys):
     assert data["available"] and row["same_problem"] and row["time_ratio"] > 0
     assert {p.name for p in tmp_path.iterdir()} == {"peers_poisson.json", "peers_poisson.csv"}
     assert "L2 ngsxfem" in capsys.readouterr().out
+
+
+def test_stokes_without_peer_writes_a_note_and_skips(tmp_path, monkeypatch):
+    monkeypatch.setattr(peers, "peer_missing", lambda: "ModuleNotFoundError: No module named 'ngsolve'")
+    assert peers.run_stokes(tmp_path, "tiny", None) == {"skipped": 'install with pip install -e ".[peers]"'}
+    assert json.loads((tmp_path / "peers_stokes.json").read_text())["available"] is False
+
+
+def test_stokes_study_tiny_same_problem_and_errors(ngsxfem, tmp_path, capsys):
+    """Spacing 0.2, each code in a fresh process: the same unknowns, active tets and ghost faces, and
+    the three errors (L2 and H1 of the velocity, L2 of the pressure) within 1e-6 relative (measured:
+    7e-9; the codes place their quadrature points differently in the cut tets, and ngsxfem's MINRES
+    stops at a relative residual of 1e-8); times and peak memories recorded for both."""
+    assert peers.main(["--problem", "stokes", "--tiny", "--quiet", "--out", str(tmp_path)]) == 0
+    assert {p.name for p in tmp_path.iterdir()} == {"peers_stokes.json", "peers_stokes.csv"}
+    data = json.loads((tmp_path / "peers_stokes.json").read_text())
+    row = data["table"][0]
+    assert data["available"] and row["same_problem"] and row["dofs"] == 4041
+    assert max(row["rel_diff_l2u"], row["rel_diff_h1u"], row["rel_diff_l2p"]) < 1e-6
+    assert row["l2u_cutfem"] == pytest.approx(0.0208706, rel=1e-5)  # the level's record (stokes-cut at spacing 0.2)
+    for code in ("cutfem", "ngsxfem"):
+        assert row[f"time_{code}"] > 0 and row[f"memory_{code}_gib"] >= row[f"start_memory_{code}_gib"] > 0
+    assert row["ngsxfem_solver"] == "minres" and 0 < row["ngsxfem_iterations"] < 100
+    assert "L2 u cutfem" in capsys.readouterr().out

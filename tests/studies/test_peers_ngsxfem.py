@@ -82,3 +82,58 @@ def test_kuhn_face_h_is_the_longest_edge_of_each_facet(ngsxfem):
     times = np.full(len(area), 2.0)  # interior faces belong to two tets
     times[box.boundary_faces] = 1.0
     assert got == pytest.approx(np.sum(times * area * longest), rel=1e-12)
+
+
+def test_stokes_exact_fields_match_cutfem(ngsxfem):
+    """u, grad u, p and f = -nu Lap u + grad p of ngsxfem's Stokes data against cutfem's sympy ones."""
+    from cutfem.geometry.box import structured_box
+    from cutfem.problems.stokes import PRESSURE, VELOCITY
+
+    nu = 0.7
+    mesh = peers_ngsxfem.ngsolve_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=2))
+    u, grad_u, p, f = peers_ngsxfem.stokes_exact_cf(nu)
+    pts = np.array([[0.3, -0.2, 0.5], [-0.7, 0.6, 0.1], [0.05, 0.9, -0.4]])
+
+    def at(cf):
+        return np.array([cf(mesh(*x)) for x in pts])
+
+    assert np.allclose(at(u), VELOCITY(pts), rtol=1e-13, atol=1e-14)
+    assert np.allclose(at(grad_u).reshape(-1, 3, 3), VELOCITY.grad(pts), rtol=1e-13, atol=1e-14)
+    assert np.allclose(at(p), PRESSURE(pts), rtol=1e-13, atol=1e-14)
+    assert np.allclose(at(f), -nu * VELOCITY.laplacian(pts) + PRESSURE.grad(pts), rtol=1e-13, atol=1e-14)
+
+
+def test_bordered_matrix_and_block_preconditioner(ngsxfem):
+    """bordered(K, c) = [[K, c], [c^T, 0]] from lower or whole storage; the block preconditioner keeps
+    K's velocity block, negates its pressure block, adds S and the multiplier's number."""
+    import ngsolve
+
+    rng = np.random.default_rng(0)
+    K = rng.standard_normal((5, 5))
+    K = K + K.T
+    K[0, 1] = K[1, 0] = 0.0  # a stored zero
+    r, c = np.nonzero(np.ones((5, 5)))
+    whole = ngsolve.la.SparseMatrixd.CreateFromCOO(r, c, K[r, c], 5, 5)
+    low = r >= c
+    lower = ngsolve.la.SparseMatrixd.CreateFromCOO(r[low], c[low], K[r[low], c[low]], 5, 5)
+    vec = whole.CreateColVector()
+    vec.FV().NumPy()[:] = [0.0, 1.0, 2.0, 0.0, 3.0]
+    expect = np.zeros((6, 6))
+    expect[:5, :5], expect[:5, 5], expect[5, :5] = K, vec.FV().NumPy(), vec.FV().NumPy()
+    for m in (whole, lower):
+        B = peers_ngsxfem.bordered(m, vec)
+        assert np.array_equal(_dense(B), expect)
+    S = ngsolve.la.SparseMatrixd.CreateFromCOO([3, 4, 3, 4], [3, 4, 4, 3], [2.0, 2.0, 0.5, 0.5], 5, 5)
+    P = _dense(peers_ngsxfem._block_preconditioner(peers_ngsxfem.bordered(whole, vec), S, 3, 7.0))
+    want = np.zeros((6, 6))
+    want[:3, :3] = K[:3, :3]
+    want[3:5, 3:5] = -K[3:5, 3:5] + [[2.0, 0.5], [0.5, 2.0]]
+    want[5, 5] = 7.0
+    assert np.array_equal(P, want)
+
+
+def _dense(mat):
+    rows, cols, vals = (np.array(t) for t in mat.COO())
+    out = np.zeros((mat.height, mat.width))
+    np.add.at(out, (rows, cols), vals)
+    return out
