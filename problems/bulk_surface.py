@@ -43,7 +43,7 @@ from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_normal_stabilization, check_resolution, cut_record, value_and_gradient, with_point_data
+from .common import finish_record, BULK_BYTES_PER_TET, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_normal_stabilization, check_resolution, value_and_gradient, with_point_data
 
 _D = np.array([0.6, 0.3, -0.4])
 
@@ -196,10 +196,7 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
             "solver": info.method,
             "solver_iterations": info.iterations,
         }
-    rec.update(cut_record(cut, W))
-    if notes:
-        rec["warnings"] = notes
-    rec["time"] = dict(t)
+    finish_record(rec, cut, W, notes, t)
     rec["fields"] = LazyFields(
         lambda: {
             "bulk": W["bulk"].elements.to_pyvista(u_h=u_b, u_exact=sol.u_bulk(W["bulk"].dof_points)),

@@ -668,6 +668,17 @@ def check_surface_memory(nodes: float, what: str) -> None:
     check_memory(BYTES_PER_SURFACE_NODE * float(nodes), what, "use a smaller n (the memory grows like n**2)")
 
 
+def finish_record(rec: dict, cut, space=None, notes=(), timer=None) -> dict:
+    """The common end of a level's record, in place: the cut's sizes (:func:`cut_record`), the
+    parameter warnings when there are any, and the stage times of ``timer``."""
+    rec.update(cut_record(cut, space))
+    if notes:
+        rec["warnings"] = notes
+    if timer is not None:
+        rec["time"] = dict(timer)
+    return rec
+
+
 def cut_record(cut, space=None) -> dict:
     """Sizes of a cut for the per-level records (and the box used, for a structured background):
     ``pieces`` the tets the surface cuts (one piece of S_h each), ``active_tets`` the background tets

@@ -28,8 +28,8 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, 
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 
-from .common import (DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory,
-                     check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for)
+from .common import (finish_record, DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory,
+                     check_ghost_penalty, check_nitsche_penalty, levelset_for)
 
 DISPLACEMENT = Exact(["sin(x) * exp(y / 2)", "cos(y) * z", "x * y * z + sin(z)"])
 GRADIENT = DISPLACEMENT.grad
@@ -90,10 +90,7 @@ def elasticity_cut(spacing, surface, background, box, mu, lam, gamma, gamma_g, s
         l2, h1 = l2_h1_errors(W, u, lambda x: (DISPLACEMENT(x), GRADIENT(x)), dx)
         rec = {"h": W.h, "dofs": int(W.n_dofs), "l2_error": l2, "h1_error": h1, "lam_over_mu": lam / mu,
                "volume": dx.size, "solver": info.method, "solver_iterations": info.iterations}
-    rec.update(cut_record(cut, W))
-    if notes:
-        rec["warnings"] = notes
-    rec["time"] = dict(t)
+    finish_record(rec, cut, W, notes, t)
     rec["fields"] = LazyFields(lambda: {"domain": V.elements.to_pyvista(u_h=W.nodal(u), u_exact=DISPLACEMENT(V.dof_points)),
                                         "boundary": cut.to_pyvista()})
     return rec

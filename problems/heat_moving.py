@@ -34,7 +34,7 @@ from cutfem.runs.registry import H_BACKGROUND, Param, ProblemError, register
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 
-from .common import SOLVER_PARAM, check_ghost_penalty, check_nitsche_penalty, cut_record
+from .common import finish_record, SOLVER_PARAM, check_ghost_penalty, check_nitsche_penalty
 
 W = Exact("cos(x) * sin(y + 1/2) * exp(z/2)")
 SOURCE = -W - W.laplacian
@@ -122,8 +122,5 @@ def heat_moving_cut(spacing, order, dt_factor, final_time, radius, gamma, gamma_
         "solver": info.method,
         "solver_iterations": iterations,
     }
-    rec.update(cut_record(domain.cut, V))  # the domain at the final time; active tets: the extended ones
-    if notes:
-        rec["warnings"] = notes
-    rec["time"] = dict(t)
+    finish_record(rec, domain.cut, V, notes, t)  # the domain at the final time; active tets: the extended ones
     return rec

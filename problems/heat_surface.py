@@ -67,7 +67,7 @@ from cutfem.solvers.krylov import CGSolver
 from cutfem.solvers.solve import DirectSolver, multigrid_hierarchy
 from cutfem.fem.spaces import CutP1Space
 
-from .common import background_for, check_cut_memory, check_normal_stabilization, check_resolution, cut_record, with_point_data
+from .common import finish_record, background_for, check_cut_memory, check_normal_stabilization, check_resolution, with_point_data
 from cutfem.solvers import sparse_kernels
 
 _D = np.array([0.6, 0.3, -0.4])
@@ -276,10 +276,7 @@ def heat_surface_cut(spacing, theta, dt_scale, final_time, tau_n, radius, box, s
             "l2_error": l2_error(V, u, sol.u(final_time)),
             "area": cut.area,
         }
-    rec.update(cut_record(cut))
-    if notes:
-        rec["warnings"] = notes
-    rec["time"] = dict(t)
+    finish_record(rec, cut, None, notes, t)
     rec["fields"] = LazyFields(lambda: {"surface": with_point_data(
         cut.to_pyvista(), u_h=V.surface_vertex_values(u), u_exact=sol.u(final_time)(cut.vertices))})
     return rec

@@ -48,7 +48,7 @@ from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space, ProductSpace
 
-from .common import BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, levelset_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, point_rows, value_and_gradient
+from .common import finish_record, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, levelset_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -245,10 +245,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
             V, dx = W[0 if side == NEG else 1], cut.dx(side)
             rec[f"l2_error_{name}"], rec[f"h1_error_{name}"] = l2_h1_errors(V, u, sol.solution(side), dx)
         rec["solver"], rec["solver_iterations"] = info.method, info.iterations
-    rec.update(cut_record(cut, W))
-    if notes:
-        rec["warnings"] = notes
-    rec["time"] = dict(t)
+    finish_record(rec, cut, W, notes, t)
     rec["fields"] = LazyFields(
         lambda: {
             "inside": W[0].elements.to_pyvista(u_h=u_neg, u_exact=sol.u(NEG)(W[0].dof_points)),

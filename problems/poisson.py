@@ -30,7 +30,7 @@ from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutP1Space
 
-from .common import DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for, value_and_gradient
+from .common import finish_record, DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, levelset_for, value_and_gradient
 
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
@@ -129,9 +129,6 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
             "solver": info.method,
             "solver_iterations": info.iterations,
         }
-    rec.update(cut_record(cut, V))
-    if notes:
-        rec["warnings"] = notes
-    rec["time"] = dict(t)
+    finish_record(rec, cut, V, notes, t)
     rec["fields"] = LazyFields(lambda: {"domain": V.elements.to_pyvista(u_h=u, u_exact=exact_u(V.dof_points)), "boundary": cut.to_pyvista()})
     return rec

@@ -44,8 +44,8 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, 
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 
-from .common import (BACKGROUND_PARAM, BULK_BYTES_PER_TET, DOMAIN_BOX_PARAM, SOLVER_PARAM, USER_SURFACES, background_for, check_bulk_memory,
-                     check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for)
+from .common import (finish_record, BACKGROUND_PARAM, BULK_BYTES_PER_TET, DOMAIN_BOX_PARAM, SOLVER_PARAM, USER_SURFACES, background_for, check_bulk_memory,
+                     check_ghost_penalty, check_nitsche_penalty, levelset_for)
 
 #: the manufactured solution and its data
 U = Exact("sin(pi*x/2)*cos(pi*y/3)*exp(z/2)")
@@ -187,9 +187,6 @@ def poisson_csg_cut(spacing, levelsets, domain, neumann, radius, background, box
             "solver": info.method,
             "solver_iterations": info.iterations,
         }
-    rec.update(cut_record(cut, V))
-    if notes:
-        rec["warnings"] = notes
-    rec["time"] = dict(t)
+    finish_record(rec, cut, V, notes, t)
     rec["fields"] = LazyFields(lambda: {"domain": V.elements.to_pyvista(u_h=u, u_exact=U(V.dof_points)), "boundary": cut.to_pyvista()})
     return rec

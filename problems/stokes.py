@@ -36,8 +36,8 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, register
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 
-from .common import (DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, background_for, check_bulk_memory,
-                     check_ghost_penalty, check_nitsche_penalty, cut_record, levelset_for)
+from .common import (finish_record, DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, background_for, check_bulk_memory,
+                     check_ghost_penalty, check_nitsche_penalty, levelset_for)
 
 _A = Exact(["sin(y)*sin(z)", "sin(z)*sin(x)", "sin(x)*sin(y)"])
 VELOCITY = _A.curl
@@ -140,10 +140,7 @@ def stokes_cut(spacing, surface, background, box, nu, gamma, gamma_u, gamma_p, b
             "solver": info.method,
             "solver_iterations": info.iterations,
         }
-    rec.update(cut_record(cut, W))
-    if notes:
-        rec["warnings"] = notes
-    rec["time"] = dict(t)
+    finish_record(rec, cut, W, notes, t)
     rec["fields"] = LazyFields(lambda: {"domain": V.elements.to_pyvista(u_h=U, p_h=p, u_exact=VELOCITY(V.dof_points)),
                                         "boundary": cut.to_pyvista()})
     return rec

@@ -54,7 +54,7 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, 
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 
-from .common import background_for, check_ghost_penalty, check_nitsche_penalty, check_resolution, cut_record, pin_unseen_nodes
+from .common import finish_record, background_for, check_ghost_penalty, check_nitsche_penalty, check_resolution, pin_unseen_nodes
 from .mean_curvature import mean_curvature_system
 
 #: the positions of the fields in the product space
@@ -234,10 +234,7 @@ def two_phase_stokes_cut(spacing, curvature, radius, box, mu_inside, mu_outside,
         }
         if tau > 0:
             rec["pressure_jump_error"] = abs(means[0] - means[1] - jump) / jump
-    rec.update(cut_record(cut, W))
-    if notes:
-        rec["warnings"] = notes
-    rec["time"] = dict(t)
+    finish_record(rec, cut, W, notes, t)
     rec["fields"] = LazyFields(lambda: {
         "inside": V[NEG].elements.to_pyvista(u_h=W[U_NEG].nodal(u_neg), p_h=p_neg),
         "outside": V[POS].elements.to_pyvista(u_h=W[U_POS].nodal(u_pos), p_h=p_pos),

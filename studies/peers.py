@@ -328,13 +328,21 @@ def _poisson_row(c):
     return row
 
 
+def _peer_unavailable(out: Path, name: str, size: str) -> bool:
+    """True, with the reason printed and saved as the study's output ``name``, when ngsolve/xfem
+    cannot be imported."""
+    missing = peer_missing()
+    if missing is None:
+        return False
+    print(f"peers: ngsolve/xfem not importable ({missing}); {INSTALL}")
+    save_json(out, name, {"size": size, "peer": "ngsxfem", "available": False, "reason": missing, "skipped": INSTALL})
+    return True
+
+
 def run_poisson(out: Path, size: str = "quick", progress=None) -> dict:
     """The Poisson comparison: ``peers_poisson.json`` / ``.csv`` and a table on standard output."""
     out = Path(out)
-    missing = peer_missing()
-    if missing is not None:
-        print(f"peers: ngsolve/xfem not importable ({missing}); {INSTALL}")
-        save_json(out, POISSON_NAME, {"size": size, "peer": "ngsxfem", "available": False, "reason": missing, "skipped": INSTALL})
+    if _peer_unavailable(out, POISSON_NAME, size):
         return {"skipped": INSTALL}
 
     spacings = pick(size, [0.2], [0.1, 0.05], [0.05, 0.035, 0.025])
@@ -476,10 +484,7 @@ def _stokes_row(c):
 def run_stokes(out: Path, size: str = "quick", progress=None) -> dict:
     """The Stokes comparison: ``peers_stokes.json`` / ``.csv`` and a table on standard output."""
     out = Path(out)
-    missing = peer_missing()
-    if missing is not None:
-        print(f"peers: ngsolve/xfem not importable ({missing}); {INSTALL}")
-        save_json(out, STOKES_NAME, {"size": size, "peer": "ngsxfem", "available": False, "reason": missing, "skipped": INSTALL})
+    if _peer_unavailable(out, STOKES_NAME, size):
         return {"skipped": INSTALL}
 
     spacings = pick(size, [0.2], [0.2, 0.1], [0.2, 0.1, 0.075, 0.0625])
@@ -623,11 +628,7 @@ def _cut_row(c):
 
 def run(out: Path, size: str = "quick", progress=None) -> dict:
     out = Path(out)
-    missing = peer_missing()
-    if missing is not None:
-        msg = f"peers: ngsolve/xfem not importable ({missing}); {INSTALL}"
-        print(msg)
-        save_json(out, NAME, {"size": size, "peer": "ngsxfem", "available": False, "reason": missing, "skipped": INSTALL})
+    if _peer_unavailable(out, NAME, size):
         return {"skipped": INSTALL}
 
     spacings = pick(size, [0.2], [0.2, 0.1, 0.05], [0.2, 0.1, 0.05, 0.025, 0.0125])
