@@ -337,6 +337,13 @@ class Quadrature:
         The first ``whole`` elements are whole cells of the measure's element set, with their
         vertices in the element's own order: there the barycentric coordinates of the points in
         the parent element are ``bary`` (0: unknown or none).
+    reference_points : (m, q, 3) float or None
+        On a deformed (isoparametric) geometry, the undeformed points x^ with ``points = Theta_h(x^)``:
+        fields are composed with Theta_h^-1, so their basis functions are evaluated at x^.  None: the
+        points themselves (no deformation).
+    jacobians : (m, q, 3, 3) float or None
+        D Theta_h at ``reference_points`` (rows: components of Theta_h): gradients of fields map as
+        grad = D Theta_h^-T grad^.  None: the identity.
 
     Bad shapes raise ``ValueError``.
     """
@@ -347,6 +354,8 @@ class Quadrature:
     normal: np.ndarray | None = None
     bary: np.ndarray | None = None
     whole: int = 0
+    reference_points: np.ndarray | None = None
+    jacobians: np.ndarray | None = None
 
     def __post_init__(self):
         self.points = np.asarray(self.points, dtype=float)
@@ -379,6 +388,16 @@ class Quadrature:
                     f"Quadrature.bary must have shape (q, k) with q = {q} and k in 2..4, "
                     f"got {self.bary.shape}"
                 )
+        if self.reference_points is not None:
+            self.reference_points = np.asarray(self.reference_points, dtype=float)
+            if self.reference_points.shape != (m, q, 3):
+                raise ValueError(f"Quadrature.reference_points must have shape (m, q, 3) = {(m, q, 3)} or be None, "
+                                 f"got {self.reference_points.shape}")
+        if self.jacobians is not None:
+            self.jacobians = np.asarray(self.jacobians, dtype=float)
+            if self.jacobians.shape != (m, q, 3, 3):
+                raise ValueError(f"Quadrature.jacobians must have shape (m, q, 3, 3) = {(m, q, 3, 3)} or be None, "
+                                 f"got {self.jacobians.shape}")
 
     @property
     def n_elements(self) -> int:
@@ -389,7 +408,9 @@ class Quadrature:
         """The elements start..stop-1 as a quadrature of their own (views, no copies)."""
         return Quadrature(self.points[start:stop], self.weights[start:stop], self.parent[start:stop],
                           None if self.normal is None else self.normal[start:stop], self.bary,
-                          max(0, min(self.whole, stop) - start))
+                          max(0, min(self.whole, stop) - start),
+                          None if self.reference_points is None else self.reference_points[start:stop],
+                          None if self.jacobians is None else self.jacobians[start:stop])
 
     @property
     def n_points(self) -> int:
