@@ -14,6 +14,10 @@ levels and the failure (level, error type, message), and the exit status is 2 (1
 unexpected error, which is a bug).  Existing files at the output paths are replaced; ``--plot``
 writes nothing (and says so) when the records carry no finite positive errors to plot, ``--vtk`` nothing when they
 carry no fields.
+
+Under an MPI launcher (``mpiexec -n N cutfem run poisson-cut ...``) every rank solves the problem's
+distributed levels (:mod:`cutfem.distributed`) and rank 0 alone prints and writes; a problem that
+is not distributed is refused on more than one rank.
 """
 
 from __future__ import annotations
@@ -23,6 +27,8 @@ import sys
 import warnings
 from contextlib import contextmanager
 from pathlib import Path
+
+from ..distributed.launch import launched_rank
 
 __all__ = ["main", "entry"]
 
@@ -119,6 +125,8 @@ def _cmd_run(argv) -> int:
     known, unknown = parser.parse_known_args(_join_negative_values(argv[1:], problem))
     if unknown:
         raise ProblemError(f"unknown argument(s) {' '.join(unknown)} for {problem.name}; allowed: {allowed}")
+    if launched_rank() != 0:  # under mpiexec every rank solves, rank 0 alone reports and writes
+        known.quiet, known.json, known.plot, known.vtk = True, None, None, None
     params = {q.name: getattr(known, q.name) for q in problem.params if getattr(known, q.name) is not None}
     # None when not given: run() then asks the problem for its defaults under these parameters
     levels = None if known.levels is None else check_levels(problem, known.levels, _level_flag(argv, problem))
@@ -136,7 +144,7 @@ def _cmd_run(argv) -> int:
         )
     if to_stdout:
         print(result.dumps())
-    elif result.records:
+    elif result.records and launched_rank() == 0:
         print(result.table())
     if known.json and not to_stdout:
         Path(known.json).parent.mkdir(parents=True, exist_ok=True)

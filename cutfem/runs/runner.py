@@ -29,6 +29,7 @@ from typing import Callable
 
 import numpy as np
 
+from ..distributed import DISTRIBUTED_LEVELS, distributed_level, launched, launched_size
 from ..memory import large_run
 from .registry import COMMON_DEFINITIONS, ProblemError, check_levels, get_problem
 
@@ -385,6 +386,21 @@ def jsonable(obj):
     return repr(obj)
 
 
+def _level_solver(problem):
+    """The function that solves one level: under an MPI launcher the problem's distributed level
+    (:mod:`cutfem.distributed`) on every rank, or its serial one on a single rank; a problem that is
+    not distributed is refused on several ranks (ProblemError), never run N times over."""
+    if not launched():
+        return problem.solve_level
+    level = distributed_level(problem.name)
+    if level is not None:
+        return level
+    if launched_size() > 1:
+        raise ProblemError(f"{problem.name} is not distributed: run it on one rank (without mpiexec, or mpiexec -n 1). "
+                           f"The problems that run on several ranks: {', '.join(sorted(DISTRIBUTED_LEVELS))}")
+    return problem.solve_level
+
+
 def run(name: str, levels=None, progress: bool | Callable = False, keep_finished: bool = False, command=None,
         keep_fields: bool = True, **params) -> RunResult:
     """Solve problem ``name`` at each level (default: the problem's levels) and compute rates.
@@ -405,6 +421,7 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
     problem = get_problem(name)
     p = problem.resolve(params)
     levels = check_levels(problem, problem.levels_for(levels, p))
+    solve_level = _level_solver(problem)
     records, failure = [], None
     started = _utc_now()
     for i, level in enumerate(levels):
@@ -418,7 +435,7 @@ def run(name: str, levels=None, progress: bool | Callable = False, keep_finished
         token = _STAGE_LISTENER.set(_StageLine() if progress is True else None)
         try:
             with large_run(), (compile_notice() if progress is True else contextlib.nullcontext()):
-                rec = problem.solve_level(level, **p)
+                rec = solve_level(level, **p)
             if not isinstance(rec, dict) or "h" not in rec:
                 raise TypeError(f"{problem.name}: the level {level!r} returned {type(rec).__name__} "
                                 f"{'without the key h' if isinstance(rec, dict) else 'instead of a record'}; a level "

@@ -1,0 +1,94 @@
+"""A rank's share of a system: cell terms on its owned slab, facet terms once, in global numbers.
+
+:func:`slab_pieces` assembles, with the serial code (:func:`cutfem.fem.forms.assemble`), the
+rank's local matrices and load vectors, each with the global node ids of its rows:
+
+* on the owned slab's space (P1 on the element set ``on``): the cell terms (volume, Gamma_h,
+  load) and the facet terms of the faces with both tets in the slab;
+* on the seam's space: the facet terms of the faces across the seam's middle plane
+  (:meth:`~cutfem.distributed.partition.RankCuts.seam_facets`), which this rank alone assembles.
+
+Summed over the ranks, the pieces are the serial matrix and load (the serial unknowns are the
+active nodes, which every piece's rows are).  :func:`slab_system` numbers the nodes globally and
+hands the pieces to PETSc (:class:`~cutfem.distributed.system.LinearSystem`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..fem.forms import assemble
+from ..fem.spaces import CutP1Space
+from .system import GlobalNumbering, LinearSystem
+
+__all__ = ["Piece", "SlabPieces", "slab_pieces", "slab_system"]
+
+
+@dataclass
+class Piece:
+    """A local matrix (and load vector, or None) whose row i is the global node ``nodes[i]``."""
+
+    nodes: np.ndarray
+    matrix: object
+    vector: np.ndarray | None = None
+
+
+@dataclass
+class SlabPieces:
+    """The pieces of one rank; ``space`` the owned slab's space (None without owned cells) and
+    ``faces`` the number of faces the rank assembled."""
+
+    pieces: list = field(default_factory=list)
+    space: CutP1Space | None = None
+    faces: int = 0
+
+    @property
+    def nodes(self) -> np.ndarray:
+        return np.concatenate([p.nodes for p in self.pieces]) if self.pieces else np.zeros(0, dtype=np.int64)
+
+
+def _global_nodes(space) -> np.ndarray:
+    return space.cut.background.global_nodes(space.node_ids)
+
+
+def slab_pieces(cuts, on, cells, faces=None, face_form=None) -> SlabPieces:
+    """The rank's pieces of a system on P1 over the element set ``on`` of each of its cuts.
+
+    ``cells(cut, dofs)``: ``(bilinear form, linear form or None)`` of the cell terms over the owned
+    cut (called when the owned slab has active cells; ``cut.n_tets`` is 0 on a slab the surface
+    misses); ``faces(cut)``: the facet set of the facet terms on a cut (called only on cuts with
+    pieces), and ``face_form(measure)`` their bilinear form."""
+    out = SlabPieces()
+    owned, seam = cuts.owned, cuts.seam
+    if owned is not None:
+        V = out.space = CutP1Space(owned, on)
+        if V.n_dofs:
+            a, rhs = cells(owned, V)
+            if faces is not None and owned.n_tets:
+                F = faces(owned)
+                out.faces += F.n_facets
+                if F.n_facets:
+                    a = a + face_form(owned.dF(F))
+            out.pieces.append(Piece(_global_nodes(V), assemble(a, V), None if rhs is None else assemble(rhs, V)))
+    if faces is not None and seam is not None and seam.n_tets:
+        F = cuts.seam_facets(faces(seam))
+        out.faces += F.n_facets
+        if F.n_facets:
+            S = CutP1Space(seam, on)
+            out.pieces.append(Piece(_global_nodes(S), assemble(face_form(seam.dF(F)), S)))
+    return out
+
+
+def slab_system(parts: SlabPieces, cuts, comm) -> tuple[LinearSystem, GlobalNumbering]:
+    """The global numbering of the pieces' nodes and the system they add up to (not yet on PETSc:
+    :meth:`~cutfem.distributed.system.LinearSystem.petsc`)."""
+    numbering = GlobalNumbering(comm, cuts.slabs, cuts.rank, parts.nodes)
+    system = LinearSystem(comm, numbering)
+    for piece in parts.pieces:
+        dofs = numbering(piece.nodes)
+        system.add_matrix(piece.matrix, dofs)
+        if piece.vector is not None:
+            system.add_vector(piece.vector, dofs)
+    return system, numbering

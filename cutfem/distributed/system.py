@@ -1,0 +1,180 @@
+"""Global numbering of the unknowns, and the linear system on PETSc (MPIAIJ, Vec, KSP).
+
+Numbering
+---------
+The serial P1 space of a cut numbers its unknowns by increasing background node id
+(:class:`~cutfem.fem.spaces.CutP1Space`).  Distributed, the same numbers: a node is owned by the
+rank that owns its layer (:meth:`~cutfem.distributed.partition.Slabs.node_owner`), which holds
+every tet around it (its owned slab and its seam) and so knows whether the node is active; the
+ranks' owned active nodes are consecutive blocks of the serial numbering, so a node's number is
+its owner's offset (an exclusive scan of the counts) plus its rank among the owner's nodes.  The
+numbers of the other nodes a rank touches are asked of their owners in one all-to-all exchange
+(:class:`GlobalNumbering`).  A distributed vector is then the serial one, entry by entry.
+
+System
+------
+Each rank adds the matrices of its local spaces as COO triples in global numbers
+(:meth:`LinearSystem.add_matrix`), and its local load vectors (:meth:`LinearSystem.add_vector`);
+PETSc sums the triples (``MatSetPreallocationCOO``/``MatSetValuesCOO``; entries of rows another
+rank owns travel to it) into an MPIAIJ matrix with the rows of each rank's owned unknowns.  The
+solve is PETSc's: CG preconditioned by GAMG (smoothed aggregation) to a relative residual of 1e-8
+for SPD systems, or an LU factorization by MUMPS ("direct"); ``solver="auto"`` takes the direct
+one up to :data:`~cutfem.solvers.solve.DIRECT_LIMIT` unknowns, as the serial ``solve`` does.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..solvers.krylov import DEFAULT_TOL
+from ..solvers.solve import DIRECT_LIMIT
+from .launch import engine
+
+__all__ = ["GlobalNumbering", "LinearSystem", "DISTRIBUTED_SOLVERS"]
+
+#: solver names of the problems (problems/common.py SOLVERS) -> (KSP type, PC type); "auto" chooses by size
+DISTRIBUTED_SOLVERS = {"direct": ("preonly", "lu"), "cg-amg": ("cg", "gamg"), "cg-jacobi": ("cg", "jacobi")}
+
+
+class GlobalNumbering:
+    """The global numbers of the nodes one rank touches (``nodes``, global background ids, any
+    order, repeats allowed), each node owned by one rank of ``slabs``.  ``first`` and ``n_owned``:
+    this rank's block of numbers; ``n_global`` the number of unknowns."""
+
+    def __init__(self, comm, slabs, rank: int, nodes):
+        MPI, _ = engine()
+        nodes = np.unique(np.asarray(nodes, dtype=np.int64))
+        lo, hi = slabs.owned_nodes(rank)
+        mine = (nodes >= lo) & (nodes < hi)
+        owned, others = nodes[mine], nodes[~mine]
+        self.n_owned = len(owned)
+        self.first = int(comm.exscan(self.n_owned) or 0) if comm.size > 1 else 0
+        self.n_global = int(comm.allreduce(self.n_owned))
+        # ask the owners for the numbers of the other nodes: ids sorted, so their owners are too
+        owners = slabs.node_owner(others)
+        send = np.bincount(owners, minlength=comm.size).astype(np.int64)
+        recv = np.empty_like(send)
+        comm.Alltoall(send, recv)
+        asked = np.empty(int(recv.sum()), dtype=np.int64)
+        sdispl, rdispl = _displacements(send), _displacements(recv)
+        comm.Alltoallv([others, (send, sdispl), MPI.INT64_T], [asked, (recv, rdispl), MPI.INT64_T])
+        where = np.searchsorted(owned, asked)
+        if np.any(where >= len(owned)) or np.any(owned[np.minimum(where, max(len(owned) - 1, 0))] != asked):
+            raise RuntimeError(f"rank {rank} was asked for nodes that are not active on it: the ranks disagree on the "
+                               "active nodes (the level set's values must not depend on the rank)")
+        answer = (self.first + where).astype(np.int64)
+        got = np.empty(len(others), dtype=np.int64)
+        comm.Alltoallv([answer, (recv, rdispl), MPI.INT64_T], [got, (send, sdispl), MPI.INT64_T])
+        self.nodes = nodes
+        self.numbers = np.empty(len(nodes), dtype=np.int64)
+        self.numbers[mine] = self.first + np.arange(self.n_owned)
+        self.numbers[~mine] = got
+
+    def __call__(self, node_ids) -> np.ndarray:
+        """The global numbers of global node ids (all among the nodes given)."""
+        return self.numbers[np.searchsorted(self.nodes, np.asarray(node_ids, dtype=np.int64))]
+
+
+def _displacements(counts) -> np.ndarray:
+    return np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+
+
+class LinearSystem:
+    """A matrix and a right-hand side assembled on PETSc from each rank's local pieces."""
+
+    def __init__(self, comm, numbering: GlobalNumbering):
+        self.comm, self.numbering = comm, numbering
+        self._rows, self._cols, self._vals = [], [], []
+        self._vec_rows, self._vec_vals = [], []
+
+    def add_matrix(self, local, dofs) -> None:
+        """Add a local matrix (scipy sparse, n x n) whose row/column i is the unknown ``dofs[i]``."""
+        coo = local.tocoo()
+        dofs = np.asarray(dofs, dtype=np.int64)
+        self._rows.append(dofs[coo.row])
+        self._cols.append(dofs[coo.col])
+        self._vals.append(np.asarray(coo.data, dtype=float))
+
+    def add_vector(self, local, dofs) -> None:
+        self._vec_rows.append(np.asarray(dofs, dtype=np.int64))
+        self._vec_vals.append(np.asarray(local, dtype=float))
+
+    @property
+    def triples(self) -> int:
+        return int(sum(len(r) for r in self._rows))
+
+    def petsc(self):
+        """(A, b): the MPIAIJ matrix and the right-hand side Vec."""
+        _, PETSc = engine()
+        n, N = self.numbering.n_owned, self.numbering.n_global
+        rows, cols, vals = (np.concatenate(a) if a else np.zeros(0, t) for a, t in
+                            ((self._rows, np.int64), (self._cols, np.int64), (self._vals, float)))
+        A = PETSc.Mat().create(comm=self.comm)
+        A.setSizes(((n, N), (n, N)))
+        A.setType(PETSc.Mat.Type.AIJ)
+        A.setPreallocationCOO(rows.astype(PETSc.IntType), cols.astype(PETSc.IntType))
+        A.setValuesCOO(vals, addv=PETSc.InsertMode.ADD_VALUES)
+        A.assemble()
+        b = A.createVecLeft()
+        b.set(0.0)
+        if self._vec_rows:
+            b.setValues(np.concatenate(self._vec_rows).astype(PETSc.IntType), np.concatenate(self._vec_vals),
+                        addv=PETSc.InsertMode.ADD_VALUES)
+        b.assemblyBegin()
+        b.assemblyEnd()
+        return A, b
+
+    def solve(self, A, b, solver: str = "auto"):
+        """``(x, info)``: the solution Vec of A x = b by PETSc's KSP and what solved it (``ksp``,
+        ``pc``, ``iterations``, ``residual``).  A KSP that does not converge raises RuntimeError
+        with PETSc's reason."""
+        _, PETSc = engine()
+        N = self.numbering.n_global
+        if solver == "auto":
+            solver = "direct" if N <= DIRECT_LIMIT else "cg-amg"
+        if solver not in DISTRIBUTED_SOLVERS:
+            raise ValueError(f"solver={solver!r} is not available on PETSc; distributed runs take "
+                             f"{', '.join(['auto', *DISTRIBUTED_SOLVERS])}")
+        ksp_type, pc_type = DISTRIBUTED_SOLVERS[solver]
+        ksp = PETSc.KSP().create(comm=self.comm)
+        ksp.setOperators(A)
+        ksp.setType(ksp_type)
+        pc = ksp.getPC()
+        pc.setType(pc_type)
+        if pc_type == "lu":
+            pc.setFactorSolverType("mumps")
+        else:
+            A.setOption(PETSc.Mat.Option.SPD, True)
+            ksp.setTolerances(rtol=DEFAULT_TOL, atol=0.0, max_it=10_000)
+            ksp.setNormType(PETSc.KSP.NormType.UNPRECONDITIONED)
+        ksp.setFromOptions()  # PETSC_OPTIONS may change any of it
+        x = A.createVecRight()
+        ksp.solve(b, x)
+        reason = ksp.getConvergedReason()
+        if reason < 0:
+            raise RuntimeError(f"PETSc's KSP {ksp.getType()} with PC {ksp.getPC().getType()} did not converge: reason {reason} "
+                               f"after {ksp.getIterationNumber()} iterations (see KSPConvergedReason)")
+        r = b.duplicate()
+        A.mult(x, r)
+        r.aypx(-1.0, b)
+        bn = b.norm()
+        info = {"engine": f"PETSc {'.'.join(map(str, PETSc.Sys.getVersion()))}", "ksp": ksp.getType(),
+                "pc": ksp.getPC().getType(), "iterations": int(ksp.getIterationNumber()),
+                "residual": float(r.norm() / bn) if bn > 0 else float(r.norm()), "ranks": int(self.comm.size)}
+        if pc_type == "lu":
+            info["pc"] = f"lu ({ksp.getPC().getFactorSolverType()})"
+        ksp.destroy()
+        return x, info
+
+    def gather(self, x, dofs) -> np.ndarray:
+        """The entries ``dofs`` (global numbers, any of them) of a distributed Vec on this rank."""
+        _, PETSc = engine()
+        dofs = np.asarray(dofs, dtype=PETSc.IntType)
+        out = PETSc.Vec().createSeq(len(dofs), comm=PETSc.COMM_SELF)
+        index = PETSc.IS().createGeneral(dofs, comm=PETSc.COMM_SELF)
+        scatter = PETSc.Scatter().create(x, index, out, None)
+        scatter.scatter(x, out, PETSc.InsertMode.INSERT_VALUES, PETSc.ScatterMode.FORWARD)
+        values = out.getArray().copy()
+        for obj in (scatter, index, out):
+            obj.destroy()
+        return values

@@ -1,0 +1,84 @@
+"""The slabs of a structured box without MPI: each rank's pieces computed in one process and added
+up by their global node ids equal the serial matrix and load (docs/math.md §17), every ghost face
+is assembled once, and ranks without layers, without active cells or without a cut take part."""
+
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from cutfem.distributed.partition import SlabBox, rank_cuts, slab_partition
+from cutfem.distributed.poisson import poisson_pieces
+from cutfem.fem.forms import assemble
+from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.terms import face_jump_penalty, load, nitsche, stiffness
+from cutfem.geometry.cut import cut_mesh
+from cutfem.geometry.markers import NEG
+from cutfem.problems.common import background_for, levelset_for
+from cutfem.problems.poisson import exact_u, source
+
+
+@pytest.fixture(scope="module")
+def torus():
+    """The serial poisson-cut system of the torus at spacing 0.1 (12 cell layers)."""
+    phi = levelset_for("torus")
+    bg = background_for(phi, 0.1, "structured", None)
+    cut = cut_mesh(bg, phi)
+    V = CutP1Space(cut, NEG)
+    dx = cut.dx(NEG)
+    N = nitsche(cut.ds(), 10.0, g=exact_u)
+    G = cut.ghost_facets(NEG)
+    K = assemble(stiffness(dx) + N + 0.1 * face_jump_penalty(cut.dF(G), h_power=1), V)
+    b = assemble(load(source, dx, degree=2) + N.load, V)
+    return phi, bg, V, K, b, G.n_facets
+
+
+def summed(phi, bg, V, counts):
+    """The pieces of every rank of the partition ``counts``, added in the serial numbering."""
+    slabs = slab_partition(bg, len(counts), counts)
+    n = V.n_dofs
+    K, b, faces = sp.csr_matrix((n, n)), np.zeros(n), 0
+    for rank in range(len(counts)):
+        parts = poisson_pieces(rank_cuts(slabs, rank, phi), 10.0, 0.1)
+        faces += parts.faces
+        for piece in parts.pieces:
+            dofs = np.searchsorted(V.node_ids, piece.nodes)
+            assert np.array_equal(V.node_ids[dofs], piece.nodes)  # every row is a serial unknown
+            c = piece.matrix.tocoo()
+            K = K + sp.csr_matrix((c.data, (dofs[c.row], dofs[c.col])), shape=(n, n))
+            if piece.vector is not None:
+                np.add.at(b, dofs, piece.vector)
+    return K, b, faces
+
+
+@pytest.mark.parametrize("counts", [[12], [6, 6], [4, 4, 4], [0, 5, 0, 7], [11, 1], [1, 1, 8, 1, 1]])
+def test_pieces_add_up_to_the_serial_system(torus, counts):
+    """[0, 5, 0, 7]: two ranks without layers; [11, 1]: the top rank's layer lies above the torus
+    (no active cell, its seam holds the faces below it); [1, 1, 8, 1, 1]: one-layer slabs."""
+    phi, bg, V, K, b, n_faces = torus
+    Ks, bs, faces = summed(phi, bg, V, counts)
+    x = np.random.default_rng(1).standard_normal(V.n_dofs)
+    assert np.linalg.norm(Ks @ x - K @ x) <= 1e-14 * np.linalg.norm(K @ x)  # measured 3e-16
+    assert np.linalg.norm(bs - b) <= 1e-14 * np.linalg.norm(b)
+    assert faces == n_faces  # each ghost face once
+
+
+def test_slab_coordinates_are_the_global_ones_bit_for_bit(torus):
+    phi, bg, *_ = torus
+    slab = SlabBox(bg, 5, 9)
+    ids = np.arange(slab.n_points)
+    assert np.array_equal(slab.node_coordinates(ids), bg.node_coordinates(slab.global_nodes(ids)))
+    assert np.array_equal(slab.points, bg.node_coordinates(slab.global_nodes(ids)))
+    assert slab.h == bg.h
+
+
+def test_partition_counts():
+    bg = background_for(levelset_for("torus"), 0.1, "structured", None)
+    slabs = slab_partition(bg, 5)
+    assert slabs.starts.tolist() == [0, 3, 6, 8, 10, 12]  # 12 layers: the first two ranks one more
+    assert slabs.layer_owner(np.arange(12)).tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 3, 3, 4, 4]
+    empty = slab_partition(bg, 3, [0, 12, 0])
+    per = int(bg.node_shape[0] * bg.node_shape[1])
+    assert empty.owned_nodes(0) == (0, 0) and empty.owned_nodes(1) == (0, 13 * per) and empty.owned_nodes(2) == (12 * per, 12 * per)
+    assert set(empty.node_owner(np.arange(bg.n_points)).tolist()) == {1}
+    with pytest.raises(ValueError, match="summing to the box's 12 layers"):
+        slab_partition(bg, 2, [5, 5])
