@@ -14,6 +14,7 @@ research script needs, listed in ``__all__`` (``docs/examples/`` shows them at w
 Everything else is reachable through its subpackage: :mod:`cutfem.geometry` (meshes, level sets,
 surfaces, the cut, measures, quadrature), :mod:`cutfem.fem` (spaces, forms and their pointwise values, terms and elasticity, assembly, norms),
 :mod:`cutfem.solvers`, :mod:`cutfem.runs` (registry, runner, command line, convergence, plots),
+:mod:`cutfem.distributed` (slabs of a box on MPI ranks, the system on PETSc),
 :mod:`cutfem.problems`, :mod:`cutfem.studies`, and :mod:`cutfem.memory`.  The compiled kernels
 (``*_kernels.py`` beside each stage, and :mod:`cutfem.jit`) are private.
 
@@ -114,6 +115,8 @@ _NAMES = {
     "run": ".runs.runner",
     "available_problems": ".runs.registry",
     "get_problem": ".runs.registry",
+    # distributed runs: which rank this process is under mpiexec (0 otherwise), for a script's output
+    "launched_rank": ".distributed.launch",
 }
 
 __all__ = [*_NAMES, "__version__"]

@@ -38,6 +38,7 @@ EXPECTED = {
     "cutfem.solvers.multigrid": "GeometricMultigrid",
     "cutfem.fem.exact": "Exact",
     "cutfem.fem.moving": "ActiveDomain strip_width transfer",
+    "cutfem.distributed.launch": "launched_rank",
 }
 
 
@@ -60,7 +61,7 @@ def test_solve_is_the_function_after_the_solver_modules_are_imported():
 
 def test_no_public_name_is_a_submodule():
     submodules = {info.name for info in pkgutil.iter_modules(cutfem.__path__)}
-    assert submodules == {"fem", "geometry", "jit", "memory", "runs", "solvers"}
+    assert submodules == {"distributed", "fem", "geometry", "jit", "memory", "runs", "solvers"}
     assert not submodules & set(cutfem.__all__)
 
 

@@ -20,7 +20,7 @@ import cutfem as cf
 
 EXAMPLES = Path(__file__).resolve().parents[1] / "docs" / "examples"
 SCRIPTS = ["poisson_ball", "interface", "bulk_surface", "laplace_beltrami", "mean_curvature_user_surface", "heat_surface",
-           "heat_moving", "elasticity", "stokes", "poisson_csg"]
+           "heat_moving", "elasticity", "stokes", "poisson_csg", "distributed_poisson"]
 
 
 def load(name):
@@ -132,6 +132,14 @@ def test_stokes():
     check(runs, {"l2_u": (2.087e-2, 5.547e-3), "h1_u": (0.2715, 0.1306), "l2_p": (0.1552, 4.170e-2)}, {"l2_u": 2, "h1_u": 1})
     assert cf.rates([r["h"] for r in runs], [r["l2_p"] for r in runs])[0] > 1.0
     assert runs[1]["iterations"] <= 60  # MINRES, block-preconditioned (the first level is factorized)
+
+
+def test_distributed_poisson_on_one_process():
+    """Without a launcher the script runs poisson-cut serially (tests/distributed runs it under mpiexec)."""
+    runs = two_levels("distributed_poisson", (0.2, 0.1))  # 5 s; the records of cutfem run poisson-cut --surface torus
+    # measured: L2 1.493e-2, 3.787e-3 (2.11); H1 0.3282, 0.1621 (1.09)
+    check(runs, {"l2": (1.493e-2, 3.787e-3), "h1": (0.3282, 0.1621)}, {"l2": 2, "h1": 1})
+    assert runs[1]["ranks"] == 1 and runs[1]["dofs"] == 7130
 
 
 @pytest.mark.parametrize("name", SCRIPTS)

@@ -15,6 +15,7 @@ __all__ = ["DISTRIBUTED_LEVELS", "distributed_level", "launched", "launched_rank
 #: called with the problem's parameters like its serial level
 DISTRIBUTED_LEVELS = {
     "poisson-cut": "cutfem.distributed.poisson:poisson_cut_level",
+    "laplace-beltrami-cut": "cutfem.distributed.laplace_beltrami:laplace_beltrami_cut_level",
 }
 
 

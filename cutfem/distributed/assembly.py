@@ -56,22 +56,23 @@ def _global_nodes(space) -> np.ndarray:
 def slab_pieces(cuts, on, cells, faces=None, face_form=None) -> SlabPieces:
     """The rank's pieces of a system on P1 over the element set ``on`` of each of its cuts.
 
-    ``cells(cut, dofs)``: ``(bilinear form, linear form or None)`` of the cell terms over the owned
-    cut (called when the owned slab has active cells; ``cut.n_tets`` is 0 on a slab the surface
-    misses); ``faces(cut)``: the facet set of the facet terms on a cut (called only on cuts with
-    pieces), and ``face_form(measure)`` their bilinear form."""
+    ``cells(cut, space)``: ``(bilinear form, linear form or None)`` of the cell terms over the
+    owned cut (called when the owned slab has active cells; ``cut.n_tets`` is 0 on a slab the
+    surface misses), or None for facet terms alone; ``faces(cut)``: the facet set of the facet
+    terms on a cut (called only on cuts with pieces), and ``face_form(measure)`` their bilinear form."""
     out = SlabPieces()
     owned, seam = cuts.owned, cuts.seam
     if owned is not None:
         V = out.space = CutP1Space(owned, on)
         if V.n_dofs:
-            a, rhs = cells(owned, V)
+            a, rhs = (None, None) if cells is None else cells(owned, V)
             if faces is not None and owned.n_tets:
                 F = faces(owned)
                 out.faces += F.n_facets
                 if F.n_facets:
-                    a = a + face_form(owned.dF(F))
-            out.pieces.append(Piece(_global_nodes(V), assemble(a, V), None if rhs is None else assemble(rhs, V)))
+                    a = face_form(owned.dF(F)) if a is None else a + face_form(owned.dF(F))
+            if a is not None:
+                out.pieces.append(Piece(_global_nodes(V), assemble(a, V), None if rhs is None else assemble(rhs, V)))
     if faces is not None and seam is not None and seam.n_tets:
         F = cuts.seam_facets(faces(seam))
         out.faces += F.n_facets

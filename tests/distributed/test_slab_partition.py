@@ -7,13 +7,15 @@ import pytest
 import scipy.sparse as sp
 
 from cutfem.distributed.partition import SlabBox, rank_cuts, slab_partition
+from cutfem.distributed.laplace_beltrami import laplace_beltrami_pieces
 from cutfem.distributed.poisson import poisson_pieces
 from cutfem.fem.forms import assemble
 from cutfem.fem.spaces import CutP1Space
-from cutfem.fem.terms import face_jump_penalty, load, nitsche, stiffness
+from cutfem.fem.terms import face_jump_penalty, load, mass, nitsche, normal_gradient_penalty, stiffness, tangential_stiffness
 from cutfem.geometry.cut import cut_mesh
-from cutfem.geometry.markers import NEG
+from cutfem.geometry.markers import CUT, NEG
 from cutfem.problems.common import background_for, levelset_for
+from cutfem.problems.laplace_beltrami import manufactured
 from cutfem.problems.poisson import exact_u, source
 
 
@@ -32,13 +34,13 @@ def torus():
     return phi, bg, V, K, b, G.n_facets
 
 
-def summed(phi, bg, V, counts):
+def summed(phi, bg, V, counts, pieces=lambda cuts: poisson_pieces(cuts, 10.0, 0.1)):
     """The pieces of every rank of the partition ``counts``, added in the serial numbering."""
     slabs = slab_partition(bg, len(counts), counts)
     n = V.n_dofs
     K, b, faces = sp.csr_matrix((n, n)), np.zeros(n), 0
     for rank in range(len(counts)):
-        parts = poisson_pieces(rank_cuts(slabs, rank, phi), 10.0, 0.1)
+        parts = pieces(rank_cuts(slabs, rank, phi))
         faces += parts.faces
         for piece in parts.pieces:
             dofs = np.searchsorted(V.node_ids, piece.nodes)
@@ -60,6 +62,27 @@ def test_pieces_add_up_to_the_serial_system(torus, counts):
     assert np.linalg.norm(Ks @ x - K @ x) <= 1e-14 * np.linalg.norm(K @ x)  # measured 3e-16
     assert np.linalg.norm(bs - b) <= 1e-14 * np.linalg.norm(b)
     assert faces == n_faces  # each ghost face once
+
+
+@pytest.mark.parametrize("stabilization", ["face", "normal"])
+def test_laplace_beltrami_pieces_add_up_to_the_serial_system(stabilization):
+    """TraceFEM on the cut tets: the tangential stiffness, mass and load over the pieces of Gamma_h
+    by their owner, J_F (each interior face of the cut tets once) or the normal-gradient term."""
+    phi = levelset_for("sphere")
+    sol = manufactured(phi)
+    bg = background_for(phi, 0.2, "structured", None)
+    cut = cut_mesh(bg, phi)
+    V = CutP1Space(cut)
+    dS = cut.ds()
+    stab = (face_jump_penalty(cut.dF(cut.interior_facets(CUT)), h_power=1.0) if stabilization == "face" else
+            normal_gradient_penalty(cut.dx(CUT), h_power=1.0))
+    K = assemble(tangential_stiffness(dS) + mass(dS) + stab, V)
+    b = assemble(load(sol.f, dS, degree=4), V)
+    Ks, bs, faces = summed(phi, bg, V, [3, 0, 4, 4], lambda cuts: laplace_beltrami_pieces(cuts, sol, stabilization, 1.0, 1.0, 1.0, 1.0))
+    x = np.random.default_rng(2).standard_normal(V.n_dofs)
+    assert np.linalg.norm(Ks @ x - K @ x) <= 1e-14 * np.linalg.norm(K @ x)
+    assert np.linalg.norm(bs - b) <= 1e-14 * np.linalg.norm(b)
+    assert faces == (cut.interior_facets(CUT).n_facets if stabilization == "face" else 0)
 
 
 def test_slab_coordinates_are_the_global_ones_bit_for_bit(torus):

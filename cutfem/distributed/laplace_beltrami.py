@@ -1,0 +1,67 @@
+"""laplace-beltrami-cut on several ranks (docs/math.md §4): TraceFEM on the cut tets of each slab,
+J_F on every interior face of the cut tets once, solved by PETSc.
+
+The forms are the serial problem's (:class:`cutfem.problems.laplace_beltrami.LaplaceBeltramiCut`):
+on the owned slab the tangential stiffness, the mass and the load over its pieces of Gamma_h (and
+the normal-gradient term over its cut tets), and the face stabilization tau_F h^a J_F of the faces
+inside it; on the seam J_F of the faces across its lowest plane.
+"""
+
+from __future__ import annotations
+
+from ..fem.forms import assemble
+from ..fem.norms import h1_error, l2_error
+from ..fem.terms import basis_integrals, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
+from ..geometry.markers import CUT
+from ..problems.common import background_for, check_face_stabilization, check_normal_stabilization, levelset_for
+from ..problems.laplace_beltrami import manufactured
+from ..runs.runner import Timer
+from .assembly import slab_pieces
+from .launch import engine
+from .levels import solve_on_slabs
+
+__all__ = ["laplace_beltrami_cut_level", "laplace_beltrami_pieces"]
+
+
+def laplace_beltrami_pieces(cuts, sol, stabilization, tau_f, face_h_power, tau_n, normal_h_power):
+    """The rank's pieces of the laplace-beltrami-cut system (:func:`~cutfem.distributed.assembly.slab_pieces`)."""
+
+    def cells(cut, V):
+        dS = cut.ds()
+        a = tangential_stiffness(dS) + mass(dS)
+        if stabilization == "normal" and tau_n > 0:
+            a = a + tau_n * normal_gradient_penalty(cut.dx(CUT), h_power=normal_h_power)
+        return a, load(sol.f, dS, degree=4)
+
+    if stabilization == "face" and tau_f > 0:
+        return slab_pieces(cuts, CUT, cells, lambda cut: cut.interior_facets(CUT),
+                           lambda dF: tau_f * face_jump_penalty(dF, h_power=face_h_power))
+    return slab_pieces(cuts, CUT, cells)
+
+
+def laplace_beltrami_cut_level(spacing, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power,
+                               solver, R, r, radius, comm=None, counts=None):
+    """One level of laplace-beltrami-cut on the ranks of ``comm`` (default: every rank): the serial
+    record's errors, area and sizes, with the engine and the number of ranks.  Without
+    stabilization the system is singular (phi_h is a null vector) and PETSc's solve fails."""
+    MPI, _ = engine()
+    if background != "structured":
+        raise ValueError(f"distributed laplace-beltrami-cut partitions a structured box; got --background {background}: "
+                         "run an unstructured background on one rank")
+    notes = (check_face_stabilization(tau_f, face_h_power, spacing) if stabilization == "face" else
+             check_normal_stabilization(tau_n, normal_h_power, spacing) if stabilization == "normal" else [])
+    t = Timer()
+    with t("geometry"):
+        phi = levelset_for(surface, R, r, radius)
+        sol = manufactured(phi)
+        bg = background_for(phi, spacing, background, box)
+
+    def measure(V, u):
+        return l2_error(V, u, sol.u) ** 2, h1_error(V, u, sol.grad) ** 2, float(assemble(basis_integrals(V.cut.ds()), V).sum())
+
+    rec = solve_on_slabs(MPI.COMM_WORLD if comm is None else comm, phi, bg,
+                         lambda cuts: laplace_beltrami_pieces(cuts, sol, stabilization, tau_f, face_h_power, tau_n, normal_h_power),
+                         measure, ("l2_error", "h1_error", "area"), solver, counts, t)
+    if notes:
+        rec["warnings"] = notes
+    return rec

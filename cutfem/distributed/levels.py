@@ -1,0 +1,84 @@
+"""One level of a problem on all ranks: partition, pieces, PETSc solve, sums over the ranks.
+
+:func:`solve_on_slabs` is the skeleton the distributed problems share: the box in slabs and each
+rank's cuts (:mod:`~cutfem.distributed.partition`), the problem's pieces
+(:func:`~cutfem.distributed.assembly.slab_pieces`), the system on PETSc and its solve
+(:mod:`~cutfem.distributed.system`), then the problem's additive measures of the solution on the
+owned cells (squared errors, volumes) summed over the ranks.  The record is the same on every rank;
+the stage times are the slowest rank's.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..geometry.markers import CUT
+from ..runs.runner import Timer
+from .assembly import slab_system
+from .launch import engine
+from .partition import rank_cuts, slab_partition
+
+__all__ = ["solve_on_slabs", "cut_counts", "STAGES"]
+
+#: the stages of a distributed level, timed on each rank (the record keeps the slowest rank's)
+STAGES = ("geometry", "assembly", "solve", "errors")
+
+
+def cut_counts(cuts, parts) -> dict:
+    """The rank's share of the cut's sizes (:func:`cutfem.problems.common.cut_record`): added over
+    the ranks they are the serial record's."""
+    out = {"active_tets": 0, "pieces": 0, "surface_triangles": 0, "interior_faces": 0}
+    if cuts.owned is not None:
+        c = cuts.owned
+        out["active_tets"] = len(parts.space.elements.tet_ids)
+        out["pieces"], out["surface_triangles"] = int(c.n_tets), int(c.n_triangles)
+        out["interior_faces"] = c.interior_facets().n_facets if c.n_tets else 0
+    if cuts.seam is not None and cuts.seam.n_tets:
+        out["interior_faces"] += cuts.seam_facets(cuts.seam.interior_facets(CUT)).n_facets
+    return out
+
+
+def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None) -> dict:
+    """Solve one level of a problem on the ranks of ``comm``; returns the record's common part.
+
+    ``build(cuts)``: the rank's :class:`~cutfem.distributed.assembly.SlabPieces`;
+    ``measure(space, u)``: additive numbers of the solution ``u`` (the values at the owned space's
+    unknowns) over the owned cells, one for each of ``keys``; keys ending in ``_error`` are sums of
+    squares whose square roots are recorded.  ``counts``: the cell layers of each rank."""
+    MPI, _ = engine()
+    t = Timer() if timer is None else timer
+    with t("geometry"):
+        slabs = slab_partition(background, comm.size, counts)
+        cuts = rank_cuts(slabs, comm.rank, levelset)
+    with t("assembly"):
+        parts = build(cuts)
+        system, numbering = slab_system(parts, cuts, comm)
+        A, b = system.petsc()
+    with t("solve"):
+        x, info = system.solve(A, b, solver)
+    with t("errors"):
+        sums = np.zeros(len(keys))
+        V = parts.space
+        if V is not None and V.n_dofs:
+            u = system.gather(x, numbering(V.cut.background.global_nodes(V.node_ids)))
+            sums[:] = measure(V, u)
+        sums = comm.allreduce(sums, op=MPI.SUM)
+    for obj in (A, b, x):
+        obj.destroy()
+    sizes = {k: int(comm.allreduce(v, op=MPI.SUM)) for k, v in (cut_counts(cuts, parts) | {"stabilized_faces": parts.faces}).items()}
+    times = comm.allreduce(np.array([t.get(k, 0.0) for k in STAGES]), op=MPI.MAX)
+    values = {k: math.sqrt(v) if k.endswith("_error") else float(v) for k, v in zip(keys, sums)}
+    return {
+        "h": background.h,
+        "dofs": numbering.n_global,
+        **values,
+        "solver": f"{info['ksp']}+{info['pc']}",
+        "solver_iterations": info["iterations"],
+        **info,
+        "box": [background.lower.tolist(), background.upper.tolist()],
+        "background_nodes": int(background.n_points),
+        **sizes,
+        "time": dict(zip(STAGES, times.tolist())),
+    }

@@ -1,0 +1,187 @@
+"""Distributed runs on MPI and PETSc (docs/math.md §17), run by .ci/run under mpiexec at 1, 2 and 4
+ranks (``mpiexec -n 4 python -m pytest tests/distributed``) and at 1 rank by a plain pytest when
+mpi4py and petsc4py are installed; skipped without them.
+
+Every rank runs every test in the same order (the tests are collective).  Sizes below the number of
+ranks run on the first ranks (a split communicator), so 4 ranks also check 1, 2 and 3."""
+
+import json
+
+import numpy as np
+import pytest
+
+pytest.importorskip("mpi4py")
+pytest.importorskip("petsc4py")
+
+import cutfem as cf  # noqa: E402
+from cutfem.distributed.assembly import slab_pieces, slab_system  # noqa: E402
+from cutfem.distributed.launch import engine, launched  # noqa: E402
+from cutfem.distributed.laplace_beltrami import laplace_beltrami_cut_level  # noqa: E402
+from cutfem.distributed.partition import rank_cuts, slab_partition  # noqa: E402
+from cutfem.distributed.poisson import poisson_cut_level, poisson_pieces  # noqa: E402
+from cutfem.fem.forms import assemble  # noqa: E402
+from cutfem.fem.spaces import CutP1Space  # noqa: E402
+from cutfem.fem.terms import face_jump_penalty, load, nitsche, stiffness  # noqa: E402
+from cutfem.geometry.cut import cut_mesh  # noqa: E402
+from cutfem.geometry.markers import CUT, NEG  # noqa: E402
+from cutfem.problems.common import background_for, levelset_for  # noqa: E402
+from cutfem.problems.poisson import exact_u, source  # noqa: E402
+from cutfem.runs.registry import get_problem  # noqa: E402
+
+MPI, PETSc = engine()
+WORLD = MPI.COMM_WORLD
+
+
+def ranks(size):
+    """A communicator of the first ``size`` ranks (None on the others); skips when there are fewer."""
+    if WORLD.size < size:
+        pytest.skip(f"needs {size} ranks, runs on {WORLD.size}")
+    comm = WORLD.Split(0 if WORLD.rank < size else MPI.UNDEFINED, WORLD.rank)
+    return None if comm == MPI.COMM_NULL else comm
+
+
+def partitions(nz):
+    """The block split and one with empty ranks (the first, and every other when there are 4)."""
+    size = WORLD.size
+    out = [None]
+    if size > 1:
+        rest = [nz // (size - 1) + (r < nz % (size - 1)) for r in range(size - 1)]
+        out.append([0] + rest)
+    return out
+
+
+@pytest.fixture(scope="module")
+def torus():
+    phi = levelset_for("torus")
+    bg = background_for(phi, 0.1, "structured", None)
+    cut = cut_mesh(bg, phi)
+    V = CutP1Space(cut, NEG)
+    dx = cut.dx(NEG)
+    N = nitsche(cut.ds(), 10.0, g=exact_u)
+    G = cut.ghost_facets(NEG)
+    K = assemble(stiffness(dx) + N + 0.1 * face_jump_penalty(cut.dF(G), h_power=1), V)
+    b = assemble(load(source, dx, degree=2) + N.load, V)
+    return phi, bg, cut, K, b
+
+
+def owned_rows(comm, numbering, vec):
+    return vec[numbering.first : numbering.first + numbering.n_owned]
+
+
+@pytest.mark.parametrize("which", [0, 1])
+def test_matrix_action_and_load_equal_serial(torus, which):
+    """A x (x random, the same on every rank) and b on each rank's rows equal the serial ones to
+    1e-12 relative, with the block split and with empty ranks."""
+    phi, bg, _, K, b = torus
+    cases = partitions(int(bg.cells[2]))
+    if which >= len(cases):
+        pytest.skip("one rank: no partition with empty ranks")
+    slabs = slab_partition(bg, WORLD.size, cases[which])
+    cuts = rank_cuts(slabs, WORLD.rank, phi)
+    system, numbering = slab_system(poisson_pieces(cuts, 10.0, 0.1), cuts, WORLD)
+    A, bv = system.petsc()
+    assert numbering.n_global == K.shape[0]
+    x = np.random.default_rng(3).standard_normal(K.shape[0])
+    xv = A.createVecRight()
+    xv.setArray(owned_rows(WORLD, numbering, x))
+    y = A.createVecLeft()
+    A.mult(xv, y)
+    errors = np.array([np.abs(y.getArray() - owned_rows(WORLD, numbering, K @ x)).max(initial=0.0),
+                       np.abs(bv.getArray() - owned_rows(WORLD, numbering, b)).max(initial=0.0)])
+    errors = WORLD.allreduce(errors, op=MPI.MAX)
+    assert errors[0] <= 1e-12 * np.abs(K @ x).max()
+    assert errors[1] <= 1e-12 * np.abs(b).max()
+
+
+@pytest.mark.parametrize("side", [NEG, CUT])
+def test_stabilization_of_a_constant_is_zero_and_faces_are_counted_once(torus, side):
+    """The ghost penalty (NEG) and J_F (CUT) of a constant sum to zero on every row, and the faces
+    assembled on all ranks are the serial faces, each once."""
+    phi, bg, cut, _, _ = torus
+    serial = cut.ghost_facets(NEG) if side == NEG else cut.interior_facets(CUT)
+    for counts in partitions(int(bg.cells[2])):
+        slabs = slab_partition(bg, WORLD.size, counts)
+        cuts = rank_cuts(slabs, WORLD.rank, phi)
+        faces = (lambda c: c.ghost_facets(NEG)) if side == NEG else (lambda c: c.interior_facets(CUT))
+        parts = slab_pieces(cuts, side, None, faces, lambda dF: face_jump_penalty(dF, h_power=1))
+        system, numbering = slab_system(parts, cuts, WORLD)
+        A, _ = system.petsc()
+        one, y = A.createVecRight(), A.createVecLeft()
+        one.set(1.0)
+        A.mult(one, y)
+        worst = WORLD.allreduce(np.abs(y.getArray()).max(initial=0.0), op=MPI.MAX)
+        assert worst <= 1e-13 * A.norm(PETSc.NormType.INFINITY)
+        assert WORLD.allreduce(parts.faces, op=MPI.SUM) == serial.n_facets
+
+
+SERIAL = {}
+
+
+def serial_record(name, level, **given):
+    key = (name, level, tuple(sorted(given.items())))
+    if key not in SERIAL:
+        problem = get_problem(name)
+        SERIAL[key] = problem.solve_level(level, **problem.resolve(given))
+    return SERIAL[key]
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 4])
+def test_poisson_errors_equal_serial(size):
+    """poisson-cut at spacings 0.2 and 0.1 on 1-4 ranks: the unknowns, the cut's sizes and the
+    errors of the serial run (both solved directly) to 1e-10 relative."""
+    comm = ranks(size)
+    for spacing in (0.2, 0.1):
+        serial = serial_record("poisson-cut", spacing, surface="torus", solver="direct")
+        if comm is None:
+            continue
+        p = get_problem("poisson-cut").resolve({"surface": "torus", "solver": "direct"})
+        rec = poisson_cut_level(spacing, **p, comm=comm)
+        assert rec["dofs"] == serial["dofs"]
+        for key in ("active_tets", "pieces", "surface_triangles", "interior_faces", "background_nodes"):
+            assert rec[key] == serial[key], key
+        for key in ("l2_error", "h1_error", "volume"):
+            assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
+        assert rec["engine"].startswith("PETSc") and rec["ranks"] == size and rec["pc"].startswith("lu")
+
+
+@pytest.mark.parametrize("size", [2, 4])
+def test_laplace_beltrami_errors_equal_serial(size):
+    """laplace-beltrami-cut on the sphere at spacing 0.2, J_F across the ranks."""
+    comm = ranks(size)
+    serial = serial_record("laplace-beltrami-cut", 0.2, solver="direct")
+    if comm is None:
+        return
+    p = get_problem("laplace-beltrami-cut").resolve({"solver": "direct"})
+    rec = laplace_beltrami_cut_level(0.2, **p, comm=comm)
+    assert rec["dofs"] == serial["dofs"] and rec["pieces"] == serial["pieces"]
+    for key in ("l2_error", "h1_error", "area"):
+        assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
+
+
+def test_poisson_rates_on_two_ranks():
+    """L2 O(h^2) and H1 O(h) between spacings 0.2 and 0.1 on 2 ranks, solved by CG + GAMG
+    (measured serially: 2.2 and 1.1 on the torus)."""
+    comm = ranks(2)
+    if comm is None:
+        return
+    p = get_problem("poisson-cut").resolve({"surface": "torus", "solver": "cg-amg"})
+    recs = [poisson_cut_level(s, **p, comm=comm) for s in (0.2, 0.1)]
+    assert recs[1]["ksp"] == "cg" and recs[1]["pc"] == "gamg" and recs[1]["solver_iterations"] > 0
+    l2 = cf.rates([r["h"] for r in recs], [r["l2_error"] for r in recs])[0]
+    h1 = cf.rates([r["h"] for r in recs], [r["h1_error"] for r in recs])[0]
+    assert abs(l2 - 2) <= 0.35 and abs(h1 - 1) <= 0.25, (l2, h1)
+
+
+@pytest.mark.skipif(not launched(), reason="the command line's distributed path runs under mpiexec")
+def test_command_line_under_mpiexec(tmp_path_factory):
+    """``mpiexec -n N cutfem run poisson-cut``: every rank solves, rank 0 writes the JSON, whose
+    records name the engine and the number of ranks."""
+    folder = WORLD.bcast(str(tmp_path_factory.mktemp("cli")) if WORLD.rank == 0 else None)
+    path = f"{folder}/poisson.json"
+    from cutfem.runs.cli import main
+
+    assert main(["run", "poisson-cut", "--surface", "torus", "--levels", "0.2", "--json", path, "--quiet"]) == 0
+    WORLD.Barrier()
+    rec = json.load(open(path))["records"][0]
+    assert rec["ranks"] == WORLD.size and rec["engine"].startswith("PETSc")
+    assert main(["run", "interface-poisson-cut", "--levels", "0.2", "--quiet"]) == (2 if WORLD.size > 1 else 0)
