@@ -64,11 +64,12 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
         if V is not None and V.n_dofs:
             u = system.gather(x, numbering(V.cut.background.global_nodes(V.node_ids)))
             sums[:] = measure(V, u)
-        sums = comm.allreduce(sums, op=MPI.SUM)
+        comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
     for obj in (A, b, x):
         obj.destroy()
     sizes = {k: int(comm.allreduce(v, op=MPI.SUM)) for k, v in (cut_counts(cuts, parts) | {"stabilized_faces": parts.faces}).items()}
-    times = comm.allreduce(np.array([t.get(k, 0.0) for k in STAGES]), op=MPI.MAX)
+    times = np.array([t.get(k, 0.0) for k in STAGES])
+    comm.Allreduce(MPI.IN_PLACE, times, op=MPI.MAX)
     values = {k: math.sqrt(v) if k.endswith("_error") else float(v) for k, v in zip(keys, sums)}
     return {
         "h": background.h,

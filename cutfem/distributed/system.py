@@ -15,8 +15,8 @@ System
 ------
 Each rank adds the matrices of its local spaces as COO triples in global numbers
 (:meth:`LinearSystem.add_matrix`), and its local load vectors (:meth:`LinearSystem.add_vector`);
-PETSc sums the triples (``MatSetPreallocationCOO``/``MatSetValuesCOO``; entries of rows another
-rank owns travel to it) into an MPIAIJ matrix with the rows of each rank's owned unknowns.  The
+the triples of rows another rank owns travel to it, and each rank's rows go to PETSc as exact CSR
+arrays of an MPIAIJ matrix (petsc4py 3.18 has no COO assembly).  The
 solve is PETSc's: CG preconditioned by GAMG (smoothed aggregation) to a relative residual of 1e-8
 for SPD systems, or an LU factorization by MUMPS ("direct"); ``solver="auto"`` takes the direct
 one up to :data:`~cutfem.solvers.solve.DIRECT_LIMIT` unknowns, as the serial ``solve`` does.
@@ -25,6 +25,7 @@ one up to :data:`~cutfem.solvers.solve.DIRECT_LIMIT` unknowns, as the serial ``s
 from __future__ import annotations
 
 import numpy as np
+import scipy.sparse as sp
 
 from ..solvers.krylov import DEFAULT_TOL
 from ..solvers.solve import DIRECT_LIMIT
@@ -104,25 +105,49 @@ class LinearSystem:
         return int(sum(len(r) for r in self._rows))
 
     def petsc(self):
-        """(A, b): the MPIAIJ matrix and the right-hand side Vec."""
+        """(A, b): the MPIAIJ matrix and the right-hand side Vec.  The triples and the load
+        entries of rows that other ranks own are sent to them first (:meth:`_to_owners`); each rank
+        then sums its rows' triples into CSR (scipy sums duplicates) and hands PETSc exact CSR
+        arrays (``MatCreateMPIAIJWithArrays``: preallocated, no stash)."""
         _, PETSc = engine()
         n, N = self.numbering.n_owned, self.numbering.n_global
         rows, cols, vals = (np.concatenate(a) if a else np.zeros(0, t) for a, t in
                             ((self._rows, np.int64), (self._cols, np.int64), (self._vals, float)))
-        A = PETSc.Mat().create(comm=self.comm)
-        A.setSizes(((n, N), (n, N)))
-        A.setType(PETSc.Mat.Type.AIJ)
-        A.setPreallocationCOO(rows.astype(PETSc.IntType), cols.astype(PETSc.IntType))
-        A.setValuesCOO(vals, addv=PETSc.InsertMode.ADD_VALUES)
+        rows, cols, vals = self._to_owners(rows, cols, vals)
+        first = self.numbering.first
+        local = sp.csr_matrix((vals, (rows - first, cols)), shape=(n, N))
+        local.sum_duplicates()
+        local.sort_indices()
+        A = PETSc.Mat().createAIJ(((n, N), (n, N)), csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType),
+                                                         local.data), comm=self.comm)
         A.assemble()
         b = A.createVecLeft()
-        b.set(0.0)
-        if self._vec_rows:
-            b.setValues(np.concatenate(self._vec_rows).astype(PETSc.IntType), np.concatenate(self._vec_vals),
-                        addv=PETSc.InsertMode.ADD_VALUES)
-        b.assemblyBegin()
-        b.assemblyEnd()
+        vrows, vvals = (np.concatenate(a) if a else np.zeros(0, t) for a, t in ((self._vec_rows, np.int64), (self._vec_vals, float)))
+        vrows, vvals = self._to_owners(vrows, vvals)
+        b.setArray(np.bincount(vrows - first, weights=vvals, minlength=n) if n else np.zeros(0))
         return A, b
+
+    def _to_owners(self, rows, *columns):
+        """The entries (``rows`` and the arrays beside them) of the rows this rank owns, received
+        from every rank (one all-to-all exchange; each row owned by the rank whose block of numbers
+        holds it)."""
+        MPI, _ = engine()
+        comm = self.comm
+        firsts = np.array(comm.allgather(self.numbering.first), dtype=np.int64)
+        owner = np.searchsorted(firsts, rows, side="right") - 1
+        order = np.argsort(owner, kind="stable")
+        send = np.bincount(owner, minlength=comm.size).astype(np.int64)
+        recv = np.empty_like(send)
+        comm.Alltoall(send, recv)
+        sdispl, rdispl = _displacements(send), _displacements(recv)
+        out = []
+        for a in (rows, *columns):
+            a = np.ascontiguousarray(a[order])
+            got = np.empty(int(recv.sum()), dtype=a.dtype)
+            kind = MPI.INT64_T if a.dtype == np.int64 else MPI.DOUBLE
+            comm.Alltoallv([a, (send, sdispl), kind], [got, (recv, rdispl), kind])
+            out.append(got)
+        return out
 
     def solve(self, A, b, solver: str = "auto"):
         """``(x, info)``: the solution Vec of A x = b by PETSc's KSP and what solved it (``ksp``,
