@@ -76,7 +76,7 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
         "dofs": numbering.n_global,
         **values,
         "solver": f"{info['ksp']}+{info['pc']}",
-        "solver_iterations": info["iterations"],
+        "solver_iterations": info.pop("iterations"),
         **info,
         "box": [background.lower.tolist(), background.upper.tolist()],
         "background_nodes": int(background.n_points),
