@@ -27,6 +27,8 @@ from cutfem.geometry.markers import CUT, NEG  # noqa: E402
 from cutfem.problems.common import background_for, levelset_for  # noqa: E402
 from cutfem.problems.poisson import exact_u, source  # noqa: E402
 from cutfem.runs.registry import get_problem  # noqa: E402
+from cutfem.runs.cli import main  # noqa: E402
+from cutfem.studies.distributed_scaling import scaling_record, table  # noqa: E402
 
 MPI, PETSc = engine()
 WORLD = MPI.COMM_WORLD
@@ -178,10 +180,17 @@ def test_command_line_under_mpiexec(tmp_path_factory):
     records name the engine and the number of ranks."""
     folder = WORLD.bcast(str(tmp_path_factory.mktemp("cli")) if WORLD.rank == 0 else None)
     path = f"{folder}/poisson.json"
-    from cutfem.runs.cli import main
-
     assert main(["run", "poisson-cut", "--surface", "torus", "--levels", "0.2", "--json", path, "--quiet"]) == 0
     WORLD.Barrier()
     rec = json.load(open(path))["records"][0]
     assert rec["ranks"] == WORLD.size and rec["engine"].startswith("PETSc")
     assert main(["run", "interface-poisson-cut", "--levels", "0.2", "--quiet"]) == (2 if WORLD.size > 1 else 0)
+
+
+def test_scaling_study_record_and_table():
+    """The scaling study's record on all ranks (its level at spacing 0.2 here) and its table."""
+    rec = scaling_record(WORLD, 0.2)
+    assert rec["ranks"] == WORLD.size and len(rec["memory_mib"]) == WORLD.size and min(rec["memory_mib"]) > 0
+    assert set(rec["time"]) == {"geometry", "assembly", "solve", "errors"}
+    text = table([rec])
+    assert text.count("\n") == 3 and f"| {WORLD.size} | {rec['dofs']:,} |" in text
