@@ -16,6 +16,7 @@ __all__ = ["DISTRIBUTED_LEVELS", "distributed_level", "launched", "launched_rank
 DISTRIBUTED_LEVELS = {
     "poisson-cut": "cutfem.distributed.poisson:poisson_cut_level",
     "laplace-beltrami-cut": "cutfem.distributed.laplace_beltrami:laplace_beltrami_cut_level",
+    "mean-curvature-cut": "cutfem.distributed.mean_curvature:mean_curvature_cut_level",
 }
 
 

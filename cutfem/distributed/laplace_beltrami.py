@@ -61,7 +61,7 @@ def laplace_beltrami_cut_level(spacing, surface, background, box, stabilization,
 
     rec = solve_on_slabs(MPI.COMM_WORLD if comm is None else comm, phi, bg,
                          lambda cuts: laplace_beltrami_pieces(cuts, sol, stabilization, tau_f, face_h_power, tau_n, normal_h_power),
-                         measure, ("l2_error", "h1_error", "area"), solver, counts, t)
+                         measure, ("l2_error", "h1_error", "area"), solver, counts, t, bulk=False)
     if notes:
         rec["warnings"] = notes
     return rec

@@ -16,6 +16,7 @@ import numpy as np
 
 from ..geometry.markers import CUT
 from ..runs.runner import Timer
+from ..solvers.krylov import DEFAULT_TOL
 from .assembly import slab_system
 from .launch import engine
 from .partition import rank_cuts, slab_partition
@@ -40,13 +41,16 @@ def cut_counts(cuts, parts) -> dict:
     return out
 
 
-def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None) -> dict:
+def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
+                   tol: float = DEFAULT_TOL, bulk: bool = True) -> dict:
     """Solve one level of a problem on the ranks of ``comm``; returns the record's common part.
 
     ``build(cuts)``: the rank's :class:`~cutfem.distributed.assembly.SlabPieces`;
     ``measure(space, u)``: additive numbers of the solution ``u`` (the values at the owned space's
-    unknowns) over the owned cells, one for each of ``keys``; keys ending in ``_error`` are sums of
-    squares whose square roots are recorded.  ``counts``: the cell layers of each rank."""
+    unknowns, (n, k) for k loads) over the owned cells, one for each of ``keys``; keys ending in
+    ``_error`` are sums of squares whose square roots are recorded.  ``counts``: the cell layers of
+    each rank; ``tol``: the relative residual of CG; ``bulk``: the unknowns fill a volume (for the
+    choice of ``solver="auto"``, :meth:`~cutfem.distributed.system.LinearSystem.solve`)."""
     MPI, _ = engine()
     t = Timer() if timer is None else timer
     with t("geometry"):
@@ -55,17 +59,18 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
     with t("assembly"):
         parts = build(cuts)
         system, numbering = slab_system(parts, cuts, comm)
-        A, b = system.petsc()
+        A, loads = system.petsc()
     with t("solve"):
-        x, info = system.solve(A, b, solver)
+        xs, info = system.solve(A, loads, solver, tol, bulk)
     with t("errors"):
         sums = np.zeros(len(keys))
         V = parts.space
         if V is not None and V.n_dofs:
-            u = system.gather(x, numbering(V.cut.background.global_nodes(V.node_ids)))
+            dofs = numbering(V.cut.background.global_nodes(V.node_ids))
+            u = np.stack([system.gather(x, dofs) for x in xs], axis=1) if len(xs) > 1 else system.gather(xs[0], dofs)
             sums[:] = measure(V, u)
         comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
-    for obj in (A, b, x):
+    for obj in (A, *loads, *xs):
         obj.destroy()
     sizes = {k: int(comm.allreduce(v, op=MPI.SUM)) for k, v in (cut_counts(cuts, parts) | {"stabilized_faces": parts.faces}).items()}
     times = np.array([t.get(k, 0.0) for k in STAGES])

@@ -17,6 +17,7 @@ import cutfem as cf  # noqa: E402
 from cutfem.distributed.assembly import slab_pieces, slab_system  # noqa: E402
 from cutfem.distributed.launch import engine, launched  # noqa: E402
 from cutfem.distributed.laplace_beltrami import laplace_beltrami_cut_level  # noqa: E402
+from cutfem.distributed.mean_curvature import mean_curvature_cut_level  # noqa: E402
 from cutfem.distributed.partition import rank_cuts, slab_partition  # noqa: E402
 from cutfem.distributed.poisson import poisson_cut_level, poisson_pieces  # noqa: E402
 from cutfem.fem.forms import assemble  # noqa: E402
@@ -81,7 +82,7 @@ def test_matrix_action_and_load_equal_serial(torus, which):
     slabs = slab_partition(bg, WORLD.size, cases[which])
     cuts = rank_cuts(slabs, WORLD.rank, phi)
     system, numbering = slab_system(poisson_pieces(cuts, 10.0, 0.1), cuts, WORLD)
-    A, bv = system.petsc()
+    A, (bv,) = system.petsc()
     assert numbering.n_global == K.shape[0]
     x = np.random.default_rng(3).standard_normal(K.shape[0])
     xv = A.createVecRight()
@@ -158,6 +159,23 @@ def test_laplace_beltrami_errors_equal_serial(size):
     assert rec["dofs"] == serial["dofs"] and rec["pieces"] == serial["pieces"]
     for key in ("l2_error", "h1_error", "area"):
         assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
+
+
+@pytest.mark.parametrize("size", [1, 2, 4])
+def test_mean_curvature_equals_serial(size):
+    """mean-curvature-cut on the torus at spacing 0.1 (J_F across the ranks, three loads, one KSP):
+    the serial errors, area and integral of H to 1e-10, both solved directly."""
+    comm = ranks(size)
+    serial = serial_record("mean-curvature-cut", 0.1, solver="direct")
+    if comm is None:
+        return
+    p = get_problem("mean-curvature-cut").resolve({"solver": "direct"})
+    rec = mean_curvature_cut_level(0.1, **p, comm=comm)
+    assert rec["dofs"] == serial["dofs"] and rec["interior_faces"] == serial["interior_faces"]
+    assert rec["stabilized_faces"] == serial["interior_faces"]
+    for key in ("l2_error", "area", "area_error"):
+        assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
+    assert np.allclose(rec["integral_H"], serial["integral_H"], rtol=0, atol=1e-10 * serial["area"])
 
 
 def test_poisson_rates_on_two_ranks():
