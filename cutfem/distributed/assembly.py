@@ -23,14 +23,15 @@ from ..fem.forms import assemble
 from ..fem.spaces import CutP1Space
 from .system import GlobalNumbering, LinearSystem
 
-__all__ = ["Piece", "SlabPieces", "slab_pieces", "slab_system"]
+__all__ = ["Piece", "SlabPieces", "global_keys", "slab_pieces", "slab_system"]
 
 
 @dataclass
 class Piece:
-    """A local matrix (and load vector, or None) whose row i is the global node ``nodes[i]``."""
+    """A local matrix (and load vector, or None) whose row i is the unknown ``keys[i]`` (global
+    node id times the number of fields plus the field: :func:`global_keys`)."""
 
-    nodes: np.ndarray
+    keys: np.ndarray
     matrix: object
     vector: np.ndarray | None = None
 
@@ -45,12 +46,18 @@ class SlabPieces:
     faces: int = 0
 
     @property
-    def nodes(self) -> np.ndarray:
-        return np.concatenate([p.nodes for p in self.pieces]) if self.pieces else np.zeros(0, dtype=np.int64)
+    def keys(self) -> np.ndarray:
+        return np.concatenate([p.keys for p in self.pieces]) if self.pieces else np.zeros(0, dtype=np.int64)
 
 
-def _global_nodes(space) -> np.ndarray:
-    return space.cut.background.global_nodes(space.node_ids)
+def global_keys(space) -> np.ndarray:
+    """The keys of the unknowns of a P1 space on a slab's cut (its global node ids) or of a product
+    of such spaces (``node * fields + field``, in the product's dof order)."""
+    fields = getattr(space, "fields", None)
+    if fields is None:
+        return space.cut.background.global_nodes(space.node_ids)
+    F = len(fields)
+    return np.concatenate([f.cut.background.global_nodes(f.node_ids) * F + k for k, f in enumerate(fields)])
 
 
 def slab_pieces(cuts, on, cells, faces=None, face_form=None) -> SlabPieces:
@@ -72,23 +79,23 @@ def slab_pieces(cuts, on, cells, faces=None, face_form=None) -> SlabPieces:
                 if F.n_facets:
                     a = face_form(owned.dF(F)) if a is None else a + face_form(owned.dF(F))
             if a is not None:
-                out.pieces.append(Piece(_global_nodes(V), assemble(a, V), None if rhs is None else assemble(rhs, V)))
+                out.pieces.append(Piece(global_keys(V), assemble(a, V), None if rhs is None else assemble(rhs, V)))
     if faces is not None and seam is not None and seam.n_tets:
         F = cuts.seam_facets(faces(seam))
         out.faces += F.n_facets
         if F.n_facets:
             S = CutP1Space(seam, on)
-            out.pieces.append(Piece(_global_nodes(S), assemble(face_form(seam.dF(F)), S)))
+            out.pieces.append(Piece(global_keys(S), assemble(face_form(seam.dF(F)), S)))
     return out
 
 
-def slab_system(parts: SlabPieces, cuts, comm) -> tuple[LinearSystem, GlobalNumbering]:
-    """The global numbering of the pieces' nodes and the system they add up to (not yet on PETSc:
-    :meth:`~cutfem.distributed.system.LinearSystem.petsc`)."""
-    numbering = GlobalNumbering(comm, cuts.slabs, cuts.rank, parts.nodes)
+def slab_system(parts: SlabPieces, cuts, comm, fields: int = 1) -> tuple[LinearSystem, GlobalNumbering]:
+    """The global numbering of the pieces' unknowns (``fields`` per node for a product space) and
+    the system they add up to (not yet on PETSc: :meth:`~cutfem.distributed.system.LinearSystem.petsc`)."""
+    numbering = GlobalNumbering(comm, cuts.slabs, cuts.rank, parts.keys, fields)
     system = LinearSystem(comm, numbering)
     for piece in parts.pieces:
-        dofs = numbering(piece.nodes)
+        dofs = numbering(piece.keys)
         system.add_matrix(piece.matrix, dofs)
         if piece.vector is not None:
             system.add_vector(piece.vector, dofs)

@@ -17,7 +17,7 @@ import numpy as np
 from ..geometry.markers import CUT
 from ..runs.runner import Timer
 from ..solvers.krylov import DEFAULT_TOL
-from .assembly import slab_system
+from .assembly import global_keys, slab_system
 from .launch import engine
 from .partition import rank_cuts, slab_partition
 
@@ -33,7 +33,8 @@ def cut_counts(cuts, parts) -> dict:
     out = {"active_tets": 0, "pieces": 0, "surface_triangles": 0, "interior_faces": 0}
     if cuts.owned is not None:
         c = cuts.owned
-        out["active_tets"] = len(parts.space.elements.tet_ids)
+        fields = getattr(parts.space, "fields", None) or [parts.space]  # a product space's tets: the union of its fields'
+        out["active_tets"] = len(np.unique(np.concatenate([f.elements.tet_ids for f in fields])))
         out["pieces"], out["surface_triangles"] = int(c.n_tets), int(c.n_triangles)
         out["interior_faces"] = c.interior_facets().n_facets if c.n_tets else 0
     if cuts.seam is not None and cuts.seam.n_tets:
@@ -42,15 +43,17 @@ def cut_counts(cuts, parts) -> dict:
 
 
 def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
-                   tol: float = DEFAULT_TOL, bulk: bool = True) -> dict:
+                   tol: float = DEFAULT_TOL, bulk: bool = True, fields: int = 1, constrain=None) -> dict:
     """Solve one level of a problem on the ranks of ``comm``; returns the record's common part.
 
     ``build(cuts)``: the rank's :class:`~cutfem.distributed.assembly.SlabPieces`;
     ``measure(space, u)``: additive numbers of the solution ``u`` (the values at the owned space's
-    unknowns, (n, k) for k loads) over the owned cells, one for each of ``keys``; keys ending in
-    ``_error`` are sums of squares whose square roots are recorded.  ``counts``: the cell layers of
+    unknowns, (n, k) for k loads) over the owned cells, one for each of ``keys``; keys with
+    ``_error`` in them are sums of squares whose square roots are recorded.  ``counts``: the cell layers of
     each rank; ``tol``: the relative residual of CG; ``bulk``: the unknowns fill a volume (for the
-    choice of ``solver="auto"``, :meth:`~cutfem.distributed.system.LinearSystem.solve`)."""
+    choice of ``solver="auto"``, :meth:`~cutfem.distributed.system.LinearSystem.solve`); ``fields``:
+    the fields of a product space; ``constrain(A, loads, numbering, parts)``: strong conditions
+    applied to the PETSc system before the solve."""
     MPI, _ = engine()
     t = Timer() if timer is None else timer
     with t("geometry"):
@@ -58,15 +61,17 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
         cuts = rank_cuts(slabs, comm.rank, levelset)
     with t("assembly"):
         parts = build(cuts)
-        system, numbering = slab_system(parts, cuts, comm)
+        system, numbering = slab_system(parts, cuts, comm, fields)
         A, loads = system.petsc()
+        if constrain is not None:
+            constrain(A, loads, numbering, parts)
     with t("solve"):
         xs, info = system.solve(A, loads, solver, tol, bulk)
     with t("errors"):
         sums = np.zeros(len(keys))
         V = parts.space
         if V is not None and V.n_dofs:
-            dofs = numbering(V.cut.background.global_nodes(V.node_ids))
+            dofs = numbering(global_keys(V))
             u = np.stack([system.gather(x, dofs) for x in xs], axis=1) if len(xs) > 1 else system.gather(xs[0], dofs)
             sums[:] = measure(V, u)
         comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
@@ -75,7 +80,7 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
     sizes = {k: int(comm.allreduce(v, op=MPI.SUM)) for k, v in (cut_counts(cuts, parts) | {"stabilized_faces": parts.faces}).items()}
     times = np.array([t.get(k, 0.0) for k in STAGES])
     comm.Allreduce(MPI.IN_PLACE, times, op=MPI.MAX)
-    values = {k: math.sqrt(v) if k.endswith("_error") else float(v) for k, v in zip(keys, sums)}
+    values = {k: math.sqrt(v) if "_error" in k else float(v) for k, v in zip(keys, sums)}
     return {
         "h": background.h,
         "dofs": numbering.n_global,

@@ -43,21 +43,24 @@ DISTRIBUTED_SOLVERS = {"direct": ("preonly", "lu"), "cg-amg": ("cg", "gamg"), "c
 
 
 class GlobalNumbering:
-    """The global numbers of the nodes one rank touches (``nodes``, global background ids, any
-    order, repeats allowed), each node owned by one rank of ``slabs``.  ``first`` and ``n_owned``:
-    this rank's block of numbers; ``n_global`` the number of unknowns."""
+    """The global numbers of the unknowns one rank touches, given by their keys ``node * fields +
+    field`` (global background node ids; any order, repeats allowed; ``fields`` > 1 for a product
+    space), each owned by the owner of its node in ``slabs``.  A rank numbers its owned keys in
+    increasing order, so with one field the numbers are the serial ones.  ``first`` and
+    ``n_owned``: this rank's block of numbers; ``n_global`` the number of unknowns."""
 
-    def __init__(self, comm, slabs, rank: int, nodes):
+    def __init__(self, comm, slabs, rank: int, keys, fields: int = 1):
         MPI, _ = engine()
-        nodes = np.unique(np.asarray(nodes, dtype=np.int64))
+        keys = np.unique(np.asarray(keys, dtype=np.int64))
         lo, hi = slabs.owned_nodes(rank)
-        mine = (nodes >= lo) & (nodes < hi)
-        owned, others = nodes[mine], nodes[~mine]
+        mine = (keys >= lo * fields) & (keys < hi * fields)
+        owned, others = keys[mine], keys[~mine]
+        self.fields = fields
         self.n_owned = len(owned)
         self.first = int(comm.exscan(self.n_owned) or 0) if comm.size > 1 else 0
         self.n_global = int(comm.allreduce(self.n_owned))
-        # ask the owners for the numbers of the other nodes: ids sorted, so their owners are too
-        owners = slabs.node_owner(others)
+        # ask the owners for the numbers of the other keys: sorted, so their owners are too
+        owners = slabs.node_owner(others // fields)
         send = np.bincount(owners, minlength=comm.size).astype(np.int64)
         recv = np.empty_like(send)
         comm.Alltoall(send, recv)
@@ -71,14 +74,15 @@ class GlobalNumbering:
         answer = (self.first + where).astype(np.int64)
         got = np.empty(len(others), dtype=np.int64)
         comm.Alltoallv([answer, (recv, rdispl), MPI.INT64_T], [got, (send, sdispl), MPI.INT64_T])
-        self.nodes = nodes
-        self.numbers = np.empty(len(nodes), dtype=np.int64)
+        self.keys = keys
+        self.owned_keys = owned
+        self.numbers = np.empty(len(keys), dtype=np.int64)
         self.numbers[mine] = self.first + np.arange(self.n_owned)
         self.numbers[~mine] = got
 
-    def __call__(self, node_ids) -> np.ndarray:
-        """The global numbers of global node ids (all among the nodes given)."""
-        return self.numbers[np.searchsorted(self.nodes, np.asarray(node_ids, dtype=np.int64))]
+    def __call__(self, keys) -> np.ndarray:
+        """The global numbers of keys (all among the keys given)."""
+        return self.numbers[np.searchsorted(self.keys, np.asarray(keys, dtype=np.int64))]
 
 
 def _displacements(counts) -> np.ndarray:

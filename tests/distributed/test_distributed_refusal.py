@@ -20,8 +20,8 @@ def test_launcher_variables(monkeypatch):
 def test_problems_not_distributed_are_refused_on_several_ranks(monkeypatch):
     monkeypatch.setenv("OMPI_COMM_WORLD_SIZE", "2")
     monkeypatch.setenv("OMPI_COMM_WORLD_RANK", "0")
-    with pytest.raises(ProblemError, match=r"interface-poisson-cut is not distributed: run it on one rank.*poisson-cut"):
-        cf.run("interface-poisson-cut", levels=[0.2])
+    with pytest.raises(ProblemError, match=r"bulk-surface-cut is not distributed: run it on one rank.*poisson-cut"):
+        cf.run("bulk-surface-cut", levels=[0.2])
 
 
 def test_distributed_problems_are_registered():

@@ -43,8 +43,8 @@ def summed(phi, bg, V, counts, pieces=lambda cuts: poisson_pieces(cuts, 10.0, 0.
         parts = pieces(rank_cuts(slabs, rank, phi))
         faces += parts.faces
         for piece in parts.pieces:
-            dofs = np.searchsorted(V.node_ids, piece.nodes)
-            assert np.array_equal(V.node_ids[dofs], piece.nodes)  # every row is a serial unknown
+            dofs = np.searchsorted(V.node_ids, piece.keys)
+            assert np.array_equal(V.node_ids[dofs], piece.keys)  # every row is a serial unknown
             c = piece.matrix.tocoo()
             K = K + sp.csr_matrix((c.data, (dofs[c.row], dofs[c.col])), shape=(n, n))
             if piece.vector is not None:
