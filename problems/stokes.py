@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from cutfem.fem.coupling import divergence, mean_constraint
 from cutfem.fem.exact import Exact
 from cutfem.fem.forms import assemble, bilinear_form, linear_form
 from cutfem.fem.norms import l2_error, l2_h1_errors
@@ -51,13 +52,6 @@ DEFINITIONS = {
     "h1_error_velocity": "||grad u_h - grad u||_L2(Omega_h)",
     "l2_error_pressure": "||p_h - (p - mean_Omega_h p)||_L2(Omega_h): the pressure up to its mean",
 }
-
-
-@bilinear_form(symmetric=True, degree=1)
-def _coupling(u, v, w):
-    """-(div v, p) - (div u, q) + the mean-value constraint (p, mu) + (q, lam) over the domain: a
-    constant times a linear function, exact with the centroid rule (degree 1)."""
-    return -v[0].div * u[1] - u[0].div * v[1] + u[1] * v[2] + v[1] * u[2]
 
 
 @bilinear_form(symmetric=True)
@@ -111,7 +105,7 @@ def stokes_cut(spacing, surface, background, box, nu, gamma, gamma_u, gamma_p, b
     with t("assembly"):
         N = nitsche(ds, gamma, g=VELOCITY, field="u")
         f = -nu * VELOCITY.laplacian + PRESSURE.grad
-        a = nu * stiffness(dx, field="u") + nu * N + _coupling * dx + _normal_coupling * ds \
+        a = nu * stiffness(dx, field="u") + nu * N + divergence(dx) + mean_constraint(dx) + _normal_coupling * ds \
             - (beta / nu) * _brezzi_pitkaranta.on(dx, field="p")
         if gamma_u > 0:
             a = a + nu * gamma_u * face_jump_penalty(dg, h_power=1, field="u")

@@ -86,6 +86,8 @@ class Integrand:
       matrix on the field's ``space`` into ``into`` (the field's running sum,
       :func:`~cutfem.fem.assembly.running_sum`, or None) where it can and returns the rest unscaled
       (CSR, or None); ``exact(term, space)`` for a linear one returns the vector (n,) or (n, c);
+      for a term that couples fields (``couples=True``, a bilinear integrand on a product space)
+      ``exact(term, space)`` returns the unscaled (n, n) matrix over all of the space's fields;
     * ``prepare(space, term)``, called before the integrand is evaluated by quadrature on ``space``
       (all fields): its checks of the space, and the parameters it derives from it (a dict,
       seen as ``w.<name>``; the side of a field for Nitsche's normal);
@@ -95,8 +97,9 @@ class Integrand:
     __array_ufunc__ = None  # ndarray * integrand defers to __rmul__, which asks for a measure
 
     def __init__(self, function, linear: bool, symmetric: bool = False, degree: int | None = None, exact=None,
-                 prepare=None, advice=None):
+                 prepare=None, advice=None, couples: bool = False):
         self.function = function
+        self.couples = couples
         self.linear = linear
         self.symmetric = symmetric
         self.degree = degree if degree is not None else (4 if linear else 2)
@@ -567,6 +570,10 @@ def assemble(form: Form, space, **params):
         total = A if total is None else total + A
 
     for c, term in form.terms:
+        if term.integrand.exact is not None and term.integrand.couples:
+            A = term.integrand.exact(term, space)
+            total = c * A if total is None else total + c * A
+            continue
         if term.integrand.exact is not None:
             k = _field_index(space, term.field)
             V = _p1_field(space, k, term)

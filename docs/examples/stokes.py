@@ -3,7 +3,8 @@
     -Lap u + grad p = f,  div u = 0 in the unit ball,  u = g on its sphere.
 
 One product space holds the velocity (a vector field), the pressure and a multiplier for the
-pressure's mean.  Nitsche imposes u = g on the cut boundary; ghost penalties on the faces of the
+pressure's mean; ``cf.divergence`` couples velocity and pressure, ``cf.mean_constraint`` the
+pressure and its multiplier.  Nitsche imposes u = g on the cut boundary; ghost penalties on the faces of the
 cut tets (velocity h, pressure h^3) and the Brezzi-Pitkaranta term -beta h^2 (grad p, grad q)
 stabilize the equal-order pair.  The system is symmetric indefinite: ``cf.solve`` with ``primal``
 and ``schur`` runs MINRES, preconditioned by multigrid on the velocity block and on the Schur
@@ -20,11 +21,6 @@ U = cf.Exact(["sin(y)*sin(z)", "sin(z)*sin(x)", "sin(x)*sin(y)"]).curl
 P = cf.Exact("x*y*z + x**2 - y**2")
 F = -U.laplacian + P.grad
 BETA, GAMMA = 0.05, 20.0
-
-
-@cf.bilinear_form(symmetric=True, degree=1)
-def coupling(u, v, w):  # -(div v, p) - (div u, q) + (p, mu) + (q, lam)
-    return -v[0].div * u[1] - u[0].div * v[1] + u[1] * v[2] + v[1] * u[2]
 
 
 @cf.bilinear_form(symmetric=True)
@@ -49,7 +45,7 @@ def main(spacing=0.2):
     W = cf.ProductSpace(u=cf.VectorSpace(V), p=V, mean=cf.RealSpace())
     dx, ds, dg = cut.dx(cf.NEG), cut.ds(), cut.dF(cut.ghost_facets(cf.NEG))
     N = cf.nitsche(ds, GAMMA, g=U, field="u")
-    a = cf.stiffness(dx, field="u") + N + coupling * dx + normal_coupling * ds - BETA * grad_grad_h2.on(dx, field="p") \
+    a = cf.stiffness(dx, field="u") + N + cf.divergence(dx) + cf.mean_constraint(dx) + normal_coupling * ds - BETA * grad_grad_h2.on(dx, field="p") \
         + 0.1 * cf.face_jump_penalty(dg, h_power=1, field="u") - 0.1 * cf.face_jump_penalty(dg, h_power=3, field="p")
     b = cf.assemble(cf.load(F, dx, field="u") + N.load + normal_data * ds, W)
     S = cf.assemble(cf.mass(dx) + BETA * (grad_grad_h2 * dx) + 0.1 * cf.face_jump_penalty(dg, h_power=3), V)
