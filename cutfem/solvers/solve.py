@@ -80,10 +80,10 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
           stabilization=None, indefinite_hint=None, multigrid=None, x0=None, primal=None, schur=None):
     """Solve the SPD system A X = B (B (n,) or (n, c)); returns (X, SolveInfo).
 
-    ``primal`` (and ``schur``) declare a symmetric saddle-point system instead: ``primal`` the
-    fields of the positive definite block of the product space ``space``, ``schur`` {constraint
-    field: an SPD approximation of its Schur complement}; solved by block-preconditioned MINRES
-    ("minres") or, small, directly (:func:`~cutfem.solvers.saddle.saddle_solve`).
+    ``primal`` (and ``schur``) declare a saddle-point system instead: ``primal`` the fields of the
+    positive definite block of the product space ``space``, ``schur`` {constraint field: an SPD
+    approximation of its Schur complement}; solved by block-preconditioned MINRES ("minres"), GMRES
+    when the matrix is not symmetric ("gmres"), or, small, directly (:func:`~cutfem.solvers.saddle.saddle_solve`).
 
     ``method``: "direct", "cg-mg" (geometric multigrid), "cg-amg", "cg-jacobi" or "auto":
     direct up to :data:`DIRECT_LIMIT` unknowns; above it "cg-mg" when there is a geometric
