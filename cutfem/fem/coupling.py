@@ -22,6 +22,7 @@ import scipy.sparse as sp
 
 from .forms import Form, Integrand, Term, _field_index
 from ..geometry.measures import ElementVolume, FacetMeasure, SideVolume
+from .pointwise import dot
 from .spaces import ProductSpace, RealSpace, VectorSpace
 from .terms import basis_integrals
 
@@ -58,17 +59,21 @@ def _divergence_exact(term, space):
     iu, ip = _positions(space, term)
     U, P, measure = space.fields[iu].scalar, space.fields[ip], term.measure
     nu, n_p = U.n_dofs, P.n_dofs
-    B = sp.csr_matrix((n_p, 3 * nu))
+    X = sp.csr_matrix((n_p, 3 * nu))  # the (pressure, velocity) block of the term
     for _, quad in measure.blocks(1):
         el_p = P.local_elements(measure, quad.parent)
         el_u = U.local_elements(measure, quad.parent)
-        integrals = np.einsum("mqk,mq->mk", P.basis_on(measure, quad, el_p), quad.weights)
-        G = U.gradients_of(el_u)  # (m, 4, 3)
-        dofs_u = U.element_dofs[el_u]
-        E_I = _cell_rows(P.element_dofs[el_p], integrals, n_p)
-        E_G = _cell_rows(np.concatenate([dofs_u + c * nu for c in range(3)], axis=1), G.transpose(0, 2, 1).copy(), 3 * nu)
-        B = B + E_I.T @ E_G
-    return _symmetric_pair(space, ip, iu, -B)
+        dofs_u, dofs_p = U.element_dofs[el_u], P.element_dofs[el_p]
+        if term.params["by_parts"]:  # (v, grad q): the velocity's basis integrals, the pressure's gradients
+            E_I = _cell_rows(dofs_u, np.einsum("mqk,mq->mk", U.basis_on(measure, quad, el_u), quad.weights), nu)
+            G = P.gradients_of(el_p)
+            X = X + sp.hstack([_cell_rows(dofs_p, G[:, :, c].copy(), n_p).T @ E_I for c in range(3)], format="csr")
+        else:  # -(div v, q): the pressure's basis integrals, the velocity's gradients
+            E_I = _cell_rows(dofs_p, np.einsum("mqk,mq->mk", P.basis_on(measure, quad, el_p), quad.weights), n_p)
+            G = U.gradients_of(el_u)  # (m, 4, 3)
+            dofs_v = np.concatenate([dofs_u + c * nu for c in range(3)], axis=1)  # component after component
+            X = X - E_I.T @ _cell_rows(dofs_v, G.transpose(0, 2, 1).copy(), 3 * nu)
+    return _symmetric_pair(space, ip, iu, X)
 
 
 def _symmetric_pair(space, i, j, B):
@@ -84,6 +89,8 @@ def _symmetric_pair(space, i, j, B):
 
 def _divergence_integrand(u, v, w):
     iu, ip = w.velocity, w.pressure
+    if w.by_parts:
+        return dot(v[iu], u[ip].grad) + dot(u[iu], v[ip].grad)
     return -(v[iu].div * u[ip] + u[iu].div * v[ip])
 
 
@@ -92,13 +99,20 @@ _DIVERGENCE = Integrand(_divergence_integrand, False, symmetric=True, degree=1, 
 _DIVERGENCE.__name__ = "divergence"
 
 
-def divergence(measure, velocity="u", pressure="p") -> Form:
+def divergence(measure, velocity="u", pressure="p", by_parts: bool = False) -> Form:
     """-(div u, q) - (div v, p) over a volume measure (a side of the cut or whole tets), on a product
     space with a vector field ``velocity`` and a scalar field ``pressure`` (names or positions):
-    the symmetric off-diagonal blocks of Stokes, exact for P1 (the module's formula)."""
+    the symmetric off-diagonal blocks of Stokes, exact for P1 (the module's formula).
+
+    ``by_parts=True``: (u, grad q) + (v, grad p) instead, which is -(div v, p) + (v . n, p) over the
+    boundary of the measure's domain (the divergence theorem, exact for P1 on the polyhedral
+    Omega_h): with Nitsche on Gamma_h the two coupling terms of Stokes in one volume term, when
+    Omega_h touches no face of the box (as ``cut_mesh`` checks by default).  Its exact path swaps
+    the roles: the velocity's basis integrals times the pressure's gradients."""
     if not isinstance(measure, (SideVolume, ElementVolume)):
         raise TypeError(f"divergence integrates over a volume (cut.dx(side) or whole tets), got {measure!r}")
-    return Form([(1.0, Term(_DIVERGENCE, measure, None, {"velocity": velocity, "pressure": pressure}))], False)
+    return Form([(1.0, Term(_DIVERGENCE, measure, None, {"velocity": velocity, "pressure": pressure, "by_parts": bool(by_parts)}))],
+                False)
 
 
 def _mean_positions(space, term):

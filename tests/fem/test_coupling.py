@@ -66,3 +66,32 @@ def test_coupling_terms_name_a_wrong_space(stokes_space):
         divergence(cut.ds())
     with pytest.raises(TypeError, match="not over facets"):
         mean_constraint(cut.dF(cut.ghost_facets(cf.NEG)))
+
+
+def test_divergence_by_parts_is_the_divergence_plus_the_boundary_flux(stokes_space):
+    """(v, grad p) = -(div v, p) + (v . n, p)_Gamma_h: the divergence theorem on the polyhedral Omega_h."""
+    cut, V, W = stokes_space
+    dx, ds = cut.dx(cf.NEG), cut.ds()
+
+    @cf.bilinear_form(symmetric=True)
+    def flux(u, v, w):
+        return cf.dot(v[0].value, w.n) * u[1] + cf.dot(u[0].value, w.n) * v[1]
+
+    A = cf.assemble(divergence(dx, by_parts=True), W)
+    R = cf.assemble(divergence(dx, by_parts=True).by_quadrature(), W)
+    C = cf.assemble(divergence(dx) + flux * ds, W)
+    assert abs(A - R).max() <= 1e-14 * abs(R).max()
+    assert abs(A - C).max() <= 1e-13 * abs(C).max()
+    assert abs(A - A.T).max() == 0.0
+
+
+def test_stiffness_with_h_power_weights_each_cell_by_its_size():
+    """sum_T h_T^a (grad u, grad v)_{T ∩ Omega_h}: the exact path against the quadrature route (which
+    reads w.h per cell), and against h^a times the plain stiffness on a structured box (one h)."""
+    cut = cf.cut_mesh(cf.structured_box([-1.1] * 3, [1.1] * 3, spacing=0.25), cf.Sphere(0.83))
+    V, dx = cf.CutP1Space(cut, cf.NEG), cut.dx(cf.NEG)
+    A = cf.assemble(cf.stiffness(dx, h_power=2), V)
+    assert abs(A - cf.assemble(cf.stiffness(dx, h_power=2).by_quadrature(), V)).max() <= 1e-14 * abs(A).max()
+    h = dx.h
+    assert np.ptp(h) == 0.0  # one size on the structured box
+    assert abs(A - h[0] ** 2 * cf.assemble(cf.stiffness(dx), V)).max() <= 1e-14 * abs(A).max()
