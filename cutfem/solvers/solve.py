@@ -157,5 +157,6 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
                 "'cg-amg' (algebraic multigrid), 'direct' or 'auto'"
             )
         return mg_solve(A, B, lattice, tol=tol, prolongations=hierarchy, _checks=checks, x0=x0, **(multigrid or {}))
-    points = getattr(space, "dof_points", None) if space is not None else None
+    # a vector field's candidates are the linear functions of each component on its scalar space's points
+    points = getattr(getattr(space, "scalar", space), "dof_points", None) if space is not None else None
     return cg_solve(A, B, preconditioner=method.split("-")[1], tol=tol, points=points, _checks=checks, x0=x0)
