@@ -181,6 +181,13 @@ def _constant_correction(A, x, r, nb, tol, cache=None):
     return r, rel
 
 
+def dof_points_of(space):
+    """The coordinates of the dofs that the AMG candidates are built on: a scalar space's
+    ``dof_points``, a vector field's scalar space's (each component then has its own linear
+    functions); None when the space has none (a product of several fields, a real field)."""
+    return getattr(getattr(space, "scalar", space), "dof_points", None) if space is not None else None
+
+
 def _amg(A, points=None):
     """Smoothed-aggregation AMG of A; with the dof coordinates ``points`` (n_s, 3) the globally linear
     functions are its near-kernel candidates: of each of the n / n_s components of a vector field

@@ -37,13 +37,13 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import pyamg
 import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 from .common import SolveInfo
 from .diagnose import SolverError, _Checks
 from .direct import DirectSolver
+from .krylov import _amg, dof_points_of
 from .minres import BlockDiagonal, minres
 from .multigrid import GeometricMultigrid, multigrid_hierarchy
 
@@ -97,8 +97,8 @@ def _block_preconditioner(M, field_space, what, indefinite_hint=None):
             return z
 
         return apply
-    ml = pyamg.smoothed_aggregation_solver(M, symmetry="symmetric")
-    return lambda r: ml.solve(r, x0=np.zeros_like(r), maxiter=1, cycle="V", tol=1e-300)
+    amg = _amg(M, dof_points_of(field_space))  # one V-cycle, with the linear functions as candidates
+    return lambda r: amg(r[:, None])[:, 0]
 
 
 def _check_constraint_fields(K, space, primal, constraint):

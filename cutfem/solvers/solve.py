@@ -46,7 +46,7 @@ import numpy as np
 from .common import SolveInfo, _checked_matrix, _checked_rhs, _checked_tol
 from .diagnose import _Checks, _check_kernels
 from .direct import DirectSolver
-from .krylov import DEFAULT_TOL, cg_solve, mg_solve
+from .krylov import DEFAULT_TOL, cg_solve, dof_points_of, mg_solve
 from .multigrid import multigrid_hierarchy
 from .saddle import saddle_solve
 
@@ -157,6 +157,4 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
                 "'cg-amg' (algebraic multigrid), 'direct' or 'auto'"
             )
         return mg_solve(A, B, lattice, tol=tol, prolongations=hierarchy, _checks=checks, x0=x0, **(multigrid or {}))
-    # a vector field's candidates are the linear functions of each component on its scalar space's points
-    points = getattr(getattr(space, "scalar", space), "dof_points", None) if space is not None else None
-    return cg_solve(A, B, preconditioner=method.split("-")[1], tol=tol, points=points, _checks=checks, x0=x0)
+    return cg_solve(A, B, preconditioner=method.split("-")[1], tol=tol, points=dof_points_of(space), _checks=checks, x0=x0)
