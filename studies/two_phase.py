@@ -31,7 +31,7 @@ import cutfem
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
 
 NAME = "two_phase"
-OUTPUTS = [NAME]
+OUTPUTS = [NAME, f"{NAME}_table"]
 PROBLEM = "two-phase-stokes-cut"
 ROUTES = ("discrete", "laplace-beltrami")
 #: (mu_inside, mu_outside)
