@@ -37,8 +37,8 @@ and ``jacobians`` D Theta_h(x^) (fields' gradients map by D Theta_h^-T).  Cells 
 the identity keep their points and weights (identity Jacobians where a quadrature mixes both, and no
 ``reference_points`` at all when none of its cells moved).  The facet measures ``dF`` (the ghost
 penalty's faces, J_F) stay on the undeformed faces: a penalty on the planar faces of the background
-mesh keeps its purpose (it controls the extension into the active tets), and the deformed faces
-would change it by O(h^2) relative only.
+mesh keeps its purpose (it controls the extension of the fields into the active tets), and the
+deformed faces would change it by a relative O(h) only (D Theta_h - I = O(h)).
 """
 
 from __future__ import annotations

@@ -190,3 +190,16 @@ def test_torus_area_volume_distance_rates():
     area, volume, distance = (_rates(errors[:, k]) for k in range(3))
     assert area[-1] >= 3.4 and volume[-1] >= 3.4, errors
     assert distance[-1] >= 2.7, errors
+
+
+def test_built_in_terms_integrate_over_the_deformed_cells():
+    """A built-in term on a deformed measure takes the quadrature of its integrand, not its closed P1
+    form: the entries of the mass matrix on S_h sum to the deformed area (the basis sums to one), on
+    the cut tets to the deformed volume of those tets."""
+    cut = _sphere_cut(0.2)
+    V = cf.CutP1Space(cut)
+    surface = cf.assemble(cf.mass(cut.ds()), V).sum()
+    assert abs(surface - cut.ds().quadrature(2).weights.sum()) < 1e-12
+    assert abs(surface - cut.area) > 1e-3  # the planar area is another number
+    volume = cf.assemble(cf.mass(cut.dx(CUT)), V).sum()
+    assert abs(volume - cut.dx(CUT).quadrature(2).weights.sum()) < 1e-12
