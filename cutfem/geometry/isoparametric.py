@@ -35,10 +35,14 @@ on the deformed cells: from the rule's points x^ on the planar cells,
 cof(J) = det(J) J^-T, per point, with ``reference_points`` x^ (where fields evaluate their basis)
 and ``jacobians`` D Theta_h(x^) (fields' gradients map by D Theta_h^-T).  Cells on which Theta_h is
 the identity keep their points and weights (identity Jacobians where a quadrature mixes both, and no
-``reference_points`` at all when none of its cells moved).  The facet measures ``dF`` (the ghost
-penalty's faces, J_F) stay on the undeformed faces: a penalty on the planar faces of the background
-mesh keeps its purpose (it controls the extension of the fields into the active tets), and the
-deformed faces would change it by a relative O(h) only (D Theta_h - I = O(h)).
+``reference_points`` at all when none of its cells moved).  A part ``ds(where=psi)`` of S_h is the
+planar clip of the pieces by psi_h mapped by Theta_h: its dividing line moves with the surface, not
+along psi = 0, so a part's area is O(h^2) accurate while the parts still sum to the whole.  The
+facet measures ``dF`` (the ghost penalty's faces, J_F) stay on the undeformed faces: a penalty on the
+planar faces of the background mesh keeps its purpose (it controls the extension of the fields into
+the active tets), and the deformed faces would change it by a relative O(h) only
+(D Theta_h - I = O(h)).  The built-in terms' closed P1 forms hold on planar cells, so on a deformed
+measure :func:`cutfem.fem.forms.assemble` integrates their integrands by quadrature.
 """
 
 from __future__ import annotations

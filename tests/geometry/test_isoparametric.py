@@ -203,3 +203,11 @@ def test_built_in_terms_integrate_over_the_deformed_cells():
     assert abs(surface - cut.area) > 1e-3  # the planar area is another number
     volume = cf.assemble(cf.mass(cut.dx(CUT)), V).sum()
     assert abs(volume - cut.dx(CUT).quadrature(2).weights.sum()) < 1e-12
+
+
+def test_tagged_parts_are_deformed_and_sum_to_the_surface():
+    cut = _sphere_cut(0.2)
+    plane = cf.Plane((0, 0, 1), (0, 0, 0.3))
+    below, above = cut.ds(where=plane), cut.ds(where=cf.complement(plane))
+    assert below.quadrature(4).reference_points is not None
+    assert abs(below.size + above.size - cut.ds().size) < 1e-12
