@@ -24,6 +24,10 @@ Every measure has ``elements`` (the element set, or the surface mesh, its cells 
 gradients in integrands have a tangential part ``tgrad``).  ``blocks(degree)`` gives the same
 quadrature a block of cells at a time; the errors and the integrand forms use it, and the volume
 measures then map each block's tetrahedra on demand instead of storing the whole quadrature.
+
+On a cut made with ``order=2`` the measures of the cut (all but ``dF``) carry its ``deformation``
+Theta_h and map every quadrature they give, whole or by blocks, onto the deformed cells
+(:mod:`cutfem.geometry.isoparametric`); at order 1 ``deformation`` is None and nothing changes.
 """
 
 from __future__ import annotations
