@@ -505,6 +505,13 @@ def _p1_field(space, k, term):
     return V
 
 
+def _exact(term) -> bool:
+    """Whether a term is assembled by its integrand's exact implementation: the closed forms hold on
+    planar cells, so a measure deformed by an isoparametric cut (``measure.deformation``) takes the
+    quadrature of the integrand instead."""
+    return term.integrand.exact is not None and getattr(term.measure, "deformation", None) is None
+
+
 def assemble(form: Form, space, **params):
     """The matrix (bilinear form: CSR, n x n over all fields of ``space``) or the vector (linear form:
     (n,) or (n, c)) of ``form`` on ``space`` (one field or a :class:`~cutfem.fem.spaces.ProductSpace`).
@@ -515,7 +522,7 @@ def assemble(form: Form, space, **params):
     no cells).
 
     Each term is assembled by its integrand's exact implementation when it has one
-    (:class:`Integrand`), else by quadrature.  On a field of a structured box or of a triangulated
+    (:class:`Integrand`) and its measure is not deformed (:func:`_exact`), else by quadrature.  On a field of a structured box or of a triangulated
     surface the exact terms add, each times its coefficient, into one running sum of the field
     (:func:`~cutfem.fem.assembly.running_sum`), written to CSR once: c_1 a_1 + c_2 a_2 costs one
     pass, not two matrices and their sum.
@@ -544,7 +551,7 @@ def assemble(form: Form, space, **params):
     if form.linear:
         out = None
         for c, term in form.terms:
-            if term.integrand.exact is not None:
+            if _exact(term):
                 k = _field_index(space, term.field)
                 parts = [(k, None, c * np.asarray(term.integrand.exact(term, _p1_field(space, k, term)), dtype=float))]
             else:
@@ -570,11 +577,11 @@ def assemble(form: Form, space, **params):
         total = A if total is None else total + A
 
     for c, term in form.terms:
-        if term.integrand.exact is not None and term.integrand.couples:
+        if _exact(term) and term.integrand.couples:
             A = term.integrand.exact(term, space)
             total = c * A if total is None else total + c * A
             continue
-        if term.integrand.exact is not None:
+        if _exact(term):
             k = _field_index(space, term.field)
             V = _p1_field(space, k, term)
             if k not in sums:
