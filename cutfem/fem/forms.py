@@ -86,6 +86,8 @@ class Integrand:
       matrix on the field's ``space`` into ``into`` (the field's running sum,
       :func:`~cutfem.fem.assembly.running_sum`, or None) where it can and returns the rest unscaled
       (CSR, or None); ``exact(term, space)`` for a linear one returns the vector (n,) or (n, c);
+      for a term that couples fields (``couples=True``, a bilinear integrand on a product space)
+      ``exact(term, space)`` returns the unscaled (n, n) matrix over all of the space's fields;
     * ``prepare(space, term)``, called before the integrand is evaluated by quadrature on ``space``
       (all fields): its checks of the space, and the parameters it derives from it (a dict,
       seen as ``w.<name>``; the side of a field for Nitsche's normal);
@@ -95,8 +97,9 @@ class Integrand:
     __array_ufunc__ = None  # ndarray * integrand defers to __rmul__, which asks for a measure
 
     def __init__(self, function, linear: bool, symmetric: bool = False, degree: int | None = None, exact=None,
-                 prepare=None, advice=None):
+                 prepare=None, advice=None, couples: bool = False):
         self.function = function
+        self.couples = couples
         self.linear = linear
         self.symmetric = symmetric
         self.degree = degree if degree is not None else (4 if linear else 2)
@@ -502,6 +505,13 @@ def _p1_field(space, k, term):
     return V
 
 
+def _exact(term) -> bool:
+    """Whether a term is assembled by its integrand's exact implementation: the closed forms hold on
+    planar cells, so a measure deformed by an isoparametric cut (``measure.deformation``) takes the
+    quadrature of the integrand instead."""
+    return term.integrand.exact is not None and getattr(term.measure, "deformation", None) is None
+
+
 def assemble(form: Form, space, **params):
     """The matrix (bilinear form: CSR, n x n over all fields of ``space``) or the vector (linear form:
     (n,) or (n, c)) of ``form`` on ``space`` (one field or a :class:`~cutfem.fem.spaces.ProductSpace`).
@@ -512,7 +522,7 @@ def assemble(form: Form, space, **params):
     no cells).
 
     Each term is assembled by its integrand's exact implementation when it has one
-    (:class:`Integrand`), else by quadrature.  On a field of a structured box or of a triangulated
+    (:class:`Integrand`) and its measure is not deformed (:func:`_exact`), else by quadrature.  On a field of a structured box or of a triangulated
     surface the exact terms add, each times its coefficient, into one running sum of the field
     (:func:`~cutfem.fem.assembly.running_sum`), written to CSR once: c_1 a_1 + c_2 a_2 costs one
     pass, not two matrices and their sum.
@@ -541,7 +551,7 @@ def assemble(form: Form, space, **params):
     if form.linear:
         out = None
         for c, term in form.terms:
-            if term.integrand.exact is not None:
+            if _exact(term):
                 k = _field_index(space, term.field)
                 parts = [(k, None, c * np.asarray(term.integrand.exact(term, _p1_field(space, k, term)), dtype=float))]
             else:
@@ -567,7 +577,11 @@ def assemble(form: Form, space, **params):
         total = A if total is None else total + A
 
     for c, term in form.terms:
-        if term.integrand.exact is not None:
+        if _exact(term) and term.integrand.couples:
+            A = term.integrand.exact(term, space)
+            total = c * A if total is None else total + c * A
+            continue
+        if _exact(term):
             k = _field_index(space, term.field)
             V = _p1_field(space, k, term)
             if k not in sums:

@@ -96,7 +96,8 @@ _PROBE = _Probe()
 
 
 class BasisField:
-    """A basis function at quadrature points: ``value`` (m, q), ``grad``, ``tgrad`` (m, 1, 3);
+    """A basis function at quadrature points: ``value`` (m, q), ``grad`` (m, 1, 3), ``tgrad`` (m, 1, 3) or
+    (m, q, 3) (with the normals of a deformed surface, one per point);
     arithmetic acts on ``value``."""
 
     __slots__ = ("value", "grad", "tgrad")
@@ -392,7 +393,8 @@ def _point_values(f, points: np.ndarray, what: str) -> np.ndarray:
 
 
 class QuadData:
-    """What an integrand sees besides the basis functions: ``x`` (m, q, 3), ``n`` (m, 1, 3) or None,
+    """What an integrand sees besides the basis functions: ``x`` (m, q, 3), ``n`` (m, 1, 3) (per cell) or
+    (m, q, 3) (per point, on a deformed surface) or None,
     ``h`` (m, 1) local sizes, ``parent`` (m,) the measure's element (or facet) of each cell, ``at(f)``
     and the parameters as attributes: the term's own (``own``, given where the term is made) before
     the form-wide ones (``params``, the keywords of :func:`~cutfem.fem.forms.assemble`)."""
@@ -480,7 +482,7 @@ def _quad_data(measure: Measure, quad, params, own=None):
     form-wide ``params`` and the term's ``own``."""
     parent = quad.parent
     if quad.normal is not None:
-        n = quad.normal[:, None, :]
+        n = quad.point_normals  # (m, 1, 3) per cell or (m, q, 3) per point (a deformed surface)
     elif measure.normals is not None:
         n = measure.normals[parent][:, None, :]
     else:
@@ -520,12 +522,12 @@ def _field_basis(space, measure: Measure, quad):
     el = space.local_elements(measure, quad.parent)
     phi = space.basis_on(measure, quad, el)
     G = space.gradients_of(el)
-    if measure.surface:
-        n = quad.normal
-        tG = G - np.einsum("mkd,md->mk", G, n)[..., None] * n[:, None, :]
+    if measure.surface:  # the tangential part at each point: (m, 1, k, 3), or (m, q, k, 3) with normals per point
+        n = quad.point_normals
+        tG = G[:, None] - np.einsum("mkd,mqd->mqk", G, n)[..., None] * n[:, :, None, :]
     else:
-        tG = G
-    return space.element_dofs[el], [BasisField(phi[..., a], G[:, None, a], tG[:, None, a]) for a in range(G.shape[1])]
+        tG = G[:, None]
+    return space.element_dofs[el], [BasisField(phi[..., a], G[:, None, a], tG[:, :, a]) for a in range(G.shape[1])]
 
 
 

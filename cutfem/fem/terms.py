@@ -160,23 +160,29 @@ def mass(measure: Measure, field=None) -> Form:
 def _stiffness_exact(term, space, into, scale):
     measure = term.measure
     es = measure.elements
+    weights = measure.part_volumes
+    if term.params["h_power"] != 0:
+        weights = weights * measure.h ** term.params["h_power"]
     if _same_elements(space, measure):  # no gathered copy of the gradients
         if into is not None:
-            return _kuhn_stiffness(space, measure.part_volumes, into, scale)
-        return _gradient_matrix(space, space.gradients_of, measure.part_volumes)
+            return _kuhn_stiffness(space, weights, into, scale)
+        return _gradient_matrix(space, space.gradients_of, weights)
     el = space.local_elements(measure, np.arange(es.n_elements))
-    return _gradient_matrix(space, lambda cells: space.gradients_of(el[cells]), measure.part_volumes, el)
+    return _gradient_matrix(space, lambda cells: space.gradients_of(el[cells]), weights, el)
 
 
-_STIFFNESS = _integrand("stiffness", lambda u, v, w: inner(u.grad, v.grad), symmetric=True, exact=_componentwise(_stiffness_exact))
+_STIFFNESS = _integrand("stiffness", lambda u, v, w: w.h**w.h_power * inner(u.grad, v.grad), symmetric=True,
+                        exact=_componentwise(_stiffness_exact))
 
 
-def stiffness(measure: Measure, field=None) -> Form:
-    """(grad u, grad v) over a volume measure: |T ∩ side| G G^T per tet (the P1 gradients are
-    constant), for a side of the cut (:class:`~cutfem.geometry.measures.SideVolume`) or whole tets; summed
-    per lattice edge on a structured box (:func:`~cutfem.fem.closed_forms._kuhn_stiffness`), as a Gram product otherwise."""
+def stiffness(measure: Measure, field=None, h_power: float = 0) -> Form:
+    """(grad u, grad v) over a volume measure, or with ``h_power`` = a the cellwise weighted
+    sum_T h_T^a (grad u, grad v)_{T ∩ side} (a = 2: the Brezzi-Pitkaranta pressure stabilization):
+    |T ∩ side| h_T^a G G^T per tet (the P1 gradients are constant), for a side of the cut
+    (:class:`~cutfem.geometry.measures.SideVolume`) or whole tets; summed per lattice edge on a
+    structured box (:func:`~cutfem.fem.closed_forms._kuhn_stiffness`), as a Gram product otherwise."""
     _require(measure, (SideVolume, ElementVolume), "stiffness")
-    return _STIFFNESS.on(measure, field)
+    return _STIFFNESS.on(measure, field, h_power=_number("h_power", h_power))
 
 
 def _tangential_exact(term, space, into, scale):

@@ -1,4 +1,4 @@
-"""Distributed runs on MPI and PETSc (docs/math.md §17), run by .ci/run under mpiexec at 1, 2 and 4
+"""Distributed runs on MPI and PETSc (docs/math.md §18), run by .ci/run under mpiexec at 1, 2 and 4
 ranks (``mpiexec -n 4 python -m pytest tests/distributed``) and at 1 rank by a plain pytest when
 mpi4py and petsc4py are installed; skipped without them.
 

@@ -1,5 +1,5 @@
 """The slabs of a structured box without MPI: each rank's pieces computed in one process and added
-up by their global node ids equal the serial matrix and load (docs/math.md §17), every ghost face
+up by their global node ids equal the serial matrix and load (docs/math.md §18), every ghost face
 is assembled once, and ranks without layers, without active cells or without a cut take part."""
 
 import numpy as np
