@@ -46,7 +46,7 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, 
 from cutfem.runs.runner import Timer
 from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
-from cutfem.fem.spaces import CutP1Space, ProductSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace
 
 from .common import finish_record, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, levelset_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, point_rows, value_and_gradient
 
@@ -212,7 +212,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
         check_bulk_memory(bg, phi, (NEG, POS), BULK_BYTES_PER_TET["interface-poisson-cut"], spacing)
         cut = cut_mesh(bg, phi)
         check_resolution(cut, phi, spacing)  # a sphere a few cells across: refused, not solved on a polyhedron
-        W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
+        W = ProductSpace(CutSpace(cut, NEG), CutSpace(cut, POS))
     with t("assembly"):
         form = interface_nitsche(cut.ds(), a_inside, a_outside, gamma, weights)
         rhs = 0

@@ -33,7 +33,7 @@ from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Pro
 from cutfem.runs.runner import Timer
 from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.geometry.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
 
@@ -250,7 +250,7 @@ class LaplaceBeltramiCut(Problem):
             cut = cut_mesh(background_for(phi, level, background, box), phi, solve_bytes_per_tet=BYTES_PER_ACTIVE_TET)
             check_resolution(cut, phi, level)
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
-            space = CutP1Space(cut)
+            space = CutSpace(cut)
         # after the cut's memory checks (a spacing that cannot fit is told so first), before any matrix
         notes = (check_face_stabilization(tau_f, face_h_power, level) if stabilization == "face" else
                  check_normal_stabilization(tau_n, normal_h_power, level) if stabilization == "normal" else [])

@@ -28,7 +28,7 @@ from cutfem.geometry.markers import NEG
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, register
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 
 from .common import finish_record, DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, levelset_for, value_and_gradient
 
@@ -109,7 +109,7 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
         bg = background_for(phi, spacing, background, box)
         check_bulk_memory(bg, phi, (NEG,), BULK_BYTES_PER_TET["poisson-cut"], spacing)
         cut = cut_mesh(bg, phi)
-        V = CutP1Space(cut, NEG)
+        V = CutSpace(cut, NEG)
         dx, ds = cut.dx(NEG), cut.ds()
     with t("assembly"):
         N = nitsche(ds, gamma, g=exact_u)  # gamma's one home: the matrix, the load and the advice of the form

@@ -107,6 +107,12 @@ class Integrand:
     def __call__(self, *args):
         return self.function(*args)
 
+    def degree_for(self, order: int) -> int:
+        """The quadrature degree on fields of polynomial ``order``: :attr:`degree` (that of P1) plus
+        2 (order - 1), the higher degree of a product of two basis functions (of one basis function
+        times data, with the same margin for the data)."""
+        return self.degree + 2 * (max(int(order), 1) - 1)
+
     def __mul__(self, measure):
         return self.on(measure)
 
@@ -331,7 +337,8 @@ class Term:
             own.update(derived)
             own.read.update(derived)
         pairs = None
-        for _, quad in self.measure.blocks(self.integrand.degree):
+        order = getattr(space if self.field is None else self.field_space(space), "order", 1)
+        for _, quad in self.measure.blocks(self.integrand.degree_for(order)):
             w = _quad_data(self.measure, quad, params, own)
             first = pairs is None
             if first:
@@ -502,6 +509,14 @@ def _p1_field(space, k, term):
     return V
 
 
+def _exact_route(term, space) -> bool:
+    """Whether ``term`` is assembled by its exact implementation: a built-in term on a P1 field (the
+    closed forms are those of P1; on a P2 field every term goes by quadrature of its integrand)."""
+    if term.integrand.exact is None:
+        return False
+    return getattr(_field(space, _field_index(space, term.field)), "order", 1) < 2  # P1, or a real field (refused there)
+
+
 def assemble(form: Form, space, **params):
     """The matrix (bilinear form: CSR, n x n over all fields of ``space``) or the vector (linear form:
     (n,) or (n, c)) of ``form`` on ``space`` (one field or a :class:`~cutfem.fem.spaces.ProductSpace`).
@@ -511,8 +526,9 @@ def assemble(form: Form, space, **params):
     misspelt name: a ValueError after the integrands ran, unless none ran because the measures have
     no cells).
 
-    Each term is assembled by its integrand's exact implementation when it has one
-    (:class:`Integrand`), else by quadrature.  On a field of a structured box or of a triangulated
+    Each term is assembled by its integrand's exact implementation when it has one and the field is
+    P1 (:class:`Integrand`), else by quadrature (at the degree of the field's order,
+    :meth:`Integrand.degree_for`).  On a field of a structured box or of a triangulated
     surface the exact terms add, each times its coefficient, into one running sum of the field
     (:func:`~cutfem.fem.assembly.running_sum`), written to CSR once: c_1 a_1 + c_2 a_2 costs one
     pass, not two matrices and their sum.
@@ -528,7 +544,7 @@ def assemble(form: Form, space, **params):
             raise TypeError("assemble(form, space): the arguments are swapped")
         raise TypeError(f"assemble needs a form (a sum of integrand * measure and built-in terms), got {type(form).__name__}")
     if not (isinstance(space, (ProductSpace, VectorSpace, RealSpace)) or (hasattr(space, "n_dofs") and hasattr(space, "element_dofs"))):
-        raise TypeError(f"assemble(form, space) needs the space of the fields (CutP1Space, SurfaceP1Space, VectorSpace, RealSpace or "
+        raise TypeError(f"assemble(form, space) needs the space of the fields (CutSpace, SurfaceP1Space, VectorSpace, RealSpace or "
                         f"ProductSpace), got {space!r}")
     _check_names(params, "assemble()")
     if params and all(term.integrand.exact is not None for _, term in form.terms):
@@ -541,7 +557,7 @@ def assemble(form: Form, space, **params):
     if form.linear:
         out = None
         for c, term in form.terms:
-            if term.integrand.exact is not None:
+            if _exact_route(term, space):
                 k = _field_index(space, term.field)
                 parts = [(k, None, c * np.asarray(term.integrand.exact(term, _p1_field(space, k, term)), dtype=float))]
             else:
@@ -567,7 +583,7 @@ def assemble(form: Form, space, **params):
         total = A if total is None else total + A
 
     for c, term in form.terms:
-        if term.integrand.exact is not None:
+        if _exact_route(term, space):
             k = _field_index(space, term.field)
             V = _p1_field(space, k, term)
             if k not in sums:

@@ -34,7 +34,7 @@ from .forms import Form, Integrand, Term, _field_index, _number, assemble
 from ..geometry.measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from ..geometry.markers import CUT, NEG, POS, SIDES
 from ..geometry.numbering import TET_EDGES
-from .pointwise import VectorBasisField, _require_function, _value, dot, inner, jump
+from .pointwise import ZERO, VectorBasisField, _require_function, _value, dot, inner, jump
 from .spaces import ProductSpace, VectorSpace
 
 __all__ = [
@@ -222,7 +222,7 @@ def _position_load_exact(term, space):
         element_kernels.meshed_position_load(space.dof_points, space.element_dofs, out)
         return out
     if not _same_elements(space, measure):
-        raise ValueError("position_load needs the field on the cut tets, CutP1Space(cut, CUT)")
+        raise ValueError("position_load needs the field on the cut tets, CutSpace(cut, CUT)")
     out = np.zeros((space.n_dofs, 3))
     table, types = space.gradient_lookup()
     element_kernels.tangential_gradient_sums(space.element_dofs, table, types, np.ascontiguousarray(space.element_normals, dtype=float),
@@ -360,15 +360,37 @@ def _face_jump_exact(term, space, into, scale):
     return _jump_gram(space, pairs, n, n, -1.0, factor)
 
 
+def _second_normal(hessian, n):
+    """n^T H n of Hessians H (m, q, 3, 3) (of a vector field (m, q, 3, 3, 3), per component) and
+    normals n (m, 1, 3); ZERO (and the probe) pass through."""
+    if isinstance(hessian, type(ZERO)) or isinstance(n, type(ZERO)):
+        return hessian
+    if hessian.ndim == 5:
+        n = n[:, :, None]
+    return np.einsum("...ij,...i,...j->...", hessian, n, n)
+
+
+def _face_jump_integrand(u, v, w):
+    """h^a [n . grad u][n . grad v] + h^(a+2) / 4 [n^T H(u) n][n^T H(v) n]: the jumps of the normal
+    derivatives of order j = 1, 2, weighted h^(a + 2(j - 1)) / (j!)^2; P1 Hessians are ZERO, so for
+    P1 it is the first term alone."""
+    first = w.h**w.h_power * inner(dot(jump(u.grad), w.n), dot(jump(v.grad), w.n))
+    second = inner(_second_normal(jump(u.hess), w.n), _second_normal(jump(v.hess), w.n))
+    if second is ZERO:
+        return first
+    return first + (0.25 * w.h ** (w.h_power + 2.0)) * second
+
+
 # [n_F . grad u] = n_F . (grad u^- - grad u^+), n_F from the minus to the plus tet (of each component: grad u n_F)
-_FACE_JUMP = _integrand("face_jump_penalty",
-                        lambda u, v, w: w.h**w.h_power * inner(dot(jump(u.grad), w.n), dot(jump(v.grad), w.n)),
-                        symmetric=True, exact=_componentwise(_face_jump_exact))
+_FACE_JUMP = _integrand("face_jump_penalty", _face_jump_integrand, symmetric=True, exact=_componentwise(_face_jump_exact))
 
 
 def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -> Form:
     """sum_F h_F^a ([n_F . grad u], [n_F . grad v])_F over a facet set, with the local h_F (the
-    longest edge of F) and a = ``h_power``.
+    longest edge of F) and a = ``h_power``; on a field of order k the jumps of the normal
+    derivatives of every order j <= k, sum_j h_F^(a + 2(j - 1)) / (j!)^2 ([d_n^j u], [d_n^j v])_F
+    (docs/math.md §17: with a = 1 the ghost penalty of order k, weights h^(2j - 1) / (j!)^2), by
+    quadrature of degree 2k.
 
     [n_F . grad u] = n_{F,T1}.grad u|T1 + n_{F,T2}.grad u|T2 with outward unit face normals; for P1
     it is constant on F, so the integral is |F| times the product of jumps.  Over the interior faces
@@ -398,7 +420,7 @@ def _edge_jump_exact(term, space, into, scale):
         into.add(*_meshed_edge_penalty(space, hh), scale=scale)
         return None
     if not _same_elements(space, measure):
-        raise ValueError("edge_jump_penalty needs the field on the cut tets, CutP1Space(cut, CUT)")
+        raise ValueError("edge_jump_penalty needs the field on the cut tets, CutSpace(cut, CUT)")
     c = measure.cut
     t = c.surface_edge_conormals
     # the pieces along an edge of S_h need not lie in face-adjacent tets: Gram products, not lattice slots
@@ -459,8 +481,8 @@ def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=
 
 
 def _side_of(space):
-    """NEG or POS for a bulk field on one side's element set of its cut (``CutP1Space(cut, NEG)`` or
-    ``CutP1Space(cut, POS)``: the set is the cut's own, :meth:`~cutfem.geometry.cut.CutMesh.elements`), else
+    """NEG or POS for a bulk field on one side's element set of its cut (``CutSpace(cut, NEG)`` or
+    ``CutSpace(cut, POS)``: the set is the cut's own, :meth:`~cutfem.geometry.cut.CutMesh.elements`), else
     None (the cut tets, another element set, a surface mesh)."""
     cut, es = getattr(space, "cut", None), getattr(space, "elements", None)
     side = getattr(es, "name", None)
@@ -485,7 +507,7 @@ def _outward_sign(space, measure: SurfacePieces, what: str) -> float:
         raise ValueError(f"{what}: the field lives on the NEG side of another cut whose tets do not hold every cut tet of "
                          f"the measure ({space!r}); extend its domain (a larger strip) so that it covers Gamma_h")
     raise ValueError(f"{what} imposes a condition on Gamma_h for a bulk field of one side of the same cut, "
-                     f"CutP1Space(cut, NEG) or CutP1Space(cut, POS), or of an extended domain holding the cut; got {space!r}")
+                     f"CutSpace(cut, NEG) or CutSpace(cut, POS), or of an extended domain holding the cut; got {space!r}")
 
 
 def _nitsche_advice(params, form) -> str:
@@ -580,8 +602,8 @@ def nitsche(measure: SurfacePieces, gamma: float = 10.0, g=None, field=None) -> 
         -(n . grad u, v)_Gamma - (u, n . grad v)_Gamma + (gamma / h) (u, v)_Gamma,
 
     n the outward unit normal of the field's domain and h the local h_T of the cut tet.  The side
-    comes from the field: n = n_h (from NEG to POS) for ``CutP1Space(cut, NEG)``, n = -n_h for
-    ``CutP1Space(cut, POS)`` (the outer domain); any other field is refused (:func:`_outward_sign`).
+    comes from the field: n = n_h (from NEG to POS) for ``CutSpace(cut, NEG)``, n = -n_h for
+    ``CutSpace(cut, POS)`` (the outer domain); any other field is refused (:func:`_outward_sign`).
     With the data ``g`` (a function of the points) the matching right-hand side is the returned
     form's :attr:`~Nitsche.load`, with the same gamma.  On a vector field
     (:class:`~cutfem.fem.spaces.VectorSpace`) the terms act on each component, -(grad u n, v) - ...,
@@ -620,7 +642,7 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
     indefinite (:attr:`~cutfem.fem.forms.Form.indefinite_hint`).
 
     ``fields = (f_NEG, f_POS)`` (positions or names) are the NEG field, then the POS field, of a
-    :class:`~cutfem.fem.spaces.ProductSpace`: ``CutP1Space(cut, NEG)`` and ``CutP1Space(cut, POS)`` of
+    :class:`~cutfem.fem.spaces.ProductSpace`: ``CutSpace(cut, NEG)`` and ``CutSpace(cut, POS)`` of
     the measure's cut.  The rule is checked when the form is assembled, never adapted: two fields in
     the other order, the same field twice, a field of another element set or a single space are
     refused with the fix (e.g. ``fields=(1, 0)`` for ``ProductSpace(V_pos, V_neg)``)."""
@@ -654,7 +676,7 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
             where = ", ".join(f"field {f!r} on {getattr(getattr(space.fields[i], 'elements', None), 'name', space.fields[i])!r}"
                               for f, i in zip(fields, k))
             fix = (f"pass fields=({fields[1]!r}, {fields[0]!r})" if sides == [POS, NEG] else
-                   "give the fields CutP1Space(cut, NEG) and CutP1Space(cut, POS) of the measure's cut")
+                   "give the fields CutSpace(cut, NEG) and CutSpace(cut, POS) of the measure's cut")
             raise ValueError(f"interface_nitsche: fields=(f_NEG, f_POS) must name the NEG field, then the POS field, of "
                              f"the measure's cut; got {where}: {fix}")
         return {"neg_field": k[0], "pos_field": k[1]}

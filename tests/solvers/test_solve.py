@@ -18,7 +18,7 @@ from cutfem.geometry.surface import SurfaceMesh
 from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 from cutfem.fem.forms import assemble
 from cutfem.fem.terms import mass
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.solvers import solve as solve_module
 from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.direct import DirectSolver
@@ -76,7 +76,7 @@ def test_auto_picks_multigrid_above_the_limit(torus_space, monkeypatch):
 def test_unstabilized_system_is_not_hidden(monkeypatch):
     """tau_F = 0: the nodal vector of phi_h is a null vector of the surface forms; solve() with the
     space reports it on the iterative path too (a consistent right-hand side would hide it)."""
-    V = CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=24), Sphere(0.7, [0.03, -0.01, 0.02])))
+    V = CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=24), Sphere(0.7, [0.03, -0.01, 0.02])))
     M, A, J = mass_matrix(V), stiffness_matrix(V), face_matrix(V)
     B = A @ V.dof_points
     monkeypatch.setattr(solve_module, "DIRECT_LIMIT", 100)
@@ -121,7 +121,7 @@ def test_default_tolerance_keeps_the_integral_of_H_at_round_off(surface):
 
     if surface == "cut-0.08":
         cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.08), Torus())
-        V = CutP1Space(cut)
+        V = CutSpace(cut)
         ds = cut.ds()
         K, B = mean_curvature_system(V, ds, tau_f=0.1, faces=cut.dF(cut.interior_facets(CUT)))
     else:
