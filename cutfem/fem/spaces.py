@@ -204,6 +204,16 @@ class _ScalarSpace:
         """Nodal interpolant: f evaluated at the dof points, (n,) or (n, c)."""
         return np.asarray(f(self.dof_points), dtype=float)
 
+    def interpolate_nodal(self, values) -> np.ndarray:
+        """The coefficients of the P1 function with the given values at the nodes (n_nodes,) or
+        (n_nodes, c) (a level set's phi_h): the values themselves for P1; for P2 the edges' dofs
+        follow, the means of their ends (P1 is a prefix of P2)."""
+        values = np.asarray(values)
+        if getattr(self, "order", 1) == 1:
+            return values
+        e = self.edge_nodes
+        return np.concatenate([values, 0.5 * (values[e[:, 0]] + values[e[:, 1]])])
+
 
 class SurfaceP1Space(_ScalarSpace):
     """Continuous P1 on a closed triangle surface mesh (meshed case); dofs are the mesh nodes.
