@@ -90,17 +90,20 @@ class Integrand:
       (all fields): its checks of the space, and the parameters it derives from it (a dict,
       seen as ``w.<name>``; the side of a field for Nitsche's normal);
     * ``advice(params, form)``, the fix of an indefinite matrix of ``form`` that the term suggests
-      (:attr:`Form.indefinite_hint`), or None."""
+      (:attr:`Form.indefinite_hint`), or None;
+    * ``high_order(term, space)``, the quadrature of a bilinear integrand on a scalar P2 field
+      vectorised over the basis pairs (:mod:`cutfem.fem.high_order`): (dofs, local matrices) block
+      by block of cells."""
 
     __array_ufunc__ = None  # ndarray * integrand defers to __rmul__, which asks for a measure
 
     def __init__(self, function, linear: bool, symmetric: bool = False, degree: int | None = None, exact=None,
-                 prepare=None, advice=None):
+                 prepare=None, advice=None, high_order=None):
         self.function = function
         self.linear = linear
         self.symmetric = symmetric
         self.degree = degree if degree is not None else (4 if linear else 2)
-        self.exact, self.prepare, self.advice = exact, prepare, advice
+        self.exact, self.prepare, self.advice, self.high_order = exact, prepare, advice, high_order
         self.__doc__ = function.__doc__
         self.__name__ = getattr(function, "__name__", "integrand")
 
@@ -517,6 +520,19 @@ def _exact_route(term, space) -> bool:
     return getattr(_field(space, _field_index(space, term.field)), "order", 1) < 2  # P1, or a real field (refused there)
 
 
+def _high_order_route(term, space):
+    """The term's local matrices by its vectorised quadrature (``high_order``) on a scalar field of
+    order 2, as (field, field, dofs, dofs, blocks), or None (the form language evaluates it)."""
+    f = term.integrand.high_order
+    if f is None:
+        return None
+    k = _field_index(space, term.field)
+    V = _field(space, k)
+    if getattr(V, "order", 1) < 2 or isinstance(V, VectorSpace):
+        return None
+    return ((k, k, dofs, dofs, blocks) for dofs, blocks in f(term, V))
+
+
 def assemble(form: Form, space, **params):
     """The matrix (bilinear form: CSR, n x n over all fields of ``space``) or the vector (linear form:
     (n,) or (n, c)) of ``form`` on ``space`` (one field or a :class:`~cutfem.fem.spaces.ProductSpace`).
@@ -593,7 +609,8 @@ def assemble(form: Form, space, **params):
                 add(c * A if c != 1.0 else A, k)
             continue
         symmetric = symmetric and term.integrand.symmetric
-        for i, j, dofs_u, dofs_v, blocks in term.contributions(space, params):
+        fast = _high_order_route(term, space)
+        for i, j, dofs_u, dofs_v, blocks in (fast if fast is not None else term.contributions(space, params)):
             m, kv, ku = blocks.shape
             rows.append(np.broadcast_to((dofs_v + offsets[j])[:, :, None], blocks.shape).reshape(-1))
             cols.append(np.broadcast_to((dofs_u + offsets[i])[:, None, :], blocks.shape).reshape(-1))

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from . import element_kernels
+from . import element_kernels, high_order
 from .assembly import block_diagonal, gram
 from .closed_forms import (_element_symmetric, _gradient_matrix, _jump_gram, _kuhn_stiffness, _kuhn_tangential_stiffness,
                     _kuhn_volume_mass, _meshed_edge_penalty, _meshed_mass, _meshed_stiffness, _piece_mass, _piece_moments,
@@ -34,6 +34,7 @@ from .forms import Form, Integrand, Term, _field_index, _number, assemble
 from ..geometry.measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from ..geometry.markers import CUT, NEG, POS, SIDES
 from ..geometry.numbering import TET_EDGES
+from .high_order import second_normal
 from .pointwise import ZERO, VectorBasisField, _require_function, _value, dot, inner, jump
 from .spaces import ProductSpace, VectorSpace
 
@@ -144,7 +145,8 @@ def _mass_exact(term, space, into, scale):
     raise TypeError(f"mass integrates over cells (a surface or a volume), not over {measure!r}")
 
 
-_MASS = _integrand("mass", lambda u, v, w: inner(u, v), symmetric=True, exact=_componentwise(_mass_exact))
+_MASS = _integrand("mass", lambda u, v, w: inner(u, v), symmetric=True, exact=_componentwise(_mass_exact),
+                   high_order=high_order.mass_blocks)
 
 
 def mass(measure: Measure, field=None) -> Form:
@@ -168,7 +170,8 @@ def _stiffness_exact(term, space, into, scale):
     return _gradient_matrix(space, lambda cells: space.gradients_of(el[cells]), measure.part_volumes, el)
 
 
-_STIFFNESS = _integrand("stiffness", lambda u, v, w: inner(u.grad, v.grad), symmetric=True, exact=_componentwise(_stiffness_exact))
+_STIFFNESS = _integrand("stiffness", lambda u, v, w: inner(u.grad, v.grad), symmetric=True, exact=_componentwise(_stiffness_exact),
+                        high_order=high_order.stiffness_blocks)
 
 
 def stiffness(measure: Measure, field=None) -> Form:
@@ -197,7 +200,7 @@ def _tangential_exact(term, space, into, scale):
 
 
 _TANGENTIAL = _integrand("tangential_stiffness", lambda u, v, w: inner(u.tgrad, v.tgrad), symmetric=True,
-                         exact=_componentwise(_tangential_exact))
+                         exact=_componentwise(_tangential_exact), high_order=high_order.tangential_blocks)
 
 
 def tangential_stiffness(measure: Measure, field=None) -> Form:
@@ -360,29 +363,20 @@ def _face_jump_exact(term, space, into, scale):
     return _jump_gram(space, pairs, n, n, -1.0, factor)
 
 
-def _second_normal(hessian, n):
-    """n^T H n of Hessians H (m, q, 3, 3) (of a vector field (m, q, 3, 3, 3), per component) and
-    normals n (m, 1, 3); ZERO (and the probe) pass through."""
-    if isinstance(hessian, type(ZERO)) or isinstance(n, type(ZERO)):
-        return hessian
-    if hessian.ndim == 5:
-        n = n[:, :, None]
-    return np.einsum("...ij,...i,...j->...", hessian, n, n)
-
-
 def _face_jump_integrand(u, v, w):
     """h^a [n . grad u][n . grad v] + h^(a+2) / 4 [n^T H(u) n][n^T H(v) n]: the jumps of the normal
     derivatives of order j = 1, 2, weighted h^(a + 2(j - 1)) / (j!)^2; P1 Hessians are ZERO, so for
     P1 it is the first term alone."""
     first = w.h**w.h_power * inner(dot(jump(u.grad), w.n), dot(jump(v.grad), w.n))
-    second = inner(_second_normal(jump(u.hess), w.n), _second_normal(jump(v.hess), w.n))
+    second = inner(second_normal(jump(u.hess), w.n), second_normal(jump(v.hess), w.n))
     if second is ZERO:
         return first
     return first + (0.25 * w.h ** (w.h_power + 2.0)) * second
 
 
 # [n_F . grad u] = n_F . (grad u^- - grad u^+), n_F from the minus to the plus tet (of each component: grad u n_F)
-_FACE_JUMP = _integrand("face_jump_penalty", _face_jump_integrand, symmetric=True, exact=_componentwise(_face_jump_exact))
+_FACE_JUMP = _integrand("face_jump_penalty", _face_jump_integrand, symmetric=True, exact=_componentwise(_face_jump_exact),
+                        high_order=high_order.face_jump_blocks)
 
 
 def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -> Form:
@@ -461,7 +455,7 @@ def _normal_gradient_exact(term, space, into, scale):
 
 _NORMAL_GRADIENT = _integrand("normal_gradient_penalty",
                               lambda u, v, w: w.h**w.h_power * inner(dot(u.grad, w.n), dot(v.grad, w.n)), symmetric=True,
-                              exact=_componentwise(_normal_gradient_exact))
+                              exact=_componentwise(_normal_gradient_exact), high_order=high_order.normal_gradient_blocks)
 
 
 def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=None) -> Form:
@@ -561,7 +555,8 @@ def _nitsche_load_exact(term, space):
 
 
 _NITSCHE = _integrand("nitsche", _nitsche_matrix, symmetric=True, exact=_componentwise(_nitsche_exact), prepare=_nitsche_side,
-                      advice=_nitsche_advice)
+                      advice=_nitsche_advice,
+                      high_order=lambda term, V: high_order.nitsche_blocks(term, V, _outward_sign(V, term.measure, "nitsche")))
 _NITSCHE_LOAD = _integrand("nitsche load",
                            lambda v, w: _times(w.at(w.g), w.gamma / w.h * v - dot(v.grad, w.outward * w.n)),
                            linear=True, exact=_componentwise_load(_nitsche_load_exact), prepare=_nitsche_side)

@@ -15,7 +15,7 @@ from cutfem.fem.spaces import CutSpace, VectorSpace
 from cutfem.fem.terms import face_jump_penalty, load, mass, nitsche, normal_gradient_penalty, stiffness, tangential_stiffness
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.cut import cut_mesh
-from cutfem.geometry.markers import CUT, NEG, ElementSet
+from cutfem.geometry.markers import CUT, NEG, POS, ElementSet
 from cutfem.geometry.measures import Measure
 from cutfem.geometry.mesh import TetMesh
 from cutfem.geometry.numbering import TET_EDGES
@@ -200,8 +200,7 @@ def test_ghost_penalty_of_order_two(sphere_cut):
     assert cubic @ G2 @ cubic > 1e-3 * abs(G2).max()  # its second derivatives jump
     # a P1 function in P2 (linear on each tet: no Hessian) sees the P1 ghost penalty
     p1 = V1.interpolate(lambda x: np.sin(2 * x[..., 0]) * x[..., 1])
-    e = V2.edge_nodes
-    p2 = np.concatenate([p1, 0.5 * (p1[e[:, 0]] + p1[e[:, 1]])])
+    p2 = V2.interpolate_nodal(p1)
     assert np.isclose(p2 @ G2 @ p2, p1 @ G1 @ p1, rtol=1e-11)
 
 
@@ -211,3 +210,17 @@ def test_vector_space_of_p2(sphere_cut):
     K = assemble(stiffness(sphere_cut.dx(NEG)), V)
     Ks = assemble(stiffness(sphere_cut.dx(NEG)), V.scalar)
     assert abs(K[: V.scalar.n_dofs, : V.scalar.n_dofs] - Ks).max() < 1e-13 * abs(Ks).max()
+
+
+def test_vectorised_terms_match_the_form_language(sphere_cut):
+    """The built-in terms on P2 (:mod:`cutfem.fem.high_order`, all basis pairs at once) are the
+    quadrature of their integrands by the form language, to round-off."""
+    c = sphere_cut
+    V, P, W = (CutSpace(c, on, order=2) for on in (NEG, POS, CUT))
+    band = c.dx(c.elements(CUT))
+    cases = [(V, stiffness(c.dx(NEG))), (V, mass(c.dx(NEG))), (V, face_jump_penalty(c.dF(c.ghost_facets(NEG)), h_power=1)),
+             (V, nitsche(c.ds(), 20.0)), (P, nitsche(c.ds(), 20.0)), (W, tangential_stiffness(c.ds())), (W, mass(c.ds())),
+             (W, normal_gradient_penalty(band, 1.0)), (W, face_jump_penalty(c.dF(c.interior_facets(CUT)))), (W, stiffness(band))]
+    for space, form in cases:
+        A, B = assemble(form, space), assemble(form.by_quadrature(), space)
+        assert abs(A - B).max() <= 1e-14 * abs(B).max(), form.terms[0][1].integrand.__name__
