@@ -25,7 +25,9 @@ vector field (:class:`~cutfem.fem.spaces.VectorSpace`) ``u.value`` is (m, q, 3),
 with ``u.div``, ``u.sym_grad``, ``u.curl``, and products are written ``dot`` and ``inner``; a
 :class:`~cutfem.fem.spaces.RealSpace` field is the constant 1.
 Quadrature: degree 2 for a bilinear integrand, 4 for a linear one (:func:`bilinear_form`,
-:func:`linear_form` say why; ``degree=`` changes it).
+:func:`linear_form` say why; ``degree=`` changes it), plus 2 (k - 1) on fields of order k
+(:meth:`Integrand.degree_for`).  On P2 fields (or a deformed geometry) ``u.grad`` is (m, q, 3) and
+``u.hess`` (m, 1, 3, 3) (ZERO on P1).
 
 Parameters reach an integrand as attributes of ``w``: the term's own, bound where the term is made
 (``integrand.on(measure, gamma=10.0)``, ``nitsche(ds, gamma=10.0)``), before the form-wide keywords

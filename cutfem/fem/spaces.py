@@ -1,9 +1,10 @@
-"""Continuous P1 fields: on a triangulated surface, and on an element set of a cut.
+"""Continuous Lagrange fields: P1 on a triangulated surface, P1 or P2 on an element set of a cut.
 
 Every space exposes the same plain arrays, so that forms are written once:
 
-``n_dofs``; ``element_dofs`` (n_el, k) global dof numbers of each element (triangles, k = 3, or
-tets, k = 4); ``element_gradients`` (n_el, k, 3) the constant gradients of the P1 basis functions
+``n_dofs``; ``order``; ``element_dofs`` (n_el, k) global dof numbers of each element (triangles,
+k = 3, or tets, k = 4; P2 tets k = 10, :mod:`cutfem.fem.lagrange`); ``element_gradients`` (n_el, 4 or
+3, 3) the constant gradients of the P1 basis functions (the barycentric coordinates)
 (on a surface triangle this is already the surface gradient); ``element_normals`` (n_el, 3) the
 discrete normal n_h (surface and trace spaces; None for bulk fields); ``elements`` the element set
 (or surface mesh) the field lives on, which :mod:`cutfem.fem.forms` matches against the elements of a
