@@ -195,7 +195,7 @@ def measures(cut):
         SOLVER_PARAM,
     ],
 )
-def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, surface, radius, R, r, axes, box, order, solver):
+def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, surface, radius, R, r, axes, box, solver, order=1):
     """One level of the interface problem; a spacing that does not resolve the sphere (S_h off its area by more
     than 25 %, :func:`~cutfem.problems.common.check_resolution`) is refused.  ``order`` 2: P2 fields on
     both sides, the interface penalty gamma k^2 (as poisson-cut's), the ghost penalties of order 2."""

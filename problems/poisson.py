@@ -105,7 +105,7 @@ DEFINITIONS = {
         *SHAPE_PARAMS,
     ],
 )
-def poisson_cut(spacing, surface, background, box, gamma, gamma_g, order, solver, R, r, radius, axes):
+def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r, radius, axes, order=1):
     """One level of the fictitious-domain Poisson problem.  ``gamma_g`` and ``gamma`` are checked
     first (:func:`~cutfem.problems.common.check_ghost_penalty`, :func:`~cutfem.problems.common.check_nitsche_penalty`);
     their warnings go into the record's ``"warnings"``.  ``order`` 2: P2 fields, every term by

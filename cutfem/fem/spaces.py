@@ -543,7 +543,7 @@ class ProductSpace:
         self.offsets = np.concatenate([[0], np.cumsum([f.n_dofs for f in self.fields])]).astype(np.int64)
         self.n_dofs = int(self.offsets[-1])
         self.h = next((f.h for f in self.fields if f.h is not None), None)  # a real field has no mesh size
-        self.order = max(f.order for f in self.fields)  # the highest order sets the quadrature of a form on all fields
+        self.order = max(getattr(f, "order", 1) for f in self.fields)  # the highest order sets the quadrature of a form on all fields
 
     def __repr__(self) -> str:
         return "ProductSpace(" + ", ".join(f"{n}={f!r}" for n, f in zip(self.names, self.fields)) + ")"
