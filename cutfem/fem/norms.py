@@ -240,7 +240,11 @@ def discrete_error(space, e) -> float:
     one compiled pass over the triangles (:func:`cutfem.fem.element_kernels.squared_error` against zero).  For
     a cut space the values at the vertices are the traces of the field (:meth:`surface_vertex_data`)."""
     space, e = _field_coefficients(space, e)
-    surface_measure(space)  # a clear error for a bulk field
+    measure = surface_measure(space)  # a clear error for a bulk field
+    if space.order > 1:  # e_h^2 of degree 4 on each triangle: the rule of that degree, exact
+        values = space.evaluate(np.asarray(e, dtype=float), measure, 4)
+        weights = measure.quadrature(4).weights
+        return float(np.sqrt(np.sum(weights * np.sum(values.reshape(weights.shape + (-1,)) ** 2, axis=2))))
 
     points, triangles, values = space.surface_vertex_data(np.asarray(e, dtype=float))
     v = np.asarray(values, dtype=float)
@@ -253,9 +257,13 @@ def discrete_error(space, e) -> float:
 
 def surface_integral(space, coeffs) -> np.ndarray:
     """Integral over S_h of a discrete function: scalar or (c,) vector.  Exact: a linear function
-    integrates over a triangle to its area times the mean of its vertex values."""
+    integrates over a triangle to its area times the mean of its vertex values (P2: the rule of
+    degree 2 on each triangle)."""
     space, coeffs = _field_coefficients(space, coeffs)
-    surface_measure(space)  # a clear error for a bulk field
+    measure = surface_measure(space)  # a clear error for a bulk field
+    if space.order > 1:
+        values = space.evaluate(np.asarray(coeffs, dtype=float), measure, 2)
+        return np.einsum("mq,mq...->...", measure.quadrature(2).weights, values)
     points, triangles, values = space.surface_vertex_data(coeffs)
     area = triangle_areas(points, triangles)
     return np.einsum("m,mk...->...", area / 3.0, np.asarray(values)[triangles])

@@ -224,3 +224,26 @@ def test_vectorised_terms_match_the_form_language(sphere_cut):
     for space, form in cases:
         A, B = assemble(form, space), assemble(form.by_quadrature(), space)
         assert abs(A - B).max() <= 1e-14 * abs(B).max(), form.terms[0][1].integrand.__name__
+
+
+def test_surface_norms_of_p2(sphere_cut):
+    """On S_h the errors, the discrete norm and the integral of a P2 trace field use its quadratic
+    values, not its vertex values: a quadratic's error is zero, its integral the rule's."""
+    from cutfem.fem.norms import discrete_error, h1_error, l2_error, surface_integral
+
+    W = CutSpace(sphere_cut, CUT, order=2)
+    u = W.interpolate(quadratic)
+    ds = sphere_cut.ds()
+    assert l2_error(W, u, quadratic) < 1e-13
+    assert h1_error(W, u, quadratic_gradient) < 1e-12
+    assert np.isclose(surface_integral(W, u), ds.integrate(quadratic, 2), rtol=1e-13)
+    assert np.isclose(discrete_error(W, u), np.sqrt(ds.integrate(lambda x: quadratic(x) ** 2, 4)), rtol=1e-13)
+
+
+def test_boundary_dofs_of_p2():
+    cut = cut_mesh(structured_box([0, 0, 0], [1, 1, 1], cells=4), Sphere(0.45, [0.5, 0.5, 0.5]))
+    for side in (NEG, POS):
+        V = CutSpace(cut, side, order=2)
+        x = V.dof_points
+        on = np.any((np.abs(x) < 1e-12) | (np.abs(x - 1) < 1e-12), axis=1)  # the nodes and edge midpoints on the box
+        assert np.array_equal(np.sort(V.boundary_dofs), np.flatnonzero(on)) and on.any()

@@ -29,3 +29,20 @@ def test_poisson_cut_order_one_is_unchanged_by_the_order_parameter():
 def test_poisson_cut_order_two_rates():
     res = cutfem.run("poisson-cut", levels=[0.2, 0.1, 0.05], surface="sphere", order=2)
     assert np.all(_rates(res, "l2_error") > 2.9) and np.all(_rates(res, "h1_error") > 1.9)
+
+
+def test_laplace_beltrami_cut_order_two_is_held_at_rate_two_by_the_planar_surface():
+    """P2 trace fields on the planar S_h: the O(h^2) distance of S_h to S bounds the L2 rate by 2."""
+    res = cutfem.run("laplace-beltrami-cut", levels=[0.2, 0.1], surface="sphere", order=2, stabilization="normal")
+    l2, h1 = _rates(res, "l2_error")[-1], _rates(res, "h1_error")[-1]
+    assert 1.9 < l2 < 2.5 and h1 > 1.9
+    assert res.records[1]["l2_error"] < 5e-3
+
+
+@pytest.mark.slow
+def test_interface_poisson_cut_order_two_rates():
+    res = cutfem.run("interface-poisson-cut", levels=[0.2, 0.1, 0.05], order=2)
+    for key in ("l2_error_inside", "l2_error_outside"):
+        assert np.all(_rates(res, key) > 2.9)
+    for key in ("h1_error_inside", "h1_error_outside"):
+        assert np.all(_rates(res, key) > 1.9)
