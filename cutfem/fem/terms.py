@@ -423,7 +423,8 @@ def _edge_jump_exact(term, space, into, scale):
 
 def _edges_only(u, v, w):
     raise TypeError("edge_jump_penalty integrates over the edges between surface elements, which no quadrature measure "
-                    "covers: it has its exact implementation only")
+                    "covers: it has its exact P1 implementation only (on a P2 field stabilize with face_jump_penalty or "
+                    "normal_gradient_penalty)")
 
 
 _EDGE_JUMP = _integrand("edge_jump_penalty", _edges_only, symmetric=True, exact=_componentwise(_edge_jump_exact))
