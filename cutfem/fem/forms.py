@@ -69,6 +69,7 @@ import numbers
 import numpy as np
 import scipy.sparse as sp
 
+from . import high_order
 from .assembly import assemble_vector, running_sum
 from ..geometry.measures import Measure
 from .pointwise import (_PROBE, _QUAD_DATA_NAMES, _QUAD_DATA_NAMES_DOC, ZERO, _field_basis, _FieldTuple, _Params,
@@ -343,7 +344,9 @@ class Term:
             own.read.update(derived)
         pairs = None
         order = getattr(space if self.field is None else self.field_space(space), "order", 1)
-        for _, quad in self.measure.blocks(self.integrand.degree_for(order)):
+        blocks = self.measure.blocks(self.integrand.degree_for(order)) if order < 2 else \
+            self.measure.blocks(self.integrand.degree_for(order), high_order.BLOCK_CELLS)
+        for _, quad in blocks:
             w = _quad_data(self.measure, quad, params, own)
             first = pairs is None
             if first:

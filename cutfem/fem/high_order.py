@@ -25,6 +25,11 @@ __all__ = ["second_normal", "mass_blocks", "stiffness_blocks", "tangential_block
            "nitsche_blocks"]
 
 
+#: cells per block on P2 fields: their gradients are (cells, points, 10, 3), 18 MB a block at degree 4
+#: (the P1 blocks' 65536 cells would make 220 MB arrays, several at once)
+BLOCK_CELLS = 1 << 13
+
+
 def second_normal(hessian, n):
     """n^T H n of Hessians H (m, q, 3, 3) (of a vector field (m, q, 3, 3, 3), per component) and
     normals n (m, 1, 3); ZERO (and the probe) pass through."""
@@ -43,7 +48,7 @@ def _gram(B):
 def _cells(term, space):
     """Per block of the term's measure at the field's degree: (quad, elements, values, gradients, Hessians)."""
     measure = term.measure
-    for _, quad in measure.blocks(term.integrand.degree_for(space.order)):
+    for _, quad in measure.blocks(term.integrand.degree_for(space.order), BLOCK_CELLS):
         el = space.local_elements(measure, quad.parent)
         yield (quad, el) + space.derivatives(measure, quad, el)
 
@@ -95,7 +100,7 @@ def face_jump_blocks(term, space):
     """sum_F h^a ([n . grad u], [n . grad v])_F + h^(a+2) / 4 ([n^T H u n], [n^T H v n])_F: the local
     matrices on the dofs of the two tets of each face (minus, then plus)."""
     measure, a = term.measure, term.params["h_power"]
-    for _, quad in measure.blocks(term.integrand.degree_for(space.order)):
+    for _, quad in measure.blocks(term.integrand.degree_for(space.order), BLOCK_CELLS):
         m, q = quad.weights.shape
         pairs = measure.facets.pairs[quad.parent]
         points = quad.points if quad.reference_points is None else quad.reference_points

@@ -45,10 +45,15 @@ def p2_values(lam: np.ndarray) -> np.ndarray:
 def p2_gradients(lam: np.ndarray, G: np.ndarray) -> np.ndarray:
     """(m, q, 10, 3) P2 basis gradients from barycentric coordinates ``lam`` (m, q, 4) and their
     constant gradients ``G`` (m, 4, 3)."""
+    m, q = lam.shape[0], lam.shape[1]
+    out = np.empty((m, q, 10, 3))
     Gq = G[:, None]  # (m, 1, 4, 3)
-    vertex = (4.0 * lam - 1.0)[..., None] * Gq
-    edge = 4.0 * (lam[..., _J, None] * Gq[:, :, _I] + lam[..., _I, None] * Gq[:, :, _J])
-    return np.concatenate([vertex, edge], axis=2)
+    np.multiply((4.0 * lam - 1.0)[..., None], Gq, out=out[:, :, :4])
+    four = 4.0 * lam  # 4 lambda_j G_i + 4 lambda_i G_j, written in place
+    edges = out[:, :, 4:]
+    np.multiply(four[..., _J, None], Gq[:, :, _I], out=edges)
+    edges += four[..., _I, None] * Gq[:, :, _J]
+    return out
 
 
 def p2_hessians(G: np.ndarray) -> np.ndarray:
