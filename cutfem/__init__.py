@@ -87,6 +87,8 @@ _NAMES = {
     "edge_jump_penalty": ".fem.terms",
     "normal_gradient_penalty": ".fem.terms",
     "apply_dirichlet": ".fem.terms",
+    "divergence": ".fem.coupling",
+    "mean_constraint": ".fem.coupling",
     "elasticity": ".fem.elasticity",
     "elasticity_nitsche": ".fem.elasticity",
     # solvers

@@ -251,7 +251,7 @@ class LaplaceBeltramiCut(Problem):
 
     def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, order, solver,
                     R, r, radius):
-        """One level; ``order`` 2: P2 trace fields, the terms by quadrature (docs/math.md §17), on the
+        """One level; ``order`` 2: P2 trace fields, the terms by quadrature (docs/math.md §18), on the
         planar S_h, whose O(h^2) distance to S bounds the L2 rate by 2."""
         t = Timer()
         with t("geometry"):

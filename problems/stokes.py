@@ -9,7 +9,10 @@ stabilization and a mean-value multiplier (Burman-Hansbo, M2AN 48, 2014; docs/ma
       + (p, mu) + (q, lam)
     = (f, v) + nu Nitsche-load(g, v) + (g . n, q)_Gamma,
 
-g_a(u, v) = sum_{F ghost} h_F^a ([d_n u], [d_n v])_F (the velocity per component).  The matrix is
+g_a(u, v) = sum_{F ghost} h_F^a ([d_n u], [d_n v])_F (the velocity per component).  The two coupling
+terms on a side are one volume term, -(div v, p) + (v . n, p)_Gamma = (v, grad p) over Omega_h (the
+divergence theorem, exact for P1: ``divergence(dx, by_parts=True)``), and the Brezzi-Pitkaranta term
+is ``stiffness(dx, h_power=2)``: both assembled by exact P1 paths.  The matrix is
 symmetric indefinite: MINRES with the block preconditioner diag(multigrid on the velocity block,
 multigrid on S = (1/nu) M_p + the pressure's stabilization), the multiplier by its Schur number
 (:mod:`cutfem.solvers.saddle`), or a factorization when small.
@@ -24,8 +27,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from cutfem.fem.coupling import divergence, mean_constraint
 from cutfem.fem.exact import Exact
-from cutfem.fem.forms import assemble, bilinear_form, linear_form
+from cutfem.fem.forms import assemble, linear_form
 from cutfem.fem.norms import l2_error, l2_h1_errors
 from cutfem.fem.pointwise import dot
 from cutfem.fem.spaces import CutSpace, ProductSpace, RealSpace, VectorSpace
@@ -51,25 +55,6 @@ DEFINITIONS = {
     "h1_error_velocity": "||grad u_h - grad u||_L2(Omega_h)",
     "l2_error_pressure": "||p_h - (p - mean_Omega_h p)||_L2(Omega_h): the pressure up to its mean",
 }
-
-
-@bilinear_form(symmetric=True, degree=1)
-def _coupling(u, v, w):
-    """-(div v, p) - (div u, q) + the mean-value constraint (p, mu) + (q, lam) over the domain: a
-    constant times a linear function, exact with the centroid rule (degree 1)."""
-    return -v[0].div * u[1] - u[0].div * v[1] + u[1] * v[2] + v[1] * u[2]
-
-
-@bilinear_form(symmetric=True)
-def _normal_coupling(u, v, w):
-    """(v . n, p) + (u . n, q) on Gamma."""
-    return dot(v[0].value, w.n) * u[1] + dot(u[0].value, w.n) * v[1]
-
-
-@bilinear_form(symmetric=True, degree=0)
-def _brezzi_pitkaranta(u, v, w):
-    """h_T^2 (grad p, grad q): constant on each cell (degree 0)."""
-    return w.h**2 * dot(u.grad, v.grad)
 
 
 @linear_form
@@ -111,15 +96,15 @@ def stokes_cut(spacing, surface, background, box, nu, gamma, gamma_u, gamma_p, b
     with t("assembly"):
         N = nitsche(ds, gamma, g=VELOCITY, field="u")
         f = -nu * VELOCITY.laplacian + PRESSURE.grad
-        a = nu * stiffness(dx, field="u") + nu * N + _coupling * dx + _normal_coupling * ds \
-            - (beta / nu) * _brezzi_pitkaranta.on(dx, field="p")
+        a = nu * stiffness(dx, field="u") + nu * N + divergence(dx, by_parts=True) + mean_constraint(dx) \
+            - (beta / nu) * stiffness(dx, field="p", h_power=2)
         if gamma_u > 0:
             a = a + nu * gamma_u * face_jump_penalty(dg, h_power=1, field="u")
         if gamma_p > 0:
             a = a - (gamma_p / nu) * face_jump_penalty(dg, h_power=3, field="p")
         K = assemble(a, W)
         b = assemble(load(f, dx, field="u") + nu * N.load + _normal_data * ds, W)
-        schur = (1 / nu) * mass(dx) + (beta / nu) * (_brezzi_pitkaranta * dx)
+        schur = (1 / nu) * mass(dx) + (beta / nu) * stiffness(dx, h_power=2)
         if gamma_p > 0:
             schur = schur + (gamma_p / nu) * face_jump_penalty(dg, h_power=3)
         S = assemble(schur, V)

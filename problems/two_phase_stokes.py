@@ -41,12 +41,13 @@ from __future__ import annotations
 
 import numpy as np
 
+from cutfem.fem.coupling import divergence, mean_constraint
 from cutfem.fem.elasticity import elasticity
 from cutfem.fem.forms import assemble, bilinear_form, linear_form
 from cutfem.fem.norms import l2_error
 from cutfem.fem.pointwise import ZERO, dot
 from cutfem.fem.spaces import CutSpace, ProductSpace, RealSpace, VectorSpace
-from cutfem.fem.terms import apply_dirichlet, basis_integrals, face_jump_penalty, mass
+from cutfem.fem.terms import apply_dirichlet, basis_integrals, face_jump_penalty, mass, stiffness
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.markers import CUT, NEG, POS
 from cutfem.geometry.shapes import Sphere
@@ -75,23 +76,6 @@ def _weights(mu_neg, mu_pos):
     k_neg = mu_pos / (mu_neg + mu_pos)
     k_pos = 1.0 - k_neg
     return k_neg, k_pos, 2.0 * (k_neg**2 * 2.0 * mu_neg + k_pos**2 * 2.0 * mu_pos)
-
-
-def _side_coupling(k_u, k_p):
-    """-(div v, p) - (div u, q) + (p, m) + (q, lam) over one side's cut volume, for the velocity
-    field ``k_u`` and the pressure field ``k_p``: a constant times a linear function (degree 1)."""
-
-    @bilinear_form(symmetric=True, degree=1)
-    def coupling(u, v, w):
-        return -v[k_u].div * u[k_p] - u[k_u].div * v[k_p] + u[k_p] * v[MEAN] + v[k_p] * u[MEAN]
-
-    return coupling
-
-
-@bilinear_form(symmetric=True, degree=0)
-def _brezzi_pitkaranta(u, v, w):
-    """h_T^2 (grad p, grad q): constant on each cell (degree 0)."""
-    return w.h**2 * dot(u.grad, v.grad)
 
 
 @bilinear_form(symmetric=True)
@@ -202,9 +186,9 @@ def two_phase_stokes_cut(spacing, curvature, radius, box, mu_inside, mu_outside,
         schur = {}
         for side, ku, kp in ((NEG, U_NEG, P_NEG), (POS, U_POS, P_POS)):
             dx, dg = cut.dx(side), cut.dF(cut.ghost_facets(side))
-            a = a + elasticity(dx, mu[side], 0.0, field=ku) + _side_coupling(ku, kp) * dx \
-                - (beta / mu[side]) * _brezzi_pitkaranta.on(dx, field=kp)
-            s = (1 / mu[side]) * mass(dx) + (beta / mu[side]) * (_brezzi_pitkaranta * dx)
+            a = a + elasticity(dx, mu[side], 0.0, field=ku) + divergence(dx, ku, kp) + mean_constraint(dx, kp, MEAN) \
+                - (beta / mu[side]) * stiffness(dx, field=kp, h_power=2)
+            s = (1 / mu[side]) * mass(dx) + (beta / mu[side]) * stiffness(dx, h_power=2)
             if gamma_u > 0:
                 a = a + mu[side] * gamma_u * face_jump_penalty(dg, h_power=1, field=ku)
             if gamma_p > 0:

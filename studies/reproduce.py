@@ -49,6 +49,7 @@ STUDY_NAMES = [
     "curvature_baselines",
     "laplace_beltrami",
     "other_surfaces",
+    "two_phase",
 ]
 
 FIGURE_SUFFIXES = {".png", ".pdf", ".svg", ".jpg", ".jpeg"}

@@ -31,7 +31,7 @@ import cutfem
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
 
 NAME = "two_phase"
-OUTPUTS = [NAME]
+OUTPUTS = [NAME, f"{NAME}_table"]
 PROBLEM = "two-phase-stokes-cut"
 ROUTES = ("discrete", "laplace-beltrami")
 #: (mu_inside, mu_outside)
@@ -78,7 +78,7 @@ def run(out: Path, size: str = "quick", progress=None) -> dict:
 
 @figure_style
 def _plot(out, rows):
-    from cutfem.runs.convergence import new_figure
+    from cutfem.runs.convergence import log_ticks, new_figure
 
     fig, axes = new_figure(PAGE_WIDTH, 2.8, nrows=1, ncols=2)
     for k, (mu_in, mu_out) in enumerate(RATIOS):
@@ -95,6 +95,8 @@ def _plot(out, rows):
         ax.grid(True, which="major", alpha=0.3)
     handles, labels = axes[0].get_legend_handles_labels()
     fig.legend(handles, labels, loc="outside lower center", ncol=3)
+    for ax in axes:
+        log_ticks(ax)
     save_figure(fig, out, NAME)
 
 

@@ -28,6 +28,7 @@ EXPECTED = {
     "cutfem.fem.terms": "apply_dirichlet mass stiffness tangential_stiffness load position_load basis_integrals nitsche "
                         "interface_nitsche face_jump_penalty edge_jump_penalty normal_gradient_penalty",
     "cutfem.fem.elasticity": "elasticity elasticity_nitsche",
+    "cutfem.fem.coupling": "divergence mean_constraint",
     "cutfem.fem.norms": "l2_error h1_error l2_h1_errors rates fitted_rate",
     "cutfem.runs.registry": "register Param Problem available_problems get_problem",
     "cutfem.runs.runner": "run",

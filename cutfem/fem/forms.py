@@ -89,6 +89,8 @@ class Integrand:
       matrix on the field's ``space`` into ``into`` (the field's running sum,
       :func:`~cutfem.fem.assembly.running_sum`, or None) where it can and returns the rest unscaled
       (CSR, or None); ``exact(term, space)`` for a linear one returns the vector (n,) or (n, c);
+      for a term that couples fields (``couples=True``, a bilinear integrand on a product space)
+      ``exact(term, space)`` returns the unscaled (n, n) matrix over all of the space's fields;
     * ``prepare(space, term)``, called before the integrand is evaluated by quadrature on ``space``
       (all fields): its checks of the space, and the parameters it derives from it (a dict,
       seen as ``w.<name>``; the side of a field for Nitsche's normal);
@@ -101,8 +103,9 @@ class Integrand:
     __array_ufunc__ = None  # ndarray * integrand defers to __rmul__, which asks for a measure
 
     def __init__(self, function, linear: bool, symmetric: bool = False, degree: int | None = None, exact=None,
-                 prepare=None, advice=None, high_order=None):
+                 prepare=None, advice=None, couples: bool = False, high_order=None):
         self.function = function
+        self.couples = couples
         self.linear = linear
         self.symmetric = symmetric
         self.degree = degree if degree is not None else (4 if linear else 2)
@@ -519,10 +522,13 @@ def _p1_field(space, k, term):
 
 def _exact_route(term, space) -> bool:
     """Whether ``term`` is assembled by its exact implementation: a built-in term on a P1 field (the
-    closed forms are those of P1; on a P2 field every term goes by quadrature of its integrand)."""
-    if term.integrand.exact is None:
+    closed forms are those of P1; on a P2 field every term goes by quadrature of its integrand) over
+    a planar measure (the closed forms hold on planar cells, so a measure deformed by an
+    isoparametric cut, ``measure.deformation``, takes the quadrature of the integrand instead)."""
+    if term.integrand.exact is None or getattr(term.measure, "deformation", None) is not None:
         return False
-    return getattr(_field(space, _field_index(space, term.field)), "order", 1) < 2  # P1, or a real field (refused there)
+    fields = space if term.integrand.couples else _field(space, _field_index(space, term.field))
+    return getattr(fields, "order", 1) < 2  # P1, or a real field (refused there)
 
 
 def _high_order_route(term, space):
@@ -547,9 +553,9 @@ def assemble(form: Form, space, **params):
     misspelt name: a ValueError after the integrands ran, unless none ran because the measures have
     no cells).
 
-    Each term is assembled by its integrand's exact implementation when it has one and the field is
-    P1 (:class:`Integrand`), else by quadrature (at the degree of the field's order,
-    :meth:`Integrand.degree_for`).  On a field of a structured box or of a triangulated
+    Each term is assembled by its integrand's exact implementation when it has one, the field is P1
+    and the measure is planar (:func:`_exact_route`), else by quadrature (at the degree of the
+    field's order, :meth:`Integrand.degree_for`).  On a field of a structured box or of a triangulated
     surface the exact terms add, each times its coefficient, into one running sum of the field
     (:func:`~cutfem.fem.assembly.running_sum`), written to CSR once: c_1 a_1 + c_2 a_2 costs one
     pass, not two matrices and their sum.
@@ -604,6 +610,10 @@ def assemble(form: Form, space, **params):
         total = A if total is None else total + A
 
     for c, term in form.terms:
+        if _exact_route(term, space) and term.integrand.couples:
+            A = term.integrand.exact(term, space)
+            total = c * A if total is None else total + c * A
+            continue
         if _exact_route(term, space):
             k = _field_index(space, term.field)
             V = _p1_field(space, k, term)

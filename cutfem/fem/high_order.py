@@ -73,16 +73,20 @@ def _gradient_gram(G, weights):
 
 
 def stiffness_blocks(term, space):
-    """(grad u, grad v) over a volume."""
+    """h_T^a (grad u, grad v) over a volume (a = ``h_power``, 0 by default)."""
+    a = term.params.get("h_power", 0)
     for quad, el, _, G, _ in _cells(term, space):
-        yield space.element_dofs[el], _gradient_gram(G, quad.weights)
+        weights = quad.weights if a == 0 else quad.weights * (term.measure.h[quad.parent] ** a)[:, None]
+        yield space.element_dofs[el], _gradient_gram(G, weights)
 
 
 def tangential_blocks(term, space):
-    """(P_h grad u, P_h grad v) over a surface, P_h = I - n n^T with the cells' normals."""
+    """(P_h grad u, P_h grad v) over a surface, P_h = I - n n^T with the normals of the cells (of the
+    points on a deformed surface)."""
     for quad, el, _, G, _ in _cells(term, space):
-        n = quad.normal
-        tG = G - np.einsum("mqkd,md->mqk", G, n)[..., None] * n[:, None, None, :]
+        G = _full(G, quad.weights.shape[1])
+        n = np.broadcast_to(quad.point_normals, G.shape[:2] + (3,))  # the cell's normal, or the point's (deformed)
+        tG = G - np.einsum("mqkd,mqd->mqk", G, n)[..., None] * n[:, :, None, :]
         yield space.element_dofs[el], _gradient_gram(tG, quad.weights)
 
 
@@ -126,7 +130,7 @@ def nitsche_blocks(term, space, outward):
     measure, gamma = term.measure, term.params["gamma"]
     for quad, el, phi, G, _ in _cells(term, space):
         m, q = quad.weights.shape
-        dn = outward * np.einsum("mqkd,md->mqk", _full(G, q), quad.normal)
+        dn = outward * np.einsum("mqkd,mqd->mqk", _full(G, q), np.broadcast_to(quad.point_normals, (m, q, 3)))
         pw = phi * quad.weights[..., None]
         cross = np.matmul(np.swapaxes(pw, 1, 2), dn)  # (m, k, k): sum_q w phi_a (n . grad phi_b)
         penalty = (gamma / measure.h[quad.parent])[:, None, None]

@@ -9,7 +9,7 @@ then the edges in :data:`~cutfem.geometry.numbering.TET_EDGES` order,
     vertex i:     phi_i  = lambda_i (2 lambda_i - 1),  grad = (4 lambda_i - 1) G_i,          Hessian 4 G_i G_i^T,
     edge (i, j):  phi_ij = 4 lambda_i lambda_j,        grad = 4 (lambda_j G_i + lambda_i G_j),  Hessian 4 (G_i G_j^T + G_j G_i^T),
 
-each 1 at its own node and 0 at the nine others (docs/math.md §17).  Everything here is one numpy
+each 1 at its own node and 0 at the nine others (docs/math.md §18).  Everything here is one numpy
 expression over all cells and points at once.
 """
 

@@ -98,9 +98,10 @@ _PROBE = _Probe()
 
 class BasisField:
     """A basis function at quadrature points: ``value`` (m, q), ``grad``, ``tgrad`` (m, 1, 3) for P1
-    (constant on a cell), (m, q, 3) for P2 or on a deformed geometry, ``hess`` (m, 1, 3, 3) of P2
-    (constant on a tet) and :data:`ZERO` of P1 (so that terms of second derivatives cost nothing
-    there); arithmetic acts on ``value``."""
+    (constant on a cell), (m, q, 3) for P2 or on a deformed geometry (``tgrad`` also with the
+    per-point normals of a deformed surface), ``hess`` (m, 1, 3, 3) of P2 (constant on a tet) and
+    :data:`ZERO` of P1 (so that terms of second derivatives cost nothing there); arithmetic acts on
+    ``value``."""
 
     __slots__ = ("value", "grad", "tgrad", "hess")
 
@@ -410,7 +411,8 @@ def _point_values(f, points: np.ndarray, what: str) -> np.ndarray:
 
 
 class QuadData:
-    """What an integrand sees besides the basis functions: ``x`` (m, q, 3), ``n`` (m, 1, 3) or None,
+    """What an integrand sees besides the basis functions: ``x`` (m, q, 3), ``n`` (m, 1, 3) (per cell) or
+    (m, q, 3) (per point, on a deformed surface) or None,
     ``h`` (m, 1) local sizes, ``parent`` (m,) the measure's element (or facet) of each cell, ``at(f)``
     and the parameters as attributes: the term's own (``own``, given where the term is made) before
     the form-wide ones (``params``, the keywords of :func:`~cutfem.fem.forms.assemble`)."""
@@ -498,7 +500,7 @@ def _quad_data(measure: Measure, quad, params, own=None):
     form-wide ``params`` and the term's ``own``."""
     parent = quad.parent
     if quad.normal is not None:
-        n = quad.normal[:, None, :]
+        n = quad.point_normals  # (m, 1, 3) per cell or (m, q, 3) per point (a deformed surface)
     elif measure.normals is not None:
         n = measure.normals[parent][:, None, :]
     else:
@@ -537,13 +539,19 @@ def _field_basis(space, measure: Measure, quad):
         return np.concatenate(dofs, axis=1), fields
     el = space.local_elements(measure, quad.parent)
     phi, G, H = space.derivatives(measure, quad, el)
-    if measure.surface:
-        n = quad.normal
-        tG = G - np.einsum("mqkd,md->mqk", G, n)[..., None] * n[:, None, None, :]
+    if measure.surface:  # the tangential part at each point, with the cell's normal or (deformed) the point's
+        n = quad.point_normals
+        if G.shape[1] == 1:  # P1 on a planar cell: constant gradients
+            G0 = G[:, 0]
+            tG = G0[:, None] - np.einsum("mkd,mqd->mqk", G0, n)[..., None] * n[:, :, None, :]
+        else:
+            n = np.broadcast_to(n, G.shape[:2] + (3,))
+            tG = G - np.einsum("mqkd,mqd->mqk", G, n)[..., None] * n[:, :, None, :]
     else:
         tG = G
     return space.element_dofs[el], [BasisField(phi[..., a], G[:, :, a], tG[:, :, a], None if H is None else H[:, :, a])
                                     for a in range(G.shape[2])]
+
 
 
 class _FieldTuple(tuple):

@@ -162,24 +162,29 @@ def mass(measure: Measure, field=None) -> Form:
 def _stiffness_exact(term, space, into, scale):
     measure = term.measure
     es = measure.elements
+    weights = measure.part_volumes
+    if term.params["h_power"] != 0:
+        weights = weights * measure.h ** term.params["h_power"]
     if _same_elements(space, measure):  # no gathered copy of the gradients
         if into is not None:
-            return _kuhn_stiffness(space, measure.part_volumes, into, scale)
-        return _gradient_matrix(space, space.gradients_of, measure.part_volumes)
+            return _kuhn_stiffness(space, weights, into, scale)
+        return _gradient_matrix(space, space.gradients_of, weights)
     el = space.local_elements(measure, np.arange(es.n_elements))
-    return _gradient_matrix(space, lambda cells: space.gradients_of(el[cells]), measure.part_volumes, el)
+    return _gradient_matrix(space, lambda cells: space.gradients_of(el[cells]), weights, el)
 
 
-_STIFFNESS = _integrand("stiffness", lambda u, v, w: inner(u.grad, v.grad), symmetric=True, exact=_componentwise(_stiffness_exact),
-                        high_order=high_order.stiffness_blocks)
+_STIFFNESS = _integrand("stiffness", lambda u, v, w: w.h**w.h_power * inner(u.grad, v.grad), symmetric=True,
+                        exact=_componentwise(_stiffness_exact), high_order=high_order.stiffness_blocks)
 
 
-def stiffness(measure: Measure, field=None) -> Form:
-    """(grad u, grad v) over a volume measure: |T ∩ side| G G^T per tet (the P1 gradients are
-    constant), for a side of the cut (:class:`~cutfem.geometry.measures.SideVolume`) or whole tets; summed
-    per lattice edge on a structured box (:func:`~cutfem.fem.closed_forms._kuhn_stiffness`), as a Gram product otherwise."""
+def stiffness(measure: Measure, field=None, h_power: float = 0) -> Form:
+    """(grad u, grad v) over a volume measure, or with ``h_power`` = a the cellwise weighted
+    sum_T h_T^a (grad u, grad v)_{T ∩ side} (a = 2: the Brezzi-Pitkaranta pressure stabilization):
+    |T ∩ side| h_T^a G G^T per tet (the P1 gradients are constant), for a side of the cut
+    (:class:`~cutfem.geometry.measures.SideVolume`) or whole tets; summed per lattice edge on a
+    structured box (:func:`~cutfem.fem.closed_forms._kuhn_stiffness`), as a Gram product otherwise."""
     _require(measure, (SideVolume, ElementVolume), "stiffness")
-    return _STIFFNESS.on(measure, field)
+    return _STIFFNESS.on(measure, field, h_power=_number("h_power", h_power))
 
 
 def _tangential_exact(term, space, into, scale):
@@ -383,7 +388,7 @@ def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -
     """sum_F h_F^a ([n_F . grad u], [n_F . grad v])_F over a facet set, with the local h_F (the
     longest edge of F) and a = ``h_power``; on a field of order k the jumps of the normal
     derivatives of every order j <= k, sum_j h_F^(a + 2(j - 1)) / (j!)^2 ([d_n^j u], [d_n^j v])_F
-    (docs/math.md §17: with a = 1 the ghost penalty of order k, weights h^(2j - 1) / (j!)^2), by
+    (docs/math.md §18: with a = 1 the ghost penalty of order k, weights h^(2j - 1) / (j!)^2), by
     quadrature of degree 2k.
 
     [n_F . grad u] = n_{F,T1}.grad u|T1 + n_{F,T2}.grad u|T2 with outward unit face normals; for P1
@@ -422,9 +427,8 @@ def _edge_jump_exact(term, space, into, scale):
 
 
 def _edges_only(u, v, w):
-    raise TypeError("edge_jump_penalty integrates over the edges between surface elements, which no quadrature measure "
-                    "covers: it has its exact P1 implementation only (on a P2 field stabilize with face_jump_penalty or "
-                    "normal_gradient_penalty)")
+    raise TypeError("edge_jump_penalty integrates over the edges between surface elements, which no quadrature measure covers: "
+                    "it has its exact P1 form only (on P2 fields stabilize with face_jump_penalty or normal_gradient_penalty)")
 
 
 _EDGE_JUMP = _integrand("edge_jump_penalty", _edges_only, symmetric=True, exact=_componentwise(_edge_jump_exact))

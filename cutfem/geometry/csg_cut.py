@@ -72,6 +72,9 @@ class CsgCut:
     sub_tets: np.ndarray = field(repr=False)
     sub_inside: np.ndarray = field(repr=False)
     sub_parent: np.ndarray = field(repr=False)
+    #: a cut by several level sets is planar: its measures are not deformed (order 1)
+    deformation = None
+    order = 1
 
     @property
     def levelsets(self) -> tuple:

@@ -66,6 +66,7 @@ from .box import KUHN_EDGE_CODES, StructuredBox
 from .keys import dense_unique, pair_up, unique_keys
 from .csg import Domain
 from .csg_cut import CsgCut, cut_domain, tagged_pieces
+from .isoparametric import Deformation
 from .marching import EDGE_I, EDGE_J, FLIP, NVERT, TRIANGLE_SLOTS
 from .markers import CUT, NEG, POS, SIDES, ElementSet, FacetSet, ghost_facets, side_subtetrahedra
 from .measures import BoundaryPart, ElementVolume, FacetMeasure, SideVolume, SurfacePieces
@@ -165,6 +166,14 @@ class CutMesh:
     triangle_tets: np.ndarray
     _gradients: tuple | None = field(default=None, repr=False)  # (basis gradients, volumes) if known
     levelset: object = field(default=None, repr=False)  # what was cut: for the sides' nodal values
+    #: Theta_h of a cut made with ``order=2`` (:class:`cutfem.geometry.isoparametric.Deformation`): its
+    #: measures dx and ds integrate over the deformed cells; None at order 1
+    deformation: Deformation | None = field(default=None, repr=False)
+
+    @property
+    def order(self) -> int:
+        """The order of the geometry: 1 (the planar S_h) or 2 (S_h lifted by Theta_h)."""
+        return 1 if self.deformation is None else self.deformation.order
 
     # -- sides, element sets, facet sets and measures (cutfem.geometry.markers, cutfem.geometry.measures) ------------
     @cached_property
@@ -455,8 +464,14 @@ def _marching(tet_ids, labels, vals):
     return tet_ids[:n], labels[:n], vals[:n], code
 
 
-def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solve_bytes_per_tet: float | None = None) -> CutMesh | CsgCut:
+def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solve_bytes_per_tet: float | None = None,
+             order: int = 1) -> CutMesh | CsgCut:
     """Cut a background tetrahedral mesh by the zero level set of the P1 interpolant of ``levelset``.
+
+    ``order``: 1, the planar S_h; 2, the isoparametric geometry, the same cut lifted by the P2
+    deformation Theta_h (:mod:`cutfem.geometry.isoparametric`): ``cut.dx(NEG|POS)``, ``cut.dx(elements)``
+    and ``cut.ds()`` then integrate over the deformed cells (``cut.dF`` stays on the planar faces).
+    Order 2 needs one level set given as a function (not a Domain of several, not nodal values).
 
     ``levelset``: a LevelSet (``value``, optional ``lipschitz``), a callable ``f(x)`` with x (..., 3),
     or an array of nodal values (N,) (not with a structured box's band search).  A
@@ -481,8 +496,16 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
     refused.  The check after the cut, on the real active tets, stays for what the prediction does not
     cover (no Lipschitz bound, unstructured backgrounds).
     """
+    if order not in (1, 2) or isinstance(order, bool):
+        raise ValueError(f"order must be 1 (the planar cut) or 2 (the isoparametric cut), got {order!r}")
     if isinstance(levelset, Domain):
+        if order != 1:
+            raise ValueError("order=2 lifts the cut of one level set; a Domain of several level sets is cut at order 1 "
+                             "(cut each level set apart for an isoparametric geometry)")
         return cut_domain(background, levelset, check_boundary=check_boundary)
+    if order == 2 and isinstance(levelset, np.ndarray):
+        raise TypeError("order=2 needs the level set as a function (a LevelSet or a callable f(x)): phi_h2 takes its "
+                        "values at the edge midpoints, which an array of nodal values does not have")
     lipschitz = _declared_lipschitz(levelset)
     mesh_distance = getattr(levelset, "is_distance", False) and getattr(levelset, "mesh", None) is not None
     structured = isinstance(background, StructuredBox)
@@ -605,6 +628,8 @@ def cut_mesh(background: TetMesh, levelset, *, check_boundary: bool = True, solv
         if crossing:
             raise CutError(crossing) from None
         raise
+    if order == 2:
+        cm.deformation = Deformation(cm)
     return cm
 
 

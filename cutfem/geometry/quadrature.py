@@ -29,7 +29,8 @@ Jacobian, and are exact and positive for every degree.
 Physical rules
 --------------
 :class:`Quadrature` holds ``m`` elements with ``q`` points each (``points (m, q, 3)``, ``weights
-(m, q)``, ``parent (m,)``, optional unit ``normal (m, 3)``, reference ``bary (q, k)``).
+(m, q)``, ``parent (m,)``, optional unit ``normal (m, 3)`` or ``(m, q, 3)``, reference ``bary (q, k)``,
+and on a deformed geometry ``reference_points`` and ``jacobians``).
 :func:`map_segments`, :func:`map_triangles` and :func:`map_tetrahedra` build one from vertex
 arrays in one vectorised operation; :func:`concatenate` stacks several.  Cut pieces of different
 shape are handled by splitting them into simplices first (see ``cutfem.geometry.cut``), which keeps every
@@ -328,8 +329,10 @@ class Quadrature:
     parent : (m,) int, optional
         Index of the element each quadrature element belongs to (e.g. the background tet a cut
         piece lies in).  Defaults to ``arange(m)``.
-    normal : (m, 3) float or None
-        Unit normal per element for surface quadratures, ``None`` otherwise.
+    normal : (m, 3) or (m, q, 3) float or None
+        Unit normal for surface quadratures, per element (a planar cell) or per point (a deformed
+        cell, :mod:`cutfem.geometry.isoparametric`); ``None`` otherwise.  :attr:`point_normals` gives
+        either as (m, 1 or q, 3).
     bary : (q, k) float or None
         Reference barycentric coordinates of the points (k = 2 segment, 3 triangle, 4 tet);
         the same for every element.  ``points[e] = bary @ vertices[e]``.
@@ -376,10 +379,10 @@ class Quadrature:
             self.parent = _as_parent(self.parent, m)
         if self.normal is not None:
             self.normal = np.asarray(self.normal, dtype=float)
-            if self.normal.shape != (m, 3):
+            if self.normal.shape not in ((m, 3), (m, q, 3)):
                 raise ValueError(
-                    f"Quadrature.normal must have shape (m, 3) = {(m, 3)} or be None, "
-                    f"got {self.normal.shape}"
+                    f"Quadrature.normal must have shape (m, 3) = {(m, 3)} (one per element) or (m, q, 3) = {(m, q, 3)} "
+                    f"(one per point) or be None, got {self.normal.shape}"
                 )
         if self.bary is not None:
             self.bary = np.asarray(self.bary, dtype=float)
@@ -411,6 +414,14 @@ class Quadrature:
                           max(0, min(self.whole, stop) - start),
                           None if self.reference_points is None else self.reference_points[start:stop],
                           None if self.jacobians is None else self.jacobians[start:stop])
+
+    @property
+    def point_normals(self):
+        """The normal broadcastable over the points, (m, 1, 3) per element or (m, q, 3) per point; None
+        without a normal."""
+        if self.normal is None or self.normal.ndim == 3:
+            return self.normal
+        return self.normal[:, None, :]
 
     @property
     def n_points(self) -> int:
@@ -679,7 +690,9 @@ def concatenate(*quads: Quadrature) -> Quadrature:
     """Stack quadratures element-wise: ``m = sum of m_i``, all with the same ``q``.
 
     ``parent`` arrays are concatenated unchanged (they must refer to the same parent mesh).
-    ``normal`` is stacked when every input has one and ``None`` when none has.  Inputs that carry
+    ``normal`` is stacked when every input has one (per point when some input's is) and ``None`` when
+    none has; ``reference_points`` and ``jacobians`` are kept when some input has them (the others'
+    points and identity Jacobians filling in).  Inputs that carry
     ``bary`` must share the same reference rule; it is kept when every input carries it and set
     to ``None`` when some input has none.
 
@@ -717,10 +730,23 @@ def concatenate(*quads: Quadrature) -> Quadrature:
                 )
         if len(barys) == len(quads):
             bary = first
+    normal = None
+    if all(has_normal):
+        per_point = any(qd.normal.ndim == 3 for qd in quads)
+        normal = np.concatenate([np.broadcast_to(qd.point_normals, qd.points.shape) if per_point else qd.normal
+                                 for qd in quads], axis=0)
+    deformed = any(qd.reference_points is not None for qd in quads)
+    reference = jacobians = None
+    if deformed:  # the undeformed ones are their own reference points, with identity Jacobians
+        reference = np.concatenate([qd.points if qd.reference_points is None else qd.reference_points for qd in quads])
+        jacobians = np.concatenate([np.broadcast_to(np.eye(3), qd.points.shape + (3,)) if qd.jacobians is None
+                                    else qd.jacobians for qd in quads])
     return Quadrature(
         points=np.concatenate([qd.points for qd in quads], axis=0),
         weights=np.concatenate([qd.weights for qd in quads], axis=0),
         parent=np.concatenate([qd.parent for qd in quads], axis=0),
-        normal=np.concatenate([qd.normal for qd in quads], axis=0) if all(has_normal) else None,
+        normal=normal,
         bary=bary,
+        reference_points=reference,
+        jacobians=jacobians,
     )

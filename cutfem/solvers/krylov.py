@@ -181,7 +181,18 @@ def _constant_correction(A, x, r, nb, tol, cache=None):
     return r, rel
 
 
+def dof_points_of(space):
+    """The coordinates of the dofs that the AMG candidates are built on: a scalar space's
+    ``dof_points``, a vector field's scalar space's (each component then has its own linear
+    functions); None when the space has none (a product of several fields, a real field)."""
+    return getattr(getattr(space, "scalar", space), "dof_points", None) if space is not None else None
+
+
 def _amg(A, points=None):
+    """Smoothed-aggregation AMG of A; with the dof coordinates ``points`` (n_s, 3) the globally linear
+    functions are its near-kernel candidates: of each of the n / n_s components of a vector field
+    (numbered component-major) when A is larger than the points, which for elasticity span the rigid
+    motions."""
     import pyamg
 
     # the coarsest level by sparse LU: pyamg's default pseudo-inverse (an SVD of the dense coarsest
@@ -190,7 +201,12 @@ def _amg(A, points=None):
     if points is not None:
         # the near-kernel of the face penalty: the globally linear functions
         P = np.asarray(points, dtype=float)
-        kw["B"] = np.column_stack([np.ones(len(P)), P - P.mean(axis=0)])
+        linear = np.column_stack([np.ones(len(P)), P - P.mean(axis=0)])
+        c = A.shape[0] // len(P)
+        if c * len(P) != A.shape[0]:
+            raise ValueError(f"AMG: {len(P)} dof points do not fit a matrix of {A.shape[0]} unknowns (one point per "
+                             "unknown, or per unknown of each component of a vector field)")
+        kw["B"] = linear if c == 1 else sp.block_diag([linear] * c).toarray()
     M = pyamg.smoothed_aggregation_solver(sp.csr_matrix(A), **kw).aspreconditioner(cycle="V")
     return lambda R: np.column_stack([M @ R[:, k] for k in range(R.shape[1])])
 

@@ -23,6 +23,13 @@ constants are a null vector of K (a pressure without its mean-value constraint) 
 that cause, as is a constraint field without its own block C (equal-order pairs are unstable
 without a pressure stabilization).  Small systems (at most :data:`SADDLE_DIRECT_LIMIT` unknowns)
 are factorized directly (SuperLU with a minimum degree ordering on K + K^T).
+
+A system whose matrix is not symmetric (an Oseen or advection term in the primal block, a
+non-symmetric Nitsche variant) is solved by restarted GMRES (scipy's) with the same block-diagonal
+preconditioner, the primal block's V-cycles built on its symmetric part (A + A^T) / 2: a fixed
+SPD operator that stays spectrally equivalent to A while the advection is moderate (iterations grow
+with the cell Peclet number; a convection-aware smoother is the next step there).  MINRES is
+refused on such a matrix, naming its asymmetry.
 """
 
 from __future__ import annotations
@@ -30,12 +37,13 @@ from __future__ import annotations
 import time
 
 import numpy as np
-import pyamg
 import scipy.sparse as sp
+import scipy.sparse.linalg as spla
 
 from .common import SolveInfo
 from .diagnose import SolverError, _Checks
 from .direct import DirectSolver
+from .krylov import _amg, dof_points_of
 from .minres import BlockDiagonal, minres
 from .multigrid import GeometricMultigrid, multigrid_hierarchy
 
@@ -50,6 +58,12 @@ CYCLES = 2
 
 #: block preconditioners of at most this many unknowns are factorized instead of a V-cycle
 FACTOR_BLOCK_LIMIT = 2_000
+
+#: |K - K^T| / |K| (largest entries) above which a saddle system is treated as non-symmetric (GMRES)
+ASYMMETRY_TOL = 1e-12
+
+#: GMRES restart length (Krylov vectors kept); the preconditioned iterations of the cut Oseen test stay below it
+GMRES_RESTART = 200
 
 
 def _field_dofs(space, k):
@@ -83,8 +97,8 @@ def _block_preconditioner(M, field_space, what, indefinite_hint=None):
             return z
 
         return apply
-    ml = pyamg.smoothed_aggregation_solver(M, symmetry="symmetric")
-    return lambda r: ml.solve(r, x0=np.zeros_like(r), maxiter=1, cycle="V", tol=1e-300)
+    amg = _amg(M, dof_points_of(field_space))  # one V-cycle, with the linear functions as candidates
+    return lambda r: amg(r[:, None])[:, 0]
 
 
 def _check_constraint_fields(K, space, primal, constraint):
@@ -114,14 +128,16 @@ def _check_constraint_fields(K, space, primal, constraint):
 
 def saddle_solve(K, B, space, primal, schur=None, tol: float = 1e-8, maxiter: int = 1000, method: str = "auto",
                  indefinite_hint=None):
-    """Solve the symmetric saddle-point system K x = B on the product space ``space``.
+    """Solve the saddle-point system K x = B on the product space ``space`` (MINRES when K is
+    symmetric, GMRES when not).
 
     ``primal``: the fields (names or positions) of the positive definite block A; the other fields
     are the constraint fields.  ``schur``: {field: matrix}, for each constraint field with more
     than one unknown an SPD matrix spectrally equivalent to its Schur complement (for a Stokes
     pressure: (1/nu) M_p plus the pressure stabilization); a one-unknown field (a multiplier) needs
-    none.  ``method``: "minres" (block-preconditioned MINRES), "direct" (SuperLU) or "auto" (direct
-    up to :data:`SADDLE_DIRECT_LIMIT` unknowns).  ``indefinite_hint``: the advice when the primal
+    none.  ``method``: "minres" (block-preconditioned MINRES), "gmres" (the same preconditioner, for a
+    non-symmetric K), "direct" (SuperLU) or "auto" (direct up to :data:`SADDLE_DIRECT_LIMIT` unknowns,
+    then MINRES or GMRES by K's symmetry).  ``indefinite_hint``: the advice when the primal
     block is not positive definite (e.g. the form's, naming its Nitsche penalty).  Returns (x,
     SolveInfo); B of shape (n,) or (n, 1).
     """
@@ -147,22 +163,29 @@ def saddle_solve(K, B, space, primal, schur=None, tol: float = 1e-8, maxiter: in
                              "its Schur complement, for a Stokes pressure (1/nu) M_p plus its stabilization)")
     _check_constraint_fields(K, space, primal_k, constraint)
     t0 = time.perf_counter()
+    scale = abs(K).max()
+    asymmetry = float(abs(K - K.T).max() / scale) if scale > 0 else 0.0
+    symmetric = asymmetry <= ASYMMETRY_TOL
     if method == "auto":
-        method = "direct" if n <= SADDLE_DIRECT_LIMIT else "minres"
+        method = "direct" if n <= SADDLE_DIRECT_LIMIT else ("minres" if symmetric else "gmres")
+    if method == "minres" and not symmetric:
+        raise ValueError(f"MINRES needs a symmetric matrix, and this saddle system's is not (|K - K^T| / |K| = {asymmetry:.1e}, "
+                         "an advection term or a non-symmetric coupling): use method='gmres' (or 'auto')")
+    pdofs = np.concatenate([_field_dofs(space, k) for k in primal_k])
+    primal_block = K[pdofs][:, pdofs]
+    if not symmetric:
+        primal_block = (0.5 * (primal_block + primal_block.T)).tocsr()
     if method == "direct":
-        pdofs = np.concatenate([_field_dofs(space, k) for k in primal_k])
-        # the primal block must be positive definite (a Nitsche penalty below its bound is not): checked
-        # by its own factorization, which names the cause; the saddle matrix alone would not tell
-        DirectSolver(K[pdofs][:, pdofs], where="the primal block", _checks=_Checks.of(indefinite_hint=indefinite_hint))
+        # the primal block (its symmetric part) must be positive definite (a Nitsche penalty below its bound is
+        # not): checked by its own factorization, which names the cause; the saddle matrix alone would not tell
+        DirectSolver(primal_block, where="the primal block", _checks=_Checks.of(indefinite_hint=indefinite_hint))
         solver = DirectSolver(K, spd=False, where="the saddle-point system")
         t1 = time.perf_counter()
         x = solver.solve(b)
         res = float(np.linalg.norm(K @ x - b) / max(np.linalg.norm(b), 1e-300))
         return x, SolveInfo("direct", 0, res, time.perf_counter() - t0, t1 - t0)
-    if method != "minres":
-        raise ValueError(f"unknown method {method!r} for a saddle-point system; use 'auto', 'minres' or 'direct'")
-    pdofs = np.concatenate([_field_dofs(space, k) for k in primal_k])
-    primal_block = K[pdofs][:, pdofs]
+    if method not in ("minres", "gmres"):
+        raise ValueError(f"unknown method {method!r} for a saddle-point system; use 'auto', 'minres', 'gmres' or 'direct'")
     blocks = [(pdofs, _block_preconditioner(primal_block, _subspace(space, primal_k), "the primal block", indefinite_hint))]
     applies = {}
     for k in constraint:
@@ -187,5 +210,28 @@ def saddle_solve(K, B, space, primal, schur=None, tol: float = 1e-8, maxiter: in
                                   "approximation: constrain a field that has one", "singular")
             blocks.append((dofs, lambda r, v=value: r / v))
     t1 = time.perf_counter()
-    x, it, res = minres(K, b, BlockDiagonal(n, blocks), tol=tol, maxiter=maxiter, name="MINRES (saddle point)")
-    return x, SolveInfo("minres", it, res, time.perf_counter() - t0, t1 - t0)
+    if method == "gmres":
+        x, it, res = _gmres(K, b, BlockDiagonal(n, blocks), tol, maxiter)
+    else:
+        x, it, res = minres(K, b, BlockDiagonal(n, blocks), tol=tol, maxiter=maxiter, name="MINRES (saddle point)")
+    return x, SolveInfo(method, it, res, time.perf_counter() - t0, t1 - t0)
+
+
+def _gmres(K, b, preconditioner, tol, maxiter):
+    """Restarted GMRES (scipy) with the block preconditioner; (x, iterations, relative residual), or a
+    RuntimeError (as MINRES's) when it does not reach ``tol`` within ``maxiter`` iterations."""
+    n = K.shape[0]
+    M = spla.LinearOperator((n, n), matvec=preconditioner, dtype=float)
+    count = [0]
+
+    def callback(_residual):
+        count[0] += 1
+
+    x, status = spla.gmres(K, b, M=M, rtol=tol, atol=0.0, restart=GMRES_RESTART, maxiter=max(1, maxiter // GMRES_RESTART + 1),
+                           callback=callback, callback_type="pr_norm")
+    res = float(np.linalg.norm(K @ x - b) / max(np.linalg.norm(b), 1e-300))
+    if status != 0 or not np.isfinite(res) or res > 10 * tol:
+        raise RuntimeError(f"GMRES (saddle point) did not converge: relative residual {res:.1e} after {count[0]} iterations "
+                           f"(tol {tol:.0e}); the advection may be too strong for the symmetric-part preconditioner: refine the "
+                           "mesh (smaller cell Peclet number) or use method='direct'")
+    return x, count[0], res

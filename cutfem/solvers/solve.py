@@ -46,7 +46,7 @@ import numpy as np
 from .common import SolveInfo, _checked_matrix, _checked_rhs, _checked_tol
 from .diagnose import _Checks, _check_kernels
 from .direct import DirectSolver
-from .krylov import DEFAULT_TOL, cg_solve, mg_solve
+from .krylov import DEFAULT_TOL, cg_solve, dof_points_of, mg_solve
 from .multigrid import multigrid_hierarchy
 from .saddle import saddle_solve
 
@@ -80,10 +80,10 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
           stabilization=None, indefinite_hint=None, multigrid=None, x0=None, primal=None, schur=None):
     """Solve the SPD system A X = B (B (n,) or (n, c)); returns (X, SolveInfo).
 
-    ``primal`` (and ``schur``) declare a symmetric saddle-point system instead: ``primal`` the
-    fields of the positive definite block of the product space ``space``, ``schur`` {constraint
-    field: an SPD approximation of its Schur complement}; solved by block-preconditioned MINRES
-    ("minres") or, small, directly (:func:`~cutfem.solvers.saddle.saddle_solve`).
+    ``primal`` (and ``schur``) declare a saddle-point system instead: ``primal`` the fields of the
+    positive definite block of the product space ``space``, ``schur`` {constraint field: an SPD
+    approximation of its Schur complement}; solved by block-preconditioned MINRES ("minres"), GMRES
+    when the matrix is not symmetric ("gmres"), or, small, directly (:func:`~cutfem.solvers.saddle.saddle_solve`).
 
     ``method``: "direct", "cg-mg" (geometric multigrid), "cg-amg", "cg-jacobi" or "auto":
     direct up to :data:`DIRECT_LIMIT` unknowns; above it "cg-mg" when there is a geometric
@@ -157,5 +157,4 @@ def solve(A, B, method: str = "auto", tol: float | None = None, space=None, latt
                 "'cg-amg' (algebraic multigrid), 'direct' or 'auto'"
             )
         return mg_solve(A, B, lattice, tol=tol, prolongations=hierarchy, _checks=checks, x0=x0, **(multigrid or {}))
-    points = getattr(space, "dof_points", None) if space is not None else None
-    return cg_solve(A, B, preconditioner=method.split("-")[1], tol=tol, points=points, _checks=checks, x0=x0)
+    return cg_solve(A, B, preconditioner=method.split("-")[1], tol=tol, points=dof_points_of(space), _checks=checks, x0=x0)

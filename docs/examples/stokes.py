@@ -3,9 +3,11 @@
     -Lap u + grad p = f,  div u = 0 in the unit ball,  u = g on its sphere.
 
 One product space holds the velocity (a vector field), the pressure and a multiplier for the
-pressure's mean.  Nitsche imposes u = g on the cut boundary; ghost penalties on the faces of the
-cut tets (velocity h, pressure h^3) and the Brezzi-Pitkaranta term -beta h^2 (grad p, grad q)
-stabilize the equal-order pair.  The system is symmetric indefinite: ``cf.solve`` with ``primal``
+pressure's mean; ``cf.divergence(dx, by_parts=True)`` couples velocity and pressure,
+(v, grad p) = -(div v, p) + (v . n, p) on the boundary, and ``cf.mean_constraint`` the pressure
+and its multiplier.  Nitsche imposes u = g on the cut boundary; ghost penalties on the faces of
+the cut tets (velocity h, pressure h^3) and the Brezzi-Pitkaranta term -beta h^2 (grad p, grad q)
+(``cf.stiffness(dx, h_power=2)``) stabilize the equal-order pair.  The system is symmetric indefinite: ``cf.solve`` with ``primal``
 and ``schur`` runs MINRES, preconditioned by multigrid on the velocity block and on the Schur
 approximation M_p + the pressure's stabilization (docs/math.md §12).
 
@@ -22,21 +24,6 @@ F = -U.laplacian + P.grad
 BETA, GAMMA = 0.05, 20.0
 
 
-@cf.bilinear_form(symmetric=True, degree=1)
-def coupling(u, v, w):  # -(div v, p) - (div u, q) + (p, mu) + (q, lam)
-    return -v[0].div * u[1] - u[0].div * v[1] + u[1] * v[2] + v[1] * u[2]
-
-
-@cf.bilinear_form(symmetric=True)
-def normal_coupling(u, v, w):  # (v . n, p) + (u . n, q) on the boundary
-    return cf.dot(v[0].value, w.n) * u[1] + cf.dot(u[0].value, w.n) * v[1]
-
-
-@cf.bilinear_form(symmetric=True, degree=0)
-def grad_grad_h2(u, v, w):  # h^2 (grad p, grad q)
-    return w.h**2 * cf.dot(u.grad, v.grad)
-
-
 @cf.linear_form
 def normal_data(v, w):  # (g . n, q) on the boundary
     return cf.dot(w.at(U), w.n) * v[1]
@@ -49,10 +36,11 @@ def main(spacing=0.2):
     W = cf.ProductSpace(u=cf.VectorSpace(V), p=V, mean=cf.RealSpace())
     dx, ds, dg = cut.dx(cf.NEG), cut.ds(), cut.dF(cut.ghost_facets(cf.NEG))
     N = cf.nitsche(ds, GAMMA, g=U, field="u")
-    a = cf.stiffness(dx, field="u") + N + coupling * dx + normal_coupling * ds - BETA * grad_grad_h2.on(dx, field="p") \
+    a = cf.stiffness(dx, field="u") + N + cf.divergence(dx, by_parts=True) + cf.mean_constraint(dx) \
+        - BETA * cf.stiffness(dx, field="p", h_power=2) \
         + 0.1 * cf.face_jump_penalty(dg, h_power=1, field="u") - 0.1 * cf.face_jump_penalty(dg, h_power=3, field="p")
     b = cf.assemble(cf.load(F, dx, field="u") + N.load + normal_data * ds, W)
-    S = cf.assemble(cf.mass(dx) + BETA * (grad_grad_h2 * dx) + 0.1 * cf.face_jump_penalty(dg, h_power=3), V)
+    S = cf.assemble(cf.mass(dx) + BETA * cf.stiffness(dx, h_power=2) + 0.1 * cf.face_jump_penalty(dg, h_power=3), V)
     x, info = cf.solve(cf.assemble(a, W), b, space=W, primal="u", schur={"p": S})
     u, p, _ = W.split(x)
     return {"h": V.h, "dofs": W.n_dofs, "iterations": info.iterations,

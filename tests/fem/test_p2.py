@@ -1,5 +1,5 @@
 """P2 fields (CutSpace(..., order=2)): interpolation, the reference element matrices, the affine-map
-identity of a deformed quadrature, definiteness, and the ghost penalty of order 2 (docs/math.md §17)."""
+identity of a deformed quadrature, definiteness, and the ghost penalty of order 2 (docs/math.md §18)."""
 
 import itertools
 import math

@@ -1,4 +1,4 @@
-"""The problems at order 2 (--order 2, P2 fields on the planar cut; docs/math.md §17): coarse rates
+"""The problems at order 2 (--order 2, P2 fields on the planar cut; docs/math.md §18): coarse rates
 in the fast suite, three levels in the slow one."""
 
 import numpy as np

@@ -80,8 +80,8 @@ def test_the_discrete_equations_hold_for_the_exact_state():
     a = tp._interface.on(cut.ds(), k_neg=k_neg, k_pos=k_pos, mu_neg=mu_neg, mu_pos=mu_pos, lam=20 * two_s)
     for side, ku, kp, mu in ((NEG, tp.U_NEG, tp.P_NEG, mu_neg), (POS, tp.U_POS, tp.P_POS, mu_pos)):
         dx, dg = cut.dx(side), cut.dF(cut.ghost_facets(side))
-        a = a + cf.elasticity(dx, mu, 0.0, field=ku) + tp._side_coupling(ku, kp) * dx \
-            - (0.05 / mu) * tp._brezzi_pitkaranta.on(dx, field=kp) + mu * 0.1 * cf.face_jump_penalty(dg, h_power=1, field=ku) \
+        a = a + cf.elasticity(dx, mu, 0.0, field=ku) + cf.divergence(dx, ku, kp) + cf.mean_constraint(dx, kp, tp.MEAN) \
+            - (0.05 / mu) * cf.stiffness(dx, field=kp, h_power=2) + mu * 0.1 * cf.face_jump_penalty(dg, h_power=1, field=ku) \
             - (0.1 / mu) * cf.face_jump_penalty(dg, h_power=3, field=kp)
     K = assemble(a, W)
     b = assemble(_jump_load * cut.ds(), W, k_neg=k_neg, k_pos=k_pos, jump=J)

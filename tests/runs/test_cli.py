@@ -239,6 +239,7 @@ def test_forms_md_examples_run_and_mean_what_they_say():
          "from cutfem.fem.pointwise import *\n"
          "from cutfem.fem.terms import *\n"
          "from cutfem.fem.elasticity import *\n"
+         "from cutfem.fem.coupling import *\n"
          "from cutfem.fem.exact import Exact\n"
          "from cutfem.solvers.krylov import CGSolver\n"
          "from cutfem.solvers.direct import DirectSolver\n"

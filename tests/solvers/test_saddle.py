@@ -151,3 +151,31 @@ def test_a_nitsche_penalty_below_its_bound_is_named_on_both_paths():
         with pytest.raises(SolverError, match=r"raise the Nitsche penalty gamma \(0.05"):
             cf.solve(bad["bordered"], bad["rhs"], space=bad["Wm"], primal=["u0", "u1", "u2"], schur={"p": bad["S"]},
                      method=method, indefinite_hint="raise the Nitsche penalty gamma (0.05 is below its bound)")
+
+
+def _oseen(s, wind):
+    """The Stokes system plus the advection (b . grad u, v) of each velocity component: not symmetric."""
+    dx = s["cut"].dx(cf.NEG)
+
+    b = wind[None, None, :]
+
+    @bilinear_form
+    def advection(u, v, w):
+        return sum(dot(u[c].grad, b) * v[c] for c in range(3))
+
+    A = assemble(advection * dx, s["W"])
+    return s["bordered"] + sp.bmat([[A, None], [None, sp.csr_matrix((1, 1))]]).tocsr()
+
+
+def test_gmres_solves_a_non_symmetric_saddle_system_and_minres_refuses_it(coarse):
+    K = _oseen(coarse, np.array([2.0, -1.0, 0.5]))
+    asymmetry = abs(K - K.T).max() / abs(K).max()
+    assert asymmetry > 1e-3
+    args = dict(space=coarse["Wm"], primal=["u0", "u1", "u2"], schur={"p": coarse["S"]})
+    x, info = cf.solve(K, coarse["rhs"], method="gmres", **args)
+    xd, infod = cf.solve(K, coarse["rhs"], method="auto", **args)  # 4 k unknowns: factorized
+    assert info.method == "gmres" and infod.method == "direct" and info.iterations <= 100
+    assert np.abs(x - xd).max() <= 1e-6 * np.abs(xd).max()
+    assert np.linalg.norm(K @ x - coarse["rhs"]) <= 1e-8 * np.linalg.norm(coarse["rhs"]) * 1.01
+    with pytest.raises(ValueError, match="MINRES needs a symmetric matrix.*method='gmres'"):
+        cf.solve(K, coarse["rhs"], method="minres", **args)
