@@ -218,7 +218,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
     with t("geometry"):
         bg = background_for(phi, spacing, "structured", box)
         check_bulk_memory(bg, phi, (NEG, POS), BULK_BYTES_PER_TET["interface-poisson-cut"], spacing)
-        cut = cut_mesh(bg, phi)
+        cut = cut_mesh(bg, phi, order=order)  # order 2: Gamma_h and the sides lifted by Theta_h (math.md §17)
         check_resolution(cut, phi, spacing)  # a sphere a few cells across: refused, not solved on a polyhedron
         W = ProductSpace(CutSpace(cut, NEG, order=order), CutSpace(cut, POS, order=order))
         ds, dx, ghost = measures(cut)

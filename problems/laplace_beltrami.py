@@ -257,7 +257,7 @@ class LaplaceBeltramiCut(Problem):
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius)
             sol = manufactured(phi)
-            cut = cut_mesh(background_for(phi, level, background, box), phi, solve_bytes_per_tet=BYTES_PER_ACTIVE_TET)
+            cut = cut_mesh(background_for(phi, level, background, box), phi, solve_bytes_per_tet=BYTES_PER_ACTIVE_TET, order=order)
             check_resolution(cut, phi, level)
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
             space = CutSpace(cut, order=order)

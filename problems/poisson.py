@@ -118,7 +118,7 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
         phi = levelset_for(surface, R, r, radius, axes)
         bg = background_for(phi, spacing, background, box)
         check_bulk_memory(bg, phi, (NEG,), BULK_BYTES_PER_TET["poisson-cut"], spacing)
-        cut = cut_mesh(bg, phi)
+        cut = cut_mesh(bg, phi, order=order)  # order 2: Omega_h and Gamma_h lifted by Theta_h (math.md §17)
         V = CutSpace(cut, NEG, order=order)
         dx, ds, ghost = measures(cut)
     with t("assembly"):

@@ -525,7 +525,10 @@ def _exact_route(term, space) -> bool:
     closed forms are those of P1; on a P2 field every term goes by quadrature of its integrand) over
     a planar measure (the closed forms hold on planar cells, so a measure deformed by an
     isoparametric cut, ``measure.deformation``, takes the quadrature of the integrand instead)."""
-    if term.integrand.exact is None or getattr(term.measure, "deformation", None) is not None:
+    measure = term.measure
+    deformed = getattr(measure, "deformation", None) is not None or (  # the faces of a lifted cut lift the fields on them
+        measure.facets is not None and getattr(getattr(measure.elements, "cut", None), "deformation", None) is not None)
+    if term.integrand.exact is None or deformed:
         return False
     fields = space if term.integrand.couples else _field(space, _field_index(space, term.field))
     return getattr(fields, "order", 1) < 2  # P1, or a real field (refused there)

@@ -112,7 +112,7 @@ def face_jump_blocks(term, space):
         first, second, dofs = [], [], []
         for s, sign in ((0, 1.0), (1, -1.0)):
             el = space.local_elements(measure, pairs[:, s])
-            _, G, H = space.derivatives(measure, quad, el, points=points)
+            _, G, H = space.derivatives(measure, quad, el, points=points, cells=pairs[:, s])
             first.append(sign * np.einsum("mqkd,md->mqk", _full(G, q), n))
             second.append(None if H is None else sign * np.einsum("mqkij,mi,mj->mqk", H, n, n))
             dofs.append(space.element_dofs[el])

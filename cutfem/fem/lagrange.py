@@ -71,9 +71,15 @@ def map_gradients(grads: np.ndarray, jacobians: np.ndarray) -> np.ndarray:
     return np.einsum("mqji,mqkj->mqki", inverse, grads)
 
 
-def map_hessians(hessians: np.ndarray, jacobians: np.ndarray) -> np.ndarray:
-    """Hessians (m, q or 1, k, 3, 3) mapped as D Theta^-T H^ D Theta^-1 -> (m, q, k, 3, 3): the
-    Hessian of the composed field for an affine Theta (a curved Theta adds a term in its second
-    derivatives times the gradient, left out here)."""
+def map_hessians(hessians: np.ndarray, jacobians: np.ndarray, gradients=None, theta_hessians=None) -> np.ndarray:
+    """Hessians (m, q or 1, k, 3, 3) in the undeformed element mapped to the deformed one,
+    -> (m, q, k, 3, 3): from phi^ = phi o Theta, H^ = J^T H J + sum_c (grad phi)_c H(Theta_c), so
+
+        H = J^-T (H^ - sum_c (grad phi)_c H(Theta_c)) J^-1,
+
+    J = D Theta (m, q, 3, 3), ``gradients`` the mapped gradients grad phi (m, q, k, 3) and
+    ``theta_hessians`` H(Theta_c) (m, 3, 3, 3) (None: an affine Theta, no such term)."""
+    if theta_hessians is not None:
+        hessians = hessians - np.einsum("mqkc,mcij->mqkij", gradients, theta_hessians)
     inverse = np.linalg.inv(jacobians)
     return np.einsum("mqai,mqkab,mqbj->mqkij", inverse, hessians, inverse)

@@ -219,7 +219,8 @@ def _varying_gradient_error(space, measure, quad, elements, local, exact_gradien
     grad = np.einsum("bqkd,bk...->bq...d", G, local)  # (b, q, 3) or (b, q, c, 3)
     diff = exact_gradient - grad
     if measure.surface:
-        n = quad.normal.reshape((len(quad.normal), 1) + (1,) * (diff.ndim - 3) + (3,))
+        n = quad.point_normals  # (b, 1, 3) of a planar cell, (b, q, 3) of a deformed one
+        n = n if diff.ndim == 3 else n[:, :, None, :]
         diff = diff - np.sum(diff * n, axis=-1, keepdims=True) * n
     squared = np.sum(diff**2, axis=tuple(range(2, diff.ndim)))
     part = float(np.sum(squared * quad.weights))

@@ -531,7 +531,7 @@ def _field_basis(space, measure: Measure, quad):
         dofs, fields = [], []
         for s in (0, 1):
             el = space.local_elements(measure, pairs[:, s])
-            phi, G, H = space.derivatives(measure, quad, el, points=points)
+            phi, G, H = space.derivatives(measure, quad, el, points=points, cells=pairs[:, s])
             dofs.append(space.element_dofs[el])
             for a in range(G.shape[2]):
                 b = BasisField(phi[..., a], G[:, :, a], G[:, :, a], None if H is None else H[:, :, a])

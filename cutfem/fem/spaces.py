@@ -164,23 +164,34 @@ class _ScalarSpace:
             return np.broadcast_to(p2_values(lam[0]), lam.shape[:2] + (10,))
         return p2_values(lam)
 
-    def derivatives(self, measure, quad, elements, points=None):
+    def derivatives(self, measure, quad, elements, points=None, cells=None):
         """(values (m, q, k), gradients (m, q or 1, k, 3), Hessians (m, q or 1, k, 3, 3) or None) of
-        the basis at the points of ``quad`` in the field's ``elements`` (at ``points`` instead, when
-        given: the traces of a facet's two tets).  P1 gradients are constant (one point axis of 1)
-        and its Hessians zero (None); P2 from :mod:`cutfem.fem.lagrange`.  On a deformed geometry
-        (``quad.jacobians``, D Theta_h) the basis is evaluated at ``quad.reference_points`` and the
-        gradients map as D Theta_h^-T grad^ (the Hessians as D Theta_h^-T H^ D Theta_h^-1)."""
+        the basis at the points of ``quad`` in the field's ``elements``, or at ``points`` of the
+        measure's element ``cells`` (the traces of a facet's two tets).  P1 gradients are constant
+        (one point axis of 1) and its Hessians zero (None); P2 from :mod:`cutfem.fem.lagrange`.
+
+        On a deformed geometry the field is composed with Theta_h^-1: its basis is evaluated at the
+        undeformed points (``quad.reference_points``), its gradients map as D Theta_h^-T grad^ and
+        its Hessians with Theta_h's own (:func:`~cutfem.fem.lagrange.map_hessians`).  D Theta_h is
+        ``quad.jacobians`` on cells; on the planar faces of a deformed cut (which stay planar,
+        docs/math.md §17) each trace takes its own tet's D Theta_h at the face's points, so that the
+        jumps across a face are those of the lifted fields (zero for a smooth function)."""
         lam = self._barycentric_on(measure, quad, elements) if points is None else self.barycentric_at(points, elements)
         G = self.gradients_of(elements)
         if self.order == 1:
             values, grads, hess = lam, G[:, None], None
         else:
             values, grads, hess = p2_values(lam), p2_gradients(lam, G), p2_hessians(G)
-        J = quad.jacobians
+        J, deformation = quad.jacobians, getattr(measure, "deformation", None)
+        if points is not None:  # a face's trace: the deformation of the cut its tets belong to
+            deformation = getattr(getattr(measure.elements, "cut", None), "deformation", None)
+            J = None if deformation is None else deformation.map(measure.elements, cells, points)[1]
         if J is not None:
             grads = map_gradients(grads, J)
-            hess = None if hess is None else map_hessians(hess, J)
+            if hess is not None:
+                curved = None if deformation is None else \
+                    deformation.hessians(measure.elements, quad.parent if cells is None else cells)
+                hess = map_hessians(hess, J, grads, curved)
         return values, grads, hess
 
     def evaluate(self, coeffs: np.ndarray, measure, degree: int = 4) -> np.ndarray:
