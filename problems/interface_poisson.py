@@ -198,7 +198,8 @@ def measures(cut):
 def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, surface, radius, R, r, axes, box, solver, order=1):
     """One level of the interface problem; a spacing that does not resolve the sphere (S_h off its area by more
     than 25 %, :func:`~cutfem.problems.common.check_resolution`) is refused.  ``order`` 2: P2 fields on
-    both sides, the interface penalty gamma k^2 (as poisson-cut's), the ghost penalties of order 2."""
+    both sides, the interface penalty gamma k^2 (as poisson-cut's), the ghost penalties of order 2,
+    on Gamma_h and the sides lifted by Theta_h."""
     for name, value in (("--a-inside", a_inside), ("--a-outside", a_outside)):
         if not value > 0:
             raise ProblemError(f"{name} must be positive, got {value}")

@@ -251,8 +251,9 @@ class LaplaceBeltramiCut(Problem):
 
     def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, order, solver,
                     R, r, radius):
-        """One level; ``order`` 2: P2 trace fields, the terms by quadrature (docs/math.md §18), on the
-        planar S_h, whose O(h^2) distance to S bounds the L2 rate by 2."""
+        """One level; ``order`` 2: P2 trace fields, the terms by quadrature (docs/math.md §18), on
+        S_h lifted by Theta_h (§17: the planar S_h, at distance O(h^2) from S, would bound the L2
+        rate by 2)."""
         t = Timer()
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius)

@@ -111,7 +111,7 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
     their warnings go into the record's ``"warnings"``.  ``order`` 2: P2 fields, every term by
     quadrature of degree 4 (the load 4, the errors 6), the Nitsche penalty gamma k^2 = 4 gamma (at
     gamma 10 the P2 matrix is indefinite) and the ghost penalty of order 2 (the jumps of the first
-    and second normal derivatives, docs/math.md §18), on the same planar Omega_h."""
+    and second normal derivatives, docs/math.md §18), on Omega_h lifted by Theta_h (§17)."""
     notes = check_ghost_penalty(gamma_g) + check_nitsche_penalty(gamma)
     t = Timer()
     with t("geometry"):

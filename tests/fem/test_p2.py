@@ -247,3 +247,31 @@ def test_boundary_dofs_of_p2():
         x = V.dof_points
         on = np.any((np.abs(x) < 1e-12) | (np.abs(x - 1) < 1e-12), axis=1)  # the nodes and edge midpoints on the box
         assert np.array_equal(np.sort(V.boundary_dofs), np.flatnonzero(on)) and on.any()
+
+
+def test_lifted_linear_functions_are_exact_on_an_isoparametric_cut():
+    """On a cut lifted by the P2 map Theta_h (cut_mesh(..., order=2)) a linear q, composed with
+    Theta_h, is a P2 function of the undeformed tets: its lifted gradient is grad q, its lifted
+    Hessian zero (Theta_h's own second derivatives taken into account), on the deformed cells and on
+    the faces, where its ghost penalty then vanishes."""
+    cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=6), Sphere(0.7, [0.03, -0.01, 0.02]), order=2)
+    V = CutSpace(cut, NEG, order=2)
+    a = np.array([0.3, -1.2, 0.7])
+    es = V.elements
+    nodes = V.dof_points[V.element_dofs][:, None]  # (m, 1, 10, 3)
+    theta = cut.deformation.map(es, np.arange(es.n_elements), nodes[:, 0])[0]  # (m, 10, 3)
+    u = np.zeros(V.n_dofs)
+    u[V.element_dofs] = theta @ a + 0.5
+    assert cut.deformation.max_shift > 1e-4
+
+    dx = cut.dx(NEG)
+    quad = dx.quadrature(4)
+    el = V.local_elements(dx, quad.parent)
+    values, G, H = V.derivatives(dx, quad, el)
+    local = u[V.element_dofs[el]]
+    assert np.abs(np.einsum("mqk,mk->mq", values, local) - (quad.points @ a + 0.5)).max() < 1e-12
+    assert np.abs(np.einsum("mqkd,mk->mqd", G, local) - a).max() < 1e-11
+    assert np.abs(np.einsum("mqkij,mk->mqij", H, local)).max() < 1e-9
+    ghost = cut.dF(cut.ghost_facets(NEG))
+    Gp = assemble(face_jump_penalty(ghost, h_power=1), V)
+    assert abs(u @ Gp @ u) < 1e-14 * abs(Gp).max() * (u @ u)
