@@ -46,11 +46,11 @@ def _gram(B):
 
 
 def _cells(term, space):
-    """Per block of the term's measure at the field's degree: (quad, elements, values, gradients, Hessians)."""
+    """Per block of the term's measure at the field's degree: (quad, elements, values, gradients, None)."""
     measure = term.measure
     for _, quad in measure.blocks(term.integrand.degree_for(space.order), BLOCK_CELLS):
         el = space.local_elements(measure, quad.parent)
-        yield (quad, el) + space.derivatives(measure, quad, el)
+        yield (quad, el) + space.derivatives(measure, quad, el, hessians=False)
 
 
 def _full(G, q):

@@ -215,7 +215,7 @@ def _varying_gradient_error(space, measure, quad, elements, local, exact_gradien
     """sum_q w_q |grad u^e - grad u_h|^2 (tangential on a surface) over a block of cells, with the
     basis gradients at each point (:meth:`~cutfem.fem.spaces.CutSpace.derivatives`: P2, or a
     deformed geometry)."""
-    _, G, _ = space.derivatives(measure, quad, elements)  # (b, q or 1, k, 3)
+    _, G, _ = space.derivatives(measure, quad, elements, hessians=False)  # (b, q or 1, k, 3)
     grad = np.einsum("bqkd,bk...->bq...d", G, local)  # (b, q, 3) or (b, q, c, 3)
     diff = exact_gradient - grad
     if measure.surface:

@@ -164,7 +164,7 @@ class _ScalarSpace:
             return np.broadcast_to(p2_values(lam[0]), lam.shape[:2] + (10,))
         return p2_values(lam)
 
-    def derivatives(self, measure, quad, elements, points=None, cells=None):
+    def derivatives(self, measure, quad, elements, points=None, cells=None, hessians=True):
         """(values (m, q, k), gradients (m, q or 1, k, 3), Hessians (m, q or 1, k, 3, 3) or None) of
         the basis at the points of ``quad`` in the field's ``elements``, or at ``points`` of the
         measure's element ``cells`` (the traces of a facet's two tets).  P1 gradients are constant
@@ -175,13 +175,14 @@ class _ScalarSpace:
         its Hessians with Theta_h's own (:func:`~cutfem.fem.lagrange.map_hessians`).  D Theta_h is
         ``quad.jacobians`` on cells; on the planar faces of a deformed cut (which stay planar,
         docs/math.md §17) each trace takes its own tet's D Theta_h at the face's points, so that the
-        jumps across a face are those of the lifted fields (zero for a smooth function)."""
+        jumps across a face are those of the lifted fields (zero for a smooth function).
+        ``hessians=False``: None for the Hessians, not computed."""
         lam = self._barycentric_on(measure, quad, elements) if points is None else self.barycentric_at(points, elements)
         G = self.gradients_of(elements)
         if self.order == 1:
             values, grads, hess = lam, G[:, None], None
         else:
-            values, grads, hess = p2_values(lam), p2_gradients(lam, G), p2_hessians(G)
+            values, grads, hess = p2_values(lam), p2_gradients(lam, G), p2_hessians(G) if hessians else None
         J, deformation = quad.jacobians, getattr(measure, "deformation", None)
         if points is not None:  # a face's trace: the deformation of the cut its tets belong to
             deformation = getattr(getattr(measure.elements, "cut", None), "deformation", None)
