@@ -9,7 +9,7 @@ research script needs, listed in ``__all__`` (``docs/examples/`` shows them at w
 
     import cutfem as cf
     cut = cf.cut_mesh(cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=0.2), cf.Sphere(1.0))
-    V = cf.CutP1Space(cut, cf.NEG)
+    V = cf.CutSpace(cut, cf.NEG)
 
 Everything else is reachable through its subpackage: :mod:`cutfem.geometry` (meshes, level sets,
 surfaces, the cut, measures, quadrature), :mod:`cutfem.fem` (spaces, forms and their pointwise values, terms and elasticity, assembly, norms),
@@ -61,7 +61,7 @@ _NAMES = {
     "POS": ".geometry.markers",
     "CUT": ".geometry.markers",
     # spaces
-    "CutP1Space": ".fem.spaces",
+    "CutSpace": ".fem.spaces",
     "SurfaceP1Space": ".fem.spaces",
     "VectorSpace": ".fem.spaces",
     "RealSpace": ".fem.spaces",

@@ -41,7 +41,7 @@ from cutfem.geometry.markers import CUT, NEG
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, register
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
-from cutfem.fem.spaces import CutP1Space, ProductSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace
 
 from .common import finish_record, BULK_BYTES_PER_TET, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_normal_stabilization, check_resolution, value_and_gradient, with_point_data
 
@@ -156,7 +156,7 @@ def bulk_surface_cut(spacing, k_bulk, k_surface, b_bulk, b_surface, c_bulk, gamm
         check_bulk_memory(bg, phi, (NEG,), BULK_BYTES_PER_TET["bulk-surface-cut"], spacing)
         cut = cut_mesh(bg, phi)
         check_resolution(cut, phi, spacing)  # a sphere a few cells across: refused, not solved on a polyhedron
-        W = ProductSpace(bulk=CutP1Space(cut, NEG), surface=CutP1Space(cut, CUT))
+        W = ProductSpace(bulk=CutSpace(cut, NEG), surface=CutSpace(cut, CUT))
         dx, ds = cut.dx(NEG), cut.ds()
 
     @bilinear_form(symmetric=True)

@@ -38,6 +38,8 @@ BACKGROUND_PARAM = Param("background", str, "structured",
 #: the linear solvers of the problems (:func:`cutfem.solvers.solve.solve`'s methods), and their parameter
 SOLVERS = ("auto", "direct", "cg-mg", "cg-amg", "cg-jacobi")
 SOLVER_PARAM = Param("solver", str, "auto", "linear solver", choices=SOLVERS)
+ORDER_PARAM = Param("order", int, 1, "order of the fields and the geometry: 1 (P1 on the planar cut) or 2 (P2 on the cut "
+                    "lifted by Theta_h, docs/math.md §17-18)", choices=(1, 2))
 
 #: the background box of the bulk problems
 DOMAIN_BOX_PARAM = Param("box", str, None, "background box x0,y0,z0,x1,y1,z1 (default: the domain's box grown by 0.1)")

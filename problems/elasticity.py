@@ -20,7 +20,7 @@ from cutfem.fem.elasticity import elasticity, elasticity_nitsche
 from cutfem.fem.exact import Exact
 from cutfem.fem.forms import assemble
 from cutfem.fem.norms import l2_h1_errors
-from cutfem.fem.spaces import CutP1Space, VectorSpace
+from cutfem.fem.spaces import CutSpace, VectorSpace
 from cutfem.fem.terms import face_jump_penalty, load
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.markers import NEG
@@ -74,7 +74,7 @@ def elasticity_cut(spacing, surface, background, box, mu, lam, gamma, gamma_g, s
         bg = background_for(phi, spacing, background, box)
         check_bulk_memory(bg, phi, (NEG,), BULK_BYTES_PER_TET["elasticity-cut"], spacing)
         cut = cut_mesh(bg, phi)
-        V = CutP1Space(cut, NEG)
+        V = CutSpace(cut, NEG)
         W = VectorSpace(V)
         dx, ds = cut.dx(NEG), cut.ds()
     with t("assembly"):

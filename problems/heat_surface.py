@@ -65,7 +65,7 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, 
 from cutfem.runs.runner import Timer
 from cutfem.solvers.krylov import CGSolver
 from cutfem.solvers.solve import DirectSolver, multigrid_hierarchy
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 
 from .common import finish_record, background_for, check_cut_memory, check_normal_stabilization, check_resolution, with_point_data
 from cutfem.solvers import sparse_kernels
@@ -239,7 +239,7 @@ def heat_surface_cut(spacing, theta, dt_scale, final_time, tau_n, radius, box, s
         cut = cut_mesh(background_for(phi, spacing, "structured", box), phi)
         check_resolution(cut, phi, spacing)  # before the closest point is taken at a node near the centre
         check_cut_memory(cut, spacing=spacing)
-        V = CutP1Space(cut, CUT)
+        V = CutSpace(cut, CUT)
         ds = cut.ds()
         steps, dt = time_steps(final_time, dt_scale, spacing, theta, V.n_dofs)
     with t("assembly"):

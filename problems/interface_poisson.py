@@ -46,9 +46,9 @@ from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, ProblemError, 
 from cutfem.runs.runner import Timer
 from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
-from cutfem.fem.spaces import CutP1Space, ProductSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace
 
-from .common import finish_record, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, levelset_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, point_rows, value_and_gradient
+from .common import finish_record, BULK_BYTES_PER_TET, ORDER_PARAM, SHAPE_PARAMS, SOLVER_PARAM, background_for, levelset_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -167,6 +167,12 @@ DEFINITIONS = {
 CONTRAST_LIMIT = 1e10
 
 
+def measures(cut):
+    """(ds over Gamma_h, {side: dx over the side}, {side: dF over the side's ghost facets}): the
+    problem's measures, made here alone (a lifted geometry changes them here)."""
+    return cut.ds(), {side: cut.dx(side) for side in (NEG, POS)}, {side: cut.dF(cut.ghost_facets(side)) for side in (NEG, POS)}
+
+
 @register(
     "interface-poisson-cut",
     definitions=DEFINITIONS,
@@ -185,12 +191,15 @@ CONTRAST_LIMIT = 1e10
         Param("radius", float, 0.8, "radius of the interface sphere", positive=True, only=("surface", ("sphere",))),
         *[p for p in SHAPE_PARAMS if p.name != "radius"],
         Param("box", str, "-1.2,-1.2,-1.2,1.2,1.2,1.2", "background box x0,y0,z0,x1,y1,z1"),
+        ORDER_PARAM,
         SOLVER_PARAM,
     ],
 )
-def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, surface, radius, R, r, axes, box, solver):
+def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, surface, radius, R, r, axes, box, solver, order=1):
     """One level of the interface problem; a spacing that does not resolve the sphere (S_h off its area by more
-    than 25 %, :func:`~cutfem.problems.common.check_resolution`) is refused."""
+    than 25 %, :func:`~cutfem.problems.common.check_resolution`) is refused.  ``order`` 2: P2 fields on
+    both sides, the interface penalty gamma k^2 (as poisson-cut's), the ghost penalties of order 2,
+    on Gamma_h and the sides lifted by Theta_h."""
     for name, value in (("--a-inside", a_inside), ("--a-outside", a_outside)):
         if not value > 0:
             raise ProblemError(f"{name} must be positive, got {value}")
@@ -210,17 +219,18 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
     with t("geometry"):
         bg = background_for(phi, spacing, "structured", box)
         check_bulk_memory(bg, phi, (NEG, POS), BULK_BYTES_PER_TET["interface-poisson-cut"], spacing)
-        cut = cut_mesh(bg, phi)
+        cut = cut_mesh(bg, phi, order=order)  # order 2: Gamma_h and the sides lifted by Theta_h (math.md §17)
         check_resolution(cut, phi, spacing)  # a sphere a few cells across: refused, not solved on a polyhedron
-        W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
+        W = ProductSpace(CutSpace(cut, NEG, order=order), CutSpace(cut, POS, order=order))
+        ds, dx, ghost = measures(cut)
     with t("assembly"):
-        form = interface_nitsche(cut.ds(), a_inside, a_outside, gamma, weights)
+        form = interface_nitsche(ds, a_inside, a_outside, gamma * order**2, weights)
         rhs = 0
         for k, side in enumerate((NEG, POS)):
-            form = form + a[side] * stiffness(cut.dx(side), field=k)
+            form = form + a[side] * stiffness(dx[side], field=k)
             if gamma_g > 0:
-                form = form + a[side] * gamma_g * face_jump_penalty(cut.dF(cut.ghost_facets(side)), h_power=1, field=k)
-            rhs = rhs + load(sol.f(side), cut.dx(side), degree=2, field=k)
+                form = form + a[side] * gamma_g * face_jump_penalty(ghost[side], h_power=1, field=k)
+            rhs = rhs + load(sol.f(side), dx[side], degree=2, field=k)
         K, b = assemble(form, W), assemble(rhs, W)
         outer = W[1]
         boundary = W.offsets[1] + outer.boundary_dofs
@@ -242,14 +252,15 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
     with t("errors"):
         rec = {"h": W.h, "dofs": int(W.n_dofs), "dofs_inside": int(W[0].n_dofs), "dofs_outside": int(W[1].n_dofs)}
         for name, side, u in (("inside", NEG, u_neg), ("outside", POS, u_pos)):
-            V, dx = W[0 if side == NEG else 1], cut.dx(side)
-            rec[f"l2_error_{name}"], rec[f"h1_error_{name}"] = l2_h1_errors(V, u, sol.solution(side), dx)
+            V = W[0 if side == NEG else 1]
+            rec[f"l2_error_{name}"], rec[f"h1_error_{name}"] = l2_h1_errors(V, u, sol.solution(side), dx[side])
         rec["solver"], rec["solver_iterations"] = info.method, info.iterations
     finish_record(rec, cut, W, notes, t)
+    n_in, n_out = W[0].elements.n_nodes, W[1].elements.n_nodes  # VTK: the values at the vertices, the first dofs
     rec["fields"] = LazyFields(
         lambda: {
-            "inside": W[0].elements.to_pyvista(u_h=u_neg, u_exact=sol.u(NEG)(W[0].dof_points)),
-            "outside": W[1].elements.to_pyvista(u_h=u_pos, u_exact=sol.u(POS)(W[1].dof_points)),
+            "inside": W[0].elements.to_pyvista(u_h=u_neg[:n_in], u_exact=sol.u(NEG)(W[0].dof_points[:n_in])),
+            "outside": W[1].elements.to_pyvista(u_h=u_pos[:n_out], u_exact=sol.u(POS)(W[1].dof_points[:n_out])),
             "interface": cut.to_pyvista(),
         }
     )

@@ -33,11 +33,11 @@ from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Pro
 from cutfem.runs.runner import Timer
 from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.geometry.markers import CUT
 from cutfem.memory import BYTES_PER_ACTIVE_TET
 
-from .common import BACKGROUND_PARAM, SHAPE_PARAMS, SOLVER_PARAM, SURFACE_BOX_PARAM, TORUS_MESH_PARAMS, check_cut_memory, check_face_stabilization, check_normal_stabilization, check_sphere_levels, check_resolution, background_for, cut_record, face_stabilization_params, levelset_for, point_rows, surface_mesh_for, with_point_data
+from .common import BACKGROUND_PARAM, ORDER_PARAM, SHAPE_PARAMS, SOLVER_PARAM, SURFACE_BOX_PARAM, TORUS_MESH_PARAMS, check_cut_memory, check_face_stabilization, check_normal_stabilization, check_sphere_levels, check_resolution, background_for, cut_record, face_stabilization_params, levelset_for, point_rows, surface_mesh_for, with_point_data
 
 
 #: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
@@ -238,30 +238,41 @@ class LaplaceBeltramiCut(Problem):
         Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N (its weight tau_N (s/L)^(a-1): a warning above 100, "
               "refused below 1e-8 and above 1e6)", minimum=0, only=("stabilization", ("normal",))),
         Param("normal_h_power", float, 1.0, "power a of h in the normal-gradient term", only=("stabilization", ("normal",))),
+        ORDER_PARAM,
         SOLVER_PARAM,
         *SHAPE_PARAMS[:3],  # torus and sphere: no ellipsoid, no axes
     ]
 
-    def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, solver, R, r, radius):
+    @staticmethod
+    def measures(cut):
+        """(ds over S_h, dF over the interior faces of the cut tets, dx over the cut tets): the
+        problem's measures, made here alone (a lifted geometry changes them here)."""
+        return cut.ds(), cut.dF(cut.interior_facets(CUT)), cut.dx(CUT)
+
+    def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, order, solver,
+                    R, r, radius):
+        """One level; ``order`` 2: P2 trace fields, the terms by quadrature (docs/math.md §18), on
+        S_h lifted by Theta_h (§17: the planar S_h, at distance O(h^2) from S, would bound the L2
+        rate by 2)."""
         t = Timer()
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius)
             sol = manufactured(phi)
-            cut = cut_mesh(background_for(phi, level, background, box), phi, solve_bytes_per_tet=BYTES_PER_ACTIVE_TET)
+            cut = cut_mesh(background_for(phi, level, background, box), phi, solve_bytes_per_tet=BYTES_PER_ACTIVE_TET, order=order)
             check_resolution(cut, phi, level)
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
-            space = CutP1Space(cut)
+            space = CutSpace(cut, order=order)
         # after the cut's memory checks (a spacing that cannot fit is told so first), before any matrix
         notes = (check_face_stabilization(tau_f, face_h_power, level) if stabilization == "face" else
                  check_normal_stabilization(tau_n, normal_h_power, level) if stabilization == "normal" else [])
         with t("assembly"):
-            dS = cut.ds()
+            dS, faces, band = self.measures(cut)
             form = tangential_stiffness(dS) + mass(dS)
             stab = None
             if stabilization == "face" and tau_f > 0:
-                stab = tau_f * face_jump_penalty(cut.dF(cut.interior_facets(CUT)), h_power=face_h_power)
+                stab = tau_f * face_jump_penalty(faces, h_power=face_h_power)
             elif stabilization == "normal" and tau_n > 0:
-                stab = tau_n * normal_gradient_penalty(cut.dx(CUT), h_power=normal_h_power)
+                stab = tau_n * normal_gradient_penalty(band, h_power=normal_h_power)
             K = assemble(form if stab is None else form + stab, space)
         multigrid = None
         if stab is not None:
@@ -274,7 +285,7 @@ class LaplaceBeltramiCut(Problem):
             # instead of 0.42 s).  The normal-gradient stabilization gains as much: 13, 18, 19
             # iterations instead of 27, 40, 60 (spacings 0.05, 0.025, 0.0125; solve 1.56 s instead
             # of 2.05 s at 0.0125).
-            multigrid = {"augment": space.cut.values, "coarse_size": 400}
+            multigrid = {"augment": space.interpolate_nodal(space.cut.values), "coarse_size": 400}
         u, rec = _solve_and_measure(space, dS, K, sol, t, solver, multigrid, stabilization=stab)
         rec.update(cut_record(cut))
         if notes:
@@ -282,6 +293,7 @@ class LaplaceBeltramiCut(Problem):
         rec["area"] = float(assemble(basis_integrals(dS), space).sum())
         rec["time"] = dict(t)
         rec["fields"] = LazyFields(
+            # of P2 the values at the vertices of S_h (VTK draws them linear on each triangle)
             lambda: {"surface": with_point_data(cut.to_pyvista(), u_h=space.surface_vertex_values(u), u_exact=sol.u(cut.vertices))}
         )
         return rec

@@ -33,7 +33,7 @@ from cutfem.fem.terms import basis_integrals, edge_jump_penalty, face_jump_penal
 from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.geometry.markers import CUT
 
 from .common import BACKGROUND_PARAM, SHAPE_PARAMS, SOLVER_PARAM, SURFACE_BOX_PARAM, TORUS_MESH_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, background_for, cut_record, face_stabilization_params, has_exact, levelset_for, mesh_file_notes, surface_mesh_for
@@ -232,7 +232,7 @@ class MeanCurvatureCut(Problem):
             cut = cut_mesh(bg, phi, solve_bytes_per_tet=BYTES_PER_ACTIVE_TET)
             check_resolution(cut, phi, level)
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
-            space = CutP1Space(cut)
+            space = CutSpace(cut)
         # after the cut's memory checks (a spacing that cannot fit is told so first), before any matrix
         notes = check_face_stabilization(tau_f, face_h_power, level, length_scale)
         with t("assembly"):

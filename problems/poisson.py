@@ -28,9 +28,9 @@ from cutfem.geometry.markers import NEG
 from cutfem.runs.registry import H_BACKGROUND, LazyFields, Param, register
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 
-from .common import finish_record, DOMAIN_PARAMS, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, levelset_for, value_and_gradient
+from .common import finish_record, DOMAIN_PARAMS, ORDER_PARAM, BULK_BYTES_PER_TET, SHAPE_PARAMS, SOLVER_PARAM, background_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, levelset_for, value_and_gradient
 
 _A, _B, _C = np.pi / 2, np.pi / 3, 0.5
 
@@ -71,6 +71,12 @@ def exact_solution(x):
     return value_and_gradient(_u_and_gradient, x)
 
 
+def measures(cut):
+    """(dx over Omega_h, ds over Gamma_h, dF over the ghost facets of NEG): the problem's measures,
+    made here alone (a lifted geometry changes them here)."""
+    return cut.dx(NEG), cut.ds(), cut.dF(cut.ghost_facets(NEG))
+
+
 def source(x):
     """f = -Lap u = (a^2 + b^2 - c^2) u."""
     return (_A**2 + _B**2 - _C**2) * exact_u(x)
@@ -92,30 +98,36 @@ DEFINITIONS = {
     definitions=DEFINITIONS,
     params=[
         *DOMAIN_PARAMS,
-        Param("gamma", float, 10.0, "Nitsche penalty gamma (a warning above 1e3)", positive=True),
+        Param("gamma", float, 10.0, "Nitsche penalty gamma (times order^2 in the form; a warning above 1e3)", positive=True),
         Param("gamma_g", float, 0.1, "ghost penalty gamma_g (meaningful in [0.01, 1]: a warning above 1, refused above 1e6)", minimum=0),
+        ORDER_PARAM,
         SOLVER_PARAM,
         *SHAPE_PARAMS,
     ],
 )
-def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r, radius, axes):
+def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r, radius, axes, order=1):
     """One level of the fictitious-domain Poisson problem.  ``gamma_g`` and ``gamma`` are checked
     first (:func:`~cutfem.problems.common.check_ghost_penalty`, :func:`~cutfem.problems.common.check_nitsche_penalty`);
-    their warnings go into the record's ``"warnings"``."""
+    their warnings go into the record's ``"warnings"``.  ``order`` 2: P2 fields, every term by
+    quadrature of degree 4 (the load 4, the errors 6), the Nitsche penalty gamma k^2 = 4 gamma (at
+    gamma 10 the P2 matrix is indefinite) and the ghost penalty of order 2 (the jumps of the first
+    and second normal derivatives, docs/math.md §18), on Omega_h lifted by Theta_h (§17)."""
     notes = check_ghost_penalty(gamma_g) + check_nitsche_penalty(gamma)
     t = Timer()
     with t("geometry"):
         phi = levelset_for(surface, R, r, radius, axes)
         bg = background_for(phi, spacing, background, box)
         check_bulk_memory(bg, phi, (NEG,), BULK_BYTES_PER_TET["poisson-cut"], spacing)
-        cut = cut_mesh(bg, phi)
-        V = CutP1Space(cut, NEG)
-        dx, ds = cut.dx(NEG), cut.ds()
+        cut = cut_mesh(bg, phi, order=order)  # order 2: Omega_h and Gamma_h lifted by Theta_h (math.md §17)
+        V = CutSpace(cut, NEG, order=order)
+        dx, ds, ghost = measures(cut)
     with t("assembly"):
-        N = nitsche(ds, gamma, g=exact_u)  # gamma's one home: the matrix, the load and the advice of the form
+        # gamma's one home: the matrix, the load and the advice of the form; times k^2 at order k, the
+        # growth of the inverse estimate ||n . grad v||_Gamma <= C k^2 h^-1/2 ||grad v|| of degree-k polynomials
+        N = nitsche(ds, gamma * order**2, g=exact_u)
         a = stiffness(dx) + N
         if gamma_g > 0:
-            a = a + gamma_g * face_jump_penalty(cut.dF(cut.ghost_facets(NEG)), h_power=1)
+            a = a + gamma_g * face_jump_penalty(ghost, h_power=1)
         K = assemble(a, V)
         b = assemble(load(source, dx, degree=2) + N.load, V)
     with t("solve"):
@@ -130,5 +142,7 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
             "solver_iterations": info.iterations,
         }
     finish_record(rec, cut, V, notes, t)
-    rec["fields"] = LazyFields(lambda: {"domain": V.elements.to_pyvista(u_h=u, u_exact=exact_u(V.dof_points)), "boundary": cut.to_pyvista()})
+    nodes = V.elements.n_nodes  # VTK: the values at the vertices (the first dofs, at either order)
+    rec["fields"] = LazyFields(lambda: {"domain": V.elements.to_pyvista(u_h=u[:nodes], u_exact=exact_u(V.dof_points[:nodes])),
+                                        "boundary": cut.to_pyvista()})
     return rec

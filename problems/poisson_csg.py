@@ -35,7 +35,7 @@ from cutfem.fem.exact import Exact
 from cutfem.fem.forms import assemble, bilinear_form, linear_form
 from cutfem.fem.norms import l2_h1_errors
 from cutfem.fem.pointwise import dot
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 from cutfem.fem.terms import face_jump_penalty, load, stiffness
 from cutfem.geometry.csg import Domain
 from cutfem.geometry.cut import cut_mesh
@@ -161,7 +161,7 @@ def poisson_csg_cut(spacing, levelsets, domain, neumann, radius, background, box
         bg = background_for(omega, spacing, background, box)
         check_bulk_memory(bg, omega, (NEG,), BULK_BYTES_PER_TET["poisson-cut"], spacing)  # poisson-cut's fields and terms
         cut = cut_mesh(bg, omega)
-        V = CutP1Space(cut, NEG)
+        V = CutSpace(cut, NEG)
         dx, dD = cut.dx(NEG), cut.ds(dirichlet_parts)
         empty = [omega.names[k] for k in range(len(omega.levelsets)) if cut.part_area(k) == 0]
         if empty:

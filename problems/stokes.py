@@ -32,7 +32,7 @@ from cutfem.fem.exact import Exact
 from cutfem.fem.forms import assemble, linear_form
 from cutfem.fem.norms import l2_error, l2_h1_errors
 from cutfem.fem.pointwise import dot
-from cutfem.fem.spaces import CutP1Space, ProductSpace, RealSpace, VectorSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace, RealSpace, VectorSpace
 from cutfem.fem.terms import face_jump_penalty, load, mass, nitsche, stiffness
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.markers import NEG
@@ -90,7 +90,7 @@ def stokes_cut(spacing, surface, background, box, nu, gamma, gamma_u, gamma_p, b
         bg = background_for(phi, spacing, background, box)
         check_bulk_memory(bg, phi, (NEG,), BULK_BYTES_PER_TET["stokes-cut"], spacing)
         cut = cut_mesh(bg, phi)
-        V = CutP1Space(cut, NEG)
+        V = CutSpace(cut, NEG)
         W = ProductSpace(u=VectorSpace(V), p=V, mean=RealSpace())
         dx, ds, dg = cut.dx(NEG), cut.ds(), cut.dF(cut.ghost_facets(NEG))
     with t("assembly"):

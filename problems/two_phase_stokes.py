@@ -27,7 +27,7 @@ make the discrete equations consistent for the exact piecewise constant pressure
 exactly <v> . n.)  H is, by ``curvature``:
 
 * ``discrete``: H_h, the stabilized mean curvature vector of docs/math.md §3 on the same cut
-  (CutP1Space(cut, CUT), tau_F J_F on the interior faces of the cut tets), solved first, its trace
+  (CutSpace(cut, CUT), tau_F J_F on the interior faces of the cut tets), solved first, its trace
   paired with <v> by the coupling matrix of the trace space and the velocities on Gamma_h;
 * ``laplace-beltrami``: (H, v) = (grad_Gamma x, grad_Gamma v) = (div_Gamma v, 1) on the pieces of
   Gamma_h, no curvature computed.
@@ -46,7 +46,7 @@ from cutfem.fem.elasticity import elasticity
 from cutfem.fem.forms import assemble, bilinear_form, linear_form
 from cutfem.fem.norms import l2_error
 from cutfem.fem.pointwise import ZERO, dot
-from cutfem.fem.spaces import CutP1Space, ProductSpace, RealSpace, VectorSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace, RealSpace, VectorSpace
 from cutfem.fem.terms import apply_dirichlet, basis_integrals, face_jump_penalty, mass, stiffness
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.markers import CUT, NEG, POS
@@ -117,8 +117,8 @@ def _laplace_beltrami_load(v, w):
 
 
 def discrete_curvature(cut, tau_f):
-    """H_h (n, 3) on CutP1Space(cut, CUT) (docs/math.md §3, tau_E = 0, tau_F J_F with h^0), and the space."""
-    Vc = CutP1Space(cut, CUT)
+    """H_h (n, 3) on CutSpace(cut, CUT) (docs/math.md §3, tau_E = 0, tau_F J_F with h^0), and the space."""
+    Vc = CutSpace(cut, CUT)
     K, B = mean_curvature_system(Vc, cut.ds(), tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)))
     K, B, _ = pin_unseen_nodes(K, B, Vc)
     H, _ = solve(K, B, space=Vc, tol=CURVATURE_TOL)
@@ -178,7 +178,7 @@ def two_phase_stokes_cut(spacing, curvature, radius, box, mu_inside, mu_outside,
         bg = background_for(phi, spacing, "structured", box)
         cut = cut_mesh(bg, phi)
         check_resolution(cut, phi, spacing)
-        V = {side: CutP1Space(cut, side) for side in (NEG, POS)}
+        V = {side: CutSpace(cut, side) for side in (NEG, POS)}
         W = ProductSpace(u_neg=VectorSpace(V[NEG]), u_pos=VectorSpace(V[POS]), p_neg=V[NEG], p_pos=V[POS], mean=RealSpace())
         ds = cut.ds()
     with t("assembly"):

@@ -54,7 +54,7 @@ from cutfem.memory import InsufficientMemoryError
 from cutfem.geometry.box import structured_box
 from cutfem.runs.registry import ProblemError
 from cutfem.runs.runner import check_output, text_table
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 
 from .common import PAGE_WIDTH, Progress, add_size_arguments, figure_style, pick, save_csv, save_json
 
@@ -93,7 +93,7 @@ def _timed(fn, *args):
 
 def _fresh_space(spacing: float):
     cut, seconds = _timed(cut_mesh, structured_box(*BOX, spacing=spacing), Torus(*TORUS))
-    return CutP1Space(cut), seconds
+    return CutSpace(cut), seconds
 
 
 def _peak_memory_mb() -> float:

@@ -56,7 +56,7 @@ from cutfem.fem.terms import face_jump_penalty, nitsche, stiffness
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import NEG
 from cutfem.solvers.diagnose import condition_number
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 from cutfem.problems.common import background_for
 from cutfem.runs.convergence import new_figure
 
@@ -99,7 +99,7 @@ class PoissonParts:
         levelset = Sphere(radius=radius, center=center)
         self.spacing = float(spacing)
         self.cut = cut_mesh(background_for(levelset, spacing, anchored=True), levelset)  # the grid stays, the ball moves
-        self.space = CutP1Space(self.cut, NEG)
+        self.space = CutSpace(self.cut, NEG)
         self.stiffness = assemble(stiffness(self.cut.dx(NEG)), self.space).tocsr()
         self.ghost = assemble(face_jump_penalty(self.cut.dF(self.cut.ghost_facets(NEG)), h_power=1), self.space).tocsr()
         self._nitsche = {}

@@ -53,7 +53,7 @@ from cutfem.fem.forms import assemble
 from cutfem.fem.terms import face_jump_penalty, mass
 from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.solvers.diagnose import condition_number, scaled
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 from cutfem.problems.common import background_for
 from cutfem.runs.convergence import significant
 
@@ -136,7 +136,7 @@ def matrices(levelset, spacing, box=None):
     (without ``box``: the grid's nodes at multiples of the spacing, so that a surface moved against
     the grid moves against fixed nodes)."""
     cut = cut_mesh(background_for(levelset, spacing, box=box, anchored=True), levelset)
-    space = CutP1Space(cut)
+    space = CutSpace(cut)
     M = assemble(mass(cut.ds()), space).tocsr()
     return space, M, assemble(face_jump_penalty(cut.dF(cut.interior_facets(CUT))), space).tocsr()
 

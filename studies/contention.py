@@ -61,7 +61,7 @@ def block_solve(spacing: float = 0.125) -> dict:
     solve stage's seconds.
 
     The system is [[A, B^T], [B, -C]] with A = diag(K, K, K), K the Nitsche-ghost-penalty Laplacian of
-    a CutP1Space on the ball (:func:`cutfem.fem.terms.stiffness`, :func:`~cutfem.fem.terms.nitsche`,
+    a CutSpace on the ball (:func:`cutfem.fem.terms.stiffness`, :func:`~cutfem.fem.terms.nitsche`,
     :func:`~cutfem.fem.terms.face_jump_penalty`), B_i = -(d_i u, q) and C = h^2 (grad p, grad q)
     (Brezzi-Pitkaeranta); the preconditioner applies one cycle of :class:`GeometricMultigrid` on K to
     the three velocity components at once and the inverse lumped pressure mass."""
@@ -75,10 +75,10 @@ def block_solve(spacing: float = 0.125) -> dict:
     from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.box import structured_box
     from cutfem.solvers.multigrid import GeometricMultigrid, lattice_indices
-    from cutfem.fem.spaces import CutP1Space
+    from cutfem.fem.spaces import CutSpace
 
     cut = cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), Sphere(1.0))
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     dx, ds, dg = cut.dx(NEG), cut.ds(), cut.dF(cut.ghost_facets(NEG))
     K = assemble(stiffness(dx) + nitsche(ds) + 0.1 * face_jump_penalty(dg, h_power=1), V).tocsr()
     G = [assemble(bilinear_form(lambda u, v, w, i=i: -u.grad[..., i] * v) * dx, V).tocsr() for i in range(3)]

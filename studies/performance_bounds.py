@@ -79,7 +79,7 @@ import numpy as np
 from cutfem.fem import element_kernels
 from cutfem.fem.forms import assemble
 from cutfem.fem.terms import position_load
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 from cutfem.geometry.cut import CUT, cut_mesh
 from cutfem.geometry.shapes import Torus
 from cutfem.geometry.markers import interior_facets
@@ -249,7 +249,7 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
       :func:`cutfem.fem.element_kernels.piece_moments`) and the Gram matrices c_F c_F^T of the face jumps
       (8 x 8 a face, from :func:`cutfem.fem.element_kernels.jump_rows`; a node shared by the two tets summed by
       the conversion): 104 million entries at spacing 0.0125.
-    * the whole topology stage (the field on the cut tets, :class:`cutfem.fem.spaces.CutP1Space`, and
+    * the whole topology stage (the field on the cut tets, :class:`cutfem.fem.spaces.CutSpace`, and
       the interior faces of the active mesh, :func:`cutfem.geometry.markers.interior_facets`) against VTK's
       geometry filter (vtkGeometryFilter, C++, pyvista's ``extract_surface``, one thread) on the
       active tets: it matches every face of the tets with its twin and keeps those met once (the
@@ -276,7 +276,7 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
     box = structured_box(*BOX, spacing=spacing)
     torus = Torus(1.0, 0.5)
     cut = cut_mesh(box, torus)
-    space = CutP1Space(cut)
+    space = CutSpace(cut)
     faces = cut.interior_facets(CUT)
     form = mean_curvature_form(cut.ds(), tau_f=0.1, faces=cut.dF(faces))
     K = sp.csr_matrix(assemble(form, space))
@@ -308,7 +308,7 @@ def compiled_references(spacing: float = 0.0125, repeat: int = REFERENCE_REPEAT)
         return out
 
     def topology():
-        return CutP1Space(cut), interior_facets(es.tets, es.n_nodes, es.kuhn_types)
+        return CutSpace(cut), interior_facets(es.tets, es.n_nodes, es.kuhn_types)
 
     def vtk_boundary():
         return grid.extract_surface(pass_pointid=False, pass_cellid=False, algorithm="geometry")

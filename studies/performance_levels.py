@@ -68,7 +68,7 @@ import cutfem
 from cutfem.fem.forms import assemble
 from cutfem.fem.terms import position_load
 from cutfem.fem.norms import l2_error
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.geometry.cut import CUT, cut_mesh
 from cutfem.geometry.shapes import Torus
 from cutfem.geometry.box import structured_box
@@ -153,7 +153,7 @@ def cut_level(spacing: float, tau_f: float = 0.1) -> dict:
     with t("cut"):
         cut = cut_mesh(box, torus)
     with t("topology"):
-        space = CutP1Space(cut)
+        space = CutSpace(cut)
         faces = cut.interior_facets(CUT)
     shared = _timed_system_solve_error(t, space, cut.ds(), mean_curvature_form(cut.ds(), tau_f=tau_f, faces=cut.dF(faces)), torus)
     return {

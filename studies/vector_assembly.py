@@ -58,7 +58,7 @@ def spacings_for(size: str) -> list[float]:
 
 def systems(cut):
     """{name: (space, matrix form, right-hand side form)} of the three systems on ``cut``."""
-    V = cf.CutP1Space(cut, NEG)
+    V = cf.CutSpace(cut, NEG)
     W = cf.VectorSpace(V)
     dx, ds, dg = cut.dx(NEG), cut.ds(), cut.dF(cut.ghost_facets(NEG))
     out = {}

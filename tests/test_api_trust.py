@@ -18,7 +18,7 @@ from cutfem.solvers.diagnose import condition_number
 from cutfem.solvers.direct import DirectSolver
 from cutfem.solvers.krylov import CGSolver
 from cutfem.solvers.solve import solve
-from cutfem.fem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, ProductSpace, SurfaceP1Space
 from cutfem.geometry.surface_meshes import sphere_mesh
 
 X = lambda p: p[..., 0]  # noqa: E731
@@ -32,7 +32,7 @@ def cut():
 
 @pytest.fixture(scope="module")
 def spaces(cut):
-    VN, VP, VC = CutP1Space(cut, NEG), CutP1Space(cut, POS), CutP1Space(cut, CUT)
+    VN, VP, VC = CutSpace(cut, NEG), CutSpace(cut, POS), CutSpace(cut, CUT)
     return VN, VP, VC, ProductSpace(VN, VP)
 
 
@@ -87,10 +87,10 @@ def test_a_measure_of_another_background_is_refused(cut, spaces):
     for call in (lambda: l2_error(VN, xA**2, lambda p: p[..., 0] ** 2, shifted.dx(NEG)),  # used to give 0.0586
                  lambda: assemble(mass(shifted.dx(NEG)), VN),
                  lambda: l2_error(VN, xA, X, shifted.ds()),
-                 lambda: CutP1Space(cut, shifted.elements(NEG))):
+                 lambda: CutSpace(cut, shifted.elements(NEG))):
         with pytest.raises(ValueError, match="another background mesh"):
             call()
-    VB = CutP1Space(shifted, NEG)
+    VB = CutSpace(shifted, NEG)
     assert l2_error(VB, VB.dof_points[:, 0] ** 2, lambda p: p[..., 0] ** 2, shifted.dx(NEG)) == pytest.approx(0.0105331, rel=1e-4)
     # the same box built again, another cut of it: the same tets, so its measures serve the field
     other = cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=0.2), Sphere(0.8, center=(0.1, 0, 0)))
@@ -219,10 +219,10 @@ def test_condition_number_refuses_bad_input_and_keeps_its_verdicts():
 def test_mesh_sizes_are_checked(cut):
     for h in (-1, 0, np.nan, np.inf):
         with pytest.raises(ValueError, match=r"h \(the mesh size\) must be a finite positive number"):
-            CutP1Space(cut, NEG, h=h)
+            CutSpace(cut, NEG, h=h)
         with pytest.raises(ValueError, match=r"h \(the mesh size\) must be a finite positive number"):
             SurfaceP1Space(sphere_mesh(1), h=h)
-    assert CutP1Space(cut, NEG, h=0.25).h == 0.25
+    assert CutSpace(cut, NEG, h=0.25).h == 0.25
 
 
 def test_structured_box_arguments_are_checked():
@@ -266,7 +266,7 @@ def test_errors_name_what_is_not_finite(cut):
     inf (a load refuses them); the cause is now named, and only checked when a sum is not finite."""
     from cutfem.fem.norms import h1_error, l2_error
 
-    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    V, dx = CutSpace(cut, NEG), cut.dx(NEG)
     u = np.ones(V.n_dofs)
     assert l2_error(V, u, lambda x: np.ones(x.shape[:2]), dx) < 1e-14
     with pytest.raises(ValueError, match=r"the exact solution is not finite at \d+ quadrature point\(s\), e.g. x = \[0\.3"):

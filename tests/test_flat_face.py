@@ -22,7 +22,7 @@ EXPECTED = {
     "cutfem.geometry.cut": "cut_mesh CutMesh",
     "cutfem.geometry.csg_cut": "CsgCut",
     "cutfem.geometry.markers": "NEG POS CUT",
-    "cutfem.fem.spaces": "CutP1Space SurfaceP1Space VectorSpace RealSpace ProductSpace",
+    "cutfem.fem.spaces": "CutSpace SurfaceP1Space VectorSpace RealSpace ProductSpace",
     "cutfem.fem.forms": "bilinear_form linear_form assemble",
     "cutfem.fem.pointwise": "dot inner jump avg ZERO",
     "cutfem.fem.terms": "apply_dirichlet mass stiffness tangential_stiffness load position_load basis_integrals nitsche "

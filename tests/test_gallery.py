@@ -56,7 +56,7 @@ def test_poisson_ball_integrands_are_the_built_in_terms():
     nitsche and the Nitsche load (their exact formulas), to round-off (measured 1e-15 and 3e-16)."""
     m = load("poisson_ball")
     cut = cf.cut_mesh(cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=0.2), cf.Sphere(1.0))
-    V, dx, ds = cf.CutP1Space(cut, cf.NEG), cut.dx(cf.NEG), cut.ds()
+    V, dx, ds = cf.CutSpace(cut, cf.NEG), cut.dx(cf.NEG), cut.ds()
     K_user = cf.assemble(m.poisson * dx + m.poisson * ds, V, gamma=10.0)
     N = cf.nitsche(ds, 10.0, g=m.u_exact)
     K_built = cf.assemble(cf.stiffness(dx) + N, V)

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..fem.forms import assemble
-from ..fem.spaces import CutP1Space
+from ..fem.spaces import CutSpace
 from .system import GlobalNumbering, LinearSystem
 
 __all__ = ["Piece", "SlabPieces", "global_keys", "slab_pieces", "slab_system"]
@@ -42,7 +42,7 @@ class SlabPieces:
     ``faces`` the number of faces the rank assembled."""
 
     pieces: list = field(default_factory=list)
-    space: CutP1Space | None = None
+    space: CutSpace | None = None
     faces: int = 0
 
     @property
@@ -70,7 +70,7 @@ def slab_pieces(cuts, on, cells, faces=None, face_form=None) -> SlabPieces:
     out = SlabPieces()
     owned, seam = cuts.owned, cuts.seam
     if owned is not None:
-        V = out.space = CutP1Space(owned, on)
+        V = out.space = CutSpace(owned, on)
         if V.n_dofs:
             a, rhs = (None, None) if cells is None else cells(owned, V)
             if faces is not None and owned.n_tets:
@@ -84,7 +84,7 @@ def slab_pieces(cuts, on, cells, faces=None, face_form=None) -> SlabPieces:
         F = cuts.seam_facets(faces(seam))
         out.faces += F.n_facets
         if F.n_facets:
-            S = CutP1Space(seam, on)
+            S = CutSpace(seam, on)
             out.pieces.append(Piece(global_keys(S), assemble(face_form(seam.dF(F)), S)))
     return out
 

@@ -19,7 +19,7 @@ import numpy as np
 
 from ..fem.forms import assemble
 from ..fem.norms import l2_h1_errors
-from ..fem.spaces import CutP1Space, ProductSpace
+from ..fem.spaces import CutSpace, ProductSpace
 from ..fem.terms import face_jump_penalty, interface_nitsche, load, stiffness
 from ..geometry.markers import NEG, POS
 from ..geometry.shapes import Sphere
@@ -53,7 +53,7 @@ def interface_pieces(cuts, a, gamma, gamma_g, weights, sol) -> SlabPieces:
 
     owned, seam = cuts.owned, cuts.seam
     if owned is not None:
-        W = out.space = ProductSpace(CutP1Space(owned, NEG), CutP1Space(owned, POS))
+        W = out.space = ProductSpace(CutSpace(owned, NEG), CutSpace(owned, POS))
         if W.n_dofs:
             form, rhs = None, None
             for k, side in enumerate(SIDES):
@@ -68,7 +68,7 @@ def interface_pieces(cuts, a, gamma, gamma_g, weights, sol) -> SlabPieces:
                     form = form if g is None else form + g
             out.pieces.append(Piece(global_keys(W), assemble(form, W), assemble(rhs, W)))
     if seam is not None and seam.n_tets and gamma_g > 0:
-        S = ProductSpace(CutP1Space(seam, NEG), CutP1Space(seam, POS))
+        S = ProductSpace(CutSpace(seam, NEG), CutSpace(seam, POS))
         g = ghost(seam, cuts.seam_facets)
         if g is not None:
             out.pieces.append(Piece(global_keys(S), assemble(g, S)))

@@ -3,7 +3,7 @@
 Numbering
 ---------
 The serial P1 space of a cut numbers its unknowns by increasing background node id
-(:class:`~cutfem.fem.spaces.CutP1Space`).  Distributed, the same numbers: a node is owned by the
+(:class:`~cutfem.fem.spaces.CutSpace`).  Distributed, the same numbers: a node is owned by the
 rank that owns its layer (:meth:`~cutfem.distributed.partition.Slabs.node_owner`), which holds
 every tet around it (its owned slab and its seam) and so knows whether the node is active; the
 ranks' owned active nodes are consecutive blocks of the serial numbering, so a node's number is

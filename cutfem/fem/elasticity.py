@@ -127,7 +127,7 @@ def elasticity_nitsche(measure: SurfacePieces, mu: float, lam: float, gamma: flo
 
         -(sigma(u) n, v)_Gamma - (u, sigma(v) n)_Gamma + ((2 mu + lam) gamma / h) (u, v)_Gamma,
 
-    n the outward unit normal of the field's side (n_h for ``VectorSpace(CutP1Space(cut, NEG))``,
+    n the outward unit normal of the field's side (n_h for ``VectorSpace(CutSpace(cut, NEG))``,
     -n_h for POS) and h the local h_T of the cut tet; with ``g`` (points (m, q, 3) -> (m, q, 3))
     the right-hand side is the returned form's ``.load``, -(g, sigma(v) n) + ((2 mu + lam) gamma /
     h)(g, v), with the same parameters.  gamma must exceed an inverse-estimate constant (the

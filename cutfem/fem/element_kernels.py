@@ -129,7 +129,7 @@ def jump_rows(pairs, normals_a, normals_b, sign_b, weights, dofs, table, types, 
     ``pairs`` (F, 2) of elements with k dofs, t_a = ``normals_a`` (F, 3), t_b = ``sign_b``
     ``normals_b``, w = ``weights`` (F,): ``out_dofs`` (F, 2k) the dofs of K_a then K_b (``dofs``
     (m, k)), ``out_values`` (F, 2k); the gradients are ``table[types[K]]`` (k, 3)
-    (:meth:`~cutfem.fem.spaces.CutP1Space.gradient_lookup`)."""
+    (:meth:`~cutfem.fem.spaces.CutSpace.gradient_lookup`)."""
     k = dofs.shape[1]
     for f in range(pairs.shape[0]):
         w = np.sqrt(weights[f])

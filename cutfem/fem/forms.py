@@ -25,7 +25,9 @@ vector field (:class:`~cutfem.fem.spaces.VectorSpace`) ``u.value`` is (m, q, 3),
 with ``u.div``, ``u.sym_grad``, ``u.curl``, and products are written ``dot`` and ``inner``; a
 :class:`~cutfem.fem.spaces.RealSpace` field is the constant 1.
 Quadrature: degree 2 for a bilinear integrand, 4 for a linear one (:func:`bilinear_form`,
-:func:`linear_form` say why; ``degree=`` changes it).
+:func:`linear_form` say why; ``degree=`` changes it), plus 2 (k - 1) on fields of order k
+(:meth:`Integrand.degree_for`).  On P2 fields (or a deformed geometry) ``u.grad`` is (m, q, 3) and
+``u.hess`` (m, 1, 3, 3) (ZERO on P1).
 
 Parameters reach an integrand as attributes of ``w``: the term's own, bound where the term is made
 (``integrand.on(measure, gamma=10.0)``, ``nitsche(ds, gamma=10.0)``), before the form-wide keywords
@@ -67,6 +69,7 @@ import numbers
 import numpy as np
 import scipy.sparse as sp
 
+from . import high_order
 from .assembly import assemble_vector, running_sum
 from ..geometry.measures import Measure
 from .pointwise import (_PROBE, _QUAD_DATA_NAMES, _QUAD_DATA_NAMES_DOC, ZERO, _field_basis, _FieldTuple, _Params,
@@ -92,23 +95,32 @@ class Integrand:
       (all fields): its checks of the space, and the parameters it derives from it (a dict,
       seen as ``w.<name>``; the side of a field for Nitsche's normal);
     * ``advice(params, form)``, the fix of an indefinite matrix of ``form`` that the term suggests
-      (:attr:`Form.indefinite_hint`), or None."""
+      (:attr:`Form.indefinite_hint`), or None;
+    * ``high_order(term, space)``, the quadrature of a bilinear integrand on a scalar P2 field
+      vectorised over the basis pairs (:mod:`cutfem.fem.high_order`): (dofs, local matrices) block
+      by block of cells."""
 
     __array_ufunc__ = None  # ndarray * integrand defers to __rmul__, which asks for a measure
 
     def __init__(self, function, linear: bool, symmetric: bool = False, degree: int | None = None, exact=None,
-                 prepare=None, advice=None, couples: bool = False):
+                 prepare=None, advice=None, couples: bool = False, high_order=None):
         self.function = function
         self.couples = couples
         self.linear = linear
         self.symmetric = symmetric
         self.degree = degree if degree is not None else (4 if linear else 2)
-        self.exact, self.prepare, self.advice = exact, prepare, advice
+        self.exact, self.prepare, self.advice, self.high_order = exact, prepare, advice, high_order
         self.__doc__ = function.__doc__
         self.__name__ = getattr(function, "__name__", "integrand")
 
     def __call__(self, *args):
         return self.function(*args)
+
+    def degree_for(self, order: int) -> int:
+        """The quadrature degree on fields of polynomial ``order``: :attr:`degree` (that of P1) plus
+        2 (order - 1), the higher degree of a product of two basis functions (of one basis function
+        times data, with the same margin for the data)."""
+        return self.degree + 2 * (max(int(order), 1) - 1)
 
     def __mul__(self, measure):
         return self.on(measure)
@@ -334,7 +346,10 @@ class Term:
             own.update(derived)
             own.read.update(derived)
         pairs = None
-        for _, quad in self.measure.blocks(self.integrand.degree):
+        order = getattr(space if self.field is None else self.field_space(space), "order", 1)
+        blocks = self.measure.blocks(self.integrand.degree_for(order)) if order < 2 else \
+            self.measure.blocks(self.integrand.degree_for(order), high_order.BLOCK_CELLS)
+        for _, quad in blocks:
             w = _quad_data(self.measure, quad, params, own)
             first = pairs is None
             if first:
@@ -505,11 +520,31 @@ def _p1_field(space, k, term):
     return V
 
 
-def _exact(term) -> bool:
-    """Whether a term is assembled by its integrand's exact implementation: the closed forms hold on
-    planar cells, so a measure deformed by an isoparametric cut (``measure.deformation``) takes the
-    quadrature of the integrand instead."""
-    return term.integrand.exact is not None and getattr(term.measure, "deformation", None) is None
+def _exact_route(term, space) -> bool:
+    """Whether ``term`` is assembled by its exact implementation: a built-in term on a P1 field (the
+    closed forms are those of P1; on a P2 field every term goes by quadrature of its integrand) over
+    a planar measure (the closed forms hold on planar cells, so a measure deformed by an
+    isoparametric cut, ``measure.deformation``, takes the quadrature of the integrand instead)."""
+    measure = term.measure
+    deformed = getattr(measure, "deformation", None) is not None or (  # the faces of a lifted cut lift the fields on them
+        measure.facets is not None and getattr(getattr(measure.elements, "cut", None), "deformation", None) is not None)
+    if term.integrand.exact is None or deformed:
+        return False
+    fields = space if term.integrand.couples else _field(space, _field_index(space, term.field))
+    return getattr(fields, "order", 1) < 2  # P1, or a real field (refused there)
+
+
+def _high_order_route(term, space):
+    """The term's local matrices by its vectorised quadrature (``high_order``) on a scalar field of
+    order 2, as (field, field, dofs, dofs, blocks), or None (the form language evaluates it)."""
+    f = term.integrand.high_order
+    if f is None:
+        return None
+    k = _field_index(space, term.field)
+    V = _field(space, k)
+    if getattr(V, "order", 1) < 2 or isinstance(V, VectorSpace):
+        return None
+    return ((k, k, dofs, dofs, blocks) for dofs, blocks in f(term, V))
 
 
 def assemble(form: Form, space, **params):
@@ -521,8 +556,9 @@ def assemble(form: Form, space, **params):
     misspelt name: a ValueError after the integrands ran, unless none ran because the measures have
     no cells).
 
-    Each term is assembled by its integrand's exact implementation when it has one
-    (:class:`Integrand`) and its measure is not deformed (:func:`_exact`), else by quadrature.  On a field of a structured box or of a triangulated
+    Each term is assembled by its integrand's exact implementation when it has one, the field is P1
+    and the measure is planar (:func:`_exact_route`), else by quadrature (at the degree of the
+    field's order, :meth:`Integrand.degree_for`).  On a field of a structured box or of a triangulated
     surface the exact terms add, each times its coefficient, into one running sum of the field
     (:func:`~cutfem.fem.assembly.running_sum`), written to CSR once: c_1 a_1 + c_2 a_2 costs one
     pass, not two matrices and their sum.
@@ -538,7 +574,7 @@ def assemble(form: Form, space, **params):
             raise TypeError("assemble(form, space): the arguments are swapped")
         raise TypeError(f"assemble needs a form (a sum of integrand * measure and built-in terms), got {type(form).__name__}")
     if not (isinstance(space, (ProductSpace, VectorSpace, RealSpace)) or (hasattr(space, "n_dofs") and hasattr(space, "element_dofs"))):
-        raise TypeError(f"assemble(form, space) needs the space of the fields (CutP1Space, SurfaceP1Space, VectorSpace, RealSpace or "
+        raise TypeError(f"assemble(form, space) needs the space of the fields (CutSpace, SurfaceP1Space, VectorSpace, RealSpace or "
                         f"ProductSpace), got {space!r}")
     _check_names(params, "assemble()")
     if params and all(term.integrand.exact is not None for _, term in form.terms):
@@ -551,7 +587,7 @@ def assemble(form: Form, space, **params):
     if form.linear:
         out = None
         for c, term in form.terms:
-            if _exact(term):
+            if _exact_route(term, space):
                 k = _field_index(space, term.field)
                 parts = [(k, None, c * np.asarray(term.integrand.exact(term, _p1_field(space, k, term)), dtype=float))]
             else:
@@ -577,11 +613,11 @@ def assemble(form: Form, space, **params):
         total = A if total is None else total + A
 
     for c, term in form.terms:
-        if _exact(term) and term.integrand.couples:
+        if _exact_route(term, space) and term.integrand.couples:
             A = term.integrand.exact(term, space)
             total = c * A if total is None else total + c * A
             continue
-        if _exact(term):
+        if _exact_route(term, space):
             k = _field_index(space, term.field)
             V = _p1_field(space, k, term)
             if k not in sums:
@@ -591,7 +627,8 @@ def assemble(form: Form, space, **params):
                 add(c * A if c != 1.0 else A, k)
             continue
         symmetric = symmetric and term.integrand.symmetric
-        for i, j, dofs_u, dofs_v, blocks in term.contributions(space, params):
+        fast = _high_order_route(term, space)
+        for i, j, dofs_u, dofs_v, blocks in (fast if fast is not None else term.contributions(space, params)):
             m, kv, ku = blocks.shape
             rows.append(np.broadcast_to((dofs_v + offsets[j])[:, :, None], blocks.shape).reshape(-1))
             cols.append(np.broadcast_to((dofs_u + offsets[i])[:, None, :], blocks.shape).reshape(-1))

@@ -21,7 +21,7 @@ import numpy as np
 from ..geometry.cut import cut_mesh
 from ..geometry.levelset import LevelSet
 from ..geometry.markers import NEG
-from .spaces import CutP1Space
+from .spaces import CutSpace
 
 __all__ = ["Shifted", "ActiveDomain", "strip_width", "transfer"]
 
@@ -89,7 +89,7 @@ class ActiveDomain:
         self.delta = delta
         self.cut = cut_mesh(background, levelset)
         self.extended = cut_mesh(background, Shifted(levelset, delta))
-        self.space = CutP1Space(self.extended, NEG)
+        self.space = CutSpace(self.extended, NEG)
         es = self.space.elements
         in_strip = es.levelset_values[es.tets].max(axis=1) > -2.0 * delta  # phi - delta > -2 delta: phi > -delta
         facets = self.extended.interior_facets(NEG)

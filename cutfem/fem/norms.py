@@ -11,13 +11,13 @@
 * :func:`rates`: ``log(e_i / e_{i+1}) / log(h_i / h_{i+1})``; :func:`fitted_rate`: least-squares
   slope of log e against log h.
 
-Every error takes one field (a :class:`~cutfem.fem.spaces.CutP1Space`,
+Every error takes one field (a :class:`~cutfem.fem.spaces.CutSpace`,
 :class:`~cutfem.fem.spaces.SurfaceP1Space` or :class:`~cutfem.fem.spaces.VectorSpace`, not a
 :class:`~cutfem.fem.spaces.ProductSpace`) and its coefficients of shape (n_dofs,) or (n_dofs, c)
 (:func:`_field_coefficients`, on every path): the block of a product's vector is ``W.split(x)[k]``.
 A vector field's coefficients (3 n,) are its scalar space's nodal vectors (n, 3), so its exact
 solution returns (m, q, 3) and its gradient (m, q, 3, 3), rows the components (grad u)_ij = d u_i / d x_j.  A measure must lie on the field's background mesh
-(:meth:`~cutfem.fem.spaces.CutP1Space.local_elements`).
+(:meth:`~cutfem.fem.spaces.CutSpace.local_elements`).
 """
 
 from __future__ import annotations
@@ -65,7 +65,17 @@ def _not_finite(part: float, exact_values, coeffs, points, what: str) -> None:
                      f"the error sum overflows (the {what} or the coefficients are too large for float64)")
 
 
-def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1 << 14) -> float:
+def _error_degree(space, degree):
+    """The quadrature degree of an error norm: ``degree``, or 4 + 2 (order - 1) on a field of that
+    order (docs/math.md §5 asks for at least 4: the P1 errors' degree)."""
+    if degree is None:
+        return 4 + 2 * (getattr(space, "order", 1) - 1)
+    if degree < 4:
+        raise ValueError("docs/math.md §5 asks for quadrature of degree >= 4 in error norms")
+    return degree
+
+
+def l2_error(space, coeffs, exact, measure=None, degree: int | None = None, chunk: int = 1 << 14) -> float:
     """L2 error of the discrete function ``coeffs`` (n,) or (n, c) against ``exact(x)`` over ``measure``
     (any cell measure of :mod:`cutfem.geometry.measures`; ``None``: S_h of a trace or meshed field).
 
@@ -83,9 +93,8 @@ def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1
     :func:`cutfem.fem.element_kernels.squared_error`).  Over a ``measure``: the cells in blocks of
     :data:`CELL_CHUNK`, as :func:`l2_h1_errors`.
     """
-    if degree < 4:
-        raise ValueError("docs/math.md §5 asks for quadrature of degree >= 4 in error norms")
-    if measure is None:
+    degree = _error_degree(space, degree)
+    if measure is None and getattr(space, "order", 1) == 1:
         space, coeffs = _field_coefficients(space, coeffs)
         surface_measure(space)  # a clear error for a bulk field
         points, triangles, values = space.surface_vertex_data(coeffs)
@@ -113,7 +122,7 @@ def l2_error(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = 1
 CELL_CHUNK = 1 << 13
 
 
-def h1_error(space, coeffs, exact_gradient, measure=None, degree: int = 4, chunk: int = CELL_CHUNK) -> float:
+def h1_error(space, coeffs, exact_gradient, measure=None, degree: int | None = None, chunk: int = CELL_CHUNK) -> float:
     """H1 seminorm error of a discrete function: ``|| grad u^e - grad u_h ||`` over a volume
     measure, ``|| P_h (grad u^e - grad u_h) ||`` over a surface (``measure=None``: S_h of a trace or
     meshed field).  ``exact_gradient(x)`` maps (m, q, 3) to (m, q, 3), for a vector field (or
@@ -122,7 +131,7 @@ def h1_error(space, coeffs, exact_gradient, measure=None, degree: int = 4, chunk
     return _cell_errors(space, coeffs, lambda x: (None, exact_gradient(x)), measure, degree, chunk)[1]
 
 
-def l2_h1_errors(space, coeffs, exact, measure=None, degree: int = 4, chunk: int = CELL_CHUNK) -> tuple[float, float]:
+def l2_h1_errors(space, coeffs, exact, measure=None, degree: int | None = None, chunk: int = CELL_CHUNK) -> tuple[float, float]:
     """(L2 error, H1 seminorm error) of a discrete function in one pass over the cells:
     the values of :func:`l2_error` and :func:`h1_error` (the same quadrature, the same sums), with
     ``exact(x)`` returning the pair ``(u(x) (m, q), grad u(x) (m, q, 3))`` at points (m, q, 3)
@@ -151,13 +160,12 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
     (values or None, gradients or None); a sum whose exact part is None stays 0.
 
     Per block: u_h(x_q) = sum_k phi_k(x_q) u_k with the basis values of the block
-    (:meth:`~cutfem.fem.spaces.CutP1Space.basis_on`: the rule's barycentric coordinates on whole
+    (:meth:`~cutfem.fem.spaces.CutSpace.basis_on`: the rule's barycentric coordinates on whole
     elements), grad u_h = sum_k u_k grad phi_k (constant per element); the sums over a block by
     compiled kernels (:func:`cutfem.fem.element_kernels.cell_value_error`, :func:`cutfem.fem.element_kernels.cell_gradient_error`:
     on the fictitious-domain Poisson problem at spacing 0.025, 352 thousand unknowns and 31.8
     million points, they replace numpy work of about 0.6 s)."""
-    if degree < 4:
-        raise ValueError("docs/math.md §5 asks for quadrature of degree >= 4 in error norms")
+    degree = _error_degree(space, degree)
     space, coeffs = _field_coefficients(space, coeffs)
     if measure is None:
         measure = surface_measure(space)
@@ -189,6 +197,9 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
             if ge.shape != shape:
                 raise ValueError(f"the exact gradient must have shape {shape} at points {x.shape} (the gradient of each "
                                  f"component as a row), got {ge.shape}")
+            if space.order > 1 or quad.jacobians is not None:  # gradients that vary over the cell
+                sums[1] += _varying_gradient_error(space, measure, quad, e, local, ge, coeffs)
+                continue
             normals = np.ascontiguousarray(quad.normal, dtype=float) if measure.surface else no_normals
             kinds = np.ascontiguousarray(types[e])
             for c in range(1 if local.ndim == 2 else local.shape[2]):  # the components' errors, summed
@@ -198,6 +209,23 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
                 _not_finite(part, gc, coeffs, x, "exact gradient")
                 sums[1] += part
     return float(np.sqrt(sums[0])), float(np.sqrt(sums[1]))
+
+
+def _varying_gradient_error(space, measure, quad, elements, local, exact_gradient, coeffs) -> float:
+    """sum_q w_q |grad u^e - grad u_h|^2 (tangential on a surface) over a block of cells, with the
+    basis gradients at each point (:meth:`~cutfem.fem.spaces.CutSpace.derivatives`: P2, or a
+    deformed geometry)."""
+    _, G, _ = space.derivatives(measure, quad, elements, hessians=False)  # (b, q or 1, k, 3)
+    grad = np.einsum("bqkd,bk...->bq...d", G, local)  # (b, q, 3) or (b, q, c, 3)
+    diff = exact_gradient - grad
+    if measure.surface:
+        n = quad.point_normals  # (b, 1, 3) of a planar cell, (b, q, 3) of a deformed one
+        n = n if diff.ndim == 3 else n[:, :, None, :]
+        diff = diff - np.sum(diff * n, axis=-1, keepdims=True) * n
+    squared = np.sum(diff**2, axis=tuple(range(2, diff.ndim)))
+    part = float(np.sum(squared * quad.weights))
+    _not_finite(part, exact_gradient, coeffs, quad.points, "exact gradient")
+    return part
 
 
 def discrete_error(space, e) -> float:
@@ -213,7 +241,11 @@ def discrete_error(space, e) -> float:
     one compiled pass over the triangles (:func:`cutfem.fem.element_kernels.squared_error` against zero).  For
     a cut space the values at the vertices are the traces of the field (:meth:`surface_vertex_data`)."""
     space, e = _field_coefficients(space, e)
-    surface_measure(space)  # a clear error for a bulk field
+    measure = surface_measure(space)  # a clear error for a bulk field
+    if space.order > 1:  # e_h^2 of degree 4 on each triangle: the rule of that degree, exact
+        values = space.evaluate(np.asarray(e, dtype=float), measure, 4)
+        weights = measure.quadrature(4).weights
+        return float(np.sqrt(np.sum(weights * np.sum(values.reshape(weights.shape + (-1,)) ** 2, axis=2))))
 
     points, triangles, values = space.surface_vertex_data(np.asarray(e, dtype=float))
     v = np.asarray(values, dtype=float)
@@ -226,9 +258,13 @@ def discrete_error(space, e) -> float:
 
 def surface_integral(space, coeffs) -> np.ndarray:
     """Integral over S_h of a discrete function: scalar or (c,) vector.  Exact: a linear function
-    integrates over a triangle to its area times the mean of its vertex values."""
+    integrates over a triangle to its area times the mean of its vertex values (P2: the rule of
+    degree 2 on each triangle)."""
     space, coeffs = _field_coefficients(space, coeffs)
-    surface_measure(space)  # a clear error for a bulk field
+    measure = surface_measure(space)  # a clear error for a bulk field
+    if space.order > 1:
+        values = space.evaluate(np.asarray(coeffs, dtype=float), measure, 2)
+        return np.einsum("mq,mq...->...", measure.quadrature(2).weights, values)
     points, triangles, values = space.surface_vertex_data(coeffs)
     area = triangle_areas(points, triangles)
     return np.einsum("m,mk...->...", area / 3.0, np.asarray(values)[triangles])

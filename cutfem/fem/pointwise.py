@@ -2,7 +2,8 @@
 
 An integrand (:mod:`cutfem.fem.forms`) is called on arrays shaped (cells x quadrature points): the
 basis functions ``u`` and ``v`` (:class:`BasisField`: ``value`` (m, q), ``grad`` and ``tgrad``
-(m, 1, 3); of a vector field :class:`VectorBasisField`: ``value`` (m, q, 3), ``grad`` (m, 1, 3, 3)
+(m, 1, 3) for P1, (m, q, 3) for P2 or on a deformed geometry, ``hess`` (m, 1, 3, 3) of P2 and
+:data:`ZERO` of P1; of a vector field :class:`VectorBasisField`: ``value`` (m, q, 3), ``grad`` (m, 1, 3, 3)
 with the components as rows, ``div``, ``sym_grad``, ``curl``), on a facet their two traces
 (:class:`FacetField`, with :func:`jump` and :func:`avg`), on a product space a tuple with one entry
 per field, all :data:`ZERO` but one, and ``w`` (:class:`QuadData`): the points, the measure's
@@ -96,14 +97,17 @@ _PROBE = _Probe()
 
 
 class BasisField:
-    """A basis function at quadrature points: ``value`` (m, q), ``grad`` (m, 1, 3), ``tgrad`` (m, 1, 3) or
-    (m, q, 3) (with the normals of a deformed surface, one per point);
-    arithmetic acts on ``value``."""
+    """A basis function at quadrature points: ``value`` (m, q), ``grad``, ``tgrad`` (m, 1, 3) for P1
+    (constant on a cell), (m, q, 3) for P2 or on a deformed geometry (``tgrad`` also with the
+    per-point normals of a deformed surface), ``hess`` (m, 1, 3, 3) of P2 (constant on a tet) and
+    :data:`ZERO` of P1 (so that terms of second derivatives cost nothing there); arithmetic acts on
+    ``value``."""
 
-    __slots__ = ("value", "grad", "tgrad")
+    __slots__ = ("value", "grad", "tgrad", "hess")
 
-    def __init__(self, value, grad, tgrad):
+    def __init__(self, value, grad, tgrad, hess=None):
         self.value, self.grad, self.tgrad = value, grad, tgrad
+        self.hess = ZERO if hess is None else hess
 
     def __array__(self, dtype=None, copy=None):
         return np.asarray(self.value, dtype=dtype)
@@ -150,11 +154,12 @@ class VectorBasisField:
     arrays with the zero components are made when first asked for, and kept for the other basis
     pairs of the block (an integrand of ``u.div`` never allocates the 3 x 3 gradients)."""
 
-    __slots__ = ("phi", "g", "tg", "component", "_value", "_grad", "_tgrad")
+    __slots__ = ("phi", "g", "tg", "h", "component", "_value", "_grad", "_tgrad")
     __array_ufunc__ = None  # ndarray op field defers to the reflected operators below (no broadcasting of (m, 1) against 3)
 
-    def __init__(self, phi, grad, tgrad, component: int):
+    def __init__(self, phi, grad, tgrad, component: int, hess=None):
         self.phi, self.g, self.tg, self.component = phi, grad, tgrad, component
+        self.h = ZERO if hess is None else hess
         self._value = self._grad = self._tgrad = None
 
     @property
@@ -180,6 +185,15 @@ class VectorBasisField:
         if self._tgrad is None:
             self._tgrad = self._rows(self.tg)
         return self._tgrad
+
+    @property
+    def hess(self):
+        """(m, 1, 3, 3, 3) the Hessians of the components (component first), of P2; ZERO of P1."""
+        if self.h is ZERO:
+            return ZERO
+        out = np.zeros(self.h.shape[:2] + (3, 3, 3))
+        out[:, :, self.component] = self.h
+        return out
 
     @property
     def div(self):
@@ -294,6 +308,10 @@ class FacetField(_Traces):
     @property
     def sym_grad(self):
         return _Traces(self.minus.sym_grad, self.plus.sym_grad)
+
+    @property
+    def hess(self):
+        return _Traces(self.minus.hess, self.plus.hess)
 
 
 def _value(a):
@@ -509,25 +527,30 @@ def _field_basis(space, measure: Measure, quad):
                 [_component(b, c) for c in range(3) for b in fields])
     if measure.facets is not None:
         pairs = measure.facets.pairs[quad.parent]
+        points = quad.points if quad.reference_points is None else quad.reference_points
         dofs, fields = [], []
         for s in (0, 1):
             el = space.local_elements(measure, pairs[:, s])
-            phi = space.basis_at(quad.points, el)
-            G = space.gradients_of(el)
+            phi, G, H = space.derivatives(measure, quad, el, points=points, cells=pairs[:, s])
             dofs.append(space.element_dofs[el])
-            for a in range(G.shape[1]):
-                b = BasisField(phi[..., a], G[:, None, a], G[:, None, a])
+            for a in range(G.shape[2]):
+                b = BasisField(phi[..., a], G[:, :, a], G[:, :, a], None if H is None else H[:, :, a])
                 fields.append(FacetField(b, ZERO) if s == 0 else FacetField(ZERO, b))
         return np.concatenate(dofs, axis=1), fields
     el = space.local_elements(measure, quad.parent)
-    phi = space.basis_on(measure, quad, el)
-    G = space.gradients_of(el)
-    if measure.surface:  # the tangential part at each point: (m, 1, k, 3), or (m, q, k, 3) with normals per point
+    phi, G, H = space.derivatives(measure, quad, el)
+    if measure.surface:  # the tangential part at each point, with the cell's normal or (deformed) the point's
         n = quad.point_normals
-        tG = G[:, None] - np.einsum("mkd,mqd->mqk", G, n)[..., None] * n[:, :, None, :]
+        if G.shape[1] == 1:  # P1 on a planar cell: constant gradients
+            G0 = G[:, 0]
+            tG = G0[:, None] - np.einsum("mkd,mqd->mqk", G0, n)[..., None] * n[:, :, None, :]
+        else:
+            n = np.broadcast_to(n, G.shape[:2] + (3,))
+            tG = G - np.einsum("mqkd,mqd->mqk", G, n)[..., None] * n[:, :, None, :]
     else:
-        tG = G[:, None]
-    return space.element_dofs[el], [BasisField(phi[..., a], G[:, None, a], tG[:, :, a]) for a in range(G.shape[1])]
+        tG = G
+    return space.element_dofs[el], [BasisField(phi[..., a], G[:, :, a], tG[:, :, a], None if H is None else H[:, :, a])
+                                    for a in range(G.shape[2])]
 
 
 
@@ -562,7 +585,7 @@ def _component(b, c):
         return FacetField(_component(b.minus, c), _component(b.plus, c))
     if b is ZERO:
         return b
-    return VectorBasisField(b.value, b.grad, b.tgrad, c)
+    return VectorBasisField(b.value, b.grad, b.tgrad, c, None if b.hess is ZERO else b.hess)
 
 
 def _zero_like(b):
@@ -572,5 +595,7 @@ def _zero_like(b):
         z = _zero_like(b.minus if not isinstance(b.minus, _Zero) else b.plus)
         return FacetField(z, z)
     if isinstance(b, VectorBasisField):
-        return VectorBasisField(np.zeros_like(b.phi), np.zeros_like(b.g), np.zeros_like(b.tg), b.component)
-    return BasisField(np.zeros_like(b.value), np.zeros_like(b.grad), np.zeros_like(b.tgrad))
+        return VectorBasisField(np.zeros_like(b.phi), np.zeros_like(b.g), np.zeros_like(b.tg), b.component,
+                                None if b.h is ZERO else np.zeros_like(b.h))
+    return BasisField(np.zeros_like(b.value), np.zeros_like(b.grad), np.zeros_like(b.tgrad),
+                      None if b.hess is ZERO else np.zeros_like(b.hess))

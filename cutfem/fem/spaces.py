@@ -1,9 +1,10 @@
-"""Continuous P1 fields: on a triangulated surface, and on an element set of a cut.
+"""Continuous Lagrange fields: P1 on a triangulated surface, P1 or P2 on an element set of a cut.
 
 Every space exposes the same plain arrays, so that forms are written once:
 
-``n_dofs``; ``element_dofs`` (n_el, k) global dof numbers of each element (triangles, k = 3, or
-tets, k = 4); ``element_gradients`` (n_el, k, 3) the constant gradients of the P1 basis functions
+``n_dofs``; ``order``; ``element_dofs`` (n_el, k) global dof numbers of each element (triangles,
+k = 3, or tets, k = 4; P2 tets k = 10, :mod:`cutfem.fem.lagrange`); ``element_gradients`` (n_el, 4 or
+3, 3) the constant gradients of the P1 basis functions (the barycentric coordinates)
 (on a surface triangle this is already the surface gradient); ``element_normals`` (n_el, 3) the
 discrete normal n_h (surface and trace spaces; None for bulk fields); ``elements`` the element set
 (or surface mesh) the field lives on, which :mod:`cutfem.fem.forms` matches against the elements of a
@@ -26,8 +27,9 @@ from .assembly import SymmetricPattern
 from ..geometry.markers import CUT, ElementSet, same_background
 from ..geometry.surface import positive_number
 from . import element_kernels
+from .lagrange import edge_numbering, map_gradients, map_hessians, p2_gradients, p2_hessians, p2_values
 
-__all__ = ["SurfaceP1Space", "CutP1Space", "VectorSpace", "RealSpace", "ProductSpace", "triangle_gradients", "barycentric_at"]
+__all__ = ["SurfaceP1Space", "CutSpace", "VectorSpace", "RealSpace", "ProductSpace", "triangle_gradients", "barycentric_at"]
 
 
 def triangle_gradients(vertices: np.ndarray):
@@ -66,11 +68,12 @@ def _mesh_size(h, default) -> float:
     return float(default) if h is None else positive_number(h, "h (the mesh size)")
 
 
-class _P1Space:
+class _ScalarSpace:
     """Shared machinery: cached sparsity patterns (surface meshes) and evaluation of discrete functions."""
 
     element_dofs: np.ndarray
     n_dofs: int
+    order = 1
 
     def _patterns(self):
         if "_pattern_cache" not in self.__dict__:
@@ -98,9 +101,15 @@ class _P1Space:
         element gradients and 0..n_el-1."""
         return self.element_gradients, np.arange(self.n_elements)
 
-    def basis_at(self, points: np.ndarray, parent: np.ndarray) -> np.ndarray:
-        """(m, j, k) P1 basis values of element ``parent[i]`` at ``points[i]`` (m, j, 3)."""
+    def barycentric_at(self, points: np.ndarray, parent: np.ndarray) -> np.ndarray:
+        """(m, j, 4) (3 on triangles) barycentric coordinates of element ``parent[i]`` at ``points[i]`` (m, j, 3)."""
         return barycentric_at(points, self.dof_points[self.element_dofs[parent, 0]], self.gradients_of(parent))
+
+    def basis_at(self, points: np.ndarray, parent: np.ndarray) -> np.ndarray:
+        """(m, j, k) basis values of element ``parent[i]`` at ``points[i]`` (m, j, 3): the barycentric
+        coordinates (P1), or the P2 basis of them (:func:`~cutfem.fem.lagrange.p2_values`)."""
+        lam = self.barycentric_at(points, parent)
+        return lam if self.order == 1 else p2_values(lam)
 
     @property
     def tangential_gradients(self) -> np.ndarray:
@@ -127,22 +136,64 @@ class _P1Space:
             raise ValueError(f"the field on {getattr(self.elements, 'name', self.elements)!r} does not live on the measure {measure.name!r}")
         return self.elements.locate_set(measure.elements, parent, f"the measure {measure.name!r}")
 
-    def basis_on(self, measure, quad, elements) -> np.ndarray:
-        """(m, q, k) basis values at the points of ``quad`` (a quadrature of ``measure``) in the field's
-        ``elements``.  Cells that are whole elements of the field (``quad.whole``, the first cells of
-        a side's volume, when the measure's elements are the field's) take the reference barycentric
-        coordinates of the rule as they are (a broadcast view when all cells are whole); the others
-        are mapped."""
+    def _barycentric_on(self, measure, quad, elements) -> np.ndarray:
+        """(m, q, 4) barycentric coordinates of the points of ``quad`` (a quadrature of ``measure``; its
+        ``reference_points`` on a deformed geometry) in the field's ``elements``.  Cells that are whole
+        elements of the field (``quad.whole``, the first cells of a side's volume, when the measure's
+        elements are the field's) take the reference barycentric coordinates of the rule as they are
+        (a broadcast view when all cells are whole); the others are mapped."""
         whole = quad.whole if measure.elements is self.elements and quad.bary is not None else 0
         m = quad.n_elements
+        points = quad.points if quad.reference_points is None else quad.reference_points
         if whole == 0:
-            return self.basis_at(quad.points, elements)
+            return self.barycentric_at(points, elements)
         if whole == m:
             return np.broadcast_to(quad.bary, (m,) + quad.bary.shape)
-        phi = np.empty(quad.points.shape[:2] + (self.element_dofs.shape[1],))
-        phi[:whole] = quad.bary
-        phi[whole:] = self.basis_at(quad.points[whole:], elements[whole:])
-        return phi
+        lam = np.empty(points.shape[:2] + (quad.bary.shape[1],))
+        lam[:whole] = quad.bary
+        lam[whole:] = self.barycentric_at(points[whole:], elements[whole:])
+        return lam
+
+    def basis_on(self, measure, quad, elements) -> np.ndarray:
+        """(m, q, k) basis values at the points of ``quad`` (a quadrature of ``measure``) in the field's
+        ``elements`` (:meth:`_barycentric_on`; of P2, :func:`~cutfem.fem.lagrange.p2_values` of them)."""
+        lam = self._barycentric_on(measure, quad, elements)
+        if self.order == 1:
+            return lam
+        if lam.strides[0] == 0:  # whole cells: one table
+            return np.broadcast_to(p2_values(lam[0]), lam.shape[:2] + (10,))
+        return p2_values(lam)
+
+    def derivatives(self, measure, quad, elements, points=None, cells=None, hessians=True):
+        """(values (m, q, k), gradients (m, q or 1, k, 3), Hessians (m, q or 1, k, 3, 3) or None) of
+        the basis at the points of ``quad`` in the field's ``elements``, or at ``points`` of the
+        measure's element ``cells`` (the traces of a facet's two tets).  P1 gradients are constant
+        (one point axis of 1) and its Hessians zero (None); P2 from :mod:`cutfem.fem.lagrange`.
+
+        On a deformed geometry the field is composed with Theta_h^-1: its basis is evaluated at the
+        undeformed points (``quad.reference_points``), its gradients map as D Theta_h^-T grad^ and
+        its Hessians with Theta_h's own (:func:`~cutfem.fem.lagrange.map_hessians`).  D Theta_h is
+        ``quad.jacobians`` on cells; on the planar faces of a deformed cut (which stay planar,
+        docs/math.md §17) each trace takes its own tet's D Theta_h at the face's points, so that the
+        jumps across a face are those of the lifted fields (zero for a smooth function).
+        ``hessians=False``: None for the Hessians, not computed."""
+        lam = self._barycentric_on(measure, quad, elements) if points is None else self.barycentric_at(points, elements)
+        G = self.gradients_of(elements)
+        if self.order == 1:
+            values, grads, hess = lam, G[:, None], None
+        else:
+            values, grads, hess = p2_values(lam), p2_gradients(lam, G), p2_hessians(G) if hessians else None
+        J, deformation = quad.jacobians, getattr(measure, "deformation", None)
+        if points is not None:  # a face's trace: the deformation of the cut its tets belong to
+            deformation = getattr(getattr(measure.elements, "cut", None), "deformation", None)
+            J = None if deformation is None else deformation.map(measure.elements, cells, points)[1]
+        if J is not None:
+            grads = map_gradients(grads, J)
+            if hess is not None:
+                curved = None if deformation is None else \
+                    deformation.hessians(measure.elements, quad.parent if cells is None else cells)
+                hess = map_hessians(hess, J, grads, curved)
+        return values, grads, hess
 
     def evaluate(self, coeffs: np.ndarray, measure, degree: int = 4) -> np.ndarray:
         """Values of the discrete function with ``coeffs`` (n,) or (n, c) at the quadrature points of
@@ -166,8 +217,18 @@ class _P1Space:
         """Nodal interpolant: f evaluated at the dof points, (n,) or (n, c)."""
         return np.asarray(f(self.dof_points), dtype=float)
 
+    def interpolate_nodal(self, values) -> np.ndarray:
+        """The coefficients of the P1 function with the given values at the nodes (n_nodes,) or
+        (n_nodes, c) (a level set's phi_h): the values themselves for P1; for P2 the edges' dofs
+        follow, the means of their ends (P1 is a prefix of P2)."""
+        values = np.asarray(values)
+        if getattr(self, "order", 1) == 1:
+            return values
+        e = self.edge_nodes
+        return np.concatenate([values, 0.5 * (values[e[:, 0]] + values[e[:, 1]])])
 
-class SurfaceP1Space(_P1Space):
+
+class SurfaceP1Space(_ScalarSpace):
     """Continuous P1 on a closed triangle surface mesh (meshed case); dofs are the mesh nodes.
 
     ``h`` defaults to the global ``N**(-1/2)`` of docs/math.md §2 (N = number of nodes); a given
@@ -251,31 +312,47 @@ class SurfaceP1Space(_P1Space):
         return m.edge_triangles, m.edge_conormals, m.edge_lengths
 
 
-class CutP1Space(_P1Space):
-    """Continuous P1 on an element set of a cut: ``on=CUT`` (default) the cut tets, whose traces
-    live on S_h (TraceFEM); ``on=NEG`` or ``POS`` the tets of one side (a bulk field of CutFEM);
-    or any :class:`~cutfem.geometry.markers.ElementSet` of the cut.  Dofs are the nodes of the set, numbered
-    by increasing background id; ``node_ids`` maps them back.  ``h`` is the background ``N**(-1/3)``
+class CutSpace(_ScalarSpace):
+    """Continuous Lagrange fields of ``order`` 1 (P1) or 2 (P2) on an element set of a cut: ``on=CUT``
+    (default) the cut tets, whose traces live on S_h (TraceFEM); ``on=NEG`` or ``POS`` the tets of
+    one side (a bulk field of CutFEM); or any :class:`~cutfem.geometry.markers.ElementSet` of the
+    cut.  The first dofs are the nodes of the set, numbered by increasing background id
+    (``node_ids`` maps them back); at order 2 the edges of the set follow, ordered by their pair of
+    background node ids (``edge_nodes`` (E, 2) their local node pairs), so that the P1 dofs are a
+    prefix of the P2 dofs (:mod:`cutfem.fem.lagrange`).  ``h`` is the background ``N**(-1/3)``
     unless given (a positive finite number).  An element set given as ``on`` must lie on the cut's
     background mesh (:func:`~cutfem.geometry.markers.same_background`).
+
+    ``element_gradients``, ``gradients_of`` and ``gradient_lookup`` are the gradients of the
+    barycentric coordinates (the P1 basis; the geometry of a P2 element); the basis of either order
+    at quadrature points, with gradients and Hessians, is :meth:`derivatives`.
     """
 
-    def __init__(self, cut, on=CUT, h: float | None = None):
+    def __init__(self, cut, on=CUT, order: int = 1, h: float | None = None):
+        if isinstance(order, bool) or order not in (1, 2):
+            raise ValueError(f"order must be 1 (P1) or 2 (P2), got {order!r}")
         es = cut.elements(on)
         if not same_background(es.background, cut.background):
             raise ValueError(f"the element set {es.name!r} lies on another background mesh than the cut "
                              f"({es.background!r}, the cut's: {cut.background!r}); build it on the cut's background")
         self.cut = cut
         self.elements = es
-        self.n_dofs = es.n_nodes
-        self.element_dofs = es.tets
-        self.dof_points = es.points
+        self.order = int(order)
         self.element_normals = es.normals
         self.node_ids = es.node_ids
         self.h = _mesh_size(h, cut.h)
+        if self.order == 1:
+            self.n_dofs = es.n_nodes
+            self.element_dofs = es.tets
+            self.dof_points = es.points
+        else:
+            self.edge_nodes, element_edges = edge_numbering(es.tets, es.n_nodes)
+            self.n_dofs = es.n_nodes + len(self.edge_nodes)
+            self.element_dofs = np.concatenate([np.asarray(es.tets, dtype=np.int64), es.n_nodes + element_edges], axis=1)
+            self.dof_points = np.concatenate([es.points, 0.5 * (es.points[self.edge_nodes[:, 0]] + es.points[self.edge_nodes[:, 1]])])
 
     def __repr__(self) -> str:
-        return f"CutP1Space(on={self.elements.name!r}, dofs={self.n_dofs})"
+        return f"CutSpace(on={self.elements.name!r}, order={self.order}, dofs={self.n_dofs})"
 
     @property
     def element_volumes(self) -> np.ndarray:
@@ -308,12 +385,23 @@ class CutP1Space(_P1Space):
 
     def _require_trace(self, what):
         if not self.is_trace:
-            raise ValueError(f"{what} needs the field on the cut tets (CutP1Space(cut, CUT)); this field lives on {self.elements.name!r}")
+            raise ValueError(f"{what} needs the field on the cut tets (CutSpace(cut, CUT)); this field lives on {self.elements.name!r}")
 
     @cached_property
     def boundary_dofs(self) -> np.ndarray:
-        """Dofs on the boundary of the background box (for strong Dirichlet conditions)."""
-        return self.elements.boundary_nodes
+        """Dofs on the boundary of the background box (for strong Dirichlet conditions): its nodes and,
+        at order 2, the edges whose two ends lie on one face of the background's bounding box."""
+        nodes = self.elements.boundary_nodes
+        if self.order == 1:
+            return nodes
+        lower, upper = self.cut.background.bounds
+        p = self.elements.points
+        a, b = p[self.edge_nodes[:, 0]], p[self.edge_nodes[:, 1]]
+        tol = 1e-12 * float(np.max(np.abs(upper - lower)))
+        on_face = np.zeros(len(a), dtype=bool)
+        for bound in (lower, upper):
+            on_face |= np.any((np.abs(a - bound) <= tol) & (np.abs(b - bound) <= tol), axis=1)
+        return np.concatenate([nodes, self.elements.n_nodes + np.flatnonzero(on_face)])
 
     @property
     def element_surface_areas(self) -> np.ndarray:
@@ -333,15 +421,23 @@ class CutP1Space(_P1Space):
 
     def surface_vertex_values(self, coeffs) -> np.ndarray:
         """Trace of a discrete function at the vertices of S_h: (V,) or (V, c) (for plots, VTK and the
-        errors on S_h).  Each vertex is valued in the tet of the last triangle (in triangle order)
-        that has it: the trace is continuous, any of them would do (one compiled pass,
-        :func:`cutfem.fem.element_kernels.vertex_values`)."""
+        errors on S_h of P1).  Each vertex is valued in the tet of the last triangle (in triangle
+        order) that has it: the trace is continuous, any of them would do (P1: one compiled pass,
+        :func:`cutfem.fem.element_kernels.vertex_values`).  Of a P2 field these are its values at the
+        vertices only (a VTK file of them draws the field linear on each triangle of S_h)."""
 
         c = self.cut
         coeffs = self._coefficients(coeffs)
-        table, types = self.gradient_lookup()
-        values = element_kernels.vertex_values(c.vertices, c.triangles, c.triangle_tets, self.dof_points, self.element_dofs, table,
-                                       types, self.element_dofs, coeffs.reshape(len(coeffs), -1))
+        flat = coeffs.reshape(len(coeffs), -1)
+        if self.order == 1:
+            table, types = self.gradient_lookup()
+            values = element_kernels.vertex_values(c.vertices, c.triangles, c.triangle_tets, self.dof_points, self.element_dofs,
+                                                   table, types, self.element_dofs, flat)
+        else:
+            tet = np.empty(len(c.vertices), dtype=np.int64)
+            tet[c.triangles.reshape(-1)] = np.repeat(c.triangle_tets, 3)  # numpy keeps the last write: the last triangle's tet
+            phi = self.basis_at(np.asarray(c.vertices, dtype=float)[:, None], tet)[:, 0]  # (V, 10)
+            values = np.einsum("vk,vkc->vc", phi, flat[self.element_dofs[tet]])
         return values.reshape((len(values),) + coeffs.shape[1:])
 
     def edges(self):
@@ -351,12 +447,12 @@ class CutP1Space(_P1Space):
 
 
 class VectorSpace:
-    """The vector field [V]^3 of a scalar P1 space ``V`` (a :class:`CutP1Space` on any element set of
+    """The vector field [V]^3 of a scalar P1 space ``V`` (a :class:`CutSpace` on any element set of
     a cut, NEG, POS or CUT, or a :class:`SurfaceP1Space`): one block of 3 n unknowns numbered
     component-major, component c's dofs are c n + V's dofs (:meth:`dofs`), a vector of coefficients
     is read as nodal vectors (n, 3) by :meth:`nodal`.
 
-    Why a space of a space, not ``CutP1Space(..., components=3)``: it applies to every scalar space
+    Why a space of a space, not ``CutSpace(..., components=3)``: it applies to every scalar space
     alike (one class, not an option in each), and leaves the scalar space and its arrays as they
     are, so that the built-in terms that act component by component (mass, stiffness, penalties,
     Nitsche, loads) are the scalar term's matrix on V, kron(I_3, A), built by the scalar exact
@@ -368,10 +464,11 @@ class VectorSpace:
     components = 3
 
     def __init__(self, scalar):
-        if isinstance(scalar, (VectorSpace, ProductSpace, RealSpace)) or not isinstance(scalar, _P1Space):
-            raise TypeError(f"VectorSpace(V) takes a scalar P1 space (CutP1Space or SurfaceP1Space), got {scalar!r}")
+        if isinstance(scalar, (VectorSpace, ProductSpace, RealSpace)) or not isinstance(scalar, _ScalarSpace):
+            raise TypeError(f"VectorSpace(V) takes a scalar P1 space (CutSpace or SurfaceP1Space), got {scalar!r}")
         self.scalar = scalar
         self.n_dofs = 3 * scalar.n_dofs
+        self.order = scalar.order
         self.h = scalar.h
         self.elements = scalar.elements
 
@@ -431,6 +528,7 @@ class RealSpace:
 
     n_dofs = 1
     h = None
+    order = 0
 
     def __repr__(self) -> str:
         return "RealSpace()"
@@ -457,6 +555,7 @@ class ProductSpace:
         self.offsets = np.concatenate([[0], np.cumsum([f.n_dofs for f in self.fields])]).astype(np.int64)
         self.n_dofs = int(self.offsets[-1])
         self.h = next((f.h for f in self.fields if f.h is not None), None)  # a real field has no mesh size
+        self.order = max(getattr(f, "order", 1) for f in self.fields)  # the highest order sets the quadrature of a form on all fields
 
     def __repr__(self) -> str:
         return "ProductSpace(" + ", ".join(f"{n}={f!r}" for n, f in zip(self.names, self.fields)) + ")"

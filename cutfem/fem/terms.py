@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.sparse as sp
 
-from . import element_kernels
+from . import element_kernels, high_order
 from .assembly import block_diagonal, gram
 from .closed_forms import (_element_symmetric, _gradient_matrix, _jump_gram, _kuhn_stiffness, _kuhn_tangential_stiffness,
                     _kuhn_volume_mass, _meshed_edge_penalty, _meshed_mass, _meshed_stiffness, _piece_mass, _piece_moments,
@@ -34,7 +34,8 @@ from .forms import Form, Integrand, Term, _field_index, _number, assemble
 from ..geometry.measures import ElementVolume, FacetMeasure, Measure, MeshedSurface, SideVolume, SurfacePieces
 from ..geometry.markers import CUT, NEG, POS, SIDES
 from ..geometry.numbering import TET_EDGES
-from .pointwise import VectorBasisField, _require_function, _value, dot, inner, jump
+from .high_order import second_normal
+from .pointwise import ZERO, VectorBasisField, _require_function, _value, dot, inner, jump
 from .spaces import ProductSpace, VectorSpace
 
 __all__ = [
@@ -144,7 +145,8 @@ def _mass_exact(term, space, into, scale):
     raise TypeError(f"mass integrates over cells (a surface or a volume), not over {measure!r}")
 
 
-_MASS = _integrand("mass", lambda u, v, w: inner(u, v), symmetric=True, exact=_componentwise(_mass_exact))
+_MASS = _integrand("mass", lambda u, v, w: inner(u, v), symmetric=True, exact=_componentwise(_mass_exact),
+                   high_order=high_order.mass_blocks)
 
 
 def mass(measure: Measure, field=None) -> Form:
@@ -172,7 +174,7 @@ def _stiffness_exact(term, space, into, scale):
 
 
 _STIFFNESS = _integrand("stiffness", lambda u, v, w: w.h**w.h_power * inner(u.grad, v.grad), symmetric=True,
-                        exact=_componentwise(_stiffness_exact))
+                        exact=_componentwise(_stiffness_exact), high_order=high_order.stiffness_blocks)
 
 
 def stiffness(measure: Measure, field=None, h_power: float = 0) -> Form:
@@ -203,7 +205,7 @@ def _tangential_exact(term, space, into, scale):
 
 
 _TANGENTIAL = _integrand("tangential_stiffness", lambda u, v, w: inner(u.tgrad, v.tgrad), symmetric=True,
-                         exact=_componentwise(_tangential_exact))
+                         exact=_componentwise(_tangential_exact), high_order=high_order.tangential_blocks)
 
 
 def tangential_stiffness(measure: Measure, field=None) -> Form:
@@ -228,7 +230,7 @@ def _position_load_exact(term, space):
         element_kernels.meshed_position_load(space.dof_points, space.element_dofs, out)
         return out
     if not _same_elements(space, measure):
-        raise ValueError("position_load needs the field on the cut tets, CutP1Space(cut, CUT)")
+        raise ValueError("position_load needs the field on the cut tets, CutSpace(cut, CUT)")
     out = np.zeros((space.n_dofs, 3))
     table, types = space.gradient_lookup()
     element_kernels.tangential_gradient_sums(space.element_dofs, table, types, np.ascontiguousarray(space.element_normals, dtype=float),
@@ -366,15 +368,28 @@ def _face_jump_exact(term, space, into, scale):
     return _jump_gram(space, pairs, n, n, -1.0, factor)
 
 
+def _face_jump_integrand(u, v, w):
+    """h^a [n . grad u][n . grad v] + h^(a+2) / 4 [n^T H(u) n][n^T H(v) n]: the jumps of the normal
+    derivatives of order j = 1, 2, weighted h^(a + 2(j - 1)) / (j!)^2; P1 Hessians are ZERO, so for
+    P1 it is the first term alone."""
+    first = w.h**w.h_power * inner(dot(jump(u.grad), w.n), dot(jump(v.grad), w.n))
+    second = inner(second_normal(jump(u.hess), w.n), second_normal(jump(v.hess), w.n))
+    if second is ZERO:
+        return first
+    return first + (0.25 * w.h ** (w.h_power + 2.0)) * second
+
+
 # [n_F . grad u] = n_F . (grad u^- - grad u^+), n_F from the minus to the plus tet (of each component: grad u n_F)
-_FACE_JUMP = _integrand("face_jump_penalty",
-                        lambda u, v, w: w.h**w.h_power * inner(dot(jump(u.grad), w.n), dot(jump(v.grad), w.n)),
-                        symmetric=True, exact=_componentwise(_face_jump_exact))
+_FACE_JUMP = _integrand("face_jump_penalty", _face_jump_integrand, symmetric=True, exact=_componentwise(_face_jump_exact),
+                        high_order=high_order.face_jump_blocks)
 
 
 def face_jump_penalty(measure: FacetMeasure, h_power: float = 0.0, field=None) -> Form:
     """sum_F h_F^a ([n_F . grad u], [n_F . grad v])_F over a facet set, with the local h_F (the
-    longest edge of F) and a = ``h_power``.
+    longest edge of F) and a = ``h_power``; on a field of order k the jumps of the normal
+    derivatives of every order j <= k, sum_j h_F^(a + 2(j - 1)) / (j!)^2 ([d_n^j u], [d_n^j v])_F
+    (docs/math.md §18: with a = 1 the ghost penalty of order k, weights h^(2j - 1) / (j!)^2), by
+    quadrature of degree 2k.
 
     [n_F . grad u] = n_{F,T1}.grad u|T1 + n_{F,T2}.grad u|T2 with outward unit face normals; for P1
     it is constant on F, so the integral is |F| times the product of jumps.  Over the interior faces
@@ -404,7 +419,7 @@ def _edge_jump_exact(term, space, into, scale):
         into.add(*_meshed_edge_penalty(space, hh), scale=scale)
         return None
     if not _same_elements(space, measure):
-        raise ValueError("edge_jump_penalty needs the field on the cut tets, CutP1Space(cut, CUT)")
+        raise ValueError("edge_jump_penalty needs the field on the cut tets, CutSpace(cut, CUT)")
     c = measure.cut
     t = c.surface_edge_conormals
     # the pieces along an edge of S_h need not lie in face-adjacent tets: Gram products, not lattice slots
@@ -412,8 +427,8 @@ def _edge_jump_exact(term, space, into, scale):
 
 
 def _edges_only(u, v, w):
-    raise TypeError("edge_jump_penalty integrates over the edges between surface elements, which no quadrature measure "
-                    "covers: it has its exact implementation only")
+    raise TypeError("edge_jump_penalty integrates over the edges between surface elements, which no quadrature measure covers: "
+                    "it has its exact P1 form only (on P2 fields stabilize with face_jump_penalty or normal_gradient_penalty)")
 
 
 _EDGE_JUMP = _integrand("edge_jump_penalty", _edges_only, symmetric=True, exact=_componentwise(_edge_jump_exact))
@@ -445,7 +460,7 @@ def _normal_gradient_exact(term, space, into, scale):
 
 _NORMAL_GRADIENT = _integrand("normal_gradient_penalty",
                               lambda u, v, w: w.h**w.h_power * inner(dot(u.grad, w.n), dot(v.grad, w.n)), symmetric=True,
-                              exact=_componentwise(_normal_gradient_exact))
+                              exact=_componentwise(_normal_gradient_exact), high_order=high_order.normal_gradient_blocks)
 
 
 def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=None) -> Form:
@@ -465,8 +480,8 @@ def normal_gradient_penalty(measure: ElementVolume, h_power: float = 1.0, field=
 
 
 def _side_of(space):
-    """NEG or POS for a bulk field on one side's element set of its cut (``CutP1Space(cut, NEG)`` or
-    ``CutP1Space(cut, POS)``: the set is the cut's own, :meth:`~cutfem.geometry.cut.CutMesh.elements`), else
+    """NEG or POS for a bulk field on one side's element set of its cut (``CutSpace(cut, NEG)`` or
+    ``CutSpace(cut, POS)``: the set is the cut's own, :meth:`~cutfem.geometry.cut.CutMesh.elements`), else
     None (the cut tets, another element set, a surface mesh)."""
     cut, es = getattr(space, "cut", None), getattr(space, "elements", None)
     side = getattr(es, "name", None)
@@ -491,7 +506,7 @@ def _outward_sign(space, measure: SurfacePieces, what: str) -> float:
         raise ValueError(f"{what}: the field lives on the NEG side of another cut whose tets do not hold every cut tet of "
                          f"the measure ({space!r}); extend its domain (a larger strip) so that it covers Gamma_h")
     raise ValueError(f"{what} imposes a condition on Gamma_h for a bulk field of one side of the same cut, "
-                     f"CutP1Space(cut, NEG) or CutP1Space(cut, POS), or of an extended domain holding the cut; got {space!r}")
+                     f"CutSpace(cut, NEG) or CutSpace(cut, POS), or of an extended domain holding the cut; got {space!r}")
 
 
 def _nitsche_advice(params, form) -> str:
@@ -545,7 +560,8 @@ def _nitsche_load_exact(term, space):
 
 
 _NITSCHE = _integrand("nitsche", _nitsche_matrix, symmetric=True, exact=_componentwise(_nitsche_exact), prepare=_nitsche_side,
-                      advice=_nitsche_advice)
+                      advice=_nitsche_advice,
+                      high_order=lambda term, V: high_order.nitsche_blocks(term, V, _outward_sign(V, term.measure, "nitsche")))
 _NITSCHE_LOAD = _integrand("nitsche load",
                            lambda v, w: _times(w.at(w.g), w.gamma / w.h * v - dot(v.grad, w.outward * w.n)),
                            linear=True, exact=_componentwise_load(_nitsche_load_exact), prepare=_nitsche_side)
@@ -586,8 +602,8 @@ def nitsche(measure: SurfacePieces, gamma: float = 10.0, g=None, field=None) -> 
         -(n . grad u, v)_Gamma - (u, n . grad v)_Gamma + (gamma / h) (u, v)_Gamma,
 
     n the outward unit normal of the field's domain and h the local h_T of the cut tet.  The side
-    comes from the field: n = n_h (from NEG to POS) for ``CutP1Space(cut, NEG)``, n = -n_h for
-    ``CutP1Space(cut, POS)`` (the outer domain); any other field is refused (:func:`_outward_sign`).
+    comes from the field: n = n_h (from NEG to POS) for ``CutSpace(cut, NEG)``, n = -n_h for
+    ``CutSpace(cut, POS)`` (the outer domain); any other field is refused (:func:`_outward_sign`).
     With the data ``g`` (a function of the points) the matching right-hand side is the returned
     form's :attr:`~Nitsche.load`, with the same gamma.  On a vector field
     (:class:`~cutfem.fem.spaces.VectorSpace`) the terms act on each component, -(grad u n, v) - ...,
@@ -626,7 +642,7 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
     indefinite (:attr:`~cutfem.fem.forms.Form.indefinite_hint`).
 
     ``fields = (f_NEG, f_POS)`` (positions or names) are the NEG field, then the POS field, of a
-    :class:`~cutfem.fem.spaces.ProductSpace`: ``CutP1Space(cut, NEG)`` and ``CutP1Space(cut, POS)`` of
+    :class:`~cutfem.fem.spaces.ProductSpace`: ``CutSpace(cut, NEG)`` and ``CutSpace(cut, POS)`` of
     the measure's cut.  The rule is checked when the form is assembled, never adapted: two fields in
     the other order, the same field twice, a field of another element set or a single space are
     refused with the fix (e.g. ``fields=(1, 0)`` for ``ProductSpace(V_pos, V_neg)``)."""
@@ -660,7 +676,7 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
             where = ", ".join(f"field {f!r} on {getattr(getattr(space.fields[i], 'elements', None), 'name', space.fields[i])!r}"
                               for f, i in zip(fields, k))
             fix = (f"pass fields=({fields[1]!r}, {fields[0]!r})" if sides == [POS, NEG] else
-                   "give the fields CutP1Space(cut, NEG) and CutP1Space(cut, POS) of the measure's cut")
+                   "give the fields CutSpace(cut, NEG) and CutSpace(cut, POS) of the measure's cut")
             raise ValueError(f"interface_nitsche: fields=(f_NEG, f_POS) must name the NEG field, then the POS field, of "
                              f"the measure's cut; got {where}: {fix}")
         return {"neg_field": k[0], "pos_field": k[1]}

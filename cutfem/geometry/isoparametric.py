@@ -195,6 +195,20 @@ class Deformation:
             theta[moving], jac[moving] = _p2_map(vertices, shifts[rows[cells[moving]]], points[moving])
         return theta, jac
 
+    def hessians(self, elements, cells) -> np.ndarray:
+        """(m, 3, 3, 3) the Hessians of the components of Theta_h (component first) on the tets
+        ``cells`` (local indices of ``elements``): constant on each tet, 2 G^T Q_c G with Q_c the
+        quadratic form of component c's shifts (:func:`quadratic_form`) and G the barycentric
+        gradients; zero where Theta_h is the identity."""
+        rows, shifts = self.element_shifts(elements)
+        cells = np.asarray(cells, dtype=np.int64)
+        out = np.zeros((len(cells), 3, 3, 3))
+        moving = np.flatnonzero(rows[cells] >= 0)
+        if len(moving):
+            grads, _ = barycentric_gradients(elements.points[np.asarray(elements.tets)[cells[moving]]])
+            out[moving] = 2.0 * np.einsum("mlkc,mli,mkj->mcij", quadratic_form(shifts[rows[cells[moving]]]), grads, grads)
+        return out
+
     def deform(self, quad: Quadrature, elements, surface: bool) -> Quadrature:
         """The quadrature ``quad`` of cells in ``elements`` (its ``parent`` indexes them) mapped by
         Theta_h (module docstring): ``quad`` itself when none of its cells moves."""

@@ -78,14 +78,22 @@ def lattice_indices(space):
     """Integer lattice indices (n, 3) of the dofs of a space on a structured box, or None.
 
     Works for spaces whose dofs are background nodes (``node_ids``) of a
-    :class:`~cutfem.geometry.box.StructuredBox` (``space.cut.background`` or ``space.background``).
+    :class:`~cutfem.geometry.box.StructuredBox` (``space.cut.background`` or ``space.background``),
+    and for P2 spaces on one (``order`` 2, ``edge_nodes``): their dofs, the nodes and the edge
+    midpoints, are the nodes of the Kuhn lattice of half the spacing (a Kuhn edge joins ijk and
+    ijk + o, o in {0, 1}^3, its midpoint is 2 ijk + o there), so the first prolongation of
+    :func:`lattice_hierarchy` is the embedding of P1 into P2 and the hierarchy continues on P1.
     """
     node_ids = getattr(space, "node_ids", None)
     cut = getattr(space, "cut", None)
     box = getattr(cut, "background", None) if cut is not None else getattr(space, "background", None)
     if node_ids is None or not isinstance(box, StructuredBox):
         return None
-    return box.node_index(node_ids)
+    ijk = box.node_index(node_ids)
+    if getattr(space, "order", 1) == 2:
+        edges = space.edge_nodes
+        return np.concatenate([2 * ijk, ijk[edges[:, 0]] + ijk[edges[:, 1]]])
+    return ijk
 
 
 def kuhn_prolongation(ijk):

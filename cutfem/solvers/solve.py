@@ -14,7 +14,7 @@ What is used when
   :class:`~cutfem.solvers.multigrid.GeometricMultigrid` ("cg-mg"), all right-hand sides at once,
   relative residual :data:`~cutfem.solvers.krylov.DEFAULT_TOL` (1e-8) per column.  The
   hierarchies: the nested Kuhn lattices when the unknowns are nodes of a structured background
-  (``space=`` a :class:`~cutfem.fem.spaces.CutP1Space` on a
+  (``space=`` a :class:`~cutfem.fem.spaces.CutSpace` on a
   :class:`~cutfem.geometry.box.StructuredBox`, or ``lattice=`` their integer indices); on a
   surface mesh (``space=`` a :class:`~cutfem.fem.spaces.SurfaceP1Space`) its periodic grid when it
   has one (the torus families) and otherwise a Kuhn lattice around it;

@@ -68,7 +68,7 @@ def exchange(u, v, w):  # u[0], u[1]: the product space's fields (bulk, surface)
 def main(spacing=0.2, gamma_g=0.1, tau_n=1.0):
     """L2 errors of both fields and the H1 error of the bulk field at one background spacing."""
     cut = cf.cut_mesh(cf.structured_box([-1.1] * 3, [1.1] * 3, spacing=spacing), cf.Sphere(1.0))
-    W = cf.ProductSpace(bulk=cf.CutP1Space(cut, cf.NEG), surface=cf.CutP1Space(cut, cf.CUT))
+    W = cf.ProductSpace(bulk=cf.CutSpace(cut, cf.NEG), surface=cf.CutSpace(cut, cf.CUT))
     dx, ds = cut.dx(cf.NEG), cut.ds()
     form = (
         B_BULK * cf.stiffness(dx, field="bulk") + B_BULK * cf.mass(dx, field="bulk")

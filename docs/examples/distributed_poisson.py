@@ -6,7 +6,7 @@
 ``cf.run`` solves a registered problem at each level.  Started by an MPI launcher it runs the
 problem's distributed levels: the box is split in slabs of cell layers, each rank cuts its slab
 and the one layer of cells below it, assembles the cell terms of its own cells and each ghost-penalty
-face once, and PETSc solves (docs/math.md §18).  The unknowns are numbered as in the serial run,
+face once, and PETSc solves (docs/math.md §19).  The unknowns are numbered as in the serial run,
 so the errors agree with it to about 1e-10 on any number of ranks.  Every rank returns the same
 record; rank 0 prints.  Distributed runs need mpi4py and petsc4py (README, "Distributed runs").
 """

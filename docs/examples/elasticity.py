@@ -28,7 +28,7 @@ GRAD_U = U.grad                                                                #
 def main(spacing=0.2, mu=1.0, lam=2.0, gamma=10.0, gamma_g=0.1):
     """L2 and H1 errors of the displacement at one background spacing, and the CG iterations."""
     cut = cf.cut_mesh(cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), cf.Sphere(1.0))
-    W = cf.VectorSpace(cf.CutP1Space(cut, cf.NEG))     # [P1]^3 on every tet that meets the ball
+    W = cf.VectorSpace(cf.CutSpace(cut, cf.NEG))     # [P1]^3 on every tet that meets the ball
     dx, ds = cut.dx(cf.NEG), cut.ds()
     dg = cut.dF(cut.ghost_facets(cf.NEG))
 

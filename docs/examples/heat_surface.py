@@ -41,7 +41,7 @@ def g(x):  # f(x, t) = exp(-t) g(x): the load is exp(-t_n) G with G assembled on
 def main(spacing=0.2, theta=1.0, final_time=0.5, tau_n=1.0):
     """The L2 error on S_h at the final time, at one background spacing."""
     cut = cf.cut_mesh(cf.structured_box([-1.1] * 3, [1.1] * 3, spacing=spacing), cf.Sphere(1.0))
-    V = cf.CutP1Space(cut, cf.CUT)
+    V = cf.CutSpace(cut, cf.CUT)
     ds, dT = cut.ds(), cut.dx(cf.CUT)
     M = cf.assemble(cf.mass(ds) + tau_n * cf.normal_gradient_penalty(dT, h_power=1), V)
     A = cf.assemble(cf.tangential_stiffness(ds) + tau_n * cf.normal_gradient_penalty(dT, h_power=-1), V)

@@ -33,7 +33,7 @@ def psi_w(x):
 def main(spacing=0.2, a_in=1.0, a_out=10.0, gamma=10.0, gamma_g=0.1):
     """L2 and H1 errors on each side at one background spacing."""
     cut = cf.cut_mesh(cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), cf.Sphere(R))
-    W = cf.ProductSpace(cf.CutP1Space(cut, cf.NEG), cf.CutP1Space(cut, cf.POS))  # field 0 inside, 1 outside
+    W = cf.ProductSpace(cf.CutSpace(cut, cf.NEG), cf.CutSpace(cut, cf.POS))  # field 0 inside, 1 outside
     a = {cf.NEG: a_in, cf.POS: a_out}
 
     # the interface terms couple the two fields; each side adds its stiffness, ghost penalty and load

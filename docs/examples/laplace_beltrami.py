@@ -44,7 +44,7 @@ def grad_exact(x):  # grad_S u = P grad u at p, P = I - n n^T
 def main(spacing=0.2, tau_f=0.1):
     """L2 and H1 errors on S_h at one background spacing."""
     cut = cf.cut_mesh(cf.structured_box([-1.1] * 3, [1.1] * 3, spacing=spacing), cf.Sphere(1.0))
-    V = cf.CutP1Space(cut, cf.CUT)                      # P1 on the cut tets: traces on S_h
+    V = cf.CutSpace(cut, cf.CUT)                      # P1 on the cut tets: traces on S_h
     ds = cut.ds()                                       # S_h with its quadrature
     faces = cut.dF(cut.interior_facets(cf.CUT))         # faces shared by two cut tets
     K = cf.assemble(cf.tangential_stiffness(ds) + cf.mass(ds) + tau_f * cf.face_jump_penalty(faces), V)

@@ -43,7 +43,7 @@ surface = cf.FunctionLevelSet(phi, gradient=grad_phi, hessian=hess_phi, lipschit
 def main(spacing=0.2, tau_f=0.1):
     """The L2 error of H_h on S_h against the exact H at the closest points, at one spacing."""
     cut = cf.cut_mesh(cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), surface)
-    V = cf.CutP1Space(cut, cf.CUT)
+    V = cf.CutSpace(cut, cf.CUT)
     ds, faces = cut.ds(), cut.dF(cut.interior_facets(cf.CUT))
     K = cf.assemble(cf.mass(ds) + tau_f * cf.face_jump_penalty(faces), V)
     H, info = cf.solve(K, cf.assemble(cf.position_load(ds), V), space=V)  # (n, 3): one matrix, three loads

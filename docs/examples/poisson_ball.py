@@ -47,7 +47,7 @@ def main(spacing=0.2, gamma=10.0, gamma_g=0.1):
     """L2 and H1 errors of u_h over the cut ball Omega_h at one background spacing."""
     background = cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing)
     cut = cf.cut_mesh(background, cf.Sphere(1.0))
-    V = cf.CutP1Space(cut, cf.NEG)                     # P1 on every tet that meets the ball
+    V = cf.CutSpace(cut, cf.NEG)                     # P1 on every tet that meets the ball
     dx, ds = cut.dx(cf.NEG), cut.ds()                  # Omega_h and Gamma_h with their quadrature
     dg = cut.dF(cut.ghost_facets(cf.NEG))              # the faces of cut tets inside the active mesh
     K = cf.assemble(poisson * dx + poisson * ds + gamma_g * cf.face_jump_penalty(dg, h_power=1), V, gamma=gamma)

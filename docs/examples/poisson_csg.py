@@ -37,7 +37,7 @@ def main(spacing=0.2, gamma=10.0, gamma_g=0.1):
     """L2 and H1 errors of u_h over Omega_h at one background spacing."""
     ball, cap = cf.Sphere(1.0), cf.Plane((0, 0, 1), (0, 0, 0.5))
     cut = cf.cut_mesh(cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), cf.intersection(ball, cap))
-    V = cf.CutP1Space(cut, cf.NEG)                     # P1 on every tet that meets Omega
+    V = cf.CutSpace(cut, cf.NEG)                     # P1 on every tet that meets Omega
     dx, sphere, disc = cut.dx(cf.NEG), cut.ds(ball), cut.ds(cap)
     ghost = cut.dF(cut.ghost_facets(cf.NEG))
     K = cf.assemble(cf.stiffness(dx) + nitsche.on(sphere, gamma=gamma) + gamma_g * cf.face_jump_penalty(ghost, h_power=1), V)

@@ -32,7 +32,7 @@ def normal_data(v, w):  # (g . n, q) on the boundary
 def main(spacing=0.2):
     """The velocity's L2 and H1 errors and the pressure's L2 error, at one spacing."""
     cut = cf.cut_mesh(cf.structured_box([-1.1] * 3, [1.1] * 3, spacing=spacing), cf.Sphere(1.0))
-    V = cf.CutP1Space(cut, cf.NEG)
+    V = cf.CutSpace(cut, cf.NEG)
     W = cf.ProductSpace(u=cf.VectorSpace(V), p=V, mean=cf.RealSpace())
     dx, ds, dg = cut.dx(cf.NEG), cut.ds(), cut.dF(cut.ghost_facets(cf.NEG))
     N = cf.nitsche(ds, GAMMA, g=U, field="u")

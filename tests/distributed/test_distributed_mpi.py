@@ -1,4 +1,4 @@
-"""Distributed runs on MPI and PETSc (docs/math.md §18), run by .ci/run under mpiexec at 1, 2 and 4
+"""Distributed runs on MPI and PETSc (docs/math.md §19), run by .ci/run under mpiexec at 1, 2 and 4
 ranks (``mpiexec -n 4 python -m pytest tests/distributed``) and at 1 rank by a plain pytest when
 mpi4py and petsc4py are installed; skipped without them.
 
@@ -22,7 +22,7 @@ from cutfem.distributed.mean_curvature import mean_curvature_cut_level  # noqa: 
 from cutfem.distributed.partition import rank_cuts, slab_partition  # noqa: E402
 from cutfem.distributed.poisson import poisson_cut_level, poisson_pieces  # noqa: E402
 from cutfem.fem.forms import assemble  # noqa: E402
-from cutfem.fem.spaces import CutP1Space  # noqa: E402
+from cutfem.fem.spaces import CutSpace  # noqa: E402
 from cutfem.fem.terms import face_jump_penalty, load, nitsche, stiffness  # noqa: E402
 from cutfem.geometry.cut import cut_mesh  # noqa: E402
 from cutfem.geometry.markers import CUT, NEG  # noqa: E402
@@ -59,7 +59,7 @@ def torus():
     phi = levelset_for("torus")
     bg = background_for(phi, 0.1, "structured", None)
     cut = cut_mesh(bg, phi)
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     dx = cut.dx(NEG)
     N = nitsche(cut.ds(), 10.0, g=exact_u)
     G = cut.ghost_facets(NEG)

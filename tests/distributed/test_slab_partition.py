@@ -1,5 +1,5 @@
 """The slabs of a structured box without MPI: each rank's pieces computed in one process and added
-up by their global node ids equal the serial matrix and load (docs/math.md §18), every ghost face
+up by their global node ids equal the serial matrix and load (docs/math.md §19), every ghost face
 is assembled once, and ranks without layers, without active cells or without a cut take part."""
 
 import numpy as np
@@ -10,7 +10,7 @@ from cutfem.distributed.partition import SlabBox, rank_cuts, slab_partition
 from cutfem.distributed.laplace_beltrami import laplace_beltrami_pieces
 from cutfem.distributed.poisson import poisson_pieces
 from cutfem.fem.forms import assemble
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 from cutfem.fem.terms import face_jump_penalty, load, mass, nitsche, normal_gradient_penalty, stiffness, tangential_stiffness
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.markers import CUT, NEG
@@ -25,7 +25,7 @@ def torus():
     phi = levelset_for("torus")
     bg = background_for(phi, 0.1, "structured", None)
     cut = cut_mesh(bg, phi)
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     dx = cut.dx(NEG)
     N = nitsche(cut.ds(), 10.0, g=exact_u)
     G = cut.ghost_facets(NEG)
@@ -72,7 +72,7 @@ def test_laplace_beltrami_pieces_add_up_to_the_serial_system(stabilization):
     sol = manufactured(phi)
     bg = background_for(phi, 0.2, "structured", None)
     cut = cut_mesh(bg, phi)
-    V = CutP1Space(cut)
+    V = CutSpace(cut)
     dS = cut.ds()
     stab = (face_jump_penalty(cut.dF(cut.interior_facets(CUT)), h_power=1.0) if stabilization == "face" else
             normal_gradient_penalty(cut.dx(CUT), h_power=1.0))

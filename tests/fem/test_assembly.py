@@ -35,7 +35,7 @@ from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import CUT, NEG
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.mesh import TetMesh
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 from cutfem import jit
 from cutfem.fem import assembly_kernels
@@ -299,7 +299,7 @@ CUT_CASES = {
 @pytest.fixture(scope="module", params=sorted(CUT_CASES))
 def cut_case(request):
     cut = CUT_CASES[request.param]()
-    V = CutP1Space(cut)
+    V = CutSpace(cut)
     return V, reference_cut(cut, V.h, face_h_powers=(0.0, 2.0), normal_h_powers=(1.0, 0.0))
 
 
@@ -343,7 +343,7 @@ def test_volume_mass_and_stiffness_match_reference(perturbed):
         bg = TetMesh(np.array(bg.points), np.array(bg.tets))
     ls = Sphere(0.71, [0.05, -0.03, 0.02])
     cut = cut_mesh(bg, ls)
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     M, K = reference_volume(bg, ls.value(bg.points))
     ids = V.node_ids
     # the space's dofs are exactly the nodes touched by the reference
@@ -366,7 +366,7 @@ def test_volume_stiffness_on_a_structured_box_matches_reference(cells, monkeypat
     bg = structured_box([-1, -1, -1], [1, 1, 1], cells=cells)
     ls = Sphere(0.71, [0.05, -0.03, 0.02])
     cut = cut_mesh(bg, ls)
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     assert V.elements.kuhn_types is not None
     M, K = reference_volume(bg, ls.value(bg.points))
     ids = V.node_ids
@@ -380,7 +380,7 @@ def test_volume_stiffness_on_a_structured_box_matches_reference(cells, monkeypat
     np.testing.assert_allclose(A.toarray(), G.toarray(), rtol=0, atol=1e-14)
     # whole tets of an element set (ElementVolume): against the simplex route of the same tets as a TetMesh
     plain = cut_mesh(TetMesh(np.array(bg.points), np.array(bg.tets)), ls)
-    Vp = CutP1Space(plain, NEG)
+    Vp = CutSpace(plain, NEG)
     np.testing.assert_array_equal(Vp.node_ids, ids)
     whole = assemble(mass(cut.dx(cut.elements(NEG))), V)
     assert_matrix_equal(whole, assemble(mass(plain.dx(plain.elements(NEG))), Vp).toarray())
@@ -399,7 +399,7 @@ def test_tangential_stiffness_on_a_structured_box_matches_the_gram_route():
     bg = structured_box([-1, -1, -1], [1, 1, 1], cells=(6, 5, 7))
     ls = Sphere(0.71, [0.05, -0.03, 0.02])
     cut = cut_mesh(bg, ls)
-    V = CutP1Space(cut)
+    V = CutSpace(cut)
     assert V.elements.kuhn_types is not None
     dS = cut.ds()
     A = assemble(tangential_stiffness(dS), V)
@@ -409,7 +409,7 @@ def test_tangential_stiffness_on_a_structured_box_matches_the_gram_route():
     assert abs(A - A.T).max() == 0.0
     np.testing.assert_allclose(A @ np.ones(V.n_dofs), 0.0, atol=1e-13 * scale)
     plain = cut_mesh(TetMesh(np.array(bg.points), np.array(bg.tets)), ls)
-    Vp = CutP1Space(plain)
+    Vp = CutSpace(plain)
     np.testing.assert_array_equal(Vp.node_ids, V.node_ids)
     np.testing.assert_allclose(A.toarray(), assemble(tangential_stiffness(plain.ds()), Vp).toarray(), rtol=0, atol=1e-13 * scale)
     g = np.array([0.3, -1.2, 0.7])
@@ -537,7 +537,7 @@ def test_face_penalty_sums_on_all_cores(monkeypatch):
 
 
     cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.05), Torus())
-    V = CutP1Space(cut)
+    V = CutSpace(cut)
     dF = cut.dF(cut.interior_facets(CUT))
     seen = []
     chunks = assembly_kernels.scatter_chunks
@@ -587,7 +587,7 @@ def test_lattice_csr_by_chunks_is_the_csr_of_the_slots(threads):
     from cutfem.fem.assembly import LatticeSum
 
     cut = cut_mesh(structured_box([-1.6, -1.6, -0.7], [1.6, 1.6, 0.7], cells=(40, 40, 18)), Torus(1.0, 0.5))
-    V = CutP1Space(cut)
+    V = CutSpace(cut)
     assert V.n_dofs > 8 * 64  # enough rows for the chunks
     lattice = LatticeSum(V.node_ids, cut.background)
     rng = np.random.default_rng(5)

@@ -11,7 +11,7 @@ from cutfem.fem.coupling import divergence, mean_constraint
 @pytest.fixture(scope="module")
 def stokes_space():
     cut = cf.cut_mesh(cf.structured_box([-1.1] * 3, [1.1] * 3, spacing=0.25), cf.Sphere(0.83))
-    V = cf.CutP1Space(cut, cf.NEG)
+    V = cf.CutSpace(cut, cf.NEG)
     W = cf.ProductSpace(u=cf.VectorSpace(V), p=V, mean=cf.RealSpace())
     return cut, V, W
 
@@ -89,7 +89,7 @@ def test_stiffness_with_h_power_weights_each_cell_by_its_size():
     """sum_T h_T^a (grad u, grad v)_{T ∩ Omega_h}: the exact path against the quadrature route (which
     reads w.h per cell), and against h^a times the plain stiffness on a structured box (one h)."""
     cut = cf.cut_mesh(cf.structured_box([-1.1] * 3, [1.1] * 3, spacing=0.25), cf.Sphere(0.83))
-    V, dx = cf.CutP1Space(cut, cf.NEG), cut.dx(cf.NEG)
+    V, dx = cf.CutSpace(cut, cf.NEG), cut.dx(cf.NEG)
     A = cf.assemble(cf.stiffness(dx, h_power=2), V)
     assert abs(A - cf.assemble(cf.stiffness(dx, h_power=2).by_quadrature(), V)).max() <= 1e-14 * abs(A).max()
     h = dx.h

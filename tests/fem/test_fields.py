@@ -30,7 +30,7 @@ from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.mesh import TetMesh
-from cutfem.fem.spaces import CutP1Space, ProductSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace
 
 # a sphere in general position: no nodal value is zero, no two values of a tet coincide
 CENTRE = (0.031, -0.017, 0.023)
@@ -310,7 +310,7 @@ def test_ball_volume_converges_at_second_order():
 def test_interface_measure_is_the_same_from_both_sides(generic):
     _, cut, _ = generic
     for on in (NEG, POS, CUT):
-        total = assemble(mass(cut.ds()), CutP1Space(cut, on)).sum()
+        total = assemble(mass(cut.ds()), CutSpace(cut, on)).sum()
         assert total == pytest.approx(cut.area, rel=1e-12)
     # and the area of S_h is that of its triangles, computed here
     tri = cut.triangle_points
@@ -330,7 +330,7 @@ def _jump_product(u, v, w):
 
 def test_continuous_function_has_no_jump(generic):
     box, cut, _ = generic
-    VN, VP = CutP1Space(cut, NEG), CutP1Space(cut, POS)
+    VN, VP = CutSpace(cut, NEG), CutSpace(cut, POS)
     W = ProductSpace(VN, VP)
     K = assemble(_jump_product * cut.ds(), W)
     rng = np.random.default_rng(1)
@@ -359,7 +359,7 @@ def test_continuous_function_has_no_jump(generic):
 @pytest.mark.parametrize("side", [NEG, POS])
 def test_fitted_plane_gives_standard_fem(side):
     box, cut = _plane_cut()
-    V = CutP1Space(cut, side)
+    V = CutSpace(cut, side)
     dof = _dof_map(V)
     centroid_z = box.points[box.tets][:, :, 2].mean(axis=1)
     tets = np.flatnonzero(centroid_z < 0 if side == NEG else centroid_z > 0)
@@ -384,7 +384,7 @@ def test_fitted_plane_gives_standard_fem(side):
 
 def test_ghost_penalty_vanishes_on_linear_functions(generic):
     _, cut, _ = generic
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     K = assemble(face_jump_penalty(cut.dF(cut.ghost_facets(NEG)), h_power=1), V)
     x = V.dof_points
     norm = abs(K).sum(axis=1).max()
@@ -402,7 +402,7 @@ def test_ghost_penalty_vanishes_on_linear_functions(generic):
 @pytest.mark.parametrize("side", [NEG, POS])
 def test_stiffness_and_mass_on_a_side_match_reference(generic, side):
     box, cut, values = generic
-    V = CutP1Space(cut, side)
+    V = CutSpace(cut, side)
     K = assemble(stiffness(cut.dx(side)), V)
     M = assemble(mass(cut.dx(side)), V)
     _close(K, _reference_bulk(box, values, V, side, "stiffness"))
@@ -419,7 +419,7 @@ def test_stiffness_in_blocks_of_elements_matches_reference(generic, monkeypatch)
     box, cut, values = generic
     monkeypatch.setattr(assembly, "GRAM_ROWS", 21)
     for side in (NEG, POS):
-        V = CutP1Space(cut, side)
+        V = CutSpace(cut, side)
         K = assemble(stiffness(cut.dx(side)), V)
         _close(K, _reference_bulk(box, values, V, side, "stiffness"))
         _exactly_symmetric(K)
@@ -427,7 +427,7 @@ def test_stiffness_in_blocks_of_elements_matches_reference(generic, monkeypatch)
 
 def test_load_on_a_side_matches_an_independent_quadrature(generic):
     box, cut, values = generic
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
 
     def f(x):  # degree 3: f v is integrated exactly by both rules
         return 1.0 + x[..., 0] - 2.0 * x[..., 1] * x[..., 2] + x[..., 0] ** 3
@@ -440,7 +440,7 @@ def test_load_on_a_side_matches_an_independent_quadrature(generic):
 
 def test_nitsche_matches_reference(generic):
     box, cut, values = generic
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     gamma = 10.0
     dof = _dof_map(V)
     ref = np.zeros((V.n_dofs, V.n_dofs))
@@ -471,7 +471,7 @@ def test_nitsche_closed_form_equals_the_quadrature_integrand(structured):
     if not structured:
         box = TetMesh(np.array(box.points), np.array(box.tets))
     cut = cut_mesh(box, Sphere(RADIUS, center=CENTRE))
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     assert (V.elements.kuhn_types is not None) == structured
 
     @bilinear_form(symmetric=True)
@@ -487,7 +487,7 @@ def test_nitsche_closed_form_equals_the_quadrature_integrand(structured):
 @pytest.mark.parametrize("weights", ["harmonic", "volume"])
 def test_interface_nitsche_matches_reference_in_all_four_blocks(generic, weights):
     box, cut, values = generic
-    VN, VP = CutP1Space(cut, NEG), CutP1Space(cut, POS)
+    VN, VP = CutSpace(cut, NEG), CutSpace(cut, POS)
     W = ProductSpace(VN, VP)
     a_neg, a_pos, gamma = 1.0, 7.0, 10.0
     dN, dP = _dof_map(VN), _dof_map(VP)
@@ -525,7 +525,7 @@ def test_interface_nitsche_matches_reference_in_all_four_blocks(generic, weights
 
 def test_ghost_penalty_matches_reference(generic):
     box, cut, values = generic
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     inside = values[box.tets] < 0
     neg_tets = np.flatnonzero(inside.any(axis=1))
     is_cut = inside.any(axis=1) & ~inside.all(axis=1)
@@ -539,7 +539,7 @@ def test_ghost_penalty_matches_reference(generic):
 
 def test_face_stabilization_on_cut_tets_matches_reference(generic):
     box, cut, values = generic
-    V = CutP1Space(cut)
+    V = CutSpace(cut)
     faces = _interior_faces(box, cut.tet_ids)
     assert cut.interior_facets(CUT).n_facets == len(faces)
     K = assemble(face_jump_penalty(cut.dF(cut.interior_facets(CUT))), V)
@@ -575,7 +575,7 @@ def test_gram_builtins_equal_the_same_integrands(generic):
     _, cut, _ = generic
     cases = []
     for side in (NEG, POS):
-        V, dx = CutP1Space(cut, side), cut.dx(side)
+        V, dx = CutSpace(cut, side), cut.dx(side)
         dg = cut.dF(cut.ghost_facets(side))
         cases += [
             (mass(dx), _uv * dx, V, {}),
@@ -583,7 +583,7 @@ def test_gram_builtins_equal_the_same_integrands(generic):
             (mass(cut.ds()), _uv * cut.ds(), V, {}),
             (face_jump_penalty(dg, h_power=1), _normal_jumps * dg, V, {"power": 1}),
         ]
-    VS = CutP1Space(cut, CUT)
+    VS = CutSpace(cut, CUT)
     dF = cut.dF(cut.interior_facets(CUT))
     cases += [
         (mass(cut.ds()), _uv * cut.ds(), VS, {}),
@@ -600,7 +600,7 @@ def test_gram_builtins_equal_the_same_integrands(generic):
 
 def test_poisson_system_is_positive_definite(generic):
     _, cut, _ = generic
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     form = stiffness(cut.dx(NEG)) + nitsche(cut.ds(), 10.0) + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(NEG)), h_power=1)
     K = assemble(form, V)
     _exactly_symmetric(K)
@@ -615,7 +615,7 @@ def test_poisson_system_is_positive_definite(generic):
 
 def test_field_integrated_where_it_does_not_live(generic):
     _, cut, _ = generic
-    V = CutP1Space(cut, CUT)
+    V = CutSpace(cut, CUT)
     with pytest.raises(ValueError, match="element set 'cut'"):
         assemble(mass(cut.dx(NEG)), V)
     with pytest.raises(ValueError, match="element set 'cut'"):
@@ -642,7 +642,7 @@ def test_non_positive_coefficients_raise(generic, bad):
 
 def test_builtin_on_a_product_space_needs_a_field(generic):
     _, cut, _ = generic
-    W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
+    W = ProductSpace(CutSpace(cut, NEG), CutSpace(cut, POS))
     with pytest.raises(ValueError, match="field="):
         assemble(mass(cut.dx(NEG)), W)
     with pytest.raises(ValueError, match="field="):
@@ -662,7 +662,7 @@ def test_builtin_on_a_product_space_needs_a_field(generic):
 
 def test_product_space_blocks_split_and_join(generic):
     _, cut, _ = generic
-    VN, VP, VS = CutP1Space(cut, NEG), CutP1Space(cut, POS), CutP1Space(cut, CUT)
+    VN, VP, VS = CutSpace(cut, NEG), CutSpace(cut, POS), CutSpace(cut, CUT)
     W = ProductSpace(VN, VP, VS)
     sizes = [VN.n_dofs, VP.n_dofs, VS.n_dofs]
     assert W.offsets.tolist() == [0, sizes[0], sizes[0] + sizes[1], sum(sizes)]

@@ -15,7 +15,7 @@ from cutfem.fem.terms import mass
 from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.markers import NEG
 from cutfem.geometry.box import structured_box
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.geometry.surface_meshes import torus_mesh
 from cutfem.geometry.measures import surface_measure as ds
 from surface_matrices import load_vector, mass_matrix, stiffness_matrix
@@ -23,8 +23,8 @@ from surface_matrices import load_vector, mass_matrix, stiffness_matrix
 # small spaces (a few hundred unknowns)
 SMALL = {
     "meshed-torus": lambda: SurfaceP1Space(torus_mesh(16, "perturbed-flipped", seed=6)),
-    "cut-sphere": lambda: CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02]))),
-    "cut-torus": lambda: CutP1Space(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.4), Torus(1.0, 0.5))),
+    "cut-sphere": lambda: CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02]))),
+    "cut-torus": lambda: CutSpace(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.4), Torus(1.0, 0.5))),
 }
 
 
@@ -143,7 +143,7 @@ def test_lattice_terms_that_go_elsewhere_allocate_nothing(monkeypatch):
     from cutfem.fem.closed_forms import _simplex_mass
 
     cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02]))
-    W = CutP1Space(cut, NEG)
+    W = CutSpace(cut, NEG)
     made = []
     monkeypatch.setattr(LatticeSum, "matrix", lambda self: made.append(self) or pytest.fail("an empty LatticeSum was turned into a matrix"))
     M = assemble(mass(cut.ds()), W)

@@ -14,7 +14,7 @@ from cutfem.fem.terms import face_jump_penalty, load, mass, stiffness
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
 from cutfem.geometry.box import structured_box
-from cutfem.fem.spaces import CutP1Space, ProductSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace
 
 def _cut(spacing=0.4, radius=0.8):
     return cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), Sphere(radius))
@@ -36,7 +36,7 @@ def _close(A, B, rtol=1e-12):
 
 
 def test_integrands_that_ignore_an_argument_are_refused(cut):
-    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    V, dx = CutSpace(cut, NEG), cut.dx(NEG)
     with pytest.raises(ValueError, match="does not vanish for v = 0.*multiply by v"):
         assemble(linear_form(lambda v, w: 1.0) * dx, V)  # 4 |Omega_h| before
     with pytest.raises(ValueError, match="does not vanish for u = 0.*multiply by u"):
@@ -56,7 +56,7 @@ def test_integrands_declared_symmetric_that_are_not_are_refused(cut):
     symmetric assembled silently to a symmetric matrix (its lower triangle mirrored, entries off by
     up to 0.037 where the matrix is at most 0.022).  The first block of cells is evaluated in full,
     and a form that is not symmetric there is refused; a symmetric one is unchanged."""
-    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    V, dx = CutSpace(cut, NEG), cut.dx(NEG)
     beta = np.array([1.0, 0.5, 0.0])
 
     def advection(u, v, w):
@@ -64,7 +64,7 @@ def test_integrands_declared_symmetric_that_are_not_are_refused(cut):
 
     with pytest.raises(ValueError, match="'advection' is declared symmetric.*not symmetric"):
         assemble(bilinear_form(advection, symmetric=True) * dx, V)
-    W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
+    W = ProductSpace(CutSpace(cut, NEG), CutSpace(cut, POS))
     with pytest.raises(ValueError, match="declared symmetric.*fields 0 and 1"):  # a coupling of two fields
         assemble(bilinear_form(lambda u, v, w: u[0] * v[1], symmetric=True) * cut.ds(), W)
     A = assemble(bilinear_form(advection) * dx, V)
@@ -74,7 +74,7 @@ def test_integrands_declared_symmetric_that_are_not_are_refused(cut):
 
 
 def test_integrands_of_the_wrong_shape_name_the_shapes(cut):
-    V, dx = CutP1Space(cut, NEG), cut.dx(CUT)  # whole cut tets: one block of cells
+    V, dx = CutSpace(cut, NEG), cut.dx(CUT)  # whole cut tets: one block of cells
     m, q = dx.quadrature(2).weights.shape
     with pytest.raises(ValueError, match=rf"shape \(m, q\) = \({m}, {q}\).*got shape \({q}, {m}\)"):
         assemble(bilinear_form(lambda u, v, w: (u * v).T) * dx, V)
@@ -98,7 +98,7 @@ def test_integrands_of_the_wrong_shape_name_the_shapes(cut):
 
 
 def test_scalar_integrands_on_a_product_space_are_told_to_index_the_fields(cut):
-    W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, CUT))
+    W = ProductSpace(CutSpace(cut, NEG), CutSpace(cut, CUT))
     with pytest.raises(AttributeError, match=r"tuples with one entry per field.*u\[0\]"):
         assemble(bilinear_form(lambda u, v, w: dot(u.grad, v.grad)) * cut.dx(NEG), W)
     with pytest.raises(TypeError, match="tuples with one entry per field"):
@@ -114,7 +114,7 @@ def test_scalar_integrands_on_a_product_space_are_told_to_index_the_fields(cut):
 
 
 def test_assemble_checks_its_arguments(cut):
-    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    V, dx = CutSpace(cut, NEG), cut.dx(NEG)
     with pytest.raises(TypeError, match="got the measure"):
         assemble(dx, V)
     with pytest.raises(TypeError, match="swapped"):
@@ -127,7 +127,7 @@ def test_facet_basis_functions_refuse_arithmetic_before_jump_or_avg(cut):
     """On a facet u has two traces; u * v failed inside numpy's operator with 'unsupported operand
     type(s) for *: FacetField and FacetField'.  Now the error names jump, avg and the sides; with
     jump the integrand is the built-in face penalty (h^0)."""
-    W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
+    W = ProductSpace(CutSpace(cut, NEG), CutSpace(cut, POS))
     dF = cut.dF(cut.ghost_facets(NEG))
     for f in (lambda u, v, w: u[0] * v[0], lambda u, v, w: 2.0 * u[0] * jump(v[0]), lambda u, v, w: -u[0] * jump(v[0]),
               lambda u, v, w: np.float64(2.0) * u[0] * jump(v[0])):
@@ -142,7 +142,7 @@ def test_facet_basis_functions_refuse_arithmetic_before_jump_or_avg(cut):
 
 def test_keywords_no_integrand_reads_are_refused(cut):
     """A misspelt keyword of assemble() would leave the integrand its default without a word."""
-    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    V, dx = CutSpace(cut, NEG), cut.dx(NEG)
     M = assemble(mass(dx), V)
     with pytest.raises(ValueError, match="only built-in terms"):
         assemble(mass(dx), V, gama=3.0)
@@ -159,7 +159,7 @@ def test_keywords_no_integrand_reads_are_refused(cut):
     # a measure without cells runs no integrand: nothing to say, the zero matrix
     facets = cut.interior_facets(CUT)
     empty = cut.dF(facets.subset(np.zeros(facets.n_facets, dtype=bool)))
-    assert assemble(bilinear_form(lambda u, v, w: w.k * u * v) * empty, CutP1Space(cut, CUT), kk=1.0).nnz == 0
+    assert assemble(bilinear_form(lambda u, v, w: w.k * u * v) * empty, CutSpace(cut, CUT), kk=1.0).nnz == 0
 
 
 # ---------------------------------------------------------------------------------------------
@@ -168,7 +168,7 @@ def test_keywords_no_integrand_reads_are_refused(cut):
 
 
 def test_forms_are_scaled_by_real_finite_numbers(cut):
-    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    V, dx = CutSpace(cut, NEG), cut.dx(NEG)
     M = assemble(mass(dx), V)
     with pytest.raises(TypeError, match="not by ndarray"):
         np.ones(3) * mass(dx)  # an object array of forms before

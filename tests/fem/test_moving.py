@@ -55,7 +55,7 @@ def test_transfer_keeps_the_shared_nodes_and_checks_the_cover():
 def test_nitsche_on_the_extended_field_is_the_domains_own():
     phi = cf.Sphere(0.5, (0.05, -0.02, 0.01))
     d = ActiveDomain(BOX, phi, 0.15)
-    own = cf.CutP1Space(d.cut, cf.NEG)
+    own = cf.CutSpace(d.cut, cf.NEG)
     Ke = cf.assemble(nitsche(d.ds, 10.0), d.space)
     Ko = cf.assemble(nitsche(d.ds, 10.0), own)
     pos = np.searchsorted(d.space.node_ids, own.node_ids)
@@ -73,6 +73,6 @@ def test_refusals():
     with pytest.raises(ValueError, match="dt must be a positive"):
         strip_width(1.0, -0.1, 1)
     other = cf.cut_mesh(BOX, cf.Sphere(0.3))
-    small = cf.CutP1Space(other, cf.NEG)  # does not hold the cut tets of the larger sphere
+    small = cf.CutSpace(other, cf.NEG)  # does not hold the cut tets of the larger sphere
     with pytest.raises(ValueError, match="do not hold every cut tet"):
         cf.assemble(nitsche(cf.cut_mesh(BOX, cf.Sphere(0.6)).ds(), 10.0), small)

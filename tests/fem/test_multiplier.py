@@ -12,7 +12,7 @@ import scipy.sparse as sp
 
 import cutfem as cf
 from cutfem.fem.forms import assemble, bilinear_form, linear_form
-from cutfem.fem.spaces import CutP1Space, ProductSpace, RealSpace, VectorSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace, RealSpace, VectorSpace
 from cutfem.fem.terms import basis_integrals, face_jump_penalty, load, mass, stiffness
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.cut import cut_mesh
@@ -32,7 +32,7 @@ def constraint(u, v, w):
 def _neumann(spacing):
     """-Lap u = f in the ball, n . grad u = g on Gamma_h (the sphere's exact normal), (u, 1) = 0 by a multiplier."""
     cut = cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), Sphere(1.0, [0.03, -0.02, 0.01]))
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     W = ProductSpace(u=V, lam=RealSpace())
     dx, ds = cut.dx(NEG), cut.ds()
     a = stiffness(dx, field="u") + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(NEG)), h_power=1, field="u") + constraint * dx

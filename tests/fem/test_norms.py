@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from cutfem.fem.norms import discrete_error, fitted_rate, h1_error, l2_error, l2_h1_errors, rates, surface_integral
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import NEG
@@ -19,7 +19,7 @@ from surface_matrices import mass_matrix
 
 @pytest.fixture(scope="module")
 def small_cut_sphere():
-    return CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02])))
+    return CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02])))
 
 
 def smooth(x):
@@ -51,7 +51,7 @@ def test_interpolation_error_rates_meshed_sphere():
 def test_interpolation_error_rate_cut_sphere():
     h, e = [], []
     for cells in (8, 16, 32):
-        V = CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=cells), Sphere(0.7, [0.03, -0.01, 0.02])))
+        V = CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=cells), Sphere(0.7, [0.03, -0.01, 0.02])))
         h.append(V.h)
         e.append(l2_error(V, V.interpolate(smooth), smooth))
     assert h[0] == pytest.approx(9**-1.0)
@@ -75,14 +75,14 @@ def test_one_pass_errors_equal_the_separate_ones():
     """l2_h1_errors against l2_error and h1_error: on a bulk field over the cut volume of a side
     (whole and cut tets, several blocks), and on a trace over S_h; zero for a linear function."""
     cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=10), Sphere(0.7, [0.03, -0.01, 0.02]))
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     dx = cut.dx(NEG)
     u = V.interpolate(lambda x: np.cos(x[..., 0]) * x[..., 2])
     pair = l2_h1_errors(V, u, lambda x: (smooth(x), smooth_gradient(x)), dx, chunk=500)
     assert pair[0] == pytest.approx(l2_error(V, u, smooth, dx), rel=1e-13)
     assert pair[1] == pytest.approx(h1_error(V, u, smooth_gradient, dx), rel=1e-13)
     assert pair[0] > 0.1 and pair[1] > 0.1
-    T = CutP1Space(cut)
+    T = CutSpace(cut)
     w = T.interpolate(smooth)
     l2, h1 = l2_h1_errors(T, w, lambda x: (smooth(x), smooth_gradient(x)))
     assert l2 == pytest.approx(l2_error(T, w, smooth), rel=1e-12)
@@ -140,12 +140,12 @@ def test_discrete_error_and_surface_integral():
     e = rng.normal(size=V.n_dofs)
     assert discrete_error(V, e) == pytest.approx(np.sqrt(e @ (M @ e)), rel=1e-13)  # the mass matrix's quadratic form
     # a cut space: the traces at the vertices of S_h give the cut mass matrix's form
-    W = CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02])))
+    W = CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02])))
     Mw = mass_matrix(W)
     Ew = rng.normal(size=(W.n_dofs, 2))
     assert discrete_error(W, Ew) == pytest.approx(np.sqrt(np.sum(Ew * (Mw @ Ew))), rel=1e-12)
     with pytest.raises(ValueError):
-        discrete_error(CutP1Space(W.cut, NEG), np.ones(CutP1Space(W.cut, NEG).n_dofs))  # a bulk field has no S_h
+        discrete_error(CutSpace(W.cut, NEG), np.ones(CutSpace(W.cut, NEG).n_dofs))  # a bulk field has no S_h
     assert surface_integral(V, np.full(V.n_dofs, 2.0)) == pytest.approx(2 * area, rel=1e-12)
     np.testing.assert_allclose(surface_integral(V, E), [area, 2 * area, 0.0], rtol=1e-12, atol=1e-14)
 

@@ -14,7 +14,7 @@ from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
 from cutfem.geometry.box import structured_box
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space, barycentric_at, triangle_gradients
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space, barycentric_at, triangle_gradients
 from cutfem.geometry.surface_meshes import torus_mesh
 
 
@@ -38,7 +38,7 @@ def heron(P):
 @pytest.fixture(scope="module")
 def cut_sphere():
     box = structured_box([-1, -1, -1], [1, 1, 1], cells=10)
-    return CutP1Space(cut_mesh(box, Sphere(0.7, [0.04, -0.03, 0.02])))
+    return CutSpace(cut_mesh(box, Sphere(0.7, [0.04, -0.03, 0.02])))
 
 
 @pytest.fixture(scope="module")
@@ -123,7 +123,7 @@ def test_surface_space_edges(meshed_torus):
 
 
 # ----------------------------------------------------------------------------------------------
-# CutP1Space
+# CutSpace
 # ----------------------------------------------------------------------------------------------
 
 
@@ -131,7 +131,7 @@ def test_cut_space_data(cut_sphere):
     V = cut_sphere
     cut = V.cut
     assert V.h == pytest.approx(11**-1.0, rel=1e-14)  # N = 11^3 background nodes
-    assert CutP1Space(cut, h=0.5).h == 0.5
+    assert CutSpace(cut, h=0.5).h == 0.5
     assert V.n_dofs == len(V.dof_points) == len(V.node_ids) and V.n_elements == len(V.element_dofs)
     np.testing.assert_allclose(V.dof_points, np.asarray(cut.background.points)[V.node_ids], atol=0)
     for k in range(V.n_elements):
@@ -251,7 +251,7 @@ def test_linear_functions_are_reproduced(which, meshed_torus, cut_sphere):
 
 
 # ----------------------------------------------------------------------------------------------
-# bulk fields: CutP1Space(cut, NEG) with the measure cut.dx(NEG)
+# bulk fields: CutSpace(cut, NEG) with the measure cut.dx(NEG)
 # ----------------------------------------------------------------------------------------------
 
 
@@ -260,7 +260,7 @@ def test_cut_volume_space_plane():
     the elements are the tets with a node at z <= 0 (three layers of cells, volume 6)."""
     box = structured_box([-1, -1, -1], [1, 1, 1], spacing=0.5)
     cut = cut_mesh(box, lambda x: x[..., 2] - 0.1, check_boundary=False)  # a slab meets the box sides
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     dx = cut.dx(NEG)
     tets = np.asarray(box.tets)
     expected = np.flatnonzero((box.points[tets][:, :, 2] < 0.1).any(axis=1))
@@ -316,7 +316,7 @@ def test_a_field_outside_its_elements_names_the_distinct_tets_missing():
     the same box; whichever term asks, the count is the number of tets of that measure that are not
     in the field's set."""
     box = structured_box([-1, -1, -1], [1, 1, 1], cells=6)
-    V = CutP1Space(cut_mesh(box, Sphere(0.5)), NEG)
+    V = CutSpace(cut_mesh(box, Sphere(0.5)), NEG)
     dx = cut_mesh(box, Sphere(0.9)).dx(NEG)
     expected = int(np.count_nonzero(~V.elements.contains(dx.elements.tet_ids)))
     tets = dx.elements.tet_ids[dx.quadrature(2).parent]  # the background tet of each cell

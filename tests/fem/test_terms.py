@@ -37,7 +37,7 @@ from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.mesh import unstructured_box
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.geometry.surface import SurfaceMesh
 from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 from cutfem.geometry.measures import surface_measure as ds
@@ -62,16 +62,16 @@ def surface_triangles(V):
 SPACES = {
     "meshed-sphere": lambda: SurfaceP1Space(sphere_mesh(3, radius=0.8)),
     "meshed-torus": lambda: SurfaceP1Space(torus_mesh(24, "perturbed-flipped", seed=5)),
-    "cut-sphere": lambda: CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=16), Sphere(0.7, [0.03, -0.01, 0.02]))),
-    "cut-torus": lambda: CutP1Space(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1), Torus())),
+    "cut-sphere": lambda: CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=16), Sphere(0.7, [0.03, -0.01, 0.02]))),
+    "cut-torus": lambda: CutSpace(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1), Torus())),
 }
 
 # small spaces for dense eigenvalue computations (a few hundred unknowns)
 SMALL = {
     "meshed-sphere": lambda: SurfaceP1Space(sphere_mesh(2, radius=0.8)),
     "meshed-torus": lambda: SurfaceP1Space(torus_mesh(16, "perturbed-flipped", seed=6)),
-    "cut-sphere": lambda: CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02]))),
-    "cut-torus": lambda: CutP1Space(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.4), Torus(1.0, 0.5))),
+    "cut-sphere": lambda: CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02]))),
+    "cut-torus": lambda: CutSpace(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.4), Torus(1.0, 0.5))),
 }
 
 
@@ -120,7 +120,7 @@ def test_basis_integrals_are_the_column_sums_of_the_mass(space):
 
 def test_basis_integrals_over_a_side_and_refusals():
     cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02]))
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     ones = assemble(basis_integrals(cut.dx(NEG)), V)  # quadrature of degree 1: exact for P1
     np.testing.assert_allclose(ones, np.asarray(assemble(mass(cut.dx(NEG)), V).sum(axis=0)).ravel(), rtol=0, atol=1e-14)
     with pytest.raises(TypeError, match="facets"):
@@ -132,13 +132,13 @@ def test_lattice_terms_of_a_form_sum_into_one_matrix():
     stiffness of whole tets) go into one set of slots, each times its coefficient (negative ones
     too): the matrix of the sum is the sum of the matrices, to round-off, and exactly symmetric."""
     cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1), Torus())
-    V = CutP1Space(cut)
+    V = CutSpace(cut)
     J = face_jump_penalty(dF(V))
     A = assemble(mass(cut.ds()) + 0.3 * J, V)
     B = assemble(mass(cut.ds()), V) + 0.3 * assemble(J, V)
     assert abs(A - B).max() <= 1e-15 * abs(B).max()
     assert (A - A.T).nnz == 0
-    W = CutP1Space(cut, NEG)
+    W = CutSpace(cut, NEG)
     G = face_jump_penalty(cut.dF(cut.ghost_facets(NEG)), h_power=1)
     A = assemble(stiffness(cut.dx(NEG)) - 2.0 * mass(cut.dx(NEG)) + 0.1 * G, W)
     B = assemble(stiffness(cut.dx(NEG)), W) - 2.0 * assemble(mass(cut.dx(NEG)), W) + 0.1 * assemble(G, W)
@@ -189,7 +189,7 @@ def test_position_load_is_stiffness_times_coordinates(space):
 
 def test_position_load_refuses_a_volume_space():
     cut = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=4), Sphere(0.7))
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     with pytest.raises(TypeError, match="SurfacePieces or MeshedSurface"):
         position_load(cut.dx(NEG))
     with pytest.raises(ValueError, match="needs the field on the cut tets"):
@@ -203,7 +203,7 @@ def test_position_load_refuses_a_volume_space():
 
 def test_jump_penalties_exactly_symmetric_and_semidefinite(small_space):
     V = small_space
-    mats = [edge_matrix(V)] + ([face_matrix(V)] if isinstance(V, CutP1Space) else [])
+    mats = [edge_matrix(V)] + ([face_matrix(V)] if isinstance(V, CutSpace) else [])
     for J in mats:
         assert (J - J.T).nnz == 0  # bitwise symmetric
         ev = np.linalg.eigvalsh(J.toarray())
@@ -266,7 +266,7 @@ def test_edge_jump_vanishes_on_linear_functions_on_a_cut_plane():
     box = structured_box([-1, -1, -1], [1, 1, 1], cells=8)
     with warnings.catch_warnings():  # the plane's border edges (on the box) have one piece only
         warnings.simplefilter("ignore", RuntimeWarning)
-        V = CutP1Space(cut_mesh(box, lambda x: x @ normal - 0.137, check_boundary=False))
+        V = CutSpace(cut_mesh(box, lambda x: x @ normal - 0.137, check_boundary=False))
         J = edge_matrix(V)
     assert J.nnz > 0
     g = np.array([0.7, -1.3, 0.4])
@@ -280,7 +280,7 @@ def test_edge_jump_vanishes_on_linear_functions_on_a_cut_plane():
 @pytest.fixture(scope="module")
 def unstructured_cut_space():
     bg = unstructured_box([-1, -1, -1], [1, 1, 1], edge_length=0.4)
-    return CutP1Space(cut_mesh(bg, Sphere(0.65, [0.02, 0.03, -0.01])))
+    return CutSpace(cut_mesh(bg, Sphere(0.65, [0.02, 0.03, -0.01])))
 
 
 @pytest.mark.parametrize("which", ["cut-sphere", "cut-torus", "unstructured"])
@@ -323,7 +323,7 @@ def test_flat_cut_is_not_stabilized_by_face_jumps():
     box = structured_box([-1, -1, -1], [1, 1, 1], cells=6)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
-        V = CutP1Space(cut_mesh(box, lambda x: x[..., 2] - 0.3 * x[..., 0] - 0.11, check_boundary=False))
+        V = CutSpace(cut_mesh(box, lambda x: x[..., 2] - 0.3 * x[..., 0] - 0.11, check_boundary=False))
     S = assemble(mass(ds(V)) + 0.1 * face_jump_penalty(dF(V)), V)
     phi = V.dof_points[:, 2] - 0.3 * V.dof_points[:, 0] - 0.11
     assert relative_norm(S @ phi, np.abs(S).max() * np.abs(phi).max()) < 1e-12
@@ -402,7 +402,7 @@ def _nitsche_reference(sign, gamma):
 def test_nitsche_term_carries_gamma_to_its_matrix_and_load(ball_cut, side, sign, gamma):
     """N = nitsche(ds, gamma, g=...): its matrix and N.load are the integrands of the formula with that
     gamma (to round-off), so gamma is given once for both."""
-    V, ds_ = CutP1Space(ball_cut, side), ball_cut.ds()
+    V, ds_ = CutSpace(ball_cut, side), ball_cut.ds()
     N = nitsche(ds_, gamma, g=SMOOTH)
     matrix, rhs = _nitsche_reference(sign, gamma)
     K, K_ref = assemble(N, V), assemble(matrix * ds_, V)
@@ -432,7 +432,7 @@ def test_indefinite_system_error_names_the_nitsche_penalty(ghost):
     """gamma = 0.5 is below the stability bound: the solver refuses the system with the advice of its
     form, which names gamma's value and, without a ghost penalty, the ghost penalty it lacks."""
     cut = cut_mesh(structured_box([-1.1] * 3, [1.1] * 3, spacing=0.1), Sphere(1.0))
-    V, dx, ds_ = CutP1Space(cut, NEG), cut.dx(NEG), cut.ds()
+    V, dx, ds_ = CutSpace(cut, NEG), cut.dx(NEG), cut.ds()
     N = nitsche(ds_, 0.5, g=SMOOTH)
     a = stiffness(dx) + N
     if ghost:
@@ -450,7 +450,7 @@ def test_indefinite_system_error_names_the_nitsche_penalty(ghost):
 
 
 def _built_in_cases(cut, mesh_space):
-    trace, bulk, outer = CutP1Space(cut, CUT), CutP1Space(cut, NEG), CutP1Space(cut, POS)
+    trace, bulk, outer = CutSpace(cut, CUT), CutSpace(cut, NEG), CutSpace(cut, POS)
     interior, ghost = cut.dF(cut.interior_facets(CUT)), cut.dF(cut.ghost_facets(NEG))
     dS = mesh_space.mesh.ds()
     return {
@@ -501,7 +501,7 @@ def test_exact_implementation_is_the_quadrature_of_the_integrand(built_ins, case
 
 def test_scaled_sums_of_built_in_terms_are_their_quadrature(built_ins, ball_cut):
     """c_1 a_1 + c_2 a_2 of built-in terms (one running sum) against the same form by quadrature."""
-    V = CutP1Space(ball_cut, CUT)
+    V = CutSpace(ball_cut, CUT)
     form = 2.5 * mass(ball_cut.ds()) - 0.3 * tangential_stiffness(ball_cut.ds()) + 0.1 * face_jump_penalty(ball_cut.dF(ball_cut.interior_facets(CUT)))
     exact, quadrature = assemble(form, V), assemble(form.by_quadrature(), V)
     assert abs(exact - quadrature).max() <= 1e-12 * abs(quadrature).max()
@@ -509,4 +509,4 @@ def test_scaled_sums_of_built_in_terms_are_their_quadrature(built_ins, ball_cut)
 
 def test_edge_penalty_has_no_quadrature_route(ball_cut):
     with pytest.raises(TypeError, match="no quadrature measure covers"):
-        assemble(edge_jump_penalty(ball_cut.ds()).by_quadrature(), CutP1Space(ball_cut, CUT))
+        assemble(edge_jump_penalty(ball_cut.ds()).by_quadrature(), CutSpace(ball_cut, CUT))

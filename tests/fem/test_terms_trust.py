@@ -39,7 +39,7 @@ from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import CUT, NEG, POS
 from cutfem.geometry.box import structured_box
 from cutfem.solvers.solve import solve
-from cutfem.fem.spaces import CutP1Space, ProductSpace, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, ProductSpace, SurfaceP1Space
 from cutfem.geometry.surface import SurfaceMesh
 from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 
@@ -65,7 +65,7 @@ def _close(A, B, rtol=1e-12):
 def _poisson(cut, side, u, f):
     """The fictitious-domain Poisson problem on one side (u = g by Nitsche on Gamma_h, strongly on
     the box for the outer side): its L2 error."""
-    V = CutP1Space(cut, side)
+    V = CutSpace(cut, side)
     dx, ds = cut.dx(side), cut.ds()
     N = nitsche(ds, g=u)
     K = assemble(stiffness(dx) + N + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(side)), h_power=1), V)
@@ -94,7 +94,7 @@ def test_nitsche_on_the_outer_domain_converges_at_second_order():
 
 
 def test_nitsche_on_pos_is_the_integrand_with_the_outward_normal(cut):
-    V = CutP1Space(cut, POS)
+    V = CutSpace(cut, POS)
 
     @bilinear_form(symmetric=True)
     def terms(u, v, w):
@@ -112,17 +112,17 @@ def test_nitsche_on_pos_is_the_integrand_with_the_outward_normal(cut):
 
 def test_nitsche_needs_a_field_of_one_side(cut):
     for build in (lambda: nitsche(cut.ds()), lambda: nitsche(cut.ds(), g=ONE).load):
-        with pytest.raises(ValueError, match=r"CutP1Space\(cut, NEG\) or CutP1Space\(cut, POS\)"):
-            assemble(build(), CutP1Space(cut, CUT))
+        with pytest.raises(ValueError, match=r"CutSpace\(cut, NEG\) or CutSpace\(cut, POS\)"):
+            assemble(build(), CutSpace(cut, CUT))
         # the NEG side of another cut is accepted only as an extended domain holding every cut tet
         with pytest.raises(ValueError, match="another cut whose tets do not hold every cut tet"):
-            assemble(build(), CutP1Space(_cut(radius=0.3), NEG))
+            assemble(build(), CutSpace(_cut(radius=0.3), NEG))
         with pytest.raises(ValueError, match="same cut"):
-            assemble(build(), CutP1Space(_cut(radius=1.0), POS))
+            assemble(build(), CutSpace(_cut(radius=1.0), POS))
 
 
 def test_nitsche_load_takes_gamma_h_and_vector_data(cut):
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     with pytest.raises(TypeError, match="SurfacePieces"):
         nitsche(cut.dx(NEG), g=ONE)
     with pytest.raises(TypeError, match="function of the points"):
@@ -141,7 +141,7 @@ def test_nitsche_load_takes_gamma_h_and_vector_data(cut):
 
 def _interface_error(cut, order, fields):
     """The interface problem with a_NEG = a_POS = 1 and a linear solution: max L2 error of the sides."""
-    V = {NEG: CutP1Space(cut, NEG), POS: CutP1Space(cut, POS)}
+    V = {NEG: CutSpace(cut, NEG), POS: CutSpace(cut, POS)}
     W = ProductSpace(*(V[s] for s in order))
     form, rhs = interface_nitsche(cut.ds(), 1.0, 1.0, fields=fields), 0
     for k, side in enumerate(order):
@@ -161,7 +161,7 @@ def test_interface_nitsche_with_the_fields_in_either_order(cut):
 
 
 def test_interface_nitsche_refuses_fields_that_are_not_neg_then_pos(cut):
-    VN, VP = CutP1Space(cut, NEG), CutP1Space(cut, POS)
+    VN, VP = CutSpace(cut, NEG), CutSpace(cut, POS)
     ds = cut.ds()
     with pytest.raises(ValueError, match=r"NEG field, then the POS field.*pass fields=\(1, 0\)"):
         assemble(interface_nitsche(ds, 1.0, 2.0), ProductSpace(VP, VN))  # inside error 0.31 -> 0.19 before
@@ -171,8 +171,8 @@ def test_interface_nitsche_refuses_fields_that_are_not_neg_then_pos(cut):
         assemble(interface_nitsche(ds, 1.0, 2.0, fields=(0, 5)), ProductSpace(VN, VP))
     with pytest.raises(TypeError, match=r"ProductSpace\(V_neg, V_pos\)"):
         assemble(interface_nitsche(ds, 1.0, 2.0), VN)
-    with pytest.raises(ValueError, match="CutP1Space"):
-        assemble(interface_nitsche(ds, 1.0, 2.0), ProductSpace(VN, CutP1Space(cut, CUT)))
+    with pytest.raises(ValueError, match="CutSpace"):
+        assemble(interface_nitsche(ds, 1.0, 2.0), ProductSpace(VN, CutSpace(cut, CUT)))
     with pytest.raises(ValueError, match="pair"):
         interface_nitsche(ds, 1.0, 2.0, fields=0)
     with pytest.raises(ValueError, match=r"field=-1: a field is given by its position 0\.\.1"):
@@ -191,7 +191,7 @@ def test_interface_nitsche_refuses_fields_that_are_not_neg_then_pos(cut):
 @pytest.fixture(scope="module")
 def outer_system(cut):
     """The outer problem with u = LINEAR: Nitsche on Gamma_h, the box's dofs still free."""
-    V = CutP1Space(cut, POS)
+    V = CutSpace(cut, POS)
     N = nitsche(cut.ds(), g=LINEAR)
     K = assemble(stiffness(cut.dx(POS)) + N + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(POS)), h_power=1), V)
     return V, K, assemble(N.load, V)
@@ -253,14 +253,14 @@ def test_meshed_terms_refuse_a_measure_on_another_mesh():
 
 def test_meshed_terms_refuse_a_cut_field(cut):
     with pytest.raises(ValueError, match=r"SurfaceP1Space\(mesh\)"):
-        assemble(mass(sphere_mesh(1).ds()), CutP1Space(cut, CUT))
+        assemble(mass(sphere_mesh(1).ds()), CutSpace(cut, CUT))
 
 
 @pytest.mark.parametrize("power", [-1e300, 1e300, -2000.0])
 def test_penalties_refuse_a_power_of_h_that_overflows_or_vanishes(cut, power):
     """h^a that overflows gave a matrix of NaN and inf (face: 11 096 non-finite entries at spacing
     0.2) with a RuntimeWarning; h^a that underflows to 0 silently removed the stabilization."""
-    V = CutP1Space(cut, CUT)
+    V = CutSpace(cut, CUT)
     for form, name in ((face_jump_penalty(cut.dF(cut.interior_facets(CUT)), h_power=power), "face_jump_penalty"),
                        (normal_gradient_penalty(cut.dx(CUT), h_power=power), "normal_gradient_penalty")):
         words = re.escape(f"{name}: h^a with a = h_power = {power!r} is not a finite positive number for the local h in ")
@@ -269,7 +269,7 @@ def test_penalties_refuse_a_power_of_h_that_overflows_or_vanishes(cut, power):
 
 
 def test_penalties_take_a_large_but_representable_power_of_h(cut):
-    V = CutP1Space(cut, CUT)
+    V = CutSpace(cut, CUT)
     dT = cut.dx(CUT)
     A, B = assemble(normal_gradient_penalty(dT, h_power=3.0), V), assemble(normal_gradient_penalty(dT, h_power=0.0), V)
     assert np.isfinite(A.data).all() and 0 < abs(A).sum() < abs(B).sum()
@@ -281,7 +281,7 @@ def test_penalties_take_a_large_but_representable_power_of_h(cut):
 
 
 def test_empty_facet_set_gives_the_zero_matrix(cut):
-    V = CutP1Space(cut, CUT)
+    V = CutSpace(cut, CUT)
     facets = cut.interior_facets(CUT)
     empty = cut.dF(facets.subset(np.zeros(facets.n_facets, dtype=bool)))
     for form in (face_jump_penalty(empty), face_jump_penalty(empty, h_power=1) + mass(cut.ds())):
@@ -292,7 +292,7 @@ def test_empty_facet_set_gives_the_zero_matrix(cut):
 
 
 def test_parameters_are_checked(cut):
-    V, dx = CutP1Space(cut, NEG), cut.dx(NEG)
+    V, dx = CutSpace(cut, NEG), cut.dx(NEG)
     dg = cut.dF(cut.ghost_facets(NEG))
     with pytest.raises(ValueError, match="h_power must be a finite number"):
         face_jump_penalty(dg, h_power=np.nan)

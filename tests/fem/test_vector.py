@@ -17,7 +17,7 @@ import cutfem as cf
 from cutfem.fem.assembly import block_diagonal
 from cutfem.fem.forms import assemble, bilinear_form
 from cutfem.fem.pointwise import dot, inner
-from cutfem.fem.spaces import CutP1Space, ProductSpace, SurfaceP1Space, VectorSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace, SurfaceP1Space, VectorSpace
 from cutfem.fem.terms import (edge_jump_penalty, face_jump_penalty, load, mass, nitsche, normal_gradient_penalty,
                               position_load, stiffness, tangential_stiffness)
 from cutfem.fem.elasticity import elasticity, elasticity_nitsche
@@ -76,7 +76,7 @@ def test_vector_basis_functions_of_a_linear_field(ball):
     """For u = A x + b: div u_h = tr A, eps(u_h) = (A + A^T) / 2, curl u_h = the axial vector of
     A - A^T, on every cell, read through the integrands of a mixed form (trial u, test a scalar q):
     (div u_h, q) = tr A (1, q) and so on, to round-off."""
-    V = CutP1Space(ball, NEG)
+    V = CutSpace(ball, NEG)
     W = ProductSpace(u=VectorSpace(V), q=V)
     x = W.join([W[0].interpolate(lambda p: p @ A.T + B), np.zeros(V.n_dofs)])
     ones = assemble(cf.basis_integrals(ball.dx(NEG)), V)
@@ -95,7 +95,7 @@ def test_vector_basis_functions_of_a_linear_field(ball):
 def test_two_vector_fields_in_a_product_space(ball):
     """The jump of two vector fields across Gamma, (u_N - u_P, v_N - v_P): its first block is the
     vector mass on Gamma, and it vanishes on one field given to both sides."""
-    WN, WP = VectorSpace(CutP1Space(ball, NEG)), VectorSpace(CutP1Space(ball, POS))
+    WN, WP = VectorSpace(CutSpace(ball, NEG)), VectorSpace(CutSpace(ball, POS))
     W = ProductSpace(WN, WP)
     K = assemble(bilinear_form(lambda u, v, w: inner(u[0] - u[1], v[0] - v[1]), symmetric=True) * ball.ds(), W)
     n = WN.n_dofs
@@ -106,7 +106,7 @@ def test_two_vector_fields_in_a_product_space(ball):
 
 
 def test_a_vector_is_not_multiplied_into_a_scalar(ball):
-    W = VectorSpace(CutP1Space(ball, NEG))
+    W = VectorSpace(CutSpace(ball, NEG))
     with pytest.raises(TypeError, match="dot"):
         assemble(bilinear_form(lambda u, v, w: u * v) * ball.dx(NEG), W)
     with pytest.raises(ValueError, match="one value per cell"):  # a vector integrand, not a number per point
@@ -129,7 +129,7 @@ def test_a_vector_is_not_multiplied_into_a_scalar(ball):
 def test_vector_terms_are_kron_of_the_scalar_ones(ball):
     """The vector Laplacian (and mass, ghost penalty, Nitsche) is kron(I_3, the scalar matrix)
     exactly, and its load is the scalar loads of the components, stacked."""
-    V = CutP1Space(ball, NEG)
+    V = CutSpace(ball, NEG)
     W = VectorSpace(V)
     dx, ds, dg = ball.dx(NEG), ball.ds(), ball.dF(ball.ghost_facets(NEG))
     form = stiffness(dx) + 0.5 * mass(dx) + 0.1 * face_jump_penalty(dg, h_power=1) + nitsche(ds, 10.0)
@@ -146,7 +146,7 @@ def _vector_cases(ball, plain_ball):
     out = {}
     for name, cut in (("lattice", ball), ("plain", plain_ball)):
         for side in (NEG, POS):
-            W = VectorSpace(CutP1Space(cut, side))
+            W = VectorSpace(CutSpace(cut, side))
             dx, ds, dg = cut.dx(side), cut.ds(), cut.dF(cut.ghost_facets(side))
             N = elasticity_nitsche(ds, MU, LAM, 8.0, g=vector_data)
             out[f"elasticity {side} {name}"] = (elasticity(dx, MU, LAM), W)
@@ -157,8 +157,8 @@ def _vector_cases(ball, plain_ball):
             out[f"vector laplacian system {side} {name}"] = (stiffness(dx) + nitsche(ds, 8.0) + 0.1 * face_jump_penalty(dg, h_power=1), W)
             out[f"nitsche load {side} {name}"] = (nitsche(ds, 8.0, g=vector_data).load, W)
             out[f"load {side} {name}"] = (load(vector_data, dx), W)
-        out[f"elasticity whole cut tets {name}"] = (elasticity(cut.dx(CUT), MU, 0.0), VectorSpace(CutP1Space(cut, NEG)))
-    T = VectorSpace(CutP1Space(ball, CUT))
+        out[f"elasticity whole cut tets {name}"] = (elasticity(cut.dx(CUT), MU, 0.0), VectorSpace(CutSpace(cut, NEG)))
+    T = VectorSpace(CutSpace(ball, CUT))
     out["trace terms"] = (mass(ball.ds()) + tangential_stiffness(ball.ds()) + 0.1 * face_jump_penalty(ball.dF(ball.interior_facets(CUT)))
                           + normal_gradient_penalty(ball.dx(CUT)), T)
     out["position load"] = (position_load(ball.ds()), T)
@@ -201,7 +201,7 @@ def test_rigid_motions_are_the_kernel_of_elasticity(ball, plain_ball):
     """K r = 0 for the six rigid motions a + b x x (no boundary condition), with the ghost penalty,
     on the lattice and the general path, to round-off; a non-rigid linear field is not in it."""
     for cut in (ball, plain_ball):
-        W = VectorSpace(CutP1Space(cut, NEG))
+        W = VectorSpace(CutSpace(cut, NEG))
         K = assemble(elasticity(cut.dx(NEG), MU, LAM) + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(NEG)), h_power=1), W)
         e = np.eye(3)
         motions = [lambda x, a=a: np.broadcast_to(a, x.shape) for a in e] + [lambda x, b=b: np.cross(b, x) for b in e]
@@ -215,7 +215,7 @@ def test_rigid_motions_are_the_kernel_of_elasticity(ball, plain_ball):
 def test_elasticity_on_its_rows_is_2_mu_eps_eps_plus_lam_div_div(ball):
     """elasticity(mu, lam) = 2 mu E + lam D with E, D the matrices of the user integrands
     eps(u) : eps(v) and div u div v (the linearity in the parameters, through the fast path)."""
-    W = VectorSpace(CutP1Space(ball, NEG))
+    W = VectorSpace(CutSpace(ball, NEG))
     dx = ball.dx(NEG)
     E = assemble(bilinear_form(lambda u, v, w: inner(u.sym_grad, v.sym_grad), symmetric=True) * dx, W)
     D = assemble(bilinear_form(lambda u, v, w: u.div * v.div, symmetric=True) * dx, W)
@@ -229,7 +229,7 @@ def test_elasticity_on_its_rows_is_2_mu_eps_eps_plus_lam_div_div(ball):
 
 
 def test_vector_errors_are_the_components_errors(ball):
-    V = CutP1Space(ball, NEG)
+    V = CutSpace(ball, NEG)
     W = VectorSpace(V)
     u = cf.Exact(["sin(x) * exp(y / 2)", "y * z", "cos(z)"])
     grad = u.grad
@@ -247,7 +247,7 @@ def test_vector_errors_are_the_components_errors(ball):
 
 
 def test_multigrid_sees_three_copies_of_the_scalar_hierarchy(ball):
-    V = CutP1Space(ball, NEG)
+    V = CutSpace(ball, NEG)
     scalar, vector = multigrid_hierarchy(V), multigrid_hierarchy(VectorSpace(V))
     for _ in range(2):
         P, P3 = next(scalar), next(vector)
@@ -263,7 +263,7 @@ U = cf.Exact(["sin(x) * exp(y / 2)", "cos(y) * z", "x * y * z + sin(z)"])
 
 def _vector_poisson(spacing):
     cut = cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), Sphere(1.0, [0.03, -0.02, 0.01]))
-    W = VectorSpace(CutP1Space(cut, NEG))
+    W = VectorSpace(CutSpace(cut, NEG))
     dx, ds = cut.dx(NEG), cut.ds()
     N = nitsche(ds, 10.0, g=U)
     form = stiffness(dx) + N + 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(NEG)), h_power=1)
@@ -275,7 +275,7 @@ def _vector_poisson(spacing):
 
 def _elasticity(spacing, mu=1.0, lam=2.0):
     cut = cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), Sphere(1.0, [0.03, -0.02, 0.01]))
-    W = VectorSpace(CutP1Space(cut, NEG))
+    W = VectorSpace(CutSpace(cut, NEG))
     dx, ds = cut.dx(NEG), cut.ds()
     N = elasticity_nitsche(ds, mu, lam, 10.0, g=U)
     form = elasticity(dx, mu, lam) + N + (2 * mu + lam) * 0.1 * face_jump_penalty(cut.dF(cut.ghost_facets(NEG)), h_power=1)

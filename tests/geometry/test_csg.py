@@ -251,7 +251,7 @@ def test_element_sets_facets_and_a_field_on_the_domain():
     np.testing.assert_array_equal(both, cuts.tet_ids)  # the cut tets, and only they, are on both sides
     ghost = cut.ghost_facets(cf.NEG)
     assert ghost.n_facets > 0 and np.all(cuts.contains(neg.tet_ids[ghost.pairs]).any(axis=1))
-    V = cf.CutP1Space(cut, cf.NEG)
+    V = cf.CutSpace(cut, cf.NEG)
     # the stiffness of a linear function is its energy over Omega_h: |grad u|^2 |Omega_h|
     u = V.dof_points @ np.array([1.0, 2.0, -0.5])
     K = cf.assemble(cf.stiffness(cut.dx(cf.NEG)), V)

@@ -313,16 +313,16 @@ def test_records_count_the_active_tets_of_the_fields():
     from cutfem.geometry.markers import CUT
     from cutfem.geometry.box import structured_box
     from cutfem.problems.common import cut_record
-    from cutfem.fem.spaces import CutP1Space, ProductSpace
+    from cutfem.fem.spaces import CutSpace, ProductSpace
 
     bg = structured_box([-1.0] * 3, [1.0] * 3, spacing=0.25)
     cut = cut_mesh(bg, Sphere(0.7))
     phi = Sphere(0.7).value(bg.points)[bg.tets]
     neg, pos = (phi < 0).any(axis=1), (phi > 0).any(axis=1)
     assert cut_record(cut)["active_tets"] == cut_record(cut)["pieces"] == int((neg & pos).sum()) == cut.n_tets
-    assert cut_record(cut, CutP1Space(cut, NEG))["active_tets"] == int(neg.sum())
-    assert cut_record(cut, CutP1Space(cut, CUT))["active_tets"] == int((neg & pos).sum())
-    both = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
+    assert cut_record(cut, CutSpace(cut, NEG))["active_tets"] == int(neg.sum())
+    assert cut_record(cut, CutSpace(cut, CUT))["active_tets"] == int((neg & pos).sum())
+    both = ProductSpace(CutSpace(cut, NEG), CutSpace(cut, POS))
     assert cut_record(cut, both)["active_tets"] == len(bg.tets) == int((neg | pos).sum())
     res = cutfem.run("poisson-cut", levels=[0.4], surface="sphere")
     assert res.records[0]["active_tets"] > res.records[0]["pieces"]

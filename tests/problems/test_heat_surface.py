@@ -94,10 +94,10 @@ def _sphere_matrices(spacing=0.4, tau_n=1.0):
     from cutfem.geometry.markers import CUT
     from cutfem.geometry.box import structured_box
     from cutfem.problems.heat_surface import HeatSolution
-    from cutfem.fem.spaces import CutP1Space
+    from cutfem.fem.spaces import CutSpace
 
     cut = cut_mesh(structured_box([-1.2] * 3, [1.2] * 3, spacing=spacing), Sphere(1.0))
-    V, ds = CutP1Space(cut, CUT), cut.ds()
+    V, ds = CutSpace(cut, CUT), cut.ds()
     M = assemble(mass(ds) + tau_n * normal_gradient_penalty(cut.dx(CUT), h_power=1), V)
     A = assemble(tangential_stiffness(ds) + tau_n * normal_gradient_penalty(cut.dx(CUT), h_power=-1), V)
     return M, A, assemble(load(HeatSolution(1.0).source_profile, ds), V), V
@@ -183,10 +183,10 @@ def test_the_fastest_time_scale_is_about_9_over_h_squared(spacing):
     from cutfem.fem.terms import mass, normal_gradient_penalty, tangential_stiffness
     from cutfem.geometry.shapes import Sphere
     from cutfem.geometry.box import structured_box
-    from cutfem.fem.spaces import CutP1Space
+    from cutfem.fem.spaces import CutSpace
 
     cut = cut_mesh(structured_box([-1.1] * 3, [1.1] * 3, spacing=spacing), Sphere(1.0))
-    V, ds = CutP1Space(cut, CUT), cut.ds()
+    V, ds = CutSpace(cut, CUT), cut.ds()
     M = assemble(mass(ds) + normal_gradient_penalty(cut.dx(CUT), h_power=1), V)
     A = assemble(tangential_stiffness(ds) + normal_gradient_penalty(cut.dx(CUT), h_power=-1), V)
     k = abs(A).sum(axis=1).max() / (M @ np.ones(V.n_dofs)).max()

@@ -18,7 +18,7 @@ from cutfem.fem.terms import mass
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.markers import NEG
 from cutfem.geometry.box import structured_box
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 
 
 @pytest.fixture(scope="module")
@@ -33,7 +33,7 @@ def test_w_at_gives_each_inline_function_its_own_values(cut):
     same id: a cache keyed by id(f) returned the first function's values for all of them (3 * size
     instead of (1 + 2 + 3) * size)."""
     dx = cut.dx(NEG)
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
 
     @linear_form
     def constants(v, w):
@@ -50,7 +50,7 @@ def test_w_at_still_evaluates_a_named_function_once_per_block(cut):
     """The cache keyed by the function itself keeps its purpose: one evaluation per block of cells
     for a function defined once, however many basis pairs the integrand is evaluated for."""
     dx = cut.dx(NEG)
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
     calls = []
 
     def f(x):
@@ -79,7 +79,7 @@ def test_a_sum_of_zero_terms_is_zero_and_couples_nothing(cut):
 
     assert sum([ZERO, ZERO]) is ZERO
     assert 0 - ZERO is ZERO and ZERO - 0 is ZERO and 0.0 + ZERO is ZERO
-    W = ProductSpace(CutP1Space(cut, NEG), CutP1Space(cut, POS))
+    W = ProductSpace(CutSpace(cut, NEG), CutSpace(cut, POS))
     ds = cut.ds()
 
     @bilinear_form(symmetric=True)
@@ -92,7 +92,7 @@ def test_a_sum_of_zero_terms_is_zero_and_couples_nothing(cut):
 
 
 def test_an_integrand_returning_one_number_is_told_why(cut):
-    V = CutP1Space(cut, NEG)
+    V = CutSpace(cut, NEG)
 
     @bilinear_form
     def nothing(u, v, w):
@@ -188,7 +188,7 @@ def test_the_length_scale_is_checked_where_every_path_builds_the_form():
     from cutfem.problems.mean_curvature import mean_curvature_system
 
     big = cut_mesh(structured_box([-120.0] * 3, [120.0] * 3, spacing=20.0), Sphere(100.0))
-    V = CutP1Space(big)
+    V = CutSpace(big)
     faces = big.dF(big.interior_facets(CUT))
     with pytest.raises(ProblemError, match=r"size sqrt\(area / 4 pi\) = 99.5 is 99.5 times the length scale L = 1.*"
                                            r"--length-scale 100 "):
@@ -211,7 +211,7 @@ def _cube_system():
     from cutfem.problems.mean_curvature import mean_curvature_system
 
     cube = cut_mesh(structured_box([-1.0] * 3, [1.0] * 3, spacing=0.1), FunctionLevelSet.from_expression(CUBE))
-    V = CutP1Space(cube)
+    V = CutSpace(cube)
     K, B = mean_curvature_system(V, cube.ds(), tau_f=0.1, faces=cube.dF(cube.interior_facets(CUT)))
     return cube, V, K, B
 

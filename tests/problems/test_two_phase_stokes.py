@@ -11,7 +11,7 @@ import scipy.sparse.linalg as spla
 import cutfem as cf
 from cutfem.fem.forms import assemble, linear_form
 from cutfem.fem.pointwise import dot
-from cutfem.fem.spaces import CutP1Space, ProductSpace, RealSpace, VectorSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace, RealSpace, VectorSpace
 from cutfem.fem.terms import apply_dirichlet, basis_integrals
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.cut import cut_mesh
@@ -73,7 +73,7 @@ def test_the_discrete_equations_hold_for_the_exact_state():
     (a polyhedron), u = 0 and p = (c_NEG, c_POS) with c_NEG - c_POS = J and zero mean solve the
     discrete system: every other term vanishes on constants.  Checked to round-off with contrast."""
     cut = cut_mesh(structured_box((-1, -1, -1), (1, 1, 1), spacing=0.25), Sphere(0.5))
-    V = {side: CutP1Space(cut, side) for side in (NEG, POS)}
+    V = {side: CutSpace(cut, side) for side in (NEG, POS)}
     W = ProductSpace(u_neg=VectorSpace(V[NEG]), u_pos=VectorSpace(V[POS]), p_neg=V[NEG], p_pos=V[POS], mean=RealSpace())
     mu_neg, mu_pos, J = 3.0, 0.5, 2.5
     k_neg, k_pos, two_s = tp._weights(mu_neg, mu_pos)

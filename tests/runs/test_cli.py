@@ -228,7 +228,7 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     from cutfem.geometry.shapes import Plane, Sphere
     from cutfem.geometry.box import structured_box
     from cutfem.solvers.solve import solve
-    from cutfem.fem.spaces import CutP1Space
+    from cutfem.fem.spaces import CutSpace
     from cutfem.geometry.surface_meshes import sphere_mesh
 
     blocks = _forms_md_blocks()
@@ -244,7 +244,7 @@ def test_forms_md_examples_run_and_mean_what_they_say():
          "from cutfem.solvers.krylov import CGSolver\n"
          "from cutfem.solvers.direct import DirectSolver\n"
          "from cutfem.solvers.solve import solve\n"
-         "from cutfem.fem.spaces import CutP1Space, ProductSpace, RealSpace, VectorSpace\n"
+         "from cutfem.fem.spaces import CutSpace, ProductSpace, RealSpace, VectorSpace\n"
          "from cutfem.problems.heat_surface import extrapolated\n", ns)
 
     def run(k, **context):
@@ -282,7 +282,7 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     assert np.abs(u - linear(V.dof_points)).max() < 1e-9
 
     # ... and outside Gamma: nitsche takes -n_h, a user integrand writes the sign itself
-    Vp, dxp = CutP1Space(cut, POS), cut.dx(POS)
+    Vp, dxp = CutSpace(cut, POS), cut.dx(POS)
 
     @bilinear_form(symmetric=True)
     def a_pos(u, v, w):
@@ -325,7 +325,7 @@ def test_forms_md_examples_run_and_mean_what_they_say():
 
     # surface heat equation: a Crank-Nicolson step, then a backward Euler step by CG; the integral of
     # u_h follows the source, 1^T M u^n = 1^T M u^{n-1} + dt (theta 1^T F^n + (1 - theta) 1^T F^{n-1})
-    Vc = CutP1Space(cut, CUT)
+    Vc = CutSpace(cut, CUT)
     u0 = np.cos(Vc.dof_points[:, 0])
     F_new, F_old = assemble(load(linear, ds), Vc), assemble(load(lambda x: x[..., 2] + 1.0, ds), Vc)
     theta, dt = 0.5, 0.05
@@ -345,7 +345,7 @@ def test_forms_md_examples_run_and_mean_what_they_say():
     assert l2_error(ns["W"], ns["x"], ue, fine.dx(NEG)) < 1.1 * 5.20e-3  # measured 5.20e-3 (17247 unknowns)
 
     # a multiplier: its row in the bordered matrix is (phi_i, 1)
-    run(7, V=CutP1Space(cut, NEG), dx=cut.dx(NEG), dg=cut.dF(cut.ghost_facets(NEG)))
+    run(7, V=CutSpace(cut, NEG), dx=cut.dx(NEG), dg=cut.dF(cut.ghost_facets(NEG)))
     K, Vn = ns["K"], ns["V"]
     assert (K != K.T).nnz == 0 and K.shape == (Vn.n_dofs + 1,) * 2
     ones = assemble(basis_integrals(cut.dx(NEG)), Vn)

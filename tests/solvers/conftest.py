@@ -4,7 +4,7 @@ torus at spacing 0.05 of the multigrid tests (each fixture built once per test m
 
 import pytest
 
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.shapes import Sphere, Torus
 from cutfem.geometry.box import structured_box
@@ -14,7 +14,7 @@ from surface_matrices import face_matrix, mass_matrix, stiffness_matrix
 
 @pytest.fixture(scope="module")
 def cut_torus():
-    return CutP1Space(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1), Torus()))
+    return CutSpace(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.1), Torus()))
 
 
 @pytest.fixture(scope="module")
@@ -32,9 +32,9 @@ def systems(cut_torus):
 
 @pytest.fixture(scope="module")
 def small_cut_sphere():
-    return CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02])))
+    return CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), Sphere(0.7, [0.03, -0.01, 0.02])))
 
 
 @pytest.fixture(scope="module")
 def torus_space():
-    return CutP1Space(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.05), Torus()))
+    return CutSpace(cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.05), Torus()))

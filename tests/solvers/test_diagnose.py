@@ -15,7 +15,7 @@ from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.shapes import Sphere
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.surface_meshes import sphere_mesh
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.solvers.diagnose import ConditionNumber, SolverError, condition_number, diagnose
 from cutfem.solvers.direct import DirectSolver
 from cutfem.solvers.krylov import cg_solve, mg_solve
@@ -26,7 +26,7 @@ from surface_matrices import face_matrix, mass_matrix, stiffness_matrix
 
 @pytest.fixture(scope="module")
 def sphere16():
-    V = CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=16), Sphere(0.7, [0.03, -0.01, 0.02])))
+    V = CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=16), Sphere(0.7, [0.03, -0.01, 0.02])))
     return V, mass_matrix(V), stiffness_matrix(V), face_matrix(V)
 
 
@@ -119,7 +119,7 @@ def test_user_kernel_and_phi_h_are_named(sphere16, monkeypatch):
         DirectSolver(M, kernels={"level set": V.cut.values})
     assert err.value.kernel == "level set"
     # the stabilization passed vanishes on a linear phi_h too: raising it does not help
-    W = CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), lambda x: x[..., 2] - 0.123,
+    W = CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=8), lambda x: x[..., 2] - 0.123,
                             check_boundary=False))
     Mw, Jw = mass_matrix(W), face_matrix(W)
     with pytest.raises(SolverError, match="vanishes on it too") as err:
@@ -177,7 +177,7 @@ def test_condition_number_matches_dense_reference(small_cut_sphere):
     A = mass_matrix(V) + 0.1 * face_matrix(V)
     assert condition_number(A) == pytest.approx(scaled_condition(A), rel=1e-8)
     box = structured_box([-1, -1, -1], [1, 1, 1], cells=11)
-    coarse = CutP1Space(cut_mesh(box, Sphere(0.7, [0.03, -0.01, 0.02])))
+    coarse = CutSpace(cut_mesh(box, Sphere(0.7, [0.03, -0.01, 0.02])))
     assert coarse.n_dofs > 400  # Lanczos path
     B = mass_matrix(coarse) + 0.1 * face_matrix(coarse)
     assert condition_number(B) == pytest.approx(scaled_condition(B), rel=1e-5)
@@ -202,7 +202,7 @@ def test_conditioning_over_random_shifts():
     unstabilized, stabilized, smallest_piece = [], [], []
     for _ in range(30):
         cut = cut_mesh(box, Sphere(rng.uniform(0.6, 0.8), rng.uniform(-0.125, 0.125, size=3)))
-        V = CutP1Space(cut)
+        V = CutSpace(cut)
         M = mass_matrix(V)
         unstabilized.append(condition_number(M))
         stabilized.append(condition_number(M + 0.1 * face_matrix(V)))

@@ -11,7 +11,7 @@ import scipy.sparse.linalg as spla
 
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.box import structured_box
-from cutfem.fem.spaces import CutP1Space
+from cutfem.fem.spaces import CutSpace
 from cutfem.solvers.diagnose import SolverError, condition_number
 from cutfem.solvers.direct import DirectSolver
 from cutfem.solvers.solve import solve
@@ -66,7 +66,7 @@ def test_plane_on_a_node_layer_is_reported_singular():
     """phi = z cut along a layer of nodes (the zero rule puts S_h in tet faces): the nodes below
     the layer carry basis functions that vanish on S_h, the unstabilized system is singular."""
     box = structured_box([-1, -1, -1], [1, 1, 1], cells=8)
-    V = CutP1Space(cut_mesh(box, lambda x: x[..., 2], check_boundary=False))
+    V = CutSpace(cut_mesh(box, lambda x: x[..., 2], check_boundary=False))
     below = V.dof_points[:, 2] < 0
     assert below.any()
     M = mass_matrix(V)

@@ -13,7 +13,7 @@ import cutfem as cf
 from cutfem.fem.forms import assemble, bilinear_form, linear_form
 from cutfem.fem.norms import l2_error
 from cutfem.fem.pointwise import dot
-from cutfem.fem.spaces import CutP1Space, ProductSpace
+from cutfem.fem.spaces import CutSpace, ProductSpace
 from cutfem.fem.terms import basis_integrals, face_jump_penalty, mass
 from cutfem.solvers.diagnose import SolverError
 
@@ -32,7 +32,7 @@ class _Multiplier:
 
 def stokes(h, stabilize=True, gamma=GAMMA):
     cut = cf.cut_mesh(cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=h), cf.Sphere(1.0))
-    V = CutP1Space(cut, cf.NEG)
+    V = CutSpace(cut, cf.NEG)
     W = ProductSpace(u0=V, u1=V, u2=V, p=V)
     dx, ds, dg = cut.dx(cf.NEG), cut.ds(), cut.dF(cut.ghost_facets(cf.NEG))
     beta = BETA if stabilize else 0.0

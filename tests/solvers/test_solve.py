@@ -20,7 +20,7 @@ from cutfem.geometry.surface import SurfaceMesh
 from cutfem.geometry.surface_meshes import sphere_mesh, torus_mesh
 from cutfem.fem.forms import assemble
 from cutfem.fem.terms import mass
-from cutfem.fem.spaces import CutP1Space, SurfaceP1Space
+from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.solvers import solve as solve_module
 from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.direct import DirectSolver
@@ -78,7 +78,7 @@ def test_auto_picks_multigrid_above_the_limit(torus_space, monkeypatch):
 def test_unstabilized_system_is_not_hidden(monkeypatch):
     """tau_F = 0: the nodal vector of phi_h is a null vector of the surface forms; solve() with the
     space reports it on the iterative path too (a consistent right-hand side would hide it)."""
-    V = CutP1Space(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=24), Sphere(0.7, [0.03, -0.01, 0.02])))
+    V = CutSpace(cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=24), Sphere(0.7, [0.03, -0.01, 0.02])))
     M, A, J = mass_matrix(V), stiffness_matrix(V), face_matrix(V)
     B = A @ V.dof_points
     monkeypatch.setattr(solve_module, "DIRECT_LIMIT", 100)
@@ -123,7 +123,7 @@ def test_default_tolerance_keeps_the_integral_of_H_at_round_off(surface):
 
     if surface == "cut-0.08":
         cut = cut_mesh(structured_box([-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], spacing=0.08), Torus())
-        V = CutP1Space(cut)
+        V = CutSpace(cut)
         ds = cut.ds()
         K, B = mean_curvature_system(V, ds, tau_f=0.1, faces=cut.dF(cut.interior_facets(CUT)))
     else:
@@ -157,7 +157,7 @@ def test_amg_of_a_vector_field_takes_each_components_linear_functions_as_candida
 
     box = cf.structured_box([-1.1] * 3, [1.1] * 3, spacing=0.1)
     cut = cf.cut_mesh(TetMesh(np.array(box.points), np.array(box.tets)), cf.Sphere(1.0))
-    V = cf.CutP1Space(cut, cf.NEG)
+    V = cf.CutSpace(cut, cf.NEG)
     W = cf.VectorSpace(V)
     dx, ds, dg = cut.dx(cf.NEG), cut.ds(), cut.dF(cut.ghost_facets(cf.NEG))
     N = cf.elasticity_nitsche(ds, 1.0, 2.0, gamma=10.0, g=lambda x: np.sin(x))
