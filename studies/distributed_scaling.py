@@ -26,15 +26,15 @@ import subprocess
 import sys
 from pathlib import Path
 
+from cutfem.distributed import distributed_params
 from cutfem.distributed.launch import engine
 from cutfem.distributed.poisson import poisson_cut_level
-from cutfem.runs.registry import get_problem
 
 
 def scaling_record(comm, spacing: float) -> dict:
     """One timed level of poisson-cut on the torus on the ranks of ``comm`` (a warm-up level at
     0.2 first), with each rank's peak resident memory in MiB (``memory_mib``, rank order)."""
-    p = get_problem("poisson-cut").resolve({"surface": "torus", "solver": "cg-amg"})
+    p = distributed_params("poisson-cut", {"surface": "torus", "solver": "cg-amg"})
     poisson_cut_level(0.2, **p, comm=comm)  # compiles the kernels; not recorded
     rec = poisson_cut_level(spacing, **p, comm=comm)
     rec["spacing"] = spacing

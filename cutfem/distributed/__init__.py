@@ -7,9 +7,10 @@ from __future__ import annotations
 
 import importlib
 
+from ..runs.registry import get_problem
 from .launch import launched, launched_rank, launched_size
 
-__all__ = ["DISTRIBUTED_LEVELS", "distributed_level", "launched", "launched_rank", "launched_size"]
+__all__ = ["DISTRIBUTED_LEVELS", "distributed_level", "distributed_params", "launched", "launched_rank", "launched_size"]
 
 #: the problems that run on several ranks: name -> "module:function" of one distributed level,
 #: called with the problem's parameters like its serial level
@@ -29,3 +30,14 @@ def distributed_level(name: str):
         return None
     module, function = target.split(":")
     return getattr(importlib.import_module(module), function)
+
+
+def distributed_params(name: str, given: dict) -> dict:
+    """The resolved parameters of problem ``name`` (its defaults with ``given``) for its distributed
+    level, which assembles P1 fields on the planar cut: without ``order``, which must be 1 (the
+    runner refuses --order 2 on several ranks)."""
+    params = get_problem(name).resolve(given)
+    order = params.pop("order", 1)
+    if order != 1:
+        raise ValueError(f"{name}: the distributed level is P1 (order 1), got order={order}")
+    return params

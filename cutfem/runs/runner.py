@@ -394,7 +394,15 @@ def _level_solver(problem):
         return problem.solve_level
     level = distributed_level(problem.name)
     if level is not None:
-        return level
+        def distributed(spacing, order=1, **params):  # the distributed levels are P1 on the planar cut
+            if order == 1:
+                return level(spacing, **params)
+            if launched_size() > 1:
+                raise ProblemError(f"{problem.name} --order {order} is not distributed (the ranks assemble P1 fields on the "
+                                   "planar cut): run it on one rank, or --order 1 on several")
+            return problem.solve_level(spacing, order=order, **params)
+
+        return distributed
     if launched_size() > 1:
         raise ProblemError(f"{problem.name} is not distributed: run it on one rank (without mpiexec, or mpiexec -n 1). "
                            f"The problems that run on several ranks: {', '.join(sorted(DISTRIBUTED_LEVELS))}")

@@ -14,6 +14,7 @@ pytest.importorskip("mpi4py")
 pytest.importorskip("petsc4py")
 
 import cutfem as cf  # noqa: E402
+from cutfem.distributed import distributed_params  # noqa: E402
 from cutfem.distributed.assembly import slab_pieces, slab_system  # noqa: E402
 from cutfem.distributed.launch import engine, launched  # noqa: E402
 from cutfem.distributed.interface_poisson import interface_poisson_cut_level  # noqa: E402
@@ -34,6 +35,7 @@ from cutfem.studies.distributed_scaling import scaling_record, table  # noqa: E4
 
 MPI, PETSc = engine()
 WORLD = MPI.COMM_WORLD
+
 
 
 def ranks(size):
@@ -138,7 +140,7 @@ def test_poisson_errors_equal_serial(size):
         serial = serial_record("poisson-cut", spacing, surface="torus", solver="direct")
         if comm is None:
             continue
-        p = get_problem("poisson-cut").resolve({"surface": "torus", "solver": "direct"})
+        p = distributed_params("poisson-cut", {"surface": "torus", "solver": "direct"})
         rec = poisson_cut_level(spacing, **p, comm=comm)
         assert rec["dofs"] == serial["dofs"]
         for key in ("active_tets", "pieces", "surface_triangles", "interior_faces", "background_nodes"):
@@ -155,7 +157,7 @@ def test_laplace_beltrami_errors_equal_serial(size):
     serial = serial_record("laplace-beltrami-cut", 0.2, solver="direct")
     if comm is None:
         return
-    p = get_problem("laplace-beltrami-cut").resolve({"solver": "direct"})
+    p = distributed_params("laplace-beltrami-cut", {"solver": "direct"})
     rec = laplace_beltrami_cut_level(0.2, **p, comm=comm)
     assert rec["dofs"] == serial["dofs"] and rec["pieces"] == serial["pieces"]
     for key in ("l2_error", "h1_error", "area"):
@@ -170,7 +172,7 @@ def test_mean_curvature_equals_serial(size):
     serial = serial_record("mean-curvature-cut", 0.1, solver="direct")
     if comm is None:
         return
-    p = get_problem("mean-curvature-cut").resolve({"solver": "direct"})
+    p = distributed_params("mean-curvature-cut", {"solver": "direct"})
     rec = mean_curvature_cut_level(0.1, **p, comm=comm)
     assert rec["dofs"] == serial["dofs"] and rec["interior_faces"] == serial["interior_faces"]
     assert rec["stabilized_faces"] == serial["interior_faces"]
@@ -189,7 +191,7 @@ def test_interface_errors_equal_serial(size):
     serial = serial_record("interface-poisson-cut", 0.2, **given)
     if comm is None:
         return
-    rec = interface_poisson_cut_level(0.2, **get_problem("interface-poisson-cut").resolve(given), comm=comm)
+    rec = interface_poisson_cut_level(0.2, **distributed_params("interface-poisson-cut", given), comm=comm)
     assert rec["dofs"] == serial["dofs"] and rec["active_tets"] == serial["active_tets"]
     for key in ("l2_error_inside", "h1_error_inside", "l2_error_outside", "h1_error_outside"):
         assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
@@ -201,7 +203,7 @@ def test_poisson_rates_on_two_ranks():
     comm = ranks(2)
     if comm is None:
         return
-    p = get_problem("poisson-cut").resolve({"surface": "torus", "solver": "cg-amg"})
+    p = distributed_params("poisson-cut", {"surface": "torus", "solver": "cg-amg"})
     recs = [poisson_cut_level(s, **p, comm=comm) for s in (0.2, 0.1)]
     assert recs[1]["ksp"] == "cg" and recs[1]["pc"] == "gamg" and recs[1]["solver_iterations"] > 0
     l2 = cf.rates([r["h"] for r in recs], [r["l2_error"] for r in recs])[0]

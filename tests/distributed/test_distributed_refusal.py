@@ -26,3 +26,11 @@ def test_problems_not_distributed_are_refused_on_several_ranks(monkeypatch):
 
 def test_distributed_problems_are_registered():
     assert set(DISTRIBUTED_LEVELS) <= set(available_problems())
+
+
+def test_order_two_is_refused_on_several_ranks(monkeypatch):
+    """The distributed levels are P1 on the planar cut: --order 2 on several ranks names the fix."""
+    monkeypatch.setenv("OMPI_COMM_WORLD_SIZE", "2")
+    monkeypatch.setenv("OMPI_COMM_WORLD_RANK", "0")
+    with pytest.raises(ProblemError, match=r"poisson-cut --order 2 is not distributed.*run it on one rank"):
+        cf.run("poisson-cut", levels=[0.2], order=2)
