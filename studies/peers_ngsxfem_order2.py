@@ -7,11 +7,14 @@ Geometry
 The tets are cutfem's Kuhn box handed to NGSolve as in :mod:`cutfem.studies.peers_ngsxfem`
 (:class:`~cutfem.studies.peers_ngsxfem.NgBackground`).  The level set is cutfem's own function
 (:func:`levelset_cf`: the sphere's |x| - R, the torus's sqrt(z^2 + (s - R)^2) - r) as a
-CoefficientFunction; ``LevelSetMeshAdaptation(mesh, order=2)`` takes its P2 interpolant phi_h2, the
-P1 interpolant phi_h1 of that (``lset_p1``: the nodal values of phi, zeros moved by ngsxfem's own
-1e-14, not cutfem's snap), and the P2 deformation Theta_h that maps {phi_h1 = 0} onto a third-order
-approximation of the surface (search direction grad phi_h2, a discontinuous P2 field;
-the shift not limited, :data:`THRESHOLD`).  Every measure of the forms, loads and errors is taken on the
+CoefficientFunction; ``LevelSetMeshAdaptation(mesh, order=2)`` takes its P2 approximation phi_h2
+(NGSolve's ``Set``: a local projection, not the nodal interpolant), the P1 interpolant phi_h1 of
+that (``lset_p1``, zeros moved by ngsxfem's own 1e-14, not cutfem's snap), and the P2 deformation
+Theta_h that maps {phi_h1 = 0} onto a third-order approximation of the surface (search direction
+grad phi_h2, a discontinuous P2 field; the shift not limited, :data:`THRESHOLD`).  So phi_h1 is not
+cutfem's P1 level set: within two spacings of the surface its nodal values differ from phi's by
+O(h^3) (at most 2.7e-4 and 3.2e-5 on the sphere at spacings 0.2 and 0.1, 7.0e-3 and 9.7e-5 on the
+torus), and the two codes' cut geometries differ at the order of the geometry error.  Every measure of the forms, loads and errors is taken on the
 deformed mesh (``deformation=`` of ``dCut``, ``dx``, ``dFacetPatch``), so gradients, the normal
 n_h = grad phi_h1 / |grad phi_h1| (of the deformed cut) and Jacobians are those of Theta_h.
 
@@ -23,8 +26,8 @@ The three problems
   order ghost penalty: gamma_g h_F^-2 (u_1 - u_2, v_1 - v_2) over the patch of the two tets of each
   ghost facet, the polynomial of one tet extended to the other) or ``"jumps"`` (SPEC §14:
   gamma_g h_F ([d_n u], [d_n v]) + gamma_g h_F^3 / 4 ([d_n^2 u], [d_n^2 v]), NGSolve's ``hesse``,
-  which is exact on deformed elements but computed by numerical differentiation: 25 times slower to
-  assemble at spacing 0.1).  Solver: CG with Jacobi, as at order 1.
+  which is exact on deformed elements but computed by numerical differentiation: the assembly takes 3.5
+  times as long at spacing 0.1).  Solver: CG with Jacobi, as at order 1.
 * :func:`ngsxfem_laplace_beltrami_p2`: ``laplace-beltrami-cut``'s problem on the unit sphere
   (-Lap_S u + u = f, u = x y + z at the closest point, docs/math.md §4) as TraceFEM: P2 on the cut
   tets, (P_h grad u, P_h grad v) + (u, v) on the deformed S_h, and the normal-gradient volume
@@ -33,8 +36,8 @@ The three problems
   ||P_h (grad_S u o p - grad u_h)||, as cutfem's.
 * :func:`ngsxfem_mean_curvature_p2`: the mean curvature vector on the paper's cut torus (docs/math.md
   §3): (H, v)_{S_h} + tau_N h_T^a (n_h . grad H, n_h . grad v)_{cut tets} = (grad_{S_h} x,
-  grad_{S_h} v)_{S_h}, component by component (H = -Lap_S x), with tau_N = 1 and a = -1 (issue 48's choice), the
-  error ||H_h - H^e||_{L2(S_h)} and the area error |S_h| - 4 pi^2 R r.
+  grad_{S_h} v)_{S_h}, component by component (H = -Lap_S x), with tau_N h_T^-1 = 1 / s (issue 48's choice:
+  :data:`MEAN_CURVATURE_PARAMS`), the error ||H_h - H^e||_{L2(S_h)} and the area error |S_h| - 4 pi^2 R r.
 
 Each returns the errors, unknowns, element counts and stage times: ``mesh`` (cutfem's box and the
 NGSolve mesh), ``levelset`` (phi_h2, phi_h1, Theta_h), ``cut`` (CutInfo, element and facet sets,
@@ -68,8 +71,11 @@ POISSON_PARAMS = {"gamma": 40.0, "gamma_g": 0.1}
 GHOST_PENALTIES = ("patch", "jumps")
 #: the Laplace-Beltrami comparison: cutfem's laplace-beltrami-cut with its normal-gradient defaults
 LAPLACE_BELTRAMI_PARAMS = {"tau_n": 1.0, "normal_h_power": 1.0}
-#: the mean curvature comparison: the normal-gradient stabilization of issue 48 (tau_N = 1, h^-1)
-MEAN_CURVATURE_PARAMS = {"tau_n": 1.0, "normal_h_power": -1.0}
+#: the mean curvature comparison: issue 48's normal-gradient stabilization 1 / s (s the spacing) written
+#: as cutfem's tau_N h_T^a with h_T = sqrt(3) s, the longest edge of a Kuhn tet.  It reproduces the issue's
+#: L2 errors 1.5e-1, 3.5e-2, 6.6e-3 at spacings 0.2, 0.1, 0.05; tau_N = 1 (weight 1 / h_T) gives 3.9e-2, 8.0e-3
+#: at 0.1, 0.05
+MEAN_CURVATURE_PARAMS = {"tau_n": math.sqrt(3.0), "normal_h_power": -1.0}
 CG_TOL = 1e-10
 
 
@@ -187,7 +193,7 @@ def ngsxfem_poisson_p2(spacing, levelset=None, gamma=POISSON_PARAMS["gamma"], ga
             return InnerProduct((w.Operator("hesse") - w.Other().Operator("hesse")) * nF, nF)
 
         a += (gamma_g * hF * jump1(u) * jump1(v)).Compile() * dw
-        a += (gamma_g * hF**3 / 4 * jump2(u) * jump2(v)).Compile() * dw  # compiled: 3.5 times faster
+        a += (gamma_g * hF**3 / 4 * jump2(u) * jump2(v)).Compile() * dw  # compiled: 3 times faster
     pre = ngs.Preconditioner(a, inverse[3:]) if inverse.startswith("cg-") else None
     a.Assemble()
     b = LinearForm(V)
