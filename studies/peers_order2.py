@@ -40,6 +40,7 @@ from cutfem.runs.convergence import new_figure
 from cutfem.runs.registry import get_problem
 
 from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, save_latex_table, study_main
+from .peers import _resident_gib
 from .peers_ngsxfem import INSTALL, available_memory, peer_missing, peer_versions
 from .peers_ngsxfem_order2 import (LAPLACE_BELTRAMI_PARAMS, MEAN_CURVATURE_PARAMS, POISSON_PARAMS, ngsxfem_laplace_beltrami_p2,
                                    ngsxfem_mean_curvature_p2, ngsxfem_poisson_p2)
@@ -86,16 +87,6 @@ import json
 from cutfem.studies.peers_order2 import order2_level
 print('RESULT ' + json.dumps(order2_level({code!r}, {problem!r}, {spacing!r}, _peak)))
 """
-
-
-def _resident_gib() -> float | None:
-    try:
-        for line in Path("/proc/self/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
-                return int(line.split()[1]) / 2**20
-    except OSError:
-        return None
-    return None
 
 
 def order2_level(code: str, problem: str, spacing: float, peak) -> dict:

@@ -22,13 +22,8 @@ from cutfem.distributed.laplace_beltrami import laplace_beltrami_cut_level  # no
 from cutfem.distributed.mean_curvature import mean_curvature_cut_level  # noqa: E402
 from cutfem.distributed.partition import rank_cuts, slab_partition  # noqa: E402
 from cutfem.distributed.poisson import poisson_cut_level, poisson_pieces  # noqa: E402
-from cutfem.fem.forms import assemble  # noqa: E402
-from cutfem.fem.spaces import CutSpace  # noqa: E402
-from cutfem.fem.terms import face_jump_penalty, load, nitsche, stiffness  # noqa: E402
-from cutfem.geometry.cut import cut_mesh  # noqa: E402
+from cutfem.fem.terms import face_jump_penalty  # noqa: E402
 from cutfem.geometry.markers import CUT, NEG  # noqa: E402
-from cutfem.problems.common import background_for, levelset_for  # noqa: E402
-from cutfem.problems.poisson import exact_u, source  # noqa: E402
 from cutfem.runs.registry import get_problem  # noqa: E402
 from cutfem.runs.cli import main  # noqa: E402
 from cutfem.studies.distributed_scaling import scaling_record, table  # noqa: E402
@@ -56,20 +51,6 @@ def partitions(nz):
     return out
 
 
-@pytest.fixture(scope="module")
-def torus():
-    phi = levelset_for("torus")
-    bg = background_for(phi, 0.1, "structured", None)
-    cut = cut_mesh(bg, phi)
-    V = CutSpace(cut, NEG)
-    dx = cut.dx(NEG)
-    N = nitsche(cut.ds(), 10.0, g=exact_u)
-    G = cut.ghost_facets(NEG)
-    K = assemble(stiffness(dx) + N + 0.1 * face_jump_penalty(cut.dF(G), h_power=1), V)
-    b = assemble(load(source, dx, degree=2) + N.load, V)
-    return phi, bg, cut, K, b
-
-
 def owned_rows(comm, numbering, vec):
     return vec[numbering.first : numbering.first + numbering.n_owned]
 
@@ -78,7 +59,7 @@ def owned_rows(comm, numbering, vec):
 def test_matrix_action_and_load_equal_serial(torus, which):
     """A x (x random, the same on every rank) and b on each rank's rows equal the serial ones to
     1e-12 relative, with the block split and with empty ranks."""
-    phi, bg, _, K, b = torus
+    phi, bg, _, _, K, b, _ = torus
     cases = partitions(int(bg.cells[2]))
     if which >= len(cases):
         pytest.skip("one rank: no partition with empty ranks")
@@ -103,7 +84,7 @@ def test_matrix_action_and_load_equal_serial(torus, which):
 def test_stabilization_of_a_constant_is_zero_and_faces_are_counted_once(torus, side):
     """The ghost penalty (NEG) and J_F (CUT) of a constant sum to zero on every row, and the faces
     assembled on all ranks are the serial faces, each once."""
-    phi, bg, cut, _, _ = torus
+    phi, bg, cut, _, _, _, _ = torus
     serial = cut.ghost_facets(NEG) if side == NEG else cut.interior_facets(CUT)
     for counts in partitions(int(bg.cells[2])):
         slabs = slab_partition(bg, WORLD.size, counts)

@@ -11,27 +11,11 @@ from cutfem.distributed.laplace_beltrami import laplace_beltrami_pieces
 from cutfem.distributed.poisson import poisson_pieces
 from cutfem.fem.forms import assemble
 from cutfem.fem.spaces import CutSpace
-from cutfem.fem.terms import face_jump_penalty, load, mass, nitsche, normal_gradient_penalty, stiffness, tangential_stiffness
+from cutfem.fem.terms import face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
 from cutfem.geometry.cut import cut_mesh
-from cutfem.geometry.markers import CUT, NEG
+from cutfem.geometry.markers import CUT
 from cutfem.problems.common import background_for, levelset_for
 from cutfem.problems.laplace_beltrami import manufactured
-from cutfem.problems.poisson import exact_u, source
-
-
-@pytest.fixture(scope="module")
-def torus():
-    """The serial poisson-cut system of the torus at spacing 0.1 (12 cell layers)."""
-    phi = levelset_for("torus")
-    bg = background_for(phi, 0.1, "structured", None)
-    cut = cut_mesh(bg, phi)
-    V = CutSpace(cut, NEG)
-    dx = cut.dx(NEG)
-    N = nitsche(cut.ds(), 10.0, g=exact_u)
-    G = cut.ghost_facets(NEG)
-    K = assemble(stiffness(dx) + N + 0.1 * face_jump_penalty(cut.dF(G), h_power=1), V)
-    b = assemble(load(source, dx, degree=2) + N.load, V)
-    return phi, bg, V, K, b, G.n_facets
 
 
 def summed(phi, bg, V, counts, pieces=lambda cuts: poisson_pieces(cuts, 10.0, 0.1)):
@@ -56,7 +40,7 @@ def summed(phi, bg, V, counts, pieces=lambda cuts: poisson_pieces(cuts, 10.0, 0.
 def test_pieces_add_up_to_the_serial_system(torus, counts):
     """[0, 5, 0, 7]: two ranks without layers; [11, 1]: the top rank's layer lies above the torus
     (no active cell, its seam holds the faces below it); [1, 1, 8, 1, 1]: one-layer slabs."""
-    phi, bg, V, K, b, n_faces = torus
+    phi, bg, _, V, K, b, n_faces = torus
     Ks, bs, faces = summed(phi, bg, V, counts)
     x = np.random.default_rng(1).standard_normal(V.n_dofs)
     assert np.linalg.norm(Ks @ x - K @ x) <= 1e-14 * np.linalg.norm(K @ x)  # measured 3e-16
