@@ -305,7 +305,7 @@ def check_normal_stabilization(tau_n, normal_h_power, spacing, length_scale=1.0,
     against the surface terms: refused below :data:`NORMAL_WEIGHT_MIN` or above
     :data:`NORMAL_WEIGHT_MAX`, a warning above :data:`NORMAL_WEIGHT_WARN` (``warn``: off for a problem
     whose exact solution extends constantly along the normals, as the mean curvature vector's: the
-    term's consistency error is then that of the normal, and mean-curvature-cut --order 2 wants
+    term's consistency error is then that of the normal, and mean-curvature-cut's normal option takes
     tau_N h^-1, a weight growing as s^-2); tau_N = 0 (none) is left to the solver, which
     reports phi_h as a null vector.  Returns the warnings given."""
     tau, a = _coefficient_and_power(tau_n, flag, normal_h_power, power_flag)

@@ -10,15 +10,15 @@ A x_k is formed without A: b_i = sum_K |S_K| grad_{S_h} phi_i (:func:`cutfem.fem
 Stabilization: meshed J = tau_E J_E (edge conormal-gradient jumps, weighted by the global
 h = N^(-1/2)); cut J = tau_E J_E + tau_F J_F (face normal-gradient jumps of the active mesh, times
 h^a, a = ``face_h_power``, 0 in the paper), or J = tau_N J_N, the normal-gradient term over the cut
-tets (h^a, a = ``normal_h_power``).  Exact field for errors: H^e = H o p, at the closest point of
+tets (h^a, a = ``normal_h_power``; default tau_N h_T^-1, tau_N = sqrt(3), i.e. 1 / spacing on a
+Kuhn box, h_T = sqrt(3) spacing the longest edge).  Exact field for errors: H^e = H o p, at the closest point of
 each quadrature point of S_h (of Theta_h(S_h) at order 2).
 
 Order 2 (``--order 2``, docs/math.md §18): P2 trace fields on the lifted cut Theta_h(S_h); every term
 goes by quadrature with the per-point normals of the lifted surface, the position load too (it is
-A x with x the P2 field of the lifted node positions, exactly).  Default there: the normal-gradient
-term with tau_N h_T^-1, tau_N = sqrt(3) (1 / spacing on a Kuhn box, h_T = sqrt(3) spacing the longest
-edge), whose normal is the lifted one; the face term J_F (first and second normal-derivative jumps)
-falls to L2 rate 1.5-2 (§18).
+A x with x the P2 field of the lifted node positions, exactly).  Default there: the face term with
+a = 1, the jumps of the first and second normal derivatives weighted h and h^3 / 4 (the best of the
+stabilizations compared in docs/math.md §18).
 
 Units of length (choice).  Under x -> s x the mass term scales as s^2, the jumps do not: J_E as
 s^-1 (h = N^(-1/2) is a number) and h^a J_F as s^a, so the paper's tau_E = tau_F = 1/10 are
@@ -73,11 +73,10 @@ DEFINITIONS = {
 #: a surface of size sqrt(area / 4 pi) outside [L / LENGTH_SCALE_RANGE, L * LENGTH_SCALE_RANGE] is refused
 LENGTH_SCALE_RANGE = 10.0
 
-#: the stabilization of mean-curvature-cut by order when ``--stabilization auto``: the paper's face
-#: term at order 1, the normal-gradient term at order 2 (docs/math.md §18: the best of the three
-#: measured there), with these (tau_N, a) when --tau-n and --normal-h-power are not given
-AUTO_STABILIZATION = {1: "face", 2: "normal"}
-NORMAL_DEFAULTS = (float(np.sqrt(3.0)), -1.0)
+#: the power a of h in the face term J_F of ``--stabilization auto`` at order 2: with a = 1 the jumps of
+#: the first and second normal derivatives weigh h and h^3 / 4, the ghost penalty of order 2; the best
+#: of the stabilizations measured (docs/math.md §18).  Order 1 keeps the paper's a = 0.
+ORDER2_FACE_H_POWER = 1.0
 
 
 def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0, tau_n=0.0, band=None,
@@ -238,13 +237,12 @@ class MeanCurvatureCut(Problem):
         Param("surface", str, "torus", f"torus, sphere, ellipsoid, {USER_SURFACES}; H^e is exact at the closest point"),
         BACKGROUND_PARAM,
         SURFACE_BOX_PARAM,
-        Param("stabilization", str, "auto", "cut stabilization: face (tau_F J_F), normal (tau_N h^a normal gradient over the "
-              "cut tets), auto (face at order 1, normal at order 2)", choices=("auto", "face", "normal")),
+        Param("stabilization", str, "auto", "cut stabilization: face (tau_F h^a J_F), normal (tau_N h^a normal gradient over "
+              "the cut tets), auto (face, with a = 1 at order 2)", choices=("auto", "face", "normal")),
         *face_stabilization_params(only=("stabilization", ("auto", "face"))),
-        Param("tau_n", float, None, f"normal-gradient stabilization tau_N (default {NORMAL_DEFAULTS[0]:.4g} = sqrt 3)", minimum=0,
-              only=("stabilization", ("auto", "normal"))),
-        Param("normal_h_power", float, None, f"power a of h_T in the normal-gradient term (default {NORMAL_DEFAULTS[1]:g})",
-              only=("stabilization", ("auto", "normal"))),
+        Param("tau_n", float, float(np.sqrt(3.0)), "normal-gradient stabilization tau_N (sqrt 3: 1 / spacing with a = -1 on a "
+              "Kuhn box)", minimum=0, only=("stabilization", ("normal",))),
+        Param("normal_h_power", float, -1.0, "power a of h_T in the normal-gradient term", only=("stabilization", ("normal",))),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
         ORDER_PARAM,
         SOLVER_PARAM,
@@ -260,21 +258,18 @@ class MeanCurvatureCut(Problem):
 
     @staticmethod
     def stabilization_for(stabilization, order, tau_f, face_h_power, tau_n, normal_h_power):
-        """(kind, tau_f, face_h_power, tau_n, normal_h_power) with ``auto`` resolved by the order
-        (:data:`AUTO_STABILIZATION`) and the unused term's coefficient 0; the other term's
-        parameters given beside an ``auto`` that does not take them are refused."""
-        kind = AUTO_STABILIZATION[order] if stabilization == "auto" else stabilization
-        if kind == "normal":
-            if stabilization == "auto" and (tau_f != 0.1 or face_h_power != 0.0):
-                raise ProblemError(f"--tau-f and --face-h-power set the face stabilization, and at --order {order} the default is "
-                                   "the normal-gradient one: pass --stabilization face with them")
-            tau_n = NORMAL_DEFAULTS[0] if tau_n is None else tau_n
-            normal_h_power = NORMAL_DEFAULTS[1] if normal_h_power is None else normal_h_power
-            return kind, 0.0, face_h_power, tau_n, normal_h_power
-        if tau_n is not None or normal_h_power is not None:
-            raise ProblemError(f"--tau-n and --normal-h-power set the normal-gradient stabilization, and at --order {order} the "
-                               "default is the face one: pass --stabilization normal with them")
-        return kind, tau_f, face_h_power, 0.0, NORMAL_DEFAULTS[1]
+        """(kind, tau_f, face_h_power, tau_n, normal_h_power), the unused term's coefficient 0.
+        ``auto`` is the face term, with the paper's a = ``face_h_power`` (0) at order 1 and
+        :data:`ORDER2_FACE_H_POWER` at order 2 (an --face-h-power given there is refused: it would be
+        ignored)."""
+        if stabilization == "normal":
+            return "normal", 0.0, face_h_power, tau_n, normal_h_power
+        if stabilization == "auto" and order == 2:
+            if face_h_power != 0.0:
+                raise ProblemError(f"--face-h-power {face_h_power:g}: at --order 2 the default stabilization takes a = "
+                                   f"{ORDER2_FACE_H_POWER:g}; pass --stabilization face with --face-h-power to choose another power")
+            face_h_power = ORDER2_FACE_H_POWER
+        return "face", tau_f, face_h_power, 0.0, normal_h_power
 
     def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, tau_e, order,
                     solver, length_scale, R, r, radius, axes):
