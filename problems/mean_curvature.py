@@ -227,7 +227,7 @@ class MeanCurvatureMeshed(Problem):
 @register
 class MeanCurvatureCut(Problem):
     name = "mean-curvature-cut"
-    summary = "stabilized mean curvature vector on the zero level set of a P1 level set on tetrahedra (docs/math.md §3, cut)"
+    summary = "stabilized mean curvature vector on the zero level set of a P1 level set on tetrahedra, or P2 on its lifted cut with --order 2 (docs/math.md §3, §18, cut)"
     level_name = "spacing"
     level_type = float
     default_levels = [0.2, 0.1, 0.05, 0.025]
