@@ -299,12 +299,15 @@ def _coefficient_and_power(tau, flag, power, power_flag) -> tuple[float, float]:
 
 
 def check_normal_stabilization(tau_n, normal_h_power, spacing, length_scale=1.0, flag="--tau-n",
-                               power_flag="--normal-h-power") -> list:
+                               power_flag="--normal-h-power", warn=True) -> list:
     """Refuse (ProblemError) or warn (RuntimeWarning) about the normal-gradient stabilization
     tau_N h^a of a surface field at the spacing ``spacing`` by its weight w = tau_N (s / L)^(a - 1)
     against the surface terms: refused below :data:`NORMAL_WEIGHT_MIN` or above
-    :data:`NORMAL_WEIGHT_MAX`, a warning above :data:`NORMAL_WEIGHT_WARN`; tau_N = 0 (none) is left
-    to the solver, which reports phi_h as a null vector.  Returns the warnings given."""
+    :data:`NORMAL_WEIGHT_MAX`, a warning above :data:`NORMAL_WEIGHT_WARN` (``warn``: off for a problem
+    whose exact solution extends constantly along the normals, as the mean curvature vector's: the
+    term's consistency error is then that of the normal, and mean-curvature-cut's normal option takes
+    tau_N h^-1, a weight growing as s^-2); tau_N = 0 (none) is left to the solver, which
+    reports phi_h as a null vector.  Returns the warnings given."""
     tau, a = _coefficient_and_power(tau_n, flag, normal_h_power, power_flag)
     if tau == 0:
         return []
@@ -321,7 +324,7 @@ def check_normal_stabilization(tau_n, normal_h_power, spacing, length_scale=1.0,
     if log_w > math.log10(NORMAL_WEIGHT_MAX):
         raise ProblemError(f"{who}: {weight} is above {NORMAL_WEIGHT_MAX:g}: the surface terms are lost beside it and "
                            f"the errors are O(1) (the system numerically singular from 1e9); give {fit}")
-    if log_w > math.log10(NORMAL_WEIGHT_WARN):
+    if warn and log_w > math.log10(NORMAL_WEIGHT_WARN):
         return _warn(f"{who}: {weight} is above {NORMAL_WEIGHT_WARN:g}: it damps the solution along the surface too "
                      f"(laplace-beltrami-cut at spacing 0.1: L2 error 0.38 at 1e4, 0.016 at 100, against 0.0091 at 1); "
                      f"give {fit}")

@@ -9,7 +9,16 @@ the nodal values of the coordinate k; one matrix, one factorization, three right
 A x_k is formed without A: b_i = sum_K |S_K| grad_{S_h} phi_i (:func:`cutfem.fem.terms.position_load`).
 Stabilization: meshed J = tau_E J_E (edge conormal-gradient jumps, weighted by the global
 h = N^(-1/2)); cut J = tau_E J_E + tau_F J_F (face normal-gradient jumps of the active mesh, times
-h^a, a = ``face_h_power``, 0 in the paper).  Exact field for errors: H^e = H o p.
+h^a, a = ``face_h_power``, 0 in the paper), or J = tau_N J_N, the normal-gradient term over the cut
+tets (h^a, a = ``normal_h_power``; default tau_N h_T^-1, tau_N = sqrt(3), i.e. 1 / spacing on a
+Kuhn box, h_T = sqrt(3) spacing the longest edge).  Exact field for errors: H^e = H o p, at the closest point of
+each quadrature point of S_h (of Theta_h(S_h) at order 2).
+
+Order 2 (``--order 2``, docs/math.md §18): P2 trace fields on the lifted cut Theta_h(S_h); every term
+goes by quadrature with the per-point normals of the lifted surface, the position load too (it is
+A x with x the P2 field of the lifted node positions, exactly).  Default there: the face term with
+a = 1, the jumps of the first and second normal derivatives weighted h and h^3 / 4 (the best of the
+stabilizations compared in docs/math.md §18).
 
 Units of length (choice).  Under x -> s x the mass term scales as s^2, the jumps do not: J_E as
 s^-1 (h = N^(-1/2) is a number) and h^a J_F as s^a, so the paper's tau_E = tau_F = 1/10 are
@@ -29,15 +38,15 @@ import numpy as np
 from cutfem.geometry.cut import cut_mesh
 from cutfem.fem.norms import discrete_error, l2_error
 from cutfem.fem.forms import assemble
-from cutfem.fem.terms import basis_integrals, edge_jump_penalty, face_jump_penalty, mass, position_load
+from cutfem.fem.terms import basis_integrals, edge_jump_penalty, face_jump_penalty, mass, normal_gradient_penalty, position_load
 from cutfem.runs.registry import H_BACKGROUND, H_SURFACE, LazyFields, Param, Problem, ProblemError, register
 from cutfem.runs.runner import Timer
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutSpace, SurfaceP1Space
 from cutfem.geometry.markers import CUT
 
-from .common import BACKGROUND_PARAM, SHAPE_PARAMS, SOLVER_PARAM, SURFACE_BOX_PARAM, TORUS_MESH_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, background_for, cut_record, face_stabilization_params, has_exact, levelset_for, mesh_file_notes, surface_mesh_for
-from .common import check_edge_stabilization, check_face_stabilization, pin_unseen_nodes
+from .common import BACKGROUND_PARAM, ORDER_PARAM, SHAPE_PARAMS, SOLVER_PARAM, SURFACE_BOX_PARAM, TORUS_MESH_PARAMS, USER_SURFACES, check_cut_memory, check_resolution, check_sphere_levels, background_for, cut_record, face_stabilization_params, has_exact, levelset_for, mesh_file_notes, surface_mesh_for
+from .common import check_edge_stabilization, check_face_stabilization, check_normal_stabilization, pin_unseen_nodes
 
 #: relative residual of the iterative solves (the library's default is 1e-8).  The invariant
 #: int_{S_h} H_h = 0 (docs/math.md §3) needs no tighter tolerance: the solvers end with the Galerkin
@@ -64,31 +73,42 @@ DEFINITIONS = {
 #: a surface of size sqrt(area / 4 pi) outside [L / LENGTH_SCALE_RANGE, L * LENGTH_SCALE_RANGE] is refused
 LENGTH_SCALE_RANGE = 10.0
 
+#: the power a of h in the face term J_F of ``--stabilization auto`` at order 2: with a = 1 the jumps of
+#: the first and second normal derivatives weigh h and h^3 / 4, the ghost penalty of order 2; the best
+#: of the stabilizations measured (docs/math.md §18).  Order 1 keeps the paper's a = 0.
+ORDER2_FACE_H_POWER = 1.0
 
-def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0):
-    """The bilinear form of K = M + tau_E L^3 J_E + tau_F L^(2-a) J_F on the measure ``surface``
-    (S_h), J_F over the facet measure ``faces`` (cut case, times h^a, a = ``face_h_power``), L =
-    ``length_scale`` (the module's note on units; 1 in the paper).  Assembled as one form: on a
+
+def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0, tau_n=0.0, band=None,
+                        normal_h_power=-1.0):
+    """The bilinear form of K = M + tau_E L^3 J_E + tau_F L^(2-a) J_F + tau_N L^(1-b) J_N on the
+    measure ``surface`` (S_h), J_F over the facet measure ``faces`` (cut case, times h^a, a =
+    ``face_h_power``), J_N the normal-gradient term over the tets ``band`` (times h^b, b =
+    ``normal_h_power``; beside the mass it scales as s^(b-1)), L = ``length_scale`` (the module's
+    note on units; 1 in the paper).  Assembled as one form: on a
     structured box the mass and the face penalty sum into one set of lattice slots, on a
     triangulated surface the mass and the edge penalty into one set of node and pair values.
 
     A stabilized form is refused (ProblemError, :func:`check_length_scale`) when the surface's size
     is far from L: every path to the system goes through here (``cutfem run``, :func:`cutfem.run`,
     the problems' levels and scripts calling this function or :func:`mean_curvature_system`)."""
-    if tau_e > 0 or tau_f > 0:
-        check_length_scale(surface.size, length_scale, 2.0 - face_h_power if tau_f > 0 else 3)
+    if tau_e > 0 or tau_f > 0 or tau_n > 0:
+        check_length_scale(surface.size, length_scale, 2.0 - face_h_power if tau_f > 0 else 1.0 - normal_h_power if tau_n > 0 else 3)
     form = mass(surface)
     if tau_e > 0:
         form = form + (tau_e * length_scale**3) * edge_jump_penalty(surface)
     if tau_f > 0:
         form = form + (tau_f * length_scale ** (2.0 - face_h_power)) * face_jump_penalty(faces, h_power=face_h_power)
+    if tau_n > 0:
+        form = form + (tau_n * length_scale ** (1.0 - normal_h_power)) * normal_gradient_penalty(band, h_power=normal_h_power)
     return form
 
 
-def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0):
+def mean_curvature_system(space, surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0, tau_n=0.0, band=None,
+                          normal_h_power=-1.0):
     """(K, B): the matrix of :func:`mean_curvature_form` on ``space`` and the right-hand sides
     B = A X, (n, 3), computed without A (:func:`cutfem.fem.terms.position_load`)."""
-    form = mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power, length_scale)
+    form = mean_curvature_form(surface, tau_e, tau_f, faces, face_h_power, length_scale, tau_n, band, normal_h_power)
     return assemble(form, space), assemble(position_load(surface), space)
 
 
@@ -207,7 +227,7 @@ class MeanCurvatureMeshed(Problem):
 @register
 class MeanCurvatureCut(Problem):
     name = "mean-curvature-cut"
-    summary = "stabilized mean curvature vector on the zero level set of a P1 level set on tetrahedra (docs/math.md §3, cut)"
+    summary = "stabilized mean curvature vector on the zero level set of a P1 level set on tetrahedra, or P2 on its lifted cut with --order 2 (docs/math.md §3, §18, cut)"
     level_name = "spacing"
     level_type = float
     default_levels = [0.2, 0.1, 0.05, 0.025]
@@ -217,31 +237,66 @@ class MeanCurvatureCut(Problem):
         Param("surface", str, "torus", f"torus, sphere, ellipsoid, {USER_SURFACES}; H^e is exact at the closest point"),
         BACKGROUND_PARAM,
         SURFACE_BOX_PARAM,
-        *face_stabilization_params(),
+        Param("stabilization", str, "auto", "cut stabilization: face (tau_F h^a J_F), normal (tau_N h^a normal gradient over "
+              "the cut tets), auto (face, with a = 1 at order 2)", choices=("auto", "face", "normal")),
+        *face_stabilization_params(only=("stabilization", ("auto", "face"))),
+        Param("tau_n", float, float(np.sqrt(3.0)), "normal-gradient stabilization tau_N (sqrt 3: 1 / spacing with a = -1 on a "
+              "Kuhn box)", minimum=0, only=("stabilization", ("normal",))),
+        Param("normal_h_power", float, -1.0, "power a of h_T in the normal-gradient term", only=("stabilization", ("normal",))),
         Param("tau_e", float, 0.0, "edge stabilization tau_E", minimum=0),
+        ORDER_PARAM,
         SOLVER_PARAM,
         Param("length_scale", float, 1.0, "length L in which tau_F, tau_E are given: tau_F L^(2-a) J_F, tau_E L^3 J_E (the surface's size)", positive=True),
         *SHAPE_PARAMS,
     ]
 
-    def solve_level(self, level, surface, background, box, tau_f, tau_e, face_h_power, solver, length_scale, R, r, radius, axes):
+    @staticmethod
+    def measures(cut):
+        """(ds over S_h, dF over the interior faces of the cut tets, dx over the cut tets): the
+        problem's measures, made here alone (a lifted cut lifts them)."""
+        return cut.ds(), cut.dF(cut.interior_facets(CUT)), cut.dx(CUT)
+
+    @staticmethod
+    def stabilization_for(stabilization, order, tau_f, face_h_power, tau_n, normal_h_power):
+        """(kind, tau_f, face_h_power, tau_n, normal_h_power), the unused term's coefficient 0.
+        ``auto`` is the face term, with the paper's a = ``face_h_power`` (0) at order 1 and
+        :data:`ORDER2_FACE_H_POWER` at order 2 (an --face-h-power given there is refused: it would be
+        ignored)."""
+        if stabilization == "normal":
+            return "normal", 0.0, face_h_power, tau_n, normal_h_power
+        if stabilization == "auto" and order == 2:
+            if face_h_power != 0.0:
+                raise ProblemError(f"--face-h-power {face_h_power:g}: at --order 2 the default stabilization takes a = "
+                                   f"{ORDER2_FACE_H_POWER:g}; pass --stabilization face with --face-h-power to choose another power")
+            face_h_power = ORDER2_FACE_H_POWER
+        return "face", tau_f, face_h_power, 0.0, normal_h_power
+
+    def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, tau_e, order,
+                    solver, length_scale, R, r, radius, axes):
+        """One level; ``order`` 2: P2 trace fields on S_h lifted by Theta_h (docs/math.md §17-18)."""
+        kind, tau_f, face_h_power, tau_n, normal_h_power = self.stabilization_for(stabilization, order, tau_f, face_h_power, tau_n,
+                                                                                  normal_h_power)
         t = Timer()
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius, axes)
             bg = background_for(phi, level, background, box)
-            cut = cut_mesh(bg, phi, solve_bytes_per_tet=BYTES_PER_ACTIVE_TET)
+            cut = cut_mesh(bg, phi, solve_bytes_per_tet=BYTES_PER_ACTIVE_TET, order=order)
             check_resolution(cut, phi, level)
             check_cut_memory(cut, BYTES_PER_ACTIVE_TET, level)
-            space = CutSpace(cut)
+            space = CutSpace(cut, order=order)
         # after the cut's memory checks (a spacing that cannot fit is told so first), before any matrix
-        notes = check_face_stabilization(tau_f, face_h_power, level, length_scale)
+        notes = (check_face_stabilization(tau_f, face_h_power, level, length_scale) if kind == "face" else
+                 check_normal_stabilization(tau_n, normal_h_power, level, length_scale, warn=False))
         with t("assembly"):
-            ones_M = assemble(basis_integrals(cut.ds()), space)
-            K, B = mean_curvature_system(space, cut.ds(), tau_e=tau_e, tau_f=tau_f, faces=cut.dF(cut.interior_facets(CUT)),
-                                         face_h_power=face_h_power, length_scale=length_scale)
+            dS, faces, band = self.measures(cut)
+            ones_M = assemble(basis_integrals(dS), space)
+            K, B = mean_curvature_system(space, dS, tau_e=tau_e, tau_f=tau_f, faces=faces, face_h_power=face_h_power,
+                                         length_scale=length_scale, tau_n=tau_n, band=band, normal_h_power=normal_h_power)
             K, B, unseen = pin_unseen_nodes(K, B, space)  # S_h along grid faces: nodes no term sees, fixed at 0
+        # order 2: the multigrid's coarse spaces also hold phi_h v, as laplace-beltrami-cut's (its note)
+        multigrid = None if order == 1 else {"augment": space.interpolate_nodal(cut.values), "coarse_size": 400}
         with t("solve"):
-            H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL)
+            H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL, multigrid=multigrid)
         exact = phi if has_exact(phi) else None
         with t("errors"):
             rec = _common_record(space, ones_M, H, exact, info)
@@ -261,7 +316,7 @@ class MeanCurvatureCut(Problem):
                 "surface": _surface_fields(
                     cut.to_pyvista(), space.surface_vertex_values(H), None if exact is None else exact.exact_mean_curvature_vector(cut.vertices)
                 ),
-                "active_mesh": _point_fields(cut.active_mesh_pyvista(), {"H_h": H}),
+                "active_mesh": _point_fields(cut.active_mesh_pyvista(), {"H_h": H[: len(space.node_ids)]}),  # P2: its P1 prefix
             }
         )
         return rec

@@ -17,7 +17,7 @@ from ..fem.norms import l2_error
 from ..fem.terms import basis_integrals, face_jump_penalty, mass, position_load
 from ..geometry.markers import CUT
 from ..problems.common import background_for, check_face_stabilization, has_exact, levelset_for
-from ..problems.mean_curvature import SOLVER_TOL, check_length_scale
+from ..problems.mean_curvature import SOLVER_TOL, MeanCurvatureCut, check_length_scale
 from ..runs.registry import ProblemError
 from ..runs.runner import Timer
 from .assembly import slab_pieces
@@ -42,8 +42,8 @@ def mean_curvature_pieces(cuts, tau_f, face_h_power, length_scale):
     return slab_pieces(cuts, CUT, cells)
 
 
-def mean_curvature_cut_level(spacing, surface, background, box, tau_f, tau_e, face_h_power, solver, length_scale, R, r, radius,
-                             axes, comm=None, counts=None):
+def mean_curvature_cut_level(spacing, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, tau_e,
+                             solver, length_scale, R, r, radius, axes, comm=None, counts=None):
     """One level of mean-curvature-cut on the ranks of ``comm`` (default: every rank): the serial
     record's l2_error, area, area_error, integral_H and sizes, with the engine and the number of
     ranks.  CG stops at the serial problem's relative residual (1e-6)."""
@@ -52,6 +52,9 @@ def mean_curvature_cut_level(spacing, surface, background, box, tau_f, tau_e, fa
     if background != "structured":
         raise ValueError(f"distributed mean-curvature-cut partitions a structured box; got --background {background}: "
                          "run an unstructured background on one rank")
+    if MeanCurvatureCut.stabilization_for(stabilization, 1, tau_f, face_h_power, tau_n, normal_h_power)[0] != "face":
+        raise ProblemError("mean-curvature-cut's normal-gradient stabilization is not distributed: use --stabilization face "
+                           "(the default at order 1) or run on one rank")
     if tau_e > 0:
         raise ProblemError("mean-curvature-cut's edge stabilization --tau-e is not distributed: leave it at 0 (the face "
                            "stabilization --tau-f is) or run on one rank")

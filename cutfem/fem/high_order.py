@@ -95,7 +95,8 @@ def normal_gradient_blocks(term, space):
     measure, a = term.measure, term.params["h_power"]
     for quad, el, _, G, _ in _cells(term, space):
         m, q = quad.weights.shape
-        dn = np.einsum("mqkd,md->mqk", _full(G, q), measure.normals[quad.parent])
+        n = measure.normals[quad.parent][:, None, :] if quad.normal is None else quad.point_normals  # lifted: per point
+        dn = np.einsum("mqkd,mqd->mqk", _full(G, q), np.broadcast_to(n, (m, q, 3)))
         scale = np.sqrt(quad.weights * (measure.h[quad.parent] ** a)[:, None])
         yield space.element_dofs[el], _gram(dn * scale[..., None])
 

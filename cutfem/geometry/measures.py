@@ -317,6 +317,18 @@ class ElementVolume(Measure):
     def normals(self):
         return self.elements.normals
 
+    def _deformed(self, quad: Quadrature) -> Quadrature:
+        """On a lifted cut the tets' normals are lifted too: at each point J^-T n_h / |J^-T n_h|, J =
+        D Theta_h, the normal of the level sets of phi_h1 o Theta_h^-1 (docs/math.md §18); the planar
+        n_h is only O(h) from the normal of S there, which the normal-gradient term would see."""
+        quad = super()._deformed(quad)
+        if quad.jacobians is None or self.normals is None:
+            return quad
+        n = np.broadcast_to(self.normals[quad.parent][:, None, :, None], quad.jacobians.shape[:2] + (3, 1))
+        g = np.linalg.solve(np.swapaxes(quad.jacobians, -1, -2), n)[..., 0]
+        quad.normal = g / np.linalg.norm(g, axis=-1, keepdims=True)
+        return quad
+
     @property
     def part_volumes(self) -> np.ndarray:
         return self.elements.volumes

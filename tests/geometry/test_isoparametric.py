@@ -135,6 +135,21 @@ def test_per_point_normals_reach_the_integrands():
     assert abs(float(np.asarray(assembled).reshape(-1)[0]) - cut.dx(NEG).size) < 1e-12
 
 
+def test_lifted_tet_normals_are_second_order():
+    """dx(CUT) of a lifted cut carries J^-T n_h / |J^-T n_h| at each moved point (the normal of the level
+    sets of phi_h1 o Theta_h^-1): O(h^2) from the sphere's normal at the point, where the planar n_h is
+    O(h) off."""
+    errs, planar = [], []
+    for s in (0.2, 0.1):
+        band = _sphere_cut(s, order=1).dx(CUT)
+        lifted, flat = _sphere_cut(s).dx(CUT).quadrature(2), band.quadrature(2)
+        exact = lambda q: (q.points - np.asarray(CENTER)) / np.linalg.norm(q.points - np.asarray(CENTER), axis=-1, keepdims=True)
+        errs.append(np.abs(lifted.normal - exact(lifted)).max())
+        planar.append(np.abs(band.normals[flat.parent][:, None, :] - exact(flat)).max())
+    assert lifted.normal.shape == lifted.points.shape and flat.normal is None
+    assert _rates(errs)[0] > 1.8 and _rates(planar)[0] < 1.2 and errs[1] < planar[1] / 5
+
+
 def test_quadrature_normals_per_point():
     """Quadrature takes (m, 3) or (m, q, 3) normals; concatenate keeps per-point normals and the
     reference points of deformed quadratures."""
