@@ -44,16 +44,18 @@ def p2_values(lam: np.ndarray) -> np.ndarray:
 
 def p2_gradients(lam: np.ndarray, G: np.ndarray) -> np.ndarray:
     """(m, q, 10, 3) P2 basis gradients from barycentric coordinates ``lam`` (m, q, 4) and their
-    constant gradients ``G`` (m, 4, 3)."""
-    m, q = lam.shape[0], lam.shape[1]
-    out = np.empty((m, q, 10, 3))
-    Gq = G[:, None]  # (m, 1, 4, 3)
-    np.multiply((4.0 * lam - 1.0)[..., None], Gq, out=out[:, :, :4])
-    four = 4.0 * lam  # 4 lambda_j G_i + 4 lambda_i G_j, written in place
-    edges = out[:, :, 4:]
-    np.multiply(four[..., _J, None], Gq[:, :, _I], out=edges)
-    edges += four[..., _I, None] * Gq[:, :, _J]
-    return out
+    constant gradients ``G`` (m, 4, 3): D(lam) G with D = d phi / d lambda (10 x 4 per point), whose
+    table is made once when ``lam`` is one rule's coordinates for every cell (a broadcast view: the
+    whole cells, where only G differs)."""
+    if lam.strides[0] == 0:
+        lam = lam[:1]
+    D = np.zeros(lam.shape[:-1] + (10, 4))
+    vertices = np.arange(4)
+    D[..., vertices, vertices] = 4.0 * lam - 1.0  # (4 lambda_i - 1) G_i
+    edges = np.arange(4, 10)
+    D[..., edges, _I] = 4.0 * lam[..., _J]  # 4 lambda_j G_i + 4 lambda_i G_j
+    D[..., edges, _J] = 4.0 * lam[..., _I]
+    return np.matmul(D, G[:, None])
 
 
 def p2_hessians(G: np.ndarray) -> np.ndarray:
@@ -67,8 +69,8 @@ def p2_hessians(G: np.ndarray) -> np.ndarray:
 def map_gradients(grads: np.ndarray, jacobians: np.ndarray) -> np.ndarray:
     """Gradients (m, q or 1, k, 3) in the undeformed element mapped to the deformed one:
     D Theta^-T grad^ at each point, with ``jacobians`` D Theta (m, q, 3, 3) -> (m, q, k, 3)."""
-    inverse = np.linalg.inv(jacobians)  # (m, q, 3, 3)
-    return np.einsum("mqji,mqkj->mqki", inverse, grads)
+    inverse = np.linalg.inv(jacobians)  # (m, q, 3, 3); the rows g^T J^-1 of the gradients
+    return np.matmul(np.broadcast_to(grads, inverse.shape[:2] + grads.shape[2:]), inverse)
 
 
 def map_hessians(hessians: np.ndarray, jacobians: np.ndarray, gradients=None, theta_hessians=None) -> np.ndarray:
@@ -81,5 +83,5 @@ def map_hessians(hessians: np.ndarray, jacobians: np.ndarray, gradients=None, th
     ``theta_hessians`` H(Theta_c) (m, 3, 3, 3) (None: an affine Theta, no such term)."""
     if theta_hessians is not None:
         hessians = hessians - np.einsum("mqkc,mcij->mqkij", gradients, theta_hessians)
-    inverse = np.linalg.inv(jacobians)
-    return np.einsum("mqai,mqkab,mqbj->mqkij", inverse, hessians, inverse)
+    inverse = np.linalg.inv(jacobians)[:, :, None]  # (m, q, 1, 3, 3)
+    return np.matmul(np.matmul(np.swapaxes(inverse, -1, -2), hessians), inverse)

@@ -180,20 +180,46 @@ class _ScalarSpace:
         lam = self._barycentric_on(measure, quad, elements) if points is None else self.barycentric_at(points, elements)
         G = self.gradients_of(elements)
         if self.order == 1:
-            values, grads, hess = lam, G[:, None], None
+            values, grads = lam, G[:, None]
         else:
-            values, grads, hess = p2_values(lam), p2_gradients(lam, G), p2_hessians(G) if hessians else None
-        J, deformation = quad.jacobians, getattr(measure, "deformation", None)
+            values, grads = p2_values(lam), p2_gradients(lam, G)
+        J, moved = self._jacobians(measure, quad, cells, points)
+        if moved is not None:
+            grads = np.array(np.broadcast_to(grads, J.shape[:2] + grads.shape[2:]))
+            grads[moved] = map_gradients(grads[moved], J[moved])
+        hess = self.hessians(measure, quad, elements, grads, cells, points) if hessians else None
+        return values, grads, hess
+
+    def _jacobians(self, measure, quad, cells=None, points=None):
+        """(D Theta_h (m, q, 3, 3), the indices of the cells it moves) at the points of ``quad`` (or at
+        a face trace's ``points`` of the tets ``cells``), or (None, None) on an undeformed geometry.
+        Theta_h is the identity on most cells (all but the cut ones), where the undeformed gradients
+        and Hessians are kept as they are (the mapping by I would leave them unchanged)."""
+        J = quad.jacobians
         if points is not None:  # a face's trace: the deformation of the cut its tets belong to
             deformation = getattr(getattr(measure.elements, "cut", None), "deformation", None)
             J = None if deformation is None else deformation.map(measure.elements, cells, points)[1]
-        if J is not None:
-            grads = map_gradients(grads, J)
-            if hess is not None:
-                curved = None if deformation is None else \
-                    deformation.hessians(measure.elements, quad.parent if cells is None else cells)
-                hess = map_hessians(hess, J, grads, curved)
-        return values, grads, hess
+        if J is None:
+            return None, None
+        return J, np.flatnonzero(np.any(J != np.eye(3), axis=(1, 2, 3)))
+
+    def hessians(self, measure, quad, elements, grads, cells=None, points=None):
+        """(m, 1 or q, k, 3, 3) the basis Hessians at the points of ``quad`` (arguments as
+        :meth:`derivatives`, ``grads`` its mapped gradients); None of P1 (zero).  On the cells that
+        Theta_h moves they map with Theta_h's own (:func:`~cutfem.fem.lagrange.map_hessians`)."""
+        if self.order == 1:
+            return None
+        hess = p2_hessians(self.gradients_of(elements))
+        J, moved = self._jacobians(measure, quad, cells, points)
+        if moved is None or len(moved) == 0:
+            return hess
+        deformation = getattr(measure, "deformation", None) if points is None else \
+            getattr(getattr(measure.elements, "cut", None), "deformation", None)
+        curved = None if deformation is None else \
+            deformation.hessians(measure.elements, (quad.parent if cells is None else cells)[moved])
+        out = np.array(np.broadcast_to(hess, J.shape[:2] + hess.shape[2:]))
+        out[moved] = map_hessians(hess[moved], J[moved], grads[moved], curved)
+        return out
 
     def evaluate(self, coeffs: np.ndarray, measure, degree: int = 4) -> np.ndarray:
         """Values of the discrete function with ``coeffs`` (n,) or (n, c) at the quadrature points of
