@@ -37,25 +37,41 @@ def edge_numbering(tets: np.ndarray, n_nodes: int):
     return edges, inverse.reshape(keys.shape)
 
 
-def p2_values(lam: np.ndarray) -> np.ndarray:
-    """(..., 10) P2 basis values from barycentric coordinates (..., 4)."""
+def p2_values(lam: np.ndarray, whole: int = 0) -> np.ndarray:
+    """(..., 10) P2 basis values from barycentric coordinates (..., 4); the first ``whole`` cells
+    (of lam (m, q, 4)) share the coordinates of the first, one table for them."""
+    if whole > 0:
+        out = np.empty(lam.shape[:-1] + (10,))
+        out[:whole] = p2_values(lam[0])
+        out[whole:] = p2_values(lam[whole:])
+        return out
     return np.concatenate([lam * (2.0 * lam - 1.0), 4.0 * lam[..., _I] * lam[..., _J]], axis=-1)
 
 
-def p2_gradients(lam: np.ndarray, G: np.ndarray) -> np.ndarray:
-    """(m, q, 10, 3) P2 basis gradients from barycentric coordinates ``lam`` (m, q, 4) and their
-    constant gradients ``G`` (m, 4, 3): D(lam) G with D = d phi / d lambda (10 x 4 per point), whose
-    table is made once when ``lam`` is one rule's coordinates for every cell (a broadcast view: the
-    whole cells, where only G differs)."""
-    if lam.strides[0] == 0:
-        lam = lam[:1]
+def _lambda_derivatives(lam: np.ndarray) -> np.ndarray:
+    """(..., 10, 4) D = d phi / d lambda of the P2 basis at barycentric coordinates (..., 4)."""
     D = np.zeros(lam.shape[:-1] + (10, 4))
     vertices = np.arange(4)
     D[..., vertices, vertices] = 4.0 * lam - 1.0  # (4 lambda_i - 1) G_i
     edges = np.arange(4, 10)
     D[..., edges, _I] = 4.0 * lam[..., _J]  # 4 lambda_j G_i + 4 lambda_i G_j
     D[..., edges, _J] = 4.0 * lam[..., _I]
-    return np.matmul(D, G[:, None])
+    return D
+
+
+def p2_gradients(lam: np.ndarray, G: np.ndarray, whole: int = 0) -> np.ndarray:
+    """(m, q, 10, 3) P2 basis gradients from barycentric coordinates ``lam`` (m, q, 4) and their
+    constant gradients ``G`` (m, 4, 3): D(lam) G with D = d phi / d lambda (10 x 4 per point,
+    :func:`_lambda_derivatives`), whose table is made once for the first ``whole`` cells (all of
+    them when ``lam`` is a broadcast view): the whole cells share one rule's coordinates, only G differs."""
+    m = lam.shape[0]
+    whole = m if lam.strides[0] == 0 else whole
+    out = np.empty(lam.shape[:2] + (10, 3))
+    if whole > 0:
+        np.matmul(_lambda_derivatives(lam[:1]), G[:whole, None], out=out[:whole])
+    if whole < m:
+        np.matmul(_lambda_derivatives(lam[whole:]), G[whole:, None], out=out[whole:])
+    return out
 
 
 def p2_hessians(G: np.ndarray) -> np.ndarray:

@@ -136,13 +136,18 @@ class _ScalarSpace:
             raise ValueError(f"the field on {getattr(self.elements, 'name', self.elements)!r} does not live on the measure {measure.name!r}")
         return self.elements.locate_set(measure.elements, parent, f"the measure {measure.name!r}")
 
+    def _whole(self, measure, quad) -> int:
+        """How many first cells of ``quad`` are whole elements of the field (their barycentric
+        coordinates the rule's own, :meth:`_barycentric_on`)."""
+        return quad.whole if measure.elements is self.elements and quad.bary is not None else 0
+
     def _barycentric_on(self, measure, quad, elements) -> np.ndarray:
         """(m, q, 4) barycentric coordinates of the points of ``quad`` (a quadrature of ``measure``; its
         ``reference_points`` on a deformed geometry) in the field's ``elements``.  Cells that are whole
         elements of the field (``quad.whole``, the first cells of a side's volume, when the measure's
         elements are the field's) take the reference barycentric coordinates of the rule as they are
         (a broadcast view when all cells are whole); the others are mapped."""
-        whole = quad.whole if measure.elements is self.elements and quad.bary is not None else 0
+        whole = self._whole(measure, quad)
         m = quad.n_elements
         points = quad.points if quad.reference_points is None else quad.reference_points
         if whole == 0:
@@ -162,7 +167,7 @@ class _ScalarSpace:
             return lam
         if lam.strides[0] == 0:  # whole cells: one table
             return np.broadcast_to(p2_values(lam[0]), lam.shape[:2] + (10,))
-        return p2_values(lam)
+        return p2_values(lam, self._whole(measure, quad))
 
     def derivatives(self, measure, quad, elements, points=None, cells=None, hessians=True):
         """(values (m, q, k), gradients (m, q or 1, k, 3), Hessians (m, q or 1, k, 3, 3) or None) of
@@ -182,7 +187,8 @@ class _ScalarSpace:
         if self.order == 1:
             values, grads = lam, G[:, None]
         else:
-            values, grads = p2_values(lam), p2_gradients(lam, G)
+            whole = 0 if points is not None else self._whole(measure, quad)
+            values, grads = p2_values(lam, whole), p2_gradients(lam, G, whole)
         J, moved = self._jacobians(measure, quad, cells, points)
         if moved is not None:
             grads = np.array(np.broadcast_to(grads, J.shape[:2] + grads.shape[2:]))
