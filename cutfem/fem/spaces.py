@@ -193,7 +193,7 @@ class _ScalarSpace:
         if moved is not None:
             grads = np.array(np.broadcast_to(grads, J.shape[:2] + grads.shape[2:]))
             grads[moved] = map_gradients(grads[moved], J[moved])
-        hess = self.hessians(measure, quad, elements, grads, cells, points) if hessians else None
+        hess = self.hessians(measure, quad, elements, grads, cells, points, (J, moved)) if hessians else None
         return values, grads, hess
 
     def _jacobians(self, measure, quad, cells=None, points=None):
@@ -209,14 +209,15 @@ class _ScalarSpace:
             return None, None
         return J, np.flatnonzero(np.any(J != np.eye(3), axis=(1, 2, 3)))
 
-    def hessians(self, measure, quad, elements, grads, cells=None, points=None):
+    def hessians(self, measure, quad, elements, grads, cells=None, points=None, jacobians=None):
         """(m, 1 or q, k, 3, 3) the basis Hessians at the points of ``quad`` (arguments as
-        :meth:`derivatives`, ``grads`` its mapped gradients); None of P1 (zero).  On the cells that
-        Theta_h moves they map with Theta_h's own (:func:`~cutfem.fem.lagrange.map_hessians`)."""
+        :meth:`derivatives`, ``grads`` its mapped gradients, ``jacobians`` its (D Theta_h, moved
+        cells) when known); None of P1 (zero).  On the cells that Theta_h moves they map with
+        Theta_h's own (:func:`~cutfem.fem.lagrange.map_hessians`)."""
         if self.order == 1:
             return None
         hess = p2_hessians(self.gradients_of(elements))
-        J, moved = self._jacobians(measure, quad, cells, points)
+        J, moved = self._jacobians(measure, quad, cells, points) if jacobians is None else jacobians
         if moved is None or len(moved) == 0:
             return hess
         deformation = getattr(measure, "deformation", None) if points is None else \
