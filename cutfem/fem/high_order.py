@@ -53,6 +53,12 @@ def _cells(term, space):
         yield (quad, el) + space.derivatives(measure, quad, el, hessians=False)
 
 
+def _along(G, n):
+    """(m, q, k) n . grad phi_k of gradients G (m, q, k, 3) and directions n (m, 3) or (m, q, 3), by matmul."""
+    n = n[:, None, :, None] if n.ndim == 2 else n[..., None]
+    return np.matmul(G, n)[..., 0]
+
+
 def _full(G, q):
     """Gradients (m, 1 or q, k, 3) with their point axis spelled out to q."""
     return np.broadcast_to(G, (G.shape[0], q) + G.shape[2:])
@@ -86,7 +92,7 @@ def tangential_blocks(term, space):
     for quad, el, _, G, _ in _cells(term, space):
         G = _full(G, quad.weights.shape[1])
         n = np.broadcast_to(quad.point_normals, G.shape[:2] + (3,))  # the cell's normal, or the point's (deformed)
-        tG = G - np.einsum("mqkd,mqd->mqk", G, n)[..., None] * n[:, :, None, :]
+        tG = G - _along(G, n)[..., None] * n[:, :, None, :]
         yield space.element_dofs[el], _gradient_gram(tG, quad.weights)
 
 
@@ -95,8 +101,8 @@ def normal_gradient_blocks(term, space):
     measure, a = term.measure, term.params["h_power"]
     for quad, el, _, G, _ in _cells(term, space):
         m, q = quad.weights.shape
-        n = measure.normals[quad.parent][:, None, :] if quad.normal is None else quad.point_normals  # lifted: per point
-        dn = np.einsum("mqkd,mqd->mqk", _full(G, q), np.broadcast_to(n, (m, q, 3)))
+        n = measure.normals[quad.parent] if quad.normal is None else np.broadcast_to(quad.point_normals, (m, q, 3))  # lifted: per point
+        dn = _along(_full(G, q), n)
         scale = np.sqrt(quad.weights * (measure.h[quad.parent] ** a)[:, None])
         yield space.element_dofs[el], _gram(dn * scale[..., None])
 
@@ -114,8 +120,8 @@ def face_jump_blocks(term, space):
         for s, sign in ((0, 1.0), (1, -1.0)):
             el = space.local_elements(measure, pairs[:, s])
             _, G, H = space.derivatives(measure, quad, el, points=points, cells=pairs[:, s])
-            first.append(sign * np.einsum("mqkd,md->mqk", _full(G, q), n))
-            second.append(None if H is None else sign * np.einsum("mqkij,mi,mj->mqk", H, n, n))
+            first.append(sign * _along(_full(G, q), n))
+            second.append(None if H is None else sign * _along(np.matmul(H, n[:, None, None, :, None])[..., 0], n))
             dofs.append(space.element_dofs[el])
         jumps = np.concatenate(first, axis=2) * np.sqrt(quad.weights * (h**a)[:, None])[..., None]
         local = _gram(jumps)
@@ -131,7 +137,7 @@ def nitsche_blocks(term, space, outward):
     measure, gamma = term.measure, term.params["gamma"]
     for quad, el, phi, G, _ in _cells(term, space):
         m, q = quad.weights.shape
-        dn = outward * np.einsum("mqkd,mqd->mqk", _full(G, q), np.broadcast_to(quad.point_normals, (m, q, 3)))
+        dn = outward * _along(_full(G, q), np.broadcast_to(quad.point_normals, (m, q, 3)))
         pw = phi * quad.weights[..., None]
         cross = np.matmul(np.swapaxes(pw, 1, 2), dn)  # (m, k, k): sum_q w phi_a (n . grad phi_b)
         penalty = (gamma / measure.h[quad.parent])[:, None, None]

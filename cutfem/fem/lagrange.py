@@ -37,22 +37,40 @@ def edge_numbering(tets: np.ndarray, n_nodes: int):
     return edges, inverse.reshape(keys.shape)
 
 
-def p2_values(lam: np.ndarray) -> np.ndarray:
-    """(..., 10) P2 basis values from barycentric coordinates (..., 4)."""
+def p2_values(lam: np.ndarray, whole: int = 0) -> np.ndarray:
+    """(..., 10) P2 basis values from barycentric coordinates (..., 4); the first ``whole`` cells
+    (of lam (m, q, 4)) share the coordinates of the first, one table for them."""
+    if whole > 0:
+        out = np.empty(lam.shape[:-1] + (10,))
+        out[:whole] = p2_values(lam[0])
+        out[whole:] = p2_values(lam[whole:])
+        return out
     return np.concatenate([lam * (2.0 * lam - 1.0), 4.0 * lam[..., _I] * lam[..., _J]], axis=-1)
 
 
-def p2_gradients(lam: np.ndarray, G: np.ndarray) -> np.ndarray:
+def _lambda_derivatives(lam: np.ndarray) -> np.ndarray:
+    """(..., 10, 4) D = d phi / d lambda of the P2 basis at barycentric coordinates (..., 4)."""
+    D = np.zeros(lam.shape[:-1] + (10, 4))
+    vertices = np.arange(4)
+    D[..., vertices, vertices] = 4.0 * lam - 1.0  # (4 lambda_i - 1) G_i
+    edges = np.arange(4, 10)
+    D[..., edges, _I] = 4.0 * lam[..., _J]  # 4 lambda_j G_i + 4 lambda_i G_j
+    D[..., edges, _J] = 4.0 * lam[..., _I]
+    return D
+
+
+def p2_gradients(lam: np.ndarray, G: np.ndarray, whole: int = 0) -> np.ndarray:
     """(m, q, 10, 3) P2 basis gradients from barycentric coordinates ``lam`` (m, q, 4) and their
-    constant gradients ``G`` (m, 4, 3)."""
-    m, q = lam.shape[0], lam.shape[1]
-    out = np.empty((m, q, 10, 3))
-    Gq = G[:, None]  # (m, 1, 4, 3)
-    np.multiply((4.0 * lam - 1.0)[..., None], Gq, out=out[:, :, :4])
-    four = 4.0 * lam  # 4 lambda_j G_i + 4 lambda_i G_j, written in place
-    edges = out[:, :, 4:]
-    np.multiply(four[..., _J, None], Gq[:, :, _I], out=edges)
-    edges += four[..., _I, None] * Gq[:, :, _J]
+    constant gradients ``G`` (m, 4, 3): D(lam) G with D = d phi / d lambda (10 x 4 per point,
+    :func:`_lambda_derivatives`), whose table is made once for the first ``whole`` cells (all of
+    them when ``lam`` is a broadcast view): the whole cells share one rule's coordinates, only G differs."""
+    m = lam.shape[0]
+    whole = m if lam.strides[0] == 0 else whole
+    out = np.empty(lam.shape[:2] + (10, 3))
+    if whole > 0:
+        np.matmul(_lambda_derivatives(lam[:1]), G[:whole, None], out=out[:whole])
+    if whole < m:
+        np.matmul(_lambda_derivatives(lam[whole:]), G[whole:, None], out=out[whole:])
     return out
 
 
@@ -67,8 +85,8 @@ def p2_hessians(G: np.ndarray) -> np.ndarray:
 def map_gradients(grads: np.ndarray, jacobians: np.ndarray) -> np.ndarray:
     """Gradients (m, q or 1, k, 3) in the undeformed element mapped to the deformed one:
     D Theta^-T grad^ at each point, with ``jacobians`` D Theta (m, q, 3, 3) -> (m, q, k, 3)."""
-    inverse = np.linalg.inv(jacobians)  # (m, q, 3, 3)
-    return np.einsum("mqji,mqkj->mqki", inverse, grads)
+    inverse = np.linalg.inv(jacobians)  # (m, q, 3, 3); the rows g^T J^-1 of the gradients
+    return np.matmul(np.broadcast_to(grads, inverse.shape[:2] + grads.shape[2:]), inverse)
 
 
 def map_hessians(hessians: np.ndarray, jacobians: np.ndarray, gradients=None, theta_hessians=None) -> np.ndarray:
@@ -81,5 +99,5 @@ def map_hessians(hessians: np.ndarray, jacobians: np.ndarray, gradients=None, th
     ``theta_hessians`` H(Theta_c) (m, 3, 3, 3) (None: an affine Theta, no such term)."""
     if theta_hessians is not None:
         hessians = hessians - np.einsum("mqkc,mcij->mqkij", gradients, theta_hessians)
-    inverse = np.linalg.inv(jacobians)
-    return np.einsum("mqai,mqkab,mqbj->mqkij", inverse, hessians, inverse)
+    inverse = np.linalg.inv(jacobians)[:, :, None]  # (m, q, 1, 3, 3)
+    return np.matmul(np.matmul(np.swapaxes(inverse, -1, -2), hessians), inverse)

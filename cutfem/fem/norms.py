@@ -216,7 +216,9 @@ def _varying_gradient_error(space, measure, quad, elements, local, exact_gradien
     basis gradients at each point (:meth:`~cutfem.fem.spaces.CutSpace.derivatives`: P2, or a
     deformed geometry)."""
     _, G, _ = space.derivatives(measure, quad, elements, hessians=False)  # (b, q or 1, k, 3)
-    grad = np.einsum("bqkd,bk...->bq...d", G, local)  # (b, q, 3) or (b, q, c, 3)
+    L = local if local.ndim == 3 else local[..., None]  # (b, k, c)
+    grad = np.matmul(np.swapaxes(L, 1, 2)[:, None], G)  # (b, q, c, 3): sum_k u_kc grad phi_k
+    grad = grad if local.ndim == 3 else grad[:, :, 0]  # (b, q, 3) of a scalar field
     diff = exact_gradient - grad
     if measure.surface:
         n = quad.point_normals  # (b, 1, 3) of a planar cell, (b, q, 3) of a deformed one

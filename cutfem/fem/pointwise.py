@@ -96,18 +96,42 @@ class _Probe(_Zero):
 _PROBE = _Probe()
 
 
+class _Later:
+    """A value computed when first asked for (``get()``), then kept: the Hessians of a block's basis,
+    which only the integrands of second derivatives read."""
+
+    __slots__ = ("_make", "_value")
+
+    def __init__(self, make):
+        self._make, self._value = make, None
+
+    def get(self):
+        if self._make is not None:
+            self._value, self._make = self._make(), None
+        return self._value
+
+
+def _resolved(h):
+    """``h`` itself, or its value if it is a :class:`_Later`."""
+    return h.get() if isinstance(h, _Later) else h
+
+
 class BasisField:
     """A basis function at quadrature points: ``value`` (m, q), ``grad``, ``tgrad`` (m, 1, 3) for P1
     (constant on a cell), (m, q, 3) for P2 or on a deformed geometry (``tgrad`` also with the
     per-point normals of a deformed surface), ``hess`` (m, 1, 3, 3) of P2 (constant on a tet) and
     :data:`ZERO` of P1 (so that terms of second derivatives cost nothing there); arithmetic acts on
-    ``value``."""
+    ``value``.  ``hess`` may be given as a :class:`_Later`, computed when an integrand first reads it."""
 
-    __slots__ = ("value", "grad", "tgrad", "hess")
+    __slots__ = ("value", "grad", "tgrad", "_hess")
 
     def __init__(self, value, grad, tgrad, hess=None):
         self.value, self.grad, self.tgrad = value, grad, tgrad
-        self.hess = ZERO if hess is None else hess
+        self._hess = ZERO if hess is None else hess
+
+    @property
+    def hess(self):
+        return _resolved(self._hess)
 
     def __array__(self, dtype=None, copy=None):
         return np.asarray(self.value, dtype=dtype)
@@ -191,8 +215,9 @@ class VectorBasisField:
         """(m, 1, 3, 3, 3) the Hessians of the components (component first), of P2; ZERO of P1."""
         if self.h is ZERO:
             return ZERO
-        out = np.zeros(self.h.shape[:2] + (3, 3, 3))
-        out[:, :, self.component] = self.h
+        h = _resolved(self.h)
+        out = np.zeros(h.shape[:2] + (3, 3, 3))
+        out[:, :, self.component] = h
         return out
 
     @property
@@ -531,14 +556,14 @@ def _field_basis(space, measure: Measure, quad):
         dofs, fields = [], []
         for s in (0, 1):
             el = space.local_elements(measure, pairs[:, s])
-            phi, G, H = space.derivatives(measure, quad, el, points=points, cells=pairs[:, s])
+            phi, G, H = _basis_derivatives(space, measure, quad, el, points=points, cells=pairs[:, s])
             dofs.append(space.element_dofs[el])
             for a in range(G.shape[2]):
-                b = BasisField(phi[..., a], G[:, :, a], G[:, :, a], None if H is None else H[:, :, a])
+                b = BasisField(phi[..., a], G[:, :, a], G[:, :, a], _column(H, a))
                 fields.append(FacetField(b, ZERO) if s == 0 else FacetField(ZERO, b))
         return np.concatenate(dofs, axis=1), fields
     el = space.local_elements(measure, quad.parent)
-    phi, G, H = space.derivatives(measure, quad, el)
+    phi, G, H = _basis_derivatives(space, measure, quad, el)
     if measure.surface:  # the tangential part at each point, with the cell's normal or (deformed) the point's
         n = quad.point_normals
         if G.shape[1] == 1:  # P1 on a planar cell: constant gradients
@@ -549,8 +574,23 @@ def _field_basis(space, measure: Measure, quad):
             tG = G - np.einsum("mqkd,mqd->mqk", G, n)[..., None] * n[:, :, None, :]
     else:
         tG = G
-    return space.element_dofs[el], [BasisField(phi[..., a], G[:, :, a], tG[:, :, a], None if H is None else H[:, :, a])
+    return space.element_dofs[el], [BasisField(phi[..., a], G[:, :, a], tG[:, :, a], _column(H, a))
                                     for a in range(G.shape[2])]
+
+
+def _basis_derivatives(space, measure, quad, elements, points=None, cells=None):
+    """The field's (values, gradients, Hessians) (:meth:`~cutfem.fem.spaces.CutSpace.derivatives`) with
+    the Hessians a :class:`_Later` (None of P1): an integrand without second derivatives never
+    pays for them (on a deformed cell they are a 3 x 3 product per point and basis function)."""
+    phi, G, _ = space.derivatives(measure, quad, elements, points=points, cells=cells, hessians=False)
+    if getattr(space, "order", 1) < 2:
+        return phi, G, None
+    return phi, G, _Later(lambda: space.hessians(measure, quad, elements, G, cells, points))
+
+
+def _column(H, a):
+    """Basis function a's Hessians of the block's (a :class:`_Later` of (m, q, k, 3, 3), or None)."""
+    return None if H is None else _Later(lambda: H.get()[:, :, a])
 
 
 
@@ -585,7 +625,7 @@ def _component(b, c):
         return FacetField(_component(b.minus, c), _component(b.plus, c))
     if b is ZERO:
         return b
-    return VectorBasisField(b.value, b.grad, b.tgrad, c, None if b.hess is ZERO else b.hess)
+    return VectorBasisField(b.value, b.grad, b.tgrad, c, None if b._hess is ZERO else b._hess)
 
 
 def _zero_like(b):
@@ -596,6 +636,6 @@ def _zero_like(b):
         return FacetField(z, z)
     if isinstance(b, VectorBasisField):
         return VectorBasisField(np.zeros_like(b.phi), np.zeros_like(b.g), np.zeros_like(b.tg), b.component,
-                                None if b.h is ZERO else np.zeros_like(b.h))
+                                None if b.h is ZERO else _Later(lambda: np.zeros_like(_resolved(b.h))))
     return BasisField(np.zeros_like(b.value), np.zeros_like(b.grad), np.zeros_like(b.tgrad),
-                      None if b.hess is ZERO else np.zeros_like(b.hess))
+                      None if b._hess is ZERO else _Later(lambda: np.zeros_like(b.hess)))

@@ -136,13 +136,18 @@ class _ScalarSpace:
             raise ValueError(f"the field on {getattr(self.elements, 'name', self.elements)!r} does not live on the measure {measure.name!r}")
         return self.elements.locate_set(measure.elements, parent, f"the measure {measure.name!r}")
 
+    def _whole(self, measure, quad) -> int:
+        """How many first cells of ``quad`` are whole elements of the field (their barycentric
+        coordinates the rule's own, :meth:`_barycentric_on`)."""
+        return quad.whole if measure.elements is self.elements and quad.bary is not None else 0
+
     def _barycentric_on(self, measure, quad, elements) -> np.ndarray:
         """(m, q, 4) barycentric coordinates of the points of ``quad`` (a quadrature of ``measure``; its
         ``reference_points`` on a deformed geometry) in the field's ``elements``.  Cells that are whole
         elements of the field (``quad.whole``, the first cells of a side's volume, when the measure's
         elements are the field's) take the reference barycentric coordinates of the rule as they are
         (a broadcast view when all cells are whole); the others are mapped."""
-        whole = quad.whole if measure.elements is self.elements and quad.bary is not None else 0
+        whole = self._whole(measure, quad)
         m = quad.n_elements
         points = quad.points if quad.reference_points is None else quad.reference_points
         if whole == 0:
@@ -162,7 +167,7 @@ class _ScalarSpace:
             return lam
         if lam.strides[0] == 0:  # whole cells: one table
             return np.broadcast_to(p2_values(lam[0]), lam.shape[:2] + (10,))
-        return p2_values(lam)
+        return p2_values(lam, self._whole(measure, quad))
 
     def derivatives(self, measure, quad, elements, points=None, cells=None, hessians=True):
         """(values (m, q, k), gradients (m, q or 1, k, 3), Hessians (m, q or 1, k, 3, 3) or None) of
@@ -180,20 +185,48 @@ class _ScalarSpace:
         lam = self._barycentric_on(measure, quad, elements) if points is None else self.barycentric_at(points, elements)
         G = self.gradients_of(elements)
         if self.order == 1:
-            values, grads, hess = lam, G[:, None], None
+            values, grads = lam, G[:, None]
         else:
-            values, grads, hess = p2_values(lam), p2_gradients(lam, G), p2_hessians(G) if hessians else None
-        J, deformation = quad.jacobians, getattr(measure, "deformation", None)
+            whole = 0 if points is not None else self._whole(measure, quad)
+            values, grads = p2_values(lam, whole), p2_gradients(lam, G, whole)
+        J, moved = self._jacobians(measure, quad, cells, points)
+        if moved is not None:
+            grads = np.array(np.broadcast_to(grads, J.shape[:2] + grads.shape[2:]))
+            grads[moved] = map_gradients(grads[moved], J[moved])
+        hess = self.hessians(measure, quad, elements, grads, cells, points, (J, moved)) if hessians else None
+        return values, grads, hess
+
+    def _jacobians(self, measure, quad, cells=None, points=None):
+        """(D Theta_h (m, q, 3, 3), the indices of the cells it moves) at the points of ``quad`` (or at
+        a face trace's ``points`` of the tets ``cells``), or (None, None) on an undeformed geometry.
+        Theta_h is the identity on most cells (all but the cut ones), where the undeformed gradients
+        and Hessians are kept as they are (the mapping by I would leave them unchanged)."""
+        J = quad.jacobians
         if points is not None:  # a face's trace: the deformation of the cut its tets belong to
             deformation = getattr(getattr(measure.elements, "cut", None), "deformation", None)
             J = None if deformation is None else deformation.map(measure.elements, cells, points)[1]
-        if J is not None:
-            grads = map_gradients(grads, J)
-            if hess is not None:
-                curved = None if deformation is None else \
-                    deformation.hessians(measure.elements, quad.parent if cells is None else cells)
-                hess = map_hessians(hess, J, grads, curved)
-        return values, grads, hess
+        if J is None:
+            return None, None
+        return J, np.flatnonzero(np.any(J != np.eye(3), axis=(1, 2, 3)))
+
+    def hessians(self, measure, quad, elements, grads, cells=None, points=None, jacobians=None):
+        """(m, 1 or q, k, 3, 3) the basis Hessians at the points of ``quad`` (arguments as
+        :meth:`derivatives`, ``grads`` its mapped gradients, ``jacobians`` its (D Theta_h, moved
+        cells) when known); None of P1 (zero).  On the cells that Theta_h moves they map with
+        Theta_h's own (:func:`~cutfem.fem.lagrange.map_hessians`)."""
+        if self.order == 1:
+            return None
+        hess = p2_hessians(self.gradients_of(elements))
+        J, moved = self._jacobians(measure, quad, cells, points) if jacobians is None else jacobians
+        if moved is None or len(moved) == 0:
+            return hess
+        deformation = getattr(measure, "deformation", None) if points is None else \
+            getattr(getattr(measure.elements, "cut", None), "deformation", None)
+        curved = None if deformation is None else \
+            deformation.hessians(measure.elements, (quad.parent if cells is None else cells)[moved])
+        out = np.array(np.broadcast_to(hess, J.shape[:2] + hess.shape[2:]))
+        out[moved] = map_hessians(hess[moved], J[moved], grads[moved], curved)
+        return out
 
     def evaluate(self, coeffs: np.ndarray, measure, degree: int = 4) -> np.ndarray:
         """Values of the discrete function with ``coeffs`` (n,) or (n, c) at the quadrature points of

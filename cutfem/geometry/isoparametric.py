@@ -240,11 +240,13 @@ def _p2_map(vertices: np.ndarray, shifts: np.ndarray, points: np.ndarray):
     nodes have ``shifts`` (m, 10, 3): x + lam^T Q lam and I + 2 (Q lam) grad lam (:func:`quadratic_form`)."""
     grads, _ = barycentric_gradients(vertices)
     lam = np.empty(points.shape[:2] + (4,))
-    lam[..., 1:] = np.einsum("mld,mqd->mql", grads[:, 1:], points - vertices[:, None, 0])
+    lam[..., 1:] = np.matmul(points - vertices[:, None, 0], np.swapaxes(grads[:, 1:], 1, 2))
     lam[..., 0] = 1.0 - lam[..., 1:].sum(axis=-1)
-    half = np.einsum("mljc,mqj->mqlc", quadratic_form(shifts), lam)  # (m, q, 4, 3): Q lam
-    theta = points + np.einsum("mql,mqlc->mqc", lam, half)
-    jac = 2.0 * np.einsum("mqlc,mld->mqcd", half, grads)
+    m, q = lam.shape[:2]
+    Q = np.swapaxes(quadratic_form(shifts), 1, 2).reshape(m, 4, 12)  # (m, j, (l, c))
+    half = np.matmul(lam, Q).reshape(m, q, 4, 3)  # Q lam: sum_j Q_ljc lam_j
+    theta = points + np.matmul(lam[:, :, None, :], half)[:, :, 0]
+    jac = 2.0 * np.matmul(np.swapaxes(half, 2, 3), grads[:, None])
     jac += np.eye(3)
     return theta, jac
 
