@@ -1,5 +1,5 @@
-"""Higher order, the geometry: the planar cut (order 1) against the isoparametric one (order 2) on
-three surfaces (docs/math.md §17, issue 48).
+"""Higher order: the planar cut with P1 fields (order 1) against the isoparametric cut with P2 fields
+(order 2), for the geometry on three surfaces and for three problems (docs/math.md §17-§18).
 
 For the unit sphere (centre off the lattice's symmetry, ``SPHERE_CENTER``), the paper's torus
 (R = 1, r = 1/2, on the paper's box) and the ellipsoid with semi-axes (1, 0.8, 0.6) (a level set that
@@ -13,8 +13,13 @@ planar) and at order 2 (Theta_h(S_h), :mod:`cutfem.geometry.isoparametric`):
 
 and their rates against h = N^(-1/3) (N background nodes, docs/math.md §2).  Expected: order 1 area and
 volume O(h^2), distance O(h^2); order 2 distance O(h^3), area and volume O(h^3) or better.  Writes
-``higher_order_geometry.json``, ``.csv`` and ``higher_order_geometry_table.tex`` (printed):
-``python -m cutfem.studies.higher_order --out DIR [--tiny | --quick | --full]``.
+``higher_order_geometry.json``, ``.csv`` and ``higher_order_geometry_table.tex`` (printed).
+
+The problems (:data:`PROBLEMS`), each at orders 1 and 2 through :func:`cutfem.run` with its defaults:
+fictitious-domain Poisson in the unit ball, Laplace-Beltrami on the unit sphere, the mean curvature
+vector on the paper's torus; their L2 (and H1) errors and rates, in ``higher_order_problems.json``,
+``.csv``, ``higher_order_problems_table.tex`` and the figure ``higher_order_problems`` (errors against
+h, P1 dashed, P2 solid).  ``python -m cutfem.studies.higher_order --out DIR [--tiny | --quick | --full]``.
 """
 
 from __future__ import annotations
@@ -23,17 +28,24 @@ from pathlib import Path
 
 import numpy as np
 
+import cutfem
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.markers import NEG
 from cutfem.geometry.shapes import Ellipsoid, Sphere, Torus
 from cutfem.fem.norms import rates
 
-from .common import fmt_rate, pick, save_csv, save_json, save_latex_table, study_main
+from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
 from .paper_cut import BOX as TORUS_BOX
 
 NAME = "higher_order"
-OUTPUTS = [f"{NAME}_geometry", f"{NAME}_geometry_table"]
+OUTPUTS = [f"{NAME}_geometry", f"{NAME}_geometry_table", f"{NAME}_problems", f"{NAME}_problems_table"]
+
+#: (problem, its surface by default, the error keys of its record)
+PROBLEMS = (("poisson-cut", "ball", ("l2_error", "h1_error")), ("laplace-beltrami-cut", "sphere", ("l2_error", "h1_error")),
+            ("mean-curvature-cut", "torus", ("l2_error",)))
+#: the panel titles of the figure
+TITLES = {"poisson-cut": "Poisson, ball", "laplace-beltrami-cut": "Laplace-Beltrami, sphere", "mean-curvature-cut": "H_h, torus"}
 
 #: the sphere's centre: off the symmetry of the lattice, so that no level is a special case
 SPHERE_CENTER = (0.031, -0.017, 0.023)
@@ -61,8 +73,62 @@ def geometry_errors(levelset, lower, upper, spacing: float, order: int) -> dict:
             "distance": float(np.linalg.norm(x - levelset.closest_point(x), axis=1).max())}
 
 
+def problem_rows(spacings, progress=None) -> list[dict]:
+    """The records of :data:`PROBLEMS` at both orders, with the rates of their errors."""
+    rows = []
+    for name, surface, keys in PROBLEMS:
+        for order in (1, 2):
+            if progress:
+                progress(f"{name}, order {order}")
+            recs = cutfem.run(name, levels=spacings, order=order).records
+            hs = [r["h"] for r in recs]
+            level = [{"problem": name, "surface": surface, "order": order, "spacing": s, "h": r["h"], "dofs": int(r["dofs"]),
+                      **{k: r[k] for k in keys}} for s, r in zip(spacings, recs)]
+            for k in keys:
+                for e, rate in zip(level, [None] + list(rates(hs, [e[k] for e in level]))):
+                    e[f"{k}_rate"] = rate
+            rows.extend(level)
+    return rows
+
+
+def _problems_outputs(out, size, rows):
+    save_json(out, f"{NAME}_problems", {"size": size, "rows": rows})
+    save_csv(out, f"{NAME}_problems", rows)
+    header = ["problem", "order", "spacing", "unknowns", "L2 error", "rate", "H1 error", "rate"]
+    table = [[r["problem"], str(r["order"]), f"{r['spacing']:g}", str(r["dofs"]), f"{r['l2_error']:.2e}", fmt_rate(r["l2_error_rate"]),
+              f"{r['h1_error']:.2e}" if "h1_error" in r else "--", fmt_rate(r.get("h1_error_rate"))] for r in rows]
+    save_latex_table(out, f"{NAME}_problems_table", header, table,
+                     caption="P1 on the planar cut (order 1) and P2 on the isoparametric cut (order 2): Poisson in the ball, "
+                             "Laplace-Beltrami on the sphere, the mean curvature vector on the torus (unknowns per component); "
+                             f"rates against h = N^(-1/3) ({size}).")
+    _plot(out, rows)
+
+
+@figure_style
+def _plot(out, rows):
+    from cutfem.runs.convergence import log_ticks, new_figure
+
+    fig, axes = new_figure(PAGE_WIDTH, 2.9, nrows=1, ncols=len(PROBLEMS))
+    for ax, (name, surface, keys) in zip(axes, PROBLEMS):
+        for order, style in ((1, "--"), (2, "-")):
+            sel = [r for r in rows if r["problem"] == name and r["order"] == order]
+            for k, key in enumerate(keys):
+                ax.loglog([r["h"] for r in sel], [r[key] for r in sel], style, marker="o", color=f"C{k}",
+                          label=f"{key.split('_')[0].upper()}, P{order}")
+        ax.set_title(TITLES[name])
+        ax.set_xlabel("h")
+        ax.grid(True, which="major", alpha=0.3)
+    handles, labels = axes[0].get_legend_handles_labels()
+    fig.legend(handles, labels, loc="outside lower center", ncol=4)
+    for ax in axes:
+        log_ticks(ax)
+    axes[0].set_ylabel("error")
+    save_figure(fig, out, f"{NAME}_problems")
+
+
 def run(out: Path, size: str = "quick", progress=None) -> dict:
     spacings = pick(size, [0.2, 0.1], [0.2, 0.1, 0.05], [0.2, 0.1, 0.05, 0.025])
+    _problems_outputs(out, size, problem_rows(pick(size, [0.2, 0.1], [0.2, 0.1], [0.2, 0.1, 0.05, 0.025]), progress))
     rows = []
     for name, (levelset, (lower, upper)) in surfaces().items():
         for order in (1, 2):

@@ -50,6 +50,7 @@ STUDY_NAMES = [
     "laplace_beltrami",
     "other_surfaces",
     "two_phase",
+    "higher_order",
 ]
 
 FIGURE_SUFFIXES = {".png", ".pdf", ".svg", ".jpg", ".jpeg"}
