@@ -398,15 +398,21 @@ def _resident_gib() -> float | None:
     return None
 
 
+def import_peer(code) -> float | None:
+    """Import ngsolve and xfem before a peer's level (cutfem's imports happen with the study's), then
+    the resident memory at the level's start (GiB)."""
+    if code == "ngsxfem":
+        for module in ("ngsolve", "xfem"):
+            importlib.import_module(module)
+    return _resident_gib()
+
+
 def stokes_level(code, spacing, solver, peak) -> dict:
     """One code's Stokes level (``code`` "cutfem": ``cutfem.run("stokes-cut")`` with ``solver``;
     "ngsxfem": :func:`~cutfem.studies.peers_ngsxfem.ngsxfem_stokes` with ``inverse=solver``) in the
     calling process, after its imports: the record with the resident memory before the level
     (``start_memory_gib``) and the process's peak after it (``peak()``, ``peak_memory_gib``)."""
-    if code == "ngsxfem":  # imported before the level, as cutfem is
-        for module in ("ngsolve", "xfem"):
-            importlib.import_module(module)
-    start = _resident_gib()
+    start = import_peer(code)
     if code == "cutfem":
         t0 = time.perf_counter()
         r = cutfem.run("stokes-cut", levels=[spacing], solver=solver).records[0]

@@ -250,6 +250,18 @@ def _normal_gradient(geo, u, v, tau_n, h_power):
         definedonelements=geo.cut, deformation=geo.deformation, bonus_intorder=2)
 
 
+def _trace_setup(spacing, levelset, box, background, T):
+    """The peer's isoparametric cut of ``levelset`` and its P2 trace space on the cut elements:
+    (geometry, mesh, space), the mesh's and the cut's seconds into ``T``."""
+    background = NgBackground(spacing, levelset, box) if background is None else background
+    T["mesh"] = background.seconds
+    geo = Isoparametric(background, levelset, T)
+    t0 = time.perf_counter()
+    V = _compressed_space(geo.mesh, geo.cut)
+    T["cut"] += time.perf_counter() - t0
+    return geo, geo.mesh, V
+
+
 def ngsxfem_laplace_beltrami_p2(spacing, levelset=None, tau_n=LAPLACE_BELTRAMI_PARAMS["tau_n"],
                                 normal_h_power=LAPLACE_BELTRAMI_PARAMS["normal_h_power"], inverse="sparsecholesky", background=None) -> dict:
     """TraceFEM -Lap_S u + u = f on the sphere (``laplace-beltrami-cut``'s data) with P2 on
@@ -259,13 +271,7 @@ def ngsxfem_laplace_beltrami_p2(spacing, levelset=None, tau_n=LAPLACE_BELTRAMI_P
 
     levelset = Sphere() if levelset is None else levelset
     T = {}
-    background = NgBackground(spacing, levelset) if background is None else background
-    T["mesh"] = background.seconds
-    geo = Isoparametric(background, levelset, T)
-    mesh = geo.mesh
-    t0 = time.perf_counter()
-    V = _compressed_space(mesh, geo.cut)
-    T["cut"] += time.perf_counter() - t0
+    geo, mesh, V = _trace_setup(spacing, levelset, None, background, T)
 
     t0 = time.perf_counter()
     u_ex, f, grad_ex = sphere_solution_cf(levelset.radius)
@@ -309,13 +315,7 @@ def ngsxfem_mean_curvature_p2(spacing, levelset=None, box=None, tau_n=MEAN_CURVA
 
     levelset = Torus() if levelset is None else levelset
     T = {}
-    background = NgBackground(spacing, levelset, box) if background is None else background
-    T["mesh"] = background.seconds
-    geo = Isoparametric(background, levelset, T)
-    mesh = geo.mesh
-    t0 = time.perf_counter()
-    V = _compressed_space(mesh, geo.cut)
-    T["cut"] += time.perf_counter() - t0
+    geo, mesh, V = _trace_setup(spacing, levelset, box, background, T)
 
     t0 = time.perf_counter()
     u, v = V.TnT()

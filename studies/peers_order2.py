@@ -26,7 +26,6 @@ against unknowns of both codes, one panel per problem).  Without ngsolve/xfem th
 
 from __future__ import annotations
 
-import importlib
 import math
 import time
 from pathlib import Path
@@ -40,7 +39,7 @@ from cutfem.runs.convergence import new_figure
 from cutfem.runs.registry import get_problem
 
 from .common import PAGE_WIDTH, figure_style, pick, save_csv, save_figure, save_json, save_latex_table, study_main
-from .peers import _resident_gib
+from .peers import import_peer
 from .peers_ngsxfem import INSTALL, available_memory, peer_missing, peer_versions
 from .peers_ngsxfem_order2 import (LAPLACE_BELTRAMI_PARAMS, POISSON_PARAMS, ngsxfem_laplace_beltrami_p2,
                                    ngsxfem_mean_curvature_p2, ngsxfem_poisson_p2)
@@ -95,10 +94,7 @@ def order2_level(code: str, problem: str, spacing: float, peak) -> dict:
     """One code's level in the calling process, after its imports: the record (errors, unknowns,
     stage times, total) with the resident memory before the level and the peak after it."""
     spec = PROBLEMS[problem]
-    if code == "ngsxfem":  # imported before the level, as cutfem is
-        for module in ("ngsolve", "xfem"):
-            importlib.import_module(module)
-    start = _resident_gib()
+    start = import_peer(code)
     if code == "cutfem":
         t0 = time.perf_counter()
         r = cutfem.run(spec["cutfem"], levels=[spacing], order=2, keep_fields=False, **cutfem_params(problem)).records[0]
