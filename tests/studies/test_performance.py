@@ -15,6 +15,7 @@ from cutfem.studies import performance, performance_levels
 from surface_matrices import edge_matrix, face_matrix, mass_matrix, stiffness_matrix
 
 
+@pytest.mark.slow
 def test_run_tiny_writes_json_and_figure(tmp_path, monkeypatch):
     """Tiny run with the bulk table and --peers where ngsxfem is reported missing: a note, no failure."""
     monkeypatch.setattr(performance, "_peer_missing", lambda: "ngsolve/xfem are not importable (test)")
