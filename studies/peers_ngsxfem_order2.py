@@ -24,7 +24,7 @@ The three problems
   x/2) cos(pi y/3) exp(z/2), symmetric Nitsche with gamma / h_T, h_T the longest edge, gamma = 40) with P2 on the
   HASNEG tets.  Ghost penalty at order 2, two forms: ``"patch"`` (default, ngsxfem's own higher
   order ghost penalty: gamma_g h_F^-2 (u_1 - u_2, v_1 - v_2) over the patch of the two tets of each
-  ghost facet, the polynomial of one tet extended to the other) or ``"jumps"`` (SPEC §14:
+  ghost facet, the polynomial of one tet extended to the other) or ``"jumps"`` (docs/math.md §18:
   gamma_g h_F ([d_n u], [d_n v]) + gamma_g h_F^3 / 4 ([d_n^2 u], [d_n^2 v]), NGSolve's ``hesse``,
   which is exact on deformed elements but computed by numerical differentiation: the assembly takes 3.5
   times as long at spacing 0.1).  Solver: CG with Jacobi, as at order 1.

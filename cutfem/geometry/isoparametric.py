@@ -1,5 +1,5 @@
 """The isoparametric cut geometry: a P2 deformation Theta_h that lifts the planar cut to third order
-(docs/math.md §17, SPEC §14; Lehrenfeld, CMAME 300, 2016).
+(docs/math.md §17; Lehrenfeld, CMAME 300, 2016).
 
 The cut stays the one of the P1 interpolant phi_h1 (its pieces, sub-tets and zero rule are those of
 :mod:`cutfem.geometry.cut`); what changes is the map from those cells to the integration domain.
