@@ -58,9 +58,14 @@ DEFINITIONS = {
 
 
 @linear_form
-def _normal_data(v, w):
+def normal_data(v, w):
     """(g . n, q) on Gamma."""
     return dot(w.at(VELOCITY), w.n) * v[1]
+
+
+def source(nu):
+    """The load f = -nu Lap u + grad p of the manufactured solution."""
+    return -nu * VELOCITY.laplacian + PRESSURE.grad
 
 
 @register(
@@ -95,7 +100,7 @@ def stokes_cut(spacing, surface, background, box, nu, gamma, gamma_u, gamma_p, b
         dx, ds, dg = cut.dx(NEG), cut.ds(), cut.dF(cut.ghost_facets(NEG))
     with t("assembly"):
         N = nitsche(ds, gamma, g=VELOCITY, field="u")
-        f = -nu * VELOCITY.laplacian + PRESSURE.grad
+        f = source(nu)
         a = nu * stiffness(dx, field="u") + nu * N + divergence(dx, by_parts=True) + mean_constraint(dx) \
             - (beta / nu) * stiffness(dx, field="p", h_power=2)
         if gamma_u > 0:
@@ -103,7 +108,7 @@ def stokes_cut(spacing, surface, background, box, nu, gamma, gamma_u, gamma_p, b
         if gamma_p > 0:
             a = a - (gamma_p / nu) * face_jump_penalty(dg, h_power=3, field="p")
         K = assemble(a, W)
-        b = assemble(load(f, dx, field="u") + nu * N.load + _normal_data * ds, W)
+        b = assemble(load(f, dx, field="u") + nu * N.load + normal_data * ds, W)
         schur = (1 / nu) * mass(dx) + (beta / nu) * stiffness(dx, h_power=2)
         if gamma_p > 0:
             schur = schur + (gamma_p / nu) * face_jump_penalty(dg, h_power=3)

@@ -19,6 +19,7 @@ DISTRIBUTED_LEVELS = {
     "laplace-beltrami-cut": "cutfem.distributed.laplace_beltrami:laplace_beltrami_cut_level",
     "mean-curvature-cut": "cutfem.distributed.mean_curvature:mean_curvature_cut_level",
     "interface-poisson-cut": "cutfem.distributed.interface_poisson:interface_poisson_cut_level",
+    "stokes-cut": "cutfem.distributed.stokes:stokes_cut_level",
 }
 
 

@@ -20,7 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..fem.forms import assemble
-from ..fem.spaces import CutSpace
+from ..fem.spaces import CutSpace, VectorSpace
 from .system import GlobalNumbering, LinearSystem
 
 __all__ = ["Piece", "SlabPieces", "global_keys", "slab_pieces", "slab_system"]
@@ -50,12 +50,18 @@ class SlabPieces:
         return np.concatenate([p.keys for p in self.pieces]) if self.pieces else np.zeros(0, dtype=np.int64)
 
 
+def _scalar_fields(space) -> list:
+    """The scalar fields of a space in its dof order: a vector field's components (one copy of its
+    scalar space each), a product's fields."""
+    fields = getattr(space, "fields", None) or [space]
+    return [g for f in fields for g in ([f.scalar] * f.components if isinstance(f, VectorSpace) else [f])]
+
+
 def global_keys(space) -> np.ndarray:
     """The keys of the unknowns of a P1 space on a slab's cut (its global node ids) or of a product
-    of such spaces (``node * fields + field``, in the product's dof order)."""
-    fields = getattr(space, "fields", None)
-    if fields is None:
-        return space.cut.background.global_nodes(space.node_ids)
+    of such spaces, a vector field counting as its three components (``node * fields + field``, in
+    the space's dof order)."""
+    fields = _scalar_fields(space)
     F = len(fields)
     return np.concatenate([f.cut.background.global_nodes(f.node_ids) * F + k for k, f in enumerate(fields)])
 
@@ -89,10 +95,11 @@ def slab_pieces(cuts, on, cells, faces=None, face_form=None) -> SlabPieces:
     return out
 
 
-def slab_system(parts: SlabPieces, cuts, comm, fields: int = 1) -> tuple[LinearSystem, GlobalNumbering]:
-    """The global numbering of the pieces' unknowns (``fields`` per node for a product space) and
-    the system they add up to (not yet on PETSc: :meth:`~cutfem.distributed.system.LinearSystem.petsc`)."""
-    numbering = GlobalNumbering(comm, cuts.slabs, cuts.rank, parts.keys, fields)
+def slab_system(parts: SlabPieces, cuts, comm, fields: int = 1, constants: int = 0) -> tuple[LinearSystem, GlobalNumbering]:
+    """The global numbering of the pieces' unknowns (``fields`` per node for a product space, and
+    ``constants`` one-unknown fields keyed -1, -2, ...) and the system they add up to (not yet on
+    PETSc: :meth:`~cutfem.distributed.system.LinearSystem.petsc`)."""
+    numbering = GlobalNumbering(comm, cuts.slabs, cuts.rank, parts.keys, fields, constants)
     system = LinearSystem(comm, numbering)
     for piece in parts.pieces:
         dofs = numbering(piece.keys)

@@ -43,7 +43,8 @@ def cut_counts(cuts, parts) -> dict:
 
 
 def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
-                   tol: float = DEFAULT_TOL, bulk: bool = True, fields: int = 1, constrain=None) -> dict:
+                   tol: float = DEFAULT_TOL, bulk: bool = True, fields: int = 1, constrain=None, constants: int = 0,
+                   solve=None) -> dict:
     """Solve one level of a problem on the ranks of ``comm``; returns the record's common part.
 
     ``build(cuts)``: the rank's :class:`~cutfem.distributed.assembly.SlabPieces`;
@@ -53,7 +54,10 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
     each rank; ``tol``: the relative residual of CG; ``bulk``: the unknowns fill a volume (for the
     choice of ``solver="auto"``, :meth:`~cutfem.distributed.system.LinearSystem.solve`); ``fields``:
     the fields of a product space; ``constrain(A, loads, numbering, parts)``: strong conditions
-    applied to the PETSc system before the solve."""
+    applied to the PETSc system before the solve; ``constants``: the one-unknown fields (keyed -1,
+    -2, ...: :class:`~cutfem.distributed.system.GlobalNumbering`); ``solve(system, A, loads, parts)``:
+    ``([x, ...], info)`` in place of :meth:`~cutfem.distributed.system.LinearSystem.solve` (a
+    saddle-point system's, :mod:`cutfem.distributed.saddle`)."""
     MPI, _ = engine()
     t = Timer() if timer is None else timer
     with t("geometry"):
@@ -61,12 +65,12 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
         cuts = rank_cuts(slabs, comm.rank, levelset)
     with t("assembly"):
         parts = build(cuts)
-        system, numbering = slab_system(parts, cuts, comm, fields)
+        system, numbering = slab_system(parts, cuts, comm, fields, constants)
         A, loads = system.petsc()
         if constrain is not None:
             constrain(A, loads, numbering, parts)
     with t("solve"):
-        xs, info = system.solve(A, loads, solver, tol, bulk)
+        xs, info = system.solve(A, loads, solver, tol, bulk) if solve is None else solve(system, A, loads, parts)
     with t("errors"):
         sums = np.zeros(len(keys))
         V = parts.space

@@ -47,11 +47,16 @@ class GlobalNumbering:
     field`` (global background node ids; any order, repeats allowed; ``fields`` > 1 for a product
     space), each owned by the owner of its node in ``slabs``.  A rank numbers its owned keys in
     increasing order, so with one field the numbers are the serial ones.  ``first`` and
-    ``n_owned``: this rank's block of numbers; ``n_global`` the number of unknowns."""
+    ``n_owned``: this rank's block of numbers; ``n_global`` the number of unknowns.  ``constants``:
+    unknowns of no node (a multiplier's), keyed -1, -2, ..., numbered after every node's unknowns
+    and owned by the last rank (its block ends the numbering)."""
 
-    def __init__(self, comm, slabs, rank: int, keys, fields: int = 1):
+    def __init__(self, comm, slabs, rank: int, keys, fields: int = 1, constants: int = 0):
         MPI, _ = engine()
         keys = np.unique(np.asarray(keys, dtype=np.int64))
+        if len(keys) and keys[0] < -constants:
+            raise ValueError(f"key {keys[0]} is below the {constants} constants' keys -1 ... -{constants}")
+        constant_keys, keys = keys[keys < 0], keys[keys >= 0]
         lo, hi = slabs.owned_nodes(rank)
         mine = (keys >= lo * fields) & (keys < hi * fields)
         owned, others = keys[mine], keys[~mine]
@@ -74,11 +79,14 @@ class GlobalNumbering:
         answer = (self.first + where).astype(np.int64)
         got = np.empty(len(others), dtype=np.int64)
         comm.Alltoallv([answer, (recv, rdispl), MPI.INT64_T], [got, (send, sdispl), MPI.INT64_T])
-        self.keys = keys
+        self.keys = np.concatenate([constant_keys, keys])
         self.owned_keys = owned
         self.numbers = np.empty(len(keys), dtype=np.int64)
         self.numbers[mine] = self.first + np.arange(self.n_owned)
         self.numbers[~mine] = got
+        self.numbers = np.concatenate([self.n_global - 1 - constant_keys, self.numbers])  # key -1 -> the first after the nodes'
+        self.n_owned += constants if comm.rank == comm.size - 1 else 0
+        self.n_global += constants
 
     def __call__(self, keys) -> np.ndarray:
         """The global numbers of keys (all among the keys given)."""
