@@ -136,8 +136,9 @@ def saddle_solve(system, A, loads, P, primal, near_null, solver: str = "auto", t
     if pc.getType() == "lu":
         pc_name = f"lu ({pc.getFactorSolverType()})"
     else:
-        subs = pc.getFieldSplitSubKSP()
-        pc_name = f"{pc.getType()} ({', '.join(s.getPC().getType() for s in subs)})"
+        subs = [s.getPC().getType() if s.getType() == "preonly" else f"{s.getType()}+{s.getPC().getType()}"
+                for s in pc.getFieldSplitSubKSP()]
+        pc_name = f"{pc.getType()} ({', '.join(subs)})"
     info = {"engine": f"PETSc {'.'.join(map(str, PETSc.Sys.getVersion()))}", "ksp": ksp.getType(), "pc": pc_name,
             "iterations": int(ksp.getIterationNumber()), "residual": residual, "ranks": int(comm.size)}
     for obj in (r, ksp, *splits):

@@ -12,14 +12,15 @@ unknowns of each of its nodes, a permutation of the serial [u_1 | u_2 | u_3 | p 
 The multiplier lam is kept, the serial matrix's last row and column: one unknown of no node (key
 -1, :class:`~cutfem.distributed.system.GlobalNumbering`), owned by the last rank, whose column
 m_j = int_{Omega_h} phi_j every rank assembles on its owned cells.  Removing the pressure's
-constants by PETSc's null space instead would not give the serial solution as it stands: the load's
-pressure part g has 1^T g = (g . n, 1)_{Gamma_h} != 0 (g is divergence free on Gamma, not on
-Gamma_h), the serial solution solves the compatible system with g - lam m, lam = 1^T g / |Omega_h|
-(sum the pressure rows of K x = b: B^T 1 = 0 and C 1 = 0), whereas the null space projects g
-onto the constants' complement, g - (1^T g / n_p) 1; and a factorization of the singular matrix
-(the direct solve) is not reliable.  With lam kept, the matrix is the serial one entry by entry (up
-to the order of sums), MUMPS factorizes it as SuperLU does serially, and the one dense row costs a
-rank-0 gather of the pressure per product, negligible at the rank counts here.
+constants by PETSc's null space instead gives the serial solution only for a compatible load:
+summing the pressure rows of K x = b (B^T 1 = 0, C 1 = 0) gives lam = 1^T g / |Omega_h| with 1^T g =
+(g . n, 1)_{Gamma_h}, so the serial system solves g - lam m where a null space would project g to
+g - (1^T g / n_p) 1.  Here g = curl A has no flux through any closed surface and lam vanishes to
+round-off, but boundary data whose flux vanishes only on Gamma, not on Gamma_h, would need the load
+corrected by lam m and the pressure shifted to mean zero after; and a factorization of the singular
+matrix (the direct solve) is not reliable.  With lam kept, the matrix is the serial one entry by entry (up
+to the order of sums), MUMPS factorizes it as SuperLU does serially, and the one dense row costs its
+owner a gather of the whole pressure per product, negligible at a few ranks.
 
 The preconditioner is the serial one's (:mod:`cutfem.solvers.saddle`): diag(A, S) with S = (1/nu)
 M_p + the pressure stabilization and the multiplier's Schur number m^T S^{-1} m = nu |Omega_h|

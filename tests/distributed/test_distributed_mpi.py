@@ -27,6 +27,14 @@ from cutfem.geometry.markers import CUT, NEG  # noqa: E402
 from cutfem.runs.registry import get_problem  # noqa: E402
 from cutfem.runs.cli import main  # noqa: E402
 from cutfem.studies.distributed_scaling import scaling_record, table  # noqa: E402
+from cutfem.distributed.stokes import stokes_cut_level, stokes_pieces  # noqa: E402
+from cutfem.fem.coupling import divergence, mean_constraint  # noqa: E402
+from cutfem.fem.forms import assemble  # noqa: E402
+from cutfem.fem.spaces import CutSpace, ProductSpace, RealSpace, VectorSpace  # noqa: E402
+from cutfem.fem.terms import load, nitsche, stiffness  # noqa: E402
+from cutfem.geometry.cut import cut_mesh  # noqa: E402
+from cutfem.problems.common import background_for, levelset_for  # noqa: E402
+from cutfem.problems.stokes import VELOCITY, normal_data, source  # noqa: E402
 
 MPI, PETSc = engine()
 WORLD = MPI.COMM_WORLD
@@ -212,3 +220,97 @@ def test_scaling_study_record_and_table():
     assert set(rec["time"]) == {"geometry", "assembly", "solve", "errors"}
     text = table([rec])
     assert text.count("\n") == 3 and f"| {WORLD.size} | {rec['dofs']:,} |" in text
+
+
+@pytest.fixture(scope="module")
+def stokes_ball():
+    """The serial stokes-cut system of the ball at spacing 0.2 (its default parameters): phi, the
+    background, the keys ``node * 4 + field`` of the serial unknowns in their order (the multiplier
+    -1), K and b."""
+    p = distributed_params("stokes-cut", {})
+    nu, gamma, gamma_u, gamma_p, beta = (p[k] for k in ("nu", "gamma", "gamma_u", "gamma_p", "beta"))
+    phi = levelset_for("sphere")
+    bg = background_for(phi, 0.2, "structured", None)
+    cut = cut_mesh(bg, phi)
+    V = CutSpace(cut, NEG)
+    W = ProductSpace(u=VectorSpace(V), p=V, mean=RealSpace())
+    dx, ds, dg = cut.dx(NEG), cut.ds(), cut.dF(cut.ghost_facets(NEG))
+    N = nitsche(ds, gamma, g=VELOCITY, field="u")
+    a = (nu * stiffness(dx, field="u") + nu * N + divergence(dx, by_parts=True) + mean_constraint(dx)
+         - (beta / nu) * stiffness(dx, field="p", h_power=2) + nu * gamma_u * face_jump_penalty(dg, h_power=1, field="u")
+         - (gamma_p / nu) * face_jump_penalty(dg, h_power=3, field="p"))
+    b = assemble(load(source(nu), dx, field="u") + nu * N.load + normal_data * ds, W)
+    keys = np.concatenate([V.node_ids * 4 + c for c in range(4)] + [[-1]])
+    return phi, bg, keys, assemble(a, W).tocsr(), b, p
+
+
+@pytest.mark.parametrize("which", [0, 1])
+def test_stokes_matrix_action_and_load_equal_serial(stokes_ball, which):
+    """The saddle matrix (velocity, pressure and the multiplier's row and column, owned by the last
+    rank) times a random vector, and the load, equal the serial ones row by row to 1e-12 relative,
+    with the block split and with empty ranks."""
+    phi, bg, keys, K, b, p = stokes_ball
+    cases = partitions(int(bg.cells[2]))
+    if which >= len(cases):
+        pytest.skip("one rank: no partition with empty ranks")
+    cuts = rank_cuts(slab_partition(bg, WORLD.size, cases[which]), WORLD.rank, phi)
+    parts = stokes_pieces(cuts, p["nu"], p["gamma"], p["gamma_u"], p["gamma_p"], p["beta"])
+    system, numbering = slab_system(parts, cuts, WORLD, 4, constants=1)
+    A, (bv,) = system.petsc()
+    assert numbering.n_global == K.shape[0]
+    owned = numbering.owned_keys
+    all_keys = np.concatenate(WORLD.allgather(owned))
+    all_numbers = np.concatenate(WORLD.allgather(numbering.first + np.arange(len(owned))))
+    order = np.argsort(all_keys)
+    numbers = np.append(all_numbers[order][np.searchsorted(all_keys[order], keys[:-1])], numbering.n_global - 1)
+    assert np.array_equal(np.sort(numbers), np.arange(K.shape[0]))
+    x = np.random.default_rng(5).standard_normal(K.shape[0])
+    serial_Ax, serial_b, x_global = (np.empty(K.shape[0]) for _ in range(3))
+    serial_Ax[numbers], serial_b[numbers], x_global[numbers] = K @ x, b, x
+    xv = A.createVecRight()
+    xv.setArray(owned_rows(WORLD, numbering, x_global))
+    y = A.createVecLeft()
+    A.mult(xv, y)
+    errors = np.array([np.abs(y.getArray() - owned_rows(WORLD, numbering, serial_Ax)).max(initial=0.0),
+                       np.abs(bv.getArray() - owned_rows(WORLD, numbering, serial_b)).max(initial=0.0)])
+    WORLD.Allreduce(MPI.IN_PLACE, errors, op=MPI.MAX)
+    assert errors[0] <= 1e-12 * np.abs(K @ x).max()
+    assert errors[1] <= 1e-12 * np.abs(b).max()
+    for obj in (A, bv, xv, y):
+        obj.destroy()
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 4])
+def test_stokes_errors_equal_serial(size):
+    """stokes-cut on the ball at spacing 0.2 on 1-4 ranks: the serial run's unknowns, sizes and errors
+    (both "auto": MUMPS and SuperLU) to 1e-10 relative; MINRES with the field split (GAMG, Chebyshev-
+    Jacobi) to 1e-10 of them too (on 1, 2 and 4 ranks), its iterations and true residual in the record."""
+    comm = ranks(size)
+    serial = serial_record("stokes-cut", 0.2)
+    if comm is None:
+        return
+    assert serial["solver"] == "direct"
+    keys = ("l2_error_velocity", "h1_error_velocity", "l2_error_pressure", "volume")
+    for solver in ("auto", "minres") if size != 3 else ("auto",):
+        rec = stokes_cut_level(0.2, **distributed_params("stokes-cut", {"solver": solver}), comm=comm)
+        assert rec["dofs"] == serial["dofs"] and rec["ranks"] == size and rec["engine"].startswith("PETSc")
+        for key in ("active_tets", "pieces", "surface_triangles", "interior_faces"):
+            assert rec[key] == serial[key], key
+        for key in keys:
+            assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (solver, key, rec[key], serial[key])
+        if solver == "auto":
+            assert rec["pc"] == "lu (mumps)" and rec["residual"] < 1e-12
+        else:
+            assert rec["ksp"] == "minres" and rec["pc"] == "fieldsplit (gamg, chebyshev+jacobi)"
+            assert 0 < rec["solver_iterations"] < 400 and rec["residual"] < 1e-9
+
+
+@pytest.mark.skipif(not launched(), reason="the command line's distributed path runs under mpiexec")
+def test_stokes_command_line_under_mpiexec(tmp_path_factory):
+    """``mpiexec -n N cutfem run stokes-cut``: rank 0 writes the record, with MINRES's iterations."""
+    folder = WORLD.bcast(str(tmp_path_factory.mktemp("cli")) if WORLD.rank == 0 else None)
+    path = f"{folder}/stokes.json"
+    assert main(["run", "stokes-cut", "--levels", "0.2", "--solver", "minres", "--json", path, "--quiet"]) == 0
+    WORLD.Barrier()
+    rec = json.load(open(path))["records"][0]
+    assert rec["ranks"] == WORLD.size and rec["ksp"] == "minres" and rec["solver_iterations"] > 0
