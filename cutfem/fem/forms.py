@@ -71,6 +71,7 @@ import scipy.sparse as sp
 
 from . import high_order
 from .assembly import assemble_vector, running_sum
+from .p2_kernels import symmetric_csr
 from ..geometry.measures import Measure
 from .pointwise import (_PROBE, _QUAD_DATA_NAMES, _QUAD_DATA_NAMES_DOC, ZERO, _field_basis, _FieldTuple, _Params,
                         _quad_data, _value, _zero_like)
@@ -96,9 +97,9 @@ class Integrand:
       seen as ``w.<name>``; the side of a field for Nitsche's normal);
     * ``advice(params, form)``, the fix of an indefinite matrix of ``form`` that the term suggests
       (:attr:`Form.indefinite_hint`), or None;
-    * ``high_order(term, space)``, the quadrature of a bilinear integrand on a scalar P2 field
-      vectorised over the basis pairs (:mod:`cutfem.fem.high_order`): (dofs, local matrices) block
-      by block of cells."""
+    * ``high_order(term, space)``, the quadrature of a symmetric bilinear integrand on a scalar P2
+      field by a compiled kernel (:mod:`cutfem.fem.high_order`): (dofs, local matrices) block by
+      block of cells, summed into CSR by :func:`~cutfem.fem.p2_kernels.symmetric_csr`."""
 
     __array_ufunc__ = None  # ndarray * integrand defers to __rmul__, which asks for a measure
 
@@ -535,7 +536,7 @@ def _exact_route(term, space) -> bool:
 
 
 def _high_order_route(term, space):
-    """The term's local matrices by its vectorised quadrature (``high_order``) on a scalar field of
+    """The term's local matrices by its compiled quadrature (``high_order``) on a scalar field of
     order 2, as (field, field, dofs, dofs, blocks), or None (the form language evaluates it)."""
     f = term.integrand.high_order
     if f is None:
@@ -605,6 +606,7 @@ def assemble(form: Form, space, **params):
     total = None
     symmetric = True
     sums = {}  # field -> the running sum its exact terms share (c_1 a_1 + c_2 a_2: one set of arrays)
+    local = {}  # k -> the (dofs (m, k), local matrices (m, k, k)) of the P2 built-in terms
 
     def add(A, k):
         nonlocal total
@@ -626,9 +628,13 @@ def assemble(form: Form, space, **params):
             if A is not None:
                 add(c * A if c != 1.0 else A, k)
             continue
-        symmetric = symmetric and term.integrand.symmetric
         fast = _high_order_route(term, space)
-        for i, j, dofs_u, dofs_v, blocks in (fast if fast is not None else term.contributions(space, params)):
+        if fast is not None:  # symmetric local matrices on one field, summed by one compiled pass a width
+            for k, _, dofs, _, blocks in fast:
+                local.setdefault(blocks.shape[1], []).append((dofs + offsets[k], c * blocks if c != 1.0 else blocks))
+            continue
+        symmetric = symmetric and term.integrand.symmetric
+        for i, j, dofs_u, dofs_v, blocks in term.contributions(space, params):
             m, kv, ku = blocks.shape
             rows.append(np.broadcast_to((dofs_v + offsets[j])[:, :, None], blocks.shape).reshape(-1))
             cols.append(np.broadcast_to((dofs_u + offsets[i])[:, None, :], blocks.shape).reshape(-1))
@@ -637,6 +643,9 @@ def assemble(form: Form, space, **params):
     for k, into in sums.items():
         if into is not None and into.used:
             add(into.matrix(), k)
+    for parts in local.values():
+        A = symmetric_csr(np.concatenate([d for d, _ in parts]), np.concatenate([b for _, b in parts]), n)
+        total = A if total is None else total + A
     if rows:
         A = sp.coo_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
         if symmetric:  # the sums of duplicates run in different orders for (i, j) and (j, i)
