@@ -99,14 +99,16 @@ class Integrand:
       (:attr:`Form.indefinite_hint`), or None;
     * ``high_order(term, space)``, the quadrature of a symmetric bilinear integrand on a scalar P2
       field by a compiled kernel (:mod:`cutfem.fem.high_order`): (dofs, local matrices) block by
-      block of cells, summed into CSR by :func:`~cutfem.fem.p2_kernels.symmetric_csr`."""
+      block of cells, summed into CSR by :func:`~cutfem.fem.p2_kernels.symmetric_csr`; for a term on
+      two fields of a product space (``fields=True``) ``high_order(term, space, offsets)`` on the
+      whole space, the dofs in its numbering, or None where the fields are not P2."""
 
     __array_ufunc__ = None  # ndarray * integrand defers to __rmul__, which asks for a measure
 
     def __init__(self, function, linear: bool, symmetric: bool = False, degree: int | None = None, exact=None,
-                 prepare=None, advice=None, couples: bool = False, high_order=None):
+                 prepare=None, advice=None, couples: bool = False, high_order=None, fields: bool = False):
         self.function = function
-        self.couples = couples
+        self.couples, self.fields = couples, fields
         self.linear = linear
         self.symmetric = symmetric
         self.degree = degree if degree is not None else (4 if linear else 2)
@@ -535,17 +537,20 @@ def _exact_route(term, space) -> bool:
     return getattr(fields, "order", 1) < 2  # P1, or a real field (refused there)
 
 
-def _high_order_route(term, space):
+def _high_order_route(term, space, offsets):
     """The term's local matrices by its compiled quadrature (``high_order``) on a scalar field of
-    order 2, as (field, field, dofs, dofs, blocks), or None (the form language evaluates it)."""
+    order 2 (or on two fields of a product space, ``fields``), as (dofs in the numbering of ``space``,
+    blocks), or None (the form language evaluates it)."""
     f = term.integrand.high_order
     if f is None:
         return None
+    if term.integrand.fields:
+        return f(term, space, offsets)
     k = _field_index(space, term.field)
     V = _field(space, k)
     if getattr(V, "order", 1) < 2 or isinstance(V, VectorSpace):
         return None
-    return ((k, k, dofs, dofs, blocks) for dofs, blocks in f(term, V))
+    return ((dofs + offsets[k], blocks) for dofs, blocks in f(term, V))
 
 
 def assemble(form: Form, space, **params):
@@ -628,10 +633,10 @@ def assemble(form: Form, space, **params):
             if A is not None:
                 add(c * A if c != 1.0 else A, k)
             continue
-        fast = _high_order_route(term, space)
-        if fast is not None:  # symmetric local matrices on one field, summed by one compiled pass a width
-            for k, _, dofs, _, blocks in fast:
-                local.setdefault(blocks.shape[1], []).append((dofs + offsets[k], c * blocks if c != 1.0 else blocks))
+        fast = _high_order_route(term, space, offsets)
+        if fast is not None:  # symmetric local matrices, summed by one compiled pass a width
+            for dofs, blocks in fast:
+                local.setdefault(blocks.shape[1], []).append((dofs, c * blocks if c != 1.0 else blocks))
             continue
         symmetric = symmetric and term.integrand.symmetric
         for i, j, dofs_u, dofs_v, blocks in term.contributions(space, params):

@@ -10,7 +10,8 @@ Jacobians D Theta_h of the points to a kernel of :mod:`cutfem.fem.p2_kernels`, w
 basis, its mapped gradients and the local matrix point by point, never a (cells, points, 10, 3)
 array.  The reference is the form language itself (:meth:`~cutfem.fem.forms.Form.by_quadrature`:
 the same matrices to round-off, tested).  Each function takes the term and the scalar field and
-yields ``(dofs (m, k), local matrices (m, k, k))`` block by block of cells, which
+yields ``(dofs (m, k), local matrices (m, k, k))`` block by block of cells (the interface coupling
+of two fields: in the numbering of the product space, :func:`interface_blocks`), which
 :func:`~cutfem.fem.forms.assemble` sums by :func:`~cutfem.fem.p2_kernels.symmetric_csr`; a vector
 field goes by the form language.
 
@@ -27,7 +28,7 @@ from .p2_kernels import MASS, NITSCHE, NORMAL_GRADIENT, STIFFNESS, TANGENTIAL
 from .pointwise import _Zero
 
 __all__ = ["second_normal", "mass_blocks", "stiffness_blocks", "tangential_blocks", "normal_gradient_blocks", "face_jump_blocks",
-           "nitsche_blocks"]
+           "nitsche_blocks", "interface_blocks"]
 
 
 #: cells per block on P2 fields: a block's points and Jacobians at degree 4 (14 points) take 10 MB
@@ -124,3 +125,30 @@ def face_jump_blocks(term, space):
         p2_kernels.face_matrices(l0, l1, g0, g1, j0, j1, t0, t1, np.ascontiguousarray(quad.normal, dtype=float),
                                  np.ascontiguousarray(quad.weights), h**a, 0.25 * h ** (a + 2.0), local)
         yield np.concatenate(dofs, axis=1), local
+
+
+def interface_blocks(term, space, offsets, fields, k_neg, a_neg, a_pos, two_s):
+    """-({a n . grad u}, [v]) - ([u], {a n . grad v}) + (gamma 2 s / h_T)([u], [v]) over Gamma_h
+    (:func:`~cutfem.fem.terms.interface_nitsche`, ``two_s`` (cut tets,) its 2 s = lambda / gamma):
+    the local matrices on a cut tet's dofs in the NEG field, then the POS field (``fields``: their
+    positions in the product ``space``), in the product's numbering (``offsets``), or None when a
+    field is not P2 (the form language then integrates it)."""
+    i, j = fields["neg_field"], fields["pos_field"]
+    V, P = space.fields[i], space.fields[j]
+    if getattr(V, "order", 1) < 2 or getattr(P, "order", 1) < 2:
+        return None
+    return _interface(term, V, P, offsets[i], offsets[j], k_neg, a_neg, a_pos, two_s)
+
+
+def _interface(term, V, P, off_v, off_p, k_neg, a_neg, a_pos, two_s):
+    measure, gamma = term.measure, term.params["gamma"]
+    for _, quad in measure.blocks(term.integrand.degree_for(2), BLOCK_CELLS):
+        el, parent = V.local_elements(measure, quad.parent), quad.parent
+        m, q = quad.weights.shape
+        lam = np.ascontiguousarray(V._barycentric_on(measure, quad, el))
+        jac = _NONE if quad.jacobians is None else quad.jacobians
+        local = np.empty((m, 20, 20))
+        p2_kernels.interface_matrices(lam, np.ascontiguousarray(V.gradients_of(el)), np.ascontiguousarray(jac),
+                                      np.ascontiguousarray(quad.weights), np.ascontiguousarray(np.broadcast_to(quad.point_normals, (m, q, 3))),
+                                      k_neg[parent] * a_neg, (1.0 - k_neg[parent]) * a_pos, gamma * two_s[parent] / measure.h[parent], local)
+        yield np.concatenate([V.element_dofs[el] + off_v, P.element_dofs[P.local_elements(measure, parent)] + off_p], axis=1), local

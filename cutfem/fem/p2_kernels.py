@@ -2,8 +2,10 @@
 one symmetric CSR matrix.
 
 Local matrices.  :func:`cell_matrices` integrates one of the cell terms (mass, stiffness, tangential
-stiffness, normal-gradient penalty, Nitsche) over a block of cells, and :func:`face_matrices` the
-face-jump penalty over a block of faces (the 20 dofs of a face's two tets), point by point from the
+stiffness, normal-gradient penalty, Nitsche) over a block of cells, :func:`face_matrices` the
+face-jump penalty over a block of faces (the 20 dofs of a face's two tets) and
+:func:`interface_matrices` the interface Nitsche coupling of two fields (the 20 dofs of a cut tet in
+the NEG and the POS field), point by point from the
 barycentric coordinates, the barycentric gradients G of each tet and, on a lifted geometry, the
 Jacobians J = D Theta_h of the points: the P2 basis and its gradients are made at the point
 (:mod:`cutfem.fem.lagrange`), the gradients mapped by J^-T (a closed-form 3 x 3 inverse) and the
@@ -29,7 +31,7 @@ from ..geometry.numbering import TET_EDGES, index_dtype
 from ..jit import parallel_kernel
 
 __all__ = ["MASS", "STIFFNESS", "TANGENTIAL", "NORMAL_GRADIENT", "NITSCHE", "cell_matrices", "face_matrices",
-           "symmetric_csr", "inverse_3x3"]
+           "interface_matrices", "symmetric_csr", "inverse_3x3"]
 
 #: the cell terms of :func:`cell_matrices`
 MASS, STIFFNESS, TANGENTIAL, NORMAL_GRADIENT, NITSCHE = range(5)
@@ -166,6 +168,42 @@ def cell_matrices(kind, lam, G, jac, weights, normals, sign, penalty, out):
                         for a in range(10):
                             for b in range(a, 10):
                                 local[a, b] += w * (g * phi[a] * phi[b] - sign * (phi[a] * dn[b] + dn[a] * phi[b]))
+            _mirror(local)
+
+
+@parallel_kernel
+def interface_matrices(lam, G, jac, weights, normals, flux_neg, flux_pos, penalty, out):
+    """out (m, 20, 20): the interface Nitsche coupling's local matrices on the dofs of a cut tet in the
+    NEG field, then in the POS field (one tet: one basis), arguments as :func:`cell_matrices`:
+    sum_q w (penalty j_a j_b - j_a f_b - f_a j_b), the jump j = (phi, -phi) and the flux
+    f = (flux_neg n . grad phi, flux_pos n . grad phi), ``flux_neg`` (m,) k_NEG a_NEG and ``flux_pos`` k_POS a_POS."""
+    m, q = weights.shape
+    for c in prange((m + CHUNK - 1) // CHUNK):
+        phi = np.empty(10)
+        ref = np.empty((10, 3))
+        grad = np.empty((10, 3))
+        Jinv = np.empty((3, 3))
+        jump = np.empty(20)
+        flux = np.empty(20)
+        for t in range(c * CHUNK, min(m, (c + 1) * CHUNK)):
+            local = out[t]
+            local[:, :] = 0.0
+            for p in range(q):
+                _basis(lam[t, p], G[t], phi, ref)
+                if jac.shape[0] > 0:
+                    _inverse(jac[t, p], Jinv)
+                    _map(ref, Jinv, grad)
+                else:
+                    grad[:, :] = ref
+                n = normals[t, p]
+                for a in range(10):
+                    dn = grad[a, 0] * n[0] + grad[a, 1] * n[1] + grad[a, 2] * n[2]
+                    jump[a], jump[10 + a] = phi[a], -phi[a]
+                    flux[a], flux[10 + a] = flux_neg[t] * dn, flux_pos[t] * dn
+                w, g = weights[t, p], penalty[t]
+                for a in range(20):
+                    for b in range(a, 20):
+                        local[a, b] += w * (g * jump[a] * jump[b] - (jump[a] * flux[b] + flux[a] * jump[b]))
             _mirror(local)
 
 

@@ -657,8 +657,7 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
     else:
         raise ValueError(f"weights must be 'harmonic' or 'volume', got {weights!r}")
     k_pos = 1.0 - k_neg
-    # lambda / gamma; gamma * (2 s) is 2 gamma s to the bit (a factor 2 is exact in floating point)
-    two_s = 2.0 * (k_neg**2 * a_neg + k_pos**2 * a_pos)
+    two_s = 2.0 * (k_neg**2 * a_neg + k_pos**2 * a_pos)  # lambda / gamma; gamma * (2 s) is 2 gamma s to the bit
 
     def prepare(space, term):
         """The positions of the NEG and the POS field in ``space``, checked."""
@@ -690,7 +689,8 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
         ju, jv = un - up, vn - vp
         return -flux_u * jv - flux_v * ju + penalty * ju * jv
 
-    integrand = Integrand(coupling, False, symmetric=True, prepare=prepare, advice=_nitsche_advice)
+    integrand = Integrand(coupling, False, symmetric=True, prepare=prepare, advice=_nitsche_advice, high_order=lambda term, W, offsets:
+                          high_order.interface_blocks(term, W, offsets, prepare(W, term), k_neg, a_neg, a_pos, two_s), fields=True)
     return Form([(1.0, Term(integrand, measure, None, {"gamma": gamma}))], False)
 
 

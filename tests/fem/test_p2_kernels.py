@@ -1,0 +1,45 @@
+"""The compiled pieces of the P2 terms (cutfem.fem.p2_kernels): the symmetric sum of local matrices
+into CSR against scipy's sum of the triples, its bits on one thread and on all, and the closed-form
+3 x 3 inverses."""
+
+import numba
+import numpy as np
+import scipy.sparse as sp
+
+from cutfem.fem.p2_kernels import inverse_3x3, symmetric_csr
+
+
+def _blocks(rng, m=3000, k=20, n=900):
+    dofs = rng.integers(0, n, size=(m, k))
+    dofs[:, k // 2 : k // 2 + 3] = dofs[:, :3]  # dofs repeated within a cell, as on a face's two tets
+    local = rng.standard_normal((m, k, k))
+    return dofs, local + np.swapaxes(local, 1, 2), n
+
+
+def test_symmetric_csr_is_the_sum_of_the_triples_exactly_symmetric_on_any_thread_count():
+    dofs, local, n = _blocks(np.random.default_rng(3))
+    A = symmetric_csr(dofs, local, n)
+    k = dofs.shape[1]
+    rows, cols = np.repeat(dofs, k, axis=1).reshape(-1), np.tile(dofs, (1, k)).reshape(-1)
+    B = sp.coo_matrix((local.reshape(-1), (rows, cols)), shape=(n, n)).tocsr()
+    assert abs(A - B).max() <= 1e-13 * abs(B).max()
+    assert abs(A - A.T).max() == 0.0 and A.has_sorted_indices
+    assert np.array_equal(np.diff(A.indptr), np.diff(B.indptr))  # the pattern: every pair of a cell, once
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        C = symmetric_csr(dofs, local, n)
+    finally:
+        numba.set_num_threads(threads)
+    assert np.array_equal(A.data, C.data) and np.array_equal(A.indices, C.indices)
+
+
+def test_symmetric_csr_of_no_cells():
+    A = symmetric_csr(np.zeros((0, 10), dtype=np.int64), np.zeros((0, 10, 10)), 5)
+    assert A.shape == (5, 5) and A.nnz == 0
+
+
+def test_inverse_3x3_by_cofactors():
+    J = np.eye(3) + 0.3 * np.random.default_rng(1).standard_normal((7, 5, 3, 3))
+    assert np.allclose(inverse_3x3(J), np.linalg.inv(J), rtol=1e-12, atol=1e-12)
+    assert np.array_equal(inverse_3x3(np.broadcast_to(np.eye(3), (4, 3, 3))), np.broadcast_to(np.eye(3), (4, 3, 3)))
