@@ -317,46 +317,57 @@ def _incidence(dofs, n):
     return start, slots
 
 
+#: rows a thread takes at once in the CSR sum (its marks, one integer a dof, are made once a chunk)
+ROW_CHUNK = 1 << 14
+
+
 @njit(cache=True, error_model="numpy", inline="always")
-def _columns(i, dofs, start, slots):
-    """The sorted distinct dofs of the cells that have dof i."""
+def _columns(i, dofs, start, slots, mark):
+    """The sorted distinct dofs of the cells that have dof i (``mark`` (n,): i at the dofs seen)."""
     k = dofs.shape[1]
     buf = np.empty((start[i + 1] - start[i]) * k, dtype=np.int64)
     c = 0
     for s in range(start[i], start[i + 1]):
         e = slots[s] // k
         for b in range(k):
-            buf[c] = dofs[e, b]
-            c += 1
-    buf.sort()
-    u = 0
-    for t in range(c):
-        if t == 0 or buf[t] != buf[t - 1]:
-            buf[u] = buf[t]
-            u += 1
-    return buf[:u]
+            j = dofs[e, b]
+            if mark[j] != i:
+                mark[j] = i
+                buf[c] = j
+                c += 1
+    out = buf[:c]
+    out.sort()
+    return out
 
 
 @parallel_kernel
 def _row_counts(dofs, start, slots, counts):
-    for i in prange(counts.shape[0]):
-        counts[i] = _columns(i, dofs, start, slots).shape[0]
+    n = counts.shape[0]
+    for ch in prange((n + ROW_CHUNK - 1) // ROW_CHUNK):
+        mark = np.full(n, -1, dtype=np.int64)
+        for i in range(ch * ROW_CHUNK, min(n, (ch + 1) * ROW_CHUNK)):
+            counts[i] = _columns(i, dofs, start, slots, mark).shape[0]
 
 
 @parallel_kernel
 def _row_sums(dofs, local, start, slots, indptr, indices, data):
     k = dofs.shape[1]
-    for i in prange(indptr.shape[0] - 1):
-        cols = _columns(i, dofs, start, slots)
-        p0 = indptr[i]
-        for t in range(cols.shape[0]):
-            indices[p0 + t] = cols[t]
-        for s in range(start[i], start[i + 1]):
-            e, a = slots[s] // k, slots[s] % k
-            for b in range(k):
-                j = dofs[e, b]
-                if j >= i:
-                    data[p0 + np.searchsorted(cols, j)] += local[e, a, b]
+    n = indptr.shape[0] - 1
+    for ch in prange((n + ROW_CHUNK - 1) // ROW_CHUNK):
+        mark = np.full(n, -1, dtype=np.int64)
+        where = np.empty(n, dtype=np.int64)  # read only at the columns of the row at hand, written first
+        for i in range(ch * ROW_CHUNK, min(n, (ch + 1) * ROW_CHUNK)):
+            cols = _columns(i, dofs, start, slots, mark)
+            p0 = indptr[i]
+            for t in range(cols.shape[0]):
+                indices[p0 + t] = cols[t]
+                where[cols[t]] = p0 + t
+            for s in range(start[i], start[i + 1]):
+                e, a = slots[s] // k, slots[s] % k
+                for b in range(k):
+                    j = dofs[e, b]
+                    if j >= i:
+                        data[where[j]] += local[e, a, b]
 
 
 @parallel_kernel
