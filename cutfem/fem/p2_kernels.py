@@ -5,7 +5,8 @@ Local matrices.  :func:`cell_matrices` integrates one of the cell terms (mass, s
 stiffness, normal-gradient penalty, Nitsche) over a block of cells, :func:`face_matrices` the
 face-jump penalty over a block of faces (the 20 dofs of a face's two tets) and
 :func:`interface_matrices` the interface Nitsche coupling of two fields (the 20 dofs of a cut tet in
-the NEG and the POS field), point by point from the
+the NEG and the POS field), and :func:`gradient_errors` the H1 error of a discrete function, point by
+point from the
 barycentric coordinates, the barycentric gradients G of each tet and, on a lifted geometry, the
 Jacobians J = D Theta_h of the points: the P2 basis and its gradients are made at the point
 (:mod:`cutfem.fem.lagrange`), the gradients mapped by J^-T (a closed-form 3 x 3 inverse) and the
@@ -31,7 +32,7 @@ from ..geometry.numbering import TET_EDGES, index_dtype
 from ..jit import parallel_kernel
 
 __all__ = ["MASS", "STIFFNESS", "TANGENTIAL", "NORMAL_GRADIENT", "NITSCHE", "cell_matrices", "face_matrices",
-           "interface_matrices", "symmetric_csr", "inverse_3x3"]
+           "interface_matrices", "gradient_errors", "symmetric_csr", "inverse_3x3"]
 
 #: the cell terms of :func:`cell_matrices`
 MASS, STIFFNESS, TANGENTIAL, NORMAL_GRADIENT, NITSCHE = range(5)
@@ -292,6 +293,48 @@ def face_matrices(lam0, lam1, G0, G1, jac0, jac1, theta0, theta1, normals, weigh
                     for b in range(a, 20):
                         local[a, b] += w1 * first[a] * first[b] + w2 * second[a] * second[b]
             _mirror(local)
+
+
+@parallel_kernel
+def gradient_errors(lam, G, jac, coeffs, exact, weights, normals, out):
+    """out (m,): sum_q w |grad u^e - grad u_h|^2 over each cell (the tangential part where ``normals``
+    (m, 1 or q, 3) is not empty), grad u_h = sum_k coeffs[t, k, c] grad phi_k of the P1 (k = 4) or P2
+    (k = 10) basis at the points, mapped by ``jac`` (empty: the identity); ``exact`` (m, q, c, 3)
+    the gradients of the c components of u^e, other arguments as :func:`cell_matrices`."""
+    m, q = weights.shape
+    k, nc = coeffs.shape[1], coeffs.shape[2]
+    for ch in prange((m + CHUNK - 1) // CHUNK):
+        phi = np.empty(10)
+        ref = np.empty((10, 3))
+        grad = np.empty((10, 3))
+        Jinv = np.empty((3, 3))
+        d = np.empty(3)
+        for t in range(ch * CHUNK, min(m, (ch + 1) * CHUNK)):
+            acc = 0.0
+            for p in range(q):
+                if k == 10:
+                    _basis(lam[t, p], G[t], phi, ref)
+                else:
+                    ref[:4, :] = G[t]
+                if jac.shape[0] > 0:
+                    _inverse(jac[t, p], Jinv)
+                    _map(ref[:k], Jinv, grad[:k])
+                else:
+                    grad[:k, :] = ref[:k]
+                part = 0.0
+                for c in range(nc):
+                    for x in range(3):
+                        d[x] = exact[t, p, c, x]
+                        for a in range(k):
+                            d[x] -= coeffs[t, a, c] * grad[a, x]
+                    if normals.shape[0] > 0:
+                        n = normals[t, p if normals.shape[1] > 1 else 0]
+                        s = d[0] * n[0] + d[1] * n[1] + d[2] * n[2]
+                        for x in range(3):
+                            d[x] -= s * n[x]
+                    part += d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+                acc += weights[t, p] * part
+            out[t] = acc
 
 
 # -- the symmetric sum into CSR -------------------------------------------------------------------

@@ -1,12 +1,18 @@
 """The compiled pieces of the P2 terms (cutfem.fem.p2_kernels): the symmetric sum of local matrices
-into CSR against scipy's sum of the triples, its bits on one thread and on all, and the closed-form
-3 x 3 inverses."""
+into CSR against scipy's sum of the triples, its bits on one thread and on all, the closed-form
+3 x 3 inverses, and the H1 error kernel against the basis gradients."""
 
 import numba
 import numpy as np
 import scipy.sparse as sp
 
+from cutfem.fem.norms import _varying_gradient_error
 from cutfem.fem.p2_kernels import inverse_3x3, symmetric_csr
+from cutfem.fem.spaces import CutSpace
+from cutfem.geometry.box import structured_box
+from cutfem.geometry.cut import cut_mesh
+from cutfem.geometry.markers import CUT, NEG
+from cutfem.geometry.shapes import Sphere
 
 
 def _blocks(rng, m=3000, k=20, n=900):
@@ -43,3 +49,21 @@ def test_inverse_3x3_by_cofactors():
     J = np.eye(3) + 0.3 * np.random.default_rng(1).standard_normal((7, 5, 3, 3))
     assert np.allclose(inverse_3x3(J), np.linalg.inv(J), rtol=1e-12, atol=1e-12)
     assert np.array_equal(inverse_3x3(np.broadcast_to(np.eye(3), (4, 3, 3))), np.broadcast_to(np.eye(3), (4, 3, 3)))
+
+
+def test_gradient_errors_match_the_gradients_of_the_basis_on_a_lifted_cut():
+    """The H1 error kernel against the mapped basis gradients of CutSpace.derivatives (P2 on a volume
+    and on the surface, P1 on the lifted surface)."""
+    c = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=6), Sphere(0.7, [0.03, -0.01, 0.02]), order=2)
+    rng = np.random.default_rng(0)
+    for V, measure in ((CutSpace(c, NEG, order=2), c.dx(NEG)), (CutSpace(c, CUT, order=2), c.ds()), (CutSpace(c, CUT), c.ds())):
+        coeffs = rng.standard_normal(V.n_dofs)
+        quad = measure.quadrature(6)
+        e = V.local_elements(measure, quad.parent)
+        ge = rng.standard_normal(quad.points.shape)
+        _, G, _ = V.derivatives(measure, quad, e, hessians=False)
+        diff = ge - np.einsum("mk,mqkd->mqd", coeffs[V.element_dofs[e]], np.broadcast_to(G, ge.shape[:2] + G.shape[2:]))
+        if measure.surface:
+            diff -= np.sum(diff * quad.point_normals, axis=-1, keepdims=True) * quad.point_normals
+        reference = float(np.sum(np.sum(diff**2, axis=-1) * quad.weights))
+        assert abs(_varying_gradient_error(V, measure, quad, e, coeffs[V.element_dofs[e]], ge, coeffs) - reference) <= 1e-13 * reference
