@@ -97,9 +97,10 @@ class Integrand:
       seen as ``w.<name>``; the side of a field for Nitsche's normal);
     * ``advice(params, form)``, the fix of an indefinite matrix of ``form`` that the term suggests
       (:attr:`Form.indefinite_hint`), or None;
-    * ``high_order(term, space)``, the quadrature of a symmetric bilinear integrand on a scalar P2
-      field by a compiled kernel (:mod:`cutfem.fem.high_order`): (dofs, local matrices) block by
-      block of cells, summed into CSR by :func:`~cutfem.fem.p2_kernels.symmetric_csr`; for a term on
+    * ``high_order(term, space)``, the quadrature of a symmetric bilinear (or a linear) integrand on
+      a scalar P2 field by a compiled kernel (:mod:`cutfem.fem.high_order`): (dofs, local matrices
+      or vectors) block by block of cells, the matrices summed into CSR by
+      :func:`~cutfem.fem.p2_kernels.symmetric_csr`; for a term on
       two fields of a product space (``fields=True``) ``high_order(term, space, offsets)`` on the
       whole space, the dofs in its numbering, or None where the fields are not P2."""
 
@@ -597,12 +598,16 @@ def assemble(form: Form, space, **params):
                 k = _field_index(space, term.field)
                 parts = [(k, None, c * np.asarray(term.integrand.exact(term, _p1_field(space, k, term)), dtype=float))]
             else:
-                parts = [(j, dofs, c * local) for j, dofs, local in term.contributions(space, params)]
+                fast = _high_order_route(term, space, offsets)  # its dofs in the numbering of space
+                parts = [(j, dofs, c * local) for j, dofs, local in term.contributions(space, params)] if fast is None else \
+                    [(None, dofs, c * local) for dofs, local in fast]
             for k, dofs, vals in parts:
                 if out is None:
                     out = np.zeros((n,) + vals.shape[2 if dofs is not None else 1:])
                 if dofs is None:
                     out[offsets[k] : offsets[k + 1]] += vals
+                elif k is None:
+                    assemble_vector(dofs, vals, n, out=out)
                 else:
                     assemble_vector(dofs, vals, int(offsets[k + 1] - offsets[k]), out=out[offsets[k] : offsets[k + 1]])
         params.check_read()

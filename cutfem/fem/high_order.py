@@ -15,6 +15,9 @@ of two fields: in the numbering of the product space, :func:`interface_blocks`),
 :func:`~cutfem.fem.forms.assemble` sums by :func:`~cutfem.fem.p2_kernels.symmetric_csr`; a vector
 field goes by the form language.
 
+Linear terms alike: :func:`load_vectors` and :func:`nitsche_load_vectors` yield ``(dofs (m, k), local
+vectors (m, k) or (m, k, c))`` (:func:`~cutfem.fem.p2_kernels.cell_vectors`).
+
 Also here: the second normal derivative n^T H n of a basis function (:func:`second_normal`), the
 order-2 part of the face-jump penalty's integrand.
 """
@@ -25,10 +28,10 @@ import numpy as np
 
 from . import p2_kernels
 from .p2_kernels import MASS, NITSCHE, NORMAL_GRADIENT, STIFFNESS, TANGENTIAL
-from .pointwise import _Zero
+from .pointwise import _point_values, _Zero
 
 __all__ = ["second_normal", "mass_blocks", "stiffness_blocks", "tangential_blocks", "normal_gradient_blocks", "face_jump_blocks",
-           "nitsche_blocks", "interface_blocks"]
+           "nitsche_blocks", "interface_blocks", "load_vectors", "nitsche_load_vectors"]
 
 
 #: cells per block on P2 fields: a block's points and Jacobians at degree 4 (14 points) take 10 MB
@@ -152,3 +155,34 @@ def _interface(term, V, P, off_v, off_p, k_neg, a_neg, a_pos, two_s):
                                       np.ascontiguousarray(quad.weights), np.ascontiguousarray(np.broadcast_to(quad.point_normals, (m, q, 3))),
                                       k_neg[parent] * a_neg, (1.0 - k_neg[parent]) * a_pos, gamma * two_s[parent] / measure.h[parent], local)
         yield np.concatenate([V.element_dofs[el] + off_v, P.element_dofs[P.local_elements(measure, parent)] + off_p], axis=1), local
+
+
+def _load_terms(term, space, data, what, normals=None, sign=0.0, penalty=None):
+    """Per block of the term's measure at the field's degree: (dofs, local vectors) of the load
+    ``data(x)`` (checked as ``what``), tested with phi, or with penalty(quad) phi - sign n . grad phi."""
+    measure = term.measure
+    for _, quad in measure.blocks(term.integrand.degree_for(space.order), BLOCK_CELLS):
+        el = space.local_elements(measure, quad.parent)
+        m, q = quad.weights.shape
+        fx = _point_values(data, quad.points, what)
+        fw = np.ascontiguousarray((fx * (quad.weights if fx.ndim == 2 else quad.weights[..., None])).reshape(m, q, -1))
+        n = _NO_NORMALS if normals is None else np.ascontiguousarray(np.broadcast_to(normals(quad), (m, q, 3)))
+        jac = _NONE if quad.jacobians is None or normals is None else quad.jacobians
+        g = np.zeros(m) if penalty is None else penalty(quad)
+        local = np.empty((m, 10, fw.shape[2]))
+        p2_kernels.cell_vectors(np.ascontiguousarray(space._barycentric_on(measure, quad, el)),
+                                np.ascontiguousarray(space.gradients_of(el)), np.ascontiguousarray(jac), fw, n, float(sign),
+                                np.ascontiguousarray(g, dtype=float), local)
+        yield space.element_dofs[el], local.reshape(local.shape[:2] + fx.shape[2:])
+
+
+def load_vectors(term, space):
+    """(f, v) over a cell measure."""
+    return _load_terms(term, space, term.params["f"], "the load f(x)")
+
+
+def nitsche_load_vectors(term, space, outward):
+    """-(g, n . grad v) + (gamma / h_T)(g, v) over Gamma_h, n = ``outward`` n_h."""
+    measure, gamma = term.measure, term.params["gamma"]
+    return _load_terms(term, space, term.params["g"], "nitsche: g(x)", lambda quad: quad.point_normals, outward,
+                       lambda quad: gamma / measure.h[quad.parent])

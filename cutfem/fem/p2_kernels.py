@@ -5,7 +5,7 @@ Local matrices.  :func:`cell_matrices` integrates one of the cell terms (mass, s
 stiffness, normal-gradient penalty, Nitsche) over a block of cells, :func:`face_matrices` the
 face-jump penalty over a block of faces (the 20 dofs of a face's two tets) and
 :func:`interface_matrices` the interface Nitsche coupling of two fields (the 20 dofs of a cut tet in
-the NEG and the POS field), and :func:`gradient_errors` the H1 error of a discrete function, point by
+the NEG and the POS field), :func:`cell_vectors` the loads and :func:`gradient_errors` the H1 error of a discrete function, point by
 point from the
 barycentric coordinates, the barycentric gradients G of each tet and, on a lifted geometry, the
 Jacobians J = D Theta_h of the points: the P2 basis and its gradients are made at the point
@@ -32,7 +32,7 @@ from ..geometry.numbering import TET_EDGES, index_dtype
 from ..jit import parallel_kernel
 
 __all__ = ["MASS", "STIFFNESS", "TANGENTIAL", "NORMAL_GRADIENT", "NITSCHE", "cell_matrices", "face_matrices",
-           "interface_matrices", "gradient_errors", "symmetric_csr", "inverse_3x3"]
+           "interface_matrices", "cell_vectors", "gradient_errors", "symmetric_csr", "inverse_3x3"]
 
 #: the cell terms of :func:`cell_matrices`
 MASS, STIFFNESS, TANGENTIAL, NORMAL_GRADIENT, NITSCHE = range(5)
@@ -206,6 +206,40 @@ def interface_matrices(lam, G, jac, weights, normals, flux_neg, flux_pos, penalt
                     for b in range(a, 20):
                         local[a, b] += w * (g * jump[a] * jump[b] - (jump[a] * flux[b] + flux[a] * jump[b]))
             _mirror(local)
+
+
+@parallel_kernel
+def cell_vectors(lam, G, jac, values, normals, sign, penalty, out):
+    """out (m, 10, c): the local vectors sum_q values_c (penalty phi_a - sign n . grad phi_a) of loads
+    ``values`` (m, q, c) (the data times the weights) on cells, arguments as :func:`cell_matrices`;
+    ``normals`` empty: sum_q values_c phi_a (the gradients are not made)."""
+    m, q = values.shape[0], values.shape[1]
+    nc = values.shape[2]
+    for ch in prange((m + CHUNK - 1) // CHUNK):
+        phi = np.empty(10)
+        ref = np.empty((10, 3))
+        grad = np.empty((10, 3))
+        Jinv = np.empty((3, 3))
+        test = np.empty(10)
+        for t in range(ch * CHUNK, min(m, (ch + 1) * CHUNK)):
+            local = out[t]
+            local[:, :] = 0.0
+            for p in range(q):
+                _basis(lam[t, p], G[t], phi, ref)
+                if normals.shape[0] > 0:
+                    if jac.shape[0] > 0:
+                        _inverse(jac[t, p], Jinv)
+                        _map(ref, Jinv, grad)
+                    else:
+                        grad[:, :] = ref
+                    n = normals[t, p]
+                    for a in range(10):
+                        test[a] = penalty[t] * phi[a] - sign * (grad[a, 0] * n[0] + grad[a, 1] * n[1] + grad[a, 2] * n[2])
+                else:
+                    test[:] = phi
+                for a in range(10):
+                    for c in range(nc):
+                        local[a, c] += values[t, p, c] * test[a]
 
 
 @njit(cache=True, error_model="numpy", inline="always")

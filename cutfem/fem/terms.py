@@ -339,7 +339,7 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
         raise TypeError("load integrates over cells (a volume or a surface); for a facet term write a linear_form integrand")
     _require(measure, Measure, "load")
     integrand = _integrand("load", lambda v, w: _times(w.at(w.f), v), linear=True, degree=degree,
-                           exact=_componentwise_load(_load_exact))
+                           exact=_componentwise_load(_load_exact), high_order=high_order.load_vectors)
     return integrand.on(measure, field, f=g)
 
 
@@ -562,9 +562,9 @@ def _nitsche_load_exact(term, space):
 _NITSCHE = _integrand("nitsche", _nitsche_matrix, symmetric=True, exact=_componentwise(_nitsche_exact), prepare=_nitsche_side,
                       advice=_nitsche_advice,
                       high_order=lambda term, V: high_order.nitsche_blocks(term, V, _outward_sign(V, term.measure, "nitsche")))
-_NITSCHE_LOAD = _integrand("nitsche load",
-                           lambda v, w: _times(w.at(w.g), w.gamma / w.h * v - dot(v.grad, w.outward * w.n)),
-                           linear=True, exact=_componentwise_load(_nitsche_load_exact), prepare=_nitsche_side)
+_NITSCHE_LOAD = _integrand("nitsche load", lambda v, w: _times(w.at(w.g), w.gamma / w.h * v - dot(v.grad, w.outward * w.n)),
+                           linear=True, exact=_componentwise_load(_nitsche_load_exact), prepare=_nitsche_side,
+                           high_order=lambda term, V: high_order.nitsche_load_vectors(term, V, _outward_sign(V, term.measure, "nitsche")))
 
 
 class Nitsche(Form):

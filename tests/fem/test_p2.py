@@ -245,6 +245,21 @@ def test_vectorised_terms_match_the_form_language_on_a_lifted_cut():
         assert abs(A - A.T).max() == 0.0
 
 
+def test_compiled_loads_match_the_form_language(sphere_cut):
+    """The loads on P2 (load, the Nitsche load; one and two right-hand sides) by their compiled
+    kernels are the form language's quadrature of their integrands, on a planar and a lifted cut."""
+    lifted = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=6), Sphere(0.7, [0.03, -0.01, 0.02]), order=2)
+    f = lambda x: np.sin(x[..., 0]) + x[..., 1] * x[..., 2]  # noqa: E731
+    pair = lambda x: np.stack([f(x), x[..., 0] ** 2], axis=-1)  # noqa: E731
+    for c in (sphere_cut, lifted):
+        V, W = CutSpace(c, NEG, order=2), CutSpace(c, CUT, order=2)
+        for space, form in ((V, load(f, c.dx(NEG))), (V, load(pair, c.dx(NEG), degree=2)), (V, nitsche(c.ds(), 20.0, g=f).load),
+                            (W, load(f, c.ds())), (ProductSpace(V, CutSpace(c, POS, order=2)), load(f, c.dx(POS), field=1)),
+                            (V, nitsche(c.ds(), 20.0, g=pair).load)):
+            a, b = assemble(form, space), assemble(form.by_quadrature(), space)
+            assert a.shape == b.shape and np.abs(a - b).max() <= 1e-13 * np.abs(b).max()
+
+
 def test_surface_norms_of_p2(sphere_cut):
     """On S_h the errors, the discrete norm and the integral of a P2 trace field use its quadratic
     values, not its vertex values: a quadratic's error is zero, its integral the rule's."""
