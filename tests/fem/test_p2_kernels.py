@@ -1,14 +1,16 @@
 """The compiled pieces of the P2 terms (cutfem.fem.p2_kernels): the symmetric sum of local matrices
 into CSR against scipy's sum of the triples, its bits on one thread and on all, the closed-form
-3 x 3 inverses, and the H1 error kernel against the basis gradients."""
+3 x 3 inverses, the H1 error kernel against the basis gradients, and a P2 matrix's bits on one thread."""
 
 import numba
 import numpy as np
 import scipy.sparse as sp
 
+from cutfem.fem.forms import assemble
 from cutfem.fem.norms import _varying_gradient_error
 from cutfem.fem.p2_kernels import inverse_3x3, symmetric_csr
 from cutfem.fem.spaces import CutSpace
+from cutfem.fem.terms import face_jump_penalty, nitsche, stiffness
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.markers import CUT, NEG
@@ -67,3 +69,17 @@ def test_gradient_errors_match_the_gradients_of_the_basis_on_a_lifted_cut():
             diff -= np.sum(diff * quad.point_normals, axis=-1, keepdims=True) * quad.point_normals
         reference = float(np.sum(np.sum(diff**2, axis=-1) * quad.weights))
         assert abs(_varying_gradient_error(V, measure, quad, e, coeffs[V.element_dofs[e]], ge, coeffs) - reference) <= 1e-13 * reference
+
+
+def test_p2_assembly_has_the_same_bits_on_one_thread():
+    c = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=6), Sphere(0.7, [0.03, -0.01, 0.02]), order=2)
+    V = CutSpace(c, NEG, order=2)
+    form = stiffness(c.dx(NEG)) + nitsche(c.ds(), 40.0) + 0.1 * face_jump_penalty(c.dF(c.ghost_facets(NEG)), h_power=1)
+    A = assemble(form, V)
+    threads = numba.get_num_threads()
+    numba.set_num_threads(1)
+    try:
+        B = assemble(form, V)
+    finally:
+        numba.set_num_threads(threads)
+    assert np.array_equal(A.data, B.data) and np.array_equal(A.indices, B.indices) and np.array_equal(A.indptr, B.indptr)
