@@ -207,7 +207,8 @@ class Deformation:
         moving = np.flatnonzero(rows[cells] >= 0)
         if len(moving):
             grads, _ = barycentric_gradients(elements.points[np.asarray(elements.tets)[cells[moving]]])
-            out[moving] = 2.0 * np.einsum("mlkc,mli,mkj->mcij", quadratic_form(shifts[rows[cells[moving]]]), grads, grads)
+            Q = np.moveaxis(quadratic_form(shifts[rows[cells[moving]]]), 3, 1)  # (m, c, 4, 4)
+            out[moving] = 2.0 * np.matmul(np.matmul(np.swapaxes(grads, 1, 2)[:, None], Q), grads[:, None])
         return out
 
     def deform(self, quad: Quadrature, elements, surface: bool) -> Quadrature:
