@@ -16,9 +16,9 @@ arrays).  The local matrices are exactly symmetric: the entries a <= b are summe
 
 The sum.  :func:`symmetric_csr` adds local matrices (m, k, k) on dofs (m, k) into CSR arrays without
 a sort of the triples: the cells that have each dof are listed by a counting sort (in cell order),
-each row's columns are the sorted union of the dofs of its cells, and each row sums its entries
-right of the diagonal over its cells in cell order, on any thread, then the entries left of it
-copy their mirror.  So the matrix is exactly symmetric and has the same bits on any number of
+each row's columns are the sorted union of the dofs of its cells (made twice, to count and to fill:
+kept, they would take half the local matrices' memory), and each row sums its entries right of the
+diagonal over its cells in cell order, on any thread, then the entries left of it copy their mirror.  So the matrix is exactly symmetric and has the same bits on any number of
 threads (every entry is one thread's ordered sum).
 """
 
@@ -399,10 +399,10 @@ ROW_CHUNK = 1 << 14
 
 
 @njit(cache=True, error_model="numpy", inline="always")
-def _columns(i, dofs, start, slots, mark):
-    """The sorted distinct dofs of the cells that have dof i (``mark`` (n,): i at the dofs seen)."""
+def _columns(i, dofs, start, slots, mark, buf):
+    """The number c of distinct dofs of the cells that have dof i, written sorted to ``buf[:c]`` (an
+    insertion as each is met: a row has a few dozen); ``mark`` (n,) holds i at the dofs seen."""
     k = dofs.shape[1]
-    buf = np.empty((start[i + 1] - start[i]) * k, dtype=np.int64)
     c = 0
     for s in range(start[i], start[i + 1]):
         e = slots[s] // k
@@ -410,35 +410,39 @@ def _columns(i, dofs, start, slots, mark):
             j = dofs[e, b]
             if mark[j] != i:
                 mark[j] = i
-                buf[c] = j
+                t = c
+                while t > 0 and buf[t - 1] > j:
+                    buf[t] = buf[t - 1]
+                    t -= 1
+                buf[t] = j
                 c += 1
-    out = buf[:c]
-    out.sort()
-    return out
+    return c
 
 
 @parallel_kernel
-def _row_counts(dofs, start, slots, counts):
+def _row_counts(dofs, start, slots, width, counts):
     n = counts.shape[0]
     for ch in prange((n + ROW_CHUNK - 1) // ROW_CHUNK):
         mark = np.full(n, -1, dtype=np.int64)
+        buf = np.empty(width, dtype=np.int64)
         for i in range(ch * ROW_CHUNK, min(n, (ch + 1) * ROW_CHUNK)):
-            counts[i] = _columns(i, dofs, start, slots, mark).shape[0]
+            counts[i] = _columns(i, dofs, start, slots, mark, buf)
 
 
 @parallel_kernel
-def _row_sums(dofs, local, start, slots, indptr, indices, data):
+def _row_sums(dofs, local, start, slots, width, indptr, indices, data):
     k = dofs.shape[1]
     n = indptr.shape[0] - 1
     for ch in prange((n + ROW_CHUNK - 1) // ROW_CHUNK):
         mark = np.full(n, -1, dtype=np.int64)
+        buf = np.empty(width, dtype=np.int64)
         where = np.empty(n, dtype=np.int64)  # read only at the columns of the row at hand, written first
         for i in range(ch * ROW_CHUNK, min(n, (ch + 1) * ROW_CHUNK)):
-            cols = _columns(i, dofs, start, slots, mark)
+            c = _columns(i, dofs, start, slots, mark, buf)
             p0 = indptr[i]
-            for t in range(cols.shape[0]):
-                indices[p0 + t] = cols[t]
-                where[cols[t]] = p0 + t
+            for t in range(c):
+                indices[p0 + t] = buf[t]
+                where[buf[t]] = p0 + t
             for s in range(start[i], start[i + 1]):
                 e, a = slots[s] // k, slots[s] % k
                 for b in range(k):
@@ -465,14 +469,15 @@ def symmetric_csr(dofs: np.ndarray, local: np.ndarray, n: int) -> sp.csr_matrix:
     local = np.ascontiguousarray(local, dtype=float)
     start, slots = _incidence(dofs, int(n))
     counts = np.zeros(int(n), dtype=np.int64)
-    _row_counts(dofs, start, slots, counts)
+    width = int(np.diff(start).max(initial=0)) * dofs.shape[1]  # the most columns a row can have
+    _row_counts(dofs, start, slots, width, counts)
     nnz = int(counts.sum())
     index = index_dtype(max(nnz, int(n)))
     indptr = np.zeros(int(n) + 1, dtype=index)
     np.cumsum(counts, out=indptr[1:])
     indices = np.empty(nnz, dtype=index)
     data = np.zeros(nnz)
-    _row_sums(dofs, local, start, slots, indptr, indices, data)
+    _row_sums(dofs, local, start, slots, width, indptr, indices, data)
     _mirror_rows(indptr, indices, data)
     A = sp.csr_matrix((data, indices, indptr), shape=(int(n), int(n)))
     A.has_sorted_indices = True
