@@ -71,6 +71,7 @@ import scipy.sparse as sp
 
 from . import high_order
 from .assembly import assemble_vector, running_sum
+from .p2_kernels import symmetric_csr
 from ..geometry.measures import Measure
 from .pointwise import (_PROBE, _QUAD_DATA_NAMES, _QUAD_DATA_NAMES_DOC, ZERO, _field_basis, _FieldTuple, _Params,
                         _quad_data, _value, _zero_like)
@@ -96,16 +97,19 @@ class Integrand:
       seen as ``w.<name>``; the side of a field for Nitsche's normal);
     * ``advice(params, form)``, the fix of an indefinite matrix of ``form`` that the term suggests
       (:attr:`Form.indefinite_hint`), or None;
-    * ``high_order(term, space)``, the quadrature of a bilinear integrand on a scalar P2 field
-      vectorised over the basis pairs (:mod:`cutfem.fem.high_order`): (dofs, local matrices) block
-      by block of cells."""
+    * ``high_order(term, space)``, the quadrature of a symmetric bilinear (or a linear) integrand on
+      a scalar P2 field by a compiled kernel (:mod:`cutfem.fem.high_order`): (dofs, local matrices
+      or vectors) block by block of cells, the matrices summed into CSR by
+      :func:`~cutfem.fem.p2_kernels.symmetric_csr`; for a term on
+      two fields of a product space (``fields=True``) ``high_order(term, space, offsets)`` on the
+      whole space, the dofs in its numbering, or None where the fields are not P2."""
 
     __array_ufunc__ = None  # ndarray * integrand defers to __rmul__, which asks for a measure
 
     def __init__(self, function, linear: bool, symmetric: bool = False, degree: int | None = None, exact=None,
-                 prepare=None, advice=None, couples: bool = False, high_order=None):
+                 prepare=None, advice=None, couples: bool = False, high_order=None, fields: bool = False):
         self.function = function
-        self.couples = couples
+        self.couples, self.fields = couples, fields
         self.linear = linear
         self.symmetric = symmetric
         self.degree = degree if degree is not None else (4 if linear else 2)
@@ -534,17 +538,20 @@ def _exact_route(term, space) -> bool:
     return getattr(fields, "order", 1) < 2  # P1, or a real field (refused there)
 
 
-def _high_order_route(term, space):
-    """The term's local matrices by its vectorised quadrature (``high_order``) on a scalar field of
-    order 2, as (field, field, dofs, dofs, blocks), or None (the form language evaluates it)."""
+def _high_order_route(term, space, offsets):
+    """The term's local matrices by its compiled quadrature (``high_order``) on a scalar field of
+    order 2 (or on two fields of a product space, ``fields``), as (dofs in the numbering of ``space``,
+    blocks), or None (the form language evaluates it)."""
     f = term.integrand.high_order
     if f is None:
         return None
+    if term.integrand.fields:
+        return f(term, space, offsets)
     k = _field_index(space, term.field)
     V = _field(space, k)
     if getattr(V, "order", 1) < 2 or isinstance(V, VectorSpace):
         return None
-    return ((k, k, dofs, dofs, blocks) for dofs, blocks in f(term, V))
+    return ((dofs + offsets[k], blocks) for dofs, blocks in f(term, V))
 
 
 def assemble(form: Form, space, **params):
@@ -591,12 +598,16 @@ def assemble(form: Form, space, **params):
                 k = _field_index(space, term.field)
                 parts = [(k, None, c * np.asarray(term.integrand.exact(term, _p1_field(space, k, term)), dtype=float))]
             else:
-                parts = [(j, dofs, c * local) for j, dofs, local in term.contributions(space, params)]
+                fast = _high_order_route(term, space, offsets)  # its dofs in the numbering of space
+                parts = [(j, dofs, c * local) for j, dofs, local in term.contributions(space, params)] if fast is None else \
+                    [(None, dofs, c * local) for dofs, local in fast]
             for k, dofs, vals in parts:
                 if out is None:
                     out = np.zeros((n,) + vals.shape[2 if dofs is not None else 1:])
                 if dofs is None:
                     out[offsets[k] : offsets[k + 1]] += vals
+                elif k is None:
+                    assemble_vector(dofs, vals, n, out=out)
                 else:
                     assemble_vector(dofs, vals, int(offsets[k + 1] - offsets[k]), out=out[offsets[k] : offsets[k + 1]])
         params.check_read()
@@ -605,6 +616,7 @@ def assemble(form: Form, space, **params):
     total = None
     symmetric = True
     sums = {}  # field -> the running sum its exact terms share (c_1 a_1 + c_2 a_2: one set of arrays)
+    local = {}  # k -> the (dofs (m, k), local matrices (m, k, k)) of the P2 built-in terms
 
     def add(A, k):
         nonlocal total
@@ -626,9 +638,13 @@ def assemble(form: Form, space, **params):
             if A is not None:
                 add(c * A if c != 1.0 else A, k)
             continue
+        fast = _high_order_route(term, space, offsets)
+        if fast is not None:  # symmetric local matrices, summed by one compiled pass a width
+            for dofs, blocks in fast:
+                local.setdefault(blocks.shape[1], []).append((dofs, c * blocks if c != 1.0 else blocks))
+            continue
         symmetric = symmetric and term.integrand.symmetric
-        fast = _high_order_route(term, space)
-        for i, j, dofs_u, dofs_v, blocks in (fast if fast is not None else term.contributions(space, params)):
+        for i, j, dofs_u, dofs_v, blocks in term.contributions(space, params):
             m, kv, ku = blocks.shape
             rows.append(np.broadcast_to((dofs_v + offsets[j])[:, :, None], blocks.shape).reshape(-1))
             cols.append(np.broadcast_to((dofs_u + offsets[i])[:, None, :], blocks.shape).reshape(-1))
@@ -637,6 +653,9 @@ def assemble(form: Form, space, **params):
     for k, into in sums.items():
         if into is not None and into.used:
             add(into.matrix(), k)
+    for parts in local.values():
+        A = symmetric_csr(np.concatenate([d for d, _ in parts]), np.concatenate([b for _, b in parts]), n)
+        total = A if total is None else total + A
     if rows:
         A = sp.coo_matrix((np.concatenate(data), (np.concatenate(rows), np.concatenate(cols))), shape=(n, n)).tocsr()
         if symmetric:  # the sums of duplicates run in different orders for (i, j) and (j, i)

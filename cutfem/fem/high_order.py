@@ -1,15 +1,22 @@
-"""The built-in bilinear terms on P2 fields: the quadrature of their integrands, vectorised over the local basis pairs.
+"""The built-in bilinear terms on P2 fields: the quadrature of their integrands by compiled
+per-cell kernels.
 
 On a P2 field (:class:`~cutfem.fem.spaces.CutSpace` of order 2) a built-in term is its integrand
 (:mod:`cutfem.fem.terms`) integrated by quadrature of the field's degree
 (:meth:`~cutfem.fem.forms.Integrand.degree_for`).  The form language evaluates an integrand one
 pair of basis functions at a time (55 to 210 passes over a block's points); each function here
-evaluates the same integrand for all pairs at once, as a product of the scaled basis values or
-derivatives at the points, B^T B per cell (one pass, the local matrices built in cache).  The
-reference is the form language itself (:meth:`~cutfem.fem.forms.Form.by_quadrature`: the same
-matrices to round-off, tested).  Each function takes the term and the scalar field and yields
-``(dofs (m, k), local matrices (m, k, k))`` block by block of cells; a vector field goes by the form
-language.
+hands a block's barycentric coordinates, barycentric gradients, weights and (on a lifted cut) the
+Jacobians D Theta_h of the points to a kernel of :mod:`cutfem.fem.p2_kernels`, which makes the
+basis, its mapped gradients and the local matrix point by point, never a (cells, points, 10, 3)
+array.  The reference is the form language itself (:meth:`~cutfem.fem.forms.Form.by_quadrature`:
+the same matrices to round-off, tested).  Each function takes the term and the scalar field and
+yields ``(dofs (m, k), local matrices (m, k, k))`` block by block of cells (the interface coupling
+of two fields: in the numbering of the product space, :func:`interface_blocks`), which
+:func:`~cutfem.fem.forms.assemble` sums by :func:`~cutfem.fem.p2_kernels.symmetric_csr`; a vector
+field goes by the form language.
+
+Linear terms alike: :func:`load_vectors` and :func:`nitsche_load_vectors` yield ``(dofs (m, k), local
+vectors (m, k) or (m, k, c))`` (:func:`~cutfem.fem.p2_kernels.cell_vectors`).
 
 Also here: the second normal derivative n^T H n of a basis function (:func:`second_normal`), the
 order-2 part of the face-jump penalty's integrand.
@@ -19,15 +26,19 @@ from __future__ import annotations
 
 import numpy as np
 
-from .pointwise import _Zero
+from . import p2_kernels
+from .p2_kernels import MASS, NITSCHE, NORMAL_GRADIENT, STIFFNESS, TANGENTIAL
+from .pointwise import _point_values, _Zero
 
 __all__ = ["second_normal", "mass_blocks", "stiffness_blocks", "tangential_blocks", "normal_gradient_blocks", "face_jump_blocks",
-           "nitsche_blocks"]
+           "nitsche_blocks", "interface_blocks", "load_vectors", "nitsche_load_vectors"]
 
 
-#: cells per block on P2 fields: their gradients are (cells, points, 10, 3), 18 MB a block at degree 4
-#: (the P1 blocks' 65536 cells would make 220 MB arrays, several at once)
+#: cells per block on P2 fields: a block's points and Jacobians at degree 4 (14 points) take 10 MB
 BLOCK_CELLS = 1 << 13
+
+_NONE = np.empty((0, 1, 3, 3))  # no Jacobians: the identity
+_NO_NORMALS = np.empty((0, 1, 3))
 
 
 def second_normal(hessian, n):
@@ -40,105 +51,138 @@ def second_normal(hessian, n):
     return np.einsum("...ij,...i,...j->...", hessian, n, n)
 
 
-def _gram(B):
-    """(m, k, k) B^T B of rows B (m, r, k): sum over r of B_ra B_rb."""
-    return np.matmul(np.swapaxes(B, 1, 2), B)
-
-
-def _cells(term, space):
-    """Per block of the term's measure at the field's degree: (quad, elements, values, gradients, None)."""
+def _cell_terms(term, space, kind, scale=None, normals=None, sign=0.0, penalty=None):
+    """Per block of the term's measure at the field's degree: (dofs, local matrices) of ``kind``
+    (:func:`~cutfem.fem.p2_kernels.cell_matrices`), the weights times ``scale(quad)`` (m,) when
+    given, the normals ``normals(quad)`` (m, 1 or q, 3) and Nitsche's ``penalty(quad)`` (m,)."""
     measure = term.measure
     for _, quad in measure.blocks(term.integrand.degree_for(space.order), BLOCK_CELLS):
         el = space.local_elements(measure, quad.parent)
-        yield (quad, el) + space.derivatives(measure, quad, el, hessians=False)
-
-
-def _along(G, n):
-    """(m, q, k) n . grad phi_k of gradients G (m, q, k, 3) and directions n (m, 3) or (m, q, 3), by matmul."""
-    n = n[:, None, :, None] if n.ndim == 2 else n[..., None]
-    return np.matmul(G, n)[..., 0]
-
-
-def _full(G, q):
-    """Gradients (m, 1 or q, k, 3) with their point axis spelled out to q."""
-    return np.broadcast_to(G, (G.shape[0], q) + G.shape[2:])
+        m, q = quad.weights.shape
+        lam = np.ascontiguousarray(space._barycentric_on(measure, quad, el))
+        weights = quad.weights if scale is None else quad.weights * scale(quad)[:, None]
+        n = _NO_NORMALS if normals is None else np.ascontiguousarray(np.broadcast_to(normals(quad), (m, q, 3)))
+        jac = _NONE if quad.jacobians is None else quad.jacobians
+        g = np.zeros(m) if penalty is None else penalty(quad)
+        local = np.empty((m, 10, 10))
+        p2_kernels.cell_matrices(kind, lam, np.ascontiguousarray(space.gradients_of(el)), np.ascontiguousarray(jac),
+                                 np.ascontiguousarray(weights), n, float(sign), np.ascontiguousarray(g, dtype=float), local)
+        yield space.element_dofs[el], local
 
 
 def mass_blocks(term, space):
-    """(u, v): the Gram matrix of the values sqrt(w_q) phi_a(x_q)."""
-    for quad, el, phi, _, _ in _cells(term, space):
-        yield space.element_dofs[el], _gram(phi * np.sqrt(quad.weights)[..., None])
-
-
-def _gradient_gram(G, weights):
-    """(m, k, k) sum_q w_q grad phi_a . grad phi_b of gradients G (m, q or 1, k, 3)."""
-    m, q = weights.shape
-    B = _full(G, q) * np.sqrt(weights)[..., None, None]  # (m, q, k, 3)
-    B = np.swapaxes(B, 2, 3).reshape(m, 3 * q, G.shape[2])
-    return _gram(B)
+    """(u, v)."""
+    return _cell_terms(term, space, MASS)
 
 
 def stiffness_blocks(term, space):
     """h_T^a (grad u, grad v) over a volume (a = ``h_power``, 0 by default)."""
     a = term.params.get("h_power", 0)
-    for quad, el, _, G, _ in _cells(term, space):
-        weights = quad.weights if a == 0 else quad.weights * (term.measure.h[quad.parent] ** a)[:, None]
-        yield space.element_dofs[el], _gradient_gram(G, weights)
+    return _cell_terms(term, space, STIFFNESS, None if a == 0 else lambda quad: term.measure.h[quad.parent] ** a)
 
 
 def tangential_blocks(term, space):
     """(P_h grad u, P_h grad v) over a surface, P_h = I - n n^T with the normals of the cells (of the
     points on a deformed surface)."""
-    for quad, el, _, G, _ in _cells(term, space):
-        G = _full(G, quad.weights.shape[1])
-        n = np.broadcast_to(quad.point_normals, G.shape[:2] + (3,))  # the cell's normal, or the point's (deformed)
-        tG = G - _along(G, n)[..., None] * n[:, :, None, :]
-        yield space.element_dofs[el], _gradient_gram(tG, quad.weights)
+    return _cell_terms(term, space, TANGENTIAL, normals=lambda quad: quad.point_normals)
 
 
 def normal_gradient_blocks(term, space):
-    """h_T^a (n_h . grad u, n_h . grad v) over whole tets with a normal."""
+    """h_T^a (n_h . grad u, n_h . grad v) over whole tets with a normal (lifted: the normal per point)."""
     measure, a = term.measure, term.params["h_power"]
-    for quad, el, _, G, _ in _cells(term, space):
-        m, q = quad.weights.shape
-        n = measure.normals[quad.parent] if quad.normal is None else np.broadcast_to(quad.point_normals, (m, q, 3))  # lifted: per point
-        dn = _along(_full(G, q), n)
-        scale = np.sqrt(quad.weights * (measure.h[quad.parent] ** a)[:, None])
-        yield space.element_dofs[el], _gram(dn * scale[..., None])
-
-
-def face_jump_blocks(term, space):
-    """sum_F h^a ([n . grad u], [n . grad v])_F + h^(a+2) / 4 ([n^T H u n], [n^T H v n])_F: the local
-    matrices on the dofs of the two tets of each face (minus, then plus)."""
-    measure, a = term.measure, term.params["h_power"]
-    for _, quad in measure.blocks(term.integrand.degree_for(space.order), BLOCK_CELLS):
-        m, q = quad.weights.shape
-        pairs = measure.facets.pairs[quad.parent]
-        points = quad.points if quad.reference_points is None else quad.reference_points
-        n, h = quad.normal, measure.h[quad.parent]
-        first, second, dofs = [], [], []
-        for s, sign in ((0, 1.0), (1, -1.0)):
-            el = space.local_elements(measure, pairs[:, s])
-            _, G, H = space.derivatives(measure, quad, el, points=points, cells=pairs[:, s])
-            first.append(sign * _along(_full(G, q), n))
-            second.append(None if H is None else sign * _along(np.matmul(H, n[:, None, None, :, None])[..., 0], n))
-            dofs.append(space.element_dofs[el])
-        jumps = np.concatenate(first, axis=2) * np.sqrt(quad.weights * (h**a)[:, None])[..., None]
-        local = _gram(jumps)
-        if second[0] is not None:
-            hess = np.concatenate(second, axis=2)  # (m, 1, 2k) constant on the face, or (m, q, 2k) on a deformed one
-            w = quad.weights.sum(axis=1, keepdims=True) if hess.shape[1] == 1 else quad.weights
-            local += _gram(hess * np.sqrt(0.25 * (h ** (a + 2.0))[:, None] * w)[..., None])
-        yield np.concatenate(dofs, axis=1), local
+    return _cell_terms(term, space, NORMAL_GRADIENT, lambda quad: measure.h[quad.parent] ** a,
+                       lambda quad: measure.normals[quad.parent][:, None] if quad.normal is None else quad.point_normals)
 
 
 def nitsche_blocks(term, space, outward):
     """-(n . grad u, v) - (u, n . grad v) + (gamma / h_T)(u, v) over Gamma_h, n = ``outward`` n_h."""
     measure, gamma = term.measure, term.params["gamma"]
-    for quad, el, phi, G, _ in _cells(term, space):
+    return _cell_terms(term, space, NITSCHE, normals=lambda quad: quad.point_normals, sign=outward,
+                       penalty=lambda quad: gamma / measure.h[quad.parent])
+
+
+def face_jump_blocks(term, space):
+    """sum_F h^a ([n . grad u], [n . grad v])_F + h^(a+2) / 4 ([n^T H u n], [n^T H v n])_F: the local
+    matrices on the dofs of the two tets of each face (minus, then plus).  On the planar faces of a
+    lifted cut each trace takes its own tet's D Theta_h at the face's points and Theta_h's Hessians
+    (:meth:`~cutfem.fem.spaces.CutSpace.derivatives`)."""
+    measure, a = term.measure, term.params["h_power"]
+    deformation = getattr(getattr(measure.elements, "cut", None), "deformation", None)
+    for _, quad in measure.blocks(term.integrand.degree_for(space.order), BLOCK_CELLS):
         m, q = quad.weights.shape
-        dn = outward * _along(_full(G, q), np.broadcast_to(quad.point_normals, (m, q, 3)))
-        pw = phi * quad.weights[..., None]
-        cross = np.matmul(np.swapaxes(pw, 1, 2), dn)  # (m, k, k): sum_q w phi_a (n . grad phi_b)
-        penalty = (gamma / measure.h[quad.parent])[:, None, None]
-        yield space.element_dofs[el], penalty * _gram(phi * np.sqrt(quad.weights)[..., None]) - cross - np.swapaxes(cross, 1, 2)
+        pairs = measure.facets.pairs[quad.parent]
+        points = quad.points if quad.reference_points is None else quad.reference_points
+        h = measure.h[quad.parent]
+        sides, dofs = [], []
+        for s in range(2):
+            el = space.local_elements(measure, pairs[:, s])
+            lam = np.ascontiguousarray(space.barycentric_at(points, el))
+            jac, theta = _NONE, np.empty((0, 3, 3, 3))
+            if deformation is not None:
+                jac = np.ascontiguousarray(deformation.map(measure.elements, pairs[:, s], points)[1])
+                theta = np.ascontiguousarray(deformation.hessians(measure.elements, pairs[:, s]))
+            sides.append((lam, np.ascontiguousarray(space.gradients_of(el)), jac, theta))
+            dofs.append(space.element_dofs[el])
+        (l0, g0, j0, t0), (l1, g1, j1, t1) = sides
+        local = np.empty((m, 20, 20))
+        p2_kernels.face_matrices(l0, l1, g0, g1, j0, j1, t0, t1, np.ascontiguousarray(quad.normal, dtype=float),
+                                 np.ascontiguousarray(quad.weights), h**a, 0.25 * h ** (a + 2.0), local)
+        yield np.concatenate(dofs, axis=1), local
+
+
+def interface_blocks(term, space, offsets, fields, k_neg, a_neg, a_pos, two_s):
+    """-({a n . grad u}, [v]) - ([u], {a n . grad v}) + (gamma 2 s / h_T)([u], [v]) over Gamma_h
+    (:func:`~cutfem.fem.terms.interface_nitsche`, ``two_s`` (cut tets,) its 2 s = lambda / gamma):
+    the local matrices on a cut tet's dofs in the NEG field, then the POS field (``fields``: their
+    positions in the product ``space``), in the product's numbering (``offsets``), or None when a
+    field is not P2 (the form language then integrates it)."""
+    i, j = fields["neg_field"], fields["pos_field"]
+    V, P = space.fields[i], space.fields[j]
+    if getattr(V, "order", 1) < 2 or getattr(P, "order", 1) < 2:
+        return None
+    return _interface(term, V, P, offsets[i], offsets[j], k_neg, a_neg, a_pos, two_s)
+
+
+def _interface(term, V, P, off_v, off_p, k_neg, a_neg, a_pos, two_s):
+    measure, gamma = term.measure, term.params["gamma"]
+    for _, quad in measure.blocks(term.integrand.degree_for(2), BLOCK_CELLS):
+        el, parent = V.local_elements(measure, quad.parent), quad.parent
+        m, q = quad.weights.shape
+        lam = np.ascontiguousarray(V._barycentric_on(measure, quad, el))
+        jac = _NONE if quad.jacobians is None else quad.jacobians
+        local = np.empty((m, 20, 20))
+        p2_kernels.interface_matrices(lam, np.ascontiguousarray(V.gradients_of(el)), np.ascontiguousarray(jac),
+                                      np.ascontiguousarray(quad.weights), np.ascontiguousarray(np.broadcast_to(quad.point_normals, (m, q, 3))),
+                                      k_neg[parent] * a_neg, (1.0 - k_neg[parent]) * a_pos, gamma * two_s[parent] / measure.h[parent], local)
+        yield np.concatenate([V.element_dofs[el] + off_v, P.element_dofs[P.local_elements(measure, parent)] + off_p], axis=1), local
+
+
+def _load_terms(term, space, data, what, normals=None, sign=0.0, penalty=None):
+    """Per block of the term's measure at the field's degree: (dofs, local vectors) of the load
+    ``data(x)`` (checked as ``what``), tested with phi, or with penalty(quad) phi - sign n . grad phi."""
+    measure = term.measure
+    for _, quad in measure.blocks(term.integrand.degree_for(space.order), BLOCK_CELLS):
+        el = space.local_elements(measure, quad.parent)
+        m, q = quad.weights.shape
+        fx = _point_values(data, quad.points, what)
+        fw = np.ascontiguousarray((fx * (quad.weights if fx.ndim == 2 else quad.weights[..., None])).reshape(m, q, -1))
+        n = _NO_NORMALS if normals is None else np.ascontiguousarray(np.broadcast_to(normals(quad), (m, q, 3)))
+        jac = _NONE if quad.jacobians is None or normals is None else quad.jacobians
+        g = np.zeros(m) if penalty is None else penalty(quad)
+        local = np.empty((m, 10, fw.shape[2]))
+        p2_kernels.cell_vectors(np.ascontiguousarray(space._barycentric_on(measure, quad, el)),
+                                np.ascontiguousarray(space.gradients_of(el)), np.ascontiguousarray(jac), fw, n, float(sign),
+                                np.ascontiguousarray(g, dtype=float), local)
+        yield space.element_dofs[el], local.reshape(local.shape[:2] + fx.shape[2:])
+
+
+def load_vectors(term, space):
+    """(f, v) over a cell measure."""
+    return _load_terms(term, space, term.params["f"], "the load f(x)")
+
+
+def nitsche_load_vectors(term, space, outward):
+    """-(g, n . grad v) + (gamma / h_T)(g, v) over Gamma_h, n = ``outward`` n_h."""
+    measure, gamma = term.measure, term.params["gamma"]
+    return _load_terms(term, space, term.params["g"], "nitsche: g(x)", lambda quad: quad.point_normals, outward,
+                       lambda quad: gamma / measure.h[quad.parent])

@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..geometry.numbering import TET_EDGES
+from .p2_kernels import inverse_3x3
 
 __all__ = ["edge_numbering", "p2_values", "p2_gradients", "p2_hessians", "map_gradients", "map_hessians"]
 
@@ -85,7 +86,7 @@ def p2_hessians(G: np.ndarray) -> np.ndarray:
 def map_gradients(grads: np.ndarray, jacobians: np.ndarray) -> np.ndarray:
     """Gradients (m, q or 1, k, 3) in the undeformed element mapped to the deformed one:
     D Theta^-T grad^ at each point, with ``jacobians`` D Theta (m, q, 3, 3) -> (m, q, k, 3)."""
-    inverse = np.linalg.inv(jacobians)  # (m, q, 3, 3); the rows g^T J^-1 of the gradients
+    inverse = inverse_3x3(jacobians)  # (m, q, 3, 3); the rows g^T J^-1 of the gradients
     return np.matmul(np.broadcast_to(grads, inverse.shape[:2] + grads.shape[2:]), inverse)
 
 
@@ -99,5 +100,5 @@ def map_hessians(hessians: np.ndarray, jacobians: np.ndarray, gradients=None, th
     ``theta_hessians`` H(Theta_c) (m, 3, 3, 3) (None: an affine Theta, no such term)."""
     if theta_hessians is not None:
         hessians = hessians - np.einsum("mqkc,mcij->mqkij", gradients, theta_hessians)
-    inverse = np.linalg.inv(jacobians)[:, :, None]  # (m, q, 1, 3, 3)
+    inverse = inverse_3x3(jacobians)[:, :, None]  # (m, q, 1, 3, 3)
     return np.matmul(np.matmul(np.swapaxes(inverse, -1, -2), hessians), inverse)

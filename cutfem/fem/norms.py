@@ -27,7 +27,7 @@ import numpy as np
 from ..geometry.measures import surface_measure
 from ..geometry.mesh import triangle_areas
 from ..geometry.quadrature import triangle_rule
-from . import element_kernels
+from . import element_kernels, p2_kernels
 from .spaces import ProductSpace, VectorSpace
 
 __all__ = ["l2_error", "h1_error", "l2_h1_errors", "discrete_error", "rates", "fitted_rate", "surface_integral"]
@@ -213,19 +213,17 @@ def _cell_errors(space, coeffs, exact, measure, degree, chunk):
 
 def _varying_gradient_error(space, measure, quad, elements, local, exact_gradient, coeffs) -> float:
     """sum_q w_q |grad u^e - grad u_h|^2 (tangential on a surface) over a block of cells, with the
-    basis gradients at each point (:meth:`~cutfem.fem.spaces.CutSpace.derivatives`: P2, or a
-    deformed geometry)."""
-    _, G, _ = space.derivatives(measure, quad, elements, hessians=False)  # (b, q or 1, k, 3)
-    L = local if local.ndim == 3 else local[..., None]  # (b, k, c)
-    grad = np.matmul(np.swapaxes(L, 1, 2)[:, None], G)  # (b, q, c, 3): sum_k u_kc grad phi_k
-    grad = grad if local.ndim == 3 else grad[:, :, 0]  # (b, q, 3) of a scalar field
-    diff = exact_gradient - grad
-    if measure.surface:
-        n = quad.point_normals  # (b, 1, 3) of a planar cell, (b, q, 3) of a deformed one
-        n = n if diff.ndim == 3 else n[:, :, None, :]
-        diff = diff - np.sum(diff * n, axis=-1, keepdims=True) * n
-    squared = np.sum(diff**2, axis=tuple(range(2, diff.ndim)))
-    part = float(np.sum(squared * quad.weights))
+    basis gradients made at each point by a compiled kernel (:func:`cutfem.fem.p2_kernels.gradient_errors`:
+    P2, or a deformed geometry), one sum per cell, then summed in cell order."""
+    L = np.ascontiguousarray(local if local.ndim == 3 else local[..., None], dtype=float)  # (b, k, c)
+    ge = np.ascontiguousarray(exact_gradient if local.ndim == 3 else exact_gradient[:, :, None], dtype=float)
+    lam = space._barycentric_on(measure, quad, elements) if space.order > 1 else np.empty((len(elements), 1, 4))
+    jac = np.empty((0, 1, 3, 3)) if quad.jacobians is None else quad.jacobians
+    normals = np.ascontiguousarray(quad.point_normals, dtype=float) if measure.surface else np.empty((0, 1, 3))
+    cells = np.empty(len(elements))
+    p2_kernels.gradient_errors(np.ascontiguousarray(lam, dtype=float), np.ascontiguousarray(space.gradients_of(elements), dtype=float),
+                               np.ascontiguousarray(jac), L, ge, np.ascontiguousarray(quad.weights, dtype=float), normals, cells)
+    part = float(np.sum(cells))
     _not_finite(part, exact_gradient, coeffs, quad.points, "exact gradient")
     return part
 

@@ -339,7 +339,7 @@ def load(f, measure: Measure, degree: int = 4, closest_point=None, field=None) -
         raise TypeError("load integrates over cells (a volume or a surface); for a facet term write a linear_form integrand")
     _require(measure, Measure, "load")
     integrand = _integrand("load", lambda v, w: _times(w.at(w.f), v), linear=True, degree=degree,
-                           exact=_componentwise_load(_load_exact))
+                           exact=_componentwise_load(_load_exact), high_order=high_order.load_vectors)
     return integrand.on(measure, field, f=g)
 
 
@@ -562,9 +562,9 @@ def _nitsche_load_exact(term, space):
 _NITSCHE = _integrand("nitsche", _nitsche_matrix, symmetric=True, exact=_componentwise(_nitsche_exact), prepare=_nitsche_side,
                       advice=_nitsche_advice,
                       high_order=lambda term, V: high_order.nitsche_blocks(term, V, _outward_sign(V, term.measure, "nitsche")))
-_NITSCHE_LOAD = _integrand("nitsche load",
-                           lambda v, w: _times(w.at(w.g), w.gamma / w.h * v - dot(v.grad, w.outward * w.n)),
-                           linear=True, exact=_componentwise_load(_nitsche_load_exact), prepare=_nitsche_side)
+_NITSCHE_LOAD = _integrand("nitsche load", lambda v, w: _times(w.at(w.g), w.gamma / w.h * v - dot(v.grad, w.outward * w.n)),
+                           linear=True, exact=_componentwise_load(_nitsche_load_exact), prepare=_nitsche_side,
+                           high_order=lambda term, V: high_order.nitsche_load_vectors(term, V, _outward_sign(V, term.measure, "nitsche")))
 
 
 class Nitsche(Form):
@@ -657,8 +657,7 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
     else:
         raise ValueError(f"weights must be 'harmonic' or 'volume', got {weights!r}")
     k_pos = 1.0 - k_neg
-    # lambda / gamma; gamma * (2 s) is 2 gamma s to the bit (a factor 2 is exact in floating point)
-    two_s = 2.0 * (k_neg**2 * a_neg + k_pos**2 * a_pos)
+    two_s = 2.0 * (k_neg**2 * a_neg + k_pos**2 * a_pos)  # lambda / gamma; gamma * (2 s) is 2 gamma s to the bit
 
     def prepare(space, term):
         """The positions of the NEG and the POS field in ``space``, checked."""
@@ -690,7 +689,8 @@ def interface_nitsche(measure: SurfacePieces, a_neg: float, a_pos: float, gamma:
         ju, jv = un - up, vn - vp
         return -flux_u * jv - flux_v * ju + penalty * ju * jv
 
-    integrand = Integrand(coupling, False, symmetric=True, prepare=prepare, advice=_nitsche_advice)
+    integrand = Integrand(coupling, False, symmetric=True, prepare=prepare, advice=_nitsche_advice, high_order=lambda term, W, offsets:
+                          high_order.interface_blocks(term, W, offsets, prepare(W, term), k_neg, a_neg, a_pos, two_s), fields=True)
     return Form([(1.0, Term(integrand, measure, None, {"gamma": gamma}))], False)
 
 

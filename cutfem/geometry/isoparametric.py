@@ -49,6 +49,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from . import isoparametric_kernels
 from .keys import unique_keys
 from .markers import CUT, same_background
 from .mesh import barycentric_gradients
@@ -206,7 +207,8 @@ class Deformation:
         moving = np.flatnonzero(rows[cells] >= 0)
         if len(moving):
             grads, _ = barycentric_gradients(elements.points[np.asarray(elements.tets)[cells[moving]]])
-            out[moving] = 2.0 * np.einsum("mlkc,mli,mkj->mcij", quadratic_form(shifts[rows[cells[moving]]]), grads, grads)
+            Q = np.moveaxis(quadratic_form(shifts[rows[cells[moving]]]), 3, 1)  # (m, c, 4, 4)
+            out[moving] = 2.0 * np.matmul(np.matmul(np.swapaxes(grads, 1, 2)[:, None], Q), grads[:, None])
         return out
 
     def deform(self, quad: Quadrature, elements, surface: bool) -> Quadrature:
@@ -216,38 +218,27 @@ class Deformation:
         if not np.any(rows[quad.parent] >= 0):
             return quad
         points, jac = self.map(elements, quad.parent, quad.points)
-        c0, c1, c2 = jac[..., 0], jac[..., 1], jac[..., 2]  # the columns of D Theta_h
-        det = np.einsum("mqi,mqi->mq", c0, np.cross(c1, c2))
+        det = np.empty(quad.weights.shape)
+        factor, normal, n = (np.empty(det.shape), np.empty(quad.points.shape), quad.point_normals) if surface else \
+            (det, np.empty((0, 1, 3)), np.empty((0, 1, 3)))
+        isoparametric_kernels.deformed_measure(jac, np.ascontiguousarray(n, dtype=float), det, factor, normal)
         if not np.all(det > 0.0):
             bad = np.flatnonzero(~np.all(det > 0.0, axis=1))[0]
             raise CutError(f"the isoparametric map Theta_h folds (det D Theta_h = {float(det[bad].min()):.3g} <= 0 in a cell "
                            f"of element {int(quad.parent[bad])}): the mesh is too coarse for the curvature of the level set; "
                            "refine the background mesh")
-        normal = None
-        if surface:
-            n = quad.normal if quad.normal.ndim == 3 else quad.normal[:, None, :]
-            scaled = (n[..., 0:1] * np.cross(c1, c2) + n[..., 1:2] * np.cross(c2, c0) + n[..., 2:3] * np.cross(c0, c1))
-            factor = np.linalg.norm(scaled, axis=-1)  # |cof(J) n_h| = |det J| |J^-T n_h|
-            normal = scaled / factor[..., None]
-        else:
-            factor = det
-        return Quadrature(points, quad.weights * factor, quad.parent, normal, quad.bary, quad.whole,
+        return Quadrature(points, quad.weights * factor, quad.parent, normal if surface else None, quad.bary, quad.whole,
                           reference_points=quad.points, jacobians=jac)
 
 
 def _p2_map(vertices: np.ndarray, shifts: np.ndarray, points: np.ndarray):
     """Theta_h (m, q, 3) and D Theta_h (m, q, 3, 3) at ``points`` of tets ``vertices`` (m, 4, 3) whose P2
-    nodes have ``shifts`` (m, 10, 3): x + lam^T Q lam and I + 2 (Q lam) grad lam (:func:`quadratic_form`)."""
+    nodes have ``shifts`` (m, 10, 3): x + lam^T Q lam and I + 2 (Q lam) grad lam (:func:`quadratic_form`),
+    point by point (:func:`~cutfem.geometry.isoparametric_kernels.p2_map`)."""
     grads, _ = barycentric_gradients(vertices)
-    lam = np.empty(points.shape[:2] + (4,))
-    lam[..., 1:] = np.matmul(points - vertices[:, None, 0], np.swapaxes(grads[:, 1:], 1, 2))
-    lam[..., 0] = 1.0 - lam[..., 1:].sum(axis=-1)
-    m, q = lam.shape[:2]
-    Q = np.swapaxes(quadratic_form(shifts), 1, 2).reshape(m, 4, 12)  # (m, j, (l, c))
-    half = np.matmul(lam, Q).reshape(m, q, 4, 3)  # Q lam: sum_j Q_ljc lam_j
-    theta = points + np.matmul(lam[:, :, None, :], half)[:, :, 0]
-    jac = 2.0 * np.matmul(np.swapaxes(half, 2, 3), grads[:, None])
-    jac += np.eye(3)
+    theta, jac = np.empty(points.shape), np.empty(points.shape + (3,))
+    isoparametric_kernels.p2_map(np.ascontiguousarray(vertices, dtype=float), np.ascontiguousarray(grads, dtype=float),
+                                 np.ascontiguousarray(shifts, dtype=float), np.ascontiguousarray(points, dtype=float), theta, jac)
     return theta, jac
 
 

@@ -11,8 +11,9 @@ import sympy
 from cutfem.fem.forms import assemble, bilinear_form
 from cutfem.fem.norms import l2_h1_errors
 from cutfem.fem.pointwise import dot, inner
-from cutfem.fem.spaces import CutSpace, VectorSpace
-from cutfem.fem.terms import face_jump_penalty, load, mass, nitsche, normal_gradient_penalty, stiffness, tangential_stiffness
+from cutfem.fem.spaces import CutSpace, ProductSpace, VectorSpace
+from cutfem.fem.terms import (face_jump_penalty, interface_nitsche, load, mass, nitsche, normal_gradient_penalty, stiffness,
+                              tangential_stiffness)
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.markers import CUT, NEG, POS, ElementSet
@@ -220,7 +221,8 @@ def test_vectorised_terms_match_the_form_language(sphere_cut):
     band = c.dx(c.elements(CUT))
     cases = [(V, stiffness(c.dx(NEG))), (V, mass(c.dx(NEG))), (V, face_jump_penalty(c.dF(c.ghost_facets(NEG)), h_power=1)),
              (V, nitsche(c.ds(), 20.0)), (P, nitsche(c.ds(), 20.0)), (W, tangential_stiffness(c.ds())), (W, mass(c.ds())),
-             (W, normal_gradient_penalty(band, 1.0)), (W, face_jump_penalty(c.dF(c.interior_facets(CUT)))), (W, stiffness(band))]
+             (W, normal_gradient_penalty(band, 1.0)), (W, face_jump_penalty(c.dF(c.interior_facets(CUT)))), (W, stiffness(band)),
+             (ProductSpace(V, P), interface_nitsche(c.ds(), 1.0, 0.1, 20.0))]
     for space, form in cases:
         A, B = assemble(form, space), assemble(form.by_quadrature(), space)
         assert abs(A - B).max() <= 1e-14 * abs(B).max(), form.terms[0][1].integrand.__name__
@@ -235,10 +237,27 @@ def test_vectorised_terms_match_the_form_language_on_a_lifted_cut():
     V, P, W = (CutSpace(c, on, order=2) for on in (NEG, POS, CUT))
     cases = [(V, stiffness(c.dx(NEG))), (V, mass(c.dx(NEG))), (V, face_jump_penalty(c.dF(c.ghost_facets(NEG)), h_power=1)),
              (P, nitsche(c.ds(), 20.0)), (W, tangential_stiffness(c.ds())), (W, mass(c.ds())),
-             (W, face_jump_penalty(c.dF(c.interior_facets(CUT))))]
+             (W, face_jump_penalty(c.dF(c.interior_facets(CUT)))), (ProductSpace(V, P), interface_nitsche(c.ds(), 1.0, 0.1, 20.0)),
+             (ProductSpace(V, P), interface_nitsche(c.ds(), 2.0, 1.0, 5.0, "volume") + stiffness(c.dx(NEG), field=0))]
     for space, form in cases:
         A, B = assemble(form, space), assemble(form.by_quadrature(), space)
         assert abs(A - B).max() <= 1e-13 * abs(B).max(), form.terms[0][1].integrand.__name__
+        assert abs(A - A.T).max() == 0.0
+
+
+def test_compiled_loads_match_the_form_language(sphere_cut):
+    """The loads on P2 (load, the Nitsche load; one and two right-hand sides) by their compiled
+    kernels are the form language's quadrature of their integrands, on a planar and a lifted cut."""
+    lifted = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=6), Sphere(0.7, [0.03, -0.01, 0.02]), order=2)
+    f = lambda x: np.sin(x[..., 0]) + x[..., 1] * x[..., 2]  # noqa: E731
+    pair = lambda x: np.stack([f(x), x[..., 0] ** 2], axis=-1)  # noqa: E731
+    for c in (sphere_cut, lifted):
+        V, W = CutSpace(c, NEG, order=2), CutSpace(c, CUT, order=2)
+        for space, form in ((V, load(f, c.dx(NEG))), (V, load(pair, c.dx(NEG), degree=2)), (V, nitsche(c.ds(), 20.0, g=f).load),
+                            (W, load(f, c.ds())), (ProductSpace(V, CutSpace(c, POS, order=2)), load(f, c.dx(POS), field=1)),
+                            (V, nitsche(c.ds(), 20.0, g=pair).load)):
+            a, b = assemble(form, space), assemble(form.by_quadrature(), space)
+            assert a.shape == b.shape and np.abs(a - b).max() <= 1e-13 * np.abs(b).max()
 
 
 def test_surface_norms_of_p2(sphere_cut):
