@@ -92,7 +92,7 @@ def slab_pieces(cuts, on, cells, faces=None, face_form=None) -> SlabPieces:
 def slab_system(parts: SlabPieces, cuts, comm, fields: int = 1) -> tuple[LinearSystem, GlobalNumbering]:
     """The global numbering of the pieces' unknowns (``fields`` per node for a product space) and
     the system they add up to (not yet on PETSc: :meth:`~cutfem.distributed.system.LinearSystem.petsc`)."""
-    numbering = GlobalNumbering(comm, cuts.slabs, cuts.rank, parts.keys, fields)
+    numbering = GlobalNumbering(comm, cuts.partition, cuts.rank, parts.keys, fields)
     system = LinearSystem(comm, numbering)
     for piece in parts.pieces:
         dofs = numbering(piece.keys)

@@ -16,13 +16,13 @@ from ..fem.forms import assemble
 from ..fem.norms import l2_error
 from ..fem.terms import basis_integrals, face_jump_penalty, mass, position_load
 from ..geometry.markers import CUT
-from ..problems.common import background_for, check_face_stabilization, has_exact, levelset_for
+from ..problems.common import check_face_stabilization, has_exact, levelset_for
 from ..problems.mean_curvature import SOLVER_TOL, MeanCurvatureCut, check_length_scale
 from ..runs.registry import ProblemError
 from ..runs.runner import Timer
 from .assembly import slab_pieces
 from .launch import engine
-from .levels import solve_on_slabs
+from .levels import shared_background, solve_on_slabs
 
 __all__ = ["mean_curvature_cut_level", "mean_curvature_pieces"]
 
@@ -49,9 +49,6 @@ def mean_curvature_cut_level(spacing, surface, background, box, stabilization, t
     ranks.  CG stops at the serial problem's relative residual (1e-6)."""
     MPI, _ = engine()
     comm = MPI.COMM_WORLD if comm is None else comm
-    if background != "structured":
-        raise ValueError(f"distributed mean-curvature-cut partitions a structured box; got --background {background}: "
-                         "run an unstructured background on one rank")
     if MeanCurvatureCut.stabilization_for(stabilization, 1, tau_f, face_h_power, tau_n, normal_h_power)[0] != "face":
         raise ProblemError("mean-curvature-cut's normal-gradient stabilization is not distributed: use --stabilization face "
                            "(the default at order 1) or run on one rank")
@@ -62,7 +59,7 @@ def mean_curvature_cut_level(spacing, surface, background, box, stabilization, t
     t = Timer()
     with t("geometry"):
         phi = levelset_for(surface, R, r, radius, axes)
-        bg = background_for(phi, spacing, background, box)
+        bg = shared_background(comm, phi, spacing, background, box)
     exact = phi if has_exact(phi) else None
 
     def build(cuts):

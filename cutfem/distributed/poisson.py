@@ -15,12 +15,12 @@ from __future__ import annotations
 from ..fem.norms import l2_h1_errors
 from ..fem.terms import face_jump_penalty, load, nitsche, stiffness
 from ..geometry.markers import NEG
-from ..problems.common import background_for, check_ghost_penalty, check_nitsche_penalty, levelset_for
+from ..problems.common import check_ghost_penalty, check_nitsche_penalty, levelset_for
 from ..problems.poisson import exact_solution, exact_u, source
 from ..runs.runner import Timer
 from .launch import engine
 from .assembly import slab_pieces
-from .levels import solve_on_slabs
+from .levels import shared_background, solve_on_slabs
 
 __all__ = ["poisson_cut_level", "poisson_pieces"]
 
@@ -49,21 +49,19 @@ def poisson_cut_level(spacing, surface, background, box, gamma, gamma_g, solver,
     the number of ranks, the same on every rank.  ``counts``: the cell layers of each rank (see
     :func:`~cutfem.distributed.partition.slab_partition`)."""
     MPI, _ = engine()
-    if background != "structured":
-        raise ValueError(f"distributed poisson-cut partitions a structured box; got --background {background}: "
-                         "run an unstructured background on one rank")
+    comm = MPI.COMM_WORLD if comm is None else comm
     notes = check_ghost_penalty(gamma_g) + check_nitsche_penalty(gamma)
     t = Timer()
     with t("geometry"):
         phi = levelset_for(surface, R, r, radius, axes)
-        bg = background_for(phi, spacing, background, box)
+        bg = shared_background(comm, phi, spacing, background, box)
 
     def measure(V, u):
         dx = V.cut.dx(NEG)
         l2, h1 = l2_h1_errors(V, u, exact_solution, dx)
         return l2 * l2, h1 * h1, dx.size
 
-    rec = solve_on_slabs(MPI.COMM_WORLD if comm is None else comm, phi, bg, lambda cuts: poisson_pieces(cuts, gamma, gamma_g),
+    rec = solve_on_slabs(comm, phi, bg, lambda cuts: poisson_pieces(cuts, gamma, gamma_g),
                          measure, ("l2_error", "h1_error", "volume"), solver, counts, t)
     if notes:
         rec["warnings"] = notes
