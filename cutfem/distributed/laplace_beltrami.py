@@ -1,10 +1,11 @@
-"""laplace-beltrami-cut on several ranks (docs/math.md §4): TraceFEM on the cut tets of each slab,
+"""laplace-beltrami-cut on several ranks (docs/math.md §4): TraceFEM on the cut tets of each rank,
 J_F on every interior face of the cut tets once, solved by PETSc.
 
 The forms are the serial problem's (:class:`cutfem.problems.laplace_beltrami.LaplaceBeltramiCut`):
-on the owned slab the tangential stiffness, the mass and the load over its pieces of Gamma_h (and
-the normal-gradient term over its cut tets), and the face stabilization tau_F h^a J_F of the faces
-inside it; on the seam J_F of the faces across its lowest plane.
+on the owned cells the tangential stiffness, the mass and the load over their pieces of Gamma_h
+(and the normal-gradient term over their cut tets), and the face stabilization tau_F h^a J_F of
+the faces between two owned cells; on the seam J_F of the faces between an owned cell and a ghost
+that the rank assembles (:meth:`~cutfem.distributed.partition.RankCuts.seam_facets`).
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ def laplace_beltrami_cut_level(spacing, surface, background, box, stabilization,
                                solver, R, r, radius, comm=None, counts=None):
     """One level of laplace-beltrami-cut on the ranks of ``comm`` (default: every rank): the serial
     record's errors, area and sizes, with the engine and the number of ranks.  Without
-    stabilization the system is singular (phi_h is a null vector) and PETSc's solve fails."""
+    stabilization the system is singular (phi_h is a null vector) and PETSc's solve fails.
+    ``background`` and ``counts`` as for :func:`~cutfem.distributed.poisson.poisson_cut_level`."""
     MPI, _ = engine()
     comm = MPI.COMM_WORLD if comm is None else comm
     notes = (check_face_stabilization(tau_f, face_h_power, spacing) if stabilization == "face" else

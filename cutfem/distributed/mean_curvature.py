@@ -1,11 +1,11 @@
 """mean-curvature-cut on several ranks (docs/math.md §3): (M + tau_F L^(2-a) J_F) H = A x on the cut
-tets of each slab, J_F on every interior face of the cut tets once, the three components solved by
+tets of each rank, J_F on every interior face of the cut tets once, the three components solved by
 one PETSc KSP.
 
 The forms are the serial problem's (:class:`cutfem.problems.mean_curvature.MeanCurvatureCut`,
-:func:`~cutfem.problems.mean_curvature.mean_curvature_form`): on the owned slab the mass and the
-position load over its pieces of Gamma_h and J_F of the faces inside it, on the seam J_F of the faces
-across its lowest plane.  The length-scale check takes the area of the whole S_h (summed over the
+:func:`~cutfem.problems.mean_curvature.mean_curvature_form`): on the owned cells the mass and the
+position load over their pieces of Gamma_h and J_F of the faces between two owned cells, on the
+seam J_F of the faces between an owned cell and a ghost that the rank assembles.  The length-scale check takes the area of the whole S_h (summed over the
 ranks).  Not distributed: the edge stabilization tau_E (refused on several ranks) and the pinning of
 unknowns that no term sees (S_h along grid faces: the solve refuses a zero diagonal and names the fix).
 """
@@ -46,7 +46,8 @@ def mean_curvature_cut_level(spacing, surface, background, box, stabilization, t
                              solver, length_scale, R, r, radius, axes, comm=None, counts=None):
     """One level of mean-curvature-cut on the ranks of ``comm`` (default: every rank): the serial
     record's l2_error, area, area_error, integral_H and sizes, with the engine and the number of
-    ranks.  CG stops at the serial problem's relative residual (1e-6)."""
+    ranks.  CG stops at the serial problem's relative residual (1e-6).  ``background`` and
+    ``counts`` as for :func:`~cutfem.distributed.poisson.poisson_cut_level`."""
     MPI, _ = engine()
     comm = MPI.COMM_WORLD if comm is None else comm
     if MeanCurvatureCut.stabilization_for(stabilization, 1, tau_f, face_h_power, tau_n, normal_h_power)[0] != "face":

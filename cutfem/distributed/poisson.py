@@ -1,13 +1,13 @@
 """poisson-cut on several ranks: the fictitious-domain Poisson problem of docs/math.md §8, its
-forms assembled by slab (:mod:`cutfem.distributed.partition`) and solved by PETSc.
+forms assembled on each rank's cells (:mod:`cutfem.distributed.partition`) and solved by PETSc.
 
-The forms are the serial problem's (:mod:`cutfem.problems.poisson`): on the rank's owned slab the
-stiffness, Nitsche's terms, the load and the ghost penalty of the faces inside the slab; on its
-seam the ghost penalty of the faces that cross its lowest plane.  Each is assembled by the serial
-code on the slab's own space and moved to the global numbers (:class:`~cutfem.distributed.system.
-GlobalNumbering`), so the matrix, the load and the solution are the serial ones up to the order of
-the floating-point sums, and so are the errors (sums of squares over the owned cells, added over
-the ranks).
+The forms are the serial problem's (:mod:`cutfem.problems.poisson`): on the rank's owned cells the
+stiffness, Nitsche's terms, the load and the ghost penalty of the faces between two owned cells;
+on its seam the ghost penalty of the faces between an owned cell and a ghost that the rank
+assembles.  Each is assembled by the serial code on the local mesh's own space and moved to the
+global numbers (:class:`~cutfem.distributed.system.GlobalNumbering`), so the matrix, the load and
+the solution are the serial ones up to the order of the floating-point sums, and so are the errors
+(sums of squares over the owned cells, added over the ranks).
 """
 
 from __future__ import annotations
@@ -46,8 +46,9 @@ def poisson_pieces(cuts, gamma: float, gamma_g: float):
 def poisson_cut_level(spacing, surface, background, box, gamma, gamma_g, solver, R, r, radius, axes, comm=None, counts=None):
     """One level of poisson-cut on the ranks of ``comm`` (default: every rank); the record of the
     serial :func:`cutfem.problems.poisson.poisson_cut` with the engine (PETSc, its KSP and PC) and
-    the number of ranks, the same on every rank.  ``counts``: the cell layers of each rank (see
-    :func:`~cutfem.distributed.partition.slab_partition`)."""
+    the number of ranks, the same on every rank.  ``background``: "structured", "tetwild" or a
+    TetMesh, the same on every rank (:func:`~cutfem.distributed.levels.shared_background`);
+    ``counts``: the partition by hand (:func:`~cutfem.distributed.partition.partition_for`)."""
     MPI, _ = engine()
     comm = MPI.COMM_WORLD if comm is None else comm
     notes = check_ghost_penalty(gamma_g) + check_nitsche_penalty(gamma)
