@@ -141,3 +141,14 @@ def test_nodal_values_take_the_tolerance_of_every_cell_around_a_node(tet_torus):
     for cut in (cuts.owned, cuts.seam):
         ids = cut.background.global_nodes(np.arange(cut.background.n_points))
         assert np.array_equal(cut.background_values, serial[ids])
+
+
+def test_the_cut_of_part_of_a_mesh_may_end_on_its_boundary_faces(tet_torus):
+    """With check_boundary=False the cut of some cells of a mesh (half the torus's mesh) keeps the
+    pieces of S_h in them, open along the faces where the cells end inside the bounding box."""
+    phi, mesh, cut, *_ = tet_torus
+    half = SubMesh(mesh, np.flatnonzero(mesh.points[mesh.tets].mean(axis=1)[:, 0] < 0.05))
+    part = cut_mesh(half, phi, check_boundary=False)
+    ids = half.global_tets(np.arange(half.n_tets))
+    assert not part.is_closed
+    assert part.n_tets == np.isin(cut.tet_ids, ids).sum() and part.n_triangles == np.isin(cut.tet_ids[cut.triangle_tets], ids).sum()

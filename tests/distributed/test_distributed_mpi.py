@@ -321,6 +321,20 @@ def test_unstructured_laplace_beltrami_errors_equal_serial(tet_sphere, monkeypat
         assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
 
 
+def test_unstructured_mean_curvature_equals_serial(tet_sphere, monkeypatch):
+    """mean-curvature-cut on the unstructured mesh of the sphere's box on every rank: the serial
+    errors, area and integral of H to 1e-10, both solved directly."""
+    phi, mesh = tet_sphere
+    serial = serial_on(monkeypatch, "mean_curvature", mesh, "mean-curvature-cut", 0.2, surface="sphere", background="tetwild",
+                       solver="direct")
+    p = distributed_params("mean-curvature-cut", {"surface": "sphere", "solver": "direct"}) | {"background": mesh}
+    rec = mean_curvature_cut_level(0.2, **p)
+    assert rec["dofs"] == serial["dofs"] and rec["stabilized_faces"] == serial["interior_faces"]
+    for key in ("l2_error", "area", "area_error"):
+        assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
+    assert np.allclose(rec["integral_H"], serial["integral_H"], rtol=0, atol=1e-10 * serial["area"])
+
+
 def test_tetwild_background_is_meshed_once_and_shared():
     """--background tetwild: rank 0 meshes (pytetwild's two meshings of a box differ), every rank
     gets its mesh; a mesh given by a script must be the same on every rank."""
