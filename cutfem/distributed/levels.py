@@ -109,8 +109,10 @@ def shared_background(comm, levelset, spacing, background, box) -> TetMesh:
     by pytetwild differ."""
     MPI, _ = engine()
     if isinstance(background, TetMesh):
-        signature = (background.n_points, background.n_tets, float(background.points.sum()), int(background.tets.sum()))
-        if len(set(comm.allgather(signature))) > 1:
+        signature = ((background.lower.tolist(), background.upper.tolist(), background.cells.tolist())
+                     if isinstance(background, StructuredBox) else  # its numbers, never its coordinates
+                     (background.n_points, background.n_tets, float(background.points.sum()), int(background.tets.sum())))
+        if any(other != signature for other in comm.allgather(signature)):
             raise ValueError("the ranks were given different background meshes (their sizes or sums differ): give every rank "
                              "the same mesh, e.g. read the same file on every rank")
         return background

@@ -343,6 +343,8 @@ def test_tetwild_background_is_meshed_once_and_shared():
     assert isinstance(mesh, TetMesh) and len(set(WORLD.allgather((mesh.n_tets, float(mesh.points.sum()))))) == 1
     rec = poisson_cut_level(0.4, **distributed_params("poisson-cut", {"solver": "direct"}) | {"background": mesh})
     assert rec["ranks"] == WORLD.size and rec["background_nodes"] == mesh.n_points and rec["l2_error"] < 0.05
+    box = cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=0.4)
+    assert shared_background(WORLD, phi, 0.4, box, None) is box  # a box given: compared by its numbers
     if WORLD.size > 1:
         moved = TetMesh(mesh.points + 1e-3 * WORLD.rank, mesh.tets, check=False)
         with pytest.raises(ValueError, match="different background meshes"):
