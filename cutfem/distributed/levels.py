@@ -54,12 +54,13 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
     ``build(cuts)``: the rank's :class:`~cutfem.distributed.assembly.SlabPieces`;
     ``measure(space, u)``: additive numbers of the solution ``u`` (the values at the owned space's
     unknowns, (n, k) for k loads) over the owned cells, one for each of ``keys``; keys with
-    ``_error`` in them are sums of squares whose square roots are recorded.  ``counts``: the cell layers of
-    each rank (a structured box) or the owner of each cell (an unstructured mesh), given by hand
-    (:func:`~cutfem.distributed.partition.partition_for`); ``tol``: the relative residual of CG; ``bulk``: the unknowns fill a volume (for the
-    choice of ``solver="auto"``, :meth:`~cutfem.distributed.system.LinearSystem.solve`); ``fields``:
-    the fields of a product space; ``constrain(A, loads, numbering, parts)``: strong conditions
-    applied to the PETSc system before the solve."""
+    ``_error`` in them are sums of squares whose square roots are recorded.  ``counts``: the cell
+    layers of each rank (a structured box) or the owner of each cell (an unstructured mesh), given
+    by hand (:func:`~cutfem.distributed.partition.partition_for`); ``tol``: the relative residual
+    of CG; ``bulk``: the unknowns fill a volume (for the choice of ``solver="auto"``,
+    :meth:`~cutfem.distributed.system.LinearSystem.solve`); ``fields``: the fields of a product
+    space; ``constrain(A, loads, numbering, parts)``: strong conditions applied to the PETSc system
+    before the solve."""
     MPI, _ = engine()
     t = Timer() if timer is None else timer
     with t("geometry"):
@@ -77,9 +78,9 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
         V = parts.space
         held = V is not None and V.n_dofs
         dofs = numbering(global_keys(V)) if held else np.zeros(0, dtype=np.int64)
-        values = [system.gather(x, dofs) for x in xs]  # collective: also on a rank without active cells
+        u = [system.gather(x, dofs) for x in xs]  # collective: also on a rank without active cells
         if held:
-            sums[:] = measure(V, np.stack(values, axis=1) if len(xs) > 1 else values[0])
+            sums[:] = measure(V, np.stack(u, axis=1) if len(xs) > 1 else u[0])
         comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
     for obj in (A, *loads, *xs):
         obj.destroy()

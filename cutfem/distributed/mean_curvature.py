@@ -5,9 +5,10 @@ one PETSc KSP.
 The forms are the serial problem's (:class:`cutfem.problems.mean_curvature.MeanCurvatureCut`,
 :func:`~cutfem.problems.mean_curvature.mean_curvature_form`): on the owned cells the mass and the
 position load over their pieces of Gamma_h and J_F of the faces between two owned cells, on the
-seam J_F of the faces between an owned cell and a ghost that the rank assembles.  The length-scale check takes the area of the whole S_h (summed over the
-ranks).  Not distributed: the edge stabilization tau_E (refused on several ranks) and the pinning of
-unknowns that no term sees (S_h along grid faces: the solve refuses a zero diagonal and names the fix).
+seam J_F of the faces between an owned cell and a ghost that the rank assembles.  The length-scale
+check takes the area of the whole S_h (summed over the ranks).  Not distributed: the edge
+stabilization tau_E (refused on several ranks) and the pinning of unknowns that no term sees (S_h
+along grid faces: the solve refuses a zero diagonal and names the fix).
 """
 
 from __future__ import annotations
