@@ -1,5 +1,6 @@
-"""Distributed runs on MPI and PETSc (docs/math.md §19): a structured box in slabs of cell layers
-(:mod:`~cutfem.distributed.partition`), the unknowns in the serial numbering owned by one rank each
+"""Distributed runs on MPI and PETSc (docs/math.md §19): a structured box in slabs of cell layers,
+an unstructured mesh by recursive bisection of its cells (:mod:`~cutfem.distributed.partition`,
+:mod:`~cutfem.distributed.unstructured`), the unknowns in the serial numbering owned by one rank each
 and the system on PETSc (:mod:`~cutfem.distributed.system`), the problems that run on several
 ranks (:data:`DISTRIBUTED_LEVELS`).  Importing it imports neither mpi4py nor petsc4py."""
 

@@ -1,12 +1,14 @@
-"""A rank's share of a system: cell terms on its owned slab, facet terms once, in global numbers.
+"""A rank's share of a system: cell terms on its owned cells, facet terms once, in global numbers.
 
 :func:`slab_pieces` assembles, with the serial code (:func:`cutfem.fem.forms.assemble`), the
-rank's local matrices and load vectors, each with the global node ids of its rows:
+rank's local matrices and load vectors, each with the global node ids of its rows (its cuts come
+from :func:`~cutfem.distributed.partition.rank_cuts`: slabs of a structured box or cells of an
+unstructured mesh alike):
 
-* on the owned slab's space (P1 on the element set ``on``): the cell terms (volume, Gamma_h,
-  load) and the facet terms of the faces with both tets in the slab;
-* on the seam's space: the facet terms of the faces across the seam's middle plane
-  (:meth:`~cutfem.distributed.partition.RankCuts.seam_facets`), which this rank alone assembles.
+* on the owned cells' space (P1 on the element set ``on``): the cell terms (volume, Gamma_h,
+  load) and the facet terms of the faces with both tets owned;
+* on the seam's space: the facet terms of the faces between an owned tet and a ghost
+  (:meth:`~cutfem.distributed.partition.RankCuts.seam_facets`) that this rank alone assembles.
 
 Summed over the ranks, the pieces are the serial matrix and load (the serial unknowns are the
 active nodes, which every piece's rows are).  :func:`slab_system` numbers the nodes globally and
@@ -99,7 +101,7 @@ def slab_system(parts: SlabPieces, cuts, comm, fields: int = 1, constants: int =
     """The global numbering of the pieces' unknowns (``fields`` per node for a product space, and
     ``constants`` one-unknown fields keyed -1, -2, ...) and the system they add up to (not yet on
     PETSc: :meth:`~cutfem.distributed.system.LinearSystem.petsc`)."""
-    numbering = GlobalNumbering(comm, cuts.slabs, cuts.rank, parts.keys, fields, constants)
+    numbering = GlobalNumbering(comm, cuts.partition, cuts.rank, parts.keys, fields, constants)
     system = LinearSystem(comm, numbering)
     for piece in parts.pieces:
         dofs = numbering(piece.keys)

@@ -1,10 +1,11 @@
-"""laplace-beltrami-cut on several ranks (docs/math.md §4): TraceFEM on the cut tets of each slab,
+"""laplace-beltrami-cut on several ranks (docs/math.md §4): TraceFEM on the cut tets of each rank,
 J_F on every interior face of the cut tets once, solved by PETSc.
 
 The forms are the serial problem's (:class:`cutfem.problems.laplace_beltrami.LaplaceBeltramiCut`):
-on the owned slab the tangential stiffness, the mass and the load over its pieces of Gamma_h (and
-the normal-gradient term over its cut tets), and the face stabilization tau_F h^a J_F of the faces
-inside it; on the seam J_F of the faces across its lowest plane.
+on the owned cells the tangential stiffness, the mass and the load over their pieces of Gamma_h
+(and the normal-gradient term over their cut tets), and the face stabilization tau_F h^a J_F of
+the faces between two owned cells; on the seam J_F of the faces between an owned cell and a ghost
+that the rank assembles (:meth:`~cutfem.distributed.partition.RankCuts.seam_facets`).
 """
 
 from __future__ import annotations
@@ -13,12 +14,12 @@ from ..fem.forms import assemble
 from ..fem.norms import h1_error, l2_error
 from ..fem.terms import basis_integrals, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
 from ..geometry.markers import CUT
-from ..problems.common import background_for, check_face_stabilization, check_normal_stabilization, levelset_for
+from ..problems.common import check_face_stabilization, check_normal_stabilization, levelset_for
 from ..problems.laplace_beltrami import manufactured
 from ..runs.runner import Timer
 from .assembly import slab_pieces
 from .launch import engine
-from .levels import solve_on_slabs
+from .levels import shared_background, solve_on_slabs
 
 __all__ = ["laplace_beltrami_cut_level", "laplace_beltrami_pieces"]
 
@@ -43,23 +44,22 @@ def laplace_beltrami_cut_level(spacing, surface, background, box, stabilization,
                                solver, R, r, radius, comm=None, counts=None):
     """One level of laplace-beltrami-cut on the ranks of ``comm`` (default: every rank): the serial
     record's errors, area and sizes, with the engine and the number of ranks.  Without
-    stabilization the system is singular (phi_h is a null vector) and PETSc's solve fails."""
+    stabilization the system is singular (phi_h is a null vector) and PETSc's solve fails.
+    ``background`` and ``counts`` as for :func:`~cutfem.distributed.poisson.poisson_cut_level`."""
     MPI, _ = engine()
-    if background != "structured":
-        raise ValueError(f"distributed laplace-beltrami-cut partitions a structured box; got --background {background}: "
-                         "run an unstructured background on one rank")
+    comm = MPI.COMM_WORLD if comm is None else comm
     notes = (check_face_stabilization(tau_f, face_h_power, spacing) if stabilization == "face" else
              check_normal_stabilization(tau_n, normal_h_power, spacing) if stabilization == "normal" else [])
     t = Timer()
     with t("geometry"):
         phi = levelset_for(surface, R, r, radius)
         sol = manufactured(phi)
-        bg = background_for(phi, spacing, background, box)
+        bg = shared_background(comm, phi, spacing, background, box)
 
     def measure(V, u):
         return l2_error(V, u, sol.u) ** 2, h1_error(V, u, sol.grad) ** 2, float(assemble(basis_integrals(V.cut.ds()), V).sum())
 
-    rec = solve_on_slabs(MPI.COMM_WORLD if comm is None else comm, phi, bg,
+    rec = solve_on_slabs(comm, phi, bg,
                          lambda cuts: laplace_beltrami_pieces(cuts, sol, stabilization, tau_f, face_h_power, tau_n, normal_h_power),
                          measure, ("l2_error", "h1_error", "area"), solver, counts, t, bulk=False)
     if notes:

@@ -1,11 +1,13 @@
-"""One level of a problem on all ranks: partition, pieces, PETSc solve, sums over the ranks.
+"""One level of a problem on all ranks: background, partition, pieces, PETSc solve, sums over the ranks.
 
-:func:`solve_on_slabs` is the skeleton the distributed problems share: the box in slabs and each
+:func:`solve_on_slabs` is the skeleton the distributed problems share: the background partitioned
+(a structured box in slabs, an unstructured mesh by recursive bisection of its cells) and each
 rank's cuts (:mod:`~cutfem.distributed.partition`), the problem's pieces
 (:func:`~cutfem.distributed.assembly.slab_pieces`), the system on PETSc and its solve
 (:mod:`~cutfem.distributed.system`), then the problem's additive measures of the solution on the
 owned cells (squared errors, volumes) summed over the ranks.  The record is the same on every rank;
-the stage times are the slowest rank's.
+the stage times are the slowest rank's.  :func:`shared_background` gives every rank the same
+background mesh.
 """
 
 from __future__ import annotations
@@ -14,14 +16,17 @@ import math
 
 import numpy as np
 
+from ..geometry.box import StructuredBox
 from ..geometry.markers import CUT
+from ..geometry.mesh import TetMesh
+from ..problems.common import background_for
 from ..runs.runner import Timer
 from ..solvers.krylov import DEFAULT_TOL
 from .assembly import global_keys, slab_system
 from .launch import engine
-from .partition import rank_cuts, slab_partition
+from .partition import partition_for, rank_cuts
 
-__all__ = ["solve_on_slabs", "cut_counts", "STAGES"]
+__all__ = ["solve_on_slabs", "shared_background", "cut_counts", "STAGES"]
 
 #: the stages of a distributed level, timed on each rank (the record keeps the slowest rank's)
 STAGES = ("geometry", "assembly", "solve", "errors")
@@ -50,19 +55,20 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
     ``build(cuts)``: the rank's :class:`~cutfem.distributed.assembly.SlabPieces`;
     ``measure(space, u)``: additive numbers of the solution ``u`` (the values at the owned space's
     unknowns, (n, k) for k loads) over the owned cells, one for each of ``keys``; keys with
-    ``_error`` in them are sums of squares whose square roots are recorded.  ``counts``: the cell layers of
-    each rank; ``tol``: the relative residual of CG; ``bulk``: the unknowns fill a volume (for the
-    choice of ``solver="auto"``, :meth:`~cutfem.distributed.system.LinearSystem.solve`); ``fields``:
-    the fields of a product space; ``constrain(A, loads, numbering, parts)``: strong conditions
-    applied to the PETSc system before the solve; ``constants``: the one-unknown fields (keyed -1,
-    -2, ...: :class:`~cutfem.distributed.system.GlobalNumbering`); ``solve(system, A, loads, parts)``:
+    ``_error`` in them are sums of squares whose square roots are recorded.  ``counts``: the cell
+    layers of each rank (a structured box) or the owner of each cell (an unstructured mesh), given
+    by hand (:func:`~cutfem.distributed.partition.partition_for`); ``tol``: the relative residual
+    of CG; ``bulk``: the unknowns fill a volume (for the choice of ``solver="auto"``,
+    :meth:`~cutfem.distributed.system.LinearSystem.solve`); ``fields``: the fields of a product
+    space; ``constrain(A, loads, numbering, parts)``: strong conditions applied to the PETSc system
+    before the solve; ``constants``: the one-unknown fields (keyed -1, -2, ...:
+    :class:`~cutfem.distributed.system.GlobalNumbering`); ``solve(system, A, loads, parts)``:
     ``([x, ...], info)`` in place of :meth:`~cutfem.distributed.system.LinearSystem.solve` (a
     saddle-point system's, :mod:`cutfem.distributed.saddle`)."""
     MPI, _ = engine()
     t = Timer() if timer is None else timer
     with t("geometry"):
-        slabs = slab_partition(background, comm.size, counts)
-        cuts = rank_cuts(slabs, comm.rank, levelset)
+        cuts = rank_cuts(partition_for(background, comm.size, counts), comm.rank, levelset)
     with t("assembly"):
         parts = build(cuts)
         system, numbering = slab_system(parts, cuts, comm, fields, constants)
@@ -74,10 +80,11 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
     with t("errors"):
         sums = np.zeros(len(keys))
         V = parts.space
-        if V is not None and V.n_dofs:
-            dofs = numbering(global_keys(V))
-            u = np.stack([system.gather(x, dofs) for x in xs], axis=1) if len(xs) > 1 else system.gather(xs[0], dofs)
-            sums[:] = measure(V, u)
+        held = V is not None and V.n_dofs
+        dofs = numbering(global_keys(V)) if held else np.zeros(0, dtype=np.int64)
+        u = [system.gather(x, dofs) for x in xs]  # collective: also on a rank without active cells
+        if held:
+            sums[:] = measure(V, np.stack(u, axis=1) if len(xs) > 1 else u[0])
         comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
     for obj in (A, *loads, *xs):
         obj.destroy()
@@ -92,8 +99,34 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
         "solver": f"{info['ksp']}+{info['pc']}",
         "solver_iterations": info.pop("iterations"),
         **info,
-        "box": [background.lower.tolist(), background.upper.tolist()],
-        "background_nodes": int(background.n_points),
+        **({"box": [background.lower.tolist(), background.upper.tolist()]} if isinstance(background, StructuredBox) else {}),
+        "background_nodes": int(background.n_used_points),
         **sizes,
         "time": dict(zip(STAGES, times.tolist())),
     }
+
+
+def shared_background(comm, levelset, spacing, background, box) -> TetMesh:
+    """The background of a level, the same on every rank of ``comm``: a TetMesh given (a script's
+    mesh, e.g. :func:`~cutfem.geometry.mesh.read_mesh` of one file on every rank; refused unless
+    its sizes and sums agree on all ranks), the structured box built by each rank (a few numbers),
+    or pytetwild's mesh (``"tetwild"``) built by rank 0 and broadcast: two meshings of the same box
+    by pytetwild differ."""
+    MPI, _ = engine()
+    if isinstance(background, TetMesh):
+        signature = ((background.lower.tolist(), background.upper.tolist(), background.cells.tolist())
+                     if isinstance(background, StructuredBox) else  # its numbers, never its coordinates
+                     (background.n_points, background.n_tets, float(background.points.sum()), int(background.tets.sum())))
+        if any(other != signature for other in comm.allgather(signature)):
+            raise ValueError("the ranks were given different background meshes (their sizes or sums differ): give every rank "
+                             "the same mesh, e.g. read the same file on every rank")
+        return background
+    if background == "structured" or comm.size == 1:
+        return background_for(levelset, spacing, background, box)
+    mesh = background_for(levelset, spacing, background, box) if comm.rank == 0 else None
+    shapes = comm.bcast(None if mesh is None else (mesh.points.shape, mesh.tets.shape), root=0)
+    points = mesh.points if mesh is not None else np.empty(shapes[0])
+    tets = mesh.tets if mesh is not None else np.empty(shapes[1], dtype=np.int64)
+    comm.Bcast([points, MPI.DOUBLE], root=0)
+    comm.Bcast([tets, MPI.INT64_T], root=0)
+    return mesh if mesh is not None else TetMesh(points, tets, check=False)  # rank 0 checked and oriented it

@@ -1,13 +1,14 @@
 """mean-curvature-cut on several ranks (docs/math.md §3): (M + tau_F L^(2-a) J_F) H = A x on the cut
-tets of each slab, J_F on every interior face of the cut tets once, the three components solved by
+tets of each rank, J_F on every interior face of the cut tets once, the three components solved by
 one PETSc KSP.
 
 The forms are the serial problem's (:class:`cutfem.problems.mean_curvature.MeanCurvatureCut`,
-:func:`~cutfem.problems.mean_curvature.mean_curvature_form`): on the owned slab the mass and the
-position load over its pieces of Gamma_h and J_F of the faces inside it, on the seam J_F of the faces
-across its lowest plane.  The length-scale check takes the area of the whole S_h (summed over the
-ranks).  Not distributed: the edge stabilization tau_E (refused on several ranks) and the pinning of
-unknowns that no term sees (S_h along grid faces: the solve refuses a zero diagonal and names the fix).
+:func:`~cutfem.problems.mean_curvature.mean_curvature_form`): on the owned cells the mass and the
+position load over their pieces of Gamma_h and J_F of the faces between two owned cells, on the
+seam J_F of the faces between an owned cell and a ghost that the rank assembles.  The length-scale
+check takes the area of the whole S_h (summed over the ranks).  Not distributed: the edge
+stabilization tau_E (refused on several ranks) and the pinning of unknowns that no term sees (S_h
+along grid faces: the solve refuses a zero diagonal and names the fix).
 """
 
 from __future__ import annotations
@@ -16,13 +17,13 @@ from ..fem.forms import assemble
 from ..fem.norms import l2_error
 from ..fem.terms import basis_integrals, face_jump_penalty, mass, position_load
 from ..geometry.markers import CUT
-from ..problems.common import background_for, check_face_stabilization, has_exact, levelset_for
+from ..problems.common import check_face_stabilization, has_exact, levelset_for
 from ..problems.mean_curvature import SOLVER_TOL, MeanCurvatureCut, check_length_scale
 from ..runs.registry import ProblemError
 from ..runs.runner import Timer
 from .assembly import slab_pieces
 from .launch import engine
-from .levels import solve_on_slabs
+from .levels import shared_background, solve_on_slabs
 
 __all__ = ["mean_curvature_cut_level", "mean_curvature_pieces"]
 
@@ -46,12 +47,10 @@ def mean_curvature_cut_level(spacing, surface, background, box, stabilization, t
                              solver, length_scale, R, r, radius, axes, comm=None, counts=None):
     """One level of mean-curvature-cut on the ranks of ``comm`` (default: every rank): the serial
     record's l2_error, area, area_error, integral_H and sizes, with the engine and the number of
-    ranks.  CG stops at the serial problem's relative residual (1e-6)."""
+    ranks.  CG stops at the serial problem's relative residual (1e-6).  ``background`` and
+    ``counts`` as for :func:`~cutfem.distributed.poisson.poisson_cut_level`."""
     MPI, _ = engine()
     comm = MPI.COMM_WORLD if comm is None else comm
-    if background != "structured":
-        raise ValueError(f"distributed mean-curvature-cut partitions a structured box; got --background {background}: "
-                         "run an unstructured background on one rank")
     if MeanCurvatureCut.stabilization_for(stabilization, 1, tau_f, face_h_power, tau_n, normal_h_power)[0] != "face":
         raise ProblemError("mean-curvature-cut's normal-gradient stabilization is not distributed: use --stabilization face "
                            "(the default at order 1) or run on one rank")
@@ -62,7 +61,7 @@ def mean_curvature_cut_level(spacing, surface, background, box, stabilization, t
     t = Timer()
     with t("geometry"):
         phi = levelset_for(surface, R, r, radius, axes)
-        bg = background_for(phi, spacing, background, box)
+        bg = shared_background(comm, phi, spacing, background, box)
     exact = phi if has_exact(phi) else None
 
     def build(cuts):

@@ -1,5 +1,21 @@
-"""The partition of a structured box into slabs of cell layers, and each rank's cut of its slab.
+"""The partition of the background across ranks, and each rank's cuts.
 
+Two partitions, one contract (:func:`partition_for`): a structured box in slabs of cell layers
+(:class:`Slabs`, below), any other :class:`~cutfem.geometry.mesh.TetMesh` by recursive coordinate
+bisection of its cells (:class:`~cutfem.distributed.unstructured.CellPartition`).  Each gives a rank
+two local meshes, its **owned** cells and its **seam** (a layer of ghost cells across the facets
+of its owned cells, with the owned cells next to them), the owner of every cell and node, and the
+nodal values its cuts take; :func:`rank_cuts` cuts both, and a facet between an owned cell and a
+ghost is assembled by the owner of its cell with the larger global id
+(:meth:`RankCuts.seam_facets`), so every facet once.  The box keeps its slabs rather than becoming
+a case of the cell partition: the slabs never form the box's tets, coordinates, centroids or faces
+(the cell partition holds them whole on every rank, O(cells) memory, 6 n^3 tets for n^3 cells) and
+their cuts take the lattice's path (the band search evaluates the level set near the surface only,
+the Kuhn tables replace per-tet gradients); the rest (the seam rule, the numbering, the assembly)
+is one code path for both.
+
+Slabs
+-----
 The cells of a :class:`~cutfem.geometry.box.StructuredBox` are split in blocks of whole layers
 along the slowest axis z: rank r owns the cell layers ``[starts[r], starts[r + 1])``, so its cells
 (and tets) have contiguous global ids, and so do the nodes of its layers.  A rank may own no layer
@@ -10,35 +26,32 @@ computed from the *global* node indices by the global box (``lower + ijk * spaci
 ``lower`` and ``ijk``), so that the level set's nodal values on a slab are bit for bit those of the
 serial run, and so are the cut, the quadrature points and the element matrices of every tet.
 
-Each rank cuts two slabs (:func:`rank_cuts`):
-
-* its **owned** slab ``[k0, k1)``: every cell integral (volume, Gamma_h, load) of the rank is over
-  these tets, and every facet with both tets in them;
-* the **seam** ``[k0 - 1, k0 + 1)``: its lower layer is the rank's layer of ghost cells across the
-  facets of its lowest owned layer.  A facet between two layers is assembled by the owner of its
-  tet with the larger global id (the upper one), so the seam's facets that cross the plane
-  z = z_k0 are this rank's and no other's, and no ghost layer above is needed.
-
-The faces of the upper ghost layer are those of the next rank's seam: every facet is assembled
-exactly once.  Which tets are active and which facets are ghost-penalty facets depends only on the
-nodal values of the tets concerned, so it is the same on every rank that holds them.  One caveat is
-inherited from the zero rule (:func:`cutfem.geometry.nodal_values._zero_tolerance`): the snap
-tolerance of a node is 1e-12 of the largest value in its 3 x 3 x 3 block, which a slab truncates at
-its faces; a nodal value within 1e-12 of its neighbours' scale of zero may snap differently there.
+Each rank cuts two slabs: its **owned** slab ``[k0, k1)`` and the **seam** ``[k0 - 1, k0 + 1)``,
+whose lower layer is the rank's layer of ghost cells across the facets of its lowest owned layer.
+The facets between two layers belong to the owner of the upper tet (the larger global id), so the
+seam's facets across the plane z = z_k0 are this rank's, and no ghost layer above is needed: the
+faces of the upper ghost layer are those of the next rank's seam.  Which tets are active and which
+facets are ghost-penalty facets depends only on the nodal values of the tets concerned, so it is
+the same on every rank that holds them.  One caveat is inherited from the zero rule
+(:func:`cutfem.geometry.nodal_values._zero_tolerance`): the snap tolerance of a node is 1e-12 of
+the largest value in its 3 x 3 x 3 block, which a slab truncates at its faces; a nodal value within
+1e-12 of its neighbours' scale of zero may snap differently there (the cell partition evaluates the
+tolerance on all the node's cells and has no such caveat).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import cached_property
 
 import numpy as np
 
 from ..geometry.box import StructuredBox
 from ..geometry.cut import CutMesh, cut_mesh
+from ..geometry.mesh import TetMesh
 from ..geometry.nodal_values import CutError
+from .unstructured import cell_partition
 
-__all__ = ["Slabs", "SlabBox", "slab_partition", "rank_cuts", "RankCuts"]
+__all__ = ["Slabs", "SlabBox", "slab_partition", "partition_for", "rank_cuts", "RankCuts", "local_cut"]
 
 
 @dataclass(frozen=True)
@@ -66,13 +79,22 @@ class Slabs:
         k = np.asarray(node_ids, dtype=np.int64) // int(self.box.node_shape[0] * self.box.node_shape[1])
         return self.layer_owner(np.minimum(k, int(self.box.cells[2]) - 1))
 
-    def owned_nodes(self, rank: int) -> tuple[int, int]:
-        """The global node ids ``[first, stop)`` the rank owns."""
+    def cell_owner(self, tet_ids) -> np.ndarray:
+        """The rank owning each (global) tet: the owner of its cell layer."""
+        return self.layer_owner(np.asarray(tet_ids, dtype=np.int64) // (6 * int(self.box.cells[0]) * int(self.box.cells[1])))
+
+    def local_meshes(self, rank: int):
+        """``(owned, seam)``: the rank's slab ``[k0, k1)`` and its seam ``[k0 - 1, k0 + 1)`` (None
+        without layers, and the seam None on the lowest layer)."""
         k0, k1 = self.layers(rank)
-        per = int(self.box.node_shape[0] * self.box.node_shape[1])
-        if k1 == int(self.box.cells[2]) and k1 > k0:
-            k1 += 1  # the top node layer
-        return k0 * per, k1 * per
+        if k1 == k0:
+            return None, None
+        return SlabBox(self.box, k0, k1), SlabBox(self.box, k0 - 1, k0 + 1) if k0 > 0 else None
+
+    def local_levelsets(self, rank: int, levelset, meshes):
+        """What the cut of each local mesh takes: the level set itself (a slab evaluates it at the
+        global coordinates of its nodes)."""
+        return [levelset for _ in meshes]
 
 
 def slab_partition(box: StructuredBox, size: int, counts=None) -> Slabs:
@@ -80,8 +102,8 @@ def slab_partition(box: StructuredBox, size: int, counts=None) -> Slabs:
     ``nz % size`` ranks one layer more), or the layer ``counts`` per rank given (any nonnegative
     whole numbers summing to nz: for ranks without cells)."""
     if not isinstance(box, StructuredBox):
-        raise TypeError(f"distributed runs partition a structured box (cf.structured_box), got {type(box).__name__}; "
-                        "an unstructured background is not distributed yet")
+        raise TypeError(f"slabs split a structured box (cf.structured_box), got {type(box).__name__}: partition_for "
+                        "splits any background")
     nz = int(box.cells[2])
     if counts is None:
         counts = [nz // size + (r < nz % size) for r in range(size)]
@@ -123,57 +145,65 @@ class SlabBox(StructuredBox):
     def global_tets(self, local_ids) -> np.ndarray:
         return np.asarray(local_ids, dtype=np.int64) + self.tet_offset
 
-    @cached_property
-    def layer_tets(self) -> int:
-        """Tets per cell layer (6 nx ny)."""
-        return 6 * int(self.cells[0]) * int(self.cells[1])
+
+def partition_for(background, size: int, given=None):
+    """The partition of ``background`` over ``size`` ranks: a structured box in slabs
+    (:func:`slab_partition`, ``given`` the cell layers of each rank), any other TetMesh by
+    recursive coordinate bisection (:func:`~cutfem.distributed.unstructured.cell_partition`,
+    ``given`` the owner of each cell)."""
+    if isinstance(background, StructuredBox):
+        return slab_partition(background, size, given)
+    if isinstance(background, TetMesh):
+        return cell_partition(background, size, given)
+    raise TypeError(f"a distributed run partitions a background TetMesh (a structured box or an unstructured mesh), got "
+                    f"{type(background).__name__}")
 
 
 def _no_cut(message: str) -> bool:
     """Whether a CutError of :func:`~cutfem.geometry.cut.cut_mesh` says that no tet carries a piece
-    of S_h (the slab lies on one side), which on one slab of a larger box is no error."""
+    of S_h (the local mesh lies on one side), which on a part of a larger mesh is no error."""
     return message.startswith(("the level set does not cut", "every piece of the cut collapsed"))
 
 
-def slab_cut(slab: SlabBox, levelset) -> CutMesh:
-    """The cut of one slab: :func:`~cutfem.geometry.cut.cut_mesh` with S_h allowed to end on the
-    slab's faces; a slab that the surface misses gives a cut without pieces (its sides' element
-    sets still come from the nodal values)."""
+def local_cut(mesh, levelset) -> CutMesh:
+    """The cut of one rank's local mesh: :func:`~cutfem.geometry.cut.cut_mesh` with S_h allowed
+    to end on the mesh's boundary; a mesh that the surface misses gives a cut without pieces (its
+    sides' element sets still come from the nodal values)."""
     try:
-        return cut_mesh(slab, levelset, check_boundary=False)
+        return cut_mesh(mesh, levelset, check_boundary=False)
     except CutError as exc:
         if not _no_cut(str(exc)):
             raise
     empty = np.zeros(0, dtype=np.int64)
-    return CutMesh(background=slab, node_ids=empty, points=np.zeros((0, 3)), values=np.zeros(0), tets=np.zeros((0, 4), np.int32),
+    return CutMesh(background=mesh, node_ids=empty, points=np.zeros((0, 3)), values=np.zeros(0), tets=np.zeros((0, 4), np.int32),
                    tet_ids=empty, normals=np.zeros((0, 3)), vertices=np.zeros((0, 3)), triangles=np.zeros((0, 3), np.int32),
-                   triangle_tets=empty, _gradients=(None, None), levelset=levelset)
+                   triangle_tets=empty, _gradients=(None, None) if isinstance(mesh, StructuredBox) else None, levelset=levelset)
 
 
 @dataclass
 class RankCuts:
-    """The cuts of one rank: ``owned`` (its cell layers, or None without any) and ``seam`` (its
-    lowest owned layer and the ghost layer below, or None on the lowest rank)."""
+    """The cuts of one rank: ``owned`` (its cells, or None without any) and ``seam`` (its ghost
+    cells with the owned cells next to them, or None without ghosts)."""
 
-    slabs: Slabs
+    partition: object  # Slabs or CellPartition
     rank: int
     owned: CutMesh | None
     seam: CutMesh | None
 
     def seam_facets(self, facets):
-        """The facets of a facet set of the seam cut that cross its middle plane (one tet in the
-        ghost layer, one in the owned layer): the seam facets this rank assembles."""
-        slab = self.seam.background
-        tets = facets.elements.tet_ids[facets.pairs]
-        below = tets < slab.layer_tets
-        return facets.subset(below[:, 0] != below[:, 1], name=f"{facets.name} across the seam")
+        """The facets of a facet set of the seam cut between an owned tet and a ghost whose owned
+        tet has the larger global id: the seam facets this rank assembles."""
+        tets = self.seam.background.global_tets(facets.elements.tet_ids[facets.pairs])
+        mine = self.partition.cell_owner(tets) == self.rank
+        larger = np.where(mine[:, 0], tets[:, 0] > tets[:, 1], tets[:, 1] > tets[:, 0])
+        return facets.subset((mine[:, 0] != mine[:, 1]) & larger, name=f"{facets.name} across the seam")
 
 
-def rank_cuts(slabs: Slabs, rank: int, levelset) -> RankCuts:
-    """Cut the owned slab and the seam of ``rank`` (see the module docstring)."""
-    k0, k1 = slabs.layers(rank)
-    if k1 == k0:
-        return RankCuts(slabs, rank, None, None)
-    owned = slab_cut(SlabBox(slabs.box, k0, k1), levelset)
-    seam = slab_cut(SlabBox(slabs.box, k0 - 1, k0 + 1), levelset) if k0 > 0 else None
-    return RankCuts(slabs, rank, owned, seam)
+def rank_cuts(partition, rank: int, levelset) -> RankCuts:
+    """Cut the owned cells and the seam of ``rank`` (see the module docstring)."""
+    meshes = partition.local_meshes(rank)
+    if meshes[0] is None:
+        return RankCuts(partition, rank, None, None)
+    phis = partition.local_levelsets(rank, levelset, meshes)
+    owned, seam = (None if m is None else local_cut(m, phi) for m, phi in zip(meshes, phis))
+    return RankCuts(partition, rank, owned, seam)

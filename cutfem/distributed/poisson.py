@@ -1,13 +1,13 @@
 """poisson-cut on several ranks: the fictitious-domain Poisson problem of docs/math.md §8, its
-forms assembled by slab (:mod:`cutfem.distributed.partition`) and solved by PETSc.
+forms assembled on each rank's cells (:mod:`cutfem.distributed.partition`) and solved by PETSc.
 
-The forms are the serial problem's (:mod:`cutfem.problems.poisson`): on the rank's owned slab the
-stiffness, Nitsche's terms, the load and the ghost penalty of the faces inside the slab; on its
-seam the ghost penalty of the faces that cross its lowest plane.  Each is assembled by the serial
-code on the slab's own space and moved to the global numbers (:class:`~cutfem.distributed.system.
-GlobalNumbering`), so the matrix, the load and the solution are the serial ones up to the order of
-the floating-point sums, and so are the errors (sums of squares over the owned cells, added over
-the ranks).
+The forms are the serial problem's (:mod:`cutfem.problems.poisson`): on the rank's owned cells the
+stiffness, Nitsche's terms, the load and the ghost penalty of the faces between two owned cells;
+on its seam the ghost penalty of the faces between an owned cell and a ghost that the rank
+assembles.  Each is assembled by the serial code on the local mesh's own space and moved to the
+global numbers (:class:`~cutfem.distributed.system.GlobalNumbering`), so the matrix, the load and
+the solution are the serial ones up to the order of the floating-point sums, and so are the errors
+(sums of squares over the owned cells, added over the ranks).
 """
 
 from __future__ import annotations
@@ -15,12 +15,12 @@ from __future__ import annotations
 from ..fem.norms import l2_h1_errors
 from ..fem.terms import face_jump_penalty, load, nitsche, stiffness
 from ..geometry.markers import NEG
-from ..problems.common import background_for, check_ghost_penalty, check_nitsche_penalty, levelset_for
+from ..problems.common import check_ghost_penalty, check_nitsche_penalty, levelset_for
 from ..problems.poisson import exact_solution, exact_u, source
 from ..runs.runner import Timer
 from .launch import engine
 from .assembly import slab_pieces
-from .levels import solve_on_slabs
+from .levels import shared_background, solve_on_slabs
 
 __all__ = ["poisson_cut_level", "poisson_pieces"]
 
@@ -46,24 +46,23 @@ def poisson_pieces(cuts, gamma: float, gamma_g: float):
 def poisson_cut_level(spacing, surface, background, box, gamma, gamma_g, solver, R, r, radius, axes, comm=None, counts=None):
     """One level of poisson-cut on the ranks of ``comm`` (default: every rank); the record of the
     serial :func:`cutfem.problems.poisson.poisson_cut` with the engine (PETSc, its KSP and PC) and
-    the number of ranks, the same on every rank.  ``counts``: the cell layers of each rank (see
-    :func:`~cutfem.distributed.partition.slab_partition`)."""
+    the number of ranks, the same on every rank.  ``background``: "structured", "tetwild" or a
+    TetMesh, the same on every rank (:func:`~cutfem.distributed.levels.shared_background`);
+    ``counts``: the partition by hand (:func:`~cutfem.distributed.partition.partition_for`)."""
     MPI, _ = engine()
-    if background != "structured":
-        raise ValueError(f"distributed poisson-cut partitions a structured box; got --background {background}: "
-                         "run an unstructured background on one rank")
+    comm = MPI.COMM_WORLD if comm is None else comm
     notes = check_ghost_penalty(gamma_g) + check_nitsche_penalty(gamma)
     t = Timer()
     with t("geometry"):
         phi = levelset_for(surface, R, r, radius, axes)
-        bg = background_for(phi, spacing, background, box)
+        bg = shared_background(comm, phi, spacing, background, box)
 
     def measure(V, u):
         dx = V.cut.dx(NEG)
         l2, h1 = l2_h1_errors(V, u, exact_solution, dx)
         return l2 * l2, h1 * h1, dx.size
 
-    rec = solve_on_slabs(MPI.COMM_WORLD if comm is None else comm, phi, bg, lambda cuts: poisson_pieces(cuts, gamma, gamma_g),
+    rec = solve_on_slabs(comm, phi, bg, lambda cuts: poisson_pieces(cuts, gamma, gamma_g),
                          measure, ("l2_error", "h1_error", "volume"), solver, counts, t)
     if notes:
         rec["warnings"] = notes

@@ -3,13 +3,15 @@
 Numbering
 ---------
 The serial P1 space of a cut numbers its unknowns by increasing background node id
-(:class:`~cutfem.fem.spaces.CutSpace`).  Distributed, the same numbers: a node is owned by the
-rank that owns its layer (:meth:`~cutfem.distributed.partition.Slabs.node_owner`), which holds
-every tet around it (its owned slab and its seam) and so knows whether the node is active; the
-ranks' owned active nodes are consecutive blocks of the serial numbering, so a node's number is
-its owner's offset (an exclusive scan of the counts) plus its rank among the owner's nodes.  The
-numbers of the other nodes a rank touches are asked of their owners in one all-to-all exchange
-(:class:`GlobalNumbering`).  A distributed vector is then the serial one, entry by entry.
+(:class:`~cutfem.fem.spaces.CutSpace`).  Distributed, a node is owned by the rank the partition
+names (``node_owner``: the owner of its cell layer for slabs, of its lowest-id cell for the cell
+partition), which numbers the active nodes it owns in increasing id: the ones its own pieces
+touch and the ones other ranks ask of it (a node may be active through a tet the owner does not
+hold), so a node's number is its owner's offset (an exclusive scan of the counts) plus its rank
+among the owner's nodes, and the numbers of the other nodes a rank touches come from their owners
+in one all-to-all exchange (:class:`GlobalNumbering`).  Slabs own consecutive blocks of node ids,
+so their numbers are the serial ones and a distributed vector is the serial one entry by entry; the
+cell partition's are a permutation of them, the serial order within each rank.
 
 System
 ------
@@ -45,45 +47,43 @@ DISTRIBUTED_SOLVERS = {"direct": ("preonly", "lu"), "cg-amg": ("cg", "gamg"), "c
 class GlobalNumbering:
     """The global numbers of the unknowns one rank touches, given by their keys ``node * fields +
     field`` (global background node ids; any order, repeats allowed; ``fields`` > 1 for a product
-    space), each owned by the owner of its node in ``slabs``.  A rank numbers its owned keys in
-    increasing order, so with one field the numbers are the serial ones.  ``first`` and
+    space), each owned by the owner of its node in ``partition`` (``partition.node_owner``).  A
+    rank numbers its owned keys (its own and those asked of it) in increasing order.  ``first`` and
     ``n_owned``: this rank's block of numbers; ``n_global`` the number of unknowns.  ``constants``:
     unknowns of no node (a multiplier's), keyed -1, -2, ..., numbered after every node's unknowns
     and owned by the last rank (its block ends the numbering)."""
 
-    def __init__(self, comm, slabs, rank: int, keys, fields: int = 1, constants: int = 0):
+    def __init__(self, comm, partition, rank: int, keys, fields: int = 1, constants: int = 0):
         MPI, _ = engine()
         keys = np.unique(np.asarray(keys, dtype=np.int64))
         if len(keys) and keys[0] < -constants:
             raise ValueError(f"key {keys[0]} is below the {constants} constants' keys -1 ... -{constants}")
         constant_keys, keys = keys[keys < 0], keys[keys >= 0]
-        lo, hi = slabs.owned_nodes(rank)
-        mine = (keys >= lo * fields) & (keys < hi * fields)
-        owned, others = keys[mine], keys[~mine]
-        self.fields = fields
-        self.n_owned = len(owned)
-        self.first = int(comm.exscan(self.n_owned) or 0) if comm.size > 1 else 0
-        self.n_global = int(comm.allreduce(self.n_owned))
-        # ask the owners for the numbers of the other keys: sorted, so their owners are too
-        owners = slabs.node_owner(others // fields)
+        owners = partition.node_owner(keys // fields)
+        mine = owners == rank
+        others = keys[~mine]
+        # the other keys go to their owners (grouped by owner), which number them with their own
+        order = np.argsort(owners[~mine], kind="stable")
+        others, owners = others[order], owners[~mine][order]
         send = np.bincount(owners, minlength=comm.size).astype(np.int64)
         recv = np.empty_like(send)
         comm.Alltoall(send, recv)
         asked = np.empty(int(recv.sum()), dtype=np.int64)
         sdispl, rdispl = _displacements(send), _displacements(recv)
         comm.Alltoallv([others, (send, sdispl), MPI.INT64_T], [asked, (recv, rdispl), MPI.INT64_T])
-        where = np.searchsorted(owned, asked)
-        if np.any(where >= len(owned)) or np.any(owned[np.minimum(where, max(len(owned) - 1, 0))] != asked):
-            raise RuntimeError(f"rank {rank} was asked for nodes that are not active on it: the ranks disagree on the "
-                               "active nodes (the level set's values must not depend on the rank)")
-        answer = (self.first + where).astype(np.int64)
+        owned = np.union1d(keys[mine], asked)
+        self.fields = fields
+        self.n_owned = len(owned)
+        self.first = int(comm.exscan(self.n_owned) or 0) if comm.size > 1 else 0
+        self.n_global = int(comm.allreduce(self.n_owned))
+        answer = (self.first + np.searchsorted(owned, asked)).astype(np.int64)
         got = np.empty(len(others), dtype=np.int64)
         comm.Alltoallv([answer, (recv, rdispl), MPI.INT64_T], [got, (send, sdispl), MPI.INT64_T])
         self.keys = np.concatenate([constant_keys, keys])
         self.owned_keys = owned
         self.numbers = np.empty(len(keys), dtype=np.int64)
-        self.numbers[mine] = self.first + np.arange(self.n_owned)
-        self.numbers[~mine] = got
+        self.numbers[mine] = self.first + np.searchsorted(owned, keys[mine])
+        self.numbers[np.flatnonzero(~mine)[order]] = got
         self.numbers = np.concatenate([self.n_global - 1 - constant_keys, self.numbers])  # key -1 -> the first after the nodes'
         self.n_owned += constants if comm.rank == comm.size - 1 else 0
         self.n_global += constants

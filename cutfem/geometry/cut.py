@@ -663,14 +663,35 @@ def _touching_only(mesh: TetMesh, label_ids, label_values) -> str:
             "level set must be negative inside the surface; refine the mesh only if the surface is smaller than a cell.")
 
 
+def _on_boundary_faces(cut: CutMesh, ends: np.ndarray, pieces: np.ndarray) -> np.ndarray:
+    """(k,) bool: whether each edge of S_h, given by its ends (k, 2, 3) and the cut tet of its
+    triangle (``pieces``, (k,) indices into the cut's tets), lies in a face of that tet which is a
+    boundary face of the background (one tet).  The edges of a piece lie in the faces of its tet:
+    the face is the one opposite to the vertex whose barycentric coordinate vanishes at both ends
+    (up to 1e-9; the ends are computed on the tet's edges, so it is round-off there)."""
+    bg = cut.background
+    tets = cut.tet_ids[pieces]
+    x = bg.points[bg.tets[tets]]  # (k, 4, 3)
+    grads, _ = barycentric_gradients(x)
+    lam = np.einsum("kjd,ked->kej", grads, ends - x[:, None, 0])  # (k, 2, 4): lambda_j at each end
+    lam[:, :, 0] += 1.0
+    far = np.abs(lam).max(axis=1)  # (k, 4): the larger of the two ends' coordinates of each vertex
+    k = np.argmin(far, axis=1)
+    faces = bg.tet_faces[tets, k]
+    return (far[np.arange(len(k)), k] <= 1e-9) & (bg.face_tets[faces, 1] < 0)
+
+
 def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
     """Raise CutError unless S_h is closed and edge-manifold: every edge of its triangles in
     exactly two triangles.
 
     Uses the edge census of :attr:`CutMesh._edge_census` (one compiled pass, cached: the Euler
     characteristic and ``is_closed`` reuse it).  With ``check_boundary=False`` the surface may
-    leave the box: an edge in one triangle is then accepted when both its ends lie on the faces of
-    the background's bounding box (within 1e-9 of its diagonal).  The P1 zero set of values at
+    leave the mesh: an edge in one triangle is then accepted when it lies on the boundary, on a
+    structured box when both its ends lie on the faces of its bounding box (within 1e-9 of its
+    diagonal), on any other mesh when it lies in a boundary face of its tet
+    (:func:`_on_boundary_faces`: a part of a larger mesh, such as a rank's cells in a distributed
+    run, has boundary faces inside the bounding box).  The P1 zero set of values at
     every node is always closed inside the mesh, so an open S_h means that the band search
     (``band``) dropped cut cells: phi changes faster than its declared Lipschitz bound somewhere
     it was not sampled (see :func:`~cutfem.geometry.band_search._band_cells`)."""
@@ -684,11 +705,15 @@ def _check_closed(cut: CutMesh, check_boundary: bool, band: bool) -> None:
     edges = e[order[starts]]
     open_ = counts == 1
     if not check_boundary and np.any(open_):
-        lo, hi = (np.asarray(b, float) for b in cut.background.bounds)
-        eps = 1e-9 * float(np.linalg.norm(hi - lo))
-        x = cut.vertices[edges[open_]]  # (k, 2, 3)
-        on_face = np.any((np.abs(x - lo) <= eps) | (np.abs(x - hi) <= eps), axis=2)
-        open_[np.flatnonzero(open_)[np.all(on_face, axis=1)]] = False
+        if isinstance(cut.background, StructuredBox):
+            lo, hi = (np.asarray(b, float) for b in cut.background.bounds)
+            eps = 1e-9 * float(np.linalg.norm(hi - lo))
+            x = cut.vertices[edges[open_]]  # (k, 2, 3)
+            on_face = np.all(np.any((np.abs(x - lo) <= eps) | (np.abs(x - hi) <= eps), axis=2), axis=1)
+        else:
+            rows = order[starts[open_]]  # the edge's row in e: triangle rows % len(t)
+            on_face = _on_boundary_faces(cut, cut.vertices[edges[open_]], cut.triangle_tets[rows % len(t)])
+        open_[np.flatnonzero(open_)[on_face]] = False
     many = counts > 2
     if not (np.any(open_) or np.any(many)):
         return

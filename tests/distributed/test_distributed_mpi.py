@@ -20,9 +20,12 @@ from cutfem.distributed.launch import engine, launched  # noqa: E402
 from cutfem.distributed.interface_poisson import interface_poisson_cut_level  # noqa: E402
 from cutfem.distributed.laplace_beltrami import laplace_beltrami_cut_level  # noqa: E402
 from cutfem.distributed.mean_curvature import mean_curvature_cut_level  # noqa: E402
-from cutfem.distributed.partition import rank_cuts, slab_partition  # noqa: E402
+from cutfem.distributed.levels import shared_background  # noqa: E402
+from cutfem.distributed.partition import partition_for, rank_cuts, slab_partition  # noqa: E402
+from cutfem.distributed.unstructured import recursive_bisection  # noqa: E402
 from cutfem.distributed.poisson import poisson_cut_level, poisson_pieces  # noqa: E402
 from cutfem.fem.terms import face_jump_penalty  # noqa: E402
+from cutfem.geometry.mesh import TetMesh  # noqa: E402
 from cutfem.geometry.markers import CUT, NEG  # noqa: E402
 from cutfem.runs.registry import get_problem  # noqa: E402
 from cutfem.runs.cli import main  # noqa: E402
@@ -314,3 +317,137 @@ def test_stokes_command_line_under_mpiexec(tmp_path_factory):
     WORLD.Barrier()
     rec = json.load(open(path))["records"][0]
     assert rec["ranks"] == WORLD.size and rec["ksp"] == "minres" and rec["solver_iterations"] > 0
+
+
+def cell_partitions(mesh, V, size):
+    """Bisection, and (on several ranks) rank 0 owning only cells above z = 0.45 that carry no
+    unknown (no active cell), the other ranks the rest by bisection."""
+    out = [partition_for(mesh, size)]
+    if size > 1:
+        centroids = mesh.points[mesh.tets].mean(axis=1)
+        owner = 1 + recursive_bisection(centroids, size - 1)
+        idle = np.ones(mesh.n_tets, dtype=bool)
+        idle[V.elements.tet_ids] = False
+        owner[idle & (centroids[:, 2] > 0.45)] = 0
+        out.append(partition_for(mesh, size, owner))
+    return out
+
+
+def serial_rows(V, numbering):
+    """The serial numbers of the rows a rank owns (the cell partition numbers a permutation of them)."""
+    return np.searchsorted(V.node_ids, numbering.owned_keys)
+
+
+@pytest.mark.parametrize("which", [0, 1])
+def test_unstructured_matrix_action_and_load_equal_serial(tet_torus, which):
+    """On an unstructured mesh (cells by bisection, or a rank without active cells): A x and b
+    equal the serial ones to 1e-12 relative, row by row in the serial numbering."""
+    phi, mesh, _, V, K, b, _ = tet_torus
+    cases = cell_partitions(mesh, V, WORLD.size)
+    if which >= len(cases):
+        pytest.skip("one rank: no partition with a rank without active cells")
+    cuts = rank_cuts(cases[which], WORLD.rank, phi)
+    system, numbering = slab_system(poisson_pieces(cuts, 10.0, 0.1), cuts, WORLD)
+    A, (bv,) = system.petsc()
+    assert numbering.n_global == K.shape[0]
+    rows = serial_rows(V, numbering)
+    assert WORLD.allreduce(len(rows), op=MPI.SUM) == K.shape[0]
+    x = np.random.default_rng(3).standard_normal(K.shape[0])
+    xv = A.createVecRight()
+    xv.setArray(x[rows])
+    y = A.createVecLeft()
+    A.mult(xv, y)
+    errors = np.array([np.abs(y.getArray() - (K @ x)[rows]).max(initial=0.0), np.abs(bv.getArray() - b[rows]).max(initial=0.0)])
+    WORLD.Allreduce(MPI.IN_PLACE, errors, op=MPI.MAX)
+    assert errors[0] <= 1e-12 * np.abs(K @ x).max()
+    assert errors[1] <= 1e-12 * np.abs(b).max()
+
+
+@pytest.mark.parametrize("side", [NEG, CUT])
+def test_unstructured_faces_counted_once(tet_torus, side):
+    """The ghost penalty (NEG) and J_F (CUT) of a constant sum to zero on every row of the
+    unstructured mesh's partitions, and the faces assembled on all ranks are the serial ones."""
+    phi, mesh, cut, V, *_ = tet_torus
+    serial = cut.ghost_facets(NEG) if side == NEG else cut.interior_facets(CUT)
+    faces = (lambda c: c.ghost_facets(NEG)) if side == NEG else (lambda c: c.interior_facets(CUT))
+    for partition in cell_partitions(mesh, V, WORLD.size):
+        cuts = rank_cuts(partition, WORLD.rank, phi)
+        parts = slab_pieces(cuts, side, None, faces, lambda dF: face_jump_penalty(dF, h_power=1))
+        system, _ = slab_system(parts, cuts, WORLD)
+        A, _ = system.petsc()
+        one, y = A.createVecRight(), A.createVecLeft()
+        one.set(1.0)
+        A.mult(one, y)
+        worst = WORLD.allreduce(np.abs(y.getArray()).max(initial=0.0), op=MPI.MAX)
+        assert worst <= 1e-13 * A.norm(PETSc.NormType.INFINITY)
+        assert WORLD.allreduce(parts.faces, op=MPI.SUM) == serial.n_facets
+
+
+def serial_on(monkeypatch, module, mesh, name, level, **given):
+    """The serial record of a registered problem with ``mesh`` as its background."""
+    monkeypatch.setattr(f"cutfem.problems.{module}.background_for", lambda *args, **kw: mesh)
+    problem = get_problem(name)
+    return problem.solve_level(level, **problem.resolve(given))
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 4])
+def test_unstructured_poisson_errors_equal_serial(tet_torus, monkeypatch, size):
+    """poisson-cut on the unstructured mesh of the torus on 1-4 ranks (bisection, and on 4 ranks a
+    rank without active cells): the serial unknowns, sizes and errors to 1e-10, both solved directly."""
+    phi, mesh, _, V, *_ = tet_torus
+    comm = ranks(size)
+    serial = serial_on(monkeypatch, "poisson", mesh, "poisson-cut", 0.2, surface="torus", background="tetwild", solver="direct")
+    if comm is None:
+        return
+    p = distributed_params("poisson-cut", {"surface": "torus", "solver": "direct"}) | {"background": mesh}
+    rec = poisson_cut_level(0.2, **p, comm=comm, counts=cell_partitions(mesh, V, size)[-1].owner if size == 4 else None)
+    assert rec["dofs"] == serial["dofs"] and "box" not in rec
+    for key in ("active_tets", "pieces", "surface_triangles", "interior_faces", "background_nodes"):
+        assert rec[key] == serial[key], key
+    for key in ("l2_error", "h1_error", "volume"):
+        assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
+
+
+@pytest.mark.parametrize("size", [2, 4])
+def test_unstructured_laplace_beltrami_errors_equal_serial(tet_sphere, monkeypatch, size):
+    """laplace-beltrami-cut on an unstructured mesh of the sphere's box, J_F across the ranks."""
+    phi, mesh = tet_sphere
+    comm = ranks(size)
+    serial = serial_on(monkeypatch, "laplace_beltrami", mesh, "laplace-beltrami-cut", 0.2, background="tetwild", solver="direct")
+    if comm is None:
+        return
+    p = distributed_params("laplace-beltrami-cut", {"solver": "direct"}) | {"background": mesh}
+    rec = laplace_beltrami_cut_level(0.2, **p, comm=comm)
+    assert rec["dofs"] == serial["dofs"] and rec["pieces"] == serial["pieces"] and rec["interior_faces"] == serial["interior_faces"]
+    for key in ("l2_error", "h1_error", "area"):
+        assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
+
+
+def test_unstructured_mean_curvature_equals_serial(tet_sphere, monkeypatch):
+    """mean-curvature-cut on the unstructured mesh of the sphere's box on every rank: the serial
+    errors, area and integral of H to 1e-10, both solved directly."""
+    phi, mesh = tet_sphere
+    serial = serial_on(monkeypatch, "mean_curvature", mesh, "mean-curvature-cut", 0.2, surface="sphere", background="tetwild",
+                       solver="direct")
+    p = distributed_params("mean-curvature-cut", {"surface": "sphere", "solver": "direct"}) | {"background": mesh}
+    rec = mean_curvature_cut_level(0.2, **p)
+    assert rec["dofs"] == serial["dofs"] and rec["stabilized_faces"] == serial["interior_faces"]
+    for key in ("l2_error", "area", "area_error"):
+        assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
+    assert np.allclose(rec["integral_H"], serial["integral_H"], rtol=0, atol=1e-10 * serial["area"])
+
+
+def test_tetwild_background_is_meshed_once_and_shared():
+    """--background tetwild: rank 0 meshes (pytetwild's two meshings of a box differ), every rank
+    gets its mesh; a mesh given by a script must be the same on every rank."""
+    phi = cf.Sphere(1.0)
+    mesh = shared_background(WORLD, phi, 0.4, "tetwild", None)
+    assert isinstance(mesh, TetMesh) and len(set(WORLD.allgather((mesh.n_tets, float(mesh.points.sum()))))) == 1
+    rec = poisson_cut_level(0.4, **distributed_params("poisson-cut", {"solver": "direct"}) | {"background": mesh})
+    assert rec["ranks"] == WORLD.size and rec["background_nodes"] == mesh.n_points and rec["l2_error"] < 0.05
+    box = cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=0.4)
+    assert shared_background(WORLD, phi, 0.4, box, None) is box  # a box given: compared by its numbers
+    if WORLD.size > 1:
+        moved = TetMesh(mesh.points + 1e-3 * WORLD.rank, mesh.tets, check=False)
+        with pytest.raises(ValueError, match="different background meshes"):
+            shared_background(WORLD, phi, 0.4, moved, None)

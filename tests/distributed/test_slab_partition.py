@@ -83,9 +83,12 @@ def test_partition_counts():
     slabs = slab_partition(bg, 5)
     assert slabs.starts.tolist() == [0, 3, 6, 8, 10, 12]  # 12 layers: the first two ranks one more
     assert slabs.layer_owner(np.arange(12)).tolist() == [0, 0, 0, 1, 1, 1, 2, 2, 3, 3, 4, 4]
-    empty = slab_partition(bg, 3, [0, 12, 0])
     per = int(bg.node_shape[0] * bg.node_shape[1])
-    assert empty.owned_nodes(0) == (0, 0) and empty.owned_nodes(1) == (0, 13 * per) and empty.owned_nodes(2) == (12 * per, 12 * per)
+    layer = 6 * int(bg.cells[0] * bg.cells[1])
+    assert slabs.node_owner([0, 3 * per - 1, 3 * per, 12 * per, 13 * per - 1]).tolist() == [0, 0, 1, 4, 4]  # the top node layer: 4
+    assert slabs.cell_owner([0, 3 * layer - 1, 3 * layer, 12 * layer - 1]).tolist() == [0, 0, 1, 4]
+    empty = slab_partition(bg, 3, [0, 12, 0])
     assert set(empty.node_owner(np.arange(bg.n_points)).tolist()) == {1}
+    assert empty.local_meshes(0) == (None, None) and empty.local_meshes(2) == (None, None)
     with pytest.raises(ValueError, match="summing to the box's 12 layers"):
         slab_partition(bg, 2, [5, 5])
