@@ -275,15 +275,37 @@ def augmented_hierarchy(prolongations, w):
     face penalty dominates the whole operator (M + tau_F J_F, the mean curvature system) the plain
     hierarchy already needs few iterations and the larger coarse levels made it slower, hence an
     option.
+
+    The same near-kernel, one order up, in fictitious-domain P2 fields (docs/math.md §20): outside
+    Omega_h only the ghost penalty sees a function, and the functions that vanish inside and grow
+    outward, (phi)_+ g, have tiny face jumps of the first and second normal derivatives; the P1
+    coarse space of the P2 level holds none of them (CG's slowest modes live on the dofs outside,
+    A-orthogonal to it), so w = (phi)_+ there.  Columns of diag(w) P_0 that vanish (coarse nodes
+    whose support w does not reach) are dropped, and below them the coarse nodes no kept one
+    reaches (:func:`_nonzero_columns`): no empty rows on the coarse levels.
     """
     prolongations = iter(prolongations)
     P = next(prolongations, None)
     if P is None:
         return
     P = sp.csr_matrix(P)
-    yield sp.hstack([P, sp.diags(w) @ P], format="csr")
+    Q, keep = _nonzero_columns(sp.diags(w) @ P)
+    yield sp.hstack([P, Q], format="csr")
     for P in prolongations:
-        yield sp.block_diag([P, P], format="csr")
+        P = sp.csr_matrix(P)
+        Q, keep = _nonzero_columns(P[keep])
+        yield sp.block_diag([P, Q], format="csr")
+
+
+def _nonzero_columns(Q):
+    """(Q without its zero columns, the indices of the columns kept).  Where w vanishes on the whole
+    support of a coarse function (w = (phi_h)_+ inside Omega_h) its product w v is zero: its column
+    would be an empty row and column of every coarser matrix; the coarser levels keep the products
+    of the coarse nodes whose functions reach a kept one."""
+    Q = sp.csc_matrix(Q)
+    Q.eliminate_zeros()
+    keep = np.flatnonzero(np.diff(Q.indptr) > 0)
+    return sp.csr_matrix(Q[:, keep]), keep
 
 
 def _single(M):
