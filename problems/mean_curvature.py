@@ -293,8 +293,9 @@ class MeanCurvatureCut(Problem):
             K, B = mean_curvature_system(space, dS, tau_e=tau_e, tau_f=tau_f, faces=faces, face_h_power=face_h_power,
                                          length_scale=length_scale, tau_n=tau_n, band=band, normal_h_power=normal_h_power)
             K, B, unseen = pin_unseen_nodes(K, B, space)  # S_h along grid faces: nodes no term sees, fixed at 0
-        # order 2: the multigrid's coarse spaces also hold phi_h v, as laplace-beltrami-cut's (its note)
-        multigrid = None if order == 1 else {"augment": space.interpolate_nodal(cut.values), "coarse_size": 400}
+        # order 2: the multigrid's coarse spaces also hold phi_h v and phi_h^2 v, as laplace-beltrami-cut's (its note)
+        phi_h = space.interpolate_nodal(cut.values) if order == 2 else None
+        multigrid = None if order == 1 else {"augment": np.column_stack([phi_h, phi_h**2]), "coarse_size": 400}
         with t("solve"):
             H, info = solve(K, B, method=solver, space=space, tol=SOLVER_TOL, multigrid=multigrid)
         exact = phi if has_exact(phi) else None

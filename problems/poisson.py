@@ -130,8 +130,11 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
             a = a + gamma_g * face_jump_penalty(ghost, h_power=1)
         K = assemble(a, V)
         b = assemble(load(source, dx, degree=2) + N.load, V)
+    # order 2: the multigrid's coarse spaces also hold (phi)_+ v, the functions outside Omega_h that
+    # only the ghost penalty sees and the P1 coarse space misses (cutfem.solvers.multigrid.augmented_hierarchy)
+    multigrid = None if order == 1 else {"augment": np.maximum(phi.value(V.dof_points), 0.0), "coarse_size": 400}
     with t("solve"):
-        u, info = solve(K, b, method=solver, space=V, indefinite_hint=a.indefinite_hint)
+        u, info = solve(K, b, method=solver, space=V, indefinite_hint=a.indefinite_hint, multigrid=multigrid)
     with t("errors"):
         rec = {
             "h": V.h,

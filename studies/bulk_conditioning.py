@@ -88,26 +88,29 @@ class PoissonParts:
 
     ``space`` is V_h^NEG; ``stiffness`` A (n x n CSR), ``ghost`` G (n x n CSR, h_F^1), and
     :meth:`nitsche` N_gamma (cached per gamma); :meth:`matrix` returns A + N_gamma + gamma_g G.
+    ``order`` 2: P2 fields on the cut lifted by Theta_h, the ghost penalty of order 2 and the Nitsche
+    penalty gamma k^2, as poisson-cut builds them (docs/math.md §17-§18).
     """
 
-    def __init__(self, center, spacing: float, radius: float = RADIUS):
+    def __init__(self, center, spacing: float, radius: float = RADIUS, order: int = 1):
         center = np.asarray(center, dtype=float)
         if center.shape != (3,) or not np.all(np.isfinite(center)):
             raise ValueError(f"center must be three finite numbers, got {center!r}")
         if not spacing > 0:
             raise ValueError(f"spacing must be positive, got {spacing!r}")
         levelset = Sphere(radius=radius, center=center)
-        self.spacing = float(spacing)
-        self.cut = cut_mesh(background_for(levelset, spacing, anchored=True), levelset)  # the grid stays, the ball moves
-        self.space = CutSpace(self.cut, NEG)
+        self.spacing, self.order = float(spacing), int(order)
+        self.cut = cut_mesh(background_for(levelset, spacing, anchored=True), levelset, order=order)  # the grid stays, the ball moves
+        self.space = CutSpace(self.cut, NEG, order=order)
         self.stiffness = assemble(stiffness(self.cut.dx(NEG)), self.space).tocsr()
         self.ghost = assemble(face_jump_penalty(self.cut.dF(self.cut.ghost_facets(NEG)), h_power=1), self.space).tocsr()
         self._nitsche = {}
 
     def nitsche(self, gamma: float):
-        """N_gamma (n x n CSR) of :func:`cutfem.fem.terms.nitsche`, assembled once per gamma."""
+        """N_gamma (n x n CSR) of :func:`cutfem.fem.terms.nitsche` with the penalty gamma k^2 at order k
+        (poisson-cut's), assembled once per gamma."""
         if gamma not in self._nitsche:
-            self._nitsche[gamma] = assemble(nitsche(self.cut.ds(), gamma), self.space).tocsr()
+            self._nitsche[gamma] = assemble(nitsche(self.cut.ds(), gamma * self.order**2), self.space).tocsr()
         return self._nitsche[gamma]
 
     def matrix(self, gamma: float = GAMMA, gamma_g: float = GAMMA_G):

@@ -19,7 +19,11 @@ The problems (:data:`PROBLEMS`), each at orders 1 and 2 through :func:`cutfem.ru
 fictitious-domain Poisson in the unit ball, Laplace-Beltrami on the unit sphere, the mean curvature
 vector on the paper's torus; their L2 (and H1) errors and rates, in ``higher_order_problems.json``,
 ``.csv``, ``higher_order_problems_table.tex`` and the figure ``higher_order_problems`` (errors against
-h, P1 dashed, P2 solid).  ``python -m cutfem.studies.higher_order --out DIR [--tiny | --quick | --full]``.
+h, P1 dashed, P2 solid).
+
+Condition numbers over 20 random positions of the sphere and the ball against the grid, orders 1 and 2
+(:mod:`cutfem.studies.shift_conditioning`): ``higher_order_conditioning.json``, ``.csv``, ``_table.tex``
+and the figure.  ``python -m cutfem.studies.higher_order --out DIR [--tiny | --quick | --full]``.
 """
 
 from __future__ import annotations
@@ -37,9 +41,11 @@ from cutfem.fem.norms import rates
 
 from .common import PAGE_WIDTH, figure_style, fmt_rate, pick, save_csv, save_figure, save_json, save_latex_table, study_main
 from .paper_cut import BOX as TORUS_BOX
+from .shift_conditioning import NAME as CONDITIONING, conditioning_outputs
 
 NAME = "higher_order"
-OUTPUTS = [f"{NAME}_geometry", f"{NAME}_geometry_table", f"{NAME}_problems", f"{NAME}_problems_table"]
+OUTPUTS = [f"{NAME}_geometry", f"{NAME}_geometry_table", f"{NAME}_problems", f"{NAME}_problems_table", CONDITIONING,
+           f"{CONDITIONING}_table"]
 
 #: (problem, its surface by default, the error keys of its record)
 PROBLEMS = (("poisson-cut", "ball", ("l2_error", "h1_error")), ("laplace-beltrami-cut", "sphere", ("l2_error", "h1_error")),
@@ -129,6 +135,7 @@ def _plot(out, rows):
 def run(out: Path, size: str = "quick", progress=None) -> dict:
     spacings = pick(size, [0.2, 0.1], [0.2, 0.1, 0.05], [0.2, 0.1, 0.05, 0.025])
     _problems_outputs(out, size, problem_rows(pick(size, [0.2, 0.1], [0.2, 0.1], [0.2, 0.1, 0.05, 0.025]), progress))
+    conditioning_outputs(out, size, pick(size, [0.4, 0.2], [0.4, 0.2, 0.1], [0.4, 0.2, 0.1, 0.05]), progress)
     rows = []
     for name, (levelset, (lower, upper)) in surfaces().items():
         for order in (1, 2):

@@ -261,6 +261,8 @@ def augmented_hierarchy(prolongations, w):
     """The hierarchy ``prolongations`` with every coarse space doubled by the products with the
     nodal vector w (n,): P_0 becomes [P_0, diag(w) P_0] (n, 2 n_1) and P_l, l >= 1, becomes
     diag(P_l, P_l), so level l holds the fine functions P_0..P_{l-1} v + w P_0..P_{l-1} v'.
+    With several vectors w (n, k), the products with each: [P_0, diag(w_1) P_0, ..., diag(w_k) P_0]
+    and diag(P_l, ..., P_l) (k + 1 times).
 
     Why (w = phi_h, the surface operators of a cut band, docs/math.md §4): the functions w g, g
     smooth, are normally linear with zero trace on Gamma_h, so only the face penalty sees them,
@@ -275,15 +277,28 @@ def augmented_hierarchy(prolongations, w):
     face penalty dominates the whole operator (M + tau_F J_F, the mean curvature system) the plain
     hierarchy already needs few iterations and the larger coarse levels made it slower, hence an
     option.
+
+    The same near-kernel, one order up, in fictitious-domain P2 fields (docs/math.md §20): outside
+    Omega_h only the ghost penalty sees a function, and the functions that vanish inside and grow
+    outward, (phi)_+ g, have tiny face jumps of the first and second normal derivatives; the P1
+    coarse space of the P2 level holds none of them (CG's slowest modes live on the dofs outside,
+    A-orthogonal to it), so w = (phi)_+ there.  And for P2 trace fields the normally quadratic
+    functions phi_h^2 g vanish on Gamma_h to second order: only the face penalty sees them, through
+    jumps O(h) smaller than those of phi_h g; with w = (phi_h, phi_h^2) the coarse levels hold both
+    (phi_h the P1 level set: phi_h v and phi_h^2 v are its products with P1 functions, exactly P2
+    on the finest level).  A coarse node whose support w misses gives a zero
+    column, an empty row of the coarse matrices: the sweeps leave it at zero (its right-hand side is
+    zero) and the coarsest level, singular, takes its pseudo-inverse (:meth:`GeometricMultigrid._coarse_pseudo_inverse`).
     """
     prolongations = iter(prolongations)
     P = next(prolongations, None)
     if P is None:
         return
     P = sp.csr_matrix(P)
-    yield sp.hstack([P, sp.diags(w) @ P], format="csr")
+    w = np.asarray(w).reshape(len(w), -1)
+    yield sp.hstack([P] + [sp.diags(w[:, k]) @ P for k in range(w.shape[1])], format="csr")
     for P in prolongations:
-        yield sp.block_diag([P, P], format="csr")
+        yield sp.block_diag([P] * (w.shape[1] + 1), format="csr")
 
 
 def _single(M):
@@ -316,7 +331,7 @@ class GeometricMultigrid:
     flat under refinement where the W-cycle's grew, at about the W-cycle's cost per iteration (one
     coarse product more per visit).  ``apply(R)`` acts on (n, c).
 
-    ``augment`` (n,), a nodal vector w: every coarse space holds, beside the prolongated coarse
+    ``augment`` (n,) or (n, k), nodal vectors w: every coarse space holds, beside the prolongated coarse
     functions v, their products w v (:func:`augmented_hierarchy`).  For a surface operator on a cut
     band, w = phi_h: see :func:`augmented_hierarchy` for why and what it costs.
 
@@ -345,9 +360,11 @@ class GeometricMultigrid:
             prolongations = lattice_hierarchy(lattice)
         if augment is not None:
             augment = np.asarray(augment, dtype=float)
-            if augment.shape != (n,) or not np.all(np.isfinite(augment)) or not np.any(augment):
-                raise ValueError(f"augment must be a finite, nonzero nodal vector of shape ({n},) (e.g. the level-set values "
-                                 f"phi_h of a cut space), got shape {augment.shape}; pass augment=None for the plain hierarchy")
+            if augment.shape[:1] != (n,) or augment.ndim > 2 or not np.all(np.isfinite(augment)) \
+                    or not np.all(np.any(augment.reshape(n, -1), axis=0)):
+                raise ValueError(f"augment must be finite, nonzero nodal vectors of shape ({n},) or ({n}, k) (e.g. the "
+                                 f"level-set values phi_h of a cut space), got shape {augment.shape}; pass augment=None for "
+                                 "the plain hierarchy")
             prolongations = augmented_hierarchy(prolongations, augment)
         self._checks = _checks if _checks is not None else _Checks.of(n=n)
         if np.any(_diagonal(A) <= 0):
