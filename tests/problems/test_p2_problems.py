@@ -85,3 +85,9 @@ def test_poisson_cut_order_two_default_ghost_penalty_is_the_accurate_one():
     assert default["l2_error"] == explicit["l2_error"]
     assert default["l2_error"] < 0.65 * strong["l2_error"] and default["l2_error"] < 5.1e-4
     assert default["h1_error"] < 0.8 * strong["h1_error"]
+
+
+def test_mean_curvature_cut_refuses_the_edge_penalty_at_order_two():
+    """J_E has its P1 form only: --tau-e at --order 2 is refused before the geometry, naming the fix."""
+    with pytest.raises(ProblemError, match="--tau-e 0.1 at --order 2.*leave --tau-e out"):
+        cutfem.run("mean-curvature-cut", levels=[0.4], order=2, tau_e=0.1)
