@@ -273,7 +273,13 @@ class MeanCurvatureCut(Problem):
 
     def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, tau_e, order,
                     solver, length_scale, R, r, radius, axes):
-        """One level; ``order`` 2: P2 trace fields on S_h lifted by Theta_h (docs/math.md §17-18)."""
+        """One level; ``order`` 2: P2 trace fields on S_h lifted by Theta_h (docs/math.md §17-18).  An
+        edge penalty (``tau_e`` > 0) is refused at order 2 before the geometry is built: J_E has its
+        P1 form only (:func:`cutfem.fem.terms.edge_jump_penalty`)."""
+        if order == 2 and tau_e > 0:
+            raise ProblemError(f"--tau-e {tau_e:g} at --order 2: the edge penalty J_E has its P1 form only (the edges of the "
+                               "lifted S_h are curved and no quadrature measure covers them); leave --tau-e out (0) and "
+                               "stabilize with the default face term or --stabilization normal")
         kind, tau_f, face_h_power, tau_n, normal_h_power = self.stabilization_for(stabilization, order, tau_f, face_h_power, tau_n,
                                                                                   normal_h_power)
         t = Timer()
