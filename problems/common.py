@@ -256,7 +256,7 @@ def check_ghost_penalty(gamma_g, flag="--gamma-g") -> list:
     costs accuracy.  Returns the warnings given, for the record.  gamma_g = 0 (no ghost penalty) is
     allowed: the solver then reports the loss of stability it causes."""
     g = _finite_nonnegative(gamma_g, flag)
-    fit = f"use {flag} in [0.01, {GHOST_PENALTY_WARN:g}] (default 0.1)"
+    fit = f"use {flag} in [0.01, {GHOST_PENALTY_WARN:g}] (the default 0.1; poisson-cut at order 2: 0.01)"
     if g > GHOST_PENALTY_MAX:
         raise ProblemError(
             f"{flag} {g:g} is above {GHOST_PENALTY_MAX:g}: the ghost penalty locks u_h to one linear function across the "

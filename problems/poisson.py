@@ -154,6 +154,7 @@ def poisson_cut(spacing, surface, background, box, gamma, gamma_g, solver, R, r,
             "dofs": int(V.n_dofs),
             **dict(zip(("l2_error", "h1_error"), l2_h1_errors(V, u, exact_solution, dx))),
             "volume": dx.size,
+            "gamma_g": gamma_g,  # the one used (the parameter's default, None, is the order's)
             "solver": info.method,
             "solver_iterations": info.iterations,
         }

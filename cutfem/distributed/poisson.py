@@ -16,7 +16,7 @@ from ..fem.norms import l2_h1_errors
 from ..fem.terms import face_jump_penalty, load, nitsche, stiffness
 from ..geometry.markers import NEG
 from ..problems.common import check_ghost_penalty, check_nitsche_penalty, levelset_for
-from ..problems.poisson import exact_solution, exact_u, source
+from ..problems.poisson import GHOST_PENALTY, exact_solution, exact_u, source
 from ..runs.runner import Timer
 from .launch import engine
 from .assembly import slab_pieces
@@ -51,6 +51,7 @@ def poisson_cut_level(spacing, surface, background, box, gamma, gamma_g, solver,
     ``counts``: the partition by hand (:func:`~cutfem.distributed.partition.partition_for`)."""
     MPI, _ = engine()
     comm = MPI.COMM_WORLD if comm is None else comm
+    gamma_g = GHOST_PENALTY[1] if gamma_g is None else gamma_g  # the default of order 1, the distributed one
     notes = check_ghost_penalty(gamma_g) + check_nitsche_penalty(gamma)
     t = Timer()
     with t("geometry"):
