@@ -20,8 +20,9 @@ from ..solvers.krylov import DEFAULT_TOL
 from .assembly import global_keys, slab_system
 from .launch import engine
 from .partition import rank_cuts, slab_partition
+from .preconditioners import lattice_prolongations
 
-__all__ = ["solve_on_slabs", "cut_counts", "STAGES"]
+__all__ = ["solve_on_slabs", "cut_counts", "nodal_levelset", "STAGES"]
 
 #: the stages of a distributed level, timed on each rank (the record keeps the slowest rank's)
 STAGES = ("geometry", "assembly", "solve", "errors")
@@ -40,6 +41,18 @@ def cut_counts(cuts, parts) -> dict:
     if cuts.seam is not None and cuts.seam.n_tets:
         out["interior_faces"] += cuts.seam_facets(cuts.seam.interior_facets(CUT)).n_facets
     return out
+
+
+def nodal_levelset(cuts, nodes) -> np.ndarray:
+    """phi_h at the global background nodes ``nodes`` (active nodes this rank owns), from the owned
+    cut and the seam cut, one of which holds every tet around an owned node: the serial nodal values."""
+    ids, values = [np.zeros(0, np.int64)], [np.zeros(0)]
+    for cut in (cuts.owned, cuts.seam):
+        if cut is not None:
+            ids.append(cut.background.global_nodes(cut.node_ids))
+            values.append(cut.values)
+    ids, first = np.unique(np.concatenate(ids), return_index=True)
+    return np.concatenate(values)[first][np.searchsorted(ids, nodes)]
 
 
 def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
@@ -66,7 +79,11 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
         if constrain is not None:
             constrain(A, loads, numbering, parts)
     with t("solve"):
-        xs, info = system.solve(A, loads, solver, tol, bulk)
+        def hierarchy():  # one field on the structured box: the lattice multigrid, doubled by phi_h for a surface field
+            nodes = numbering.owned_keys
+            return lattice_prolongations(comm, slabs, nodes, None if bulk else nodal_levelset(cuts, nodes))
+
+        xs, info = system.solve(A, loads, solver, tol, bulk, hierarchy if fields == 1 else None)
     with t("errors"):
         sums = np.zeros(len(keys))
         V = parts.space

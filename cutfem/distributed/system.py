@@ -35,11 +35,15 @@ import scipy.sparse as sp
 from ..solvers.krylov import DEFAULT_TOL
 from ..solvers.solve import DIRECT_LIMIT_NO_MG, DIRECT_LIMIT_NO_MG_BULK
 from .launch import engine
+from .preconditioners import set_multigrid
 
-__all__ = ["GlobalNumbering", "LinearSystem", "DISTRIBUTED_SOLVERS"]
+__all__ = ["GlobalNumbering", "LinearSystem", "DISTRIBUTED_SOLVERS", "DIRECT_LIMIT_SURFACE_MG"]
 
 #: solver names of the problems (problems/common.py SOLVERS) -> (KSP type, PC type); "auto" chooses by size
-DISTRIBUTED_SOLVERS = {"direct": ("preonly", "lu"), "cg-amg": ("cg", "gamg"), "cg-jacobi": ("cg", "jacobi")}
+DISTRIBUTED_SOLVERS = {"direct": ("preonly", "lu"), "cg-mg": ("cg", "mg"), "cg-amg": ("cg", "gamg"), "cg-jacobi": ("cg", "jacobi")}
+
+#: with the lattice multigrid ("cg-mg"), ``solver="auto"`` solves a surface field directly up to this size
+DIRECT_LIMIT_SURFACE_MG = 5_000
 
 
 class GlobalNumbering:
@@ -166,7 +170,7 @@ class LinearSystem:
             out.append(got)
         return out
 
-    def solve(self, A, loads, solver: str = "auto", tol: float = DEFAULT_TOL, bulk: bool = True):
+    def solve(self, A, loads, solver: str = "auto", tol: float = DEFAULT_TOL, bulk: bool = True, hierarchy=None):
         """``([x, ...], info)``: the solutions of A x = b for each load Vec by PETSc's KSP (one
         setup for all) and what solved them (``engine``, ``ksp``, ``pc``, ``iterations`` (the most
         of any load), ``residual`` (the largest relative one), ``ranks``).  ``tol``: the relative
@@ -176,10 +180,16 @@ class LinearSystem:
         _, PETSc = engine()
         N = self.numbering.n_global
         if solver == "auto":
-            solver = "direct" if N <= (DIRECT_LIMIT_NO_MG_BULK if bulk else DIRECT_LIMIT_NO_MG) else "cg-amg"
+            if not bulk and hierarchy is not None:
+                solver = "direct" if N <= DIRECT_LIMIT_SURFACE_MG else "cg-mg"
+            else:
+                solver = "direct" if N <= (DIRECT_LIMIT_NO_MG_BULK if bulk else DIRECT_LIMIT_NO_MG) else "cg-amg"
         if solver not in DISTRIBUTED_SOLVERS:
             raise ValueError(f"solver={solver!r} is not available on PETSc; distributed runs take "
                              f"{', '.join(['auto', *DISTRIBUTED_SOLVERS])}")
+        if solver == "cg-mg" and hierarchy is None:
+            raise ValueError("solver='cg-mg' needs the lattice hierarchy of a single field on a structured box, which this "
+                             "problem does not give on PETSc: use 'cg-amg' or 'direct'")
         diagonal = A.getDiagonal()
         if diagonal.min()[1] <= 0.0:
             raise ValueError("the system has a row with no positive diagonal entry (an unknown that no term sees, e.g. S_h "
@@ -191,6 +201,10 @@ class LinearSystem:
         ksp.setType(ksp_type)
         pc = ksp.getPC()
         pc.setType(pc_type)
+        made = []  # the multigrid's prolongations and coarse operators
+        if pc_type == "mg":
+            made = hierarchy()
+            made += set_multigrid(ksp, A, made)
         if pc_type == "lu":
             pc.setFactorSolverType("mumps")
         else:
@@ -217,7 +231,8 @@ class LinearSystem:
         pc_name = f"lu ({pc.getFactorSolverType()})" if pc_type == "lu" else pc.getType()
         info = {"engine": f"PETSc {'.'.join(map(str, PETSc.Sys.getVersion()))}", "ksp": ksp.getType(), "pc": pc_name,
                 "iterations": iterations, "residual": residual, "ranks": int(self.comm.size)}
-        ksp.destroy()
+        for obj in (ksp, *made):
+            obj.destroy()
         return xs, info
 
     def gather(self, x, dofs) -> np.ndarray:
