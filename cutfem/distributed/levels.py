@@ -87,10 +87,11 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
     with t("errors"):
         sums = np.zeros(len(keys))
         V = parts.space
-        if V is not None and V.n_dofs:
-            dofs = numbering(global_keys(V))
-            u = np.stack([system.gather(x, dofs) for x in xs], axis=1) if len(xs) > 1 else system.gather(xs[0], dofs)
-            sums[:] = measure(V, u)
+        has = V is not None and V.n_dofs
+        dofs = numbering(global_keys(V)) if has else np.zeros(0, np.int64)
+        values = [system.gather(x, dofs) for x in xs]  # a collective scatter: every rank, with or without unknowns
+        if has:
+            sums[:] = measure(V, np.stack(values, axis=1) if len(xs) > 1 else values[0])
         comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
     for obj in (A, *loads, *xs):
         obj.destroy()

@@ -33,17 +33,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..solvers.krylov import DEFAULT_TOL
-from ..solvers.solve import DIRECT_LIMIT_NO_MG, DIRECT_LIMIT_NO_MG_BULK
+from ..solvers.solve import DIRECT_LIMIT, DIRECT_LIMIT_NO_MG, DIRECT_LIMIT_NO_MG_BULK
 from .launch import engine
 from .preconditioners import set_multigrid
 
-__all__ = ["GlobalNumbering", "LinearSystem", "DISTRIBUTED_SOLVERS", "DIRECT_LIMIT_SURFACE_MG"]
+__all__ = ["GlobalNumbering", "LinearSystem", "DISTRIBUTED_SOLVERS"]
 
 #: solver names of the problems (problems/common.py SOLVERS) -> (KSP type, PC type); "auto" chooses by size
 DISTRIBUTED_SOLVERS = {"direct": ("preonly", "lu"), "cg-mg": ("cg", "mg"), "cg-amg": ("cg", "gamg"), "cg-jacobi": ("cg", "jacobi")}
-
-#: with the lattice multigrid ("cg-mg"), ``solver="auto"`` solves a surface field directly up to this size
-DIRECT_LIMIT_SURFACE_MG = 5_000
 
 
 class GlobalNumbering:
@@ -180,8 +177,8 @@ class LinearSystem:
         _, PETSc = engine()
         N = self.numbering.n_global
         if solver == "auto":
-            if not bulk and hierarchy is not None:
-                solver = "direct" if N <= DIRECT_LIMIT_SURFACE_MG else "cg-mg"
+            if hierarchy is not None:
+                solver = "direct" if N <= DIRECT_LIMIT else "cg-mg"
             else:
                 solver = "direct" if N <= (DIRECT_LIMIT_NO_MG_BULK if bulk else DIRECT_LIMIT_NO_MG) else "cg-amg"
         if solver not in DISTRIBUTED_SOLVERS:
