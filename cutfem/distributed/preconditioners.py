@@ -159,6 +159,8 @@ def set_multigrid(ksp, A, prolongations) -> list:
         pc.setMGInterpolation(L - 1 - k, P)
         Al = Al.PtAP(P)
         Al.setOption(PETSc.Mat.Option.SPD, True)
+        # point SOR: with inodes PETSc's SOR inverts the 2 x 2 blocks of a node's two copies v and
+        # phi_h v, nearly dependent where phi_h varies little over the node's support (a zero pivot)
         Al.setOption(PETSc.Mat.Option.USE_INODES, False)
         operators.append(Al)
         pc.getMGSmoother(L - 2 - k).setOperators(Al)

@@ -16,15 +16,20 @@ System
 Each rank adds the matrices of its local spaces as COO triples in global numbers
 (:meth:`LinearSystem.add_matrix`), and its local load vectors (:meth:`LinearSystem.add_vector`);
 the triples of rows another rank owns travel to it, and each rank's rows go to PETSc as exact CSR
-arrays of an MPIAIJ matrix (petsc4py 3.18 has no COO assembly).  The
-solve is PETSc's: CG preconditioned by GAMG (smoothed aggregation) to a relative residual of 1e-8
-for SPD systems, or an LU factorization by MUMPS ("direct"); ``solver="auto"`` takes the direct
-one as the serial ``solve`` does without a geometric hierarchy (:data:`~cutfem.solvers.solve.DIRECT_LIMIT_NO_MG`
-unknowns for surface fields, :data:`~cutfem.solvers.solve.DIRECT_LIMIT_NO_MG_BULK` for bulk fields):
-GAMG does well on the bulk problems (18 iterations at 48 thousand unknowns of poisson-cut) and
-poorly on the TraceFEM systems, whose near-kernel (the functions that vanish on S_h) it does not
-see (135-280 iterations where the serial multigrid, which augments its coarse spaces with phi_h v,
-takes about 20).
+arrays of an MPIAIJ matrix (petsc4py 3.18 has no COO assembly).  The solve is PETSc's, to a
+relative residual of 1e-8 for SPD systems: CG preconditioned by PCMG on cutfem's lattice
+prolongations ("cg-mg", :mod:`~cutfem.distributed.preconditioners`; for a surface field each coarse
+space doubled by phi_h v), by GAMG (smoothed aggregation, "cg-amg"), or an LU factorization by
+MUMPS ("direct").  ``solver="auto"`` follows the serial ``solve``: with the lattice hierarchy (one
+field on the structured box) direct up to :data:`~cutfem.solvers.solve.DIRECT_LIMIT` unknowns and
+cg-mg above; without it (product spaces) direct up to
+:data:`~cutfem.solvers.solve.DIRECT_LIMIT_NO_MG_BULK` unknowns of a bulk field
+(:data:`~cutfem.solvers.solve.DIRECT_LIMIT_NO_MG` of a surface field) and GAMG above.
+GAMG and hypre's BoomerAMG need about twice the iterations at each halving of h on the TraceFEM
+systems, whose near-kernel (the functions phi_h g that vanish on S_h, and the locally linear ones
+that J_F hardly sees) aggregation does not find; the lattice hierarchy holds both on every level,
+and CG then takes 8-9 iterations (laplace-beltrami-cut) or 9-17 (mean-curvature-cut) from 766 to
+290 thousand unknowns, on 1 and 2 ranks (docs/math.md §19).
 """
 
 from __future__ import annotations
@@ -172,7 +177,9 @@ class LinearSystem:
         setup for all) and what solved them (``engine``, ``ksp``, ``pc``, ``iterations`` (the most
         of any load), ``residual`` (the largest relative one), ``ranks``).  ``tol``: the relative
         residual of CG; ``bulk``: the unknowns fill a volume (the size up to which "auto" is
-        direct).  A row without any term (a zero diagonal) raises ValueError; a KSP that
+        direct); ``hierarchy``: None, or a function that returns the lattice prolongations
+        (:func:`~cutfem.distributed.preconditioners.lattice_prolongations`), called for "cg-mg" only.
+        A row without any term (a zero diagonal) raises ValueError; a KSP that
         does not converge RuntimeError with PETSc's reason."""
         _, PETSc = engine()
         N = self.numbering.n_global
