@@ -127,7 +127,7 @@ class LinearSystem:
         entries of rows that other ranks own are sent to them first (:meth:`_to_owners`); each rank
         then sums its rows' triples into CSR (scipy sums duplicates) and hands PETSc exact CSR
         arrays (``MatCreateMPIAIJWithArrays``: preallocated, no stash)."""
-        _, PETSc = engine()
+        MPI, PETSc = engine()
         n, N = self.numbering.n_owned, self.numbering.n_global
         rows, cols, vals = (np.concatenate(a) if a else np.zeros(0, t) for a, t in
                             ((self._rows, np.int64), (self._cols, np.int64), (self._vals, float)))
@@ -139,7 +139,8 @@ class LinearSystem:
         A = PETSc.Mat().createAIJ(((n, N), (n, N)), csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType),
                                                          local.data), comm=self.comm)
         A.assemble()
-        k = max((v.shape[1] for v in self._vec_vals), default=1)
+        # the number of loads, agreed by all ranks: one without loads would exchange one column and the others k
+        k = self.comm.allreduce(max((v.shape[1] for v in self._vec_vals), default=1), op=MPI.MAX)
         vrows = np.concatenate(self._vec_rows) if self._vec_rows else np.zeros(0, np.int64)
         vvals = np.concatenate(self._vec_vals) if self._vec_vals else np.zeros((0, k))
         vrows, *columns = self._to_owners(vrows, *vvals.T)
