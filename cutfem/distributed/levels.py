@@ -24,9 +24,10 @@ from ..runs.runner import Timer
 from ..solvers.krylov import DEFAULT_TOL
 from .assembly import global_keys, slab_system
 from .launch import engine
-from .partition import partition_for, rank_cuts
+from .partition import Slabs, partition_for, rank_cuts
+from .preconditioners import lattice_prolongations
 
-__all__ = ["solve_on_slabs", "shared_background", "cut_counts", "STAGES"]
+__all__ = ["solve_on_slabs", "shared_background", "cut_counts", "nodal_levelset", "STAGES"]
 
 #: the stages of a distributed level, timed on each rank (the record keeps the slowest rank's)
 STAGES = ("geometry", "assembly", "solve", "errors")
@@ -45,6 +46,18 @@ def cut_counts(cuts, parts) -> dict:
     if cuts.seam is not None and cuts.seam.n_tets:
         out["interior_faces"] += cuts.seam_facets(cuts.seam.interior_facets(CUT)).n_facets
     return out
+
+
+def nodal_levelset(cuts, nodes) -> np.ndarray:
+    """phi_h at the global background nodes ``nodes`` (active nodes this rank owns), from the owned
+    cut and the seam cut, one of which holds every tet around an owned node: the serial nodal values."""
+    ids, values = [np.zeros(0, np.int64)], [np.zeros(0)]
+    for cut in (cuts.owned, cuts.seam):
+        if cut is not None:
+            ids.append(cut.background.global_nodes(cut.node_ids))
+            values.append(cut.values)
+    ids, first = np.unique(np.concatenate(ids), return_index=True)
+    return np.concatenate(values)[first][np.searchsorted(ids, nodes)]
 
 
 def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
@@ -76,15 +89,21 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
         if constrain is not None:
             constrain(A, loads, numbering, parts)
     with t("solve"):
-        xs, info = system.solve(A, loads, solver, tol, bulk) if solve is None else solve(system, A, loads, parts)
+        def hierarchy():  # one field on the structured box: the lattice multigrid, doubled by phi_h for a surface field
+            nodes = numbering.owned_keys
+            return lattice_prolongations(comm, cuts.partition, nodes, None if bulk else nodal_levelset(cuts, nodes))
+
+        lattice = fields == 1 and isinstance(cuts.partition, Slabs)  # an unstructured mesh has no lattice hierarchy
+        xs, info = (system.solve(A, loads, solver, tol, bulk, hierarchy if lattice else None) if solve is None
+                    else solve(system, A, loads, parts))
     with t("errors"):
         sums = np.zeros(len(keys))
         V = parts.space
-        held = V is not None and V.n_dofs
-        dofs = numbering(global_keys(V)) if held else np.zeros(0, dtype=np.int64)
-        u = [system.gather(x, dofs) for x in xs]  # collective: also on a rank without active cells
-        if held:
-            sums[:] = measure(V, np.stack(u, axis=1) if len(xs) > 1 else u[0])
+        has = V is not None and V.n_dofs
+        dofs = numbering(global_keys(V)) if has else np.zeros(0, np.int64)
+        values = [system.gather(x, dofs) for x in xs]  # a collective scatter: every rank, with or without unknowns
+        if has:
+            sums[:] = measure(V, np.stack(values, axis=1) if len(xs) > 1 else values[0])
         comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
     for obj in (A, *loads, *xs):
         obj.destroy()

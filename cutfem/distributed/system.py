@@ -18,15 +18,20 @@ System
 Each rank adds the matrices of its local spaces as COO triples in global numbers
 (:meth:`LinearSystem.add_matrix`), and its local load vectors (:meth:`LinearSystem.add_vector`);
 the triples of rows another rank owns travel to it, and each rank's rows go to PETSc as exact CSR
-arrays of an MPIAIJ matrix (petsc4py 3.18 has no COO assembly).  The
-solve is PETSc's: CG preconditioned by GAMG (smoothed aggregation) to a relative residual of 1e-8
-for SPD systems, or an LU factorization by MUMPS ("direct"); ``solver="auto"`` takes the direct
-one as the serial ``solve`` does without a geometric hierarchy (:data:`~cutfem.solvers.solve.DIRECT_LIMIT_NO_MG`
-unknowns for surface fields, :data:`~cutfem.solvers.solve.DIRECT_LIMIT_NO_MG_BULK` for bulk fields):
-GAMG does well on the bulk problems (18 iterations at 48 thousand unknowns of poisson-cut) and
-poorly on the TraceFEM systems, whose near-kernel (the functions that vanish on S_h) it does not
-see (135-280 iterations where the serial multigrid, which augments its coarse spaces with phi_h v,
-takes about 20).
+arrays of an MPIAIJ matrix (petsc4py 3.18 has no COO assembly).  The solve is PETSc's, to a
+relative residual of 1e-8 for SPD systems: CG preconditioned by PCMG on cutfem's lattice
+prolongations ("cg-mg", :mod:`~cutfem.distributed.preconditioners`; for a surface field each coarse
+space doubled by phi_h v), by GAMG (smoothed aggregation, "cg-amg"), or an LU factorization by
+MUMPS ("direct").  ``solver="auto"`` follows the serial ``solve``: with the lattice hierarchy (one
+field on the structured box) direct up to :data:`~cutfem.solvers.solve.DIRECT_LIMIT` unknowns and
+cg-mg above; without it (product spaces) direct up to
+:data:`~cutfem.solvers.solve.DIRECT_LIMIT_NO_MG_BULK` unknowns of a bulk field
+(:data:`~cutfem.solvers.solve.DIRECT_LIMIT_NO_MG` of a surface field) and GAMG above.
+GAMG and hypre's BoomerAMG need about twice the iterations at each halving of h on the TraceFEM
+systems, whose near-kernel (the functions phi_h g that vanish on S_h, and the locally linear ones
+that J_F hardly sees) aggregation does not find; the lattice hierarchy holds both on every level,
+and CG then takes 8-9 iterations (laplace-beltrami-cut) or 9-17 (mean-curvature-cut) from 766 to
+290 thousand unknowns, on 1 and 2 ranks (docs/math.md §19).
 """
 
 from __future__ import annotations
@@ -35,13 +40,14 @@ import numpy as np
 import scipy.sparse as sp
 
 from ..solvers.krylov import DEFAULT_TOL
-from ..solvers.solve import DIRECT_LIMIT_NO_MG, DIRECT_LIMIT_NO_MG_BULK
+from ..solvers.solve import DIRECT_LIMIT, DIRECT_LIMIT_NO_MG, DIRECT_LIMIT_NO_MG_BULK
 from .launch import engine
+from .preconditioners import set_multigrid
 
 __all__ = ["GlobalNumbering", "LinearSystem", "DISTRIBUTED_SOLVERS"]
 
 #: solver names of the problems (problems/common.py SOLVERS) -> (KSP type, PC type); "auto" chooses by size
-DISTRIBUTED_SOLVERS = {"direct": ("preonly", "lu"), "cg-amg": ("cg", "gamg"), "cg-jacobi": ("cg", "jacobi")}
+DISTRIBUTED_SOLVERS = {"direct": ("preonly", "lu"), "cg-mg": ("cg", "mg"), "cg-amg": ("cg", "gamg"), "cg-jacobi": ("cg", "jacobi")}
 
 
 class GlobalNumbering:
@@ -129,7 +135,7 @@ class LinearSystem:
         entries of rows that other ranks own are sent to them first (:meth:`_to_owners`); each rank
         then sums its rows' triples into CSR (scipy sums duplicates) and hands PETSc exact CSR
         arrays (``MatCreateMPIAIJWithArrays``: preallocated, no stash)."""
-        _, PETSc = engine()
+        MPI, PETSc = engine()
         n, N = self.numbering.n_owned, self.numbering.n_global
         rows, cols, vals = (np.concatenate(a) if a else np.zeros(0, t) for a, t in
                             ((self._rows, np.int64), (self._cols, np.int64), (self._vals, float)))
@@ -141,7 +147,8 @@ class LinearSystem:
         A = PETSc.Mat().createAIJ(((n, N), (n, N)), csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType),
                                                          local.data), comm=self.comm)
         A.assemble()
-        k = max((v.shape[1] for v in self._vec_vals), default=1)
+        # the number of loads, agreed by all ranks: one without loads would exchange one column and the others k
+        k = self.comm.allreduce(max((v.shape[1] for v in self._vec_vals), default=1), op=MPI.MAX)
         vrows = np.concatenate(self._vec_rows) if self._vec_rows else np.zeros(0, np.int64)
         vvals = np.concatenate(self._vec_vals) if self._vec_vals else np.zeros((0, k))
         vrows, *columns = self._to_owners(vrows, *vvals.T)
@@ -174,20 +181,28 @@ class LinearSystem:
             out.append(got)
         return out
 
-    def solve(self, A, loads, solver: str = "auto", tol: float = DEFAULT_TOL, bulk: bool = True):
+    def solve(self, A, loads, solver: str = "auto", tol: float = DEFAULT_TOL, bulk: bool = True, hierarchy=None):
         """``([x, ...], info)``: the solutions of A x = b for each load Vec by PETSc's KSP (one
         setup for all) and what solved them (``engine``, ``ksp``, ``pc``, ``iterations`` (the most
         of any load), ``residual`` (the largest relative one), ``ranks``).  ``tol``: the relative
         residual of CG; ``bulk``: the unknowns fill a volume (the size up to which "auto" is
-        direct).  A row without any term (a zero diagonal) raises ValueError; a KSP that
+        direct); ``hierarchy``: None, or a function that returns the lattice prolongations
+        (:func:`~cutfem.distributed.preconditioners.lattice_prolongations`), called for "cg-mg" only.
+        A row without any term (a zero diagonal) raises ValueError; a KSP that
         does not converge RuntimeError with PETSc's reason."""
         _, PETSc = engine()
         N = self.numbering.n_global
         if solver == "auto":
-            solver = "direct" if N <= (DIRECT_LIMIT_NO_MG_BULK if bulk else DIRECT_LIMIT_NO_MG) else "cg-amg"
+            if hierarchy is not None:
+                solver = "direct" if N <= DIRECT_LIMIT else "cg-mg"
+            else:
+                solver = "direct" if N <= (DIRECT_LIMIT_NO_MG_BULK if bulk else DIRECT_LIMIT_NO_MG) else "cg-amg"
         if solver not in DISTRIBUTED_SOLVERS:
             raise ValueError(f"solver={solver!r} is not available on PETSc; distributed runs take "
                              f"{', '.join(['auto', *DISTRIBUTED_SOLVERS])}")
+        if solver == "cg-mg" and hierarchy is None:
+            raise ValueError("solver='cg-mg' needs the lattice hierarchy of a single field on a structured box, which this "
+                             "problem does not give on PETSc: use 'cg-amg' or 'direct'")
         diagonal = A.getDiagonal()
         if diagonal.min()[1] <= 0.0:
             raise ValueError("the system has a row with no positive diagonal entry (an unknown that no term sees, e.g. S_h "
@@ -199,6 +214,10 @@ class LinearSystem:
         ksp.setType(ksp_type)
         pc = ksp.getPC()
         pc.setType(pc_type)
+        made = []  # the multigrid's prolongations and coarse operators
+        if pc_type == "mg":
+            made = hierarchy()
+            made += set_multigrid(ksp, A, made)
         if pc_type == "lu":
             pc.setFactorSolverType("mumps")
         else:
@@ -225,7 +244,8 @@ class LinearSystem:
         pc_name = f"lu ({pc.getFactorSolverType()})" if pc_type == "lu" else pc.getType()
         info = {"engine": f"PETSc {'.'.join(map(str, PETSc.Sys.getVersion()))}", "ksp": ksp.getType(), "pc": pc_name,
                 "iterations": iterations, "residual": residual, "ranks": int(self.comm.size)}
-        ksp.destroy()
+        for obj in (ksp, *made):
+            obj.destroy()
         return xs, info
 
     def gather(self, x, dofs) -> np.ndarray:
