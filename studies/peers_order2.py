@@ -49,8 +49,8 @@ NAME = "peers_order2"
 CUTFEM_MISSING = "cutfem order 2 not available in this version"
 #: per problem: cutfem's problem and its parameters (the peer's, where cutfem has them: laplace-beltrami-cut's
 #: names, ``stabilization`` "normal" with ``tau_n`` and ``normal_h_power``; the mean curvature vector each code
-#: with its own order-2 default, cutfem's face term with a = 1, whose multigrid converges where the peer's
-#: h^-1 normal-gradient weight does not), the peer's script, the exact geometry, the error keys (in both
+#: with its own order-2 default, cutfem's face term with a = 1 plus tau_N h J_N, whose multigrid converges where
+#: the peer's h^-1 normal-gradient weight does not), the peer's script, the exact geometry, the error keys (in both
 #: records), the geometric error key
 PROBLEMS = {
     "poisson": {"cutfem": "poisson-cut", "params": dict(POISSON_PARAMS), "peer": ngsxfem_poisson_p2, "shape": Sphere(),
