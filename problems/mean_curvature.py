@@ -82,7 +82,7 @@ ORDER2_FACE_H_POWER = 1.0
 #: the normal-gradient term tau_N h^b J_N that ``--stabilization auto`` adds to the face term at order 2
 #: (tau_N, b): the face jumps do not see the normally quadratic P2 band functions, so alone they leave the
 #: scaled condition number growing like h^-4; tau_N h J_N controls those functions (the condition number
-#: then bounded), and at weight h it is too weak to cost accuracy (docs/math.md §18)
+#: then grows like h^-1), and at weight h it costs little accuracy (docs/math.md §18)
 ORDER2_NORMAL = (1.0, 1.0)
 
 
