@@ -237,7 +237,7 @@ class LaplaceBeltramiCut(Problem):
         BACKGROUND_PARAM,
         SURFACE_BOX_PARAM,
         Param("stabilization", str, "auto", "cut stabilization: face (tau_F h^a J_F), normal (tau_N h^a normal gradient "
-              "over the cut tets), auto (face at order 1, normal with its defaults at order 2), none (the system is "
+              "over the cut tets), auto (face at order 1, normal tau_N h^-1 with tau_N = 1 at order 2), none (the system is "
               "singular, phi_h being a null vector, and every solver refuses it)", choices=("auto", "face", "normal", "none")),
         # each stabilization's parameters with it only: given with another, refused rather than ignored
         *face_stabilization_params(only=("stabilization", ("auto", "face"))),

@@ -19,8 +19,8 @@ goes by quadrature with the per-point normals of the lifted surface, the positio
 A x with x the P2 field of the lifted node positions, exactly).  Default there: the face term with
 a = 1, the jumps of the first and second normal derivatives weighted h and h^3 / 4, plus the
 normal-gradient term tau_N h J_N, tau_N = 1: the face jumps alone leave the weakest P2 band functions
-uncontrolled (scaled condition number ~ h^-4), the normal gradient at weight h controls them without
-costing accuracy (docs/math.md §18 compares the stabilizations).
+uncontrolled (scaled condition number ~ h^-4), the normal gradient at weight h controls them at
+little cost in accuracy (docs/math.md §18 compares the stabilizations).
 
 Units of length (choice).  Under x -> s x the mass term scales as s^2, the jumps do not: J_E as
 s^-1 (h = N^(-1/2) is a number) and h^a J_F as s^a, so the paper's tau_E = tau_F = 1/10 are
