@@ -31,13 +31,13 @@ may still belong to a boundary mode of a size nearly independent of s
 
 Measured (quick: spacings 0.4, 0.2, 0.1): every system at both orders varies by less than a factor
 1.6 over the positions.  The normal-gradient stabilization gives kappa ~ h^-2 at both orders
-(p = 2.02 and 2.10).  The face stabilization gives it at order 1 (p = 1.82, 1.94 between the last
+(p = 2.02 with tau_N h at order 1; 2.10 with tau_N h and 2.02 with tau_N h^-1 at order 2).  The face stabilization gives it at order 1 (p = 1.82, 1.94 between the last
 two) but not at order 2: kappa 3.2e5, 4.2e6, 6.6e7, p = 3.85 (4.0 between the last two), whatever
 the power of h in front of J_F (a = -1, 0, 1 give the same smallest eigenvalue): a P2 field on the
 band holds functions that neither the face jumps nor the trace on Gamma_h see to that order; hence
-the order-2 defaults of both trace problems hold a normal-gradient term (docs/math.md §18).  With
-them (spacings 0.4, 0.2, 3 positions): the sphere's tau_N h^-1 system p = 2.00, the mean curvature
-system (face a = 1 plus tau_N h J_N) p = 0.99, where the face term alone gives 3.65.  The
+the order-2 defaults of both trace problems hold a normal-gradient term (docs/math.md §18).  The
+mean curvature system with its defaults: p = 1.76 at order 1 (kappa 301, 927, 3.4e3) and 1.02 at
+order 2 (face a = 1 plus tau_N h J_N: 5.3e3, 1.0e4, 2.2e4), within a factor 1.2 over the positions.  The
 ball's kappa stays at about 1e4 at order 2 (80-190 at order 1) at these spacings: as at order 1
 (:mod:`cutfem.studies.bulk_conditioning`), the smallest eigenvalue belongs to a boundary mode of a
 size independent of s until the smooth first mode, O(s^2), drops below it.
