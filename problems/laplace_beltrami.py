@@ -2,7 +2,8 @@
 
 Discrete: (grad_{S_h} u, grad_{S_h} v) + (u, v) + J_h(u, v) = (f^e, v), f^e = f o p.
 Cut stabilizations: ``face`` (tau_F h^a J_F), ``normal`` (tau_N h^a (n_h.grad u, n_h.grad v) over the
-active tets), or ``none`` (then phi_h, zero on S_h, is a null vector and the solvers refuse the system).
+active tets), ``auto`` (the default: face at order 1, normal at order 2), or ``none`` (then phi_h, zero on
+S_h, is a null vector and the solvers refuse the system).
 Each stabilization's parameters are accepted with it only.  Errors: L2(S_h) and the H1(S_h) seminorm against u^e = u o p.
 
 Manufactured solutions (exact data derived by hand, checked in the tests against finite differences):
@@ -39,6 +40,10 @@ from cutfem.memory import BYTES_PER_ACTIVE_TET
 
 from .common import BACKGROUND_PARAM, ORDER_PARAM, SHAPE_PARAMS, SOLVER_PARAM, SURFACE_BOX_PARAM, TORUS_MESH_PARAMS, check_cut_memory, check_face_stabilization, check_normal_stabilization, check_sphere_levels, check_resolution, background_for, cut_record, face_stabilization_params, levelset_for, point_rows, surface_mesh_for, with_point_data
 
+
+#: laplace-beltrami-cut's ``--stabilization auto`` at order 2: the normal-gradient term tau_N h^b J_N,
+#: (tau_N, b), ngsxfem's weight 1 / h (consistent with the lifted normal, docs/math.md §18)
+ORDER2_NORMAL = (1.0, -1.0)
 
 #: the record entries of the Laplace-Beltrami problems (saved in the JSON of a run)
 DEFINITIONS = {
@@ -231,10 +236,11 @@ class LaplaceBeltramiCut(Problem):
         Param("surface", str, "sphere", "sphere or torus", choices=("torus", "sphere")),
         BACKGROUND_PARAM,
         SURFACE_BOX_PARAM,
-        Param("stabilization", str, "face", "cut stabilization (none: the system is singular, phi_h being a null "
-              "vector, and every solver refuses it)", choices=("face", "normal", "none")),
+        Param("stabilization", str, "auto", "cut stabilization: face (tau_F h^a J_F), normal (tau_N h^a normal gradient "
+              "over the cut tets), auto (face at order 1, normal tau_N h^-1 with tau_N = 1 at order 2), none (the system is "
+              "singular, phi_h being a null vector, and every solver refuses it)", choices=("auto", "face", "normal", "none")),
         # each stabilization's parameters with it only: given with another, refused rather than ignored
-        *face_stabilization_params(only=("stabilization", ("face",))),
+        *face_stabilization_params(only=("stabilization", ("auto", "face"))),
         Param("tau_n", float, 1.0, "normal-gradient stabilization tau_N (its weight tau_N (s/L)^(a-1): a warning above 100, "
               "refused below 1e-8 and above 1e6)", minimum=0, only=("stabilization", ("normal",))),
         Param("normal_h_power", float, 1.0, "power a of h in the normal-gradient term", only=("stabilization", ("normal",))),
@@ -249,11 +255,31 @@ class LaplaceBeltramiCut(Problem):
         problem's measures, made here alone (a lifted geometry changes them here)."""
         return cut.ds(), cut.dF(cut.interior_facets(CUT)), cut.dx(CUT)
 
+    @classmethod
+    def stabilization_for(cls, stabilization, order, tau_f, face_h_power, tau_n, normal_h_power):
+        """(kind, tau_n, normal_h_power): the stabilization that ``stabilization`` names at ``order``.
+        ``auto`` is the face term at order 1 and at order 2 the normal-gradient term tau_N h^b with
+        (tau_N, b) = :data:`ORDER2_NORMAL`: the face jumps leave the weakest P2 band functions
+        uncontrolled (scaled condition number ~ h^-4), the normal gradient keeps it ~ h^-2, and at
+        weight h^-1, consistent with the lifted normal, its multigrid iterations stay flat (docs/math.md
+        §18).  At order 2 a face parameter beside ``auto`` is refused (it would be ignored)."""
+        if stabilization != "auto":
+            return stabilization, tau_n, normal_h_power
+        if order == 1:
+            return "face", tau_n, normal_h_power
+        defaults = {p.name: p.default for p in cls.params}
+        if tau_f != defaults["tau_f"] or face_h_power != defaults["face_h_power"]:
+            raise ProblemError(f"--tau-f {tau_f:g} / --face-h-power {face_h_power:g}: at --order 2 the default stabilization "
+                               "is the normal-gradient term; pass --stabilization face to use the face term with these")
+        return ("normal",) + ORDER2_NORMAL
+
     def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, order, solver,
                     R, r, radius):
         """One level; ``order`` 2: P2 trace fields, the terms by quadrature (docs/math.md §18), on
         S_h lifted by Theta_h (§17: the planar S_h, at distance O(h^2) from S, would bound the L2
         rate by 2)."""
+        auto = stabilization == "auto"
+        stabilization, tau_n, normal_h_power = self.stabilization_for(stabilization, order, tau_f, face_h_power, tau_n, normal_h_power)
         t = Timer()
         with t("geometry"):
             phi = levelset_for(surface, R, r, radius)
@@ -264,7 +290,7 @@ class LaplaceBeltramiCut(Problem):
             space = CutSpace(cut, order=order)
         # after the cut's memory checks (a spacing that cannot fit is told so first), before any matrix
         notes = (check_face_stabilization(tau_f, face_h_power, level) if stabilization == "face" else
-                 check_normal_stabilization(tau_n, normal_h_power, level) if stabilization == "normal" else [])
+                 check_normal_stabilization(tau_n, normal_h_power, level, warn=not auto) if stabilization == "normal" else [])
         with t("assembly"):
             dS, faces, band = self.measures(cut)
             form = tangential_stiffness(dS) + mass(dS)

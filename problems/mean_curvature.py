@@ -17,8 +17,10 @@ each quadrature point of S_h (of Theta_h(S_h) at order 2).
 Order 2 (``--order 2``, docs/math.md §18): P2 trace fields on the lifted cut Theta_h(S_h); every term
 goes by quadrature with the per-point normals of the lifted surface, the position load too (it is
 A x with x the P2 field of the lifted node positions, exactly).  Default there: the face term with
-a = 1, the jumps of the first and second normal derivatives weighted h and h^3 / 4 (the best of the
-stabilizations compared in docs/math.md §18).
+a = 1, the jumps of the first and second normal derivatives weighted h and h^3 / 4, plus the
+normal-gradient term tau_N h J_N, tau_N = 1: the face jumps alone leave the weakest P2 band functions
+uncontrolled (scaled condition number ~ h^-4), the normal gradient at weight h controls them at
+little cost in accuracy (docs/math.md §18 compares the stabilizations).
 
 Units of length (choice).  Under x -> s x the mass term scales as s^2, the jumps do not: J_E as
 s^-1 (h = N^(-1/2) is a number) and h^a J_F as s^a, so the paper's tau_E = tau_F = 1/10 are
@@ -74,9 +76,14 @@ DEFINITIONS = {
 LENGTH_SCALE_RANGE = 10.0
 
 #: the power a of h in the face term J_F of ``--stabilization auto`` at order 2: with a = 1 the jumps of
-#: the first and second normal derivatives weigh h and h^3 / 4, the ghost penalty of order 2; the best
-#: of the stabilizations measured (docs/math.md §18).  Order 1 keeps the paper's a = 0.
+#: the first and second normal derivatives weigh h and h^3 / 4, the ghost penalty of order 2; the most
+#: accurate of the stabilizations measured (docs/math.md §18).  Order 1 keeps the paper's a = 0.
 ORDER2_FACE_H_POWER = 1.0
+#: the normal-gradient term tau_N h^b J_N that ``--stabilization auto`` adds to the face term at order 2
+#: (tau_N, b): the face jumps do not see the normally quadratic P2 band functions, so alone they leave the
+#: scaled condition number growing like h^-4; tau_N h J_N controls those functions (the condition number
+#: then grows like h^-1), and at weight h it costs little accuracy (docs/math.md §18)
+ORDER2_NORMAL = (1.0, 1.0)
 
 
 def mean_curvature_form(surface, tau_e=0.0, tau_f=0.0, faces=None, face_h_power=0.0, length_scale=1.0, tau_n=0.0, band=None,
@@ -238,7 +245,7 @@ class MeanCurvatureCut(Problem):
         BACKGROUND_PARAM,
         SURFACE_BOX_PARAM,
         Param("stabilization", str, "auto", "cut stabilization: face (tau_F h^a J_F), normal (tau_N h^a normal gradient over "
-              "the cut tets), auto (face, with a = 1 at order 2)", choices=("auto", "face", "normal")),
+              "the cut tets), auto (face; at order 2 face with a = 1 plus normal tau_N h, tau_N = 1)", choices=("auto", "face", "normal")),
         *face_stabilization_params(only=("stabilization", ("auto", "face"))),
         Param("tau_n", float, float(np.sqrt(3.0)), "normal-gradient stabilization tau_N (sqrt 3: 1 / spacing with a = -1 on a "
               "Kuhn box)", minimum=0, only=("stabilization", ("normal",))),
@@ -258,17 +265,17 @@ class MeanCurvatureCut(Problem):
 
     @staticmethod
     def stabilization_for(stabilization, order, tau_f, face_h_power, tau_n, normal_h_power):
-        """(kind, tau_f, face_h_power, tau_n, normal_h_power), the unused term's coefficient 0.
-        ``auto`` is the face term, with the paper's a = ``face_h_power`` (0) at order 1 and
-        :data:`ORDER2_FACE_H_POWER` at order 2 (an --face-h-power given there is refused: it would be
-        ignored)."""
+        """(kind, tau_f, face_h_power, tau_n, normal_h_power), an unused term's coefficient 0.
+        ``auto`` is the face term, with the paper's a = ``face_h_power`` (0) at order 1, and at order 2
+        the face term with a = :data:`ORDER2_FACE_H_POWER` plus the normal-gradient term
+        :data:`ORDER2_NORMAL` (an --face-h-power given there is refused: it would be ignored)."""
         if stabilization == "normal":
             return "normal", 0.0, face_h_power, tau_n, normal_h_power
         if stabilization == "auto" and order == 2:
             if face_h_power != 0.0:
                 raise ProblemError(f"--face-h-power {face_h_power:g}: at --order 2 the default stabilization takes a = "
                                    f"{ORDER2_FACE_H_POWER:g}; pass --stabilization face with --face-h-power to choose another power")
-            face_h_power = ORDER2_FACE_H_POWER
+            return ("face", tau_f, ORDER2_FACE_H_POWER) + ORDER2_NORMAL
         return "face", tau_f, face_h_power, 0.0, normal_h_power
 
     def solve_level(self, level, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, tau_e, order,

@@ -51,6 +51,7 @@ import math
 import time
 
 from cutfem.geometry.shapes import Sphere, Torus
+from cutfem.problems.laplace_beltrami import ORDER2_NORMAL
 
 from .peers_ngsxfem import NgBackground, element_longest_edges, kuhn_face_h, poisson_exact_cf, torus_exact_cf
 
@@ -69,8 +70,9 @@ THRESHOLD = 1000.0
 #: 1.0e-3 and 1.0e-4 against 5.7e-5 at 0.1 with gamma = 40)
 POISSON_PARAMS = {"gamma": 40.0, "gamma_g": 0.1}
 GHOST_PENALTIES = ("patch", "jumps")
-#: the Laplace-Beltrami comparison: cutfem's laplace-beltrami-cut with its normal-gradient defaults
-LAPLACE_BELTRAMI_PARAMS = {"tau_n": 1.0, "normal_h_power": 1.0}
+#: the Laplace-Beltrami comparison: cutfem's laplace-beltrami-cut with its order-2 default, the normal-gradient
+#: term tau_N h_T^-1 with tau_N = 1 (ngsxfem's own choice)
+LAPLACE_BELTRAMI_PARAMS = dict(zip(("tau_n", "normal_h_power"), ORDER2_NORMAL))
 #: the mean curvature comparison: issue 48's normal-gradient stabilization 1 / s (s the spacing) written
 #: as cutfem's tau_N h_T^a with h_T = sqrt(3) s, the longest edge of a Kuhn tet.  It reproduces the issue's
 #: L2 errors 1.5e-1, 3.5e-2, 6.6e-3 at spacings 0.2, 0.1, 0.05; tau_N = 1 (weight 1 / h_T) gives 3.9e-2, 8.0e-3

@@ -49,8 +49,8 @@ NAME = "peers_order2"
 CUTFEM_MISSING = "cutfem order 2 not available in this version"
 #: per problem: cutfem's problem and its parameters (the peer's, where cutfem has them: laplace-beltrami-cut's
 #: names, ``stabilization`` "normal" with ``tau_n`` and ``normal_h_power``; the mean curvature vector each code
-#: with its own order-2 default, cutfem's face term with a = 1, whose multigrid converges where the peer's
-#: h^-1 normal-gradient weight does not; Poisson: cutfem's gamma is multiplied by k^2 = 4 in its form, so the peer's
+#: with its own order-2 default, cutfem's face term with a = 1 plus tau_N h J_N, whose multigrid converges where
+#: the peer's h^-1 normal-gradient weight does not; Poisson: cutfem's gamma is multiplied by k^2 = 4 in its form, so the peer's
 #: gamma 40 is cutfem's 10, and the peer's gamma_g weighs its patch ghost penalty, another term than cutfem's
 #: derivative jumps, which keep cutfem's order-2 default), the peer's script, the exact geometry, the error keys (in both
 #: records), the geometric error key

@@ -119,7 +119,7 @@ def test_cut_mean_curvature_vtk_holds_the_solution_at_its_points(tmp_path):
     (["run", "mean-curvature-cut", "--surface", "sphere", "--radius", "0.01", "--box", "-1,-1,-1,1,1,1", "--levels", "0.25"], "too coarse to resolve the surface"),
     (["run", "mean-curvature-cut", "--surface", "sphere", "--radius", "0.01", "--box", "0.3,0.3,0.3,1,1,1", "--levels", "0.1"], "does not cut the background mesh"),
     (["run", "mean-curvature-meshed", "--surface", "missing.stl"], "--surface: 'missing.stl' is neither torus, sphere nor an existing file"),
-    (["run", "laplace-beltrami-cut", "--stabilization", "n.a"], "--stabilization: 'n.a' is not one of face, normal, none"),
+    (["run", "laplace-beltrami-cut", "--stabilization", "n.a"], "--stabilization: 'n.a' is not one of auto, face, normal, none"),
     (["run", "laplace-beltrami-meshed", "--surface", "ball.stl"], "--surface: 'ball.stl' is not one of torus, sphere"),
     (["run", "heat-surface-cut", "--theta", "0.7"], r"--theta: 0.7 is not one of 1.0, 0.5"),
     (["run", "mean-curvature-cut", "--face-h-power", "nan"], "--face-h-power: nan is not a finite number"),
