@@ -15,7 +15,7 @@ from ..fem.norms import h1_error, l2_error
 from ..fem.terms import basis_integrals, face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
 from ..geometry.markers import CUT
 from ..problems.common import check_face_stabilization, check_normal_stabilization, levelset_for
-from ..problems.laplace_beltrami import manufactured
+from ..problems.laplace_beltrami import LaplaceBeltramiCut, manufactured
 from ..runs.runner import Timer
 from .assembly import slab_pieces
 from .launch import engine
@@ -48,6 +48,9 @@ def laplace_beltrami_cut_level(spacing, surface, background, box, stabilization,
     ``background`` and ``counts`` as for :func:`~cutfem.distributed.poisson.poisson_cut_level`."""
     MPI, _ = engine()
     comm = MPI.COMM_WORLD if comm is None else comm
+    # "auto" is the serial problem's choice at order 1 (the distributed level is P1)
+    stabilization, tau_n, normal_h_power = LaplaceBeltramiCut.stabilization_for(stabilization, 1, tau_f, face_h_power, tau_n,
+                                                                               normal_h_power)
     notes = (check_face_stabilization(tau_f, face_h_power, spacing) if stabilization == "face" else
              check_normal_stabilization(tau_n, normal_h_power, spacing) if stabilization == "normal" else [])
     t = Timer()
