@@ -489,7 +489,9 @@ def test_tetwild_background_is_meshed_once_and_shared():
     mesh = shared_background(WORLD, phi, 0.4, "tetwild", None)
     assert isinstance(mesh, TetMesh) and len(set(WORLD.allgather((mesh.n_tets, float(mesh.points.sum()))))) == 1
     rec = poisson_cut_level(0.4, **distributed_params("poisson-cut", {"solver": "direct"}) | {"background": mesh})
-    assert rec["ranks"] == WORLD.size and rec["background_nodes"] == mesh.n_points and rec["l2_error"] < 0.05
+    # pytetwild's meshes of the box differ from call to call: the L2 error at 0.4 spreads over 0.028-0.058
+    # (25 meshings); a wrong solve gives O(1)
+    assert rec["ranks"] == WORLD.size and rec["background_nodes"] == mesh.n_points and rec["l2_error"] < 0.1
     box = cf.structured_box([-1.2] * 3, [1.2] * 3, spacing=0.4)
     assert shared_background(WORLD, phi, 0.4, box, None) is box  # a box given: compared by its numbers
     if WORLD.size > 1:
