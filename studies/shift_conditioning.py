@@ -16,8 +16,8 @@ D^{-1/2} K D^{-1/2} is computed (:func:`cutfem.solvers.diagnose.condition_number
   stabilization at each order (:meth:`MeanCurvatureCut.stabilization_for` of ``auto``: the face term at
   order 1; at order 2 the face term with a = 1 plus tau_N h J_N);
 * ``ball``: poisson-cut's fictitious-domain system in the unit ball (Nitsche penalty gamma k^2, ghost
-  penalty of order k, :class:`cutfem.studies.bulk_conditioning.PoissonParts`), down to spacing 0.1
-  (:data:`FINEST`).
+  penalty of order k, :class:`cutfem.studies.bulk_conditioning.PoissonParts`), down to spacing 0.2
+  (0.1 at the full size: :data:`FINEST`).
 
 Per (system, order, spacing): the min, median and max over the positions and their ratio max / min,
 and whether the system is its problem's default at that order (``default``: laplace-beltrami-cut's
@@ -73,10 +73,11 @@ SYSTEMS = {"sphere-face": "sphere, face", "sphere-normal": "sphere, normal gradi
 #: random positions of the surface per spacing, and their seed
 N_SHIFTS = 20
 SEED = 2024
-#: the finest spacing of a system: the ball's P2 matrix at 0.05 (303 thousand unknowns of a 3-D
-#: stencil) is beyond the sparse LU of :func:`condition_number` twenty times over (at 0.1, 42 thousand
-#: unknowns, it takes minutes a position on a shared machine)
-FINEST = {"ball": 0.1}
+#: the finest spacing of a system at each size: the ball's P2 matrix at 0.05 (303 thousand unknowns of
+#: a 3-D stencil) is beyond the sparse LU of :func:`condition_number` twenty times over, and at 0.1 (42
+#: thousand unknowns, about a minute a position) only the full size takes it, so that ``cutfem
+#: reproduce`` stays within minutes
+FINEST = {"full": {"ball": 0.1}, "default": {"ball": 0.2}}
 
 
 def _lb_parameters(order: int, stabilization: str) -> dict:
@@ -145,14 +146,14 @@ def system_matrix(system: str, center, spacing: float, order: int):
 
 
 def shift_rows(spacings, systems=tuple(SYSTEMS), orders=(1, 2), n_shifts: int = N_SHIFTS, seed: int = SEED,
-               progress=None) -> list[dict]:
+               progress=None, finest=FINEST["default"]) -> list[dict]:
     """One row per (system, order, spacing): the condition numbers over ``n_shifts`` positions
     (``kappas``), their min, median, max and ratio max / min, the unknowns (median) and how many
     matrices were not positive definite (``not_definite``, by :func:`condition_number`'s verdict)."""
     rows = []
     for system in systems:
         for order in orders:
-            for s in [s for s in spacings if s >= FINEST.get(system, 0.0)]:
+            for s in [s for s in spacings if s >= finest.get(system, 0.0)]:
                 if progress:
                     progress(f"condition numbers: {system}, order {order}, spacing {s:g}, {n_shifts} positions")
                 t0 = time.perf_counter()
@@ -188,7 +189,7 @@ def slopes(rows) -> dict:
 
 def conditioning_outputs(out, size: str, spacings, progress=None) -> dict:
     """The rows of :func:`shift_rows` at ``spacings``, their :func:`slopes`, and the files (module docstring)."""
-    rows = shift_rows(spacings, progress=progress)
+    rows = shift_rows(spacings, progress=progress, finest=FINEST["full" if size == "full" else "default"])
     fits = slopes(rows)
     summary = {"size": size, "spacings": list(spacings), "n_shifts": N_SHIFTS, "seed": SEED, "rows": rows, "slopes": fits}
     save_json(out, NAME, summary)
