@@ -101,6 +101,17 @@ def _map(grad, Jinv, out):
 
 
 @njit(cache=True, error_model="numpy", inline="always")
+def _mapped(jac, t, p, ref, Jinv, grad):
+    """grad = the reference gradients ``ref`` mapped by J^-T of point p of cell t (J^-1 left in
+    ``Jinv``), or ``ref`` itself when ``jac`` is empty (an undeformed cell)."""
+    if jac.shape[0] > 0:
+        _inverse(jac[t, p], Jinv)
+        _map(ref, Jinv, grad)
+    else:
+        grad[:, :] = ref
+
+
+@njit(cache=True, error_model="numpy", inline="always")
 def _mirror(local):
     k = local.shape[0]
     for a in range(k):
@@ -133,11 +144,7 @@ def cell_matrices(kind, lam, G, jac, weights, normals, sign, penalty, out):
             local[:, :] = 0.0
             for p in range(q):
                 _basis(lam[t, p], G[t], phi, ref)
-                if jac.shape[0] > 0:
-                    _inverse(jac[t, p], Jinv)
-                    _map(ref, Jinv, grad)
-                else:
-                    grad[:, :] = ref
+                _mapped(jac, t, p, ref, Jinv, grad)
                 w = weights[t, p]
                 if kind == MASS:
                     for a in range(10):
@@ -191,11 +198,7 @@ def interface_matrices(lam, G, jac, weights, normals, flux_neg, flux_pos, penalt
             local[:, :] = 0.0
             for p in range(q):
                 _basis(lam[t, p], G[t], phi, ref)
-                if jac.shape[0] > 0:
-                    _inverse(jac[t, p], Jinv)
-                    _map(ref, Jinv, grad)
-                else:
-                    grad[:, :] = ref
+                _mapped(jac, t, p, ref, Jinv, grad)
                 n = normals[t, p]
                 for a in range(10):
                     dn = grad[a, 0] * n[0] + grad[a, 1] * n[1] + grad[a, 2] * n[2]
@@ -227,11 +230,7 @@ def cell_vectors(lam, G, jac, values, normals, sign, penalty, out):
             for p in range(q):
                 _basis(lam[t, p], G[t], phi, ref)
                 if normals.shape[0] > 0:
-                    if jac.shape[0] > 0:
-                        _inverse(jac[t, p], Jinv)
-                        _map(ref, Jinv, grad)
-                    else:
-                        grad[:, :] = ref
+                    _mapped(jac, t, p, ref, Jinv, grad)
                     n = normals[t, p]
                     for a in range(10):
                         test[a] = penalty[t] * phi[a] - sign * (grad[a, 0] * n[0] + grad[a, 1] * n[1] + grad[a, 2] * n[2])
@@ -251,14 +250,11 @@ def _face_side(lam, G, jac, theta, n, t, p, phi, ref, grad, Jinv, hess, first, s
     _basis(lam[t, p], G[t], phi, ref)
     v0, v1, v2 = n[0], n[1], n[2]
     moved = jac.shape[0] > 0
+    _mapped(jac, t, p, ref, Jinv, grad)
     if moved:
-        _inverse(jac[t, p], Jinv)
-        _map(ref, Jinv, grad)
         v0 = Jinv[0, 0] * n[0] + Jinv[0, 1] * n[1] + Jinv[0, 2] * n[2]
         v1 = Jinv[1, 0] * n[0] + Jinv[1, 1] * n[1] + Jinv[1, 2] * n[2]
         v2 = Jinv[2, 0] * n[0] + Jinv[2, 1] * n[1] + Jinv[2, 2] * n[2]
-    else:
-        grad[:, :] = ref
     curve0 = curve1 = curve2 = 0.0
     if moved:
         for comp in range(3):
