@@ -106,6 +106,7 @@ def slab_system(parts: SlabPieces, cuts, comm, fields: int = 1, constants: int =
     for piece in parts.pieces:
         dofs = numbering(piece.keys)
         system.add_matrix(piece.matrix, dofs)
+        piece.matrix = None  # moved into the system: the rank's largest arrays are not held twice
         if piece.vector is not None:
             system.add_vector(piece.vector, dofs)
     return system, numbering

@@ -110,6 +110,7 @@ class LinearSystem:
         self.comm, self.numbering = comm, numbering
         self._rows, self._cols, self._vals = [], [], []
         self._vec_rows, self._vec_vals = [], []
+        self._given = False
 
     def add_matrix(self, local, dofs) -> None:
         """Add a local matrix (scipy sparse, n x n) whose row/column i is the unknown ``dofs[i]``."""
@@ -125,9 +126,6 @@ class LinearSystem:
         local = np.asarray(local, dtype=float)
         self._vec_vals.append(local.reshape(len(local), -1))
 
-    @property
-    def triples(self) -> int:
-        return int(sum(len(r) for r in self._rows))
 
     def petsc(self):
         """(A, [b, ...]): the MPIAIJ matrix and the right-hand side Vecs (one per column of the
@@ -137,11 +135,16 @@ class LinearSystem:
         arrays (``MatCreateMPIAIJWithArrays``: preallocated, no stash)."""
         MPI, PETSc = engine()
         n, N = self.numbering.n_owned, self.numbering.n_global
+        if self._given:
+            raise RuntimeError("this system's triples went to PETSc already (petsc() releases them): assemble a new system")
         rows, cols, vals = (np.concatenate(a) if a else np.zeros(0, t) for a, t in
                             ((self._rows, np.int64), (self._cols, np.int64), (self._vals, float)))
+        # released now, not with the system: the triples are the largest arrays of a rank (24 bytes an entry)
+        self._rows, self._cols, self._vals, self._given = [], [], [], True
         rows, cols, vals = self._to_owners(rows, cols, vals)
         first = self.numbering.first
         local = sp.csr_matrix((vals, (rows - first, cols)), shape=(n, N))
+        del rows, cols, vals
         local.sum_duplicates()
         local.sort_indices()
         A = PETSc.Mat().createAIJ(((n, N), (n, N)), csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType),
