@@ -1,6 +1,6 @@
 """A rank's share of a system: cell terms on its owned cells, facet terms once, in global numbers.
 
-:func:`slab_pieces` assembles, with the serial code (:func:`cutfem.fem.forms.assemble`), the
+:func:`rank_pieces` assembles, with the serial code (:func:`cutfem.fem.forms.assemble`), the
 rank's local matrices and load vectors, each with the global node ids of its rows (its cuts come
 from :func:`~cutfem.distributed.partition.rank_cuts`: slabs of a structured box or cells of an
 unstructured mesh alike):
@@ -11,7 +11,7 @@ unstructured mesh alike):
   (:meth:`~cutfem.distributed.partition.RankCuts.seam_facets`) that this rank alone assembles.
 
 Summed over the ranks, the pieces are the serial matrix and load (the serial unknowns are the
-active nodes, which every piece's rows are).  :func:`slab_system` numbers the nodes globally and
+active nodes, which every piece's rows are).  :func:`rank_system` numbers the nodes globally and
 hands the pieces to PETSc (:class:`~cutfem.distributed.system.LinearSystem`).
 """
 
@@ -25,7 +25,7 @@ from ..fem.forms import assemble
 from ..fem.spaces import CutSpace, VectorSpace
 from .system import GlobalNumbering, LinearSystem
 
-__all__ = ["Piece", "SlabPieces", "global_keys", "slab_pieces", "slab_system"]
+__all__ = ["Piece", "RankPieces", "global_keys", "rank_pieces", "rank_system"]
 
 
 @dataclass
@@ -39,8 +39,8 @@ class Piece:
 
 
 @dataclass
-class SlabPieces:
-    """The pieces of one rank; ``space`` the owned slab's space (None without owned cells) and
+class RankPieces:
+    """The pieces of one rank; ``space`` the owned cells' space (None without owned cells) and
     ``faces`` the number of faces the rank assembled."""
 
     pieces: list = field(default_factory=list)
@@ -60,7 +60,7 @@ def _scalar_fields(space) -> list:
 
 
 def global_keys(space) -> np.ndarray:
-    """The keys of the unknowns of a P1 space on a slab's cut (its global node ids) or of a product
+    """The keys of the unknowns of a P1 space on a rank's cut (its global node ids) or of a product
     of such spaces, a vector field counting as its three components (``node * fields + field``, in
     the space's dof order)."""
     fields = _scalar_fields(space)
@@ -68,14 +68,14 @@ def global_keys(space) -> np.ndarray:
     return np.concatenate([f.cut.background.global_nodes(f.node_ids) * F + k for k, f in enumerate(fields)])
 
 
-def slab_pieces(cuts, on, cells, faces=None, face_form=None) -> SlabPieces:
+def rank_pieces(cuts, on, cells, faces=None, face_form=None) -> RankPieces:
     """The rank's pieces of a system on P1 over the element set ``on`` of each of its cuts.
 
     ``cells(cut, space)``: ``(bilinear form, linear form or None)`` of the cell terms over the
-    owned cut (called when the owned slab has active cells; ``cut.n_tets`` is 0 on a slab the
+    owned cut (called when the owned cells hold active cells; ``cut.n_tets`` is 0 on a rank the
     surface misses), or None for facet terms alone; ``faces(cut)``: the facet set of the facet
     terms on a cut (called only on cuts with pieces), and ``face_form(measure)`` their bilinear form."""
-    out = SlabPieces()
+    out = RankPieces()
     owned, seam = cuts.owned, cuts.seam
     if owned is not None:
         V = out.space = CutSpace(owned, on)
@@ -97,7 +97,7 @@ def slab_pieces(cuts, on, cells, faces=None, face_form=None) -> SlabPieces:
     return out
 
 
-def slab_system(parts: SlabPieces, cuts, comm, fields: int = 1, constants: int = 0) -> tuple[LinearSystem, GlobalNumbering]:
+def rank_system(parts: RankPieces, cuts, comm, fields: int = 1, constants: int = 0) -> tuple[LinearSystem, GlobalNumbering]:
     """The global numbering of the pieces' unknowns (``fields`` per node for a product space, and
     ``constants`` one-unknown fields keyed -1, -2, ...) and the system they add up to (not yet on
     PETSc: :meth:`~cutfem.distributed.system.LinearSystem.petsc`)."""

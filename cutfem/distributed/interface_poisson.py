@@ -27,19 +27,19 @@ from ..problems.common import background_for, check_ghost_penalty, check_nitsche
 from ..problems.interface_poisson import InterfaceSolution, LevelSetSolution
 from ..runs.registry import ProblemError
 from ..runs.runner import Timer
-from .assembly import Piece, SlabPieces, global_keys
+from .assembly import Piece, RankPieces, global_keys
 from .launch import engine
-from .levels import solve_on_slabs
+from .levels import solve_on_ranks
 
 __all__ = ["interface_poisson_cut_level", "interface_pieces"]
 
 SIDES = (NEG, POS)
 
 
-def interface_pieces(cuts, a, gamma, gamma_g, weights, sol) -> SlabPieces:
+def interface_pieces(cuts, a, gamma, gamma_g, weights, sol) -> RankPieces:
     """The rank's pieces of the interface system on the product space (inside, outside) of each of
     its cuts; ``a`` the coefficient of each side."""
-    out = SlabPieces()
+    out = RankPieces()
 
     def ghost(cut, facets_of):
         form = None
@@ -76,7 +76,7 @@ def interface_pieces(cuts, a, gamma, gamma_g, weights, sol) -> SlabPieces:
 
 
 def _dirichlet(box, g):
-    """The constraint of :func:`~cutfem.distributed.levels.solve_on_slabs`: u = g(x) on the outside
+    """The constraint of :func:`~cutfem.distributed.levels.solve_on_ranks`: u = g(x) on the outside
     field's unknowns at the nodes of the box's boundary, by symmetric elimination on PETSc with the
     diagonal |K_ii| kept (see the module docstring)."""
 
@@ -140,7 +140,7 @@ def interface_poisson_cut_level(spacing, a_inside, a_outside, weights, gamma, ga
         return out
 
     keys = ("l2_error_inside", "h1_error_inside", "l2_error_outside", "h1_error_outside")
-    rec = solve_on_slabs(MPI.COMM_WORLD if comm is None else comm, phi, bg,
+    rec = solve_on_ranks(MPI.COMM_WORLD if comm is None else comm, phi, bg,
                          lambda cuts: interface_pieces(cuts, a, gamma, gamma_g, weights, sol), measure, keys, solver, counts, t,
                          fields=2, constrain=_dirichlet(bg, sol.u(POS)))
     if notes:

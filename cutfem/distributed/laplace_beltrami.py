@@ -17,15 +17,15 @@ from ..geometry.markers import CUT
 from ..problems.common import check_face_stabilization, check_normal_stabilization, levelset_for
 from ..problems.laplace_beltrami import LaplaceBeltramiCut, manufactured
 from ..runs.runner import Timer
-from .assembly import slab_pieces
+from .assembly import rank_pieces
 from .launch import engine
-from .levels import shared_background, solve_on_slabs
+from .levels import shared_background, solve_on_ranks
 
 __all__ = ["laplace_beltrami_cut_level", "laplace_beltrami_pieces"]
 
 
 def laplace_beltrami_pieces(cuts, sol, stabilization, tau_f, face_h_power, tau_n, normal_h_power):
-    """The rank's pieces of the laplace-beltrami-cut system (:func:`~cutfem.distributed.assembly.slab_pieces`)."""
+    """The rank's pieces of the laplace-beltrami-cut system (:func:`~cutfem.distributed.assembly.rank_pieces`)."""
 
     def cells(cut, V):
         dS = cut.ds()
@@ -35,9 +35,9 @@ def laplace_beltrami_pieces(cuts, sol, stabilization, tau_f, face_h_power, tau_n
         return a, load(sol.f, dS, degree=4)
 
     if stabilization == "face" and tau_f > 0:
-        return slab_pieces(cuts, CUT, cells, lambda cut: cut.interior_facets(CUT),
+        return rank_pieces(cuts, CUT, cells, lambda cut: cut.interior_facets(CUT),
                            lambda dF: tau_f * face_jump_penalty(dF, h_power=face_h_power))
-    return slab_pieces(cuts, CUT, cells)
+    return rank_pieces(cuts, CUT, cells)
 
 
 def laplace_beltrami_cut_level(spacing, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power,
@@ -62,7 +62,7 @@ def laplace_beltrami_cut_level(spacing, surface, background, box, stabilization,
     def measure(V, u):
         return l2_error(V, u, sol.u) ** 2, h1_error(V, u, sol.grad) ** 2, float(assemble(basis_integrals(V.cut.ds()), V).sum())
 
-    rec = solve_on_slabs(comm, phi, bg,
+    rec = solve_on_ranks(comm, phi, bg,
                          lambda cuts: laplace_beltrami_pieces(cuts, sol, stabilization, tau_f, face_h_power, tau_n, normal_h_power),
                          measure, ("l2_error", "h1_error", "area"), solver, counts, t, bulk=False)
     if notes:

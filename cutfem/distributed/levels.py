@@ -1,9 +1,9 @@
 """One level of a problem on all ranks: background, partition, pieces, PETSc solve, sums over the ranks.
 
-:func:`solve_on_slabs` is the skeleton the distributed problems share: the background partitioned
+:func:`solve_on_ranks` is the skeleton the distributed problems share: the background partitioned
 (a structured box in slabs, an unstructured mesh by recursive bisection of its cells) and each
 rank's cuts (:mod:`~cutfem.distributed.partition`), the problem's pieces
-(:func:`~cutfem.distributed.assembly.slab_pieces`), the system on PETSc and its solve
+(:func:`~cutfem.distributed.assembly.rank_pieces`), the system on PETSc and its solve
 (:mod:`~cutfem.distributed.system`), then the problem's additive measures of the solution on the
 owned cells (squared errors, volumes) summed over the ranks.  The record is the same on every rank;
 the stage times are the slowest rank's.  :func:`shared_background` gives every rank the same
@@ -22,12 +22,12 @@ from ..geometry.mesh import TetMesh
 from ..problems.common import background_for
 from ..runs.runner import Timer
 from ..solvers.krylov import DEFAULT_TOL
-from .assembly import global_keys, slab_system
+from .assembly import global_keys, rank_system
 from .launch import engine
 from .partition import Slabs, partition_for, rank_cuts
 from .preconditioners import lattice_prolongations
 
-__all__ = ["solve_on_slabs", "shared_background", "cut_counts", "nodal_levelset", "STAGES"]
+__all__ = ["solve_on_ranks", "shared_background", "cut_counts", "nodal_levelset", "STAGES"]
 
 #: the stages of a distributed level, timed on each rank (the record keeps the slowest rank's)
 STAGES = ("geometry", "assembly", "solve", "errors")
@@ -60,12 +60,12 @@ def nodal_levelset(cuts, nodes) -> np.ndarray:
     return np.concatenate(values)[first][np.searchsorted(ids, nodes)]
 
 
-def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
+def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
                    tol: float = DEFAULT_TOL, bulk: bool = True, fields: int = 1, constrain=None, constants: int = 0,
                    solve=None) -> dict:
     """Solve one level of a problem on the ranks of ``comm``; returns the record's common part.
 
-    ``build(cuts)``: the rank's :class:`~cutfem.distributed.assembly.SlabPieces`;
+    ``build(cuts)``: the rank's :class:`~cutfem.distributed.assembly.RankPieces`;
     ``measure(space, u)``: additive numbers of the solution ``u`` (the values at the owned space's
     unknowns, (n, k) for k loads) over the owned cells, one for each of ``keys``; keys with
     ``_error`` in them are sums of squares whose square roots are recorded.  ``counts``: the cell
@@ -84,7 +84,7 @@ def solve_on_slabs(comm, levelset, background, build, measure, keys, solver="aut
         cuts = rank_cuts(partition_for(background, comm.size, counts), comm.rank, levelset)
     with t("assembly"):
         parts = build(cuts)
-        system, numbering = slab_system(parts, cuts, comm, fields, constants)
+        system, numbering = rank_system(parts, cuts, comm, fields, constants)
         A, loads = system.petsc()
         if constrain is not None:
             constrain(A, loads, numbering, parts)

@@ -21,16 +21,16 @@ from ..problems.common import check_face_stabilization, has_exact, levelset_for
 from ..problems.mean_curvature import SOLVER_TOL, MeanCurvatureCut, check_length_scale
 from ..runs.registry import ProblemError
 from ..runs.runner import Timer
-from .assembly import slab_pieces
+from .assembly import rank_pieces
 from .launch import engine
-from .levels import shared_background, solve_on_slabs
+from .levels import shared_background, solve_on_ranks
 
 __all__ = ["mean_curvature_cut_level", "mean_curvature_pieces"]
 
 
 def mean_curvature_pieces(cuts, tau_f, face_h_power, length_scale):
     """The rank's pieces of the mean-curvature-cut system: K = M + tau_F L^(2-a) J_F and the three
-    loads A x (:func:`~cutfem.distributed.assembly.slab_pieces`)."""
+    loads A x (:func:`~cutfem.distributed.assembly.rank_pieces`)."""
 
     def cells(cut, V):
         dS = cut.ds()
@@ -38,9 +38,9 @@ def mean_curvature_pieces(cuts, tau_f, face_h_power, length_scale):
 
     if tau_f > 0:
         weight = tau_f * length_scale ** (2.0 - face_h_power)
-        return slab_pieces(cuts, CUT, cells, lambda cut: cut.interior_facets(CUT),
+        return rank_pieces(cuts, CUT, cells, lambda cut: cut.interior_facets(CUT),
                            lambda dF: weight * face_jump_penalty(dF, h_power=face_h_power))
-    return slab_pieces(cuts, CUT, cells)
+    return rank_pieces(cuts, CUT, cells)
 
 
 def mean_curvature_cut_level(spacing, surface, background, box, stabilization, tau_f, face_h_power, tau_n, normal_h_power, tau_e,
@@ -75,7 +75,7 @@ def mean_curvature_cut_level(spacing, surface, background, box, stabilization, t
         error = l2_error(V, H, exact.exact_mean_curvature_vector) ** 2 if exact is not None else 0.0
         return (error, float(ones_M.sum()), *(ones_M @ H))
 
-    rec = solve_on_slabs(comm, phi, bg, build, measure, ("l2_error", "area", "integral_Hx", "integral_Hy", "integral_Hz"),
+    rec = solve_on_ranks(comm, phi, bg, build, measure, ("l2_error", "area", "integral_Hx", "integral_Hy", "integral_Hz"),
                          solver, counts, t, tol=SOLVER_TOL, bulk=False)
     rec["integral_H"] = [rec.pop(k) for k in ("integral_Hx", "integral_Hy", "integral_Hz")]
     if exact is None:

@@ -19,15 +19,15 @@ from ..problems.common import check_ghost_penalty, check_nitsche_penalty, levels
 from ..problems.poisson import GHOST_PENALTY, exact_solution, exact_u, source
 from ..runs.runner import Timer
 from .launch import engine
-from .assembly import slab_pieces
-from .levels import shared_background, solve_on_slabs
+from .assembly import rank_pieces
+from .levels import shared_background, solve_on_ranks
 
 __all__ = ["poisson_cut_level", "poisson_pieces"]
 
 
 def poisson_pieces(cuts, gamma: float, gamma_g: float):
-    """The rank's pieces of the poisson-cut system (:func:`~cutfem.distributed.assembly.slab_pieces`):
-    stiffness, Nitsche's terms and the load on the owned slab, the ghost penalty on every face once."""
+    """The rank's pieces of the poisson-cut system (:func:`~cutfem.distributed.assembly.rank_pieces`):
+    stiffness, Nitsche's terms and the load on the owned cells, the ghost penalty on every face once."""
 
     def cells(cut, V):
         dx = cut.dx(NEG)
@@ -38,8 +38,8 @@ def poisson_pieces(cuts, gamma: float, gamma_g: float):
         return a, rhs
 
     if gamma_g == 0:
-        return slab_pieces(cuts, NEG, cells)
-    return slab_pieces(cuts, NEG, cells, lambda cut: cut.ghost_facets(NEG),
+        return rank_pieces(cuts, NEG, cells)
+    return rank_pieces(cuts, NEG, cells, lambda cut: cut.ghost_facets(NEG),
                        lambda dF: gamma_g * face_jump_penalty(dF, h_power=1))
 
 
@@ -63,7 +63,7 @@ def poisson_cut_level(spacing, surface, background, box, gamma, gamma_g, solver,
         l2, h1 = l2_h1_errors(V, u, exact_solution, dx)
         return l2 * l2, h1 * h1, dx.size
 
-    rec = solve_on_slabs(comm, phi, bg, lambda cuts: poisson_pieces(cuts, gamma, gamma_g),
+    rec = solve_on_ranks(comm, phi, bg, lambda cuts: poisson_pieces(cuts, gamma, gamma_g),
                          measure, ("l2_error", "h1_error", "volume"), solver, counts, t)
     if notes:
         rec["warnings"] = notes

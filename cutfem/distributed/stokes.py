@@ -42,9 +42,9 @@ from ..geometry.markers import NEG
 from ..problems.common import background_for, check_ghost_penalty, check_nitsche_penalty, levelset_for
 from ..problems.stokes import PRESSURE, VELOCITY, VELOCITY_GRADIENT, normal_data, source
 from ..runs.runner import Timer
-from .assembly import Piece, SlabPieces, global_keys
+from .assembly import Piece, RankPieces, global_keys
 from .launch import engine
-from .levels import solve_on_slabs
+from .levels import solve_on_ranks
 from .saddle import SADDLE_TOL, near_null_vectors, saddle_solve
 from .system import LinearSystem
 
@@ -57,7 +57,7 @@ FIELDS = 4
 MULTIPLIER = -1
 
 
-class StokesPieces(SlabPieces):
+class StokesPieces(RankPieces):
     """The pieces of the saddle matrix K (with the load) and, in ``preconditioner``, those of the
     block-diagonal preconditioning matrix diag(A, S, nu |Omega_h|) in the same keys."""
 
@@ -125,7 +125,7 @@ def stokes_pieces(cuts, nu, gamma, gamma_u, gamma_p, beta) -> StokesPieces:
 
 
 def _saddle(solver, tol):
-    """The solve of :func:`~cutfem.distributed.levels.solve_on_slabs`: the preconditioning matrix
+    """The solve of :func:`~cutfem.distributed.levels.solve_on_ranks`: the preconditioning matrix
     from the pieces, the velocity's unknowns and their near-null vectors, then
     :func:`~cutfem.distributed.saddle.saddle_solve`."""
 
@@ -180,7 +180,7 @@ def stokes_cut_level(spacing, surface, background, box, nu, gamma, gamma_u, gamm
         c = mean[0] / mean[1]
         return l2u * l2u, h1u * h1u, l2_error(V, p, lambda y: PRESSURE(y) - c, dx) ** 2, dx.size
 
-    rec = solve_on_slabs(comm, phi, bg, build, measure, ("l2_error_velocity", "h1_error_velocity", "l2_error_pressure", "volume"),
+    rec = solve_on_ranks(comm, phi, bg, build, measure, ("l2_error_velocity", "h1_error_velocity", "l2_error_pressure", "volume"),
                          solver, counts, t, fields=FIELDS, constants=1, solve=_saddle(solver, tol))
     if notes:
         rec["warnings"] = notes

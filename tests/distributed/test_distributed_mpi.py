@@ -15,7 +15,7 @@ pytest.importorskip("petsc4py")
 
 import cutfem as cf  # noqa: E402
 from cutfem.distributed import distributed_params  # noqa: E402
-from cutfem.distributed.assembly import slab_pieces, slab_system  # noqa: E402
+from cutfem.distributed.assembly import rank_pieces, rank_system  # noqa: E402
 from cutfem.distributed.launch import engine, launched  # noqa: E402
 from cutfem.distributed.interface_poisson import interface_poisson_cut_level  # noqa: E402
 from cutfem.distributed.laplace_beltrami import laplace_beltrami_cut_level  # noqa: E402
@@ -75,7 +75,7 @@ def test_matrix_action_and_load_equal_serial(torus, which):
         pytest.skip("one rank: no partition with empty ranks")
     slabs = slab_partition(bg, WORLD.size, cases[which])
     cuts = rank_cuts(slabs, WORLD.rank, phi)
-    system, numbering = slab_system(poisson_pieces(cuts, 10.0, 0.1), cuts, WORLD)
+    system, numbering = rank_system(poisson_pieces(cuts, 10.0, 0.1), cuts, WORLD)
     A, (bv,) = system.petsc()
     assert numbering.n_global == K.shape[0]
     x = np.random.default_rng(3).standard_normal(K.shape[0])
@@ -100,8 +100,8 @@ def test_stabilization_of_a_constant_is_zero_and_faces_are_counted_once(torus, s
         slabs = slab_partition(bg, WORLD.size, counts)
         cuts = rank_cuts(slabs, WORLD.rank, phi)
         faces = (lambda c: c.ghost_facets(NEG)) if side == NEG else (lambda c: c.interior_facets(CUT))
-        parts = slab_pieces(cuts, side, None, faces, lambda dF: face_jump_penalty(dF, h_power=1))
-        system, numbering = slab_system(parts, cuts, WORLD)
+        parts = rank_pieces(cuts, side, None, faces, lambda dF: face_jump_penalty(dF, h_power=1))
+        system, numbering = rank_system(parts, cuts, WORLD)
         A, _ = system.petsc()
         one, y = A.createVecRight(), A.createVecLeft()
         one.set(1.0)
@@ -303,7 +303,7 @@ def test_stokes_matrix_action_and_load_equal_serial(stokes_ball, which):
         pytest.skip("one rank: no partition with empty ranks")
     cuts = rank_cuts(slab_partition(bg, WORLD.size, cases[which]), WORLD.rank, phi)
     parts = stokes_pieces(cuts, p["nu"], p["gamma"], p["gamma_u"], p["gamma_p"], p["beta"])
-    system, numbering = slab_system(parts, cuts, WORLD, 4, constants=1)
+    system, numbering = rank_system(parts, cuts, WORLD, 4, constants=1)
     A, (bv,) = system.petsc()
     assert numbering.n_global == K.shape[0]
     owned = numbering.owned_keys
@@ -392,7 +392,7 @@ def test_unstructured_matrix_action_and_load_equal_serial(tet_torus, which):
     if which >= len(cases):
         pytest.skip("one rank: no partition with a rank without active cells")
     cuts = rank_cuts(cases[which], WORLD.rank, phi)
-    system, numbering = slab_system(poisson_pieces(cuts, 10.0, 0.1), cuts, WORLD)
+    system, numbering = rank_system(poisson_pieces(cuts, 10.0, 0.1), cuts, WORLD)
     A, (bv,) = system.petsc()
     assert numbering.n_global == K.shape[0]
     rows = serial_rows(V, numbering)
@@ -417,8 +417,8 @@ def test_unstructured_faces_counted_once(tet_torus, side):
     faces = (lambda c: c.ghost_facets(NEG)) if side == NEG else (lambda c: c.interior_facets(CUT))
     for partition in cell_partitions(mesh, V, WORLD.size):
         cuts = rank_cuts(partition, WORLD.rank, phi)
-        parts = slab_pieces(cuts, side, None, faces, lambda dF: face_jump_penalty(dF, h_power=1))
-        system, _ = slab_system(parts, cuts, WORLD)
+        parts = rank_pieces(cuts, side, None, faces, lambda dF: face_jump_penalty(dF, h_power=1))
+        system, _ = rank_system(parts, cuts, WORLD)
         A, _ = system.petsc()
         one, y = A.createVecRight(), A.createVecLeft()
         one.set(1.0)
