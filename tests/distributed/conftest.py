@@ -2,6 +2,7 @@
 
 import numpy as np
 import pytest
+import scipy.sparse as sp
 
 from cutfem.fem.forms import assemble
 from cutfem.fem.spaces import CutSpace
@@ -9,6 +10,8 @@ from cutfem.fem.terms import face_jump_penalty, load, nitsche, stiffness
 from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.markers import NEG
 from cutfem.geometry.mesh import TetMesh
+from cutfem.distributed.partition import rank_cuts
+from cutfem.distributed.poisson import poisson_pieces
 from cutfem.problems.common import background_for, levelset_for
 from cutfem.problems.poisson import exact_u, source
 
@@ -18,15 +21,20 @@ def torus():
     """The serial poisson-cut system of the torus at spacing 0.1 (12 cell layers): phi, the
     background, the cut, the space, K, b and the number of ghost faces."""
     phi = levelset_for("torus")
-    bg = background_for(phi, 0.1, "structured", None)
-    cut = cut_mesh(bg, phi)
+    return poisson_system(phi, background_for(phi, 0.1, "structured", None))
+
+
+def poisson_system(phi, background):
+    """The serial poisson-cut system on ``background`` (Nitsche gamma 10, ghost penalty 0.1): phi,
+    the background, the cut, the space, K, b and the number of ghost faces."""
+    cut = cut_mesh(background, phi)
     V = CutSpace(cut, NEG)
     dx = cut.dx(NEG)
     N = nitsche(cut.ds(), 10.0, g=exact_u)
     G = cut.ghost_facets(NEG)
     K = assemble(stiffness(dx) + N + 0.1 * face_jump_penalty(cut.dF(G), h_power=1), V)
     b = assemble(load(source, dx, degree=2) + N.load, V)
-    return phi, bg, cut, V, K, b, G.n_facets
+    return phi, background, cut, V, K, b, G.n_facets
 
 
 def jittered_mesh(box, seed=0):
@@ -48,15 +56,7 @@ def tet_torus():
     """The poisson-cut system of the torus on an unstructured mesh (the torus's box at spacing 0.2,
     jittered and renumbered): phi, the mesh, the cut, the space, K, b and the ghost faces."""
     phi = levelset_for("torus")
-    mesh = jittered_mesh(background_for(phi, 0.2, "structured", None))
-    cut = cut_mesh(mesh, phi)
-    V = CutSpace(cut, NEG)
-    dx = cut.dx(NEG)
-    N = nitsche(cut.ds(), 10.0, g=exact_u)
-    G = cut.ghost_facets(NEG)
-    K = assemble(stiffness(dx) + N + 0.1 * face_jump_penalty(cut.dF(G), h_power=1), V)
-    b = assemble(load(source, dx, degree=2) + N.load, V)
-    return phi, mesh, cut, V, K, b, G.n_facets
+    return poisson_system(phi, jittered_mesh(background_for(phi, 0.2, "structured", None)))
 
 
 @pytest.fixture(scope="session")
@@ -64,3 +64,27 @@ def tet_sphere():
     """The unit sphere and an unstructured mesh of its box at spacing 0.2 (jittered, renumbered)."""
     phi = levelset_for("sphere")
     return phi, jittered_mesh(background_for(phi, 0.2, "structured", None), seed=1)
+
+
+def _summed(partition, phi, V, pieces=lambda cuts: poisson_pieces(cuts, 10.0, 0.1)):
+    """The pieces of every rank of ``partition``, computed in this process and added in the
+    serial numbering of ``V``: the matrix, the load and the number of faces assembled."""
+    n = V.n_dofs
+    K, b, faces = sp.csr_matrix((n, n)), np.zeros(n), 0
+    for rank in range(partition.size):
+        parts = pieces(rank_cuts(partition, rank, phi))
+        faces += parts.faces
+        for piece in parts.pieces:
+            dofs = np.searchsorted(V.node_ids, piece.keys)
+            assert np.array_equal(V.node_ids[dofs], piece.keys)  # every row is a serial unknown
+            c = piece.matrix.tocoo()
+            K = K + sp.csr_matrix((c.data, (dofs[c.row], dofs[c.col])), shape=(n, n))
+            if piece.vector is not None:
+                np.add.at(b, dofs, piece.vector)
+    return K, b, faces
+
+
+@pytest.fixture(scope="session")
+def summed():
+    """``summed(partition, phi, V, pieces=poisson's)``: every rank's pieces added up serially."""
+    return _summed

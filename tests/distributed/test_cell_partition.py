@@ -5,11 +5,9 @@ take part, and the nodal values follow the serial zero rule at the edge of a ran
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
 from cutfem.distributed.laplace_beltrami import laplace_beltrami_pieces
 from cutfem.distributed.partition import partition_for, rank_cuts
-from cutfem.distributed.poisson import poisson_pieces
 from cutfem.distributed.unstructured import SubMesh, cell_partition, recursive_bisection
 from cutfem.fem.forms import assemble
 from cutfem.fem.spaces import CutSpace
@@ -18,23 +16,6 @@ from cutfem.geometry.cut import cut_mesh
 from cutfem.geometry.markers import CUT
 from cutfem.geometry.nodal_values import snapped_nodal_values
 from cutfem.problems.laplace_beltrami import manufactured
-
-
-def summed(partition, phi, V, pieces=lambda cuts: poisson_pieces(cuts, 10.0, 0.1)):
-    """The pieces of every rank of ``partition``, added in the serial numbering."""
-    n = V.n_dofs
-    K, b, faces = sp.csr_matrix((n, n)), np.zeros(n), 0
-    for rank in range(partition.size):
-        parts = pieces(rank_cuts(partition, rank, phi))
-        faces += parts.faces
-        for piece in parts.pieces:
-            dofs = np.searchsorted(V.node_ids, piece.keys)
-            assert np.array_equal(V.node_ids[dofs], piece.keys)  # every row is a serial unknown
-            c = piece.matrix.tocoo()
-            K = K + sp.csr_matrix((c.data, (dofs[c.row], dofs[c.col])), shape=(n, n))
-            if piece.vector is not None:
-                np.add.at(b, dofs, piece.vector)
-    return K, b, faces
 
 
 def by_hand(mesh, V):
@@ -49,7 +30,7 @@ def by_hand(mesh, V):
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 5, "by hand"])
-def test_pieces_add_up_to_the_serial_system(tet_torus, size):
+def test_pieces_add_up_to_the_serial_system(tet_torus, size, summed):
     phi, mesh, _, V, K, b, n_faces = tet_torus
     partition = by_hand(mesh, V) if size == "by hand" else partition_for(mesh, size)
     Ks, bs, faces = summed(partition, phi, V)
@@ -63,7 +44,7 @@ def test_pieces_add_up_to_the_serial_system(tet_torus, size):
         assert idle.owned is not None and CutSpace(idle.owned).n_dofs == 0 and idle.owned.n_tets == 0
 
 
-def test_laplace_beltrami_pieces_add_up_to_the_serial_system(tet_sphere):
+def test_laplace_beltrami_pieces_add_up_to_the_serial_system(tet_sphere, summed):
     """TraceFEM on the cut tets of an unstructured mesh: J_F on every interior face of the cut tets once."""
     phi, mesh = tet_sphere
     sol = manufactured(phi)

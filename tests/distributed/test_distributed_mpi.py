@@ -90,18 +90,15 @@ def test_matrix_action_and_load_equal_serial(torus, which):
     assert errors[1] <= 1e-12 * np.abs(b).max()
 
 
-@pytest.mark.parametrize("side", [NEG, CUT])
-def test_stabilization_of_a_constant_is_zero_and_faces_are_counted_once(torus, side):
-    """The ghost penalty (NEG) and J_F (CUT) of a constant sum to zero on every row, and the faces
-    assembled on all ranks are the serial faces, each once."""
-    phi, bg, cut, _, _, _, _ = torus
-    serial = cut.ghost_facets(NEG) if side == NEG else cut.interior_facets(CUT)
-    for counts in partitions(int(bg.cells[2])):
-        slabs = slab_partition(bg, WORLD.size, counts)
-        cuts = rank_cuts(slabs, WORLD.rank, phi)
-        faces = (lambda c: c.ghost_facets(NEG)) if side == NEG else (lambda c: c.interior_facets(CUT))
+def assert_constant_stabilized_to_zero_once(partitions, phi, side, serial_cut):
+    """On each partition: the ghost penalty (NEG) or J_F (CUT) of a constant is zero on every row,
+    and the faces assembled on all ranks are ``serial_cut``'s, each once."""
+    serial = serial_cut.ghost_facets(NEG) if side == NEG else serial_cut.interior_facets(CUT)
+    faces = (lambda c: c.ghost_facets(NEG)) if side == NEG else (lambda c: c.interior_facets(CUT))
+    for partition in partitions:
+        cuts = rank_cuts(partition, WORLD.rank, phi)
         parts = rank_pieces(cuts, side, None, faces, lambda dF: face_jump_penalty(dF, h_power=1))
-        system, numbering = rank_system(parts, cuts, WORLD)
+        system, _ = rank_system(parts, cuts, WORLD)
         A, _ = system.petsc()
         one, y = A.createVecRight(), A.createVecLeft()
         one.set(1.0)
@@ -109,6 +106,15 @@ def test_stabilization_of_a_constant_is_zero_and_faces_are_counted_once(torus, s
         worst = WORLD.allreduce(np.abs(y.getArray()).max(initial=0.0), op=MPI.MAX)
         assert worst <= 1e-13 * A.norm(PETSc.NormType.INFINITY)
         assert WORLD.allreduce(parts.faces, op=MPI.SUM) == serial.n_facets
+
+
+@pytest.mark.parametrize("side", [NEG, CUT])
+def test_stabilization_of_a_constant_is_zero_and_faces_are_counted_once(torus, side):
+    """The ghost penalty (NEG) and J_F (CUT) of a constant sum to zero on every row, and the faces
+    assembled on all ranks are the serial faces, each once."""
+    phi, bg, cut, _, _, _, _ = torus
+    slabs = (slab_partition(bg, WORLD.size, counts) for counts in partitions(int(bg.cells[2])))
+    assert_constant_stabilized_to_zero_once(slabs, phi, side, cut)
 
 
 SERIAL = {}
@@ -413,19 +419,7 @@ def test_unstructured_faces_counted_once(tet_torus, side):
     """The ghost penalty (NEG) and J_F (CUT) of a constant sum to zero on every row of the
     unstructured mesh's partitions, and the faces assembled on all ranks are the serial ones."""
     phi, mesh, cut, V, *_ = tet_torus
-    serial = cut.ghost_facets(NEG) if side == NEG else cut.interior_facets(CUT)
-    faces = (lambda c: c.ghost_facets(NEG)) if side == NEG else (lambda c: c.interior_facets(CUT))
-    for partition in cell_partitions(mesh, V, WORLD.size):
-        cuts = rank_cuts(partition, WORLD.rank, phi)
-        parts = rank_pieces(cuts, side, None, faces, lambda dF: face_jump_penalty(dF, h_power=1))
-        system, _ = rank_system(parts, cuts, WORLD)
-        A, _ = system.petsc()
-        one, y = A.createVecRight(), A.createVecLeft()
-        one.set(1.0)
-        A.mult(one, y)
-        worst = WORLD.allreduce(np.abs(y.getArray()).max(initial=0.0), op=MPI.MAX)
-        assert worst <= 1e-13 * A.norm(PETSc.NormType.INFINITY)
-        assert WORLD.allreduce(parts.faces, op=MPI.SUM) == serial.n_facets
+    assert_constant_stabilized_to_zero_once(cell_partitions(mesh, V, WORLD.size), phi, side, cut)
 
 
 def serial_on(monkeypatch, module, mesh, name, level, **given):

@@ -4,11 +4,9 @@ is assembled once, and ranks without layers, without active cells or without a c
 
 import numpy as np
 import pytest
-import scipy.sparse as sp
 
-from cutfem.distributed.partition import SlabBox, rank_cuts, slab_partition
+from cutfem.distributed.partition import SlabBox, slab_partition
 from cutfem.distributed.laplace_beltrami import laplace_beltrami_pieces
-from cutfem.distributed.poisson import poisson_pieces
 from cutfem.fem.forms import assemble
 from cutfem.fem.spaces import CutSpace
 from cutfem.fem.terms import face_jump_penalty, load, mass, normal_gradient_penalty, tangential_stiffness
@@ -18,30 +16,12 @@ from cutfem.problems.common import background_for, levelset_for
 from cutfem.problems.laplace_beltrami import manufactured
 
 
-def summed(phi, bg, V, counts, pieces=lambda cuts: poisson_pieces(cuts, 10.0, 0.1)):
-    """The pieces of every rank of the partition ``counts``, added in the serial numbering."""
-    slabs = slab_partition(bg, len(counts), counts)
-    n = V.n_dofs
-    K, b, faces = sp.csr_matrix((n, n)), np.zeros(n), 0
-    for rank in range(len(counts)):
-        parts = pieces(rank_cuts(slabs, rank, phi))
-        faces += parts.faces
-        for piece in parts.pieces:
-            dofs = np.searchsorted(V.node_ids, piece.keys)
-            assert np.array_equal(V.node_ids[dofs], piece.keys)  # every row is a serial unknown
-            c = piece.matrix.tocoo()
-            K = K + sp.csr_matrix((c.data, (dofs[c.row], dofs[c.col])), shape=(n, n))
-            if piece.vector is not None:
-                np.add.at(b, dofs, piece.vector)
-    return K, b, faces
-
-
 @pytest.mark.parametrize("counts", [[12], [6, 6], [4, 4, 4], [0, 5, 0, 7], [11, 1], [1, 1, 8, 1, 1]])
-def test_pieces_add_up_to_the_serial_system(torus, counts):
+def test_pieces_add_up_to_the_serial_system(torus, counts, summed):
     """[0, 5, 0, 7]: two ranks without layers; [11, 1]: the top rank's layer lies above the torus
     (no active cell, its seam holds the faces below it); [1, 1, 8, 1, 1]: one-layer slabs."""
     phi, bg, _, V, K, b, n_faces = torus
-    Ks, bs, faces = summed(phi, bg, V, counts)
+    Ks, bs, faces = summed(slab_partition(bg, len(counts), counts), phi, V)
     x = np.random.default_rng(1).standard_normal(V.n_dofs)
     assert np.linalg.norm(Ks @ x - K @ x) <= 1e-14 * np.linalg.norm(K @ x)  # measured 3e-16
     assert np.linalg.norm(bs - b) <= 1e-14 * np.linalg.norm(b)
@@ -49,7 +29,7 @@ def test_pieces_add_up_to_the_serial_system(torus, counts):
 
 
 @pytest.mark.parametrize("stabilization", ["face", "normal"])
-def test_laplace_beltrami_pieces_add_up_to_the_serial_system(stabilization):
+def test_laplace_beltrami_pieces_add_up_to_the_serial_system(stabilization, summed):
     """TraceFEM on the cut tets: the tangential stiffness, mass and load over the pieces of Gamma_h
     by their owner, J_F (each interior face of the cut tets once) or the normal-gradient term."""
     phi = levelset_for("sphere")
@@ -62,7 +42,7 @@ def test_laplace_beltrami_pieces_add_up_to_the_serial_system(stabilization):
             normal_gradient_penalty(cut.dx(CUT), h_power=1.0))
     K = assemble(tangential_stiffness(dS) + mass(dS) + stab, V)
     b = assemble(load(sol.f, dS, degree=4), V)
-    Ks, bs, faces = summed(phi, bg, V, [3, 0, 4, 4], lambda cuts: laplace_beltrami_pieces(cuts, sol, stabilization, 1.0, 1.0, 1.0, 1.0))
+    Ks, bs, faces = summed(slab_partition(bg, 4, [3, 0, 4, 4]), phi, V, lambda cuts: laplace_beltrami_pieces(cuts, sol, stabilization, 1.0, 1.0, 1.0, 1.0))
     x = np.random.default_rng(2).standard_normal(V.n_dofs)
     assert np.linalg.norm(Ks @ x - K @ x) <= 1e-14 * np.linalg.norm(K @ x)
     assert np.linalg.norm(bs - b) <= 1e-14 * np.linalg.norm(b)
