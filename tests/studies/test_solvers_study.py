@@ -27,6 +27,7 @@ def _rows(summary, case, solver):
     return [r for r in summary["rows"] if r["case"] == case and r["solver"] == solver]
 
 
+@pytest.mark.slow  # the tiny study: 7 s warm, 18 s with its kernels compiled
 def test_study_writes_its_outputs(tiny):
     out, summary = tiny
     for suffix in (".json", ".csv", ".png", ".pdf"):
@@ -56,6 +57,7 @@ def test_study_writes_its_outputs(tiny):
             assert (r["iterations"] == 0) == (r["method"] == "direct")
 
 
+@pytest.mark.slow  # the tiny study: 7 s warm, 18 s with its kernels compiled
 def test_cg_mg_without_a_lattice_is_recorded_as_an_error(tiny):
     _, summary = tiny
     (row,) = _rows(summary, "poisson-cut tetwild", "cg-mg")
@@ -65,6 +67,7 @@ def test_cg_mg_without_a_lattice_is_recorded_as_an_error(tiny):
     assert all(r["status"] == "ok" for r in others), [r for r in others if r["status"] != "ok"]
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("case", BULK)
 def test_multigrid_iterations_on_the_bulk_problems(tiny, case):
     _, summary = tiny
@@ -75,6 +78,7 @@ def test_multigrid_iterations_on_the_bulk_problems(tiny, case):
     assert rows[-1]["iterations"] >= 3
 
 
+@pytest.mark.slow  # the tiny study: 7 s warm, 18 s with its kernels compiled
 def test_iterative_solutions_equal_the_direct_ones(tiny):
     # the same discrete problem (structured backgrounds and meshes are deterministic): the errors
     # of the iterative solutions (relative residual 1e-8) agree with the direct solve's

@@ -3,9 +3,12 @@ route, viscosity ratio and level, the errors falling between the two levels."""
 
 import json
 
+import pytest
+
 from cutfem.studies import two_phase
 
 
+@pytest.mark.slow  # 5 s; the two routes of the problem are tested in tests/problems/test_two_phase_stokes.py
 def test_two_phase_study_runs_and_records(tmp_path):
     assert two_phase.main(["--tiny", "--out", str(tmp_path), "--quiet"]) == 0
     data = json.loads((tmp_path / "two_phase.json").read_text())
