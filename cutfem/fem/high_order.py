@@ -15,8 +15,9 @@ of two fields: in the numbering of the product space, :func:`interface_blocks`),
 :func:`~cutfem.fem.forms.assemble` sums by :func:`~cutfem.fem.p2_kernels.symmetric_csr`; a vector
 field goes by the form language.
 
-Linear terms alike: :func:`load_vectors` and :func:`nitsche_load_vectors` yield ``(dofs (m, k), local
-vectors (m, k) or (m, k, c))`` (:func:`~cutfem.fem.p2_kernels.cell_vectors`).
+Linear terms alike: :func:`load_vectors`, :func:`nitsche_load_vectors` and :func:`position_load_vectors`
+yield ``(dofs (m, k), local vectors (m, k) or (m, k, c))`` (:func:`~cutfem.fem.p2_kernels.cell_vectors`,
+:func:`~cutfem.fem.p2_kernels.tangential_gradient_vectors`).
 
 Also here: the second normal derivative n^T H n of a basis function (:func:`second_normal`), the
 order-2 part of the face-jump penalty's integrand.
@@ -31,7 +32,8 @@ from .p2_kernels import MASS, NITSCHE, NORMAL_GRADIENT, STIFFNESS, TANGENTIAL
 from .pointwise import _point_values, _Zero
 
 __all__ = ["second_normal", "mass_blocks", "stiffness_blocks", "tangential_blocks", "normal_gradient_blocks", "face_jump_blocks",
-           "nitsche_blocks", "interface_blocks", "load_vectors", "nitsche_load_vectors"]
+           "nitsche_blocks", "interface_blocks", "load_vectors", "nitsche_load_vectors",
+           "position_load_vectors"]
 
 
 #: cells per block on P2 fields: a block's points and Jacobians at degree 4 (14 points) take 10 MB
@@ -186,3 +188,19 @@ def nitsche_load_vectors(term, space, outward):
     measure, gamma = term.measure, term.params["gamma"]
     return _load_terms(term, space, term.params["g"], "nitsche: g(x)", lambda quad: quad.point_normals, outward,
                        lambda quad: gamma / measure.h[quad.parent])
+
+
+def position_load_vectors(term, space):
+    """(P_h e_k, grad v), k = 1, 2, 3, over a surface: the tangential gradients of the basis with the
+    points' normals (lifted: D Theta_h^-T grad and the deformed normal), one column per coordinate."""
+    measure = term.measure
+    for _, quad in measure.blocks(term.integrand.degree_for(space.order), BLOCK_CELLS):
+        el = space.local_elements(measure, quad.parent)
+        m, q = quad.weights.shape
+        jac = _NONE if quad.jacobians is None else quad.jacobians
+        local = np.empty((m, 10, 3))
+        p2_kernels.tangential_gradient_vectors(np.ascontiguousarray(space._barycentric_on(measure, quad, el)),
+                                               np.ascontiguousarray(space.gradients_of(el)), np.ascontiguousarray(jac),
+                                               np.ascontiguousarray(quad.weights),
+                                               np.ascontiguousarray(np.broadcast_to(quad.point_normals, (m, q, 3))), local)
+        yield space.element_dofs[el], local

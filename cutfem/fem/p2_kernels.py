@@ -32,7 +32,7 @@ from ..geometry.numbering import TET_EDGES, index_dtype
 from ..jit import parallel_kernel
 
 __all__ = ["MASS", "STIFFNESS", "TANGENTIAL", "NORMAL_GRADIENT", "NITSCHE", "cell_matrices", "face_matrices",
-           "interface_matrices", "cell_vectors", "gradient_errors", "symmetric_csr", "inverse_3x3"]
+           "interface_matrices", "cell_vectors", "tangential_gradient_vectors", "gradient_errors", "symmetric_csr", "inverse_3x3"]
 
 #: the cell terms of :func:`cell_matrices`
 MASS, STIFFNESS, TANGENTIAL, NORMAL_GRADIENT, NITSCHE = range(5)
@@ -239,6 +239,29 @@ def cell_vectors(lam, G, jac, values, normals, sign, penalty, out):
                 for a in range(10):
                     for c in range(nc):
                         local[a, c] += values[t, p, c] * test[a]
+
+
+@parallel_kernel
+def tangential_gradient_vectors(lam, G, jac, weights, normals, out):
+    """out (m, 10, 3): sum_q w_q P grad phi_a, P = I - n n^T with the points' ``normals`` (m, q, 3),
+    arguments as :func:`cell_matrices`: the load (P e_k, grad phi_a) of the coordinates x_k."""
+    m, q = weights.shape
+    for ch in prange((m + CHUNK - 1) // CHUNK):
+        phi = np.empty(10)
+        ref = np.empty((10, 3))
+        grad = np.empty((10, 3))
+        Jinv = np.empty((3, 3))
+        for t in range(ch * CHUNK, min(m, (ch + 1) * CHUNK)):
+            local = out[t]
+            local[:, :] = 0.0
+            for p in range(q):
+                _basis(lam[t, p], G[t], phi, ref)
+                _mapped(jac, t, p, ref, Jinv, grad)
+                n, w = normals[t, p], weights[t, p]
+                for a in range(10):
+                    dn = grad[a, 0] * n[0] + grad[a, 1] * n[1] + grad[a, 2] * n[2]
+                    for c in range(3):
+                        local[a, c] += w * (grad[a, c] - dn * n[c])
 
 
 @njit(cache=True, error_model="numpy", inline="always")

@@ -245,7 +245,7 @@ def _position_integrand(v, w):
 
 
 _POSITION_LOAD = _integrand("position_load", _position_integrand, linear=True, degree=1,
-                            exact=_componentwise_load(_position_load_exact))
+                            exact=_componentwise_load(_position_load_exact), high_order=high_order.position_load_vectors)
 
 
 def position_load(measure: Measure, field=None) -> Form:

@@ -12,7 +12,7 @@ from cutfem.fem.forms import assemble, bilinear_form
 from cutfem.fem.norms import l2_h1_errors
 from cutfem.fem.pointwise import dot, inner
 from cutfem.fem.spaces import CutSpace, ProductSpace, VectorSpace
-from cutfem.fem.terms import (face_jump_penalty, interface_nitsche, load, mass, nitsche, normal_gradient_penalty, stiffness,
+from cutfem.fem.terms import (face_jump_penalty, interface_nitsche, load, mass, nitsche, normal_gradient_penalty, position_load, stiffness,
                               tangential_stiffness)
 from cutfem.geometry.box import structured_box
 from cutfem.geometry.cut import cut_mesh
@@ -246,7 +246,7 @@ def test_vectorised_terms_match_the_form_language_on_a_lifted_cut():
 
 
 def test_compiled_loads_match_the_form_language(sphere_cut):
-    """The loads on P2 (load, the Nitsche load; one and two right-hand sides) by their compiled
+    """The loads on P2 (load, the Nitsche load, the position load; one and two right-hand sides) by their compiled
     kernels are the form language's quadrature of their integrands, on a planar and a lifted cut."""
     lifted = cut_mesh(structured_box([-1, -1, -1], [1, 1, 1], cells=6), Sphere(0.7, [0.03, -0.01, 0.02]), order=2)
     f = lambda x: np.sin(x[..., 0]) + x[..., 1] * x[..., 2]  # noqa: E731
@@ -255,7 +255,7 @@ def test_compiled_loads_match_the_form_language(sphere_cut):
         V, W = CutSpace(c, NEG, order=2), CutSpace(c, CUT, order=2)
         for space, form in ((V, load(f, c.dx(NEG))), (V, load(pair, c.dx(NEG), degree=2)), (V, nitsche(c.ds(), 20.0, g=f).load),
                             (W, load(f, c.ds())), (ProductSpace(V, CutSpace(c, POS, order=2)), load(f, c.dx(POS), field=1)),
-                            (V, nitsche(c.ds(), 20.0, g=pair).load)):
+                            (V, nitsche(c.ds(), 20.0, g=pair).load), (W, position_load(c.ds()))):
             a, b = assemble(form, space), assemble(form.by_quadrature(), space)
             assert a.shape == b.shape and np.abs(a - b).max() <= 1e-13 * np.abs(b).max()
 
