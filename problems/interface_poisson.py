@@ -1,7 +1,8 @@
 """Interface problem with a coefficient jump: Nitsche-XFEM (Hansbo-Hansbo; docs/math.md §9).
 
 -div(a_i grad u) = f in Omega_i (NEG inside the sphere |x| = R, POS outside, in the box),
-[u] = 0 and [a n . grad u] = 0 on Gamma, u = g strongly on the box boundary.  One P1 field per side,
+[u] = 0 and [a n . grad u] = 0 on Gamma, u = g strongly on the box boundary (the nodes of the
+background's boundary facets, those of one tet: structured or tetwild alike).  One P1 field per side,
 u_h = (u_NEG, u_POS) in V_h^NEG x V_h^POS:
 
     sum_i (a_i grad u_i, grad v_i)_i - ({a n . grad u}, [v]) - ([u], {a n . grad v}) + (lambda / h) ([u], [v])
@@ -48,7 +49,7 @@ from cutfem.solvers.diagnose import SolverError
 from cutfem.solvers.solve import solve
 from cutfem.fem.spaces import CutSpace, ProductSpace
 
-from .common import finish_record, BULK_BYTES_PER_TET, ORDER_PARAM, SHAPE_PARAMS, SOLVER_PARAM, background_for, levelset_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, point_rows, value_and_gradient
+from .common import finish_record, BACKGROUND_PARAM, BULK_BYTES_PER_TET, ORDER_PARAM, SHAPE_PARAMS, SOLVER_PARAM, background_for, levelset_for, check_bulk_memory, check_ghost_penalty, check_nitsche_penalty, check_resolution, point_rows, value_and_gradient
 
 
 @parallel_kernel
@@ -191,11 +192,13 @@ def measures(cut):
         Param("radius", float, 0.8, "radius of the interface sphere", positive=True, only=("surface", ("sphere",))),
         *[p for p in SHAPE_PARAMS if p.name != "radius"],
         Param("box", str, "-1.2,-1.2,-1.2,1.2,1.2,1.2", "background box x0,y0,z0,x1,y1,z1"),
+        BACKGROUND_PARAM,
         ORDER_PARAM,
         SOLVER_PARAM,
     ],
 )
-def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, surface, radius, R, r, axes, box, solver, order=1):
+def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g, surface, radius, R, r, axes, box, solver, order=1,
+                          background="structured"):
     """One level of the interface problem; a spacing that does not resolve the sphere (S_h off its area by more
     than 25 %, :func:`~cutfem.problems.common.check_resolution`) is refused.  ``order`` 2: P2 fields on
     both sides, the interface penalty gamma k^2 (as poisson-cut's), the ghost penalties of order 2,
@@ -217,7 +220,7 @@ def interface_poisson_cut(spacing, a_inside, a_outside, weights, gamma, gamma_g,
                                "Python file")
         sol = LevelSetSolution(phi, a_inside, a_outside)
     with t("geometry"):
-        bg = background_for(phi, spacing, "structured", box)
+        bg = background_for(phi, spacing, background, box)
         check_bulk_memory(bg, phi, (NEG, POS), BULK_BYTES_PER_TET["interface-poisson-cut"], spacing)
         cut = cut_mesh(bg, phi, order=order)  # order 2: Gamma_h and the sides lifted by Theta_h (math.md §17)
         check_resolution(cut, phi, spacing)  # a sphere a few cells across: refused, not solved on a polyhedron

@@ -3,12 +3,16 @@ side, the ghost penalty of each side on every face once, the outer box's Dirichl
 by PETSc.
 
 The forms are the serial problem's (:func:`cutfem.problems.interface_poisson.interface_poisson_cut`):
-on the owned slab the product space of the two sides, the stiffness a_i (grad u_i, grad v_i) of
-each side, the interface terms and the loads; the ghost penalties of the faces inside the slab;
-on the seam the ghost penalties of the faces across its lowest plane.  The unknowns are keyed
+on the owned cells (a slab of a structured box, or cells of an unstructured mesh) the product space
+of the two sides, the stiffness a_i (grad u_i, grad v_i) of each side, the interface terms and the
+loads, and the ghost penalties of the faces between two owned cells; on the seam the ghost
+penalties of the faces between an owned cell and a ghost that the rank assembles.  The unknowns are keyed
 ``node * 2 + side`` (:class:`~cutfem.distributed.system.GlobalNumbering`): each rank's block holds
 both sides of its nodes, a permutation of the serial [inside | outside] numbering.  The Dirichlet
-condition u = g on the box's boundary nodes of the outside field is the serial elimination
+condition u = g on the outside field at the background's boundary nodes (those of the facets of one
+tet of the whole mesh, which every rank holds: the box's faces for the slabs, the mesh's boundary
+facets for the cell partition, the serial :attr:`~cutfem.fem.spaces.CutSpace.boundary_dofs`) is
+the serial elimination
 (:func:`cutfem.fem.terms.apply_dirichlet`) done on the assembled PETSc matrix: rows and columns
 zeroed with b -= K[:, D] g (``MatZeroRowsColumns``), then the diagonal |K_ii| and b_i = |K_ii| g_i.
 """
@@ -23,13 +27,14 @@ from ..fem.spaces import CutSpace, ProductSpace
 from ..fem.terms import face_jump_penalty, interface_nitsche, load, stiffness
 from ..geometry.markers import NEG, POS
 from ..geometry.shapes import Sphere
-from ..problems.common import background_for, check_ghost_penalty, check_nitsche_penalty, levelset_for
+from ..geometry.box import StructuredBox
+from ..problems.common import check_ghost_penalty, check_nitsche_penalty, levelset_for
 from ..problems.interface_poisson import InterfaceSolution, LevelSetSolution
 from ..runs.registry import ProblemError
 from ..runs.runner import Timer
 from .assembly import Piece, RankPieces, global_keys
 from .launch import engine
-from .levels import solve_on_ranks
+from .levels import shared_background, solve_on_ranks
 
 __all__ = ["interface_poisson_cut_level", "interface_pieces"]
 
@@ -75,20 +80,21 @@ def interface_pieces(cuts, a, gamma, gamma_g, weights, sol) -> RankPieces:
     return out
 
 
-def _dirichlet(box, g):
+def _dirichlet(background, g):
     """The constraint of :func:`~cutfem.distributed.levels.solve_on_ranks`: u = g(x) on the outside
-    field's unknowns at the nodes of the box's boundary, by symmetric elimination on PETSc with the
-    diagonal |K_ii| kept (see the module docstring)."""
+    field's unknowns at the boundary nodes of the whole ``background`` (a structured box's from its
+    six faces, an unstructured mesh's from its facets of one tet), by symmetric elimination on
+    PETSc with the diagonal |K_ii| kept (see the module docstring)."""
 
     def constrain(A, loads, numbering, parts):
         _, PETSc = engine()
         keys = numbering.owned_keys
         nodes = keys // 2
-        ijk = box.node_index(nodes)
-        top = np.asarray(box.node_shape) - 1
-        on = (keys % 2 == 1) & np.any((ijk == 0) | (ijk == top), axis=1)
+        on = (keys % 2 == 1) & np.isin(nodes, background.boundary_nodes)
         rows = numbering(keys[on]).astype(PETSc.IntType)
-        values = np.asarray(g(box.node_coordinates(nodes[on])), dtype=float)
+        at = nodes[on]  # a box's coordinates from the node indices, as its slabs compute them; a mesh's points
+        values = np.asarray(g(background.node_coordinates(at) if isinstance(background, StructuredBox) else background.points[at]),
+                            dtype=float)
         diagonal = np.abs(A.getDiagonal().getArray()[rows - numbering.first])
         diagonal[diagonal == 0] = 1.0
         x = A.createVecRight()
@@ -110,10 +116,14 @@ def _dirichlet(box, g):
 
 
 def interface_poisson_cut_level(spacing, a_inside, a_outside, weights, gamma, gamma_g, surface, radius, R, r, axes, box, solver,
-                                comm=None, counts=None):
+                                background="structured", comm=None, counts=None):
     """One level of interface-poisson-cut on the ranks of ``comm`` (default: every rank): the serial
-    record's errors of each side and sizes, with the engine and the number of ranks."""
+    record's errors of each side and sizes, with the engine and the number of ranks.
+    ``background``: "structured", "tetwild" or a TetMesh, the same on every rank
+    (:func:`~cutfem.distributed.levels.shared_background`); ``counts``: the partition by hand
+    (:func:`~cutfem.distributed.partition.partition_for`)."""
     MPI, _ = engine()
+    comm = MPI.COMM_WORLD if comm is None else comm
     for name, value in (("--a-inside", a_inside), ("--a-outside", a_outside)):
         if not value > 0:
             raise ProblemError(f"{name} must be positive, got {value}")
@@ -126,7 +136,7 @@ def interface_poisson_cut_level(spacing, a_inside, a_outside, weights, gamma, ga
         sol = LevelSetSolution(phi, a_inside, a_outside)
     t = Timer()
     with t("geometry"):
-        bg = background_for(phi, spacing, "structured", box)
+        bg = shared_background(comm, phi, spacing, background, box)
 
     def measure(W, x):
         out = []
@@ -140,7 +150,7 @@ def interface_poisson_cut_level(spacing, a_inside, a_outside, weights, gamma, ga
         return out
 
     keys = ("l2_error_inside", "h1_error_inside", "l2_error_outside", "h1_error_outside")
-    rec = solve_on_ranks(MPI.COMM_WORLD if comm is None else comm, phi, bg,
+    rec = solve_on_ranks(comm, phi, bg,
                          lambda cuts: interface_pieces(cuts, a, gamma, gamma_g, weights, sol), measure, keys, solver, counts, t,
                          fields=2, constrain=_dirichlet(bg, sol.u(POS)))
     if notes:

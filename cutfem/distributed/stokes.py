@@ -3,9 +3,10 @@ penalties of the velocity and the pressure on every face once, the Brezzi-Pitkar
 pressure's mean-value multiplier, solved by PETSc (MINRES with a field split, or MUMPS).
 
 The forms are the serial problem's (:func:`cutfem.problems.stokes.stokes_cut`), assembled on the
-product space (u, p) of each slab's P1 space: on the owned slab the cell terms, the load and the
-ghost penalties of the faces inside it, on the seam the ghost penalties of the faces across its
-lowest plane.  The unknowns are keyed ``node * 4 + field`` (the velocity's components 0, 1, 2 and
+product space (u, p) of each local mesh's P1 space (a slab of a structured box, or cells of an
+unstructured mesh): on the owned cells the cell terms, the load and the ghost penalties of the
+faces between two owned cells, on the seam those of the faces between an owned cell and a ghost
+that the rank assembles.  The unknowns are keyed ``node * 4 + field`` (the velocity's components 0, 1, 2 and
 the pressure 3: :func:`~cutfem.distributed.assembly.global_keys`), so a rank's block holds the four
 unknowns of each of its nodes, a permutation of the serial [u_1 | u_2 | u_3 | p | lam] numbering.
 
@@ -39,12 +40,12 @@ from ..fem.norms import l2_error, l2_h1_errors
 from ..fem.spaces import CutSpace, ProductSpace, VectorSpace
 from ..fem.terms import basis_integrals, face_jump_penalty, load, mass, nitsche, stiffness
 from ..geometry.markers import NEG
-from ..problems.common import background_for, check_ghost_penalty, check_nitsche_penalty, levelset_for
+from ..problems.common import check_ghost_penalty, check_nitsche_penalty, levelset_for
 from ..problems.stokes import PRESSURE, VELOCITY, VELOCITY_GRADIENT, normal_data, source
 from ..runs.runner import Timer
 from .assembly import Piece, RankPieces, global_keys
 from .launch import engine
-from .levels import solve_on_ranks
+from .levels import shared_background, solve_on_ranks
 from .saddle import SADDLE_TOL, near_null_vectors, saddle_solve
 from .system import LinearSystem
 
@@ -153,14 +154,11 @@ def stokes_cut_level(spacing, surface, background, box, nu, gamma, gamma_u, gamm
     relative residual (:data:`~cutfem.distributed.saddle.SADDLE_TOL`)."""
     MPI, _ = engine()
     comm = MPI.COMM_WORLD if comm is None else comm
-    if background != "structured":
-        raise ValueError(f"distributed stokes-cut partitions a structured box; got --background {background}: "
-                         "run an unstructured background on one rank")
     notes = check_ghost_penalty(gamma_u, "--gamma-u") + check_ghost_penalty(gamma_p, "--gamma-p") + check_nitsche_penalty(gamma)
     t = Timer()
     with t("geometry"):
         phi = levelset_for(surface, R, r, radius, axes)
-        bg = background_for(phi, spacing, background, box)
+        bg = shared_background(comm, phi, spacing, background, box)
     mean = np.zeros(2)  # int p and |Omega_h| over the owned cells, then summed: the pressure's mean
 
     def build(cuts):

@@ -492,3 +492,73 @@ def test_tetwild_background_is_meshed_once_and_shared():
         moved = TetMesh(mesh.points + 1e-3 * WORLD.rank, mesh.tets, check=False)
         with pytest.raises(ValueError, match="different background meshes"):
             shared_background(WORLD, phi, 0.4, moved, None)
+
+
+def without_cells(mesh, size, last):
+    """Bisection over ``size - 1`` ranks, so that rank 0 (``last`` False) or the last rank (True,
+    the owner of the stokes multiplier) owns no cell."""
+    owner = recursive_bisection(mesh.points[mesh.tets].mean(axis=1), size - 1)
+    return owner if last else owner + 1
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 4])
+def test_unstructured_interface_errors_equal_serial(tet_sphere, monkeypatch, size):
+    """interface-poisson-cut on a jittered, renumbered mesh of the box on 1-4 ranks (bisection, and
+    on 4 ranks rank 0 without cells): the outer Dirichlet nodes are those of the mesh's boundary
+    facets (found on the whole mesh, not on a rank's cells, whose own boundary runs through the
+    box), so the unknowns, sizes and errors of both sides are the serial ones to 1e-10."""
+    _, mesh = tet_sphere
+    comm = ranks(size)
+    given = {"solver": "direct", "a_inside": 10.0, "radius": 0.7}
+    serial = serial_on(monkeypatch, "interface_poisson", mesh, "interface-poisson-cut", 0.2, **given)
+    if comm is None:
+        return
+    p = distributed_params("interface-poisson-cut", given) | {"background": mesh}
+    rec = interface_poisson_cut_level(0.2, **p, comm=comm, counts=without_cells(mesh, size, False) if size == 4 else None)
+    assert rec["dofs"] == serial["dofs"] and "box" not in rec and rec["pc"].startswith("lu")
+    for key in ("active_tets", "pieces", "surface_triangles", "interior_faces", "background_nodes"):
+        assert rec[key] == serial[key], key
+    for key in ("l2_error_inside", "h1_error_inside", "l2_error_outside", "h1_error_outside"):
+        assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 4])
+def test_unstructured_stokes_errors_equal_serial(tet_sphere, monkeypatch, size):
+    """stokes-cut on a jittered, renumbered mesh of the ball's box on 1-4 ranks (bisection, and on
+    4 ranks the last rank, the multiplier's owner, without cells): the serial unknowns, sizes and
+    errors to 1e-10 with MUMPS and with MINRES (GAMG on the velocity: no lattice hierarchy)."""
+    _, mesh = tet_sphere
+    comm = ranks(size)
+    serial = serial_on(monkeypatch, "stokes", mesh, "stokes-cut", 0.2, background="tetwild")
+    if comm is None:
+        return
+    assert serial["solver"] == "direct"
+    counts = without_cells(mesh, size, True) if size == 4 else None
+    for solver in ("auto", "minres") if size != 3 else ("auto",):
+        p = distributed_params("stokes-cut", {"solver": solver}) | {"background": mesh}
+        rec = stokes_cut_level(0.2, **p, comm=comm, counts=counts)
+        assert rec["dofs"] == serial["dofs"] and rec["ranks"] == size and "box" not in rec
+        for key in ("active_tets", "pieces", "surface_triangles", "interior_faces", "background_nodes"):
+            assert rec[key] == serial[key], key
+        for key in ("l2_error_velocity", "h1_error_velocity", "l2_error_pressure", "volume"):
+            assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (solver, key, rec[key], serial[key])
+        if solver == "minres":
+            assert rec["pc"] == "fieldsplit (gamg, chebyshev+jacobi)" and rec["residual"] < 1e-9
+
+
+def test_tetwild_interface_and_stokes_equal_serial(monkeypatch):
+    """--background tetwild for interface-poisson-cut and stokes-cut on every rank: rank 0's
+    pytetwild mesh, shared, gives the serial errors on that mesh to 1e-10."""
+    phi = cf.Sphere(1.0)
+    mesh = shared_background(WORLD, phi, 0.3, "tetwild", None)
+    given = {"solver": "direct", "a_inside": 10.0, "radius": 0.7}
+    serial = serial_on(monkeypatch, "interface_poisson", mesh, "interface-poisson-cut", 0.3, **given)
+    rec = interface_poisson_cut_level(0.3, **distributed_params("interface-poisson-cut", given) | {"background": mesh})
+    assert rec["dofs"] == serial["dofs"] and rec["background_nodes"] == mesh.n_points
+    for key in ("l2_error_inside", "h1_error_inside", "l2_error_outside", "h1_error_outside"):
+        assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
+    serial = serial_on(monkeypatch, "stokes", mesh, "stokes-cut", 0.3, background="tetwild", solver="direct")
+    rec = stokes_cut_level(0.3, **distributed_params("stokes-cut", {"solver": "direct"}) | {"background": mesh})
+    assert rec["dofs"] == serial["dofs"] and rec["ranks"] == WORLD.size
+    for key in ("l2_error_velocity", "h1_error_velocity", "l2_error_pressure", "volume"):
+        assert abs(rec[key] - serial[key]) <= 1e-10 * abs(serial[key]), (key, rec[key], serial[key])
