@@ -16,7 +16,8 @@ symmetric.  Without a hierarchy (an unstructured background):
 * the primal block: one GAMG V-cycle (PREONLY), the 3 components of a node in one block, with the
   near-null space of each component's constants (:func:`near_null_vectors`; adding the linear
   functions of each component saves a fifth of the iterations but makes GAMG's setup about ten
-  times dearer); GAMG needs about three times PCMG's MINRES iterations;
+  times dearer); with the constraint block below, MINRES needs about three times the iterations
+  of PCMG on both blocks (docs/math.md §19);
 * the constraint block: Chebyshev on the Jacobi-scaled S, a fixed number of iterations
   (:data:`CHEBYSHEV_DEGREE`), a fixed polynomial that stays SPD below its interval.  Jacobi alone
   is not enough: the ghost penalty of the pressure, h^3 [d_n p][d_n q] on the faces, is what

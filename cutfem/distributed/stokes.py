@@ -128,8 +128,9 @@ def stokes_pieces(cuts, nu, gamma, gamma_u, gamma_p, beta) -> StokesPieces:
 
 def _saddle(solver, tol):
     """The solve of :func:`~cutfem.distributed.levels.solve_on_ranks`: the preconditioning matrix
-    from the pieces, the velocity's unknowns and their near-null vectors, then
-    :func:`~cutfem.distributed.saddle.saddle_solve`."""
+    from the pieces, the velocity's unknowns and their near-null vectors, the lattice hierarchies
+    (on the structured box) of the velocity, 3 unknowns a node, and of the pressure with the
+    multiplier, then :func:`~cutfem.distributed.saddle.saddle_solve`."""
 
     def solve(system, A, loads, parts, hierarchy):
         numbering = system.numbering
@@ -139,7 +140,8 @@ def _saddle(solver, tol):
         P, (zero,) = pre.petsc()
         velocity = np.flatnonzero(numbering.owned_keys % FIELDS < 3)
         nodes = numbering.owned_keys[velocity[::3]] // FIELDS
-        lattices = (None, None) if hierarchy is None else (lambda: hierarchy(nodes, 3), lambda: hierarchy(nodes, 1, 1))
+        lattices = (None, None) if hierarchy is None else (lambda: hierarchy(nodes, components=3),
+                                                           lambda: hierarchy(nodes, constants=1))
         try:
             return saddle_solve(system, A, loads, P, numbering.first + velocity, near_null_vectors(len(nodes)), solver, tol,
                                 lattices)
