@@ -75,9 +75,11 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
     :meth:`~cutfem.distributed.system.LinearSystem.solve`); ``fields``: the fields of a product
     space; ``constrain(A, loads, numbering, parts)``: strong conditions applied to the PETSc system
     before the solve; ``constants``: the one-unknown fields (keyed -1, -2, ...:
-    :class:`~cutfem.distributed.system.GlobalNumbering`); ``solve(system, A, loads, parts)``:
-    ``([x, ...], info)`` in place of :meth:`~cutfem.distributed.system.LinearSystem.solve` (a
-    saddle-point system's, :mod:`cutfem.distributed.saddle`)."""
+    :class:`~cutfem.distributed.system.GlobalNumbering`); ``solve(system, A, loads, parts,
+    hierarchy)``: ``([x, ...], info)`` in place of :meth:`~cutfem.distributed.system.LinearSystem.solve`
+    (a saddle-point system's, :mod:`cutfem.distributed.saddle`), ``hierarchy(nodes, components, constants)``
+    the lattice prolongations of a field at its owned nodes on the structured box, None on an
+    unstructured mesh."""
     MPI, _ = engine()
     t = Timer() if timer is None else timer
     with t("geometry"):
@@ -89,13 +91,16 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
         if constrain is not None:
             constrain(A, loads, numbering, parts)
     with t("solve"):
-        def hierarchy():  # one field on the structured box: the lattice multigrid, doubled by phi_h for a surface field
-            nodes = numbering.owned_keys
-            return lattice_prolongations(comm, cuts.partition, nodes, None if bulk else nodal_levelset(cuts, nodes))
+        def hierarchy(nodes=None, components=1, constants=0):
+            """The lattice multigrid below ``nodes`` (the owned nodes of a field, default: the one
+            field's unknowns), doubled by phi_h for a surface field."""
+            nodes = numbering.owned_keys if nodes is None else nodes
+            return lattice_prolongations(comm, cuts.partition, nodes, None if bulk else nodal_levelset(cuts, nodes),
+                                         components=components, constants=constants)
 
-        lattice = fields == 1 and isinstance(cuts.partition, Slabs)  # an unstructured mesh has no lattice hierarchy
-        xs, info = (system.solve(A, loads, solver, tol, bulk, hierarchy if lattice else None) if solve is None
-                    else solve(system, A, loads, parts))
+        lattice = isinstance(cuts.partition, Slabs)  # an unstructured mesh has no lattice hierarchy
+        xs, info = (system.solve(A, loads, solver, tol, bulk, hierarchy if lattice and fields == 1 else None) if solve is None
+                    else solve(system, A, loads, parts, hierarchy if lattice else None))
     with t("errors"):
         sums = np.zeros(len(keys))
         V = parts.space

@@ -1,5 +1,6 @@
-"""The geometric multigrid of the surface systems on PETSc: cutfem's lattice prolongations, row by
-row on the ranks that own them, and PETSc's PCMG (docs/math.md §19).
+"""The geometric multigrid on PETSc: cutfem's lattice prolongations, row by row on the ranks that own
+them, and PETSc's PCMG (docs/math.md §19), for the surface systems, the bulk ones and the blocks of
+the Stokes saddle system.
 
 Why
 ---
@@ -31,6 +32,15 @@ level has at most 0.9 times the unknowns of the finer one and the finer one more
 ``coarse_size``.  The rows and their weights do not depend on the number of ranks: the
 hierarchy is the serial one.
 
+Fields of several unknowns
+--------------------------
+The bulk fields take the plain lattices, and a field of c unknowns a node numbered together (a
+velocity's 3 components, keyed ``node * 4 + field`` so that a node's components are consecutive
+in its split of the Stokes system) the scalar prolongation per component, P kron I_c, which is
+the serial block prolongation (:func:`~cutfem.solvers.multigrid.multigrid_hierarchy` of a
+:class:`~cutfem.fem.spaces.VectorSpace`) in the node-major order.  Unknowns of no node (the
+pressure's mean-value multiplier, last on the last rank) stay on every level as themselves.
+
 Cycle
 -----
 A V-cycle of PCMG with the coarse operators P^T A P (MatPtAP), smoothed by two steps of
@@ -55,12 +65,18 @@ __all__ = ["lattice_prolongations", "set_multigrid", "COARSE_SIZE"]
 COARSE_SIZE = 400
 
 
-def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = COARSE_SIZE, max_levels: int = 20) -> list:
+def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = COARSE_SIZE, max_levels: int = 20,
+                          components: int = 1, constants: int = 0) -> list:
     """The prolongations P_0, P_1, ... (PETSc MPIAIJ, finest first) of the Kuhn lattices below the
     unknowns ``nodes`` of this rank (its owned unknowns' global background node ids, increasing:
     the rows of the system it owns, in order), on the structured box of ``slabs``.  ``augment``:
     the nodal values w of phi_h at ``nodes``, doubling every coarse space with w v (see the module
-    docstring), or None for the plain lattices."""
+    docstring), or None for the plain lattices.  ``components``: the unknowns of a node, numbered
+    together (a velocity's 3 components, row 3 i + c the component c of node i): the prolongation
+    of each level is the scalar one applied to each component, P kron I_c, and the coarsest level
+    has at most ``coarse_size`` unknowns.  ``constants``: unknowns of no node after the last rank's
+    rows (a multiplier, :class:`~cutfem.distributed.system.GlobalNumbering`), kept on every level
+    (an identity row and column at the end of the last rank's block)."""
     _, PETSc = engine()
     box = slabs.box
     nz = int(box.cells[2])
@@ -70,8 +86,9 @@ def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = C
     copies = np.zeros(len(nodes), dtype=np.int64)  # the rows: lattice nodes (sorted lexicographically) and their copy
     n_global = int(comm.allreduce(len(nodes)))
     out = []
+    c = int(components)
     for level in range(max_levels):
-        if n_global <= coarse_size:
+        if c * n_global <= coarse_size:
             break
         rows, cols, vals, cijk = _local_rows(ijk, copies, augment if level == 0 else None)
         # the coarse keys: lexicographic number of the coarse node (a box large enough for every
@@ -85,8 +102,14 @@ def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = C
             break
         local = sp.csr_matrix((vals, (rows, numbers)), shape=(len(ijk), nc_global))
         local.sum_duplicates()
+        if c > 1:
+            local = sp.kron(local, sp.identity(c), format="csr")
+        k = constants if comm.rank == comm.size - 1 else 0  # the last rank's rows end with the constants
+        cols = c * nc_global + constants
+        local = sp.vstack([sp.csr_matrix((local.data, local.indices, local.indptr), shape=(local.shape[0], cols)),
+                           sp.csr_matrix((np.ones(k), (np.arange(k), c * nc_global + np.arange(k))), shape=(k, cols))], format="csr")
         local.sort_indices()
-        P = PETSc.Mat().createAIJ(((len(ijk), n_global), (len(owned), nc_global)),
+        P = PETSc.Mat().createAIJ(((c * len(ijk) + k, c * n_global + constants), (c * len(owned) + k, cols)),
                                   csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType), local.data), comm=comm)
         P.assemble()
         out.append(P)

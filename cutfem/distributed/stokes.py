@@ -26,7 +26,9 @@ owner a gather of the whole pressure per product, negligible at a few ranks.
 The preconditioner is the serial one's (:mod:`cutfem.solvers.saddle`): diag(A, S) with S = (1/nu)
 M_p + the pressure stabilization and the multiplier's Schur number m^T S^{-1} m = nu |Omega_h|
 (exact: the stabilization vanishes on constants, so S 1 = (1/nu) M_p 1 = m / nu), on PETSc's field
-split (:func:`~cutfem.distributed.saddle.saddle_solve`).
+split (:func:`~cutfem.distributed.saddle.saddle_solve`), each block by two V-cycles of the lattice
+multigrid as serially: the velocity's scalar prolongation per component, the pressure's with the
+multiplier kept on every level (:func:`~cutfem.distributed.preconditioners.lattice_prolongations`).
 """
 
 from __future__ import annotations
@@ -127,18 +129,23 @@ def stokes_pieces(cuts, nu, gamma, gamma_u, gamma_p, beta) -> StokesPieces:
 
 def _saddle(solver, tol):
     """The solve of :func:`~cutfem.distributed.levels.solve_on_ranks`: the preconditioning matrix
-    from the pieces, the velocity's unknowns and their near-null vectors, then
-    :func:`~cutfem.distributed.saddle.saddle_solve`."""
+    from the pieces, the velocity's unknowns and their near-null vectors, the lattice hierarchies
+    (on the structured box) of the velocity, 3 unknowns a node, and of the pressure with the
+    multiplier, then :func:`~cutfem.distributed.saddle.saddle_solve`."""
 
-    def solve(system, A, loads, parts):
+    def solve(system, A, loads, parts, hierarchy):
         numbering = system.numbering
         pre = LinearSystem(system.comm, numbering)
         for piece in parts.preconditioner:
             pre.add_matrix(piece.matrix, numbering(piece.keys))
         P, (zero,) = pre.petsc()
         velocity = np.flatnonzero(numbering.owned_keys % FIELDS < 3)
+        nodes = numbering.owned_keys[velocity[::3]] // FIELDS
+        lattices = (None, None) if hierarchy is None else (lambda: hierarchy(nodes, components=3),
+                                                           lambda: hierarchy(nodes, constants=1))
         try:
-            return saddle_solve(system, A, loads, P, numbering.first + velocity, near_null_vectors(len(velocity) // 3), solver, tol)
+            return saddle_solve(system, A, loads, P, numbering.first + velocity, near_null_vectors(len(nodes)), solver, tol,
+                                lattices)
         finally:
             P.destroy()
             zero.destroy()
