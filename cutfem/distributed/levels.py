@@ -19,7 +19,7 @@ import numpy as np
 from ..geometry.box import StructuredBox
 from ..geometry.markers import CUT
 from ..geometry.mesh import TetMesh
-from ..problems.common import background_for
+from ..problems.common import active_tets, background_for
 from ..runs.runner import Timer
 from ..solvers.krylov import DEFAULT_TOL
 from .assembly import global_keys, rank_system
@@ -39,8 +39,7 @@ def cut_counts(cuts, parts) -> dict:
     out = {"active_tets": 0, "pieces": 0, "surface_triangles": 0, "interior_faces": 0}
     if cuts.owned is not None:
         c = cuts.owned
-        fields = getattr(parts.space, "fields", None) or [parts.space]  # a product space's tets: the union of its fields'
-        out["active_tets"] = len(np.unique(np.concatenate([f.elements.tet_ids for f in fields])))
+        out["active_tets"] = active_tets(c, parts.space)
         out["pieces"], out["surface_triangles"] = int(c.n_tets), int(c.n_triangles)
         out["interior_faces"] = c.interior_facets().n_facets if c.n_tets else 0
     if cuts.seam is not None and cuts.seam.n_tets:
