@@ -83,6 +83,9 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
         cuts = rank_cuts(partition_for(background, comm.size, counts), comm.rank, levelset)
     with t("assembly"):
         parts = build(cuts)
+        for cut in (cuts.owned, cuts.seam):  # the forms are assembled: their measures' memory serves PETSc's matrix and solve
+            if cut is not None:
+                cut.release_measures()
         system, numbering = rank_system(parts, cuts, comm, fields, constants)
         A, loads = system.petsc()
         if constrain is not None:
@@ -95,6 +98,8 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
         lattice = fields == 1 and isinstance(cuts.partition, Slabs)  # an unstructured mesh has no lattice hierarchy
         xs, info = (system.solve(A, loads, solver, tol, bulk, hierarchy if lattice else None) if solve is None
                     else solve(system, A, loads, parts))
+    for obj in (A, *loads):  # before the errors, whose measure is built again in the memory they free
+        obj.destroy()
     with t("errors"):
         sums = np.zeros(len(keys))
         V = parts.space
@@ -104,8 +109,8 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
         if has:
             sums[:] = measure(V, np.stack(values, axis=1) if len(xs) > 1 else values[0])
         comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
-    for obj in (A, *loads, *xs):
-        obj.destroy()
+    for x in xs:
+        x.destroy()
     sizes = {k: int(comm.allreduce(v, op=MPI.SUM)) for k, v in (cut_counts(cuts, parts) | {"stabilized_faces": parts.faces}).items()}
     times = np.array([t.get(k, 0.0) for k in STAGES])
     comm.Allreduce(MPI.IN_PLACE, times, op=MPI.MAX)
