@@ -684,6 +684,16 @@ def finish_record(rec: dict, cut, space=None, notes=(), timer=None) -> dict:
     return rec
 
 
+def active_tets(cut, space=None) -> int:
+    """The background tets that carry unknowns of ``space``: the union over the fields of a product
+    space (one field's tets are distinct already, and are not sorted again: at millions of tets the
+    sort's copies were the largest arrays of a distributed level's end); without a space, or for
+    trace fields, the cut tets."""
+    fields = getattr(space, "fields", None) or ([space] if space is not None else [])
+    ids = [f.elements.tet_ids for f in fields if getattr(getattr(f, "elements", None), "tet_ids", None) is not None]
+    return int((len(ids[0]) if len(ids) == 1 else len(unique_keys(np.concatenate(ids)))) if ids else cut.n_tets)
+
+
 def cut_record(cut, space=None) -> dict:
     """Sizes of a cut for the per-level records (and the box used, for a structured background):
     ``pieces`` the tets the surface cuts (one piece of S_h each), ``active_tets`` the background tets
@@ -691,12 +701,9 @@ def cut_record(cut, space=None) -> dict:
     or for trace fields, the cut tets)."""
     bg = cut.background
     box = {"box": [bg.lower.tolist(), bg.upper.tolist()]} if hasattr(bg, "lower") else {}
-    fields = getattr(space, "fields", None) or ([space] if space is not None else [])
-    ids = [f.elements.tet_ids for f in fields if getattr(getattr(f, "elements", None), "tet_ids", None) is not None]
-    active = (len(ids[0]) if len(ids) == 1 else len(unique_keys(np.concatenate(ids)))) if ids else int(cut.n_tets)
     return box | {
         "background_nodes": int(cut.background.n_used_points),
-        "active_tets": int(active),
+        "active_tets": active_tets(cut, space),
         "pieces": int(cut.n_tets),
         "surface_triangles": int(cut.n_triangles),
         "interior_faces": int(cut.interior_facets().n_facets),

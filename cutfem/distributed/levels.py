@@ -19,7 +19,7 @@ import numpy as np
 from ..geometry.box import StructuredBox
 from ..geometry.markers import CUT
 from ..geometry.mesh import TetMesh
-from ..problems.common import background_for
+from ..problems.common import active_tets, background_for
 from ..runs.runner import Timer
 from ..solvers.krylov import DEFAULT_TOL
 from .assembly import global_keys, rank_system
@@ -39,8 +39,7 @@ def cut_counts(cuts, parts) -> dict:
     out = {"active_tets": 0, "pieces": 0, "surface_triangles": 0, "interior_faces": 0}
     if cuts.owned is not None:
         c = cuts.owned
-        fields = getattr(parts.space, "fields", None) or [parts.space]  # a product space's tets: the union of its fields'
-        out["active_tets"] = len(np.unique(np.concatenate([f.elements.tet_ids for f in fields])))
+        out["active_tets"] = active_tets(c, parts.space)
         out["pieces"], out["surface_triangles"] = int(c.n_tets), int(c.n_triangles)
         out["interior_faces"] = c.interior_facets().n_facets if c.n_tets else 0
     if cuts.seam is not None and cuts.seam.n_tets:
@@ -86,6 +85,9 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
         cuts = rank_cuts(partition_for(background, comm.size, counts), comm.rank, levelset)
     with t("assembly"):
         parts = build(cuts)
+        for cut in (cuts.owned, cuts.seam):  # the forms are assembled: their measures' memory serves PETSc's matrix and solve
+            if cut is not None:
+                cut.release_measures()
         system, numbering = rank_system(parts, cuts, comm, fields, constants)
         A, loads = system.petsc()
         if constrain is not None:
@@ -101,6 +103,8 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
         lattice = isinstance(cuts.partition, Slabs)  # an unstructured mesh has no lattice hierarchy
         xs, info = (system.solve(A, loads, solver, tol, bulk, hierarchy if lattice and fields == 1 else None) if solve is None
                     else solve(system, A, loads, parts, hierarchy if lattice else None))
+    for obj in (A, *loads):  # before the errors, whose measure is built again in the memory they free
+        obj.destroy()
     with t("errors"):
         sums = np.zeros(len(keys))
         V = parts.space
@@ -110,8 +114,8 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
         if has:
             sums[:] = measure(V, np.stack(values, axis=1) if len(xs) > 1 else values[0])
         comm.Allreduce(MPI.IN_PLACE, sums, op=MPI.SUM)
-    for obj in (A, *loads, *xs):
-        obj.destroy()
+    for x in xs:
+        x.destroy()
     sizes = {k: int(comm.allreduce(v, op=MPI.SUM)) for k, v in (cut_counts(cuts, parts) | {"stabilized_faces": parts.faces}).items()}
     times = np.array([t.get(k, 0.0) for k in STAGES])
     comm.Allreduce(MPI.IN_PLACE, times, op=MPI.MAX)

@@ -137,24 +137,33 @@ class LinearSystem:
         n, N = self.numbering.n_owned, self.numbering.n_global
         if self._given:
             raise RuntimeError("this system's triples went to PETSc already (petsc() releases them): assemble a new system")
-        rows, cols, vals = (np.concatenate(a) if a else np.zeros(0, t) for a, t in
-                            ((self._rows, np.int64), (self._cols, np.int64), (self._vals, float)))
-        # released now, not with the system: the triples are the largest arrays of a rank (24 bytes an entry)
-        self._rows, self._cols, self._vals, self._given = [], [], [], True
-        rows, cols, vals = self._to_owners(rows, cols, vals)
-        first = self.numbering.first
-        local = sp.csr_matrix((vals, (rows - first, cols)), shape=(n, N))
+        # the triples are the largest arrays of a rank (24 bytes an entry): each list is released as it
+        # is joined and each joined array as it is exchanged, so that at most one extra copy of one of
+        # them is alive at a time
+        triples = []
+        for name, kind in (("_rows", np.int64), ("_cols", np.int64), ("_vals", float)):
+            arrays = getattr(self, name)
+            setattr(self, name, [])
+            triples.append(arrays[0] if len(arrays) == 1 else np.concatenate(arrays) if arrays else np.zeros(0, kind))
+            del arrays
+        self._given = True
+        rows, cols, vals = self._to_owners(triples)
+        rows -= self.numbering.first
+        local = sp.csr_matrix((vals, (rows, cols)), shape=(n, N))
         del rows, cols, vals
         local.sum_duplicates()
         local.sort_indices()
-        A = PETSc.Mat().createAIJ(((n, N), (n, N)), csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType),
-                                                         local.data), comm=self.comm)
+        A = PETSc.Mat().createAIJ(((n, N), (n, N)), csr=(local.indptr.astype(PETSc.IntType, copy=False),
+                                                         local.indices.astype(PETSc.IntType, copy=False), local.data),
+                                  comm=self.comm)
+        del local
         A.assemble()
         # the number of loads, agreed by all ranks: one without loads would exchange one column and the others k
         k = self.comm.allreduce(max((v.shape[1] for v in self._vec_vals), default=1), op=MPI.MAX)
         vrows = np.concatenate(self._vec_rows) if self._vec_rows else np.zeros(0, np.int64)
         vvals = np.concatenate(self._vec_vals) if self._vec_vals else np.zeros((0, k))
-        vrows, *columns = self._to_owners(vrows, *vvals.T)
+        vrows, *columns = self._to_owners([vrows, *vvals.T])
+        first = self.numbering.first
         loads = []
         for column in columns:
             b = A.createVecLeft()
@@ -162,25 +171,28 @@ class LinearSystem:
             loads.append(b)
         return A, loads
 
-    def _to_owners(self, rows, *columns):
-        """The entries (``rows`` and the arrays beside them) of the rows this rank owns, received
-        from every rank (one all-to-all exchange; each row owned by the rank whose block of numbers
-        holds it)."""
+    def _to_owners(self, arrays):
+        """The entries of the rows this rank owns, received from every rank (one all-to-all
+        exchange; each row owned by the rank whose block of numbers holds it): ``arrays`` the rows
+        and the arrays beside them, a list that is emptied as each array is sent (the caller holds
+        no other reference, so each is freed once its copy in the owners' order exists)."""
         MPI, _ = engine()
         comm = self.comm
         firsts = np.array(comm.allgather(self.numbering.first), dtype=np.int64)
-        owner = np.searchsorted(firsts, rows, side="right") - 1
+        owner = np.searchsorted(firsts, arrays[0], side="right") - 1
         order = np.argsort(owner, kind="stable")
         send = np.bincount(owner, minlength=comm.size).astype(np.int64)
+        del owner
         recv = np.empty_like(send)
         comm.Alltoall(send, recv)
         sdispl, rdispl = _displacements(send), _displacements(recv)
         out = []
-        for a in (rows, *columns):
-            a = np.ascontiguousarray(a[order])
+        while arrays:
+            a = np.ascontiguousarray(arrays.pop(0)[order])
             got = np.empty(int(recv.sum()), dtype=a.dtype)
             kind = MPI.INT64_T if a.dtype == np.int64 else MPI.DOUBLE
             comm.Alltoallv([a, (send, sdispl), kind], [got, (recv, rdispl), kind])
+            del a
             out.append(got)
         return out
 

@@ -263,6 +263,13 @@ class CutMesh:
                 self._measures[key] = ElementVolume(self.elements(where))
         return self._measures[key]
 
+    def release_measures(self) -> None:
+        """Forget the cached measures (their quadrature points, sub-tets and facet data); the next
+        ``dx``, ``ds`` or ``dF`` builds its measure again.  For a caller done with its forms that
+        wants their memory for what follows (the distributed levels, for PETSc's matrix and
+        preconditioner)."""
+        self._measures.clear()
+
     def dF(self, facets):
         """The facet measure of a facet set (:class:`~cutfem.geometry.measures.FacetMeasure`)."""
         if not isinstance(facets, FacetSet):

@@ -268,12 +268,18 @@ def test_command_line_under_mpiexec(tmp_path_factory):
 
 
 def test_scaling_study_record_and_table():
-    """The scaling study's record on all ranks (its level at spacing 0.2 here) and its table."""
-    rec = scaling_record(WORLD, 0.2)
-    assert rec["ranks"] == WORLD.size and len(rec["memory_mib"]) == WORLD.size and min(rec["memory_mib"]) > 0
-    assert set(rec["time"]) == {"geometry", "assembly", "solve", "errors"}
-    text = table([rec])
-    assert text.count("\n") == 3 and f"| {WORLD.size} | {rec['dofs']:,} |" in text
+    """The scaling study's records of both problems on all ranks (their levels at spacing 0.2 here)
+    and their table: the mean curvature's unknowns count its three components."""
+    records = [scaling_record(WORLD, 0.2, problem) for problem in ("poisson-cut", "mean-curvature-cut")]
+    for rec in records:
+        assert rec["ranks"] == WORLD.size and len(rec["memory_mib"]) == WORLD.size and min(rec["memory_mib"]) > 0
+        assert set(rec["time"]) == {"geometry", "assembly", "solve", "errors"}
+    assert records[0]["unknowns"] == records[0]["dofs"] and records[1]["unknowns"] == 3 * records[1]["dofs"]
+    assert records[1]["solver"] == "cg+mg"
+    text = table(records)
+    assert text.count("\n") == 4
+    for rec in records:
+        assert f"| {rec['problem']} | {WORLD.size} | {rec['unknowns']:,} |" in text
 
 
 @pytest.fixture(scope="module")
