@@ -62,7 +62,7 @@ def nodal_levelset(cuts, nodes) -> np.ndarray:
 
 def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
                    tol: float = DEFAULT_TOL, bulk: bool = True, fields: int = 1, constrain=None, constants: int = 0,
-                   solve=None) -> dict:
+                   solve=None, order: int = 1) -> dict:
     """Solve one level of a problem on the ranks of ``comm``; returns the record's common part.
 
     ``build(cuts)``: the rank's :class:`~cutfem.distributed.assembly.RankPieces`;
@@ -77,11 +77,12 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
     before the solve; ``constants``: the one-unknown fields (keyed -1, -2, ...:
     :class:`~cutfem.distributed.system.GlobalNumbering`); ``solve(system, A, loads, parts)``:
     ``([x, ...], info)`` in place of :meth:`~cutfem.distributed.system.LinearSystem.solve` (a
-    saddle-point system's, :mod:`cutfem.distributed.saddle`)."""
+    saddle-point system's, :mod:`cutfem.distributed.saddle`); ``order`` 2: the cuts lifted by
+    Theta_h (:func:`~cutfem.distributed.partition.rank_cuts`) for the P2 fields of ``build``."""
     MPI, _ = engine()
     t = Timer() if timer is None else timer
     with t("geometry"):
-        cuts = rank_cuts(partition_for(background, comm.size, counts), comm.rank, levelset)
+        cuts = rank_cuts(partition_for(background, comm.size, counts), comm.rank, levelset, order)
     with t("assembly"):
         parts = build(cuts)
         system, numbering = rank_system(parts, cuts, comm, fields, constants)
@@ -93,7 +94,8 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
             nodes = numbering.owned_keys
             return lattice_prolongations(comm, cuts.partition, nodes, None if bulk else nodal_levelset(cuts, nodes))
 
-        lattice = fields == 1 and isinstance(cuts.partition, Slabs)  # an unstructured mesh has no lattice hierarchy
+        # an unstructured mesh has no lattice hierarchy; P2 fields have none on PETSc yet
+        lattice = fields == 1 and order == 1 and isinstance(cuts.partition, Slabs)
         xs, info = (system.solve(A, loads, solver, tol, bulk, hierarchy if lattice else None) if solve is None
                     else solve(system, A, loads, parts))
     with t("errors"):

@@ -91,6 +91,13 @@ class Slabs:
             return None, None
         return SlabBox(self.box, k0, k1), SlabBox(self.box, k0 - 1, k0 + 1) if k0 > 0 else None
 
+    def lifting_mesh(self, rank: int):
+        """The slab on which the rank computes Theta_h at order 2: its layers with one more below
+        and one more above (within the box), so that every P2 node of its owned and seam cells has
+        all its cut tets there (module docstring)."""
+        k0, k1 = self.layers(rank)
+        return SlabBox(self.box, max(k0 - 1, 0), min(k1 + 1, int(self.box.cells[2])))
+
     def local_levelsets(self, rank: int, levelset, meshes):
         """What the cut of each local mesh takes: the level set itself (a slab evaluates it at the
         global coordinates of its nodes)."""
@@ -165,12 +172,12 @@ def _no_cut(message: str) -> bool:
     return message.startswith(("the level set does not cut", "every piece of the cut collapsed"))
 
 
-def local_cut(mesh, levelset) -> CutMesh:
-    """The cut of one rank's local mesh: :func:`~cutfem.geometry.cut.cut_mesh` with S_h allowed
-    to end on the mesh's boundary; a mesh that the surface misses gives a cut without pieces (its
-    sides' element sets still come from the nodal values)."""
+def local_cut(mesh, levelset, order: int = 1) -> CutMesh:
+    """The cut of one rank's local mesh: :func:`~cutfem.geometry.cut.cut_mesh` (of ``order``) with
+    S_h allowed to end on the mesh's boundary; a mesh that the surface misses gives a cut without
+    pieces (its sides' element sets still come from the nodal values) and without Theta_h."""
     try:
-        return cut_mesh(mesh, levelset, check_boundary=False)
+        return cut_mesh(mesh, levelset, check_boundary=False, order=order)
     except CutError as exc:
         if not _no_cut(str(exc)):
             raise
@@ -199,11 +206,22 @@ class RankCuts:
         return facets.subset((mine[:, 0] != mine[:, 1]) & larger, name=f"{facets.name} across the seam")
 
 
-def rank_cuts(partition, rank: int, levelset) -> RankCuts:
-    """Cut the owned cells and the seam of ``rank`` (see the module docstring)."""
+def rank_cuts(partition, rank: int, levelset, order: int = 1) -> RankCuts:
+    """Cut the owned cells and the seam of ``rank`` (see the module docstring); ``order`` 2 lifts
+    both by the Theta_h of the rank's :meth:`Slabs.lifting_mesh` (slabs only)."""
+    if order == 2 and not isinstance(partition, Slabs):
+        raise ValueError("order 2 runs on several ranks on the slabs of a structured box (background='structured'); an "
+                         "unstructured mesh is P1 on several ranks: run order 2 on it on one rank")
     meshes = partition.local_meshes(rank)
     if meshes[0] is None:
         return RankCuts(partition, rank, None, None)
     phis = partition.local_levelsets(rank, levelset, meshes)
     owned, seam = (None if m is None else local_cut(m, phi) for m, phi in zip(meshes, phis))
+    if order == 2:
+        wide = partition.lifting_mesh(rank)
+        theta = local_cut(wide, levelset, order=2).deformation  # None where the surface misses the wider slab
+        for cut in (owned, seam):
+            if cut is not None and theta is not None:
+                cut.deformation = theta.on(cut.background, cut.background.global_nodes(np.arange(cut.background.n_points))
+                                           - wide.node_offset)
     return RankCuts(partition, rank, owned, seam)

@@ -57,15 +57,17 @@ class GlobalNumbering:
     rank numbers its owned keys (its own and those asked of it) in increasing order.  ``first`` and
     ``n_owned``: this rank's block of numbers; ``n_global`` the number of unknowns.  ``constants``:
     unknowns of no node (a multiplier's), keyed -1, -2, ..., numbered after every node's unknowns
-    and owned by the last rank (its block ends the numbering)."""
+    and owned by the last rank (its block ends the numbering).  ``slots``: the units a node has (a
+    P2 field's 8, :data:`~cutfem.distributed.assembly.P2_SLOTS`: the key's unit is ``node * slots +
+    slot``), all owned by the node's owner."""
 
-    def __init__(self, comm, partition, rank: int, keys, fields: int = 1, constants: int = 0):
+    def __init__(self, comm, partition, rank: int, keys, fields: int = 1, constants: int = 0, slots: int = 1):
         MPI, _ = engine()
         keys = np.unique(np.asarray(keys, dtype=np.int64))
         if len(keys) and keys[0] < -constants:
             raise ValueError(f"key {keys[0]} is below the {constants} constants' keys -1 ... -{constants}")
         constant_keys, keys = keys[keys < 0], keys[keys >= 0]
-        owners = partition.node_owner(keys // fields)
+        owners = partition.node_owner(keys // fields // slots)
         mine = owners == rank
         others = keys[~mine]
         # the other keys go to their owners (grouped by owner), which number them with their own
