@@ -69,6 +69,7 @@ def poisson_cut_level(spacing, surface, background, box, gamma, gamma_g, solver,
 
     rec = solve_on_ranks(comm, phi, bg, lambda cuts: poisson_pieces(cuts, gamma, gamma_g, order),
                          measure, ("l2_error", "h1_error", "volume"), solver, counts, t, order=order)
+    rec["gamma_g"] = gamma_g  # the one used, as the serial record holds it
     if notes:
         rec["warnings"] = notes
     return rec
