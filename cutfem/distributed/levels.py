@@ -27,7 +27,7 @@ from .launch import engine
 from .partition import Slabs, partition_for, rank_cuts
 from .preconditioners import lattice_prolongations
 
-__all__ = ["solve_on_ranks", "shared_background", "cut_counts", "nodal_levelset", "STAGES"]
+__all__ = ["solve_on_ranks", "shared_background", "cut_counts", "nodal_levelset", "p2_points", "STAGES"]
 
 #: the stages of a distributed level, timed on each rank (the record keeps the slowest rank's)
 STAGES = ("geometry", "assembly", "solve", "errors")
@@ -60,6 +60,17 @@ def nodal_levelset(cuts, nodes) -> np.ndarray:
     return np.concatenate(values)[first][np.searchsorted(ids, nodes)]
 
 
+def p2_points(box, units) -> np.ndarray:
+    """The points of the P2 nodes ``units`` (``8 v + c``: :func:`~cutfem.distributed.assembly.global_keys`)
+    of a structured box: the node v, or the mean of the ends of the Kuhn edge {v, v + e_S},
+    c = c(S), bit for bit the serial space's ``dof_points``."""
+    units = np.asarray(units, dtype=np.int64)
+    v, c = units // 8, units % 8
+    step = (c & 1) + (int(box.node_shape[0]) * ((c >> 1) & 1)) + int(box.node_shape[0] * box.node_shape[1]) * (c >> 2)
+    x = box.node_coordinates(v)
+    return np.where((c > 0)[:, None], 0.5 * (x + box.node_coordinates(v + step)), x)
+
+
 def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
                    tol: float = DEFAULT_TOL, bulk: bool = True, fields: int = 1, constrain=None, constants: int = 0,
                    solve=None, order: int = 1) -> dict:
@@ -90,12 +101,17 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
         if constrain is not None:
             constrain(A, loads, numbering, parts)
     with t("solve"):
-        def hierarchy():  # one field on the structured box: the lattice multigrid, doubled by phi_h for a surface field
+        def hierarchy():  # one field on the structured box: the lattice multigrid, doubled by w v (below)
             nodes = numbering.owned_keys
-            return lattice_prolongations(comm, cuts.partition, nodes, None if bulk else nodal_levelset(cuts, nodes))
+            return lattice_prolongations(comm, cuts.partition, nodes, augment(nodes), order=order)
 
-        # an unstructured mesh has no lattice hierarchy; P2 fields have none on PETSc yet
-        lattice = fields == 1 and order == 1 and isinstance(cuts.partition, Slabs)
+        def augment(nodes):  # as the serial problems: phi_h for a P1 surface field, (phi)_+ for a P2 bulk field, else none
+            if order == 2:
+                return np.maximum(levelset.value(p2_points(cuts.partition.box, nodes)), 0.0)
+            return None if bulk else nodal_levelset(cuts, nodes)
+
+        # an unstructured mesh has no lattice hierarchy (nor a P2 surface field on PETSc)
+        lattice = fields == 1 and isinstance(cuts.partition, Slabs) and (order == 1 or bulk)
         xs, info = (system.solve(A, loads, solver, tol, bulk, hierarchy if lattice else None) if solve is None
                     else solve(system, A, loads, parts))
     with t("errors"):

@@ -49,24 +49,39 @@ import scipy.sparse as sp
 from ..solvers.multigrid import kuhn_prolongation
 from .launch import engine
 
-__all__ = ["lattice_prolongations", "set_multigrid", "COARSE_SIZE"]
+__all__ = ["lattice_prolongations", "p2_lattice", "set_multigrid", "COARSE_SIZE"]
 
 #: the coarsest level has at most this many unknowns (the serial augmented hierarchy's, problems/laplace_beltrami.py)
 COARSE_SIZE = 400
 
 
-def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = COARSE_SIZE, max_levels: int = 20) -> list:
+def p2_lattice(box, units) -> np.ndarray:
+    """(n, 3) the P2 nodes ``units`` (``8 v + c``, :func:`~cutfem.distributed.assembly.global_keys`)
+    as nodes of the Kuhn lattice of half the spacing: 2 ijk(v) + o(c), o(c) the unit steps of the
+    code c (0 for the vertex), as :func:`~cutfem.solvers.multigrid.lattice_indices` numbers a serial
+    P2 space."""
+    units = np.asarray(units, dtype=np.int64)
+    code = units % 8
+    return 2 * box.node_index(units // 8) + np.stack([code & 1, (code >> 1) & 1, code >> 2], axis=1)
+
+
+def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = COARSE_SIZE, max_levels: int = 20,
+                          order: int = 1) -> list:
     """The prolongations P_0, P_1, ... (PETSc MPIAIJ, finest first) of the Kuhn lattices below the
-    unknowns ``nodes`` of this rank (its owned unknowns' global background node ids, increasing:
-    the rows of the system it owns, in order), on the structured box of ``slabs``.  ``augment``:
-    the nodal values w of phi_h at ``nodes``, doubling every coarse space with w v (see the module
-    docstring), or None for the plain lattices."""
+    unknowns ``nodes`` of this rank (its owned unknowns' global background node ids, or at
+    ``order`` 2 their P2 nodes ``8 v + c``, increasing: the rows of the system it owns, in order),
+    on the structured box of ``slabs``; a P2 field's first prolongation is the embedding of P1 in
+    it (:func:`p2_lattice`).  ``augment``: nodal values w at ``nodes`` (phi_h of a surface field,
+    (phi)_+ of a P2 bulk field), doubling every coarse space with w v (see the module docstring),
+    or None for the plain lattices."""
     _, PETSc = engine()
     box = slabs.box
     nz = int(box.cells[2])
     per = int(box.node_shape[0] * box.node_shape[1])
     nodes = np.asarray(nodes, dtype=np.int64)
-    ijk = np.stack([nodes % box.node_shape[0], (nodes // box.node_shape[0]) % box.node_shape[1], nodes // per], axis=1)
+    ijk = (p2_lattice(box, nodes) if order == 2 else
+           np.stack([nodes % box.node_shape[0], (nodes // box.node_shape[0]) % box.node_shape[1], nodes // per], axis=1))
+    fine = 2 if order == 2 else 1  # level 0's lattice: spacing h / fine
     copies = np.zeros(len(nodes), dtype=np.int64)  # the rows: lattice nodes (sorted lexicographically) and their copy
     n_global = int(comm.allreduce(len(nodes)))
     out = []
@@ -76,10 +91,11 @@ def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = C
         rows, cols, vals, cijk = _local_rows(ijk, copies, augment if level == 0 else None)
         # the coarse keys: lexicographic number of the coarse node (a box large enough for every
         # level) times 2 plus the copy; the owner: the owner of the node layer 2^(l+1) K_z
-        dims = np.array(box.node_shape, dtype=np.int64) // 2 ** (level + 1) + 2
+        dims = fine * np.array(box.node_shape, dtype=np.int64) // 2 ** (level + 1) + 2
         code = cijk[:, 0] + dims[0] * (cijk[:, 1] + dims[1] * cijk[:, 2])
         keys = 2 * code[cols // 2] + cols % 2
-        owner_of = lambda k: slabs.node_owner(np.minimum(2 ** (level + 1) * (k // 2 // (dims[0] * dims[1])), nz) * per)  # noqa: E731
+        scale = 2 ** (level + 1) // fine  # coarse node K lies on the background node layer scale K_z
+        owner_of = lambda k: slabs.node_owner(np.minimum(scale * (k // 2 // (dims[0] * dims[1])), nz) * per)  # noqa: E731
         owned, first, nc_global, numbers = _number_union(comm, keys, owner_of)
         if nc_global >= 0.9 * n_global:
             break
