@@ -5,13 +5,13 @@ rank's local matrices and load vectors, each with the global node ids of its row
 from :func:`~cutfem.distributed.partition.rank_cuts`: slabs of a structured box or cells of an
 unstructured mesh alike):
 
-* on the owned cells' space (P1 on the element set ``on``): the cell terms (volume, Gamma_h,
+* on the owned cells' space (P1 or P2 on the element set ``on``): the cell terms (volume, Gamma_h,
   load) and the facet terms of the faces with both tets owned;
 * on the seam's space: the facet terms of the faces between an owned tet and a ghost
   (:meth:`~cutfem.distributed.partition.RankCuts.seam_facets`) that this rank alone assembles.
 
 Summed over the ranks, the pieces are the serial matrix and load (the serial unknowns are the
-active nodes, which every piece's rows are).  :func:`rank_system` numbers the nodes globally and
+active nodes, and of P2 the edges of the active tets, which every piece's rows are).  :func:`rank_system` numbers the nodes globally and
 hands the pieces to PETSc (:class:`~cutfem.distributed.system.LinearSystem`).
 """
 

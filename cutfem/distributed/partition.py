@@ -37,6 +37,11 @@ the same on every rank that holds them.  One caveat is inherited from the zero r
 the largest value in its 3 x 3 x 3 block, which a slab truncates at its faces; a nodal value within
 1e-12 of its neighbours' scale of zero may snap differently there (the cell partition evaluates the
 tolerance on all the node's cells and has no such caveat).
+
+At order 2 the cuts are lifted by Theta_h, whose shift of a P2 node is a mean over the node's cut
+tets, which for a node on a slab's top plane lie in the next rank's layer too: each rank computes
+Theta_h on its :meth:`Slabs.lifting_mesh` (its layers, the seam's ghost layer and one more layer
+above) and moves it onto both cuts, so the shifts it uses are the serial ones (docs/math.md §19).
 """
 
 from __future__ import annotations

@@ -7,7 +7,9 @@ on its seam the ghost penalty of the faces between an owned cell and a ghost tha
 assembles.  Each is assembled by the serial code on the local mesh's own space and moved to the
 global numbers (:class:`~cutfem.distributed.system.GlobalNumbering`), so the matrix, the load and
 the solution are the serial ones up to the order of the floating-point sums, and so are the errors
-(sums of squares over the owned cells, added over the ranks).
+(sums of squares over the owned cells, added over the ranks).  At ``order`` 2 (on the structured
+box's slabs) the fields are P2 on the cuts lifted by the serial Theta_h (docs/math.md §19), with
+the serial order-2 terms and ghost penalty.
 """
 
 from __future__ import annotations

@@ -16,7 +16,8 @@ ranks and handed to PETSc, which does the Galerkin products, the smoothing and t
 
 Distributed hierarchy
 ---------------------
-Level l is a set of nodes of the lattice 2^l h Z^3 (level 0: the active background nodes) with one
+Level l is a set of nodes of the lattice 2^l h Z^3 (level 0: the active background nodes; of a P2
+field the P2 nodes on the lattice h/2 Z^3, level l >= 1 then on 2^(l-1) h Z^3) with one
 or two copies each (v and phi_h v); node I of level l is owned by the owner of the background node
 layer 2^l I_z (:meth:`~cutfem.distributed.partition.Slabs.node_owner`'s rule), so a rank's rows of
 every level are a slab of the lattice and level 0 is the system's own numbering.  Each rank builds

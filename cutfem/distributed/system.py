@@ -11,7 +11,9 @@ hold), so a node's number is its owner's offset (an exclusive scan of the counts
 among the owner's nodes, and the numbers of the other nodes a rank touches come from their owners
 in one all-to-all exchange (:class:`GlobalNumbering`).  Slabs own consecutive blocks of node ids,
 so their numbers are the serial ones and a distributed vector is the serial one entry by entry; the
-cell partition's are a permutation of them, the serial order within each rank.
+cell partition's are a permutation of them, the serial order within each rank.  A P2 field's
+unknowns are keyed by their P2 node ``8 v + c`` (``slots`` 8: the node v and the Kuhn edges above
+it), owned by v's owner: the serial count, in a permutation of the serial order.
 
 System
 ------
