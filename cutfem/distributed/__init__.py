@@ -26,7 +26,7 @@ DISTRIBUTED_LEVELS = {
 
 #: the problems whose distributed level also assembles P2 fields (on the structured box's slabs,
 #: docs/math.md §19), and takes ``order``; the others are P1 on the planar cut
-DISTRIBUTED_ORDERS = {"poisson-cut": (1, 2)}
+DISTRIBUTED_ORDERS = {"poisson-cut": (1, 2), "laplace-beltrami-cut": (1, 2)}
 
 
 def distributed_orders(name: str) -> tuple:

@@ -27,7 +27,7 @@ from .launch import engine
 from .partition import Slabs, partition_for, rank_cuts
 from .preconditioners import lattice_prolongations
 
-__all__ = ["solve_on_ranks", "shared_background", "cut_counts", "nodal_levelset", "p2_points", "STAGES"]
+__all__ = ["solve_on_ranks", "shared_background", "cut_counts", "nodal_levelset", "p2_levelset", "p2_points", "STAGES"]
 
 #: the stages of a distributed level, timed on each rank (the record keeps the slowest rank's)
 STAGES = ("geometry", "assembly", "solve", "errors")
@@ -60,15 +60,29 @@ def nodal_levelset(cuts, nodes) -> np.ndarray:
     return np.concatenate(values)[first][np.searchsorted(ids, nodes)]
 
 
-def p2_points(box, units) -> np.ndarray:
-    """The points of the P2 nodes ``units`` (``8 v + c``: :func:`~cutfem.distributed.assembly.global_keys`)
-    of a structured box: the node v, or the mean of the ends of the Kuhn edge {v, v + e_S},
-    c = c(S), bit for bit the serial space's ``dof_points``."""
+def _p2_ends(box, units):
+    """The ends (v, w) of the P2 nodes ``units`` (``8 v + c``: :func:`~cutfem.distributed.assembly.global_keys`)
+    of a structured box: the Kuhn edge {v, v + e_S} for c = c(S), w = v for the vertex (c = 0)."""
     units = np.asarray(units, dtype=np.int64)
     v, c = units // 8, units % 8
-    step = (c & 1) + (int(box.node_shape[0]) * ((c >> 1) & 1)) + int(box.node_shape[0] * box.node_shape[1]) * (c >> 2)
+    return v, v + (c & 1) + int(box.node_shape[0]) * ((c >> 1) & 1) + int(box.node_shape[0] * box.node_shape[1]) * (c >> 2)
+
+
+def p2_points(box, units) -> np.ndarray:
+    """The points of the P2 nodes ``units`` of a structured box (:func:`_p2_ends`): the node, or the
+    mean of the edge's ends, bit for bit the serial space's ``dof_points``."""
+    v, w = _p2_ends(box, units)
     x = box.node_coordinates(v)
-    return np.where((c > 0)[:, None], 0.5 * (x + box.node_coordinates(v + step)), x)
+    return np.where((w > v)[:, None], 0.5 * (x + box.node_coordinates(w)), x)
+
+
+def p2_levelset(cuts, units) -> np.ndarray:
+    """phi_h (the P1 interpolant) at the P2 nodes ``units`` this rank owns (:func:`_p2_ends`): the
+    nodal value at a vertex, the mean of the ends' at an edge's midpoint, as the serial
+    ``interpolate_nodal``."""
+    v, w = _p2_ends(cuts.partition.box, units)
+    a, b = nodal_levelset(cuts, v), nodal_levelset(cuts, w)
+    return np.where(w > v, 0.5 * (a + b), a)
 
 
 def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
@@ -105,13 +119,15 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
             nodes = numbering.owned_keys
             return lattice_prolongations(comm, cuts.partition, nodes, augment(nodes), order=order)
 
-        def augment(nodes):  # as the serial problems: phi_h for a P1 surface field, (phi)_+ for a P2 bulk field, else none
-            if order == 2:
-                return np.maximum(levelset.value(p2_points(cuts.partition.box, nodes)), 0.0)
-            return None if bulk else nodal_levelset(cuts, nodes)
+        def augment(nodes):  # as the serial problems: a surface field phi_h (P1) or phi_h and phi_h^2 (P2), a P2
+            if bulk:         # bulk field (phi)_+, a P1 bulk field none
+                return np.maximum(levelset.value(p2_points(cuts.partition.box, nodes)), 0.0) if order == 2 else None
+            if order == 1:
+                return nodal_levelset(cuts, nodes)
+            w = p2_levelset(cuts, nodes)
+            return np.column_stack([w, w**2])
 
-        # an unstructured mesh has no lattice hierarchy (nor a P2 surface field on PETSc)
-        lattice = fields == 1 and isinstance(cuts.partition, Slabs) and (order == 1 or bulk)
+        lattice = fields == 1 and isinstance(cuts.partition, Slabs)  # an unstructured mesh has no lattice hierarchy
         xs, info = (system.solve(A, loads, solver, tol, bulk, hierarchy if lattice else None) if solve is None
                     else solve(system, A, loads, parts))
     with t("errors"):

@@ -74,7 +74,8 @@ def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = C
     on the structured box of ``slabs``; a P2 field's first prolongation is the embedding of P1 in
     it (:func:`p2_lattice`).  ``augment``: nodal values w at ``nodes`` (phi_h of a surface field,
     (phi)_+ of a P2 bulk field), doubling every coarse space with w v (see the module docstring),
-    or None for the plain lattices."""
+    or k columns of them (phi_h and phi_h^2 of a P2 surface field: k + 1 copies), or None for the
+    plain lattices."""
     _, PETSc = engine()
     box = slabs.box
     nz = int(box.cells[2])
@@ -83,20 +84,21 @@ def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = C
     ijk = (p2_lattice(box, nodes) if order == 2 else
            np.stack([nodes % box.node_shape[0], (nodes // box.node_shape[0]) % box.node_shape[1], nodes // per], axis=1))
     fine = 2 if order == 2 else 1  # level 0's lattice: spacing h / fine
+    m = 2 if augment is None or np.ndim(augment) == 1 else 1 + np.shape(augment)[1]  # copies of a coarse node
     copies = np.zeros(len(nodes), dtype=np.int64)  # the rows: lattice nodes (sorted lexicographically) and their copy
     n_global = int(comm.allreduce(len(nodes)))
     out = []
     for level in range(max_levels):
         if n_global <= coarse_size:
             break
-        rows, cols, vals, cijk = _local_rows(ijk, copies, augment if level == 0 else None)
+        rows, cols, vals, cijk = _local_rows(ijk, copies, augment if level == 0 else None, m)
         # the coarse keys: lexicographic number of the coarse node (a box large enough for every
-        # level) times 2 plus the copy; the owner: the owner of the node layer 2^(l+1) K_z
+        # level) times m plus the copy; the owner: the owner of its node layer
         dims = fine * np.array(box.node_shape, dtype=np.int64) // 2 ** (level + 1) + 2
         code = cijk[:, 0] + dims[0] * (cijk[:, 1] + dims[1] * cijk[:, 2])
-        keys = 2 * code[cols // 2] + cols % 2
+        keys = m * code[cols // m] + cols % m
         scale = 2 ** (level + 1) // fine  # coarse node K lies on the background node layer scale K_z
-        owner_of = lambda k: slabs.node_owner(np.minimum(scale * (k // 2 // (dims[0] * dims[1])), nz) * per)  # noqa: E731
+        owner_of = lambda k: slabs.node_owner(np.minimum(scale * (k // m // (dims[0] * dims[1])), nz) * per)  # noqa: E731
         owned, first, nc_global, numbers = _number_union(comm, keys, owner_of)
         if nc_global >= 0.9 * n_global:
             break
@@ -107,15 +109,15 @@ def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = C
                                   csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType), local.data), comm=comm)
         P.assemble()
         out.append(P)
-        code = owned // 2
+        code = owned // m
         ijk = np.stack([code % dims[0], (code // dims[0]) % dims[1], code // (dims[0] * dims[1])], axis=1)
-        copies, n_global = owned % 2, nc_global
+        copies, n_global = owned % m, nc_global
     return out
 
 
-def _local_rows(ijk, copies, augment):
+def _local_rows(ijk, copies, augment, m: int = 2):
     """The entries (row, local column, weight) of this rank's rows of a prolongation, and the
-    coarse lattice nodes (mc, 3) the local columns 2 j + c name (node j, copy c)."""
+    coarse lattice nodes (mc, 3) the local columns m j + c name (node j, copy c of m)."""
     if len(ijk) == 0:
         return (np.zeros(0, np.int64),) * 2 + (np.zeros(0), np.zeros((0, 3), np.int64))
     code = ijk[:, 0] + (ijk[:, 0].max() + 1) * (ijk[:, 1] + (ijk[:, 1].max() + 1) * ijk[:, 2])
@@ -126,11 +128,15 @@ def _local_rows(ijk, copies, augment):
     rows = np.repeat(np.arange(len(ijk)), counts)
     starts = np.repeat(P.indptr[:-1][which] - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
     at = starts + np.arange(len(rows))
-    cols, vals = 2 * P.indices[at].astype(np.int64) + copies[rows], P.data[at]
-    if augment is not None:  # the first level: copy 0 gets v, copy 1 gets phi_h v
-        w = np.asarray(augment, dtype=float)[rows] * vals
-        keep = w != 0.0
-        rows, cols, vals = np.concatenate([rows, rows[keep]]), np.concatenate([cols, cols[keep] + 1]), np.concatenate([vals, w[keep]])
+    cols, vals = m * P.indices[at].astype(np.int64) + copies[rows], P.data[at]
+    if augment is not None:  # the first level: copy 0 gets v, copy j gets w_j v
+        ws = np.asarray(augment, dtype=float).reshape(len(ijk), -1)
+        parts = [(rows, cols, vals)]
+        for j in range(ws.shape[1]):
+            w = ws[rows, j] * vals
+            keep = w != 0.0
+            parts.append((rows[keep], cols[keep] + 1 + j, w[keep]))
+        rows, cols, vals = (np.concatenate(a) for a in zip(*parts))
     return rows, cols, vals, cijk
 
 
