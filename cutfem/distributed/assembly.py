@@ -23,6 +23,7 @@ import numpy as np
 
 from ..fem.forms import assemble
 from ..fem.spaces import CutSpace, VectorSpace
+from .partition import P2_SLOTS
 from .system import GlobalNumbering, LinearSystem
 
 __all__ = ["Piece", "RankPieces", "global_keys", "rank_pieces", "rank_system"]
@@ -60,15 +61,11 @@ def _scalar_fields(space) -> list:
     return [g for f in fields for g in ([f.scalar] * f.components if isinstance(f, VectorSpace) else [f])]
 
 
-#: the unknowns of a P2 field per lattice node of a structured box: the node (slot 0) and the Kuhn
-#: edges {v, v + e_S} above it (slot c(S) in 1..7, :data:`cutfem.geometry.box.KUHN_EDGE_CODES`)
-P2_SLOTS = 8
-
-
 def _p2_units(space) -> np.ndarray:
     """The global P2 nodes of a P2 field on a slab (:class:`~cutfem.distributed.partition.SlabBox`),
     in its dof order: ``8 v`` for the vertex v, ``8 v + c(S)`` for the midpoint of the lattice edge
-    {v, v + e_S} (v its lower end), computable from the two global node ids on every rank."""
+    {v, v + e_S} (v its lower end), computable from the two global node ids on every rank (the
+    inverse: :meth:`~cutfem.distributed.partition.Slabs.p2_ends`)."""
     box = space.cut.background
     nodes = box.global_nodes(space.node_ids)
     lo, hi = space.node_ids[space.edge_nodes[:, 0]], space.node_ids[space.edge_nodes[:, 1]]  # increasing ids: lo < hi
@@ -122,8 +119,8 @@ def rank_pieces(cuts, on, cells, faces=None, face_form=None, order: int = 1) -> 
 def rank_system(parts: RankPieces, cuts, comm, fields: int = 1, constants: int = 0) -> tuple[LinearSystem, GlobalNumbering]:
     """The global numbering of the pieces' unknowns (``fields`` per node for a product space, and
     ``constants`` one-unknown fields keyed -1, -2, ...) and the system they add up to (not yet on
-    PETSc: :meth:`~cutfem.distributed.system.LinearSystem.petsc`); a P2 field has :data:`P2_SLOTS`
-    units a node."""
+    PETSc: :meth:`~cutfem.distributed.system.LinearSystem.petsc`); a P2 field has
+    :data:`~cutfem.distributed.partition.P2_SLOTS` units a node."""
     slots = P2_SLOTS if parts.order == 2 else 1
     numbering = GlobalNumbering(comm, cuts.partition, cuts.rank, parts.keys, fields, constants, slots)
     system = LinearSystem(comm, numbering)

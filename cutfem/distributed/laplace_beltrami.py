@@ -5,7 +5,9 @@ The forms are the serial problem's (:class:`cutfem.problems.laplace_beltrami.Lap
 on the owned cells the tangential stiffness, the mass and the load over their pieces of Gamma_h
 (and the normal-gradient term over their cut tets), and the face stabilization tau_F h^a J_F of
 the faces between two owned cells; on the seam J_F of the faces between an owned cell and a ghost
-that the rank assembles (:meth:`~cutfem.distributed.partition.RankCuts.seam_facets`).
+that the rank assembles (:meth:`~cutfem.distributed.partition.RankCuts.seam_facets`).  At ``order``
+2 (on the structured box's slabs) P2 trace fields on S_h lifted by the serial Theta_h
+(docs/math.md §19), with the serial order-2 ``auto`` stabilization.
 """
 
 from __future__ import annotations

@@ -60,27 +60,19 @@ def nodal_levelset(cuts, nodes) -> np.ndarray:
     return np.concatenate(values)[first][np.searchsorted(ids, nodes)]
 
 
-def _p2_ends(box, units):
-    """The ends (v, w) of the P2 nodes ``units`` (``8 v + c``: :func:`~cutfem.distributed.assembly.global_keys`)
-    of a structured box: the Kuhn edge {v, v + e_S} for c = c(S), w = v for the vertex (c = 0)."""
-    units = np.asarray(units, dtype=np.int64)
-    v, c = units // 8, units % 8
-    return v, v + (c & 1) + int(box.node_shape[0]) * ((c >> 1) & 1) + int(box.node_shape[0] * box.node_shape[1]) * (c >> 2)
-
-
-def p2_points(box, units) -> np.ndarray:
-    """The points of the P2 nodes ``units`` of a structured box (:func:`_p2_ends`): the node, or the
-    mean of the edge's ends, bit for bit the serial space's ``dof_points``."""
-    v, w = _p2_ends(box, units)
-    x = box.node_coordinates(v)
-    return np.where((w > v)[:, None], 0.5 * (x + box.node_coordinates(w)), x)
+def p2_points(slabs, units) -> np.ndarray:
+    """The points of the P2 nodes ``units`` of the structured box of ``slabs``
+    (:meth:`~cutfem.distributed.partition.Slabs.p2_ends`): the node, or the mean of the edge's
+    ends, bit for bit the serial space's ``dof_points``."""
+    v, w = slabs.p2_ends(units)
+    x = slabs.box.node_coordinates(v)
+    return np.where((w > v)[:, None], 0.5 * (x + slabs.box.node_coordinates(w)), x)
 
 
 def p2_levelset(cuts, units) -> np.ndarray:
-    """phi_h (the P1 interpolant) at the P2 nodes ``units`` this rank owns (:func:`_p2_ends`): the
-    nodal value at a vertex, the mean of the ends' at an edge's midpoint, as the serial
-    ``interpolate_nodal``."""
-    v, w = _p2_ends(cuts.partition.box, units)
+    """phi_h (the P1 interpolant) at the P2 nodes ``units`` this rank owns: the nodal value at a
+    vertex, the mean of the ends' at an edge's midpoint, as the serial ``interpolate_nodal``."""
+    v, w = cuts.partition.p2_ends(units)
     a, b = nodal_levelset(cuts, v), nodal_levelset(cuts, w)
     return np.where(w > v, 0.5 * (a + b), a)
 
@@ -121,7 +113,7 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
 
         def augment(nodes):  # as the serial problems: a surface field phi_h (P1) or phi_h and phi_h^2 (P2), a P2
             if bulk:         # bulk field (phi)_+, a P1 bulk field none
-                return np.maximum(levelset.value(p2_points(cuts.partition.box, nodes)), 0.0) if order == 2 else None
+                return np.maximum(levelset.value(p2_points(cuts.partition, nodes)), 0.0) if order == 2 else None
             if order == 1:
                 return nodal_levelset(cuts, nodes)
             w = p2_levelset(cuts, nodes)

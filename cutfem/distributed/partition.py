@@ -56,7 +56,13 @@ from ..geometry.mesh import TetMesh
 from ..geometry.nodal_values import CutError
 from .unstructured import cell_partition
 
-__all__ = ["Slabs", "SlabBox", "slab_partition", "partition_for", "rank_cuts", "RankCuts", "local_cut"]
+__all__ = ["P2_SLOTS", "Slabs", "SlabBox", "slab_partition", "partition_for", "rank_cuts", "RankCuts", "local_cut"]
+
+
+#: the unknowns of a P2 field per lattice node of a structured box, keyed ``8 v + c``: the node v
+#: (c = 0) and the midpoints of the Kuhn edges {v, v + e_S} above it (c = c(S) in 1..7,
+#: :data:`cutfem.geometry.box.KUHN_EDGE_CODES`)
+P2_SLOTS = 8
 
 
 @dataclass(frozen=True)
@@ -83,6 +89,15 @@ class Slabs:
         (the top node layer goes to the owner of the top cell layer)."""
         k = np.asarray(node_ids, dtype=np.int64) // int(self.box.node_shape[0] * self.box.node_shape[1])
         return self.layer_owner(np.minimum(k, int(self.box.cells[2]) - 1))
+
+    def p2_ends(self, units):
+        """The global node ids (v, w) of the ends of the P2 nodes ``units`` (``8 v + c``,
+        :data:`P2_SLOTS`): w = v + e_S for the midpoint of the edge of code c = c(S), w = v for
+        the vertex (c = 0)."""
+        units = np.asarray(units, dtype=np.int64)
+        v, c = units // P2_SLOTS, units % P2_SLOTS
+        nx, ny = (int(n) for n in self.box.node_shape[:2])
+        return v, v + (c & 1) + nx * ((c >> 1) & 1) + nx * ny * (c >> 2)
 
     def cell_owner(self, tet_ids) -> np.ndarray:
         """The rank owning each (global) tet: the owner of its cell layer."""

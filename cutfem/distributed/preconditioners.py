@@ -18,7 +18,8 @@ Distributed hierarchy
 ---------------------
 Level l is a set of nodes of the lattice 2^l h Z^3 (level 0: the active background nodes; of a P2
 field the P2 nodes on the lattice h/2 Z^3, level l >= 1 then on 2^(l-1) h Z^3) with one
-or two copies each (v and phi_h v); node I of level l is owned by the owner of the background node
+or two copies each (v and phi_h v; k + 1 for k augmenting vectors, phi_h and phi_h^2 of a P2
+surface field); node I of level l is owned by the owner of the background node
 layer 2^l I_z (:meth:`~cutfem.distributed.partition.Slabs.node_owner`'s rule), so a rank's rows of
 every level are a slab of the lattice and level 0 is the system's own numbering.  Each rank builds
 the rows of P_l that it owns with :func:`~cutfem.solvers.multigrid.kuhn_prolongation` (weight 1 on
@@ -50,20 +51,10 @@ import scipy.sparse as sp
 from ..solvers.multigrid import kuhn_prolongation
 from .launch import engine
 
-__all__ = ["lattice_prolongations", "p2_lattice", "set_multigrid", "COARSE_SIZE"]
+__all__ = ["lattice_prolongations", "set_multigrid", "COARSE_SIZE"]
 
 #: the coarsest level has at most this many unknowns (the serial augmented hierarchy's, problems/laplace_beltrami.py)
 COARSE_SIZE = 400
-
-
-def p2_lattice(box, units) -> np.ndarray:
-    """(n, 3) the P2 nodes ``units`` (``8 v + c``, :func:`~cutfem.distributed.assembly.global_keys`)
-    as nodes of the Kuhn lattice of half the spacing: 2 ijk(v) + o(c), o(c) the unit steps of the
-    code c (0 for the vertex), as :func:`~cutfem.solvers.multigrid.lattice_indices` numbers a serial
-    P2 space."""
-    units = np.asarray(units, dtype=np.int64)
-    code = units % 8
-    return 2 * box.node_index(units // 8) + np.stack([code & 1, (code >> 1) & 1, code >> 2], axis=1)
 
 
 def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = COARSE_SIZE, max_levels: int = 20,
@@ -71,8 +62,10 @@ def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = C
     """The prolongations P_0, P_1, ... (PETSc MPIAIJ, finest first) of the Kuhn lattices below the
     unknowns ``nodes`` of this rank (its owned unknowns' global background node ids, or at
     ``order`` 2 their P2 nodes ``8 v + c``, increasing: the rows of the system it owns, in order),
-    on the structured box of ``slabs``; a P2 field's first prolongation is the embedding of P1 in
-    it (:func:`p2_lattice`).  ``augment``: nodal values w at ``nodes`` (phi_h of a surface field,
+    on the structured box of ``slabs``.  A P2 node, the midpoint of the edge {v, w}
+    (:meth:`~cutfem.distributed.partition.Slabs.p2_ends`; w = v for a vertex), is the node
+    ijk(v) + ijk(w) of the lattice of half the spacing (as :func:`~cutfem.solvers.multigrid.lattice_indices`
+    numbers a serial P2 space), so the first prolongation is the embedding of P1 in P2.  ``augment``: nodal values w at ``nodes`` (phi_h of a surface field,
     (phi)_+ of a P2 bulk field), doubling every coarse space with w v (see the module docstring),
     or k columns of them (phi_h and phi_h^2 of a P2 surface field: k + 1 copies), or None for the
     plain lattices."""
@@ -81,8 +74,7 @@ def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = C
     nz = int(box.cells[2])
     per = int(box.node_shape[0] * box.node_shape[1])
     nodes = np.asarray(nodes, dtype=np.int64)
-    ijk = (p2_lattice(box, nodes) if order == 2 else
-           np.stack([nodes % box.node_shape[0], (nodes // box.node_shape[0]) % box.node_shape[1], nodes // per], axis=1))
+    ijk = box.node_index(nodes) if order == 1 else sum(box.node_index(end) for end in slabs.p2_ends(nodes))
     fine = 2 if order == 2 else 1  # level 0's lattice: spacing h / fine
     m = 2 if augment is None or np.ndim(augment) == 1 else 1 + np.shape(augment)[1]  # copies of a coarse node
     copies = np.zeros(len(nodes), dtype=np.int64)  # the rows: lattice nodes (sorted lexicographically) and their copy

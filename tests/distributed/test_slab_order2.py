@@ -7,8 +7,7 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
-from cutfem.distributed.assembly import P2_SLOTS
-from cutfem.distributed.partition import partition_for, rank_cuts, slab_partition
+from cutfem.distributed.partition import P2_SLOTS, partition_for, rank_cuts, slab_partition
 from cutfem.distributed.laplace_beltrami import laplace_beltrami_pieces
 from cutfem.distributed.poisson import poisson_pieces
 from cutfem.fem.forms import assemble
