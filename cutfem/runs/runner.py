@@ -397,7 +397,7 @@ def _level_solver(problem):
         orders = distributed_orders(problem.name)
 
         def distributed(spacing, order=1, **params):  # most distributed levels are P1 on the planar cut
-            if order in orders:
+            if order == 1 or (order in orders and launched_size() > 1):  # order 2 on one rank: the serial level, as ever
                 return level(spacing, **params, **({"order": order} if len(orders) > 1 else {}))
             if launched_size() > 1:
                 twos = ", ".join(n for n, o in DISTRIBUTED_ORDERS.items() if 2 in o)

@@ -6,15 +6,18 @@ or no active cell, and the iterations of CG with the lattice multigrid.
 Every rank runs every test in the same order (the tests are collective); sizes below the number of
 ranks run on the first ranks (a split communicator)."""
 
+import json
+
 import pytest
 
 pytest.importorskip("mpi4py")
 pytest.importorskip("petsc4py")
 
 from cutfem.distributed import distributed_params  # noqa: E402
-from cutfem.distributed.launch import engine  # noqa: E402
+from cutfem.distributed.launch import engine, launched  # noqa: E402
 from cutfem.distributed.laplace_beltrami import laplace_beltrami_cut_level  # noqa: E402
 from cutfem.distributed.poisson import poisson_cut_level  # noqa: E402
+from cutfem.runs.cli import main  # noqa: E402
 from cutfem.runs.registry import get_problem  # noqa: E402
 
 MPI, PETSc = engine()
@@ -117,3 +120,17 @@ def test_order2_lattice_multigrid(name, spacing, most):
     rec = LEVELS[name](spacing, **p, comm=WORLD)
     check_equal(name, rec, serial, tol=1e-5)
     assert rec["pc"] == "mg" and rec["solver_iterations"] <= most
+
+
+@pytest.mark.skipif(not launched() or WORLD.size == 1, reason="the command line's distributed path at order 2 runs on several ranks")
+def test_command_line_order2_under_mpiexec(tmp_path_factory):
+    """``mpiexec -n N cutfem run poisson-cut --order 2`` (N > 1): the distributed level at order 2,
+    the serial record's unknowns and errors; a problem that is P1 on several ranks is refused."""
+    folder = WORLD.bcast(str(tmp_path_factory.mktemp("cli2")) if WORLD.rank == 0 else None)
+    path = f"{folder}/poisson2.json"
+    assert main(["run", "poisson-cut", "--order", "2", "--levels", "0.2", "--solver", "direct", "--json", path, "--quiet"]) == 0
+    WORLD.Barrier()
+    rec = json.load(open(path))["records"][0]
+    assert rec["ranks"] == WORLD.size and rec["pc"] == "lu (mumps)"
+    check_equal("poisson-cut", rec, serial_record("poisson-cut", 0.2))
+    assert main(["run", "mean-curvature-cut", "--order", "2", "--levels", "0.2", "--quiet"]) == 2
