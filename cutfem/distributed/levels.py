@@ -27,7 +27,7 @@ from .launch import engine
 from .partition import Slabs, partition_for, rank_cuts
 from .preconditioners import lattice_prolongations
 
-__all__ = ["solve_on_ranks", "shared_background", "cut_counts", "nodal_levelset", "STAGES"]
+__all__ = ["solve_on_ranks", "shared_background", "cut_counts", "nodal_levelset", "p2_levelset", "p2_points", "STAGES"]
 
 #: the stages of a distributed level, timed on each rank (the record keeps the slowest rank's)
 STAGES = ("geometry", "assembly", "solve", "errors")
@@ -59,9 +59,26 @@ def nodal_levelset(cuts, nodes) -> np.ndarray:
     return np.concatenate(values)[first][np.searchsorted(ids, nodes)]
 
 
+def p2_points(slabs, units) -> np.ndarray:
+    """The points of the P2 nodes ``units`` of the structured box of ``slabs``
+    (:meth:`~cutfem.distributed.partition.Slabs.p2_ends`): the node, or the mean of the edge's
+    ends, bit for bit the serial space's ``dof_points``."""
+    v, w = slabs.p2_ends(units)
+    x = slabs.box.node_coordinates(v)
+    return np.where((w > v)[:, None], 0.5 * (x + slabs.box.node_coordinates(w)), x)
+
+
+def p2_levelset(cuts, units) -> np.ndarray:
+    """phi_h (the P1 interpolant) at the P2 nodes ``units`` this rank owns: the nodal value at a
+    vertex, the mean of the ends' at an edge's midpoint, as the serial ``interpolate_nodal``."""
+    v, w = cuts.partition.p2_ends(units)
+    a, b = nodal_levelset(cuts, v), nodal_levelset(cuts, w)
+    return np.where(w > v, 0.5 * (a + b), a)
+
+
 def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="auto", counts=None, timer=None,
                    tol: float = DEFAULT_TOL, bulk: bool = True, fields: int = 1, constrain=None, constants: int = 0,
-                   solve=None) -> dict:
+                   solve=None, order: int = 1) -> dict:
     """Solve one level of a problem on the ranks of ``comm``; returns the record's common part.
 
     ``build(cuts)``: the rank's :class:`~cutfem.distributed.assembly.RankPieces`;
@@ -78,11 +95,12 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
     hierarchy)``: ``([x, ...], info)`` in place of :meth:`~cutfem.distributed.system.LinearSystem.solve`
     (a saddle-point system's, :mod:`cutfem.distributed.saddle`), ``hierarchy(nodes, components, constants)``
     the lattice prolongations of a field at its owned nodes on the structured box, None on an
-    unstructured mesh."""
+    unstructured mesh; ``order`` 2: the cuts lifted by Theta_h
+    (:func:`~cutfem.distributed.partition.rank_cuts`) for the P2 fields of ``build``."""
     MPI, _ = engine()
     t = Timer() if timer is None else timer
     with t("geometry"):
-        cuts = rank_cuts(partition_for(background, comm.size, counts), comm.rank, levelset)
+        cuts = rank_cuts(partition_for(background, comm.size, counts), comm.rank, levelset, order)
     with t("assembly"):
         parts = build(cuts)
         for cut in (cuts.owned, cuts.seam):  # the forms are assembled: their measures' memory serves PETSc's matrix and solve
@@ -95,10 +113,18 @@ def solve_on_ranks(comm, levelset, background, build, measure, keys, solver="aut
     with t("solve"):
         def hierarchy(nodes=None, components=1, constants=0):
             """The lattice multigrid below ``nodes`` (the owned nodes of a field, default: the one
-            field's unknowns), doubled by phi_h for a surface field."""
+            field's unknowns), each coarse space doubled by w v (:func:`augment`)."""
             nodes = numbering.owned_keys if nodes is None else nodes
-            return lattice_prolongations(comm, cuts.partition, nodes, None if bulk else nodal_levelset(cuts, nodes),
-                                         components=components, constants=constants)
+            return lattice_prolongations(comm, cuts.partition, nodes, augment(nodes), components=components,
+                                         constants=constants, order=order)
+
+        def augment(nodes):  # as the serial problems: a surface field phi_h (P1) or phi_h and phi_h^2 (P2), a P2
+            if bulk:         # bulk field (phi)_+, a P1 bulk field none
+                return np.maximum(levelset.value(p2_points(cuts.partition, nodes)), 0.0) if order == 2 else None
+            if order == 1:
+                return nodal_levelset(cuts, nodes)
+            w = p2_levelset(cuts, nodes)
+            return np.column_stack([w, w**2])
 
         lattice = isinstance(cuts.partition, Slabs)  # an unstructured mesh has no lattice hierarchy
         xs, info = (system.solve(A, loads, solver, tol, bulk, hierarchy if lattice and fields == 1 else None) if solve is None

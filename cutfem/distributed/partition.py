@@ -37,6 +37,11 @@ the same on every rank that holds them.  One caveat is inherited from the zero r
 the largest value in its 3 x 3 x 3 block, which a slab truncates at its faces; a nodal value within
 1e-12 of its neighbours' scale of zero may snap differently there (the cell partition evaluates the
 tolerance on all the node's cells and has no such caveat).
+
+At order 2 the cuts are lifted by Theta_h, whose shift of a P2 node is a mean over the node's cut
+tets, which for a node on a slab's top plane lie in the next rank's layer too: each rank computes
+Theta_h on its :meth:`Slabs.lifting_mesh` (its layers, the seam's ghost layer and one more layer
+above) and moves it onto both cuts, so the shifts it uses are the serial ones (docs/math.md §19).
 """
 
 from __future__ import annotations
@@ -51,7 +56,13 @@ from ..geometry.mesh import TetMesh
 from ..geometry.nodal_values import CutError
 from .unstructured import cell_partition
 
-__all__ = ["Slabs", "SlabBox", "slab_partition", "partition_for", "rank_cuts", "RankCuts", "local_cut"]
+__all__ = ["P2_SLOTS", "Slabs", "SlabBox", "slab_partition", "partition_for", "rank_cuts", "RankCuts", "local_cut"]
+
+
+#: the unknowns of a P2 field per lattice node of a structured box, keyed ``8 v + c``: the node v
+#: (c = 0) and the midpoints of the Kuhn edges {v, v + e_S} above it (c = c(S) in 1..7,
+#: :data:`cutfem.geometry.box.KUHN_EDGE_CODES`)
+P2_SLOTS = 8
 
 
 @dataclass(frozen=True)
@@ -79,6 +90,15 @@ class Slabs:
         k = np.asarray(node_ids, dtype=np.int64) // int(self.box.node_shape[0] * self.box.node_shape[1])
         return self.layer_owner(np.minimum(k, int(self.box.cells[2]) - 1))
 
+    def p2_ends(self, units):
+        """The global node ids (v, w) of the ends of the P2 nodes ``units`` (``8 v + c``,
+        :data:`P2_SLOTS`): w = v + e_S for the midpoint of the edge of code c = c(S), w = v for
+        the vertex (c = 0)."""
+        units = np.asarray(units, dtype=np.int64)
+        v, c = units // P2_SLOTS, units % P2_SLOTS
+        nx, ny = (int(n) for n in self.box.node_shape[:2])
+        return v, v + (c & 1) + nx * ((c >> 1) & 1) + nx * ny * (c >> 2)
+
     def cell_owner(self, tet_ids) -> np.ndarray:
         """The rank owning each (global) tet: the owner of its cell layer."""
         return self.layer_owner(np.asarray(tet_ids, dtype=np.int64) // (6 * int(self.box.cells[0]) * int(self.box.cells[1])))
@@ -90,6 +110,13 @@ class Slabs:
         if k1 == k0:
             return None, None
         return SlabBox(self.box, k0, k1), SlabBox(self.box, k0 - 1, k0 + 1) if k0 > 0 else None
+
+    def lifting_mesh(self, rank: int):
+        """The slab on which the rank computes Theta_h at order 2: its layers with one more below
+        and one more above (within the box), so that every P2 node of its owned and seam cells has
+        all its cut tets there (module docstring)."""
+        k0, k1 = self.layers(rank)
+        return SlabBox(self.box, max(k0 - 1, 0), min(k1 + 1, int(self.box.cells[2])))
 
     def local_levelsets(self, rank: int, levelset, meshes):
         """What the cut of each local mesh takes: the level set itself (a slab evaluates it at the
@@ -165,12 +192,12 @@ def _no_cut(message: str) -> bool:
     return message.startswith(("the level set does not cut", "every piece of the cut collapsed"))
 
 
-def local_cut(mesh, levelset) -> CutMesh:
-    """The cut of one rank's local mesh: :func:`~cutfem.geometry.cut.cut_mesh` with S_h allowed
-    to end on the mesh's boundary; a mesh that the surface misses gives a cut without pieces (its
-    sides' element sets still come from the nodal values)."""
+def local_cut(mesh, levelset, order: int = 1) -> CutMesh:
+    """The cut of one rank's local mesh: :func:`~cutfem.geometry.cut.cut_mesh` (of ``order``) with
+    S_h allowed to end on the mesh's boundary; a mesh that the surface misses gives a cut without
+    pieces (its sides' element sets still come from the nodal values) and without Theta_h."""
     try:
-        return cut_mesh(mesh, levelset, check_boundary=False)
+        return cut_mesh(mesh, levelset, check_boundary=False, order=order)
     except CutError as exc:
         if not _no_cut(str(exc)):
             raise
@@ -199,11 +226,22 @@ class RankCuts:
         return facets.subset((mine[:, 0] != mine[:, 1]) & larger, name=f"{facets.name} across the seam")
 
 
-def rank_cuts(partition, rank: int, levelset) -> RankCuts:
-    """Cut the owned cells and the seam of ``rank`` (see the module docstring)."""
+def rank_cuts(partition, rank: int, levelset, order: int = 1) -> RankCuts:
+    """Cut the owned cells and the seam of ``rank`` (see the module docstring); ``order`` 2 lifts
+    both by the Theta_h of the rank's :meth:`Slabs.lifting_mesh` (slabs only)."""
+    if order == 2 and not isinstance(partition, Slabs):
+        raise ValueError("order 2 runs on several ranks on the slabs of a structured box (background='structured'); an "
+                         "unstructured mesh is P1 on several ranks: run order 2 on it on one rank")
     meshes = partition.local_meshes(rank)
     if meshes[0] is None:
         return RankCuts(partition, rank, None, None)
     phis = partition.local_levelsets(rank, levelset, meshes)
     owned, seam = (None if m is None else local_cut(m, phi) for m, phi in zip(meshes, phis))
+    if order == 2:
+        wide = partition.lifting_mesh(rank)
+        theta = local_cut(wide, levelset, order=2).deformation  # None where the surface misses the wider slab
+        for cut in (owned, seam):
+            if cut is not None and theta is not None:
+                cut.deformation = theta.on(cut.background, cut.background.global_nodes(np.arange(cut.background.n_points))
+                                           - wide.node_offset)
     return RankCuts(partition, rank, owned, seam)

@@ -17,8 +17,10 @@ ranks and handed to PETSc, which does the Galerkin products, the smoothing and t
 
 Distributed hierarchy
 ---------------------
-Level l is a set of nodes of the lattice 2^l h Z^3 (level 0: the active background nodes) with one
-or two copies each (v and phi_h v); node I of level l is owned by the owner of the background node
+Level l is a set of nodes of the lattice 2^l h Z^3 (level 0: the active background nodes; of a P2
+field the P2 nodes on the lattice h/2 Z^3, level l >= 1 then on 2^(l-1) h Z^3) with one
+or two copies each (v and phi_h v; k + 1 for k augmenting vectors, phi_h and phi_h^2 of a P2
+surface field); node I of level l is owned by the owner of the background node
 layer 2^l I_z (:meth:`~cutfem.distributed.partition.Slabs.node_owner`'s rule), so a rank's rows of
 every level are a slab of the lattice and level 0 is the system's own numbering.  Each rank builds
 the rows of P_l that it owns with :func:`~cutfem.solvers.multigrid.kuhn_prolongation` (weight 1 on
@@ -66,23 +68,30 @@ COARSE_SIZE = 400
 
 
 def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = COARSE_SIZE, max_levels: int = 20,
-                          components: int = 1, constants: int = 0) -> list:
+                          components: int = 1, constants: int = 0, order: int = 1) -> list:
     """The prolongations P_0, P_1, ... (PETSc MPIAIJ, finest first) of the Kuhn lattices below the
-    unknowns ``nodes`` of this rank (its owned unknowns' global background node ids, increasing:
-    the rows of the system it owns, in order), on the structured box of ``slabs``.  ``augment``:
-    the nodal values w of phi_h at ``nodes``, doubling every coarse space with w v (see the module
-    docstring), or None for the plain lattices.  ``components``: the unknowns of a node, numbered
-    together (a velocity's 3 components, row 3 i + c the component c of node i): the prolongation
-    of each level is the scalar one applied to each component, P kron I_c, and the coarsest level
-    has at most ``coarse_size`` unknowns.  ``constants``: unknowns of no node after the last rank's
-    rows (a multiplier, :class:`~cutfem.distributed.system.GlobalNumbering`), kept on every level
-    (an identity row and column at the end of the last rank's block)."""
+    unknowns ``nodes`` of this rank (its owned unknowns' global background node ids, or at
+    ``order`` 2 their P2 nodes ``8 v + c``, increasing: the rows of the system it owns, in order),
+    on the structured box of ``slabs``.  A P2 node, the midpoint of the edge {v, w}
+    (:meth:`~cutfem.distributed.partition.Slabs.p2_ends`; w = v for a vertex), is the node
+    ijk(v) + ijk(w) of the lattice of half the spacing (as :func:`~cutfem.solvers.multigrid.lattice_indices`
+    numbers a serial P2 space), so the first prolongation is the embedding of P1 in P2.  ``augment``:
+    nodal values w at ``nodes`` (phi_h of a surface field, (phi)_+ of a P2 bulk field), doubling
+    every coarse space with w v (see the module docstring), or k columns of them (phi_h and phi_h^2
+    of a P2 surface field: k + 1 copies), or None for the plain lattices.  ``components``: the
+    unknowns of a node, numbered together (a velocity's 3 components, row 3 i + c the component c of
+    node i): the prolongation of each level is the scalar one applied to each component, P kron I_c,
+    and the coarsest level has at most ``coarse_size`` unknowns.  ``constants``: unknowns of no node
+    after the last rank's rows (a multiplier, :class:`~cutfem.distributed.system.GlobalNumbering`),
+    kept on every level (an identity row and column at the end of the last rank's block)."""
     _, PETSc = engine()
     box = slabs.box
     nz = int(box.cells[2])
     per = int(box.node_shape[0] * box.node_shape[1])
     nodes = np.asarray(nodes, dtype=np.int64)
-    ijk = np.stack([nodes % box.node_shape[0], (nodes // box.node_shape[0]) % box.node_shape[1], nodes // per], axis=1)
+    ijk = box.node_index(nodes) if order == 1 else sum(box.node_index(end) for end in slabs.p2_ends(nodes))
+    fine = 2 if order == 2 else 1  # level 0's lattice: spacing h / fine
+    m = 2 if augment is None or np.ndim(augment) == 1 else 1 + np.shape(augment)[1]  # copies of a coarse node
     copies = np.zeros(len(nodes), dtype=np.int64)  # the rows: lattice nodes (sorted lexicographically) and their copy
     n_global = int(comm.allreduce(len(nodes)))
     out = []
@@ -90,13 +99,14 @@ def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = C
     for level in range(max_levels):
         if c * n_global <= coarse_size:
             break
-        rows, cols, vals, cijk = _local_rows(ijk, copies, augment if level == 0 else None)
+        rows, cols, vals, cijk = _local_rows(ijk, copies, augment if level == 0 else None, m)
         # the coarse keys: lexicographic number of the coarse node (a box large enough for every
-        # level) times 2 plus the copy; the owner: the owner of the node layer 2^(l+1) K_z
-        dims = np.array(box.node_shape, dtype=np.int64) // 2 ** (level + 1) + 2
+        # level) times m plus the copy; the owner: the owner of its node layer
+        dims = fine * np.array(box.node_shape, dtype=np.int64) // 2 ** (level + 1) + 2
         code = cijk[:, 0] + dims[0] * (cijk[:, 1] + dims[1] * cijk[:, 2])
-        keys = 2 * code[cols // 2] + cols % 2
-        owner_of = lambda k: slabs.node_owner(np.minimum(2 ** (level + 1) * (k // 2 // (dims[0] * dims[1])), nz) * per)  # noqa: E731
+        keys = m * code[cols // m] + cols % m
+        scale = 2 ** (level + 1) // fine  # coarse node K lies on the background node layer scale K_z
+        owner_of = lambda k: slabs.node_owner(np.minimum(scale * (k // m // (dims[0] * dims[1])), nz) * per)  # noqa: E731
         owned, first, nc_global, numbers = _number_union(comm, keys, owner_of)
         if nc_global >= 0.9 * n_global:
             break
@@ -113,15 +123,15 @@ def lattice_prolongations(comm, slabs, nodes, augment=None, coarse_size: int = C
                                   csr=(local.indptr.astype(PETSc.IntType), local.indices.astype(PETSc.IntType), local.data), comm=comm)
         P.assemble()
         out.append(P)
-        code = owned // 2
+        code = owned // m
         ijk = np.stack([code % dims[0], (code // dims[0]) % dims[1], code // (dims[0] * dims[1])], axis=1)
-        copies, n_global = owned % 2, nc_global
+        copies, n_global = owned % m, nc_global
     return out
 
 
-def _local_rows(ijk, copies, augment):
+def _local_rows(ijk, copies, augment, m: int = 2):
     """The entries (row, local column, weight) of this rank's rows of a prolongation, and the
-    coarse lattice nodes (mc, 3) the local columns 2 j + c name (node j, copy c)."""
+    coarse lattice nodes (mc, 3) the local columns m j + c name (node j, copy c of m)."""
     if len(ijk) == 0:
         return (np.zeros(0, np.int64),) * 2 + (np.zeros(0), np.zeros((0, 3), np.int64))
     code = ijk[:, 0] + (ijk[:, 0].max() + 1) * (ijk[:, 1] + (ijk[:, 1].max() + 1) * ijk[:, 2])
@@ -132,11 +142,15 @@ def _local_rows(ijk, copies, augment):
     rows = np.repeat(np.arange(len(ijk)), counts)
     starts = np.repeat(P.indptr[:-1][which] - np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
     at = starts + np.arange(len(rows))
-    cols, vals = 2 * P.indices[at].astype(np.int64) + copies[rows], P.data[at]
-    if augment is not None:  # the first level: copy 0 gets v, copy 1 gets phi_h v
-        w = np.asarray(augment, dtype=float)[rows] * vals
-        keep = w != 0.0
-        rows, cols, vals = np.concatenate([rows, rows[keep]]), np.concatenate([cols, cols[keep] + 1]), np.concatenate([vals, w[keep]])
+    cols, vals = m * P.indices[at].astype(np.int64) + copies[rows], P.data[at]
+    if augment is not None:  # the first level: copy 0 gets v, copy j gets w_j v
+        ws = np.asarray(augment, dtype=float).reshape(len(ijk), -1)
+        parts = [(rows, cols, vals)]
+        for j in range(ws.shape[1]):
+            w = ws[rows, j] * vals
+            keep = w != 0.0
+            parts.append((rows[keep], cols[keep] + 1 + j, w[keep]))
+        rows, cols, vals = (np.concatenate(a) for a in zip(*parts))
     return rows, cols, vals, cijk
 
 

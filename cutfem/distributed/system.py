@@ -11,7 +11,9 @@ hold), so a node's number is its owner's offset (an exclusive scan of the counts
 among the owner's nodes, and the numbers of the other nodes a rank touches come from their owners
 in one all-to-all exchange (:class:`GlobalNumbering`).  Slabs own consecutive blocks of node ids,
 so their numbers are the serial ones and a distributed vector is the serial one entry by entry; the
-cell partition's are a permutation of them, the serial order within each rank.
+cell partition's are a permutation of them, the serial order within each rank.  A P2 field's
+unknowns are keyed by their P2 node ``8 v + c`` (``slots`` 8: the node v and the Kuhn edges above
+it), owned by v's owner: the serial count, in a permutation of the serial order.
 
 System
 ------
@@ -57,15 +59,17 @@ class GlobalNumbering:
     rank numbers its owned keys (its own and those asked of it) in increasing order.  ``first`` and
     ``n_owned``: this rank's block of numbers; ``n_global`` the number of unknowns.  ``constants``:
     unknowns of no node (a multiplier's), keyed -1, -2, ..., numbered after every node's unknowns
-    and owned by the last rank (its block ends the numbering)."""
+    and owned by the last rank (its block ends the numbering).  ``slots``: the units a node has (a
+    P2 field's 8, :data:`~cutfem.distributed.assembly.P2_SLOTS`: the key's unit is ``node * slots +
+    slot``), all owned by the node's owner."""
 
-    def __init__(self, comm, partition, rank: int, keys, fields: int = 1, constants: int = 0):
+    def __init__(self, comm, partition, rank: int, keys, fields: int = 1, constants: int = 0, slots: int = 1):
         MPI, _ = engine()
         keys = np.unique(np.asarray(keys, dtype=np.int64))
         if len(keys) and keys[0] < -constants:
             raise ValueError(f"key {keys[0]} is below the {constants} constants' keys -1 ... -{constants}")
         constant_keys, keys = keys[keys < 0], keys[keys >= 0]
-        owners = partition.node_owner(keys // fields)
+        owners = partition.node_owner(keys // fields // slots)
         mine = owners == rank
         others = keys[~mine]
         # the other keys go to their owners (grouped by owner), which number them with their own

@@ -112,7 +112,6 @@ class Deformation:
 
     def __init__(self, cut):
         value = _as_values_function(cut.levelset)
-        self.background = cut.background
         n_bg = int(cut.background.n_points)
         tets = np.asarray(cut.tets, dtype=np.int64)
         points, p = cut.points, len(cut.points)
@@ -138,14 +137,35 @@ class Deformation:
         step = _newton_shifts(form, grads, direction[inverse], cut.values[tets], cut.elements(CUT).h)
         d = np.bincount(inverse.reshape(-1), weights=step.reshape(-1), minlength=len(keys)) / count
         node_ids = np.asarray(cut.node_ids, dtype=np.int64)
-        self.node_keys = node_ids[lo] * n_bg + node_ids[hi]  # increasing: node_ids increase with the active numbers
-        self.directions = direction
-        self.shifts = d[:, None] * direction
-        self._n = n_bg
-        moved = np.any(self.shifts != 0.0, axis=1)
-        self._moved_keys, self._moved_shifts = self.node_keys[moved], self.shifts[moved]
-        self._moved_vertices = np.unique(np.concatenate([node_ids[lo[moved]], node_ids[hi[moved]]]))
+        # increasing keys: node_ids increase with the active numbers
+        self._set(cut.background, node_ids[lo] * n_bg + node_ids[hi], direction, d[:, None] * direction)
+
+    def _set(self, background, node_keys, directions, shifts) -> None:
+        """Hold the P2 nodes' keys (increasing, in ``background``'s node ids) with their directions
+        and shifts, and the moved ones for :meth:`element_shifts`."""
+        self.background, self._n = background, int(background.n_points)
+        self.node_keys, self.directions, self.shifts = node_keys, directions, shifts
+        moved = np.any(shifts != 0.0, axis=1)
+        self._moved_keys, self._moved_shifts = node_keys[moved], shifts[moved]
+        self._moved_vertices = np.unique(np.concatenate([node_keys[moved] // self._n, node_keys[moved] % self._n]))
         self._element_cache: dict = {}
+
+    def on(self, background, ids) -> "Deformation":
+        """The same Theta_h on another background mesh whose node i is node ``ids[i]`` of this one's
+        (a part of it): the P2 nodes with both ends among ``ids``.  A distributed run computes the
+        shifts on a slab one cell layer wider than the cells it assembles, so that each node's means
+        over its cut tets are the serial ones (docs/math.md §19), and moves them onto its slabs."""
+        ids = np.asarray(ids, dtype=np.int64)
+        local = np.full(self._n, -1, dtype=np.int64)
+        local[ids] = np.arange(len(ids))
+        a, b = local[self.node_keys // self._n], local[self.node_keys % self._n]
+        keep = np.flatnonzero((a >= 0) & (b >= 0))
+        n = int(background.n_points)
+        keys = np.minimum(a[keep], b[keep]) * n + np.maximum(a[keep], b[keep])
+        order = np.argsort(keys, kind="stable")
+        out = object.__new__(Deformation)
+        out._set(background, keys[order], self.directions[keep[order]], self.shifts[keep[order]])
+        return out
 
     def __repr__(self) -> str:
         return f"Deformation(order=2, nodes={len(self.node_keys)}, moved={len(self._moved_keys)})"

@@ -29,7 +29,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..distributed import DISTRIBUTED_LEVELS, distributed_level, launched, launched_size
+from ..distributed import DISTRIBUTED_LEVELS, DISTRIBUTED_ORDERS, distributed_level, distributed_orders, launched, launched_size
 from ..memory import large_run
 from .registry import COMMON_DEFINITIONS, ProblemError, check_levels, get_problem
 
@@ -394,12 +394,15 @@ def _level_solver(problem):
         return problem.solve_level
     level = distributed_level(problem.name)
     if level is not None:
-        def distributed(spacing, order=1, **params):  # the distributed levels are P1 on the planar cut
-            if order == 1:
-                return level(spacing, **params)
+        orders = distributed_orders(problem.name)
+
+        def distributed(spacing, order=1, **params):  # most distributed levels are P1 on the planar cut
+            if order == 1 or (order in orders and launched_size() > 1):  # order 2 on one rank: the serial level, as ever
+                return level(spacing, **params, **({"order": order} if len(orders) > 1 else {}))
             if launched_size() > 1:
+                twos = ", ".join(n for n, o in DISTRIBUTED_ORDERS.items() if 2 in o)
                 raise ProblemError(f"{problem.name} --order {order} is not distributed (the ranks assemble P1 fields on the "
-                                   "planar cut): run it on one rank, or --order 1 on several")
+                                   f"planar cut): run it on one rank, or --order 1 on several (distributed at order 2: {twos})")
             return problem.solve_level(spacing, order=order, **params)
 
         return distributed
