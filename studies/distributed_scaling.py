@@ -34,6 +34,7 @@ from cutfem.distributed import distributed_params
 from cutfem.distributed.launch import engine
 from cutfem.distributed.mean_curvature import mean_curvature_cut_level
 from cutfem.distributed.poisson import poisson_cut_level
+from cutfem.memory import configure
 
 #: problem -> (its distributed level, its parameters, the study's spacing, the fields of its unknowns)
 PROBLEMS = {
@@ -59,6 +60,7 @@ def scaling_record(comm, spacing: float, problem: str = "poisson-cut") -> dict:
 
 
 def _worker(problem: str, spacing: float, out: Path) -> None:
+    configure()  # a large run: the allocation settings of the serial studies (cutfem.memory)
     MPI, _ = engine()
     comm = MPI.COMM_WORLD
     rec = scaling_record(comm, spacing, problem)
