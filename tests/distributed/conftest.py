@@ -88,3 +88,21 @@ def _summed(partition, phi, V, pieces=lambda cuts: poisson_pieces(cuts, 10.0, 0.
 def summed():
     """``summed(partition, phi, V, pieces=poisson's)``: every rank's pieces added up serially."""
     return _summed
+
+
+@pytest.fixture(scope="session")
+def first_ranks():
+    """``first_ranks(size)``: a communicator of the first ``size`` ranks of COMM_WORLD (None on the
+    others; the test skips when there are fewer ranks)."""
+    from cutfem.distributed.launch import engine  # the MPI tests only: mpi4py may be missing
+
+    MPI, _ = engine()
+    world = MPI.COMM_WORLD
+
+    def split(size):
+        if world.size < size:
+            pytest.skip(f"needs {size} ranks, runs on {world.size}")
+        comm = world.Split(0 if world.rank < size else MPI.UNDEFINED, world.rank)
+        return None if comm == MPI.COMM_NULL else comm
+
+    return split

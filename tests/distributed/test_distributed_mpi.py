@@ -42,15 +42,6 @@ MPI, PETSc = engine()
 WORLD = MPI.COMM_WORLD
 
 
-
-def ranks(size):
-    """A communicator of the first ``size`` ranks (None on the others); skips when there are fewer."""
-    if WORLD.size < size:
-        pytest.skip(f"needs {size} ranks, runs on {WORLD.size}")
-    comm = WORLD.Split(0 if WORLD.rank < size else MPI.UNDEFINED, WORLD.rank)
-    return None if comm == MPI.COMM_NULL else comm
-
-
 def partitions(nz):
     """The block split and one with empty ranks (the first, and every other when there are 4)."""
     size = WORLD.size
@@ -129,10 +120,10 @@ def serial_record(name, level, **given):
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 4])
-def test_poisson_errors_equal_serial(size):
+def test_poisson_errors_equal_serial(size, first_ranks):
     """poisson-cut at spacings 0.2 and 0.1 on 1-4 ranks: the unknowns, the cut's sizes and the
     errors of the serial run (both solved directly) to 1e-10 relative."""
-    comm = ranks(size)
+    comm = first_ranks(size)
     for spacing in (0.2, 0.1):
         serial = serial_record("poisson-cut", spacing, surface="torus", solver="direct")
         if comm is None:
@@ -148,9 +139,9 @@ def test_poisson_errors_equal_serial(size):
 
 
 @pytest.mark.parametrize("size", [2, 4])
-def test_laplace_beltrami_errors_equal_serial(size):
+def test_laplace_beltrami_errors_equal_serial(size, first_ranks):
     """laplace-beltrami-cut on the sphere at spacing 0.2, J_F across the ranks."""
-    comm = ranks(size)
+    comm = first_ranks(size)
     serial = serial_record("laplace-beltrami-cut", 0.2, solver="direct")
     if comm is None:
         return
@@ -162,10 +153,10 @@ def test_laplace_beltrami_errors_equal_serial(size):
 
 
 @pytest.mark.parametrize("size", [1, 2, 4])
-def test_mean_curvature_equals_serial(size):
+def test_mean_curvature_equals_serial(size, first_ranks):
     """mean-curvature-cut on the torus at spacing 0.1 (J_F across the ranks, three loads, one KSP):
     the serial errors, area and integral of H to 1e-10, both solved directly."""
-    comm = ranks(size)
+    comm = first_ranks(size)
     serial = serial_record("mean-curvature-cut", 0.1, solver="direct")
     if comm is None:
         return
@@ -179,11 +170,11 @@ def test_mean_curvature_equals_serial(size):
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 4])
-def test_interface_errors_equal_serial(size):
+def test_interface_errors_equal_serial(size, first_ranks):
     """interface-poisson-cut (two fields keyed node * 2 + side, the ghost penalty of each side once,
     the box's Dirichlet condition eliminated on PETSc) at a contrast of 10: the serial errors of both
     sides to 1e-10, both solved directly."""
-    comm = ranks(size)
+    comm = first_ranks(size)
     given = {"solver": "direct", "a_inside": 10.0, "radius": 0.7}
     serial = serial_record("interface-poisson-cut", 0.2, **given)
     if comm is None:
@@ -240,10 +231,10 @@ def test_surface_multigrid_is_flat_and_independent_of_the_ranks(name, surface, b
             assert max(iterations.values()) - iterations[1] <= 3, iterations
 
 
-def test_poisson_rates_on_two_ranks():
+def test_poisson_rates_on_two_ranks(first_ranks):
     """L2 O(h^2) and H1 O(h) between spacings 0.2 and 0.1 on 2 ranks, solved by CG + GAMG
     (measured serially: 2.2 and 1.1 on the torus)."""
-    comm = ranks(2)
+    comm = first_ranks(2)
     if comm is None:
         return
     p = distributed_params("poisson-cut", {"surface": "torus", "solver": "cg-amg"})
@@ -341,11 +332,11 @@ def test_stokes_matrix_action_and_load_equal_serial(stokes_ball, which):
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 4])
-def test_stokes_errors_equal_serial(size):
+def test_stokes_errors_equal_serial(size, first_ranks):
     """stokes-cut on the ball at spacing 0.2 on 1-4 ranks: the serial run's unknowns, sizes and errors
     (both "auto": MUMPS and SuperLU) to 1e-10 relative; MINRES with the field split (PCMG on the
     lattice hierarchy for both blocks) to 1e-10 of them too, its iterations and true residual in the record."""
-    comm = ranks(size)
+    comm = first_ranks(size)
     serial = serial_record("stokes-cut", 0.2)
     if comm is None:
         return
@@ -436,11 +427,11 @@ def serial_on(monkeypatch, module, mesh, name, level, **given):
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 4])
-def test_unstructured_poisson_errors_equal_serial(tet_torus, monkeypatch, size):
+def test_unstructured_poisson_errors_equal_serial(tet_torus, monkeypatch, size, first_ranks):
     """poisson-cut on the unstructured mesh of the torus on 1-4 ranks (bisection, and on 4 ranks a
     rank without active cells): the serial unknowns, sizes and errors to 1e-10, both solved directly."""
     phi, mesh, _, V, *_ = tet_torus
-    comm = ranks(size)
+    comm = first_ranks(size)
     serial = serial_on(monkeypatch, "poisson", mesh, "poisson-cut", 0.2, surface="torus", background="tetwild", solver="direct")
     if comm is None:
         return
@@ -454,10 +445,10 @@ def test_unstructured_poisson_errors_equal_serial(tet_torus, monkeypatch, size):
 
 
 @pytest.mark.parametrize("size", [2, 4])
-def test_unstructured_laplace_beltrami_errors_equal_serial(tet_sphere, monkeypatch, size):
+def test_unstructured_laplace_beltrami_errors_equal_serial(tet_sphere, monkeypatch, size, first_ranks):
     """laplace-beltrami-cut on an unstructured mesh of the sphere's box, J_F across the ranks."""
     phi, mesh = tet_sphere
-    comm = ranks(size)
+    comm = first_ranks(size)
     serial = serial_on(monkeypatch, "laplace_beltrami", mesh, "laplace-beltrami-cut", 0.2, background="tetwild", solver="direct")
     if comm is None:
         return
@@ -508,13 +499,13 @@ def without_cells(mesh, size, last):
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 4])
-def test_unstructured_interface_errors_equal_serial(tet_sphere, monkeypatch, size):
+def test_unstructured_interface_errors_equal_serial(tet_sphere, monkeypatch, size, first_ranks):
     """interface-poisson-cut on a jittered, renumbered mesh of the box on 1-4 ranks (bisection, and
     on 4 ranks rank 0 without cells): the outer Dirichlet nodes are those of the mesh's boundary
     facets (found on the whole mesh, not on a rank's cells, whose own boundary runs through the
     box), so the unknowns, sizes and errors of both sides are the serial ones to 1e-10."""
     _, mesh = tet_sphere
-    comm = ranks(size)
+    comm = first_ranks(size)
     given = {"solver": "direct", "a_inside": 10.0, "radius": 0.7}
     serial = serial_on(monkeypatch, "interface_poisson", mesh, "interface-poisson-cut", 0.2, **given)
     if comm is None:
@@ -529,12 +520,12 @@ def test_unstructured_interface_errors_equal_serial(tet_sphere, monkeypatch, siz
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 4])
-def test_unstructured_stokes_errors_equal_serial(tet_sphere, monkeypatch, size):
+def test_unstructured_stokes_errors_equal_serial(tet_sphere, monkeypatch, size, first_ranks):
     """stokes-cut on a jittered, renumbered mesh of the ball's box on 1-4 ranks (bisection, and on
     4 ranks the last rank, the multiplier's owner, without cells): the serial unknowns, sizes and
     errors to 1e-10 with MUMPS and with MINRES (GAMG on the velocity: no lattice hierarchy)."""
     _, mesh = tet_sphere
-    comm = ranks(size)
+    comm = first_ranks(size)
     serial = serial_on(monkeypatch, "stokes", mesh, "stokes-cut", 0.2, background="tetwild")
     if comm is None:
         return

@@ -32,14 +32,6 @@ TALL = "-1.1,-1.1,-1.1,1.1,1.1,2.1"
 TALL_SPLITS = {1: [16], 2: [11, 5], 3: [0, 11, 5], 4: [0, 8, 3, 5]}
 
 
-def ranks(size):
-    """A communicator of the first ``size`` ranks (None on the others); skips when there are fewer."""
-    if WORLD.size < size:
-        pytest.skip(f"needs {size} ranks, runs on {WORLD.size}")
-    comm = WORLD.Split(0 if WORLD.rank < size else MPI.UNDEFINED, WORLD.rank)
-    return None if comm == MPI.COMM_NULL else comm
-
-
 def serial_record(name, spacing, box=None):
     key = (name, spacing, box)
     if key not in SERIAL:
@@ -58,8 +50,8 @@ def check_equal(name, rec, serial, tol=1e-10):
         assert abs(rec[key] - serial[key]) <= tol * abs(serial[key]), (key, rec[key], serial[key])
 
 
-def run_level(name, size, spacing, box=None, counts=None, tol=1e-10):
-    comm = ranks(size)
+def run_level(comm, name, size, spacing, box=None, counts=None, tol=1e-10):
+    """The level on ``comm`` (None on the ranks outside it) against the serial record."""
     serial = serial_record(name, spacing, box)
     if comm is None:
         return
@@ -72,28 +64,28 @@ def run_level(name, size, spacing, box=None, counts=None, tol=1e-10):
 
 @pytest.mark.parametrize("name", sorted(LEVELS))
 @pytest.mark.parametrize("size", [1, 2, 3, 4])
-def test_order2_errors_equal_serial(name, size):
+def test_order2_errors_equal_serial(name, size, first_ranks):
     """Spacing 0.2 (6975 P2 unknowns of poisson-cut, 4518 of laplace-beltrami-cut) on 1-4 ranks,
     split in blocks: the serial errors to 1e-10 relative (both direct)."""
-    run_level(name, size, 0.2)
+    run_level(first_ranks(size), name, size, 0.2)
 
 
 @pytest.mark.parametrize("name", sorted(LEVELS))
 @pytest.mark.parametrize("size", [1, 2, 3, 4])
-def test_order2_with_idle_ranks(name, size):
+def test_order2_with_idle_ranks(name, size, first_ranks):
     """The tall box at spacing 0.2 with ranks that own no layer or no active cell (:data:`TALL_SPLITS`)."""
-    run_level(name, size, 0.2, TALL, TALL_SPLITS[size])
+    run_level(first_ranks(size), name, size, 0.2, TALL, TALL_SPLITS[size])
 
 
 @pytest.mark.slow
 @pytest.mark.parametrize("name", sorted(LEVELS))
 @pytest.mark.parametrize("size", [1, 2, 4])
-def test_order2_errors_equal_serial_fine(name, size):
+def test_order2_errors_equal_serial_fine(name, size, first_ranks):
     """As above at spacing 0.1 (42337 and 17220 unknowns); laplace-beltrami-cut's L2 error to 1e-9:
     it differs from the serial one by 6e-15 (1.3e-10 relative) on 2 ranks, by 8e-11 relative on one
     rank, whose matrix is the serial one to the order of the sums: the round-off of the two direct
     solvers (the serial factorization and MUMPS), not of the assembly."""
-    run_level(name, size, 0.1, tol=1e-9 if name == "laplace-beltrami-cut" else 1e-10)
+    run_level(first_ranks(size), name, size, 0.1, tol=1e-9 if name == "laplace-beltrami-cut" else 1e-10)
 
 
 def test_poisson_order2_gamg():

@@ -27,14 +27,6 @@ WORLD = MPI.COMM_WORLD
 BOUND = 62
 
 
-def ranks(size):
-    """A communicator of the first ``size`` ranks (None on the others); skips when there are fewer."""
-    if WORLD.size < size:
-        pytest.skip(f"needs {size} ranks, runs on {WORLD.size}")
-    comm = WORLD.Split(0 if WORLD.rank < size else MPI.UNDEFINED, WORLD.rank)
-    return None if comm == MPI.COMM_NULL else comm
-
-
 def local_rows(P):
     """This rank's rows of a PETSc matrix, as a scipy CSR matrix with the global columns."""
     indptr, indices, data = P.getValuesCSR()
@@ -76,10 +68,10 @@ def test_vector_and_constant_prolongations_are_the_scalar_ones_per_component():
 
 
 @pytest.mark.parametrize("size", [1, 2])
-def test_stokes_minres_iterations_are_bounded_with_the_lattice_multigrid(size):
+def test_stokes_minres_iterations_are_bounded_with_the_lattice_multigrid(size, first_ranks):
     """stokes-cut on the ball at spacings 0.2 and 0.1 (4 041 and 22 997 unknowns): MINRES with PCMG
     on both blocks needs at most :data:`BOUND` iterations, and at 0.1 its errors are MUMPS's to 1e-10."""
-    comm = ranks(size)
+    comm = first_ranks(size)
     if comm is None:
         return
     for spacing in (0.2, 0.1):
